@@ -1,0 +1,1 @@
+"""Calibration of a plenoptic camera: lenslet and focal-spot centres, image distance."""

@@ -1,0 +1,325 @@
+"""The ``plenopiv`` command (DESIGN.md §7). Every subcommand takes ``--json``.
+
+Orchestration only: parse, validate, call the library, write products atomically, report.
+Errors that plenopiv raises on purpose are printed as one line (``error: ...``) with exit
+status 2; nothing is written when an input is rejected.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from plenopiv import __version__
+from plenopiv.camera import CameraModel, load_camera, preset_names
+from plenopiv.errors import ConfigError, PlenopivError
+from plenopiv.io import to_json, write_h5, write_image
+
+
+# ---- shared helpers ------------------------------------------------------------------------
+
+
+def _progress_bar(total: int, desc: str, quiet: bool):
+    bar = tqdm(total=total, desc=desc, unit="", disable=quiet or None, leave=False,
+               file=sys.stderr, dynamic_ncols=True)
+    return bar, (lambda n: bar.update(n))
+
+
+def _camera_from_args(args) -> CameraModel:
+    cam = load_camera(args.camera)
+    if getattr(args, "image_distance_mm", None) is not None:
+        cam = cam.with_image_distance(args.image_distance_mm * 1e-3)
+    return cam
+
+
+def _finish(irr, args, rng):
+    from plenopiv.synthetic.images import finish_image
+
+    bits = None if args.bit_depth == 0 else args.bit_depth
+    return finish_image(irr, blur_px=args.blur_px, noise=args.noise, bit_depth=bits,
+                        full_well=args.full_well, read_noise=args.read_noise, rng=rng)
+
+
+def _check_out(path: str, suffixes: tuple[str, ...]) -> Path:
+    p = Path(path)
+    if p.suffix.lower() not in suffixes:
+        raise ConfigError(f"--out {path!r}: expected a file ending in {' or '.join(suffixes)}")
+    return p
+
+
+def _image_summary(img) -> dict:
+    return {"shape": list(img.shape), "dtype": str(img.dtype), "max": float(img.max()),
+            "mean": float(img.mean())}
+
+
+# ---- simulate ------------------------------------------------------------------------------
+
+
+def cmd_simulate(args) -> dict:
+    """Render a synthetic image (or a pair) and write it."""
+    from plenopiv.synthetic import images as S
+
+    cam = _camera_from_args(args)
+    rng = np.random.default_rng(args.seed)
+    kind = args.kind
+    t0 = time.perf_counter()
+    summary: dict = {"command": f"simulate {kind}", "camera": cam.name,
+                     "image_distance_mm": cam.image_distance * 1e3}
+    if kind in ("focal-point", "alignment", "ruler"):
+        out = _check_out(args.out, (".tif", ".tiff", ".png"))
+        bar, tick = _progress_bar(cam.microlens_array.count if kind != "ruler" else 32,
+                                  f"render {kind}", args.quiet or args.json)
+        with bar:
+            if kind == "focal-point":
+                f_number = args.f_number or cam.main_lens.f_number
+                irr = S.focal_point_image(cam, f_number=f_number, progress=tick)
+                summary["f_number"] = f_number
+            elif kind == "alignment":
+                irr = S.alignment_image(cam, progress=tick)
+            else:
+                ruler = S.Ruler(spacing=args.spacing_mm * 1e-3,
+                                tick_width=args.tick_width_mm * 1e-3, depth=args.depth_mm * 1e-3)
+                bar.total = None
+                irr = S.ruler_image(cam, ruler, f_number=args.f_number, seed=args.seed,
+                                    rays_per_lenslet=args.rays_per_lenslet)
+                summary.update(spacing_mm=args.spacing_mm, depth_mm=args.depth_mm)
+        img = _finish(irr, args, rng)
+        meta = {"plenopiv": __version__, "kind": kind, "camera": cam.to_dict(), **summary}
+        write_image(out, img, metadata=meta)
+    elif kind in ("particles", "pair"):
+        summary.update(_simulate_particles(cam, args, rng))
+        return {**summary, "seconds": round(time.perf_counter() - t0, 3)}
+    summary.update(out=str(out), **_image_summary(img),
+                   seconds=round(time.perf_counter() - t0, 3))
+    return summary
+
+
+def _seeding(cam: CameraModel, args, rng):
+    from plenopiv.synthetic.seeding import SeedingBox, particle_count
+
+    depth = (args.depth_mm[0] * 1e-3, args.depth_mm[1] * 1e-3)
+    box = SeedingBox.field_of_view(cam, depth, fill=args.fill)
+    if args.n_particles is not None:
+        n = args.n_particles
+    elif args.particles_per_mm3 is not None:
+        n = particle_count(cam, box, per_mm3=args.particles_per_mm3)
+    else:
+        n = particle_count(cam, box, per_lenslet=args.particles_per_lenslet)
+    if n < 1:
+        raise ConfigError(f"the seeding gives {n} particles: expected at least 1")
+    return box, n
+
+
+def _flow_from_args(cam: CameraModel, args, box):
+    from plenopiv.synthetic import flows
+
+    dt = args.dt
+    vmax = args.max_displacement_mm * 1e-3 / dt      # m/s at the fastest point
+    half_y = 0.5 * (box.y[1] - box.y[0])
+    if args.flow == "uniform":
+        return flows.Uniform((vmax, 0.0, 0.0))
+    if args.flow == "oseen":
+        rc = 0.4 * half_y
+        # the peak of v_θ is 0.638 Γ/(2π r_c) at r = 1.121 r_c
+        gamma = vmax * 2 * math.pi * rc / 0.6382
+        return flows.LambOseen(circulation=gamma, core_radius=rc, axis=(0.0, 1.0, 0.0),
+                               centre=(0.0, 0.0, 0.5 * (box.z[0] + box.z[1])))
+    if args.flow == "hill":
+        return flows.HillVortex(radius=0.6 * half_y, speed=vmax / 1.5,
+                                centre=(0.0, 0.0, 0.5 * (box.z[0] + box.z[1])))
+    raise ConfigError(f"--flow {args.flow!r}: expected one of uniform, oseen, hill")
+
+
+def _simulate_particles(cam: CameraModel, args, rng) -> dict:
+    from plenopiv.synthetic.images import particle_image
+    from plenopiv.synthetic.seeding import random_particles, simulate_pair
+
+    box, n = _seeding(cam, args, rng)
+    info = {"n_particles": n, "rays_per_particle": args.rays_per_particle,
+            "box_mm": [[v * 1e3 for v in box.x], [v * 1e3 for v in box.y],
+                       [v * 1e3 for v in box.z]]}
+    quiet = args.quiet or args.json
+    config = {"camera": cam.to_dict(), "simulate": {k: v for k, v in vars(args).items()
+                                                    if k not in ("func",)}}
+    if args.kind == "particles":
+        out = _check_out(args.out, (".tif", ".tiff", ".png", ".h5"))
+        pos = random_particles(box, n, rng)
+        bar, tick = _progress_bar(n, "render particles", quiet)
+        with bar:
+            irr = particle_image(cam, pos, rays_per_particle=args.rays_per_particle,
+                                 f_number=args.f_number, seed=args.seed, progress=tick)
+        img = _finish(irr, args, rng)
+        if out.suffix.lower() == ".h5":
+            write_h5(out, {"/image": img, "/truth/position_m": pos},
+                     units={"/truth/position_m": "m"}, config=config, kind="synthetic particles")
+        else:
+            write_image(out, img, metadata={"camera": cam.to_dict(), **info})
+        return {**info, "out": str(out), **_image_summary(img)}
+    out = _check_out(args.out, (".h5",))
+    flow = _flow_from_args(cam, args, box)
+    bar, tick = _progress_bar(2 * n, "render pair", quiet)
+    with bar:
+        pair = simulate_pair(cam, flow, dt=args.dt, box=box, n_particles=n, rng=rng,
+                             rays_per_particle=args.rays_per_particle, f_number=args.f_number,
+                             progress=tick)
+    ia, ib = _finish(pair.image_a, args, rng), _finish(pair.image_b, args, rng)
+    disp = pair.displacement
+    config["flow"] = {"kind": args.flow, **{k: (list(v) if isinstance(v, tuple) else v)
+                                            for k, v in vars(flow).items()}}
+    write_h5(out, {"/image_a": ia, "/image_b": ib, "/truth/position_a_m": pair.positions_a,
+                   "/truth/position_b_m": pair.positions_b, "/truth/displacement_m": disp,
+                   "/truth/intensity": pair.intensities},
+             attrs={"dt_s": args.dt, "flow": args.flow},
+             units={"/truth/position_a_m": "m", "/truth/position_b_m": "m",
+                    "/truth/displacement_m": "m"}, config=config, kind="synthetic pair")
+    tifs = []
+    if not args.no_tiff:
+        for tag, im in (("A", ia), ("B", ib)):
+            p = out.with_name(f"{out.stem}_{tag}.tif")
+            write_image(p, im, metadata={"camera": cam.to_dict(), "exposure": tag})
+            tifs.append(str(p))
+    return {**info, "out": str(out), "tiff": tifs, "flow": args.flow, "dt_s": args.dt,
+            "max_displacement_mm": float(np.linalg.norm(disp, axis=1).max() * 1e3),
+            **_image_summary(ia)}
+
+
+# ---- demo ----------------------------------------------------------------------------------
+
+
+def cmd_demo(args) -> dict:
+    """The built-in synthetic case: calibration images and a vortex image pair."""
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    steps = {}
+    base = ["small_test", "--seed", "1"] + (["--quiet"] if args.quiet or args.json else [])
+    for kind, extra in (("focal-point", ["--f-number", "16"]), ("alignment", []),
+                        ("ruler", ["--spacing-mm", "1"])):
+        a = build_parser().parse_args(["simulate", kind, *base, "--out",
+                                       str(out / f"{kind}.tif"), *extra])
+        steps[kind] = a.func(a)
+    a = build_parser().parse_args(["simulate", "pair", *base, "--out", str(out / "pair.h5"),
+                                   "--flow", "oseen", "--particles-per-lenslet", "0.2",
+                                   "--noise", "poisson"])
+    steps["pair"] = a.func(a)
+    return {"command": "demo", "out": str(out), "seconds": round(time.perf_counter() - t0, 3),
+            "products": {k: v.get("out") for k, v in steps.items()},
+            "n_particles": steps["pair"]["n_particles"]}
+
+
+# ---- parser --------------------------------------------------------------------------------
+
+
+def _add_common(p: argparse.ArgumentParser):
+    p.add_argument("--json", action="store_true", help="print a one-object JSON summary")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _add_image_options(p: argparse.ArgumentParser):
+    p.add_argument("--noise", choices=("none", "poisson"), default="none",
+                   help="photon (Poisson) noise, default none")
+    p.add_argument("--bit-depth", type=int, choices=(0, 8, 16), default=16,
+                   help="integer quantisation; 0 writes float32 irradiance (default 16)")
+    p.add_argument("--blur-px", type=float, default=0.0,
+                   help="Gaussian blur sigma in pixels (default 0)")
+    p.add_argument("--full-well", type=float, default=20000.0,
+                   help="electrons at full scale, for photon noise (default 20000)")
+    p.add_argument("--read-noise", type=float, default=0.0, help="read noise, counts (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``plenopiv`` argument parser."""
+    parser = argparse.ArgumentParser(
+        prog="plenopiv", description="Tomographic plenoptic PIV: simulate, calibrate, "
+        "reconstruct and correlate.")
+    parser.add_argument("--version", action="version", version=f"plenopiv {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    demo = sub.add_parser("demo", help="run the built-in synthetic case end to end")
+    demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
+    _add_common(demo)
+    demo.set_defaults(func=cmd_demo)
+
+    sim = sub.add_parser("simulate", help="render synthetic plenoptic images by ray tracing")
+    simsub = sim.add_subparsers(dest="kind", required=True)
+    presets = ", ".join(preset_names())
+    for kind, helptext in (("focal-point", "white sheet through the stopped-down lens"),
+                           ("alignment", "collimated light, main lens removed"),
+                           ("ruler", "a ruler with ticks on a plane at a given depth"),
+                           ("particles", "random point particles"),
+                           ("pair", "a particle image pair moved by a flow, with ground truth")):
+        p = simsub.add_parser(kind, help=helptext)
+        p.add_argument("camera", help=f"camera TOML file or preset name ({presets})")
+        p.add_argument("--out", required=True, help="output file (.tif, .png; .h5 for pairs)")
+        p.add_argument("--image-distance-mm", type=float, default=None,
+                       help="override [main_lens] image_distance_mm (effective S_i)")
+        p.add_argument("--f-number", type=float, default=None,
+                       help="stop for this image (default: the camera's f_number)")
+        _add_image_options(p)
+        _add_common(p)
+        p.set_defaults(func=cmd_simulate)
+        if kind == "ruler":
+            p.add_argument("--spacing-mm", type=float, default=1.0, help="tick spacing (mm)")
+            p.add_argument("--tick-width-mm", type=float, default=0.15, help="tick width (mm)")
+            p.add_argument("--depth-mm", type=float, default=0.0,
+                           help="ruler plane depth Z from the focal plane (mm, default 0)")
+            p.add_argument("--rays-per-lenslet", type=int, default=2000,
+                           help="rays per lenslet footprint (default 2000)")
+        if kind in ("particles", "pair"):
+            dens = p.add_mutually_exclusive_group()
+            dens.add_argument("--particles-per-lenslet", type=float, default=0.1,
+                              help="seeding density per lenslet (default 0.1)")
+            dens.add_argument("--particles-per-mm3", type=float, default=None,
+                              help="seeding density per mm³ of the seeded box")
+            dens.add_argument("--n-particles", type=int, default=None, help="particle count")
+            p.add_argument("--depth-mm", type=float, nargs=2, default=(-5.0, 5.0),
+                           metavar=("ZMIN", "ZMAX"),
+                           help="seeded depth range Z (mm, default -5 5)")
+            p.add_argument("--fill", type=float, default=0.9,
+                           help="fraction of the lateral field of view seeded (default 0.9)")
+            p.add_argument("--rays-per-particle", type=int, default=2048,
+                           help="aperture samples per particle (default 2048)")
+        if kind == "pair":
+            p.add_argument("--flow", choices=("uniform", "oseen", "hill"), default="oseen",
+                           help="flow moving the particles (default oseen, axis along Y)")
+            p.add_argument("--dt", type=float, default=1e-3, help="time between exposures (s)")
+            p.add_argument("--max-displacement-mm", type=float, default=0.5,
+                           help="largest particle displacement of the flow (mm, default 0.5)")
+            p.add_argument("--no-tiff", action="store_true",
+                           help="write only the HDF5 file (no A/B TIFFs beside it)")
+    return parser
+
+
+def _print_human(summary: dict):
+    for k, v in summary.items():
+        print(f"{k}: {v}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``plenopiv`` command."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        summary = args.func(args)
+    except PlenopivError as exc:
+        if getattr(args, "json", False):
+            print(json.dumps({"command": args.command, "error": str(exc),
+                              "error_type": type(exc).__name__}))
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(to_json(summary))
+    else:
+        _print_human(summary)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

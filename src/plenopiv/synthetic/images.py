@@ -1,0 +1,226 @@
+"""Synthetic plenoptic images: focal-point, alignment, ruler and particle images.
+
+Every function returns irradiance (float64, arbitrary units) with exactly the camera's sensor
+shape, ``image[row, col]`` as the sensor reads out. :func:`finish_image` turns irradiance into
+a recorded image (blur, photon noise, quantisation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from plenopiv.camera import CameraModel
+from plenopiv.errors import ConfigError
+from plenopiv.synthetic.tracer import (
+    Progress,
+    render_lenslet_bundles,
+    render_sources,
+    symmetric_disc_points,
+)
+
+
+def focal_point_image(camera: CameraModel, *, f_number: float | None = None,
+                      pupil_across: int = 15, cell_across: int = 4,
+                      progress: Progress = None) -> np.ndarray:
+    """Focal-point calibration image: a white sheet seen through the stopped-down lens.
+
+    Parameters
+    ----------
+    camera : CameraModel
+    f_number : float, optional
+        Stop used for the calibration image (default: the camera's f-number). The stop's
+        centre sits at the exit pupil, z = ``exit_pupil_offset``.
+    pupil_across : int
+        Pupil samples across the stop diameter (a symmetric grid clipped to the disc).
+    cell_across : int
+        Samples across each lenslet's cell.
+    progress : callable, optional
+        Called with the number of lenslets done after each batch.
+
+    Notes
+    -----
+    Each lenslet receives the light of the whole stop; the centroid of its spot is where the
+    chief ray from the stop centre through the lenslet centre meets the sensor (thesis
+    §3.1.1, Eqs. 3.11 and 4.8). Each spot is weighted by cos⁴ of its chief ray (natural
+    vignetting), uniformly within the spot, so the vignetting does not bias the centroid.
+    """
+    radius = camera.main_lens.focal_length / (f_number or camera.main_lens.f_number) / 2
+    pupil = symmetric_disc_points(radius, pupil_across)
+    return render_lenslet_bundles(camera, pupil_points=pupil, cell_across=cell_across,
+                                  collimated=False, f_number=f_number, progress=progress)
+
+
+def alignment_image(camera: CameraModel, *, cell_across: int = 8,
+                    progress: Progress = None) -> np.ndarray:
+    """Alignment image: collimated light along the axis, main lens removed (thesis §2.5).
+
+    Each lenslet focuses its share a distance f_l behind it, under its own centre.
+    """
+    return render_lenslet_bundles(camera, pupil_points=None, cell_across=cell_across,
+                                  collimated=True, progress=progress)
+
+
+def field_of_view(camera: CameraModel, depth: float = 0.0) -> tuple[float, float]:
+    """Object-space half-widths (X, Y) in metres seen by the lenslet array at depth ``depth``."""
+    width, height = camera.microlens_array.extent
+    so = camera.object_distance
+    ext = camera.external_interface
+    eff_depth = depth if ext is None else depth * ext.depth_ratio
+    scale = (so + eff_depth) / camera.image_distance
+    return 0.5 * width * scale, 0.5 * height * scale
+
+
+@dataclass(frozen=True)
+class Ruler:
+    """A ruler on a plane parallel to the sensor: dark ticks across x on a white ground.
+
+    Attributes
+    ----------
+    spacing : float
+        Tick spacing, metres (ticks at X = k · spacing).
+    tick_width : float
+        Width of a tick, metres.
+    depth : float
+        Z of the ruler plane from the nominal focal plane, metres.
+    tick_reflectance : float
+        Reflectance of the ticks relative to the ground (0 = black).
+    """
+
+    spacing: float = 1e-3
+    tick_width: float = 0.15e-3
+    depth: float = 0.0
+    tick_reflectance: float = 0.05
+
+    def __post_init__(self):
+        if not self.spacing > 0:
+            raise ConfigError(f"ruler spacing = {self.spacing!r} m: expected > 0")
+        if not 0 < self.tick_width < self.spacing:
+            raise ConfigError(f"ruler tick_width = {self.tick_width!r} m: expected between 0 "
+                              f"and the spacing {self.spacing!r} m")
+        if not 0 <= self.tick_reflectance < 1:
+            raise ConfigError(f"ruler tick_reflectance = {self.tick_reflectance!r}: "
+                              "expected in [0, 1)")
+
+
+def ruler_image(camera: CameraModel, ruler: Ruler = Ruler(), *, rays_per_lenslet: int = 2000,
+                emitters_per_lenslet: int = 4, f_number: float | None = None, seed: int = 0,
+                progress: Progress = None) -> np.ndarray:
+    """Image of a ruler (:class:`Ruler`) filling the field of view at ``ruler.depth``.
+
+    The ruler plane is tiled with small square emitting cells (``emitters_per_lenslet`` per
+    lenslet footprint along each axis); each ray starts at a random point of its cell, so the
+    plane is a continuous source, and the tick pattern is evaluated at that point.
+    """
+    hx, hy = field_of_view(camera, ruler.depth)
+    hx, hy = 1.05 * hx, 1.05 * hy
+    mla = camera.microlens_array
+    footprint = mla.pitch * (camera.object_distance / camera.image_distance)
+    cell = footprint / max(1, emitters_per_lenslet)
+    nx, ny = int(np.ceil(2 * hx / cell)), int(np.ceil(2 * hy / cell))
+    xs = (np.arange(nx) - (nx - 1) / 2) * cell
+    ys = (np.arange(ny) - (ny - 1) / 2) * cell
+    X, Y = np.meshgrid(xs, ys, indexing="xy")
+    pts = np.stack([X.ravel(), Y.ravel(), np.full(X.size, ruler.depth)], axis=1)
+    src = camera.volume_to_camera(pts)
+    samples = max(1, int(round(rays_per_lenslet / max(1, emitters_per_lenslet) ** 2)))
+    weights = np.full(len(src), 1.0 / max(1, emitters_per_lenslet) ** 2)
+    return render_sources(camera, src, weights, samples=samples, seed=seed,
+                          half_size=(cell / 2, cell / 2),
+                          ruler=(ruler.spacing, ruler.tick_width, ruler.tick_reflectance),
+                          f_number=f_number, progress=progress)
+
+
+def particle_image(camera: CameraModel, positions, intensities=None, *,
+                   rays_per_particle: int = 4096, f_number: float | None = None, seed: int = 0,
+                   progress: Progress = None) -> np.ndarray:
+    """Image of point particles.
+
+    Parameters
+    ----------
+    camera : CameraModel
+    positions : array_like, shape (N, 3)
+        Volume coordinates (X, Y, Z) in metres; Z is the physical depth from the nominal
+        focal plane, + away from the camera (in the medium behind an external interface).
+    intensities : array_like, shape (N,), optional
+        Energy of each particle collected by the full aperture (default 1).
+    rays_per_particle : int
+        Aperture samples per particle (stratified: a jittered q × q grid mapped to the disc).
+    f_number : float, optional
+        Overrides the camera's f-number.
+    seed : int
+        Fixes the aperture jitter; the image does not depend on the thread count.
+
+    Notes
+    -----
+    Rays are traced exactly: Snell at the external interface (each ray solved to reach its
+    lens-plane sample), ideal thin main lens, Snell into the substrate, thin lenslets.
+    """
+    pos = np.asarray(positions, dtype=float)
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise ConfigError(f"particle positions have shape {pos.shape}: expected (N, 3) (X, Y, Z)")
+    if not np.isfinite(pos).all():
+        raise ConfigError("particle positions contain NaN or infinity")
+    w = np.ones(len(pos)) if intensities is None else np.asarray(intensities, dtype=float)
+    if w.shape != (len(pos),) or (w < 0).any() or not np.isfinite(w).all():
+        raise ConfigError(f"particle intensities have shape {w.shape}: expected ({len(pos)},) "
+                          "finite values >= 0")
+    src = camera.volume_to_camera(pos)
+    if (src[:, 2] >= -camera.main_lens.focal_length).any():
+        raise ConfigError("a particle lies within one focal length of the main lens "
+                          f"(Z <= {(-camera.main_lens.focal_length - camera.focal_plane_z):.4g} m)")
+    return render_sources(camera, src, w, samples=rays_per_particle, seed=seed,
+                          f_number=f_number, progress=progress)
+
+
+NOISE_MODELS = ("none", "poisson")
+
+
+def finish_image(irradiance, *, exposure: float | None = None, blur_px: float = 0.0,
+                 noise: str = "none", full_well: float = 20000.0, read_noise: float = 0.0,
+                 bit_depth: int | None = 16, peak_fraction: float = 0.8,
+                 rng: np.random.Generator | None = None) -> np.ndarray:
+    """Turn irradiance into a recorded image.
+
+    Parameters
+    ----------
+    irradiance : ndarray
+        Rendered image (arbitrary units).
+    exposure : float, optional
+        Digital counts per irradiance unit. Default: the brightest pixel (after blur) maps to
+        ``peak_fraction`` of full scale (of 1.0 for float output).
+    blur_px : float
+        Standard deviation of an optional Gaussian blur, pixels (optics, diffraction).
+    noise : {"none", "poisson"}
+        "poisson": photon noise with ``full_well`` electrons at full scale, plus Gaussian read
+        noise ``read_noise`` (counts).
+    bit_depth : {8, 16, None}
+        Integer quantisation (uint8/uint16, clipped at full scale), or None for float32.
+    rng : numpy.random.Generator, optional
+        Required for noise; pass a seeded generator for reproducible images.
+    """
+    if noise not in NOISE_MODELS:
+        raise ConfigError(f"noise = {noise!r}: expected one of {NOISE_MODELS}")
+    if bit_depth not in (8, 16, None):
+        raise ConfigError(f"bit_depth = {bit_depth!r}: expected 8, 16 or None (float)")
+    img = np.asarray(irradiance, dtype=np.float64)
+    if blur_px > 0:
+        img = ndimage.gaussian_filter(img, blur_px, mode="constant")
+    full = 1.0 if bit_depth is None else float(2 ** bit_depth - 1)
+    if exposure is None:
+        peak = img.max()
+        exposure = peak_fraction * full / peak if peak > 0 else 1.0
+    counts = img * exposure
+    if noise == "poisson":
+        if rng is None:
+            raise ConfigError("noise = 'poisson' needs a random generator (rng=...)")
+        electrons_per_count = full_well / full
+        counts = rng.poisson(np.clip(counts, 0, None) * electrons_per_count) / electrons_per_count
+        if read_noise > 0:
+            counts = counts + rng.normal(0.0, read_noise, counts.shape)
+    counts = np.clip(counts, 0.0, full)
+    if bit_depth is None:
+        return counts.astype(np.float32)
+    return np.rint(counts).astype(np.uint8 if bit_depth == 8 else np.uint16)

@@ -1,0 +1,175 @@
+"""Ray-tracing drivers: the camera as a geometry vector, sampling sets, and the loops that
+feed the numba kernels in batches (so that long renders can report progress).
+
+Rendered images are irradiance in arbitrary units (float64, sensor shape, ``image[row, col]``);
+:func:`plenopiv.synthetic.images.finish_image` adds blur, noise and quantisation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from plenopiv.camera import CameraModel
+from plenopiv.errors import ConfigError
+from plenopiv.optics import chief_ray_tangent
+from plenopiv.synthetic import _kernels as K
+
+Progress = Callable[[int], None] | None
+
+
+def geometry_vector(camera: CameraModel, *, f_number: float | None = None) -> np.ndarray:
+    """Pack the camera into the float64 vector the kernels read (slots ``_kernels.G_*``).
+
+    Parameters
+    ----------
+    camera : CameraModel
+        Must give ``[main_lens] image_distance_mm``.
+    f_number : float, optional
+        Overrides the main lens f-number (the stop radius is f_m / (2 N)).
+    """
+    mla, lens, sen = camera.microlens_array, camera.main_lens, camera.sensor
+    n_f = lens.f_number if f_number is None else float(f_number)
+    if not n_f > 0:
+        raise ConfigError(f"f_number = {f_number!r}: expected > 0")
+    g = np.zeros(K.G_SIZE)
+    g[K.G_L3] = camera.l3
+    g[K.G_T] = camera.plate_thickness
+    g[K.G_N] = camera.plate_index
+    g[K.G_ZMLA] = camera.mla_z
+    g[K.G_FL] = mla.focal_length
+    g[K.G_FBAR] = mla.sensor_distance
+    g[K.G_THESIS] = 1.0 if mla.back_side == "thesis" else 0.0
+    g[K.G_PITCH] = mla.pitch
+    g[K.G_ROWSP] = mla.row_spacing
+    g[K.G_ROWS] = mla.rows
+    g[K.G_COLS] = mla.cols
+    g[K.G_HEX] = 1.0 if mla.grid == "hexagonal" else 0.0
+    g[K.G_HEXSHIFT] = mla.hex_shift_mean
+    g[K.G_OFFS], g[K.G_OFFT] = mla.offset
+    g[K.G_COSG] = math.cos(mla.rotation)
+    g[K.G_SING] = math.sin(mla.rotation)
+    g[K.G_PIX] = sen.pixel_pitch
+    g[K.G_NROWS] = sen.rows
+    g[K.G_NCOLS] = sen.cols
+    g[K.G_FM] = lens.focal_length
+    g[K.G_E] = lens.exit_pupil_offset
+    g[K.G_RPUPIL] = lens.focal_length / n_f / 2.0
+    ext = camera.external_interface
+    if ext is not None:
+        g[K.G_ZINT] = -camera.interface_distance
+        g[K.G_NEXT] = ext.refractive_index / ext.outside_index
+        g[K.G_HASEXT] = 1.0
+    else:
+        g[K.G_NEXT] = 1.0
+    return g
+
+
+# ---- sampling sets -------------------------------------------------------------------------
+
+
+def symmetric_disc_points(radius: float, across: int) -> np.ndarray:
+    """Centres of an ``across × across`` grid of square cells clipped to a disc, (P, 2).
+
+    The set is symmetric under (x, y) -> (-x, -y) and (x, y) -> (y, x), so the mean of any
+    linear function over it is exact: spot centroids are not biased by the sampling.
+    """
+    if across < 1:
+        raise ValueError(f"pupil samples across = {across}: expected >= 1")
+    h = 2.0 * radius / across
+    u = (np.arange(across) - (across - 1) / 2.0) * h
+    x, y = np.meshgrid(u, u, indexing="xy")
+    keep = x * x + y * y <= radius * radius * (1 + 1e-12)
+    pts = np.stack([x[keep], y[keep]], axis=1)
+    return pts if len(pts) else np.zeros((1, 2))
+
+
+def cell_points(camera: CameraModel, across: int) -> np.ndarray:
+    """Symmetric sample points of one lenslet's cell, lattice frame (unrotated), (M, 2), m.
+
+    Square grids: an ``across × across`` grid of the pitch × pitch cell. Hexagonal grids: a
+    grid over the hexagon's bounding box, kept where the centre is the nearest lattice point.
+    """
+    if across < 1:
+        raise ValueError(f"cell samples across = {across}: expected >= 1")
+    mla = camera.microlens_array
+    p = mla.pitch
+    if mla.grid == "square":
+        u = (np.arange(across) - (across - 1) / 2.0) * (p / across)
+        x, y = np.meshgrid(u, u, indexing="xy")
+        return np.stack([x.ravel(), y.ravel()], axis=1)
+    half_h = p / math.sqrt(3.0)
+    ny = max(1, int(round(across * 2 * half_h / p)))
+    ux = (np.arange(across) - (across - 1) / 2.0) * (p / across)
+    uy = (np.arange(ny) - (ny - 1) / 2.0) * (2 * half_h / ny)
+    x, y = np.meshgrid(ux, uy, indexing="xy")
+    x, y = x.ravel(), y.ravel()
+    rs = mla.row_spacing
+    neighbours = np.array([[p, 0], [-p, 0], [p / 2, rs], [-p / 2, rs], [p / 2, -rs],
+                           [-p / 2, -rs]])
+    d0 = x * x + y * y
+    keep = np.ones_like(x, dtype=bool)
+    for nx, ny_ in neighbours:
+        keep &= d0 <= (x - nx) ** 2 + (y - ny_) ** 2 + 1e-30
+    return np.stack([x[keep], y[keep]], axis=1)
+
+
+# ---- drivers -------------------------------------------------------------------------------
+
+
+def _accumulators(camera: CameraModel) -> np.ndarray:
+    return np.zeros((K.n_threads(),) + camera.sensor.shape, dtype=np.float64)
+
+
+def _batches(n: int, n_batches: int):
+    edges = np.linspace(0, n, min(n_batches, max(n, 1)) + 1).astype(int)
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+
+
+def chief_ray_weights(camera: CameraModel, centres: np.ndarray) -> np.ndarray:
+    """cos⁴ of the chief-ray angle to each lenslet centre: the natural vignetting."""
+    rho = np.hypot(centres[:, 0], centres[:, 1])
+    air = camera.l3 - camera.main_lens.exit_pupil_offset
+    m = chief_ray_tangent(rho, air, camera.plate_thickness, camera.plate_index)
+    return 1.0 / (1.0 + m * m) ** 2
+
+
+def render_lenslet_bundles(camera: CameraModel, *, pupil_points: np.ndarray | None,
+                           cell_across: int, collimated: bool, f_number: float | None = None,
+                           progress: Progress = None, n_batches: int = 32) -> np.ndarray:
+    """Render a uniform source seen through a stop (or collimated light), lenslet by lenslet.
+
+    Returns the irradiance image (float64, sensor shape).
+    """
+    g = geometry_vector(camera, f_number=f_number)
+    centres = camera.microlens_array.centres()
+    weights = np.ones(len(centres)) if collimated else chief_ray_weights(camera, centres)
+    cells = cell_points(camera, cell_across)
+    pupil = np.zeros((1, 2)) if pupil_points is None else np.ascontiguousarray(pupil_points)
+    out = _accumulators(camera)
+    for a, b in _batches(len(centres), n_batches):
+        K.render_lenslet_bundles(np.ascontiguousarray(centres[a:b]), weights[a:b], cells, pupil,
+                                 collimated, g, out)
+        if progress is not None:
+            progress(b - a)
+    return out.sum(axis=0)
+
+
+def render_sources(camera: CameraModel, sources: np.ndarray, weights: np.ndarray, *,
+                   samples: int, seed: int, half_size=(0.0, 0.0), ruler=(0.0, 0.0, 1.0),
+                   f_number: float | None = None, progress: Progress = None,
+                   n_batches: int = 32) -> np.ndarray:
+    """Render point (or small area) sources given in camera coordinates (N, 3), z < 0."""
+    g = geometry_vector(camera, f_number=f_number)
+    src = np.ascontiguousarray(sources, dtype=np.float64)
+    w = np.ascontiguousarray(weights, dtype=np.float64)
+    hs = np.asarray(half_size, dtype=np.float64)
+    rl = np.asarray(ruler, dtype=np.float64)
+    out = _accumulators(camera)
+    for a, b in _batches(len(src), n_batches):
+        K.render_sources(src[a:b], w[a:b], hs, int(samples), int(seed), a, rl, g, out)
+        if progress is not None:
+            progress(b - a)
+    return out.sum(axis=0)

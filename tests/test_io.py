@@ -1,0 +1,64 @@
+"""Image I/O and product writing: formats, clear errors, atomic writes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tifffile
+
+from plenopiv.errors import ImageError
+from plenopiv.io import atomic_path, check_image, read_image, write_h5, write_image
+
+
+def test_tiff_and_h5_round_trip_without_flips(tmp_path, rng):
+    img = rng.integers(0, 4000, (30, 40)).astype(np.uint16)
+    write_image(tmp_path / "a.tif", img)
+    assert np.array_equal(read_image(tmp_path / "a.tif"), img)
+    write_h5(tmp_path / "p.h5", {"/image_a": img, "/x/y": img.T}, units={"/x/y": "m"})
+    assert np.array_equal(read_image(f"{tmp_path / 'p.h5'}:/image_a"), img)
+    assert np.array_equal(read_image(tmp_path / "p.h5"), img)      # default /image_a
+    assert np.array_equal(read_image(f"{tmp_path / 'p.h5'}:/x/y"), img.T)
+
+
+def test_truncated_and_missing_files_are_clear_errors(tmp_path, rng):
+    img = rng.integers(0, 4000, (64, 64)).astype(np.uint16)
+    p = tmp_path / "t.tif"
+    tifffile.imwrite(p, img)
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 3])
+    with pytest.raises(ImageError, match="corrupt or truncated"):
+        read_image(p)
+    with pytest.raises(ImageError, match="not found"):
+        read_image(tmp_path / "none.tif")
+    write_h5(tmp_path / "q.h5", {"/a": img})
+    with pytest.raises(ImageError, match="no image dataset '/b'.*datasets: /a"):
+        read_image(f"{tmp_path / 'q.h5'}:/b")
+
+
+def test_check_image_rejects_bad_images():
+    good = np.zeros((10, 12), np.uint16)
+    good[3, 4] = 100
+    assert check_image(good, shape=(10, 12)).dtype == np.float64
+    with pytest.raises(ImageError, match="10 × 12 pixels but the camera's sensor is 11 × 12"):
+        check_image(good, shape=(11, 12))
+    nan = good.astype(float)
+    nan[2, 3] = np.nan
+    with pytest.raises(ImageError, match="1 NaN/inf pixels .*row 2, col 3"):
+        check_image(nan)
+    with pytest.raises(ImageError, match="all dark"):
+        check_image(np.zeros((5, 5)))
+    sat = np.full((10, 10), 65535, np.uint16)
+    sat[0, 0] = 3
+    with pytest.raises(ImageError, match="saturated"):
+        check_image(sat)
+    with pytest.raises(ImageError, match="2-D"):
+        check_image(np.zeros((2, 3, 4)))
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.h5"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"half")
+            raise RuntimeError("crash while writing")
+    assert not any(tmp_path.iterdir())
