@@ -57,12 +57,12 @@ G_NEXT = 24       # n1/n2 of the external interface (1: none)
 G_HASEXT = 25     # 1.0: an external interface is present
 G_SIZE = 26
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _round(x):
     return math.floor(x + 0.5)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=True)
 def radial_solve(rho, air, thick, n):
     """tan θ of a ray that crosses a lateral distance ``rho`` over an air path ``air`` followed
     by a path ``thick`` in a medium of relative index ``n`` (Snell: sin θ = n sin θ_medium)."""
@@ -82,7 +82,7 @@ def radial_solve(rho, air, thick, n):
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=True)
 def lenslet_at(x, y, g):
     """Lenslet hit at (x, y) on the lenslet plane: (index k, centre cx, cy); k = -1 if none."""
     c, s = g[G_COSG], g[G_SING]
@@ -120,7 +120,7 @@ def lenslet_at(x, y, g):
     return best_k, c * uu - s * vv, s * uu + c * vv
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=True)
 def through_lenslet(hx, hy, dx, dy, dz, cx, cy, g):
     """From the lenslet plane to the sensor.
 
@@ -145,7 +145,7 @@ def through_lenslet(hx, hy, dx, dy, dz, cx, cy, g):
     return True, hx + fb * mx, hy + fb * my
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=True)
 def trace_image_ray(x0, y0, z0, mx, my, g):
     """Trace an image-space ray (air slopes mx, my from (x0, y0, z0)) to the sensor.
 
@@ -178,7 +178,7 @@ def trace_image_ray(x0, y0, z0, mx, my, g):
     return k, sx, sy
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=True)
 def splat(img, sx, sy, w, g):
     """Add weight ``w`` at sensor position (sx, sy) metres, bilinearly (area of a pixel box)."""
     pix = g[G_PIX]
@@ -204,7 +204,7 @@ def splat(img, sx, sy, w, g):
 
 # ---- counter-based random numbers (deterministic whatever the thread schedule) -------------
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _splitmix(x):
     x = (x + np.uint64(0x9E3779B97F4A7C15))
     z = x
@@ -213,7 +213,7 @@ def _splitmix(x):
     return z ^ (z >> np.uint64(31))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def uniform01(seed, i, j, stream):
     """A uniform number in [0, 1) from (seed, i, j, stream) by splitmix64 hashing."""
     h = _splitmix(np.uint64(seed) ^ (np.uint64(i) * np.uint64(0xD1B54A32D192ED03)))
@@ -222,7 +222,7 @@ def uniform01(seed, i, j, stream):
     return (h >> np.uint64(11)) * (1.0 / 9007199254740992.0)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def concentric_disc(a, b):
     """Shirley-Chiu map of the unit square to the unit disc (keeps stratification)."""
     a = 2.0 * a - 1.0
@@ -238,7 +238,7 @@ def concentric_disc(a, b):
 
 # ---- object space --------------------------------------------------------------------------
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=True)
 def object_ray_to_lens(px, py, pz, lx, ly, g):
     """Air slopes (mx, my) at the lens plane of the ray from the source (px, py, pz), pz < 0,
     to the lens-plane point (lx, ly, 0), refracted exactly at the external interface."""
@@ -254,7 +254,7 @@ def object_ray_to_lens(px, py, pz, lx, ly, g):
     return rx / (-pz), ry / (-pz)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=True)
 def paraxial_image(px, py, pz, g):
     """Paraxial image (x, y, z) of a source point through the interface and main lens."""
     s = -pz
@@ -268,7 +268,7 @@ def paraxial_image(px, py, pz, g):
     return -px * zi / s, -py * zi / s, zi
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def render_sources(sources, weights, half_size, n_samples, seed, first, ruler, g, out):
     """Render point (or small square area) sources through the whole camera.
 
@@ -340,7 +340,7 @@ def render_sources(sources, weights, half_size, n_samples, seed, first, ruler, g
                         splat(img, sx, sy, w, g)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def render_lenslet_bundles(centres, weights, cell_points, pupil_points, collimated, g, out):
     """Render, lenslet by lenslet, the light of a uniform source seen through a stop.
 
@@ -393,7 +393,7 @@ def render_lenslet_bundles(centres, weights, cell_points, pupil_points, collimat
                         splat(img, sx, sy, w, g)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def trace_image_rays(x0, y0, z0, mx, my, g):
     """Vectorised :func:`trace_image_ray` (for tests and the light-field code)."""
     n = x0.shape[0]
@@ -405,7 +405,7 @@ def trace_image_rays(x0, y0, z0, mx, my, g):
     return k, sx, sy
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def object_rays_to_lens(sources, lens_points, g):
     """Air slopes at the lens plane for each (source, lens point) pair, shape (N, 2)."""
     n = sources.shape[0]

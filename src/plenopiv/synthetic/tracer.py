@@ -120,7 +120,15 @@ def cell_points(camera: CameraModel, across: int) -> np.ndarray:
 
 
 def _accumulators(camera: CameraModel) -> np.ndarray:
+    """One float64 image per parallel chunk, so that threads never write the same pixel."""
     return np.zeros((K.n_threads(),) + camera.sensor.shape, dtype=np.float64)
+
+
+def _reduce(out: np.ndarray) -> np.ndarray:
+    """Sum the per-chunk images in place into the first one (no extra full-size copy)."""
+    for i in range(1, out.shape[0]):
+        out[0] += out[i]
+    return out[0]
 
 
 def _batches(n: int, n_batches: int):
@@ -154,7 +162,7 @@ def render_lenslet_bundles(camera: CameraModel, *, pupil_points: np.ndarray | No
                                  collimated, g, out)
         if progress is not None:
             progress(b - a)
-    return out.sum(axis=0)
+    return _reduce(out)
 
 
 def render_sources(camera: CameraModel, sources: np.ndarray, weights: np.ndarray, *,
@@ -172,4 +180,4 @@ def render_sources(camera: CameraModel, sources: np.ndarray, weights: np.ndarray
         K.render_sources(src[a:b], w[a:b], hs, int(samples), int(seed), a, rl, g, out)
         if progress is not None:
             progress(b - a)
-    return out.sum(axis=0)
+    return _reduce(out)
