@@ -58,17 +58,17 @@ def main(argv=None):
     rays = random_image_rays(cam, 2_000_000, rng)
     K.trace_image_rays(*(a[:10] for a in rays), g)                   # compile / load cache
     _, t_nb = timed(K.trace_image_rays, *rays, g)
-    small = tuple(a[:20000] for a in rays)
+    small = tuple(a[:1000] for a in rays)      # the brute-force twin needs N × lenslets memory
     _, t_np = timed(R.trace_image_rays, *small, g)
     res["trace_mrays_per_s"] = 2e6 / t_nb / 1e6
-    res["trace_numpy_mrays_per_s"] = 2e4 / t_np / 1e6
+    res["trace_numpy_mrays_per_s"] = 1e3 / t_np / 1e6
     res["trace_speedup_vs_numpy"] = res["trace_mrays_per_s"] / res["trace_numpy_mrays_per_s"]
 
     # 2. full-size focal-point image (f/16, default sampling)
     focal_point_image(cam, f_number=16, pupil_across=3, cell_across=1)  # warm-up
     img, t = timed(focal_point_image, cam, f_number=16)
     n_pupil = 177   # symmetric 15-across grid clipped to the disc
-    n_rays = cam.microlens_array.count * n_pupil * 16
+    n_rays = cam.microlens_array.count * n_pupil * 4   # 2 × 2 cell samples
     res["focal_point_seconds"] = t
     res["focal_point_mrays_per_s"] = n_rays / t / 1e6
     res["focal_point_peak_rss_gb"] = peak_rss_gb()

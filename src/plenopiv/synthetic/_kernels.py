@@ -70,11 +70,14 @@ def radial_solve(rho, air, thick, n):
         return rho / air
     m = rho / (air + thick / n)
     for _ in range(30):
-        s = m / math.sqrt(1.0 + m * m)
-        sg = s / n
-        cg = math.sqrt(1.0 - sg * sg)
+        q = 1.0 + m * m
+        rq = 1.0 / math.sqrt(q)
+        sg = m * rq / n                      # sin of the angle in the medium
+        cg2 = 1.0 - sg * sg
+        cg = math.sqrt(cg2)
         f = air * m + thick * sg / cg - rho
-        d = air + thick * (1.0 / n) * (1.0 + m * m) ** -1.5 / (cg * cg * cg)
+        # d(tan θ_medium)/dm = (1/n) q^(-3/2) / cos³θ_medium
+        d = air + thick * rq * rq * rq / (n * cg2 * cg)
         step = f / d
         m -= step
         if abs(step) <= 1e-15 * (1.0 + abs(m)):

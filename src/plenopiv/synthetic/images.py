@@ -23,7 +23,7 @@ from plenopiv.synthetic.tracer import (
 
 
 def focal_point_image(camera: CameraModel, *, f_number: float | None = None,
-                      pupil_across: int = 15, cell_across: int = 4,
+                      pupil_across: int = 15, cell_across: int = 2,
                       progress: Progress = None) -> np.ndarray:
     """Focal-point calibration image: a white sheet seen through the stopped-down lens.
 
