@@ -194,7 +194,8 @@ def to_json(obj: Any) -> str:
 
 def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
              attrs: dict[str, Any] | None = None, units: dict[str, str] | None = None,
-             config: dict | None = None, kind: str = "product") -> Path:
+             config: dict | None = None, kind: str = "product",
+             compress: bool = True) -> Path:
     """Write an HDF5 product atomically.
 
     Parameters
@@ -207,6 +208,8 @@ def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
         ``{"/group/name": "m"}``, stored as each dataset's ``units`` attribute.
     config : dict
         The resolved configuration, stored as JSON in the root attribute ``config``.
+    compress : bool
+        gzip the larger datasets (off for caches that must load fast).
     """
     p = Path(path)
     with atomic_path(p) as tmp:
@@ -220,7 +223,8 @@ def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
                 fh.attrs[k] = v
             for name, arr in datasets.items():
                 a = np.asarray(arr)
-                kw = {"compression": "gzip", "compression_opts": 4} if a.size > 4096 else {}
+                big = compress and a.size > 4096
+                kw = {"compression": "gzip", "compression_opts": 4} if big else {}
                 ds = fh.create_dataset(name, data=a, **kw)
                 if units and name in units:
                     ds.attrs["units"] = units[name]

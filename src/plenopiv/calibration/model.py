@@ -1,0 +1,141 @@
+"""The calibration product: what the reconstruction needs to know about a camera.
+
+A :class:`Calibration` holds, for every lenslet, its centre (from the alignment image), its
+focal spot (the micro-image centre, from the focal-point image) and its lattice index, plus
+the effective image distance S_i,eff and how it was obtained. It is saved as the HDF5 product
+of DESIGN.md §7 (``/lenslets/centre_px``, ``/lenslets/focal_spot_px``,
+``/lenslets/grid_index``; attributes ``image_distance_m``, ``method``, ``offset_m``,
+``rotation_rad``, ``rms_residual_px``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from plenopiv import optics
+from plenopiv.camera import CameraModel, camera_from_dict
+from plenopiv.conventions import sensor_to_pixel
+from plenopiv.errors import CalibrationError
+from plenopiv.io import write_h5
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A calibrated plenoptic camera.
+
+    Attributes
+    ----------
+    camera : CameraModel
+        The camera description (its ``image_distance`` is replaced by the calibrated one).
+    centre_px : (N, 2) float
+        Lenslet centres (row, col), pixels: where collimated light focuses.
+    focal_spot_px : (N, 2) float
+        Micro-image centres (row, col), pixels: where the chief ray from the pupil centre
+        through the lenslet centre lands (u = v = 0).
+    grid_index : (N, 2) int
+        Lattice index (row, col) of each lenslet.
+    image_distance : float
+        Effective image distance S_i,eff, metres.
+    method : str
+        "focal-point", "magnification", "both" or "model" (from the camera description).
+    """
+
+    camera: CameraModel
+    centre_px: np.ndarray
+    focal_spot_px: np.ndarray
+    grid_index: np.ndarray
+    image_distance: float
+    method: str
+    offset: tuple[float, float] = (0.0, 0.0)
+    rotation: float = 0.0
+    rms_residual_px: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        n = len(self.centre_px)
+        for name in ("centre_px", "focal_spot_px", "grid_index"):
+            a = np.asarray(getattr(self, name))
+            if a.shape != (n, 2):
+                raise CalibrationError(f"calibration {name} has shape {a.shape}: expected "
+                                       f"({n}, 2)")
+        if not self.image_distance > self.camera.main_lens.focal_length:
+            raise CalibrationError(f"calibrated S_i = {self.image_distance * 1e3:.4g} mm: "
+                                   "expected more than the main-lens focal length")
+
+    @property
+    def n_lenslets(self) -> int:
+        """Number of calibrated lenslets."""
+        return len(self.centre_px)
+
+    @property
+    def effective_camera(self) -> CameraModel:
+        """The camera with the calibrated image distance."""
+        return self.camera.with_image_distance(self.image_distance)
+
+    @classmethod
+    def from_camera(cls, camera: CameraModel) -> Calibration:
+        """The exact calibration of a modelled camera (chief rays from its exit pupil).
+
+        Used for synthetic studies where the truth is known; real data go through
+        :mod:`plenopiv.calibration.pipeline`.
+        """
+        mla = camera.microlens_array
+        centres = mla.centres()
+        spots = optics.focal_spot_exact(centres, camera.image_distance, mla.sensor_distance,
+                                        back_side=mla.back_side,
+                                        thickness=camera.plate_thickness,
+                                        refractive_index=camera.plate_index,
+                                        pupil_offset=camera.main_lens.exit_pupil_offset)
+        shape, pp = camera.sensor.shape, camera.sensor.pixel_pitch
+        return cls(camera=camera, centre_px=sensor_to_pixel(centres, shape, pp),
+                   focal_spot_px=sensor_to_pixel(spots, shape, pp),
+                   grid_index=mla.grid_index(), image_distance=camera.image_distance,
+                   method="model", offset=mla.offset, rotation=mla.rotation)
+
+    # ---- HDF5 product ------------------------------------------------------------------------
+    def save(self, path: str | Path, *, config: dict | None = None) -> Path:
+        """Write the calibration product (HDF5, atomic)."""
+        cfg = {"camera": self.camera.to_dict(), **(config or {})}
+        attrs = {"image_distance_m": self.image_distance, "method": self.method,
+                 "offset_m": np.asarray(self.offset, float), "rotation_rad": self.rotation,
+                 "rms_residual_px": self.rms_residual_px, "n_lenslets": self.n_lenslets,
+                 "extra": json.dumps(self.extra, default=float)}
+        return write_h5(path, {"/lenslets/centre_px": np.asarray(self.centre_px, float),
+                               "/lenslets/focal_spot_px": np.asarray(self.focal_spot_px, float),
+                               "/lenslets/grid_index": np.asarray(self.grid_index, np.int32)},
+                        attrs=attrs, units={"/lenslets/centre_px": "px",
+                                            "/lenslets/focal_spot_px": "px"},
+                        config=cfg, kind="calibration")
+
+    @classmethod
+    def load(cls, path: str | Path) -> Calibration:
+        """Read a calibration product written by :meth:`save`."""
+        p = Path(path)
+        if not p.exists():
+            raise CalibrationError(f"calibration file {str(p)!r} not found")
+        try:
+            with h5py.File(p, "r") as fh:
+                if fh.attrs.get("product") != "calibration":
+                    raise CalibrationError(f"{str(p)!r} is not a plenopiv calibration file "
+                                           f"(product = {fh.attrs.get('product')!r})")
+                cfg = json.loads(fh.attrs["config"])
+                a = fh.attrs
+                return cls(camera=camera_from_dict(cfg["camera"], source=f"{p}:config"),
+                           centre_px=fh["/lenslets/centre_px"][()],
+                           focal_spot_px=fh["/lenslets/focal_spot_px"][()],
+                           grid_index=fh["/lenslets/grid_index"][()].astype(int),
+                           image_distance=float(a["image_distance_m"]),
+                           method=str(a["method"]), offset=tuple(a["offset_m"]),
+                           rotation=float(a["rotation_rad"]),
+                           rms_residual_px=float(a["rms_residual_px"]),
+                           extra=json.loads(a.get("extra", "{}")))
+        except CalibrationError:
+            raise
+        except (OSError, KeyError, ValueError) as exc:
+            raise CalibrationError(f"calibration file {str(p)!r} is corrupt or incomplete: "
+                                   f"{type(exc).__name__}: {exc}") from None

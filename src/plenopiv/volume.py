@@ -1,0 +1,144 @@
+"""The reconstruction grid: a box of voxels in volume coordinates (X, Y, Z), metres.
+
+Volumes are indexed ``[z, y, x]``; voxel ``[k, j, i]`` has its centre at
+``(x[i], y[j], z[k])``. Z is measured from the nominal focal plane, + away from the camera;
+the reconstruction works in effective (air-equivalent) depth, see :mod:`plenopiv.corrections`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from plenopiv.camera import format_validation_error
+from plenopiv.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class VolumeGrid:
+    """A regular voxel grid.
+
+    Attributes
+    ----------
+    origin : tuple of float
+        ``(x, y, z)`` of the centre of voxel ``[0, 0, 0]``, metres.
+    voxel : tuple of float
+        Voxel edges ``(dx, dy, dz)``, metres.
+    shape : tuple of int
+        ``(nz, ny, nx)``.
+    """
+
+    origin: tuple[float, float, float]
+    voxel: tuple[float, float, float]
+    shape: tuple[int, int, int]
+
+    def __post_init__(self):
+        if any(n < 1 for n in self.shape):
+            raise ConfigError(f"[volume] shape = {list(self.shape)}: expected at least one "
+                              "voxel along every axis")
+        if not all(v > 0 and math.isfinite(v) for v in self.voxel):
+            raise ConfigError(f"[volume] voxel size = {list(self.voxel)} m: expected > 0")
+
+    @classmethod
+    def from_bounds(cls, x, y, z, *, voxel=None, shape=None) -> VolumeGrid:
+        """A grid covering the boxes ``x = (lo, hi)``, ``y``, ``z`` (metres).
+
+        Give either ``voxel`` (a float, or ``(dx, dy, dz)``; the counts are rounded so that
+        the voxels fill the box) or ``shape = (nz, ny, nx)``.
+        """
+        bounds = np.array([x, y, z], dtype=float)
+        if bounds.shape != (3, 2) or not np.all(bounds[:, 1] > bounds[:, 0]):
+            raise ConfigError(f"[volume] bounds x, y, z = {bounds.tolist()} m: expected "
+                              "[lo, hi] with hi > lo on every axis")
+        span = bounds[:, 1] - bounds[:, 0]
+        if (voxel is None) == (shape is None):
+            raise ConfigError("[volume]: give exactly one of voxel_mm and shape")
+        if shape is not None:
+            nz, ny, nx = (int(v) for v in shape)
+            counts = np.array([nx, ny, nz])
+        else:
+            v = np.broadcast_to(np.asarray(voxel, dtype=float), (3,))
+            if not np.all(v > 0):
+                raise ConfigError(f"[volume] voxel_mm = {np.asarray(voxel) * 1e3}: expected > 0")
+            counts = np.maximum(1, np.rint(span / v)).astype(int)
+        if np.any(counts < 1):
+            raise ConfigError(f"[volume] shape = {counts[::-1].tolist()}: expected at least one "
+                              "voxel along every axis")
+        size = span / counts
+        origin = bounds[:, 0] + size / 2
+        return cls(tuple(origin), tuple(size), (int(counts[2]), int(counts[1]), int(counts[0])))
+
+    @property
+    def n_voxels(self) -> int:
+        """Number of voxels."""
+        return int(np.prod(self.shape))
+
+    def axis(self, name: str) -> np.ndarray:
+        """Voxel-centre coordinates along ``"x"``, ``"y"`` or ``"z"``, metres."""
+        i = "xyz".index(name)
+        n = self.shape[2 - i]
+        return self.origin[i] + self.voxel[i] * np.arange(n)
+
+    @property
+    def x(self) -> np.ndarray:
+        """Voxel-centre x coordinates, metres."""
+        return self.axis("x")
+
+    @property
+    def y(self) -> np.ndarray:
+        """Voxel-centre y coordinates, metres."""
+        return self.axis("y")
+
+    @property
+    def z(self) -> np.ndarray:
+        """Voxel-centre z (depth Z) coordinates, metres."""
+        return self.axis("z")
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """Outer box ``[[xlo, xhi], [ylo, yhi], [zlo, zhi]]``, metres."""
+        o, v = np.array(self.origin), np.array(self.voxel)
+        n = np.array(self.shape[::-1])
+        return np.stack([o - v / 2, o + v * (n - 0.5)], axis=1)
+
+    def to_dict(self) -> dict:
+        """The grid in config units (mm)."""
+        b = self.bounds * 1e3
+        return {"x_mm": b[0].tolist(), "y_mm": b[1].tolist(), "z_mm": b[2].tolist(),
+                "shape": list(self.shape)}
+
+    def key(self) -> str:
+        """A stable text key of the grid (for caches)."""
+        return f"o={np.round(self.origin, 12).tolist()} v={np.round(self.voxel, 12).tolist()} " \
+               f"n={list(self.shape)}"
+
+
+class _VolumeCfg(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    x_mm: tuple[float, float]
+    y_mm: tuple[float, float]
+    z_mm: tuple[float, float]
+    voxel_mm: float | tuple[float, float, float] | None = Field(None)
+    shape: tuple[int, int, int] | None = None
+
+    @model_validator(mode="after")
+    def _one_size(self):
+        if (self.voxel_mm is None) == (self.shape is None):
+            raise ValueError("give exactly one of voxel_mm and shape")
+        return self
+
+
+def volume_from_dict(cfg: dict, *, source: str = "[volume]") -> VolumeGrid:
+    """Validate a ``[volume]`` table (x_mm, y_mm, z_mm, voxel_mm or shape) and build the grid."""
+    try:
+        c = _VolumeCfg.model_validate(cfg)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, source, _VolumeCfg)
+                          .replace(f"{source}: ", f"{source}: [volume] ")) from None
+    mm = 1e-3
+    voxel = None if c.voxel_mm is None else np.asarray(c.voxel_mm, float) * mm
+    return VolumeGrid.from_bounds(np.array(c.x_mm) * mm, np.array(c.y_mm) * mm,
+                                  np.array(c.z_mm) * mm, voxel=voxel, shape=c.shape)

@@ -1,0 +1,215 @@
+"""Voxel-pixel weights from the effective image distance: sparse, built in parallel, cached.
+
+Row i of the weight matrix W is the ray of lit pixel i of a :class:`~plenopiv.lightfield.LightField`;
+column j is voxel j of a :class:`~plenopiv.volume.VolumeGrid` (flat ``[z, y, x]`` order).
+``W[i, j]`` is the fraction of the light of a particle spread uniformly over voxel j that
+reaches pixel i, in the simulator's units (a particle of energy 1 gives an image summing to 1),
+so that I = W E for a volume E of particle energies.
+
+Notes
+-----
+A pixel's beam is every line from its aperture cell (width a = p_p S_i/f̄ about u) to its
+lenslet footprint on the nominal focal plane (width b = p_m S_o/S_i about X_f). A point at
+depth Z lies on the line through aperture point u' and footprint point X_f' where
+X = (1 - t) u' + t X_f', t = (S_o + Z)/S_o; the fraction of the point's light (the aperture
+of area A sampled uniformly) that goes through the pixel is per axis
+
+    L(X) = |{u' in cell : (X - (1 - t) u')/t in footprint}| = a b t · f(X)
+
+where f is the density of X for independent uniform u', X_f' (a trapezoid). Averaged over the
+voxel, W = lit · (a b t)² / (A Δx Δy) · ΔF_x · ΔF_y with F the trapezoid's CDF, evaluated at
+the voxel's centre depth. Everything is in effective (air-equivalent) coordinates (DESIGN.md §4).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from plenopiv import _weights_kernels as K
+from plenopiv.calibration.model import Calibration
+from plenopiv.errors import ReconstructionError
+from plenopiv.io import write_h5
+from plenopiv.lightfield import LightField, light_field
+from plenopiv.projector import SparseProjector
+from plenopiv.volume import VolumeGrid
+
+WEIGHTS_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Weights:
+    """The weight matrix of one camera calibration and one volume grid.
+
+    Attributes
+    ----------
+    projector : SparseProjector
+        W (rows: lit pixels, columns: voxels), CSR float32 / int32.
+    pixel : (P,) int64
+        Flat sensor pixel index of each row.
+    grid : VolumeGrid
+    key : str
+        Hash of what the weights depend on (camera, calibration, grid, options).
+    """
+
+    projector: SparseProjector
+    pixel: np.ndarray
+    grid: VolumeGrid
+    key: str
+
+    @property
+    def nnz(self) -> int:
+        """Number of non-zero weights."""
+        return self.projector.nnz
+
+    def image_vector(self, image) -> np.ndarray:
+        """The rows' pixel values of a full sensor image, float32 (P,)."""
+        return np.asarray(image, np.float32).reshape(-1)[self.pixel]
+
+    def forward_image(self, volume, shape) -> np.ndarray:
+        """Project a volume ``[z, y, x]`` into a full sensor image of ``shape``."""
+        img = np.zeros(int(np.prod(shape)), np.float32)
+        img[self.pixel] = self.projector.forward(np.asarray(volume, np.float32).reshape(-1))
+        return img.reshape(shape)
+
+
+def _lf_arrays(lf: LightField):
+    xf = lf.focal_plane_position
+    return (np.ascontiguousarray(lf.u[:, 0]), np.ascontiguousarray(lf.u[:, 1]),
+            np.ascontiguousarray(xf[:, 0]), np.ascontiguousarray(xf[:, 1]),
+            np.ascontiguousarray(lf.lit, dtype=np.float64))
+
+
+def check_grid_in_view(lf: LightField, grid: VolumeGrid) -> None:
+    """Raise if the grid lies outside the field of view or crosses the main lens."""
+    zmin = grid.bounds[2, 0]
+    if zmin <= -0.9 * lf.object_distance:
+        raise ReconstructionError(f"[volume] z_mm starts at {zmin * 1e3:.4g} mm, within 10 % of "
+                                  f"the main lens (S_o,eff = {lf.object_distance * 1e3:.4g} mm)")
+    xf = lf.focal_plane_position
+    half = np.abs(xf).max(axis=0) + lf.footprint
+    b = grid.bounds
+    if (b[0, 0] > half[0] or b[0, 1] < -half[0] or b[1, 0] > half[1] or b[1, 1] < -half[1]):
+        raise ReconstructionError(
+            f"[volume] x_mm = {(b[0] * 1e3).round(3).tolist()}, y_mm = "
+            f"{(b[1] * 1e3).round(3).tolist()} lies outside the field of view "
+            f"(±{half[0] * 1e3:.3g} mm × ±{half[1] * 1e3:.3g} mm at the focal plane)")
+
+
+def build_weights(lf: LightField, grid: VolumeGrid, *, min_weight: float = 1e-7,
+                  key: str = "") -> Weights:
+    """Build W for the light field ``lf`` and the grid ``grid`` (numba, parallel).
+
+    Parameters
+    ----------
+    min_weight : float
+        Weights at or below this (dimensionless fraction of a particle's light) are dropped.
+    """
+    check_grid_in_view(lf, grid)
+    ux, uy, xfx, xfy, lit = _lf_arrays(lf)
+    a, b = lf.cell, lf.footprint
+    area = math.pi * lf.aperture_radius ** 2
+    zs = np.ascontiguousarray(grid.z, dtype=np.float64)
+    ox, oy = grid.origin[0], grid.origin[1]
+    vx, vy = grid.voxel[0], grid.voxel[1]
+    nz, ny, nx = grid.shape
+    args = (ux, uy, xfx, xfy, lit, lf.object_distance, a, b, area, zs, ox, oy, vx, vy, nx, ny,
+            float(min_weight))
+    counts = K.count_nnz(*args)
+    indptr = np.zeros(len(counts) + 1, np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    if indptr[-1] == 0:
+        raise ReconstructionError("no pixel of the camera sees the volume: check [volume] "
+                                  "against the field of view and the depth range")
+    indices = np.empty(indptr[-1], np.int32)
+    data = np.empty(indptr[-1], np.float32)
+    K.fill_rows(indptr, *args, indices, data)
+    proj = SparseProjector(indptr, indices, data, n_voxels=grid.n_voxels, check=False)
+    return Weights(proj, lf.pixel, grid, key)
+
+
+def weights_reference(lf: LightField, grid: VolumeGrid, rows) -> np.ndarray:
+    """Plain-NumPy twin of :func:`build_weights` for a few rows: a dense (len(rows), n_vox)."""
+    nz, ny, nx = grid.shape
+    xe = grid.origin[0] + (np.arange(nx + 1) - 0.5) * grid.voxel[0]
+    ye = grid.origin[1] + (np.arange(ny + 1) - 0.5) * grid.voxel[1]
+    out = np.zeros((len(rows), grid.n_voxels))
+    xf = lf.focal_plane_position
+    area = math.pi * lf.aperture_radius ** 2
+    for r, i in enumerate(rows):
+        for iz, z in enumerate(grid.z):
+            t = (lf.object_distance + z) / lf.object_distance
+            al, be = abs(1 - t) * lf.cell, t * lf.footprint
+            m = (1 - t) * lf.u[i] + t * xf[i]
+            fx = np.diff(_cdf_np(xe, m[0], al, be))
+            fy = np.diff(_cdf_np(ye, m[1], al, be))
+            w = lf.lit[i] * (lf.cell * be) ** 2 / (area * grid.voxel[0] * grid.voxel[1])
+            out[r, iz * ny * nx:(iz + 1) * ny * nx] = (w * fy[:, None] * fx[None, :]).ravel()
+    return out
+
+
+def _cdf_np(x, centre, alpha, beta):
+    """NumPy twin of :func:`plenopiv._weights_kernels.box_sum_cdf` (by numerical convolution)."""
+    lo, hi = sorted((alpha, beta))
+    if lo <= 1e-9 * hi:
+        return np.clip((x - centre) / hi + 0.5, 0, 1)
+    # the density is a trapezoid; integrate it with a fine trapezoid rule
+    grid = np.linspace(centre - (lo + hi) / 2, centre + (lo + hi) / 2, 20001)
+    dens = np.clip(np.minimum(grid - grid[0], grid[-1] - grid) / lo, 0, 1) / hi
+    cum = np.concatenate([[0], np.cumsum((dens[1:] + dens[:-1]) / 2 * np.diff(grid))])
+    return np.interp(x, grid, cum, left=0.0, right=1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# cache
+# --------------------------------------------------------------------------------------------
+
+
+def weights_key(calibration: Calibration, grid: VolumeGrid, *, f_number: float | None,
+                min_lit: float, min_weight: float) -> str:
+    """SHA-256 of everything the weights depend on."""
+    h = hashlib.sha256()
+    h.update(json.dumps({"v": WEIGHTS_VERSION, "camera": calibration.camera.to_dict(),
+                         "si": round(calibration.image_distance, 15), "grid": grid.key(),
+                         "f_number": f_number, "min_lit": min_lit, "min_weight": min_weight},
+                        sort_keys=True).encode())
+    for arr in (calibration.centre_px, calibration.focal_spot_px, calibration.grid_index):
+        h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
+    return h.hexdigest()
+
+
+def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str | Path | None,
+                   f_number: float | None = None, min_lit: float = 0.5,
+                   min_weight: float = 1e-7) -> tuple[Weights, bool]:
+    """Load the weights from ``cache_dir`` when built before for the same geometry, else build
+    (and save) them. Returns ``(weights, from_cache)``.
+
+    The file name carries the key, and the key stored inside is checked again, so weights of
+    another camera, calibration or grid are never reused; a corrupt cache file is rebuilt.
+    """
+    key = weights_key(calibration, grid, f_number=f_number, min_lit=min_lit,
+                      min_weight=min_weight)
+    path = None if cache_dir is None else Path(cache_dir) / f"weights-{key[:24]}.h5"
+    if path is not None and path.exists():
+        try:
+            with h5py.File(path, "r") as fh:
+                if fh.attrs.get("key") == key:
+                    proj = SparseProjector(fh["/indptr"][()], fh["/indices"][()],
+                                           fh["/data"][()], n_voxels=grid.n_voxels, check=False)
+                    return Weights(proj, fh["/pixel"][()], grid, key), True
+        except (OSError, KeyError, ValueError):
+            pass   # unreadable or from another geometry: rebuild below
+    lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
+    w = build_weights(lf, grid, min_weight=min_weight, key=key)
+    if path is not None:
+        p = w.projector
+        write_h5(path, {"/indptr": p.indptr, "/indices": p.indices, "/data": p.data,
+                        "/pixel": w.pixel}, attrs={"key": key, "grid": grid.key()},
+                 kind="weights cache", compress=False)
+    return w, False
