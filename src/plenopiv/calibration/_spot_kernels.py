@@ -1,0 +1,473 @@
+"""Numba kernels for sub-pixel spot centres, each with a plain-NumPy twin.
+
+The public wrapper :func:`plenopiv.calibration.spots.detect_spots` validates the image and
+resolves every option; these kernels take only contiguous arrays and scalars. The twins
+(``*_numpy``) compute the same numbers with vectorised NumPy and exist so that the tests can
+check the kernels against an independent implementation.
+
+Pixel convention (see :mod:`plenopiv.conventions`): ``(row, col)``, the centre of the
+top-left pixel at (0, 0); pixel ``(r, c)`` covers ``[r - 0.5, r + 0.5] x [c - 0.5, c + 0.5]``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+# ----------------------------------------------------------------------------------------------
+# Iterative thresholded centroid in a circular window
+# ----------------------------------------------------------------------------------------------
+
+
+@numba.njit(cache=True)
+def _peak_3x3_mean(image, r0, r1, c0, c1, cy, cx, radius2):
+    """Largest 3 x 3 mean among the pixels of the window (hot-pixel-robust peak height)."""
+    n_rows, n_cols = image.shape
+    best = -np.inf
+    for r in range(r0, r1 + 1):
+        dr = r - cy
+        for c in range(c0, c1 + 1):
+            dc = c - cx
+            if dr * dr + dc * dc > radius2:
+                continue
+            s = 0.0
+            n = 0
+            for rr in range(max(r - 1, 0), min(r + 2, n_rows)):
+                for cc in range(max(c - 1, 0), min(c + 2, n_cols)):
+                    s += image[rr, cc]
+                    n += 1
+            m = s / n
+            if m > best:
+                best = m
+    return best
+
+
+@numba.njit(cache=True)
+def centroid_refine_numba(image, start, radius, threshold, max_iter, tol):
+    """Refine each spot centre by an iterative thresholded centroid (numba kernel).
+
+    For every start position the window is the set of pixels whose centres lie within
+    ``radius`` of the current estimate. Inside it the weight of a pixel is
+    ``max(I - threshold * P, 0)`` with ``P`` the largest 3 x 3 mean in the first window (a
+    peak height that one hot pixel cannot inflate); the new estimate is the weighted mean of
+    the pixel positions. The window is re-centred on the estimate until it moves less than
+    ``tol`` or ``max_iter`` passes are done. A point-symmetric spot is a fixed point of this
+    iteration, so the estimate carries no window bias.
+
+    Parameters
+    ----------
+    image : ndarray of float32 or float64, shape (R, C)
+        Background-subtracted image.
+    start : ndarray of float64, shape (N, 2)
+        First estimates ``(row, col)``, px.
+    radius : float
+        Window radius, px.
+    threshold : float
+        Fraction of the spot's peak height below which a pixel has no weight.
+    max_iter : int
+        Largest number of re-centring passes.
+    tol : float
+        Convergence tolerance, px.
+
+    Returns
+    -------
+    centres : ndarray, shape (N, 2)
+        ``(row, col)`` px; NaN where the window held no positive weight.
+    intensity : ndarray, shape (N,)
+        Sum of the weights (image units x px).
+    area : ndarray, shape (N,)
+        Effective area, px: the sum of weights over the largest weight (1 for a lone pixel).
+    peak : ndarray, shape (N,)
+        Peak height ``P`` (image units).
+    """
+    n = start.shape[0]
+    n_rows, n_cols = image.shape
+    centres = np.full((n, 2), np.nan)
+    intensity = np.zeros(n)
+    area = np.zeros(n)
+    peak = np.zeros(n)
+    radius2 = radius * radius
+    for k in range(n):
+        cy = start[k, 0]
+        cx = start[k, 1]
+        ok = False
+        p = 0.0
+        level = 0.0
+        for it in range(max_iter):
+            r0 = max(int(math.ceil(cy - radius)), 0)
+            r1 = min(int(math.floor(cy + radius)), n_rows - 1)
+            c0 = max(int(math.ceil(cx - radius)), 0)
+            c1 = min(int(math.floor(cx + radius)), n_cols - 1)
+            if r0 > r1 or c0 > c1:
+                ok = False
+                break
+            if it == 0:
+                p = _peak_3x3_mean(image, r0, r1, c0, c1, cy, cx, radius2)
+                level = threshold * p
+            sw = 0.0
+            swr = 0.0
+            swc = 0.0
+            wmax = 0.0
+            for r in range(r0, r1 + 1):
+                dr = r - cy
+                for c in range(c0, c1 + 1):
+                    dc = c - cx
+                    if dr * dr + dc * dc > radius2:
+                        continue
+                    w = image[r, c] - level
+                    if w > 0.0:
+                        sw += w
+                        swr += w * r
+                        swc += w * c
+                        if w > wmax:
+                            wmax = w
+            if sw <= 0.0 or p <= 0.0:
+                ok = False
+                break
+            ny = swr / sw
+            nx = swc / sw
+            ok = True
+            intensity[k] = sw
+            area[k] = sw / wmax
+            peak[k] = p
+            moved = abs(ny - cy) + abs(nx - cx)
+            cy = ny
+            cx = nx
+            if moved < tol:
+                break
+        if ok:
+            centres[k, 0] = cy
+            centres[k, 1] = cx
+    return centres, intensity, area, peak
+
+
+def _window_stack(image, centre, half):
+    """Square windows of half-size ``half`` around ``round(centre)``, padded with NaN outside."""
+    n_rows, n_cols = image.shape
+    pad = np.pad(np.asarray(image, dtype=np.float64), half + 1, constant_values=np.nan)
+    base = np.floor(centre).astype(np.int64)
+    offs = np.arange(-half, half + 2)
+    rows = base[:, 0, None] + offs[None, :]
+    cols = base[:, 1, None] + offs[None, :]
+    rows_p = np.clip(rows + half + 1, 0, pad.shape[0] - 1)
+    cols_p = np.clip(cols + half + 1, 0, pad.shape[1] - 1)
+    win = pad[rows_p[:, :, None], cols_p[:, None, :]]
+    return win, rows.astype(np.float64), cols.astype(np.float64)
+
+
+def centroid_refine_numpy(image, start, radius, threshold, max_iter, tol):
+    """Plain-NumPy twin of :func:`centroid_refine_numba` (same arguments, same results)."""
+    image = np.asarray(image, dtype=np.float64)
+    n_rows, n_cols = image.shape
+    start = np.asarray(start, dtype=np.float64).reshape(-1, 2)
+    n = start.shape[0]
+    half = int(math.ceil(radius)) + 1
+    # 3 x 3 means with the image edge handled as in the kernel (mean of the pixels inside)
+    ones = np.ones_like(image)
+    pad_i = np.pad(image, 1)
+    pad_o = np.pad(ones, 1)
+    s = sum(
+        pad_i[1 + a : 1 + a + n_rows, 1 + b : 1 + b + n_cols]
+        for a in (-1, 0, 1)
+        for b in (-1, 0, 1)
+    )
+    m = sum(
+        pad_o[1 + a : 1 + a + n_rows, 1 + b : 1 + b + n_cols]
+        for a in (-1, 0, 1)
+        for b in (-1, 0, 1)
+    )
+    mean3 = s / m
+
+    centres = np.full((n, 2), np.nan)
+    intensity = np.zeros(n)
+    area = np.zeros(n)
+    peak = np.zeros(n)
+    cur = start.copy()
+    active = np.ones(n, dtype=bool)
+    level_all = np.zeros(n)
+    peak_all = np.zeros(n)
+    for it in range(max_iter):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        c = cur[idx]
+        win, rows, cols = _window_stack(image, c, half)
+        dr = rows - c[:, 0, None]
+        dc = cols - c[:, 1, None]
+        inside = (dr[:, :, None] ** 2 + dc[:, None, :] ** 2 <= radius * radius) & np.isfinite(win)
+        if it == 0:
+            win3, _, _ = _window_stack(mean3, c, half)
+            peak_all[idx] = np.where(inside, win3, -np.inf).max(axis=(1, 2))
+            level_all[idx] = threshold * peak_all[idx]
+        p = peak_all[idx]
+        level = level_all[idx]
+        w = np.where(inside, win - level[:, None, None], 0.0)
+        w = np.where(w > 0.0, w, 0.0)
+        sw = w.sum(axis=(1, 2))
+        failed = (sw <= 0.0) | (p <= 0.0) | ~np.any(inside, axis=(1, 2))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ny = (w * rows[:, :, None]).sum(axis=(1, 2)) / sw
+            nx = (w * cols[:, None, :]).sum(axis=(1, 2)) / sw
+            ar = sw / w.max(axis=(1, 2))
+        good = ~failed
+        gi = idx[good]
+        intensity[gi] = sw[good]
+        area[gi] = ar[good]
+        peak[gi] = p[good]
+        moved = np.abs(ny - c[:, 0]) + np.abs(nx - c[:, 1])
+        cur[gi, 0] = ny[good]
+        cur[gi, 1] = nx[good]
+        centres[gi] = cur[gi]
+        # a failure ends that spot with NaN, as in the kernel
+        centres[idx[failed]] = np.nan
+        active[idx[failed]] = False
+        active[gi[moved[good] < tol]] = False
+    return centres, intensity, area, peak
+
+
+# ----------------------------------------------------------------------------------------------
+# Least-squares fit of a circular 2-D Gaussian plus a constant
+# ----------------------------------------------------------------------------------------------
+
+
+@numba.njit(cache=True)
+def _solve5(a, b):
+    """Solve the symmetric 5 x 5 system ``a x = b`` by Gaussian elimination with pivoting."""
+    m = a.copy()
+    v = b.copy()
+    n = 5
+    for i in range(n):
+        piv = i
+        for j in range(i + 1, n):
+            if abs(m[j, i]) > abs(m[piv, i]):
+                piv = j
+        if m[piv, i] == 0.0:
+            return v * np.nan
+        if piv != i:
+            for j in range(n):
+                t = m[i, j]
+                m[i, j] = m[piv, j]
+                m[piv, j] = t
+            t = v[i]
+            v[i] = v[piv]
+            v[piv] = t
+        for j in range(i + 1, n):
+            f = m[j, i] / m[i, i]
+            for q in range(i, n):
+                m[j, q] -= f * m[i, q]
+            v[j] -= f * v[i]
+    x = np.zeros(n)
+    for i in range(n - 1, -1, -1):
+        s = v[i]
+        for q in range(i + 1, n):
+            s -= m[i, q] * x[q]
+        x[i] = s / m[i, i]
+    return x
+
+
+@numba.njit(cache=True)
+def gaussian_fit_numba(image, start, sigma0, radius, max_iter):
+    """Levenberg-Marquardt fit of ``A exp(-|x - x0|^2 / (2 s^2)) + B`` to each spot (kernel).
+
+    The pixels are those whose centres lie within ``radius`` of ``round(start)``; they stay
+    fixed during the fit.
+
+    Parameters
+    ----------
+    image : ndarray of float32 or float64, shape (R, C)
+        Background-subtracted image.
+    start : ndarray of float64, shape (N, 2)
+        First centres ``(row, col)``, px (the centroids).
+    sigma0 : ndarray of float64, shape (N,)
+        First Gaussian standard deviations, px.
+    radius : float
+        Window radius, px.
+    max_iter : int
+        Largest number of Levenberg-Marquardt steps.
+
+    Returns
+    -------
+    params : ndarray, shape (N, 5)
+        ``(A, row0, col0, s, B)``: amplitude, centre (px), standard deviation (px), offset.
+        NaN where the fit failed (too few pixels, singular system, centre left the window).
+    """
+    n = start.shape[0]
+    n_rows, n_cols = image.shape
+    out = np.full((n, 5), np.nan)
+    radius2 = radius * radius
+    h = int(math.ceil(radius))
+    npx_max = (2 * h + 1) * (2 * h + 1)
+    pr = np.empty(npx_max)
+    pc = np.empty(npx_max)
+    pv = np.empty(npx_max)
+    jac = np.empty((npx_max, 5))
+    for k in range(n):
+        rc = int(math.floor(start[k, 0] + 0.5))
+        cc = int(math.floor(start[k, 1] + 0.5))
+        npx = 0
+        vmin = np.inf
+        vmax = -np.inf
+        for r in range(max(rc - h, 0), min(rc + h, n_rows - 1) + 1):
+            for c in range(max(cc - h, 0), min(cc + h, n_cols - 1) + 1):
+                if (r - rc) * (r - rc) + (c - cc) * (c - cc) <= radius2:
+                    pr[npx] = r
+                    pc[npx] = c
+                    v = image[r, c]
+                    pv[npx] = v
+                    vmin = min(vmin, v)
+                    vmax = max(vmax, v)
+                    npx += 1
+        if npx < 8:
+            continue
+        p = np.array([vmax - vmin, start[k, 0], start[k, 1], sigma0[k], vmin])
+        lam = 1e-3
+        cost = 0.0
+        for i in range(npx):
+            dr = pr[i] - p[1]
+            dc = pc[i] - p[2]
+            res = p[0] * math.exp(-(dr * dr + dc * dc) / (2.0 * p[3] * p[3])) + p[4] - pv[i]
+            cost += res * res
+        converged = False
+        for _ in range(max_iter):
+            jtj = np.zeros((5, 5))
+            jtr = np.zeros(5)
+            for i in range(npx):
+                dr = pr[i] - p[1]
+                dc = pc[i] - p[2]
+                s2 = p[3] * p[3]
+                d2 = dr * dr + dc * dc
+                e = math.exp(-d2 / (2.0 * s2))
+                res = p[0] * e + p[4] - pv[i]
+                jac[i, 0] = e
+                jac[i, 1] = p[0] * e * dr / s2
+                jac[i, 2] = p[0] * e * dc / s2
+                jac[i, 3] = p[0] * e * d2 / (s2 * p[3])
+                jac[i, 4] = 1.0
+                for a in range(5):
+                    jtr[a] += jac[i, a] * res
+                    for b in range(5):
+                        jtj[a, b] += jac[i, a] * jac[i, b]
+            improved = False
+            for _try in range(10):
+                a_mat = jtj.copy()
+                for a in range(5):
+                    a_mat[a, a] += lam * jtj[a, a]
+                step = _solve5(a_mat, -jtr)
+                if not np.all(np.isfinite(step)):
+                    lam *= 10.0
+                    continue
+                q = p + step
+                if q[3] <= 0.0:
+                    lam *= 10.0
+                    continue
+                new_cost = 0.0
+                for i in range(npx):
+                    dr = pr[i] - q[1]
+                    dc = pc[i] - q[2]
+                    res = q[0] * math.exp(-(dr * dr + dc * dc) / (2.0 * q[3] * q[3])) + q[4] - pv[i]
+                    new_cost += res * res
+                if new_cost <= cost:
+                    converged = abs(step[1]) + abs(step[2]) < 1e-6
+                    p = q
+                    cost = new_cost
+                    lam = max(lam / 10.0, 1e-12)
+                    improved = True
+                    break
+                lam *= 10.0
+            if not improved or converged:
+                break
+        if abs(p[1] - rc) <= radius and abs(p[2] - cc) <= radius and p[0] > 0.0:
+            out[k] = p
+    return out
+
+
+def gaussian_fit_numpy(image, start, sigma0, radius, max_iter):
+    """Plain-NumPy twin of :func:`gaussian_fit_numba`, all spots at once (same results)."""
+    image = np.asarray(image, dtype=np.float64)
+    start = np.asarray(start, dtype=np.float64).reshape(-1, 2)
+    n = start.shape[0]
+    h = int(math.ceil(radius))
+    centre = np.floor(start + 0.5)
+    win, rows, cols = _window_stack(image, centre - 0.0, h)
+    # _window_stack starts at floor(centre) - h; keep the 2h+1 square around the centre
+    win = win[:, : 2 * h + 1, : 2 * h + 1]
+    rows = rows[:, : 2 * h + 1]
+    cols = cols[:, : 2 * h + 1]
+    rr = np.broadcast_to(rows[:, :, None], win.shape)
+    cc = np.broadcast_to(cols[:, None, :], win.shape)
+    d2c = (rr - centre[:, 0, None, None]) ** 2 + (cc - centre[:, 1, None, None]) ** 2
+    mask = (d2c <= radius * radius) & np.isfinite(win)
+    v = np.where(mask, win, 0.0)
+    npx = mask.sum(axis=(1, 2))
+    vmin = np.where(mask, win, np.inf).min(axis=(1, 2))
+    vmax = np.where(mask, win, -np.inf).max(axis=(1, 2))
+    p = np.stack([vmax - vmin, start[:, 0], start[:, 1], np.asarray(sigma0, float), vmin], axis=1)
+    ok = npx >= 8
+    p[~ok] = np.nan
+
+    def residual_and_jac(q):
+        dr = rr - q[:, 1, None, None]
+        dc = cc - q[:, 2, None, None]
+        s2 = q[:, 3, None, None] ** 2
+        d2 = dr * dr + dc * dc
+        e = np.exp(-d2 / (2.0 * s2))
+        a = q[:, 0, None, None]
+        res = np.where(mask, a * e + q[:, 4, None, None] - v, 0.0)
+        jac = np.stack(
+            [
+                e,
+                a * e * dr / s2,
+                a * e * dc / s2,
+                a * e * d2 / (s2 * q[:, 3, None, None]),
+                np.ones_like(e),
+            ],
+            axis=-1,
+        )
+        jac = np.where(mask[..., None], jac, 0.0)
+        return res, jac
+
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        res, _ = residual_and_jac(p)
+        cost = (res**2).sum(axis=(1, 2))
+        lam = np.full(n, 1e-3)
+        active = ok.copy()
+        for _ in range(max_iter):
+            if not active.any():
+                break
+            res, jac = residual_and_jac(p)
+            jtj = np.einsum("nrca,nrcb->nab", jac, jac)
+            jtr = np.einsum("nrca,nrc->na", jac, res)
+            improved = np.zeros(n, dtype=bool)
+            converged = np.zeros(n, dtype=bool)
+            pending = active.copy()
+            for _try in range(10):
+                if not pending.any():
+                    break
+                a_mat = jtj + lam[:, None, None] * np.einsum("nii->ni", jtj)[:, :, None] * np.eye(5)
+                step = np.full((n, 5), np.nan)
+                idx = np.flatnonzero(pending)
+                for i in idx:  # a 5 x 5 solve per spot, as the kernel does
+                    try:
+                        step[i] = np.linalg.solve(a_mat[i], -jtr[i])
+                    except np.linalg.LinAlgError:
+                        pass
+                q = p + step
+                finite = np.all(np.isfinite(step), axis=1) & (q[:, 3] > 0.0)
+                res_q, _ = residual_and_jac(np.where(finite[:, None], q, p))
+                new_cost = (res_q**2).sum(axis=(1, 2))
+                accept = pending & finite & (new_cost <= cost)
+                converged |= accept & (np.abs(step[:, 1]) + np.abs(step[:, 2]) < 1e-6)
+                p[accept] = q[accept]
+                cost[accept] = new_cost[accept]
+                lam[accept] = np.maximum(lam[accept] / 10.0, 1e-12)
+                improved |= accept
+                reject = pending & ~accept
+                lam[reject] *= 10.0
+                pending = reject
+            active &= improved & ~converged
+    inside = (np.abs(p[:, 1] - centre[:, 0]) <= radius) & (np.abs(p[:, 2] - centre[:, 1]) <= radius)
+    good = ok & inside & (p[:, 0] > 0.0)
+    p[~good] = np.nan
+    return p
