@@ -190,6 +190,44 @@ def _simulate_particles(cam: CameraModel, args, rng) -> dict:
             **_image_summary(ia)}
 
 
+# ---- calibrate -----------------------------------------------------------------------------
+
+
+def cmd_calibrate(args) -> dict:
+    """Calibrate a camera from its images and write the calibration product."""
+    from plenopiv.calibration.pipeline import calibrate
+    from plenopiv.io import read_image
+
+    cam = load_camera(args.camera)
+    out = _check_out(args.out, (".h5",))
+    if args.method in ("magnification", "both") and (args.ruler is None or
+                                                      args.ruler_spacing_mm is None):
+        raise ConfigError(f"--method {args.method} needs --ruler IMG and --ruler-spacing-mm")
+    t0 = time.perf_counter()
+    fp = read_image(args.focal_point)
+    al = None if args.alignment is None else read_image(args.alignment)
+    ru = None if args.ruler is None else read_image(args.ruler)
+    report = calibrate(cam, fp, alignment_image=al, ruler_image=ru,
+                       ruler_spacing=(None if args.ruler_spacing_mm is None
+                                      else args.ruler_spacing_mm * 1e-3),
+                       ruler_axis=args.ruler_axis, method=args.method,
+                       fit_misplacement=not args.no_misplacement,
+                       max_missing_fraction=args.max_missing_fraction)
+    inputs = {"focal_point": args.focal_point, "alignment": args.alignment,
+              "ruler": args.ruler, "ruler_spacing_mm": args.ruler_spacing_mm,
+              "method": args.method}
+    report.calibration.save(out, config={"inputs": inputs, "summary": report.summary()})
+    summary = {"command": "calibrate", "out": str(out), **report.summary()}
+    if not args.no_report:
+        from plenopiv.plots import calibration_report
+
+        png = out.with_suffix(".png")
+        calibration_report(report, fp, png)
+        summary["report"] = str(png)
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    return summary
+
+
 # ---- demo ----------------------------------------------------------------------------------
 
 
@@ -246,6 +284,27 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     _add_common(demo)
     demo.set_defaults(func=cmd_demo)
+
+    cal = sub.add_parser("calibrate", help="lenslet centres, focal spots and the image distance")
+    cal.add_argument("camera", help="camera TOML file or preset name")
+    cal.add_argument("--focal-point", required=True, metavar="IMG",
+                     help="focal-point image (white sheet, stopped-down lens)")
+    cal.add_argument("--alignment", metavar="IMG",
+                     help="alignment image (collimated light); default: the nominal lattice")
+    cal.add_argument("--ruler", metavar="IMG", help="ruler image on the nominal focal plane")
+    cal.add_argument("--ruler-spacing-mm", type=float, help="ruler tick spacing (mm)")
+    cal.add_argument("--ruler-axis", choices=("x", "y"), default="x",
+                     help="direction along which the ticks repeat (default x, along columns)")
+    cal.add_argument("--method", choices=("focal-point", "magnification", "both"),
+                     default="focal-point", help="which S_i to keep (default focal-point)")
+    cal.add_argument("--no-misplacement", action="store_true",
+                     help="fit S_i only, not the MLA offset and rotation")
+    cal.add_argument("--max-missing-fraction", type=float, default=0.25,
+                     help="more missing focal spots than this is an error (default 0.25)")
+    cal.add_argument("--no-report", action="store_true", help="no PNG report beside --out")
+    cal.add_argument("--out", required=True, help="calibration product (.h5)")
+    _add_common(cal)
+    cal.set_defaults(func=cmd_calibrate)
 
     sim = sub.add_parser("simulate", help="render synthetic plenoptic images by ray tracing")
     simsub = sim.add_subparsers(dest="kind", required=True)

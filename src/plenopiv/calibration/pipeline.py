@@ -1,0 +1,270 @@
+"""Calibrate a camera from its images: focal-point (+ alignment) (+ ruler) -> Calibration.
+
+Steps, each a stage function of the calibration package:
+
+1. :func:`~plenopiv.calibration.spots.detect_spots` and
+   :func:`~plenopiv.calibration.spots.fit_lattice` on the focal-point image: one focal spot
+   (micro-image centre) per lenslet, with its lattice index; missing spots are listed.
+2. Lenslet centres: the spots of the alignment image (collimated light), or, without one,
+   the camera's nominal lattice (with its configured offset and rotation). Each focal spot is
+   paired with its lenslet by position.
+3. :func:`~plenopiv.calibration.image_distance.fit_focal_points`: S_i, MLA offset, rotation.
+4. Optionally the magnification method on a ruler image.
+
+Orchestration lives here; file I/O and reporting live in the CLI.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from plenopiv.calibration.image_distance import (
+    FocalPointFit,
+    MagnificationResult,
+    SpotModel,
+    find_ruler_ticks,
+    fit_focal_points,
+    index_ticks,
+    lenslet_integral_image,
+    magnification_from_ticks,
+)
+from plenopiv.calibration.model import Calibration
+from plenopiv.calibration.spots import Lattice, SpotFlag, detect_spots, fit_lattice
+from plenopiv.camera import CameraModel, apply_misplacement
+from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
+from plenopiv.errors import CalibrationError
+from plenopiv.io import check_image
+
+METHODS = ("focal-point", "magnification", "both")
+
+
+@dataclass(frozen=True)
+class CalibrationReport:
+    """Everything measured on the way to a :class:`Calibration` (for reports and JSON)."""
+
+    calibration: Calibration
+    focal_lattice: Lattice
+    alignment_lattice: Lattice | None
+    focal_fit: FocalPointFit | None
+    magnification: MagnificationResult | None
+    n_missing: int
+    missing_index: np.ndarray
+    lenslet_source: str
+    fit_spots_px: np.ndarray
+    notes: list = field(default_factory=list)
+
+    def summary(self) -> dict:
+        """The one-object JSON summary of ``plenopiv calibrate --json``."""
+        cal = self.calibration
+        out = {
+            "image_distance_mm": cal.image_distance * 1e3,
+            "method": cal.method,
+            "offset_um": [v * 1e6 for v in cal.offset],
+            "rotation_rad": cal.rotation,
+            "rms_residual_px": cal.rms_residual_px,
+            "n_lenslets": cal.n_lenslets,
+            "n_missing": self.n_missing,
+            "grid": self.focal_lattice.grid,
+            "pitch_px": [float(v) for v in self.focal_lattice.pitch_px],
+            "lenslet_centres_from": self.lenslet_source,
+        }
+        if self.focal_fit is not None:
+            f = self.focal_fit
+            out["focal_point"] = {"image_distance_mm": f.image_distance * 1e3,
+                                  "sigma_mm": f.sigma_image_distance * 1e3,
+                                  "back_side": f.model.back_side,
+                                  "offset_um": (f.offset * 1e6).tolist(),
+                                  "rotation_rad": f.rotation,
+                                  "rms_residual_px": cal.rms_residual_px}
+        if self.magnification is not None:
+            m = self.magnification
+            out["magnification"] = {"image_distance_mm": m.image_distance * 1e3,
+                                    "sigma_mm": m.sigma_image_distance * 1e3,
+                                    "sigma_depth_of_focus_mm": m.sigma_depth_of_focus * 1e3,
+                                    "sigma_height_mm": m.sigma_height * 1e3,
+                                    "magnification": m.magnification,
+                                    "object_distance_mm": m.object_distance * 1e3,
+                                    "n_ticks": int(np.isfinite(m.tick_positions).sum())}
+        if self.notes:
+            out["notes"] = list(self.notes)
+        return out
+
+
+def _pair(focal_px, lenslet_px, scale, centre_rc, max_dist):
+    """Pair each focal spot with the lenslet whose centre, scaled by ``scale`` about the sensor
+    centre, lies nearest; returns the lenslet index per spot (-1 if none within max_dist)."""
+    predicted = centre_rc + (lenslet_px - centre_rc) * scale
+    dist, idx = cKDTree(predicted).query(focal_px, distance_upper_bound=max_dist)
+    idx = np.where(np.isfinite(dist), idx, -1)
+    # one lenslet per spot
+    seen = {}
+    for i, j in enumerate(idx):
+        if j < 0:
+            continue
+        if j in seen and dist[seen[j]] <= dist[i]:
+            idx[i] = -1
+            continue
+        if j in seen:
+            idx[seen[j]] = -1
+        seen[j] = i
+    return idx
+
+
+def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
+              ruler_image=None, ruler_spacing: float | None = None, ruler_axis: str = "x",
+              method: str = "focal-point", fit_misplacement: bool = True,
+              max_missing_fraction: float = 0.25, spot_threshold: float = 0.1
+              ) -> CalibrationReport:
+    """Calibrate ``camera`` from its images.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        The camera description; its ``image_distance`` may be unset.
+    focal_point_image : ndarray
+        White sheet through the stopped-down lens (or a full-aperture white image).
+    alignment_image : ndarray, optional
+        Collimated light, lens removed: gives the lenslet centres. Without it the camera's
+        nominal lattice is used.
+    ruler_image : ndarray, optional
+        A ruler on the nominal focal plane, ticks ``ruler_spacing`` metres apart along
+        ``ruler_axis`` ("x": ticks are lines across x, i.e. along the sensor columns).
+    method : {"focal-point", "magnification", "both"}
+        Which S_i the calibration keeps. "both" keeps the focal-point value and reports the
+        magnification value beside it.
+    max_missing_fraction : float
+        More missing focal spots than this fraction is an error; fewer are filled from the
+        fitted model and reported.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method = {method!r}: expected one of {METHODS}")
+    if method in ("magnification", "both") and (ruler_image is None or ruler_spacing is None):
+        raise CalibrationError(f"method = {method!r} needs a ruler image and its tick spacing")
+    shape, pp = camera.sensor.shape, camera.sensor.pixel_pitch
+    mla = camera.microlens_array
+    fp = check_image(focal_point_image, shape=shape, name="focal-point image")
+    notes: list[str] = []
+
+    # 1. focal spots
+    spots = detect_spots(fp, grid=mla.grid, threshold=spot_threshold)
+    lat = fit_lattice(spots, grid=mla.grid, image_shape=shape)
+    good = lat.inlier & ((lat.flags & (SpotFlag.EDGE | SpotFlag.SATURATED | SpotFlag.OUTLIER))
+                         == 0)
+    centre_rc = (np.array(shape) - 1) / 2.0
+
+    # 2. lenslet centres: the set of lenslets that exist, and their lattice indices
+    align_lat = None
+    if alignment_image is not None:
+        al = check_image(alignment_image, shape=shape, name="alignment image")
+        # collimated light focuses to (almost) one pixel: accept one-pixel spots here; a hot
+        # pixel is then rejected by the lattice fit as off-lattice instead
+        a_spots = detect_spots(al, grid=mla.grid, threshold=spot_threshold, min_area_px=0.9)
+        align_lat = fit_lattice(a_spots, grid=mla.grid, image_shape=shape)
+        a_ok = align_lat.inlier & ((align_lat.flags & SpotFlag.EDGE) == 0)
+        lenslet_px = align_lat.centres_px[a_ok]
+        lenslet_idx = align_lat.grid_index[a_ok]
+        source = "alignment image"
+        lenslet_pitch_px = float(np.mean(align_lat.pitch_px))
+    else:
+        lenslet_px = sensor_to_pixel(mla.centres(), shape, pp)
+        lenslet_idx = mla.grid_index()
+        source = "nominal lattice"
+        lenslet_pitch_px = camera.pitch_px
+    scale0 = float(np.mean(lat.pitch_px)) / lenslet_pitch_px
+    if not 1.0 < scale0 < 1.1:
+        raise CalibrationError(
+            f"the focal spots are {float(np.mean(lat.pitch_px)):.4g} px apart and the lenslets "
+            f"{lenslet_pitch_px:.4g} px: expected a ratio 1 + f̄/S_i slightly above 1 (got "
+            f"{scale0:.5f}); wrong camera file or image?")
+    # the lenslets whose focal spot should be fully on the sensor
+    predicted = centre_rc + (lenslet_px - centre_rc) * scale0
+    margin = spots.window_radius_px + 1
+    expected = np.all((predicted >= margin) & (predicted <= np.array(shape) - 1 - margin), axis=1)
+    lenslet_px, lenslet_idx = lenslet_px[expected], lenslet_idx[expected]
+    pair = _pair(lat.centres_px, lenslet_px, scale0, centre_rc, 0.35 * lenslet_pitch_px)
+    use = good & (pair >= 0)
+    if use.sum() < 16:
+        raise CalibrationError(f"only {int(use.sum())} focal spots could be paired with a "
+                               f"lenslet centre ({source}): expected at least 16")
+    spot_of = np.full(len(lenslet_px), -1)
+    spot_of[pair[use]] = np.flatnonzero(use)
+    missing = np.flatnonzero(spot_of < 0)
+    frac = len(missing) / len(lenslet_px)
+    if frac > max_missing_fraction:
+        idx = lenslet_idx[missing]
+        raise CalibrationError(
+            f"{len(missing)} of {len(lenslet_px)} lenslets ({frac:.0%}) have no focal spot: "
+            f"expected at most {max_missing_fraction:.0%}; grid rows {idx[:, 0].min()}-"
+            f"{idx[:, 0].max()}, cols {idx[:, 1].min()}-{idx[:, 1].max()} affected; check "
+            "the focal-point image, the aperture and spot_threshold")
+
+    d_m = pixel_to_sensor(lenslet_px[spot_of >= 0], shape, pp)
+    p_m = pixel_to_sensor(lat.centres_px[spot_of[spot_of >= 0]], shape, pp)
+
+    # 3. focal-point fit
+    spot_model = SpotModel.from_camera(camera)
+    fit = fit_focal_points(d_m, p_m, spot_model, fit_misplacement=fit_misplacement)
+
+    # 4. magnification method
+    mag = None
+    if ruler_image is not None and ruler_spacing is not None:
+        mag = _magnification(camera, ruler_image, lat, ruler_spacing, ruler_axis)
+
+    # every lenslet gets a focal spot: measured, or (missing) predicted by the fitted model
+    spots_px = np.empty_like(lenslet_px)
+    found = spot_of >= 0
+    spots_px[found] = lat.centres_px[spot_of[found]]
+    if len(missing):
+        d_missing = apply_misplacement(pixel_to_sensor(lenslet_px[missing], shape, pp),
+                                       fit.offset, fit.rotation)
+        spots_px[missing] = sensor_to_pixel(spot_model.predict(d_missing, fit.image_distance),
+                                            shape, pp)
+        idx = lenslet_idx[missing]
+        notes.append(f"{len(missing)} of {len(lenslet_px)} focal spots missing (grid rows "
+                     f"{idx[:, 0].min()}-{idx[:, 0].max()}, cols {idx[:, 1].min()}-"
+                     f"{idx[:, 1].max()}); filled from the fitted focal-point model")
+    missing_index = lenslet_idx[missing]
+
+    if method == "magnification":
+        si, meth = mag.image_distance, "magnification"
+    else:
+        si, meth = fit.image_distance, method
+        if mag is not None and abs(mag.image_distance - fit.image_distance) > \
+                3 * mag.sigma_image_distance:
+            notes.append(
+                f"the focal-point S_i ({fit.image_distance * 1e3:.2f} mm) and the magnification "
+                f"S_i ({mag.image_distance * 1e3:.2f} ± {mag.sigma_image_distance * 1e3:.2f} mm) "
+                "disagree: an exit-pupil offset or a wrong f̄ (see the lens corrections)")
+    cal = Calibration(camera=camera.with_image_distance(si), centre_px=lenslet_px,
+                      focal_spot_px=spots_px, grid_index=lenslet_idx, image_distance=si,
+                      method=meth, offset=tuple(fit.offset), rotation=fit.rotation,
+                      rms_residual_px=fit.rms_residual / pp,
+                      extra={"n_missing": int(len(missing)),
+                             "sigma_image_distance_m": (fit.sigma_image_distance
+                                                        if meth != "magnification"
+                                                        else mag.sigma_image_distance)})
+    return CalibrationReport(cal, lat, align_lat, fit, mag, int(len(missing)), missing_index,
+                             source, lat.centres_px[spot_of[found]], notes)
+
+
+def _magnification(camera, ruler_image, lat: Lattice, spacing, axis) -> MagnificationResult:
+    if axis not in ("x", "y"):
+        raise ValueError(f"ruler_axis = {axis!r}: expected 'x' or 'y'")
+    shape = camera.sensor.shape
+    img = check_image(ruler_image, shape=shape, name="ruler image")
+    pitch_px = float(np.mean(lat.pitch_px))
+    integ = lenslet_integral_image(img, lat.centres_px, lat.grid_index, pitch_px)
+    if axis == "y":
+        integ = integ.T
+    mid = integ.shape[0] // 2
+    band = integ[max(mid - 3, 0):mid + 4]
+    profile = np.nanmean(band, axis=0)
+    ticks = find_ruler_ticks(profile)
+    # lenslet-index units to metres on the lenslet plane (the lattice pitch in px, scaled
+    # back from the focal-spot spacing to the lenslet spacing by the camera's pitch)
+    positions = index_ticks(ticks) * camera.microlens_array.pitch
+    return magnification_from_ticks(positions, spacing, camera.main_lens.focal_length,
+                                    camera.main_lens.f_number, camera.microlens_array.pitch)

@@ -1,0 +1,132 @@
+"""PNG figures for people: calibration reports, volume slices, validation plots.
+
+Matplotlib with the non-interactive Agg backend; every function writes one PNG atomically and
+returns its path. Nothing here is imported by the numerical stages.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from plenopiv.io import atomic_path
+
+
+def _figure(*args, **kw):
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt, plt.figure(*args, **kw)
+
+
+def _save(plt, fig, path) -> Path:
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return p
+
+
+def calibration_report(report, image, path) -> Path:
+    """Four panels: focal-spot residual map, residual histogram, lattice detail, S_i table.
+
+    Parameters
+    ----------
+    report : plenopiv.calibration.pipeline.CalibrationReport
+    image : ndarray
+        The focal-point image (for the lattice detail).
+    """
+    plt, fig = _figure(figsize=(13, 9.5))
+    cal, lat, fit = report.calibration, report.focal_lattice, report.focal_fit
+    pp = cal.camera.sensor.pixel_pitch
+    ax = fig.add_subplot(2, 2, 1)
+    if fit is not None:
+        spots = report.fit_spots_px
+        res_px = np.hypot(*fit.residual.T) / pp
+        sc = ax.scatter(spots[:, 1], spots[:, 0], c=res_px, s=2, cmap="viridis",
+                        vmax=np.percentile(res_px, 99))
+        fig.colorbar(sc, ax=ax, label="|residual| (px)")
+        ax.set_ylim(cal.camera.sensor.rows, 0)
+        ax.set_xlim(0, cal.camera.sensor.cols)
+    ax.set_title("focal-spot residual (measured - fitted model)")
+    ax.set_xlabel("col (px)")
+    ax.set_ylabel("row (px)")
+    ax.set_aspect("equal")
+
+    ax = fig.add_subplot(2, 2, 2)
+    if fit is not None:
+        ax.hist(fit.residual[:, 1] / pp, bins=80, alpha=0.6, label="col")
+        ax.hist(fit.residual[:, 0] / pp, bins=80, alpha=0.6, label="row")
+        ax.legend()
+    ax.set_xlabel("residual (px)")
+    ax.set_title(f"rms residual {cal.rms_residual_px:.4f} px")
+
+    ax = fig.add_subplot(2, 2, 3)
+    r0, c0 = (np.array(image.shape) // 2).astype(int)
+    h = int(4 * np.mean(lat.pitch_px))
+    crop = np.asarray(image, float)[r0 - h:r0 + h, c0 - h:c0 + h]
+    ax.imshow(crop, cmap="gray", extent=(c0 - h - 0.5, c0 + h - 0.5, r0 + h - 0.5, r0 - h - 0.5))
+    sel = (np.abs(lat.centres_px[:, 0] - r0) < h) & (np.abs(lat.centres_px[:, 1] - c0) < h)
+    ax.plot(lat.centres_px[sel, 1], lat.centres_px[sel, 0], "r+", ms=8, label="measured spot")
+    pred = lat.predict(lat.grid_index[sel])
+    ax.plot(pred[:, 1], pred[:, 0], "c.", ms=4, label="fitted lattice")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(f"{lat.grid} lattice, pitch {np.mean(lat.pitch_px):.4f} px, "
+                 f"rotation {lat.rotation_rad * 1e3:.3f} mrad")
+
+    ax = fig.add_subplot(2, 2, 4)
+    ax.axis("off")
+    s = report.summary()
+    lines = [f"camera: {cal.camera.name}", f"lenslets: {cal.n_lenslets} "
+             f"({report.n_missing} missing, filled)", f"lenslet centres from: "
+             f"{report.lenslet_source}", "", "image distance S_i,eff:"]
+    if "focal_point" in s:
+        f = s["focal_point"]
+        lines.append(f"  focal-point method:   {f['image_distance_mm']:.3f} ± "
+                     f"{f['sigma_mm']:.3f} mm ({f['back_side']} back side)")
+        lines.append(f"    MLA offset {f['offset_um'][0]:.3f}, {f['offset_um'][1]:.3f} µm, "
+                     f"rotation {f['rotation_rad'] * 1e6:.2f} µrad")
+    if "magnification" in s:
+        m = s["magnification"]
+        lines.append(f"  magnification method: {m['image_distance_mm']:.3f} ± {m['sigma_mm']:.3f}"
+                     f" mm  (M = {m['magnification']:.4f}, {m['n_ticks']} ticks)")
+        lines.append(f"    depth of focus ± {m['sigma_depth_of_focus_mm']:.3f} mm, "
+                     f"height ± {m['sigma_height_mm']:.3f} mm")
+    lines += ["", f"kept: {s['image_distance_mm']:.3f} mm ({s['method']})"]
+    for n in report.notes:
+        lines += ["", "note: " + n[:110]]
+    ax.text(0.0, 1.0, "\n".join(lines), va="top", family="monospace", fontsize=9)
+    return _save(plt, fig, path)
+
+
+def volume_slices(volume, x, y, z, path, *, particles=None, title="") -> Path:
+    """x-y slice at the focal plane (Z nearest 0) and x-z slice through the brightest row.
+
+    ``volume`` is ``[z, y, x]``; x, y, z are voxel-centre coordinates in metres.
+    """
+    plt, fig = _figure(figsize=(12, 5))
+    v = np.asarray(volume, float)
+    iz = int(np.argmin(np.abs(np.asarray(z))))
+    iy = int(np.argmax(v.sum(axis=(0, 2))))
+    ext_xy = (x[0] * 1e3, x[-1] * 1e3, y[-1] * 1e3, y[0] * 1e3)
+    ext_xz = (x[0] * 1e3, x[-1] * 1e3, z[-1] * 1e3, z[0] * 1e3)
+    ax = fig.add_subplot(1, 2, 1)
+    ax.imshow(v[iz], cmap="magma", extent=ext_xy, aspect="equal")
+    ax.set_title(f"x-y slice at Z = {z[iz] * 1e3:.2f} mm")
+    ax.set_xlabel("X (mm)")
+    ax.set_ylabel("Y (mm)")
+    ax = fig.add_subplot(1, 2, 2)
+    ax.imshow(v[:, iy, :], cmap="magma", extent=ext_xz, aspect="auto")
+    if particles is not None and len(particles):
+        p = np.asarray(particles)
+        near = np.abs(p[:, 1] - y[iy]) < 2 * abs(y[1] - y[0]) if len(y) > 1 else slice(None)
+        ax.plot(p[near, 0] * 1e3, p[near, 2] * 1e3, "c+", ms=6)
+    ax.set_title(f"x-z slice at Y = {y[iy] * 1e3:.2f} mm")
+    ax.set_xlabel("X (mm)")
+    ax.set_ylabel("Z (mm), + away from camera")
+    if title:
+        fig.suptitle(title)
+    return _save(plt, fig, path)
