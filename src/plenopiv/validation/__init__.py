@@ -1,0 +1,1 @@
+"""Validation studies that reproduce the thesis's figures and tables with the project's simulator."""
