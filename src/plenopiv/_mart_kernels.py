@@ -1,0 +1,87 @@
+"""numba kernels behind :mod:`plenopiv.mart` (private; arrays and scalars only).
+
+W (rows = pixels, columns = voxels) comes as CSR ``indptr, indices, data`` together with a
+row schedule (:class:`plenopiv.projector.RowSchedule`): groups of chunks of rows, no two
+chunks of a group sharing a voxel, so that they may update their voxels in parallel without
+a race. The volume
+(float32) is updated in place. Plain NumPy twins of both sweeps live in ``tests/test_mart.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(parallel=True, cache=True)
+def mart_sweep(indptr, indices, data, rows, chunk_ptr, group_ptr, intensity, bright, volume,
+               relaxation):
+    """One row-action MART sweep (Elsinga et al. 2006) over the rows in schedule order.
+
+    For each bright pixel i: ``s = sum_j w_ij E_j``; if ``s > 0``,
+    ``E_j <- E_j * (I_i / s) ** (relaxation * w_ij)`` for every voxel j of row i. Rows that
+    project to zero are left alone (none of their voxels can change). The chunks of a group
+    share no voxel, so running them in parallel (each chunk's rows in order) gives exactly
+    the sequential sweep in the order ``rows``.
+    """
+    for g in range(group_ptr.shape[0] - 1):
+        for c in numba.prange(group_ptr[g], group_ptr[g + 1]):
+            for k in range(chunk_ptr[c], chunk_ptr[c + 1]):
+                i = rows[k]
+                if not bright[i]:
+                    continue
+                s = 0.0
+                for p in range(indptr[i], indptr[i + 1]):
+                    s += data[p] * volume[indices[p]]
+                if s <= 0.0:
+                    continue
+                gain = np.float32(relaxation * math.log(intensity[i] / s))
+                if gain == 0.0:
+                    continue
+                for p in range(indptr[i], indptr[i + 1]):
+                    j = indices[p]
+                    volume[j] = volume[j] * math.exp(gain * data[p])
+
+
+@numba.njit(parallel=True, cache=True)
+def block_sweep(indptr, indices, data, block_column_sums, rows, chunk_ptr, group_ptr,
+                block_group_ptr, intensity, bright, volume, relaxation, log_ratio):
+    """One block-iterative multiplicative sweep: the pixels of a block act simultaneously.
+
+    For each block B in order: first, in parallel over its pixels,
+    ``log_ratio[i] = log(I_i / sum_j w_ij E_j)`` (0 for dark pixels and for pixels that
+    project to zero); then every voxel j seen by the block is multiplied by
+    ``exp(relaxation * sum_{i in B} w_ij log_ratio[i] / max(1, sum_{i in B} w_ij))``,
+    applied one pixel's factor at a time (the factors commute): the groups in turn, the
+    chunks of a group (which share no voxel) in parallel. ``block_column_sums[p]`` is the
+    block's weight sum on entry p's voxel; ``log_ratio`` is a float64 work array of length
+    n_pixels. Zero voxels stay zero and are skipped.
+    """
+    for b in range(block_group_ptr.shape[0] - 1):
+        g0 = block_group_ptr[b]
+        g1 = block_group_ptr[b + 1]
+        for k in numba.prange(chunk_ptr[group_ptr[g0]], chunk_ptr[group_ptr[g1]]):
+            i = rows[k]
+            lr = 0.0
+            if bright[i]:
+                s = 0.0
+                for p in range(indptr[i], indptr[i + 1]):
+                    s += data[p] * volume[indices[p]]
+                if s > 0.0:
+                    lr = math.log(intensity[i] / s)
+            log_ratio[i] = lr
+        for g in range(g0, g1):
+            for c in numba.prange(group_ptr[g], group_ptr[g + 1]):
+                for k in range(chunk_ptr[c], chunk_ptr[c + 1]):
+                    i = rows[k]
+                    gain = np.float32(relaxation * log_ratio[i])
+                    if gain == 0.0:
+                        continue
+                    for p in range(indptr[i], indptr[i + 1]):
+                        j = indices[p]
+                        e = volume[j]
+                        if e > 0.0:
+                            volume[j] = e * math.exp(
+                                gain * data[p] / max(np.float32(1.0), block_column_sums[p]))

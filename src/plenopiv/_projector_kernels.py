@@ -1,0 +1,171 @@
+"""numba kernels behind :mod:`plenopiv.projector` (private; arrays and scalars only).
+
+The weight matrix W (rows = pixels, columns = voxels) is held in CSR form as
+``indptr, indices, data``. The back projection Wᵀ·y scatters race-free into one accumulator
+per chunk of rows, or gathers from an optional transposed copy. The MART updates (in
+``_mart_kernels``) follow a *row schedule*: chunks of consecutive rows, coloured here by
+:func:`colour_chunks` so that the chunks of one colour share no voxel.
+Every kernel here has a plain NumPy / scipy.sparse twin in ``tests/test_projector.py``.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(parallel=True, cache=True)
+def forward_csr(indptr, indices, data, volume, out):
+    """``out[i] = sum_p data[p] * volume[indices[p]]`` over row i (W·E), in float64."""
+    n_rows = indptr.shape[0] - 1
+    for i in numba.prange(n_rows):
+        acc = 0.0
+        for p in range(indptr[i], indptr[i + 1]):
+            acc += np.float64(data[p]) * volume[indices[p]]
+        out[i] = acc
+
+
+@numba.njit(parallel=True, cache=True)
+def back_scatter(indptr, indices, data, image, row_bounds, acc, out):
+    """``out = Wᵀ·image`` by a race-free parallel scatter, no transposed copy.
+
+    Chunk c of rows (``row_bounds[c]:row_bounds[c + 1]``) scatters into its own float64
+    accumulator ``acc[c]`` (length n_voxels); the accumulators are then summed voxel by voxel
+    and rounded once into ``out`` (float32). Rows whose image value is zero are skipped.
+    """
+    n_chunks = row_bounds.shape[0] - 1
+    for c in numba.prange(n_chunks):
+        a = acc[c]
+        a[:] = 0.0
+        for i in range(row_bounds[c], row_bounds[c + 1]):
+            v = np.float64(image[i])
+            if v == 0.0:
+                continue
+            for p in range(indptr[i], indptr[i + 1]):
+                a[indices[p]] += data[p] * v
+    for j in numba.prange(out.shape[0]):
+        s = 0.0
+        for c in range(n_chunks):
+            s += acc[c, j]
+        out[j] = s
+
+
+@numba.njit(cache=True)
+def transpose_csr(indptr, indices, data, n_voxels):
+    """CSR of Wᵀ (the CSC of W) by a counting sort: ``(t_indptr, t_indices, t_data)``.
+
+    ``t_indices`` are pixel indices (int32), ascending within each voxel's run.
+    """
+    n_rows = indptr.shape[0] - 1
+    nnz = indices.shape[0]
+    t_indptr = np.zeros(n_voxels + 1, np.int64)
+    for p in range(nnz):
+        t_indptr[indices[p] + 1] += 1
+    for j in range(n_voxels):
+        t_indptr[j + 1] += t_indptr[j]
+    fill = t_indptr[:-1].copy()
+    t_indices = np.empty(nnz, np.int32)
+    t_data = np.empty(nnz, np.float32)
+    for i in range(n_rows):
+        for p in range(indptr[i], indptr[i + 1]):
+            q = fill[indices[p]]
+            t_indices[q] = i
+            t_data[q] = data[p]
+            fill[indices[p]] = q + 1
+    return t_indptr, t_indices, t_data
+
+
+@numba.njit(parallel=True, cache=True)
+def back_gather(t_indptr, t_indices, t_data, image, out):
+    """``out = Wᵀ·image`` from the CSR of Wᵀ, one gather per voxel (float64 sums)."""
+    for j in numba.prange(out.shape[0]):
+        acc = 0.0
+        for q in range(t_indptr[j], t_indptr[j + 1]):
+            acc += np.float64(t_data[q]) * image[t_indices[q]]
+        out[j] = acc
+
+
+@numba.njit(cache=True)
+def colour_chunks(indptr, indices, data, block_ptr, block_rows, chunk_rows, n_voxels, words,
+                  with_sums):
+    """First-fit colouring of chunks of rows: chunks that share a voxel differ in colour.
+
+    The rows of block b, ``block_rows[block_ptr[b]:block_ptr[b + 1]]``, are cut into chunks
+    of ``chunk_rows`` consecutive rows (the last may be shorter), coloured in that order.
+    Each voxel keeps a bit mask of the colours of the block's chunks that touch it
+    (``words`` 64-bit words, so at most ``64 * words`` colours per block); a chunk takes the
+    smallest colour free on all the voxels of all its rows. The masks are cleared between
+    blocks.
+
+    Returns
+    -------
+    chunk_colour : int32 (n_chunks,)
+        Colour of each chunk, chunks numbered block by block.
+    n_colours : int64 (n_blocks,)
+        Colours used by each block; all -1 when ``64 * words`` were not enough (call again
+        with more words).
+    block_column_sums : float32 (nnz,), or (0,) unless ``with_sums``
+        For CSR entry p of a row in block B: ``sum_{i in B} w_{i, indices[p]}``.
+    """
+    n_blocks = block_ptr.shape[0] - 1
+    n_chunks = 0
+    for b in range(n_blocks):
+        n_chunks += (block_ptr[b + 1] - block_ptr[b] + chunk_rows - 1) // chunk_rows
+    masks = np.zeros((n_voxels, words), np.uint64)
+    acc = np.zeros(n_voxels if with_sums else 0, np.float64)
+    block_column_sums = np.zeros(indices.shape[0] if with_sums else 0, np.float32)
+    chunk_colour = np.zeros(n_chunks, np.int32)
+    n_colours = np.zeros(n_blocks, np.int64)
+    used = np.zeros(words, np.uint64)
+    full = np.uint64(0xFFFFFFFFFFFFFFFF)
+    one = np.uint64(1)
+    c_index = 0
+    for b in range(n_blocks):
+        r0 = block_ptr[b]
+        r1 = block_ptr[b + 1]
+        for k0 in range(r0, r1, chunk_rows):
+            k1 = min(k0 + chunk_rows, r1)
+            used[:] = 0
+            for k in range(k0, k1):
+                i = block_rows[k]
+                for p in range(indptr[i], indptr[i + 1]):
+                    j = indices[p]
+                    for w in range(words):
+                        used[w] |= masks[j, w]
+                    if with_sums:
+                        acc[j] += data[p]
+            c = -1
+            for w in range(words):
+                u = used[w]
+                if u != full:
+                    bit = 0
+                    while (u >> np.uint64(bit)) & one:
+                        bit += 1
+                    c = 64 * w + bit
+                    break
+            if c < 0:
+                n_colours[:] = -1
+                return chunk_colour, n_colours, block_column_sums
+            chunk_colour[c_index] = c
+            c_index += 1
+            if c + 1 > n_colours[b]:
+                n_colours[b] = c + 1
+            w = c // 64
+            mask = one << np.uint64(c % 64)
+            for k in range(k0, k1):
+                i = block_rows[k]
+                for p in range(indptr[i], indptr[i + 1]):
+                    masks[indices[p], w] |= mask
+        for k in range(r0, r1):
+            i = block_rows[k]
+            for p in range(indptr[i], indptr[i + 1]):
+                if with_sums:
+                    block_column_sums[p] = acc[indices[p]]
+        for k in range(r0, r1):
+            i = block_rows[k]
+            for p in range(indptr[i], indptr[i + 1]):
+                j = indices[p]
+                masks[j, :] = 0
+                if with_sums:
+                    acc[j] = 0.0
+    return chunk_colour, n_colours, block_column_sums

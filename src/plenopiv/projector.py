@@ -1,0 +1,497 @@
+"""The projector interface: the linear map W from a voxel volume to a sensor image.
+
+A projector relates the volume intensity E (one value per voxel, the volume flattened in
+``[z, y, x]`` C order) to the recorded pixel intensities I (one value per pixel, the image
+flattened in ``(row, col)`` C order) through the weights ``w_ij``, the fraction of pixel i's
+beam energy that passes through voxel j:
+
+    I_i = sum_j w_ij E_j            (forward projection, I = W·E)
+    r_j = sum_i w_ij I_i            (back projection, r = Wᵀ·I)
+
+:class:`Projector` is the protocol that :mod:`plenopiv.mart` needs for MLOS and SMART: any
+object with these six members will do, a matrix-free projector that exploits the regular
+lenslet grid included. Row-action MART and the block-iterative variant also walk the rows of
+W; :class:`RowAccessProjector` adds that. :class:`SparseProjector` is the explicit
+implementation, W held in CSR form (rows = pixels, columns = voxels).
+
+Memory of :class:`SparseProjector` (``nnz`` non-zeros): the CSR arrays take 8 bytes per
+non-zero (int32 voxel index + float32 weight) plus 4 or 8 bytes per row pointer. No
+transposed copy of W is made: the back projection scatters into one accumulator per thread
+(``n_threads * n_voxels * 8`` bytes of scratch), and the parallel MART updates follow a
+:class:`RowSchedule` (8 bytes per pixel; for blocks also 4 bytes per non-zero, the block
+column sums).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numba
+import numpy as np
+
+from plenopiv import _projector_kernels as _k
+from plenopiv.errors import ReconstructionError
+
+__all__ = ["Projector", "RowAccessProjector", "RowSchedule", "SparseProjector"]
+
+
+@runtime_checkable
+class Projector(Protocol):
+    """What a reconstruction needs from W (rows = pixels, columns = voxels).
+
+    Volumes and images are 1-D: the volume flattened in ``[z, y, x]`` C order, the image in
+    ``(row, col)`` C order. Intensities are in the sensor's counts (any consistent unit);
+    weights are dimensionless beam-energy fractions, ``w_ij >= 0``.
+    """
+
+    @property
+    def n_pixels(self) -> int:
+        """Number of pixels (rows of W)."""
+        ...
+
+    @property
+    def n_voxels(self) -> int:
+        """Number of voxels (columns of W)."""
+        ...
+
+    def forward(self, volume: np.ndarray) -> np.ndarray:
+        """Return ``W·volume``, shape (n_pixels,)."""
+        ...
+
+    def back(self, image: np.ndarray) -> np.ndarray:
+        """Return ``Wᵀ·image``, shape (n_voxels,)."""
+        ...
+
+    def row_sums(self) -> np.ndarray:
+        """Return ``sum_j w_ij`` per pixel, shape (n_pixels,)."""
+        ...
+
+    def column_sums(self) -> np.ndarray:
+        """Return ``sum_i w_ij`` per voxel, shape (n_voxels,)."""
+        ...
+
+
+@runtime_checkable
+class RowAccessProjector(Projector, Protocol):
+    """A :class:`Projector` whose rows can be walked: W's CSR arrays and row schedules."""
+
+    @property
+    def indptr(self) -> np.ndarray:
+        """CSR row pointers, int32 or int64, shape (n_pixels + 1,)."""
+        ...
+
+    @property
+    def indices(self) -> np.ndarray:
+        """CSR voxel indices, int32, shape (nnz,)."""
+        ...
+
+    @property
+    def data(self) -> np.ndarray:
+        """CSR weights, float32, shape (nnz,)."""
+        ...
+
+    def row_schedule(self, *, chunk_rows: int = 16) -> RowSchedule:
+        """All rows in voxel-disjoint groups of chunks (see :class:`RowSchedule`)."""
+        ...
+
+    def block_schedule(self, labels: np.ndarray, *, chunk_rows: int = 16) -> RowSchedule:
+        """Rows cut into blocks by label, each block into voxel-disjoint groups of chunks."""
+        ...
+
+
+@dataclass(frozen=True, eq=False)
+class RowSchedule:
+    """The rows of W in blocks, groups and chunks, so that scatters can run in parallel.
+
+    Block b (the pixels labelled ``labels[b]``, blocks in ascending label order) is the
+    groups ``block_group_ptr[b]:block_group_ptr[b + 1]``; group g is the chunks
+    ``group_ptr[g]:group_ptr[g + 1]``; chunk c is the rows
+    ``rows[chunk_ptr[c]:chunk_ptr[c + 1]]``, consecutive rows of its block (ascending pixel
+    index). No two chunks of one group share a voxel, so the chunks of a group may write
+    their voxels in parallel (each chunk's rows one after another, by one thread) while the
+    groups run in turn. A schedule of all rows has one block.
+
+    Attributes
+    ----------
+    rows : ndarray of int64, shape (n_rows,)
+    chunk_ptr : ndarray of int64, shape (n_chunks + 1,)
+    group_ptr : ndarray of int64, shape (n_groups + 1,)
+    block_group_ptr : ndarray of int64, shape (n_blocks + 1,)
+    labels : ndarray, shape (n_blocks,)
+    block_column_sums : ndarray of float32, shape (nnz,) or None
+        For CSR entry p in a row of block B: ``sum_{i in B} w_{i, j}`` with ``j`` the entry's
+        voxel, i.e. how much weight the whole block puts on that voxel (dimensionless).
+    """
+
+    rows: np.ndarray
+    chunk_ptr: np.ndarray
+    group_ptr: np.ndarray
+    block_group_ptr: np.ndarray
+    labels: np.ndarray
+    block_column_sums: np.ndarray | None = None
+
+    @property
+    def n_groups(self) -> int:
+        """Number of groups (colours summed over the blocks)."""
+        return int(self.group_ptr.shape[0] - 1)
+
+    @property
+    def n_blocks(self) -> int:
+        """Number of blocks."""
+        return int(self.block_group_ptr.shape[0] - 1)
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the arrays, bytes."""
+        arrays = (self.rows, self.chunk_ptr, self.group_ptr, self.block_group_ptr, self.labels,
+                  self.block_column_sums)
+        return int(sum(a.nbytes for a in arrays if a is not None))
+
+
+class SparseProjector:
+    """W as an explicit CSR matrix: rows = pixels, columns = voxels.
+
+    Parameters
+    ----------
+    indptr : array_like of int, shape (n_pixels + 1,)
+        CSR row pointers (int32 or int64; other integer types are converted to int64).
+    indices : array_like of int, shape (nnz,)
+        Voxel index of each non-zero, ``0 <= indices < n_voxels`` (stored as int32).
+    data : array_like of float, shape (nnz,)
+        Weight of each non-zero, the dimensionless fraction of the pixel's beam energy that
+        crosses the voxel, finite and ``>= 0`` (stored as float32).
+    n_voxels : int
+        Number of voxels (columns), keyword-only.
+    check : bool, optional
+        Check the row pointers, the index range and the weights (one pass over the
+        non-zeros). Default True.
+    transpose : bool, optional
+        Keep a transposed copy of W (built on the first ``back``) and back-project by a
+        gather per voxel: about 2-3 times faster than the default scatter in
+        ``benchmarks/bench_mart.py``, for 8 bytes per non-zero more (the matrix's memory
+        doubles). Default False.
+
+    Notes
+    -----
+    ``forward`` gathers one row per pixel in parallel (numba ``prange``). ``back`` scatters
+    without a transposed copy: the rows are cut into one chunk per numba thread, of about
+    equal non-zeros, each scattering into its own float64 accumulator of n_voxels values,
+    which are then summed per voxel; pixels of value zero are skipped. The scratch,
+    ``n_threads * n_voxels * 8`` bytes, is kept between calls; with a pixel's beam crossing
+    every depth slice (hundreds of non-zeros per voxel) it is a small fraction of the matrix.
+    ``transpose=True`` trades memory for speed instead (see above);
+    ``benchmarks/bench_mart.py`` times both, and a scatter that follows :meth:`row_schedule`.
+    Duplicate (pixel, voxel) entries are summed, as in scipy.sparse.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> W = SparseProjector(np.array([0, 2, 3]), np.array([0, 1, 1]),
+    ...                     np.array([0.5, 0.5, 1.0]), n_voxels=2)
+    >>> W.forward(np.array([2.0, 4.0]))
+    array([3., 4.], dtype=float32)
+    """
+
+    def __init__(self, indptr, indices, data, *, n_voxels: int, check: bool = True,
+                 transpose: bool = False):
+        indptr = np.asarray(indptr)
+        indices = np.asarray(indices)
+        data = np.asarray(data)
+        if indptr.ndim != 1 or indptr.shape[0] < 1 or not np.issubdtype(indptr.dtype, np.integer):
+            raise ReconstructionError(
+                f"indptr must be a 1-D integer array of length n_pixels + 1; got dtype "
+                f"{indptr.dtype}, shape {indptr.shape}"
+            )
+        if indptr.dtype not in (np.int32, np.int64):
+            indptr = indptr.astype(np.int64)
+        if indices.ndim != 1 or not np.issubdtype(indices.dtype, np.integer):
+            raise ReconstructionError(
+                f"indices must be a 1-D integer array; got dtype {indices.dtype}, "
+                f"shape {indices.shape}"
+            )
+        if data.ndim != 1 or data.shape != indices.shape:
+            raise ReconstructionError(
+                f"data must be 1-D with the length of indices ({indices.shape[0]}); got shape "
+                f"{data.shape}"
+            )
+        n_voxels = int(n_voxels)
+        if n_voxels < 1 or n_voxels > np.iinfo(np.int32).max:
+            raise ReconstructionError(f"n_voxels must be in [1, 2**31 - 1]; got {n_voxels}")
+        nnz = indices.shape[0]
+        if indptr[0] != 0 or indptr[-1] != nnz:
+            raise ReconstructionError(
+                f"indptr must start at 0 and end at nnz = {nnz}; got {indptr[0]} ... "
+                f"{indptr[-1]}"
+            )
+        if check:
+            if np.any(np.diff(indptr) < 0):
+                raise ReconstructionError("indptr must be non-decreasing")
+            if nnz and (indices.min() < 0 or indices.max() >= n_voxels):
+                raise ReconstructionError(
+                    f"voxel indices must lie in [0, {n_voxels}); got [{indices.min()}, "
+                    f"{indices.max()}]"
+                )
+            finite = np.isfinite(data)
+            if nnz and not (finite.all() and data.min() >= 0):
+                low = float(data[finite].min()) if finite.any() else float("nan")
+                raise ReconstructionError(
+                    "weights must be finite and >= 0 (beam-energy fractions); got "
+                    f"{np.count_nonzero(~finite)} non-finite, smallest finite {low:g}"
+                )
+        self._indptr = np.ascontiguousarray(indptr)
+        self._indices = np.ascontiguousarray(indices, dtype=np.int32)
+        self._data = np.ascontiguousarray(data, dtype=np.float32)
+        self._n_voxels = n_voxels
+        self._row_sums: np.ndarray | None = None
+        self._column_sums: np.ndarray | None = None
+        self._transpose = bool(transpose)
+        self._transposed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._scratch: np.ndarray | None = None
+        self._bounds: np.ndarray | None = None
+        self._schedule: tuple[str, RowSchedule] | None = None
+        self._blocks: tuple[str, RowSchedule] | None = None
+
+    # -- construction helpers -------------------------------------------------------------
+    @classmethod
+    def from_scipy(cls, matrix, *, check: bool = True, transpose: bool = False
+                   ) -> SparseProjector:
+        """Build from any scipy.sparse matrix or array of shape (n_pixels, n_voxels)."""
+        csr = matrix.tocsr()
+        return cls(csr.indptr, csr.indices, csr.data, n_voxels=csr.shape[1], check=check,
+                   transpose=transpose)
+
+    def to_scipy(self):
+        """Return W as a ``scipy.sparse.csr_array`` sharing this projector's arrays."""
+        import scipy.sparse
+
+        return scipy.sparse.csr_array(
+            (self._data, self._indices, self._indptr), shape=(self.n_pixels, self.n_voxels)
+        )
+
+    # -- the Projector protocol ----------------------------------------------------------
+    @property
+    def n_pixels(self) -> int:
+        """Number of pixels (rows of W)."""
+        return int(self._indptr.shape[0] - 1)
+
+    @property
+    def n_voxels(self) -> int:
+        """Number of voxels (columns of W)."""
+        return self._n_voxels
+
+    @property
+    def nnz(self) -> int:
+        """Number of stored weights."""
+        return int(self._indices.shape[0])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(n_pixels, n_voxels)``."""
+        return (self.n_pixels, self.n_voxels)
+
+    @property
+    def indptr(self) -> np.ndarray:
+        """CSR row pointers (read them, do not write)."""
+        return self._indptr
+
+    @property
+    def indices(self) -> np.ndarray:
+        """CSR voxel indices, int32 (read them, do not write)."""
+        return self._indices
+
+    @property
+    def data(self) -> np.ndarray:
+        """CSR weights, float32 (read them, do not write)."""
+        return self._data
+
+    @property
+    def nbytes(self) -> int:
+        """Memory of W in bytes: CSR arrays plus any transposed copy (not scratch, schedules)."""
+        arrays = (self._indptr, self._indices, self._data) + (self._transposed or ())
+        return int(sum(a.nbytes for a in arrays))
+
+    def forward(self, volume, *, out=None) -> np.ndarray:
+        """Forward projection ``I = W·E``.
+
+        Parameters
+        ----------
+        volume : array_like, shape (n_voxels,) or any shape of that size
+            Voxel intensities E, flattened in ``[z, y, x]`` C order (converted to float32).
+        out : ndarray of float32, shape (n_pixels,), optional
+            Where to write the result.
+
+        Returns
+        -------
+        ndarray of float32, shape (n_pixels,)
+            Pixel intensities, summed in float64 and rounded once to float32.
+        """
+        x = _as_vector(volume, self.n_voxels, "volume", "n_voxels")
+        if out is None:
+            out = np.empty(self.n_pixels, np.float32)
+        _k.forward_csr(self._indptr, self._indices, self._data, x, out)
+        return out
+
+    def back(self, image, *, out=None) -> np.ndarray:
+        """Back projection ``r = Wᵀ·I``.
+
+        Parameters
+        ----------
+        image : array_like, shape (n_pixels,) or any shape of that size
+            Pixel values, flattened in ``(row, col)`` C order (converted to float32).
+        out : ndarray of float32, shape (n_voxels,), optional
+            Where to write the result.
+
+        Returns
+        -------
+        ndarray of float32, shape (n_voxels,)
+            Summed in float64 and rounded once to float32.
+        """
+        y = _as_vector(image, self.n_pixels, "image", "n_pixels")
+        if out is None:
+            out = np.empty(self.n_voxels, np.float32)
+        if self._transpose:
+            if self._transposed is None:
+                self._transposed = _k.transpose_csr(self._indptr, self._indices, self._data,
+                                                    self.n_voxels)
+            _k.back_gather(*self._transposed, y, out)
+            return out
+        n_chunks = max(1, numba.get_num_threads())
+        if self._scratch is None or self._scratch.shape[0] != n_chunks:
+            self._scratch = np.empty((n_chunks, self.n_voxels), np.float64)
+            targets = np.linspace(0, self.nnz, n_chunks + 1).round().astype(np.int64)
+            self._bounds = np.searchsorted(self._indptr, targets).astype(np.int64)
+            self._bounds[0], self._bounds[-1] = 0, self.n_pixels
+        _k.back_scatter(self._indptr, self._indices, self._data, y, self._bounds,
+                        self._scratch, out)
+        return out
+
+    def row_sums(self) -> np.ndarray:
+        """``sum_j w_ij`` per pixel (float32, shape (n_pixels,)); computed once and cached."""
+        if self._row_sums is None:
+            self._row_sums = self.forward(np.ones(self.n_voxels, np.float32))
+        return self._row_sums
+
+    def column_sums(self) -> np.ndarray:
+        """``sum_i w_ij`` per voxel (float32, shape (n_voxels,)); computed once and cached."""
+        if self._column_sums is None:
+            self._column_sums = self.back(np.ones(self.n_pixels, np.float32))
+        return self._column_sums
+
+    # -- row schedules -------------------------------------------------------------------
+    def row_schedule(self, *, chunk_rows: int = 16) -> RowSchedule:
+        """All rows in chunks of consecutive pixels, coloured so that a colour shares no voxel.
+
+        Parameters
+        ----------
+        chunk_rows : int
+            Pixels per chunk (>= 1). Larger chunks keep more locality and need fewer colours
+            (barriers); smaller ones leave more chunks per colour to run in parallel.
+
+        Returns
+        -------
+        RowSchedule
+            One block; groups are the colours in ascending order, chunks ascending within a
+            colour. Cached per ``chunk_rows`` (one entry). It depends on W alone, not on the
+            number of threads, so a MART sweep that follows it gives the same volume on any
+            machine.
+        """
+        chunk_rows = _positive_int(chunk_rows, "chunk_rows")
+        key = f"all/{chunk_rows}"
+        if self._schedule is None or self._schedule[0] != key:
+            schedule = self._colour(np.array([0, self.n_pixels], np.int64),
+                                    np.arange(self.n_pixels, dtype=np.int64),
+                                    np.zeros(1, np.int64), chunk_rows, with_sums=False)
+            self._schedule = (key, schedule)
+        return self._schedule[1]
+
+    def block_schedule(self, labels, *, chunk_rows: int = 16) -> RowSchedule:
+        """Rows cut into blocks by label, each block into chunks coloured to share no voxel.
+
+        Parameters
+        ----------
+        labels : array_like of int, shape (n_pixels,) or the image's shape
+            Block label of each pixel (for example its perspective view, or the set of
+            lenslets it lies under). Blocks are ordered by ascending label; within a block
+            the pixels keep ascending index.
+        chunk_rows : int
+            Pixels per chunk (>= 1), see :meth:`row_schedule`.
+
+        Returns
+        -------
+        RowSchedule
+            With ``block_column_sums`` filled in. Cached: a second call with equal labels
+            and ``chunk_rows`` returns the same object (one entry).
+        """
+        chunk_rows = _positive_int(chunk_rows, "chunk_rows")
+        lab = np.asarray(labels)
+        if lab.size != self.n_pixels or not np.issubdtype(lab.dtype, np.integer):
+            raise ReconstructionError(
+                f"block labels must be integers, one per pixel ({self.n_pixels}); got dtype "
+                f"{lab.dtype}, {lab.size} values"
+            )
+        lab = np.ascontiguousarray(lab.reshape(-1), dtype=np.int64)
+        key = f"{hashlib.sha1(lab.tobytes()).hexdigest()}/{chunk_rows}"
+        if self._blocks is not None and self._blocks[0] == key:
+            return self._blocks[1]
+        unique, compact = np.unique(lab, return_inverse=True)
+        block_rows = np.argsort(compact, kind="stable").astype(np.int64)
+        block_ptr = np.zeros(unique.shape[0] + 1, np.int64)
+        np.cumsum(np.bincount(compact, minlength=unique.shape[0]), out=block_ptr[1:])
+        schedule = self._colour(block_ptr, block_rows, unique, chunk_rows, with_sums=True)
+        self._blocks = (key, schedule)
+        return schedule
+
+    def _colour(self, block_ptr, block_rows, labels, chunk_rows, *, with_sums):
+        """Colour the chunks of each block and order them by (block, colour, chunk)."""
+        max_degree = int(np.bincount(self._indices).max()) if self.nnz else 1
+        words = max(1, -(-max_degree // 64))
+        while True:
+            colour, n_colours, sums = _k.colour_chunks(
+                self._indptr, self._indices, self._data, block_ptr, block_rows, chunk_rows,
+                self.n_voxels, words, with_sums)
+            if n_colours.shape[0] == 0 or n_colours[0] >= 0:
+                break
+            words *= 2
+        n_blocks = n_colours.shape[0]
+        n_colours = np.maximum(n_colours, 1)  # an empty block keeps one (empty) group
+        block_group_ptr = np.zeros(n_blocks + 1, np.int64)
+        np.cumsum(n_colours, out=block_group_ptr[1:])
+        # chunk k (numbered block by block) covers block_rows[chunk_start[k]:chunk_stop[k]]
+        chunks_per_block = -(-np.diff(block_ptr) // chunk_rows)
+        chunk_block = np.repeat(np.arange(n_blocks), chunks_per_block)
+        first_chunk = np.cumsum(chunks_per_block) - chunks_per_block
+        chunk_start = (block_ptr[:-1][chunk_block]
+                       + (np.arange(chunk_block.shape[0]) - first_chunk[chunk_block])
+                       * chunk_rows)
+        chunk_stop = np.minimum(chunk_start + chunk_rows, block_ptr[1:][chunk_block])
+        chunk_group = block_group_ptr[chunk_block] + colour
+        order = np.argsort(chunk_group, kind="stable")
+        lengths = (chunk_stop - chunk_start)[order]
+        chunk_ptr = np.zeros(order.shape[0] + 1, np.int64)
+        np.cumsum(lengths, out=chunk_ptr[1:])
+        position = (np.repeat(chunk_start[order] - chunk_ptr[:-1], lengths)
+                    + np.arange(chunk_ptr[-1]))
+        n_groups = int(block_group_ptr[-1])
+        group_ptr = np.zeros(n_groups + 1, np.int64)
+        np.cumsum(np.bincount(chunk_group, minlength=n_groups), out=group_ptr[1:])
+        return RowSchedule(block_rows[position], chunk_ptr, group_ptr, block_group_ptr, labels,
+                           sums if with_sums else None)
+
+
+def _positive_int(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+    return int(value)
+
+
+def _as_vector(values, length: int, name: str, what: str) -> np.ndarray:
+    """Flatten to a contiguous float32 vector of ``length``, or raise naming the mismatch."""
+    a = np.asarray(values)
+    if a.size != length:
+        raise ReconstructionError(
+            f"{name} has {a.size} values (shape {a.shape}); the projector expects "
+            f"{what} = {length}"
+        )
+    return np.ascontiguousarray(a.reshape(-1), dtype=np.float32)
