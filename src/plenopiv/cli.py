@@ -228,6 +228,68 @@ def cmd_calibrate(args) -> dict:
     return summary
 
 
+# ---- reconstruct ---------------------------------------------------------------------------
+
+
+def cmd_reconstruct(args) -> dict:
+    """Reconstruct one image into a volume with its particle table."""
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.config import load_experiment
+    from plenopiv.io import read_image
+    from plenopiv.pipeline import reconstruct_volume
+
+    out = _check_out(args.out, (".h5",))
+    exp = load_experiment(args.config)
+    cal = Calibration.load(args.calibration)
+    if cal.camera.sensor.shape != exp.camera.sensor.shape or \
+            cal.camera.microlens_array.pitch != exp.camera.microlens_array.pitch:
+        raise ConfigError(f"the calibration {args.calibration!r} was made for another camera "
+                          f"(sensor {cal.camera.sensor.shape}, pitch "
+                          f"{cal.camera.microlens_array.pitch * 1e6:g} µm) than the experiment's "
+                          f"({exp.camera.sensor.shape}, "
+                          f"{exp.camera.microlens_array.pitch * 1e6:g} µm)")
+    # the experiment's camera describes interfaces and back side; the calibration gives S_i
+    cal = _with_experiment_optics(cal, exp.camera)
+    img = read_image(args.image)
+    t0 = time.perf_counter()
+    bar = tqdm(total=100, desc="reconstruct", disable=args.quiet or args.json or None,
+               file=sys.stderr, leave=False)
+    with bar:
+        def progress(stage, fraction):
+            bar.set_description(stage)
+            bar.n = int(100 * fraction)
+            bar.refresh()
+        cache = exp.output.weights_cache
+        res = reconstruct_volume(cal, img, exp.volume, settings=exp.reconstruction,
+                                 particles=exp.particles, progress=progress,
+                                 cache_dir=(exp.path(cache) if cache else None))
+    res.save(out, config={**exp.to_dict(), "calibration": str(args.calibration),
+                          "image": str(args.image)})
+    summary = {"command": "reconstruct", "out": str(out), "shape": list(res.volume.shape),
+               "n_particles": len(res.particle_position),
+               "depth_correction": res.correction.to_dict(),
+               "image_distance_mm": cal.image_distance * 1e3,
+               "timings_s": {k: round(v, 3) for k, v in res.timings.items()}}
+    if exp.output.png:
+        from plenopiv.plots import volume_slices
+
+        png = out.with_suffix(".png")
+        volume_slices(res.volume, res.grid.x, res.grid.y, res.grid.z, png,
+                      particles=res.particle_position_effective,
+                      title=f"{Path(str(args.image)).name}: {len(res.particle_position)} particles")
+        summary["png"] = str(png)
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    return summary
+
+
+def _with_experiment_optics(cal, camera: CameraModel):
+    """The calibration with the experiment's interfaces and back-side model (same S_i)."""
+    import dataclasses
+
+    cam = camera.with_image_distance(cal.image_distance)
+    return dataclasses.replace(cal, camera=cam)
+
+
 # ---- demo ----------------------------------------------------------------------------------
 
 
@@ -305,6 +367,14 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--out", required=True, help="calibration product (.h5)")
     _add_common(cal)
     cal.set_defaults(func=cmd_calibrate)
+
+    rec = sub.add_parser("reconstruct", help="MART volume and particles from one image")
+    rec.add_argument("calibration", help="calibration product (.h5) from plenopiv calibrate")
+    rec.add_argument("image", help="raw image: TIFF, PNG or file.h5:/dataset")
+    rec.add_argument("--config", required=True, help="experiment TOML ([volume], ...)")
+    rec.add_argument("--out", required=True, help="volume product (.h5)")
+    _add_common(rec)
+    rec.set_defaults(func=cmd_reconstruct)
 
     sim = sub.add_parser("simulate", help="render synthetic plenoptic images by ray tracing")
     simsub = sim.add_subparsers(dest="kind", required=True)

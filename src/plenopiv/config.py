@@ -1,0 +1,207 @@
+"""Experiment configuration (TOML, DESIGN.md §7): camera, volume and the processing options.
+
+A minimal file holds just the camera and the volume::
+
+    camera = "cameras/auburn_135mm.toml"     # relative to this file, or a preset name
+
+    [volume]
+    x_mm = [-5, 5]
+    y_mm = [-4, 4]
+    z_mm = [-6, 6]
+    voxel_mm = 0.25                           # or shape = [nz, ny, nx]
+
+Every other table is optional, every key has a default, a unit and a meaning (README). Unknown
+keys are errors that name the key and list the valid ones.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from plenopiv.camera import (
+    CameraModel,
+    camera_from_dict,
+    format_validation_error,
+    load_camera,
+    read_toml,
+)
+from plenopiv.errors import ConfigError
+from plenopiv.volume import VolumeGrid, volume_from_dict
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ReconstructionSettings(_Strict):
+    """``[reconstruction]``: MART options.
+
+    method : "mart" (row action, Elsinga 2006) | "block" (one block per perspective view) |
+        "smart" (simultaneous).
+    iterations : sweeps after the MLOS first guess.
+    relaxation : μ, dimensionless.
+    pixel_threshold : pixels at or below this fraction of the image's maximum are dark.
+    dark_tolerance : a voxel is emptied before MART when more than this fraction of its
+        weight falls on dark pixels (a soft line-of-sight mask; 0 is the hard MLOS rule).
+    f_number : aperture of the recording (default: the camera's).
+    min_lit : pixels whose aperture cell is less than this fraction inside the aperture are
+        not used.
+    """
+
+    method: Literal["mart", "block", "smart"] = "mart"
+    iterations: int = Field(5, ge=0)
+    relaxation: float = Field(1.0, gt=0, allow_inf_nan=False)
+    pixel_threshold: float = Field(0.02, ge=0, lt=1)
+    dark_tolerance: float = Field(0.5, ge=0, le=1)
+    f_number: float | None = Field(None, gt=0)
+    min_lit: float = Field(0.5, gt=0, le=1)
+
+
+class ParticleSettings(_Strict):
+    """``[particles]``: 3-D peak detection.
+
+    threshold : a particle's peak must exceed this fraction of the volume's maximum.
+    method : sub-voxel estimator, "centroid" (intensity-weighted over box_vox; the better one
+        for the depth-elongated particles of plenoptic reconstructions) | "gaussian" (3-point
+        per axis).
+    min_separation_vox, box_vox, fit_spacing_vox : ``[z, y, x]`` voxels (see
+        :func:`plenopiv.particles.find_particles`).
+    internal_correction : "auto" | "none" | "plate" (see :mod:`plenopiv.corrections`).
+    """
+
+    threshold: float = Field(0.1, ge=0, lt=1)
+    method: Literal["gaussian", "centroid"] = "centroid"
+    min_separation_vox: tuple[float, float, float] = (8.0, 2.0, 2.0)
+    box_vox: tuple[int, int, int] = (8, 2, 2)
+    fit_spacing_vox: tuple[int, int, int] = (2, 1, 1)
+    internal_correction: Literal["auto", "none", "plate"] = "auto"
+
+
+class PIVConfig(_Strict):
+    """``[piv]``: cross-correlation (windows in voxels ``[z, y, x]`` per pass)."""
+
+    windows: list[tuple[int, int, int]] = [(24, 16, 16), (16, 12, 12)]
+    overlap: float = Field(0.5, ge=0, lt=1)
+    passes: int | None = Field(3, ge=1)
+    deformation: bool = True
+    median_threshold: float = Field(2.0, gt=0)
+
+
+class ImagesConfig(_Strict):
+    """``[images]``: the image pairs of ``plenopiv run``.
+
+    a, b : glob patterns of the first and second exposures (paired in sorted order), or
+    pairs : glob pattern of HDF5 files each holding ``/image_a`` and ``/image_b``.
+    dt_s : time between the exposures, seconds (velocity in m/s when given).
+    calibration : the calibration product (.h5), relative to the experiment file.
+    """
+
+    a: str | None = None
+    b: str | None = None
+    pairs: str | None = None
+    dt_s: float | None = Field(None, gt=0)
+    calibration: str | None = None
+
+
+class BatchConfig(_Strict):
+    """``[batch]``: where the pairs run.
+
+    cluster : "local" | "slurm" | a scheduler address ("tcp://host:8786").
+    workers, threads_per_worker : local cluster size (default: cores, one thread each).
+    queue, cores, memory, walltime, jobs : SLURM job settings (dask-jobqueue).
+    """
+
+    cluster: str = "local"
+    workers: int | None = Field(None, ge=1)
+    threads_per_worker: int | None = Field(None, ge=1)
+    retries: int = Field(2, ge=0)
+    queue: str | None = None
+    cores: int | None = Field(None, ge=1)
+    memory: str | None = None
+    walltime: str | None = None
+    jobs: int | None = Field(None, ge=1)
+
+
+class OutputConfig(_Strict):
+    """``[output]``: products.
+
+    directory : output folder (relative to the experiment file).
+    vtk : also write .vti volumes/vectors for ParaView.
+    png : also write PNG figures.
+    weights_cache : folder of the voxel-pixel weight cache ("" to disable).
+    """
+
+    directory: str = "out"
+    vtk: bool = True
+    png: bool = True
+    weights_cache: str = ".plenopiv-cache"
+
+
+class _ExperimentCfg(_Strict):
+    camera: str | dict
+    volume: dict
+    reconstruction: ReconstructionSettings = ReconstructionSettings()
+    particles: ParticleSettings = ParticleSettings()
+    piv: PIVConfig = PIVConfig()
+    images: ImagesConfig = ImagesConfig()
+    batch: BatchConfig = BatchConfig()
+    output: OutputConfig = OutputConfig()
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A resolved experiment configuration."""
+
+    camera: CameraModel
+    volume: VolumeGrid
+    reconstruction: ReconstructionSettings = ReconstructionSettings()
+    particles: ParticleSettings = ParticleSettings()
+    piv: PIVConfig = PIVConfig()
+    images: ImagesConfig = ImagesConfig()
+    batch: BatchConfig = BatchConfig()
+    output: OutputConfig = OutputConfig()
+    base_dir: Path = Path(".")
+    source: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def path(self, relative: str | None) -> Path | None:
+        """A path of the config, resolved against the experiment file's folder."""
+        if relative is None:
+            return None
+        p = Path(relative)
+        return p if p.is_absolute() else self.base_dir / p
+
+    def to_dict(self) -> dict:
+        """The resolved configuration (camera in full), for product attributes."""
+        return {"camera": self.camera.to_dict(), "volume": self.volume.to_dict(),
+                "reconstruction": self.reconstruction.model_dump(),
+                "particles": self.particles.model_dump(), "piv": self.piv.model_dump(),
+                "images": self.images.model_dump(), "batch": self.batch.model_dump(),
+                "output": self.output.model_dump()}
+
+
+def experiment_from_dict(cfg: dict, *, base_dir: Path = Path("."),
+                         source: str = "experiment config") -> Experiment:
+    """Validate an experiment config dictionary and resolve the camera and the grid."""
+    try:
+        c = _ExperimentCfg.model_validate(cfg)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, source, _ExperimentCfg)) from None
+    if isinstance(c.camera, dict):
+        camera = camera_from_dict(c.camera, source=f"{source} [camera]")
+    else:
+        p = Path(c.camera)
+        cand = p if p.is_absolute() else base_dir / p
+        camera = load_camera(cand if cand.exists() else c.camera)
+    grid = volume_from_dict(c.volume, source=source)
+    return Experiment(camera, grid, c.reconstruction, c.particles, c.piv, c.images, c.batch,
+                      c.output, base_dir, cfg)
+
+
+def load_experiment(path: str | Path) -> Experiment:
+    """Load an experiment TOML file (relative paths inside resolve against its folder)."""
+    p = Path(path)
+    return experiment_from_dict(read_toml(p, "experiment"), base_dir=p.parent, source=str(p))
