@@ -290,27 +290,103 @@ def _with_experiment_optics(cal, camera: CameraModel):
     return dataclasses.replace(cal, camera=cam)
 
 
+# ---- piv -------------------------------------------------------------------------------------
+
+
+def cmd_piv(args) -> dict:
+    """Cross-correlate two volume products into a vector field."""
+    from plenopiv.config import PIVConfig
+    from plenopiv.pipeline import correlate, load_volume, piv_settings
+
+    out = _check_out(args.out, (".h5",))
+    if args.dt is not None and not args.dt > 0:
+        raise ConfigError(f"--dt {args.dt}: expected a positive time in seconds")
+    t0 = time.perf_counter()
+    va, vb = load_volume(args.volume_a), load_volume(args.volume_b)
+    cfg = PIVConfig() if args.config is None else _experiment(args.config).piv
+    if args.windows:
+        cfg = cfg.model_copy(update={"windows": [tuple(w) for w in args.windows]})
+    vec = correlate(va, vb, piv_settings(cfg), dt=args.dt)
+    files = vec.save(out, config={"piv": cfg.model_dump(), "volume_a": str(args.volume_a),
+                                  "volume_b": str(args.volume_b), "dt_s": args.dt},
+                     vtk=not args.no_vtk, extra_attrs={"complete": True})
+    summary = {"command": "piv", "out": str(out), "shape": list(vec.u.shape),
+               "valid_fraction": float(np.mean(vec.valid)), "n_replaced": vec.n_replaced,
+               "quantity": "displacement" if args.dt is None else "velocity",
+               "files": [str(f) for f in files]}
+    if not args.no_png:
+        from plenopiv.plots import vector_slices
+
+        summary["png"] = str(vector_slices(vec, out.with_suffix(".png")))
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    return summary
+
+
+def _experiment(path):
+    from plenopiv.config import load_experiment
+
+    return load_experiment(path)
+
+
+# ---- validate --------------------------------------------------------------------------------
+
+
+def cmd_validate(args) -> dict:
+    """Studies that reproduce the thesis's figures and validate the whole chain."""
+    t0 = time.perf_counter()
+    case = args.case
+    if case in ("oseen", "hill"):
+        from plenopiv.validation.vortex import VortexCase, run_case
+
+        s = run_case(VortexCase(flow=case, camera=args.camera, seed=args.seed,
+                                particles_per_lenslet=args.particles_per_lenslet), args.out)
+        out = {"errors": s["errors"], "n_particles": s["n_particles"],
+               "timings_s": s["timings_s"], "products": s["products"]}
+    elif case == "calibration":
+        from plenopiv.validation.calibration_study import run
+
+        out = run(args.out)
+    elif case == "letters":
+        from plenopiv.validation.letters import run
+
+        out = run(args.out)
+    elif case == "depth":
+        from plenopiv.validation.depth_study import run
+
+        out = run(args.out)
+    elif case == "fields":
+        from plenopiv.validation.field_quality import run
+
+        out = run(args.out)
+    else:  # argparse restricts the choices
+        raise ConfigError(f"validate {case!r}: unknown case")
+    return {"command": f"validate {case}", "out": str(args.out), **out,
+            "seconds": round(time.perf_counter() - t0, 3)}
+
+
 # ---- demo ----------------------------------------------------------------------------------
 
 
 def cmd_demo(args) -> dict:
-    """The built-in synthetic case: calibration images and a vortex image pair."""
-    out = Path(args.out)
-    t0 = time.perf_counter()
-    steps = {}
-    base = ["small_test", "--seed", "1"] + (["--quiet"] if args.quiet or args.json else [])
-    for kind, extra in (("focal-point", ["--f-number", "16"]), ("alignment", []),
-                        ("ruler", ["--spacing-mm", "1"])):
-        a = build_parser().parse_args(["simulate", kind, *base, "--out",
-                                       str(out / f"{kind}.tif"), *extra])
-        steps[kind] = a.func(a)
-    a = build_parser().parse_args(["simulate", "pair", *base, "--out", str(out / "pair.h5"),
-                                   "--flow", "oseen", "--particles-per-lenslet", "0.2",
-                                   "--noise", "poisson"])
-    steps["pair"] = a.func(a)
-    return {"command": "demo", "out": str(out), "seconds": round(time.perf_counter() - t0, 3),
-            "products": {k: v.get("out") for k, v in steps.items()},
-            "n_particles": steps["pair"]["n_particles"]}
+    """The built-in synthetic case end to end: calibration images -> calibration -> a
+    Lamb-Oseen vortex pair -> two volumes -> 3-D PIV -> errors against the truth."""
+    from plenopiv.validation.vortex import VortexCase, run_case
+
+    bar = tqdm(total=100, desc="demo", disable=args.quiet or args.json or None,
+               file=sys.stderr, leave=False)
+    with bar:
+        def progress(stage, fraction):
+            bar.set_description(f"demo: {stage}")
+            bar.n = int(100 * fraction)
+            bar.refresh()
+        s = run_case(VortexCase(flow="oseen", seed=args.seed), args.out, progress=progress)
+    e = s["errors"]
+    return {"command": "demo", "out": str(args.out), "camera": s["case"]["camera"],
+            "image_distance_mm": s["calibration"]["image_distance_mm"],
+            "n_particles": s["n_particles"], "grid_shape": s["grid_shape"],
+            "valid_fraction": e["valid_fraction"], "rms_error_vox": e["rms_vox"],
+            "bias_vox": e["bias_vox"], "seconds": s["timings_s"]["total_s"],
+            "products": s["products"]}
 
 
 # ---- parser --------------------------------------------------------------------------------
@@ -344,6 +420,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="run the built-in synthetic case end to end")
     demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
+    demo.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     _add_common(demo)
     demo.set_defaults(func=cmd_demo)
 
@@ -375,6 +452,33 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", required=True, help="volume product (.h5)")
     _add_common(rec)
     rec.set_defaults(func=cmd_reconstruct)
+
+    piv = sub.add_parser("piv", help="3-D cross-correlation of two volume products")
+    piv.add_argument("volume_a", help="first volume (.h5 from plenopiv reconstruct)")
+    piv.add_argument("volume_b", help="second volume, same grid")
+    piv.add_argument("--out", required=True, help="vectors product (.h5); .vti and .png beside")
+    piv.add_argument("--dt", type=float, default=None,
+                     help="seconds between the exposures: store velocity (m/s)")
+    piv.add_argument("--config", help="experiment TOML whose [piv] table to use")
+    piv.add_argument("--windows", type=int, nargs=3, action="append", metavar=("WZ", "WY", "WX"),
+                     help="window per pass in voxels (repeat for several passes)")
+    piv.add_argument("--no-vtk", action="store_true", help="no .vti file for ParaView")
+    piv.add_argument("--no-png", action="store_true", help="no PNG of vector slices")
+    _add_common(piv)
+    piv.set_defaults(func=cmd_piv)
+
+    val = sub.add_parser("validate", help="validation studies (thesis figures, vortex flows)")
+    val.add_argument("case", choices=("oseen", "hill", "calibration", "depth", "fields",
+                                      "letters"),
+                     help="oseen/hill: whole chain on a vortex; calibration: Figs 3.8, 3.9, "
+                          "5.5; depth: Tables 5.1, 5.2; fields: particle-field quality; "
+                          "letters: light field on the real plenoptomos image")
+    val.add_argument("--out", required=True, help="output folder")
+    val.add_argument("--camera", default="small_m1", help="camera for oseen/hill")
+    val.add_argument("--particles-per-lenslet", type=float, default=0.15)
+    val.add_argument("--seed", type=int, default=1)
+    _add_common(val)
+    val.set_defaults(func=cmd_validate)
 
     sim = sub.add_parser("simulate", help="render synthetic plenoptic images by ray tracing")
     simsub = sim.add_subparsers(dest="kind", required=True)

@@ -55,7 +55,7 @@ class ReconstructionSettings(_Strict):
     method: Literal["mart", "block", "smart"] = "mart"
     iterations: int = Field(5, ge=0)
     relaxation: float = Field(1.0, gt=0, allow_inf_nan=False)
-    pixel_threshold: float = Field(0.02, ge=0, lt=1)
+    pixel_threshold: float = Field(0.003, ge=0, lt=1)
     dark_tolerance: float = Field(0.5, ge=0, le=1)
     f_number: float | None = Field(None, gt=0)
     min_lit: float = Field(0.5, gt=0, le=1)

@@ -84,6 +84,37 @@ class VolumeResult:
         return write_h5(path, ds, attrs=attrs, units=units, config=config, kind="volume")
 
 
+def load_volume(path: str | Path) -> VolumeResult:
+    """Read a volume product written by :meth:`VolumeResult.save`."""
+    import h5py
+
+    p = Path(path)
+    if not p.exists():
+        raise ReconstructionError(f"volume file {str(p)!r} not found")
+    try:
+        with h5py.File(p, "r") as fh:
+            if fh.attrs.get("product") != "volume":
+                raise ReconstructionError(f"{str(p)!r} is not a plenopiv volume file "
+                                          f"(product = {fh.attrs.get('product')!r})")
+            x, y, ze = fh["/x"][()], fh["/y"][()], fh["/z_effective"][()]
+            vol = fh["/volume"][()]
+            corr = DepthCorrection(float(fh.attrs["depth_correction_external"]),
+                                   float(fh.attrs["depth_correction_internal"]))
+            pos = fh["/particles/position_m"][()]
+            pos_e = fh["/particles/position_effective_m"][()]
+            inten = fh["/particles/intensity"][()]
+            size = fh["/particles/size_m"][()]
+    except ReconstructionError:
+        raise
+    except (OSError, KeyError, ValueError) as exc:
+        raise ReconstructionError(f"volume file {str(p)!r} is corrupt or incomplete: "
+                                  f"{type(exc).__name__}: {exc}") from None
+    step = [a[1] - a[0] if len(a) > 1 else 1.0 for a in (x, y, ze)]
+    grid = VolumeGrid((float(x[0]), float(y[0]), float(ze[0])), tuple(float(v) for v in step),
+                      vol.shape)
+    return VolumeResult(vol, grid, corr, pos_e, pos, inten, size)
+
+
 def normalised_rows(weights: Weights) -> tuple[SparseProjector, np.ndarray]:
     """W with every row scaled to a maximum of 1, and the scale of each row.
 
@@ -135,7 +166,11 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     proj, row_scale = normalised_rows(weights)
     raw = weights.image_vector(img)
     threshold = settings.pixel_threshold * float(img.max())
-    bright = raw > threshold
+    # rows that barely touch the volume (their beam mostly passes beside it) would claim the
+    # light of particles outside the volume: leave them out
+    nonempty = np.diff(proj.indptr) > 0
+    touching = nonempty & (row_scale >= 0.25 * float(np.percentile(row_scale[nonempty], 95)))
+    bright = (raw > threshold) & touching
     if not bright.any():
         raise ReconstructionError(f"no pixel seen by the volume is above the threshold "
                                   f"{threshold:g} ([reconstruction] pixel_threshold = "
@@ -152,11 +187,11 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     # voxel holding a point particle: the voxel is wider than the particle, so some beams
     # through the voxel miss the particle and stay dark.)
     seen = np.asarray(proj.column_sums())
-    dark_weight = np.asarray(proj.back((~bright).astype(np.float32)))
+    dark_weight = np.asarray(proj.back(((raw <= threshold) & touching).astype(np.float32)))
     with np.errstate(invalid="ignore", divide="ignore"):
         keep = (seen > 0) & (dark_weight <= settings.dark_tolerance * seen)
     lit = _rows(proj, bright)
-    first = mlos(values[bright], lit) * keep
+    first = np.where(keep, mlos(values[bright], lit), np.float32(0.0))
     blocks = None
     if settings.method == "block":
         blocks = _perspective_blocks(weights, calibration)[bright]
@@ -234,3 +269,194 @@ def gaussian_truth_volume(grid: VolumeGrid, positions, intensities=None, *,
                            + ((xx - cx) / s[2]) ** 2))
         vol[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] += (wi * g).astype(np.float32)
     return vol
+
+
+# --------------------------------------------------------------------------------------------
+# vectors and pairs
+# --------------------------------------------------------------------------------------------
+
+
+def piv_settings(cfg) -> "PIVSettings":  # noqa: UP037 - imported lazily
+    """PIV settings from a ``[piv]`` config table (:class:`plenopiv.config.PIVConfig`)."""
+    from plenopiv.piv import PIVSettings
+
+    return PIVSettings(windows=tuple(tuple(w) for w in cfg.windows), overlap=cfg.overlap,
+                       passes=cfg.passes, deformation=cfg.deformation,
+                       median_threshold=cfg.median_threshold)
+
+
+@dataclass(frozen=True)
+class VectorResult:
+    """A 3-D vector field in physical coordinates.
+
+    Attributes
+    ----------
+    x, y, z : 1-D arrays
+        Window centres, metres; z is the physical depth (depth corrections applied).
+    u, v, w : (nz, ny, nx)
+        Displacement along x, y, z in metres (w corrected to physical depth).
+    valid : (nz, ny, nx) bool
+    snr : (nz, ny, nx)
+        Correlation peak ratio.
+    dt : float or None
+        Seconds between exposures; velocity = displacement / dt.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+    valid: np.ndarray
+    snr: np.ndarray
+    dt: float | None = None
+    n_replaced: int = 0
+
+    @classmethod
+    def from_field(cls, field, correction: DepthCorrection, dt=None) -> VectorResult:
+        """Convert a :class:`plenopiv.piv.VectorField` of effective coordinates."""
+        return cls(np.asarray(field.x), np.asarray(field.y), correction.depth(field.z),
+                   np.asarray(field.u), np.asarray(field.v), correction.depth(field.w),
+                   np.asarray(field.valid), np.asarray(field.snr), dt, int(field.n_replaced))
+
+    def save(self, path: str | Path, *, config: dict | None = None, vtk: bool = False,
+             extra_attrs=None) -> list[Path]:
+        """Write the vectors product (CF style HDF5), and a ``.vti`` for ParaView if asked.
+
+        ``/u, /v, /w`` are displacements in metres, or velocities in m/s when ``dt`` is set
+        (their ``units`` attribute says which).
+        """
+        scale, unit = (1.0, "m") if self.dt is None else (1.0 / self.dt, "m s-1")
+        names = {"u": "x", "v": "y", "w": "z"}
+        ds = {"/x": self.x, "/y": self.y, "/z": self.z, "/valid": self.valid.astype(np.int8),
+              "/snr": self.snr}
+        units = {"/x": "m", "/y": "m", "/z": "m", "/valid": "1", "/snr": "1"}
+        for comp in "uvw":
+            ds[f"/{comp}"] = (getattr(self, comp) * scale).astype(np.float32)
+            units[f"/{comp}"] = unit
+        attrs = {"dt_s": np.nan if self.dt is None else self.dt,
+                 "quantity": "displacement" if self.dt is None else "velocity",
+                 "n_replaced": self.n_replaced, "Conventions": "CF-1.8",
+                 **(extra_attrs or {})}
+        p = write_h5(path, ds, attrs=attrs, units=units, config=config, kind="vectors")
+        _cf_dimensions(p, names)
+        out = [p]
+        if vtk:
+            out.append(self.save_vtk(Path(path).with_suffix("")))
+        return out
+
+    def save_vtk(self, stem: Path) -> Path:
+        """A ``.vti`` image data file (ParaView) with the vector field and validity."""
+        from pyevtk.hl import imageToVTK
+
+        from plenopiv.io import atomic_path
+
+        def spacing(a):
+            return float(a[1] - a[0]) if len(a) > 1 else 1.0
+
+        origin = (float(self.x[0]), float(self.y[0]), float(self.z[0]))
+        sp = (spacing(self.x), spacing(self.y), spacing(self.z))
+        scale = 1.0 if self.dt is None else 1.0 / self.dt
+        # VTK point data is x-fastest: transpose [z, y, x] -> [x, y, z]
+        data = {"displacement" if self.dt is None else "velocity": tuple(
+            np.ascontiguousarray((getattr(self, c) * scale).transpose(2, 1, 0), np.float64)
+            for c in "uvw"),
+            "valid": np.ascontiguousarray(self.valid.transpose(2, 1, 0), np.float64)}
+        final = Path(str(stem) + ".vti")
+        with atomic_path(final) as tmp:
+            written = imageToVTK(str(tmp.with_suffix("")), origin=origin, spacing=sp,
+                                 pointData=data)
+            Path(written).replace(tmp)
+        return final
+
+
+def _cf_dimensions(path: Path, names) -> None:
+    """Attach the 1-D coordinates as HDF5 dimension scales so that xarray/netCDF see them."""
+    import h5py
+
+    with h5py.File(path, "a") as fh:
+        for axis in ("x", "y", "z"):
+            fh[axis].make_scale(axis)
+            fh[axis].attrs["axis"] = axis.upper()
+            fh[axis].attrs["standard_name"] = {"x": "projection_x_coordinate",
+                                               "y": "projection_y_coordinate",
+                                               "z": "depth"}[axis]
+        for name in ("u", "v", "w", "valid", "snr"):
+            for dim, axis in enumerate(("z", "y", "x")):
+                fh[name].dims[dim].attach_scale(fh[axis])
+        for comp, axis in names.items():
+            fh[comp].attrs["long_name"] = f"{fh.attrs['quantity']} along {axis}"
+
+
+def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, dt=None,
+              workers=None, progress=None) -> VectorResult:
+    """3-D PIV between two reconstructed volumes of the same grid (effective coordinates),
+    returned in physical coordinates."""
+    from plenopiv.piv import correlate_volumes
+
+    if result_a.grid != result_b.grid:
+        raise ReconstructionError("the two volumes were reconstructed on different grids")
+    field = correlate_volumes(result_a.volume, result_b.volume, result_a.grid,
+                              settings=settings, workers=workers, progress=progress)
+    return VectorResult.from_field(field, result_a.correction, dt)
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """Everything one pair produced."""
+
+    volume_a: VolumeResult
+    volume_b: VolumeResult
+    vectors: VectorResult
+    timings: dict
+
+
+def process_pair(calibration: Calibration, image_a, image_b, experiment, *,
+                 weights: Weights | None = None, progress: Progress = None,
+                 workers=None) -> PairResult:
+    """Images A and B -> two volumes (weights built once) -> particles -> corrections ->
+    vectors, with the experiment's settings (:class:`plenopiv.config.Experiment`)."""
+    t0 = time.perf_counter()
+    if weights is None:
+        cache = experiment.output.weights_cache
+        weights, _ = cached_weights(calibration, experiment.volume,
+                                    cache_dir=experiment.path(cache) if cache else None,
+                                    f_number=experiment.reconstruction.f_number,
+                                    min_lit=experiment.reconstruction.min_lit)
+    kw = dict(settings=experiment.reconstruction, particles=experiment.particles,
+              weights=weights, progress=progress)
+    va = reconstruct_volume(calibration, image_a, experiment.volume, **kw)
+    vb = reconstruct_volume(calibration, image_b, experiment.volume, **kw)
+    t1 = time.perf_counter()
+    vec = correlate(va, vb, piv_settings(experiment.piv), dt=experiment.images.dt_s,
+                    workers=workers)
+    t2 = time.perf_counter()
+    return PairResult(va, vb, vec, {"reconstruct_s": t1 - t0, "piv_s": t2 - t1})
+
+
+def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
+              extra_attrs=None) -> dict:
+    """Write a pair's products: ``NAME_vectors.h5`` (+ ``.vti``), the two volumes, PNGs.
+
+    The vectors file is written last and marked complete, so that a batch can resume.
+    """
+    out = Path(out_dir)
+    cfg = experiment.to_dict()
+    paths = {}
+    for tag, vol in (("A", result.volume_a), ("B", result.volume_b)):
+        paths[f"volume_{tag}"] = str(vol.save(out / f"{name}_volume_{tag}.h5", config=cfg))
+    if experiment.output.png:
+        from plenopiv.plots import vector_slices, volume_slices
+
+        va = result.volume_a
+        paths["png_volume"] = str(volume_slices(va.volume, va.grid.x, va.grid.y, va.grid.z,
+                                                out / f"{name}_volume_A.png",
+                                                particles=va.particle_position_effective))
+        paths["png_vectors"] = str(vector_slices(result.vectors, out / f"{name}_vectors.png"))
+    files = result.vectors.save(out / f"{name}_vectors.h5", config=cfg, vtk=experiment.output.vtk,
+                                extra_attrs={"complete": True, **(extra_attrs or {})})
+    paths["vectors"] = str(files[0])
+    if len(files) > 1:
+        paths["vtk"] = str(files[1])
+    return paths

@@ -130,3 +130,38 @@ def volume_slices(volume, x, y, z, path, *, particles=None, title="") -> Path:
     if title:
         fig.suptitle(title)
     return _save(plt, fig, path)
+
+
+def vector_slices(vectors, path, *, truth=None, title="") -> Path:
+    """In-plane vectors on the x-y plane nearest Z = 0 and the x-z plane through the middle,
+    coloured by the out-of-plane component (metres or m/s as stored)."""
+    plt, fig = _figure(figsize=(13, 5.5))
+    x, y, z = (np.asarray(a) * 1e3 for a in (vectors.x, vectors.y, vectors.z))
+    u, v, w = vectors.u, vectors.v, vectors.w
+    ok = np.asarray(vectors.valid, bool)
+    iz = int(np.argmin(np.abs(z)))
+    iy = len(y) // 2
+    scale = 1e3 if vectors.dt is None else 1.0
+    unit = "mm" if vectors.dt is None else "m/s"
+    ax = fig.add_subplot(1, 2, 1)
+    X, Y = np.meshgrid(x, y, indexing="xy")
+    q = ax.quiver(X, Y, (u[iz] * scale) * ok[iz], (v[iz] * scale) * ok[iz], w[iz] * scale,
+                  cmap="coolwarm", angles="xy")
+    fig.colorbar(q, ax=ax, label=f"w ({unit})")
+    ax.set_title(f"x-y plane at Z = {z[iz]:.2f} mm")
+    ax.set_xlabel("X (mm)")
+    ax.set_ylabel("Y (mm)")
+    ax.invert_yaxis()
+    ax.set_aspect("equal")
+    ax = fig.add_subplot(1, 2, 2)
+    X, Z = np.meshgrid(x, z, indexing="xy")
+    q = ax.quiver(X, Z, (u[:, iy] * scale) * ok[:, iy], (w[:, iy] * scale) * ok[:, iy],
+                  v[:, iy] * scale, cmap="coolwarm", angles="xy")
+    fig.colorbar(q, ax=ax, label=f"v ({unit})")
+    ax.set_title(f"x-z plane at Y = {y[iy]:.2f} mm")
+    ax.set_xlabel("X (mm)")
+    ax.set_ylabel("Z (mm), + away from camera")
+    ax.invert_yaxis()
+    if title:
+        fig.suptitle(title)
+    return _save(plt, fig, path)
