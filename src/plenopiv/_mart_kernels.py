@@ -14,6 +14,13 @@ import math
 import numba
 import numpy as np
 
+#: Bound on |log(I_i / sum_j w_ij E_j)| in one update: a pixel that sees its voxels only
+#: through tiny projections (an inconsistent system, e.g. after masking) cannot blow a voxel
+#: up to infinity; consistent updates are far inside it (e^12 ≈ 1.6e5).
+LOG_RATIO_BOUND = 12.0
+#: Largest voxel value kept (float32 range), so that a runaway voxel never becomes inf/NaN.
+VOXEL_MAX = np.float32(1e30)
+
 
 @numba.njit(parallel=True, cache=True)
 def mart_sweep(indptr, indices, data, rows, chunk_ptr, group_ptr, intensity, bright, volume,
@@ -37,12 +44,13 @@ def mart_sweep(indptr, indices, data, rows, chunk_ptr, group_ptr, intensity, bri
                     s += data[p] * volume[indices[p]]
                 if s <= 0.0:
                     continue
-                gain = np.float32(relaxation * math.log(intensity[i] / s))
+                lr = min(max(math.log(intensity[i] / s), -LOG_RATIO_BOUND), LOG_RATIO_BOUND)
+                gain = np.float32(relaxation * lr)
                 if gain == 0.0:
                     continue
                 for p in range(indptr[i], indptr[i + 1]):
                     j = indices[p]
-                    volume[j] = volume[j] * math.exp(gain * data[p])
+                    volume[j] = min(volume[j] * math.exp(gain * data[p]), VOXEL_MAX)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -70,7 +78,8 @@ def block_sweep(indptr, indices, data, block_column_sums, rows, chunk_ptr, group
                 for p in range(indptr[i], indptr[i + 1]):
                     s += data[p] * volume[indices[p]]
                 if s > 0.0:
-                    lr = math.log(intensity[i] / s)
+                    lr = min(max(math.log(intensity[i] / s), -LOG_RATIO_BOUND),
+                             LOG_RATIO_BOUND)
             log_ratio[i] = lr
         for g in range(g0, g1):
             for c in numba.prange(group_ptr[g], group_ptr[g + 1]):
@@ -83,5 +92,6 @@ def block_sweep(indptr, indices, data, block_column_sums, rows, chunk_ptr, group
                         j = indices[p]
                         e = volume[j]
                         if e > 0.0:
-                            volume[j] = e * math.exp(
-                                gain * data[p] / max(np.float32(1.0), block_column_sums[p]))
+                            volume[j] = min(e * math.exp(
+                                gain * data[p] / max(np.float32(1.0), block_column_sums[p])),
+                                VOXEL_MAX)

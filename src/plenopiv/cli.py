@@ -233,23 +233,13 @@ def cmd_calibrate(args) -> dict:
 
 def cmd_reconstruct(args) -> dict:
     """Reconstruct one image into a volume with its particle table."""
-    from plenopiv.calibration.model import Calibration
     from plenopiv.config import load_experiment
     from plenopiv.io import read_image
-    from plenopiv.pipeline import reconstruct_volume
+    from plenopiv.pipeline import experiment_calibration, reconstruct_volume
 
     out = _check_out(args.out, (".h5",))
     exp = load_experiment(args.config)
-    cal = Calibration.load(args.calibration)
-    if cal.camera.sensor.shape != exp.camera.sensor.shape or \
-            cal.camera.microlens_array.pitch != exp.camera.microlens_array.pitch:
-        raise ConfigError(f"the calibration {args.calibration!r} was made for another camera "
-                          f"(sensor {cal.camera.sensor.shape}, pitch "
-                          f"{cal.camera.microlens_array.pitch * 1e6:g} µm) than the experiment's "
-                          f"({exp.camera.sensor.shape}, "
-                          f"{exp.camera.microlens_array.pitch * 1e6:g} µm)")
-    # the experiment's camera describes interfaces and back side; the calibration gives S_i
-    cal = _with_experiment_optics(cal, exp.camera)
+    cal = experiment_calibration(exp, args.calibration)
     img = read_image(args.image)
     t0 = time.perf_counter()
     bar = tqdm(total=100, desc="reconstruct", disable=args.quiet or args.json or None,
@@ -280,14 +270,6 @@ def cmd_reconstruct(args) -> dict:
         summary["png"] = str(png)
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     return summary
-
-
-def _with_experiment_optics(cal, camera: CameraModel):
-    """The calibration with the experiment's interfaces and back-side model (same S_i)."""
-    import dataclasses
-
-    cam = camera.with_image_distance(cal.image_distance)
-    return dataclasses.replace(cal, camera=cam)
 
 
 # ---- piv -------------------------------------------------------------------------------------
@@ -362,6 +344,53 @@ def cmd_validate(args) -> dict:
         raise ConfigError(f"validate {case!r}: unknown case")
     return {"command": f"validate {case}", "out": str(args.out), **out,
             "seconds": round(time.perf_counter() - t0, 3)}
+
+
+# ---- run ---------------------------------------------------------------------------------
+
+
+def cmd_run(args) -> dict:
+    """Many pairs end to end on dask (local processes, SLURM, or a running scheduler)."""
+    from plenopiv.batch import batch_options, discover_pairs, run_batch
+    from plenopiv.config import load_experiment
+    from plenopiv.pipeline import ExperimentPairProcess, experiment_calibration
+    from plenopiv.weights import cached_weights
+
+    exp = load_experiment(args.experiment)
+    im = exp.images
+    if im.calibration is None:
+        raise ConfigError(f"{args.experiment}: [images] calibration is not set: expected the "
+                          "calibration product (.h5) of plenopiv calibrate")
+    if (im.a is None or im.b is None) and im.pairs is None:
+        raise ConfigError(f"{args.experiment}: [images] needs a and b (glob patterns of the "
+                          "two exposures) or pairs (HDF5 files with /image_a and /image_b)")
+    out_dir = exp.path(exp.output.directory)
+    if im.pairs is not None:
+        jobs = discover_pairs(im.pairs, out_dir=out_dir, root=exp.base_dir,
+                              output_name="{name}_vectors.h5")
+    else:
+        jobs = discover_pairs(im.a, im.b, out_dir=out_dir, root=exp.base_dir,
+                              output_name="{name}_vectors.h5")
+    cal_path = exp.path(im.calibration)
+    cal = experiment_calibration(exp, cal_path)
+    # build (or find) the weights once, before the workers start: they load them from disk
+    t0 = time.perf_counter()
+    cache = exp.output.weights_cache
+    _, hit = cached_weights(cal, exp.volume, cache_dir=exp.path(cache) if cache else None,
+                            f_number=exp.reconstruction.f_number,
+                            min_lit=exp.reconstruction.min_lit)
+    opts = batch_options(exp.batch.model_dump())
+    if args.cluster is not None:
+        opts["cluster"] = args.cluster
+    if args.workers is not None:
+        opts["n_workers"] = args.workers
+    process = ExperimentPairProcess(str(Path(args.experiment).resolve()), str(cal_path.resolve()),
+                                    str(out_dir))
+    summary = run_batch(jobs, process, resume=args.resume,
+                        progress=not (args.quiet or args.json), **opts)
+    return {"command": "run", "out": str(out_dir), "weights_from_cache": hit,
+            "weights_s": round(time.perf_counter() - t0, 3) if not hit else 0.0,
+            **summary.to_dict()}
 
 
 # ---- demo ----------------------------------------------------------------------------------
@@ -466,6 +495,15 @@ def build_parser() -> argparse.ArgumentParser:
     piv.add_argument("--no-png", action="store_true", help="no PNG of vector slices")
     _add_common(piv)
     piv.set_defaults(func=cmd_piv)
+
+    run = sub.add_parser("run", help="many image pairs end to end (dask batch)")
+    run.add_argument("experiment", help="experiment TOML with [images], [batch], [output]")
+    run.add_argument("--resume", action=argparse.BooleanOptionalAction, default=True,
+                     help="skip pairs whose product is complete (default; --no-resume redoes all)")
+    run.add_argument("--cluster", help="local | slurm | tcp://scheduler:8786 (default [batch])")
+    run.add_argument("--workers", type=int, help="worker processes (default: [batch] or cores)")
+    _add_common(run)
+    run.set_defaults(func=cmd_run)
 
     val = sub.add_parser("validate", help="validation studies (thesis figures, vortex flows)")
     val.add_argument("case", choices=("oseen", "hill", "calibration", "depth", "fields",

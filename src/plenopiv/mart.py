@@ -293,9 +293,11 @@ def _smart_iteration(projector, intensity, bright, volume, relaxation, column_no
     projection = projector.forward(volume)
     log_ratio[:] = 0.0
     update = bright & (projection > 0.0)
-    log_ratio[update] = np.log(intensity[update] / projection[update])
+    log_ratio[update] = np.clip(np.log(intensity[update] / projection[update]),
+                                -_k.LOG_RATIO_BOUND, _k.LOG_RATIO_BOUND)
     correction = projector.back(log_ratio)
     volume *= np.exp(np.float32(relaxation) * correction / column_norm)
+    np.minimum(volume, _k.VOXEL_MAX, out=volume)
 
 
 def _mlos(intensity, bright, projector) -> np.ndarray:

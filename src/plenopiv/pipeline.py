@@ -460,3 +460,53 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
     if len(files) > 1:
         paths["vtk"] = str(files[1])
     return paths
+
+
+@dataclass(frozen=True)
+class ExperimentPairProcess:
+    """The per-pair work of ``plenopiv run``: picklable, so dask workers can run it.
+
+    Each call loads the experiment and the calibration (small files), reads the pair's images,
+    processes it with the weights from the on-disk cache (built once, before the batch) and
+    writes the products; the vectors file is written last, marked complete.
+    """
+
+    experiment_path: str
+    calibration_path: str
+    out_dir: str
+
+    def __call__(self, job) -> dict:
+        """Process one :class:`plenopiv.batch.PairJob`; returns a small summary."""
+        from plenopiv.config import load_experiment
+        from plenopiv.io import read_image
+
+        exp = load_experiment(self.experiment_path)
+        cal = experiment_calibration(exp, self.calibration_path)
+        ia, ib = read_image(job.image_a), read_image(job.image_b)
+        res = process_pair(cal, ia, ib, exp)
+        paths = save_pair(res, self.out_dir, job.name, exp,
+                          extra_attrs={"image_a": str(job.image_a),
+                                       "image_b": str(job.image_b)})
+        vec = res.vectors
+        return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),
+                "n_particles_a": len(res.volume_a.particle_position),
+                **{k: round(v, 3) for k, v in res.timings.items()}}
+
+
+def experiment_calibration(experiment, calibration_path) -> Calibration:
+    """The calibration to use with an experiment: S_i and the lenslets from the calibration
+    product, the interfaces and back-side model from the experiment's camera."""
+    cal = Calibration.load(calibration_path)
+    cam = experiment.camera
+    if (cal.camera.sensor.shape != cam.sensor.shape
+            or cal.camera.microlens_array.pitch != cam.microlens_array.pitch):
+        from plenopiv.errors import ConfigError
+
+        raise ConfigError(f"the calibration {str(calibration_path)!r} was made for another "
+                          f"camera (sensor {cal.camera.sensor.shape}, pitch "
+                          f"{cal.camera.microlens_array.pitch * 1e6:g} µm) than the "
+                          f"experiment's ({cam.sensor.shape}, "
+                          f"{cam.microlens_array.pitch * 1e6:g} µm)")
+    from dataclasses import replace
+
+    return replace(cal, camera=cam.with_image_distance(cal.image_distance))
