@@ -40,8 +40,9 @@ class _Strict(BaseModel):
 class ReconstructionSettings(_Strict):
     """``[reconstruction]``: MART options.
 
-    method : "mart" (row action, Elsinga 2006) | "block" (one block per perspective view) |
-        "smart" (simultaneous).
+    method : "smart" (simultaneous multiplicative, default: independent of pixel order, so
+        the two exposures of a pair reconstruct consistently) | "mart" (row action, Elsinga
+        2006) | "block" (one block per perspective view).
     iterations : sweeps after the MLOS first guess.
     relaxation : μ, dimensionless.
     pixel_threshold : pixels at or below this fraction of the image's maximum are dark.
@@ -52,7 +53,7 @@ class ReconstructionSettings(_Strict):
         not used.
     """
 
-    method: Literal["mart", "block", "smart"] = "mart"
+    method: Literal["mart", "block", "smart"] = "smart"
     iterations: int = Field(5, ge=0)
     relaxation: float = Field(1.0, gt=0, allow_inf_nan=False)
     pixel_threshold: float = Field(0.003, ge=0, lt=1)

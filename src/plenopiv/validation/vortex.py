@@ -73,7 +73,7 @@ def _flow(case: VortexCase, box: SeedingBox):
     half_y = 0.5 * (box.y[1] - box.y[0])
     vmax = case.max_displacement / case.dt
     if case.flow == "oseen":
-        rc = 0.35 * min(half_y, case.depth)
+        rc = 0.6 * min(half_y, case.depth)
         return LambOseen(circulation=vmax * 2 * np.pi * rc / 0.6382, core_radius=rc,
                          axis=(0.0, 1.0, 0.0))
     if case.flow == "hill":
@@ -108,9 +108,9 @@ def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox) -> dict:
     x, y, z = vectors.x, vectors.y, vectors.z
     Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
     pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
-    # displacement of a material point centred on the window: RK4 over dt from t - dt/2 to
-    # t + dt/2 would be the central estimate; the forward one matches how pairs are rendered
-    truth = advect(flow, pts, dt) - pts
+    # PIV measures the displacement of the particles around the window centre between the
+    # exposures, i.e. of the material point that sits at the centre half-way between them
+    truth = advect(flow, pts, dt / 2) - advect(flow, pts, -dt / 2)
     meas = np.stack([vectors.u.ravel(), vectors.v.ravel(), vectors.w.ravel()], axis=1)
     b = grid.bounds
     wz, wy, wx = window_vox
