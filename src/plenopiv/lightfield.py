@@ -115,6 +115,11 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
     pp = cam.sensor.pixel_pitch
     n_f = cam.main_lens.f_number if f_number is None else f_number
     radius = cam.main_lens.focal_length / n_f / 2
+    if cam.microlens_array.back_side == "thesis" and cam.microlens_array.substrate is not None:
+        # rays keep their in-glass angle behind the lenslets: the micro-images, and so the
+        # aperture as the pixels see it through u = -(x - x_c) S_i/f̄, are n times smaller
+        # (the depth scale this leaves is the internal correction, thesis Eq. 5.1)
+        radius /= cam.microlens_array.substrate.refractive_index
     cell = pp * si / fbar
     shape = cam.sensor.shape
 

@@ -40,7 +40,7 @@ from plenopiv.lightfield import LightField, light_field
 from plenopiv.projector import SparseProjector
 from plenopiv.volume import VolumeGrid
 
-WEIGHTS_VERSION = 2
+WEIGHTS_VERSION = 3
 
 
 @dataclass(frozen=True)

@@ -155,7 +155,8 @@ def study_cases(base: CameraModel | None = None, *, diagnostics: bool = True) ->
     ext = cam.replace(external_interface=WATER)
     phys, thes = with_plate(cam, "physical"), with_plate(cam, "thesis")
     ident = DepthCorrection()
-    matched = ReconstructionSettings(f_number=micro_image_f_number(thes))
+    # the light field itself shrinks the aperture disc by n for the "thesis" back side
+    matched = ReconstructionSettings()
     cases = [
         DepthCase("none", "no interface", cam, corrections={"uncorrected": ident}),
         DepthCase("external", "external interface (water, l1 = 40 mm)", ext,
@@ -169,16 +170,21 @@ def study_cases(base: CameraModel | None = None, *, diagnostics: bool = True) ->
         DepthCase("plate_thesis", 'plate, "thesis" back side', thes, settings=matched,
                   corrections={"uncorrected": DepthCorrection.for_camera(thes, internal="none"),
                                "corrected (1/n)": DepthCorrection.for_camera(thes)},
-                  note=f"light field aperture f/{matched.f_number:.3g} = n N, the disc the "
-                       "micro-images show (auto correction: 1/n)"),
+                  note=f"light field aperture f/{micro_image_f_number(thes):.3g} = n N, the "
+                       "disc the micro-images show (auto correction: 1/n)"),
     ]
     if diagnostics:
+        # the aperture the thesis's reconstruction assumed: the full disc, so that the outer
+        # part of every micro-image disc is dark (f/(N/n) is what the light field then uses)
         cases.append(DepthCase(
-            "plate_thesis_default_aperture", 'plate, "thesis" back side, default aperture', thes,
+            "plate_thesis_default_aperture", 'plate, "thesis" back side, full aperture', thes,
+            settings=ReconstructionSettings(f_number=thes.main_lens.f_number
+                                            / thes.plate_index),
             corrections={"uncorrected": DepthCorrection.for_camera(thes, internal="none"),
                          "corrected (1/n)": DepthCorrection.for_camera(thes)},
-            note=f"light field aperture f/{thes.main_lens.f_number:g}: the outer "
-                 f"{1 - 1 / thes.plate_index ** 2:.0%} of every micro-image disc is dark"))
+            note=f"light field aperture f/{thes.main_lens.f_number:g} (n times too large): "
+                 f"the outer {1 - 1 / thes.plate_index ** 2:.0%} of every micro-image disc "
+                 "is dark"))
     return cases
 
 
