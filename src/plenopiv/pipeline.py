@@ -116,21 +116,9 @@ def load_volume(path: str | Path) -> VolumeResult:
 
 
 def normalised_rows(weights: Weights) -> tuple[SparseProjector, np.ndarray]:
-    """W with every row scaled to a maximum of 1, and the scale of each row.
-
-    MART raises a voxel's factor to the power μ w_ij; with the physical weights (fractions of
-    a particle's light, ~1e-3) the updates would be tiny. Scaling row i and pixel i by the same
-    c_i = 1/max_j w_ij leaves the system I = W E and its solution E unchanged.
-    """
-    p = weights.projector
-    counts = np.diff(p.indptr)
-    row_max = np.zeros(len(counts), np.float32)
-    nz = counts > 0
-    row_max[nz] = np.maximum.reduceat(p.data, p.indptr[:-1][nz])
-    safe = np.where(row_max > 0, row_max, 1.0).astype(np.float32)
-    data = p.data / np.repeat(safe, counts)
-    return SparseProjector(p.indptr, p.indices, data.astype(np.float32),
-                           n_voxels=p.n_voxels, check=False), safe
+    """W with every row scaled to a maximum of 1 and each row's scale (see
+    :attr:`plenopiv.weights.Weights.normalised`; computed once per weights object)."""
+    return weights.normalised
 
 
 def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,

@@ -23,6 +23,7 @@ the voxel's centre depth. Everything is in effective (air-equivalent) coordinate
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -62,6 +63,24 @@ class Weights:
     pixel: np.ndarray
     grid: VolumeGrid
     key: str
+
+    @functools.cached_property
+    def normalised(self) -> tuple[SparseProjector, np.ndarray]:
+        """W with every row scaled to a maximum of 1, and each row's scale (computed once).
+
+        MART raises a voxel's factor to the power μ w_ij; with the physical weights (fractions
+        of a particle's light, ~1e-3) the updates would be tiny. Scaling row i and pixel i by
+        the same c_i = 1/max_j w_ij leaves the system I = W E and its solution unchanged.
+        """
+        p = self.projector
+        counts = np.diff(p.indptr)
+        row_max = np.zeros(len(counts), np.float32)
+        nz = counts > 0
+        row_max[nz] = np.maximum.reduceat(p.data, p.indptr[:-1][nz])
+        safe = np.where(row_max > 0, row_max, 1.0).astype(np.float32)
+        data = (p.data / np.repeat(safe, counts)).astype(np.float32)
+        return SparseProjector(p.indptr, p.indices, data, n_voxels=p.n_voxels,
+                               check=False), safe
 
     @property
     def nnz(self) -> int:
