@@ -182,9 +182,9 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     first = np.where(keep, mlos(values[bright], lit), np.float32(0.0))
     blocks = None
     if settings.method == "block":
-        blocks = _perspective_blocks(weights, calibration)[bright]
+        blocks = _perspective_blocks(weights, calibration, settings)[bright]
     vol = reconstruct(values[bright], lit, method=settings.method,
-                      iterations=settings.iterations, relaxation=settings.relaxation,
+                      iterations=settings.iterations, relaxation=settings.relaxation_used,
                       pixel_threshold=0.0, blocks=blocks, initial=first, shape=grid.shape,
                       callback=report)
     t["mart_s"] = time.perf_counter() - t1
@@ -214,14 +214,14 @@ def _rows(proj: SparseProjector, rows: np.ndarray) -> SparseProjector:
                            check=False)
 
 
-def _perspective_blocks(weights: Weights, calibration: Calibration) -> np.ndarray:
+def _perspective_blocks(weights: Weights, calibration: Calibration, settings) -> np.ndarray:
     """Block label of each weight row: its perspective view (aperture cell), so that a block
     holds one pixel per lenslet and its pixels share few voxels."""
     from plenopiv.lightfield import light_field
 
-    lf = light_field(calibration)
-    pos = {int(p): i for i, p in enumerate(lf.pixel)}
-    cell = np.array([np.rint(lf.u[pos[int(p)]] / lf.cell) for p in weights.pixel])
+    lf = light_field(calibration, f_number=settings.f_number, min_lit=settings.min_lit)
+    idx = np.searchsorted(lf.pixel, weights.pixel)       # lf.pixel is sorted
+    cell = np.rint(lf.u[idx] / lf.cell)
     _, labels = np.unique(cell, axis=0, return_inverse=True)
     return labels.ravel().astype(np.int64)
 

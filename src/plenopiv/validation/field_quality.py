@@ -1,0 +1,997 @@
+"""Reconstruction quality of synthetic particle fields: Q, detection, ghosts, elongation.
+
+A 61 × 91-lenslet patch of the Auburn camera with the 50 mm lens at M = -1 (S_i = S_o =
+100 mm, f/2.2: the micro-images nearly fill the lenslets, no substrate) records random
+particles seeded over its field of view and ±5 mm in depth, rendered by the ray tracer
+(:func:`~plenopiv.synthetic.images.particle_image`). Each image is reconstructed by
+:func:`~plenopiv.pipeline.reconstruct_volume` on a grid aligned with the lenslet footprints and
+compared with the truth:
+
+- Q = Σ E E* / sqrt(Σ E² Σ E*²) against Gaussian blobs at the true positions
+  (:func:`~plenopiv.pipeline.gaussian_truth_volume`), for several blob sizes, one of them
+  matched to the reconstruction of isolated particles (:func:`matched_sigma`);
+- detection rate, ghost rate, position error per axis and depth elongation of the particles
+  that :func:`~plenopiv.particles.find_particles` extracts, matched one-to-one to the true
+  particles within the camera's resolution cell (:func:`resolution_cell`).
+
+The stage functions take arrays and small parameter objects and return arrays or dicts;
+:func:`run` does the I/O (JSON, Markdown, PNG).
+
+Conventions: positions are ``(x, y, z)`` metres, volumes ``[z, y, x]``; densities are
+particles per lenslet (ppl), i.e. per lenslet footprint on the nominal focal plane, seeded
+through the whole depth range.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.camera import CameraModel, Sensor, load_camera
+from plenopiv.config import ParticleSettings, ReconstructionSettings
+from plenopiv.conventions import world_to_voxel
+from plenopiv.errors import ReconstructionError
+from plenopiv.io import atomic_path
+from plenopiv.pipeline import VolumeResult, gaussian_truth_volume, reconstruct_volume
+from plenopiv.synthetic.images import finish_image, particle_image
+from plenopiv.synthetic.seeding import SeedingBox, random_particles
+from plenopiv.volume import VolumeGrid
+from plenopiv.weights import Weights, cached_weights
+
+#: Densities of the main table, particles per lenslet.
+DENSITIES = (0.05, 0.1, 0.2, 0.3)
+#: MART variants and sweep counts of the main table.
+METHODS = ("mart", "block", "smart")
+ITERATIONS = (5, 10)
+#: Particles are seeded in |Z| <= PARTICLE_DEPTH; the grid reaches GRID_DEPTH so that no
+#: particle's depth-elongated blob is cut by the volume's end faces.
+PARTICLE_DEPTH = 5e-3
+GRID_DEPTH = 6e-3
+#: Depth voxel, metres: about half the depth resolution cell (0.55 mm, :func:`resolution_cell`).
+DEPTH_VOXEL = 0.25e-3
+#: Aperture samples per particle of the ray tracer.
+RAYS_PER_PARTICLE = 4096
+
+
+def _study_settings(**kw) -> ReconstructionSettings:
+    """Reconstruction settings as this study ran them: 5 sweeps and relaxation 1 unless a
+    case says otherwise (the library's defaults at the time; they are now 10 sweeps with
+    relaxation 2 for SMART, the "relaxation (smart)" row of the study)."""
+    kw.setdefault("iterations", 5)
+    kw.setdefault("relaxation", 1.0)
+    return ReconstructionSettings(**kw)
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry
+# --------------------------------------------------------------------------------------------
+
+
+def study_camera(rows: int = 61, cols: int = 91, *, preset: str = "auburn_50mm") -> CameraModel:
+    """Return a ``rows`` × ``cols``-lenslet patch of a preset camera, without substrate.
+
+    The sensor is cut to the micro-images (pitch × (1 + f̄/S_i) each) plus 3 pixels a side;
+    optics, pixel pitch and f-number are the preset's (for ``auburn_50mm``: M = -1, f/2.2, the
+    micro-images 114 µm across in the 125 µm pitch). Odd counts put a lenslet on the axis.
+    """
+    base = load_camera(preset)
+    mla = dataclasses.replace(base.microlens_array, rows=rows, cols=cols, substrate=None)
+    spot_pitch_px = base.pitch_px * (1 + mla.sensor_distance / base.image_distance)
+    sensor = Sensor(int(math.ceil(rows * spot_pitch_px)) + 6,
+                    int(math.ceil(cols * spot_pitch_px)) + 6, base.sensor.pixel_pitch)
+    return base.replace(sensor=sensor, microlens_array=mla,
+                        name=f"{base.name}, {rows} x {cols}-lenslet patch, no substrate")
+
+
+def footprint(camera: CameraModel) -> float:
+    """Lenslet footprint on the nominal focal plane, p_m S_o/S_i, metres."""
+    return camera.microlens_array.pitch * camera.object_distance / camera.image_distance
+
+
+def resolution_cell(camera: CameraModel, f_number: float | None = None) -> tuple[float, float]:
+    """Lateral and depth resolution of the camera near the focal plane, metres.
+
+    Lateral: one lenslet footprint b = p_m S_o/S_i. Depth: the views at the two edges of the
+    aperture (diameter D = f_m/N) see a particle at depth Z displaced by D Z/S_o relative to
+    each other, so two depths are told apart when that shift changes by one footprint:
+    ΔZ = b S_o/D (0.55 mm for the 50 mm lens at M = -1, f/2.2). The ratio ΔZ/b = S_o/D is the
+    depth elongation expected of a reconstructed particle.
+    """
+    n = camera.main_lens.f_number if f_number is None else f_number
+    b = footprint(camera)
+    return b, b * camera.object_distance * n / camera.main_lens.focal_length
+
+
+def study_grid(camera: CameraModel, *, depth: float = GRID_DEPTH,
+               depth_voxel: float = DEPTH_VOXEL, subdivision: int = 1) -> VolumeGrid:
+    """Return the grid over the whole field of view and ``[-depth, depth]`` in Z.
+
+    Laterally the voxels are one footprint (``subdivision = 1``) or a footprint / n wide and
+    aligned with the footprints: the voxel edges fall on the footprint edges, so with n = 1
+    each column of voxels is the footprint of one lenslet.
+    """
+    if subdivision < 1:
+        raise ValueError(f"subdivision must be >= 1; got {subdivision!r}")
+    b = footprint(camera)
+    mla = camera.microlens_array
+    hx, hy = mla.cols * b / 2, mla.rows * b / 2
+    return VolumeGrid.from_bounds((-hx, hx), (-hy, hy), (-depth, depth),
+                                  voxel=(b / subdivision, b / subdivision, depth_voxel))
+
+
+def study_weights(calibration: Calibration, grid: VolumeGrid,
+                  settings: ReconstructionSettings | None = None) -> Weights:
+    """Build the voxel-pixel weights of ``grid`` in memory (no disk cache)."""
+    s = _study_settings() if settings is None else settings
+    w, _ = cached_weights(calibration, grid, cache_dir=None, f_number=s.f_number,
+                          min_lit=s.min_lit)
+    return w
+
+
+def interior_margin(camera: CameraModel, depth: float = PARTICLE_DEPTH) -> float:
+    """Half-width of the blur disc on the focal plane of a particle at ``depth``, metres.
+
+    A particle closer than this to the edge of the field of view sends part of its light past
+    the lenslet array, so some of its views are missing; rates and Q are evaluated inside.
+    """
+    radius = camera.main_lens.focal_length / camera.main_lens.f_number / 2
+    so = camera.object_distance
+    return radius * depth / (so - depth)
+
+
+# --------------------------------------------------------------------------------------------
+# Particle fields
+# --------------------------------------------------------------------------------------------
+
+
+def seed_field(grid: VolumeGrid, camera: CameraModel, per_lenslet: float,
+               rng: np.random.Generator, *, depth: float = PARTICLE_DEPTH) -> np.ndarray:
+    """Seed random particles (N, 3), metres, uniformly over the grid's lateral extent.
+
+    ``per_lenslet`` particles per lenslet footprint, through ``|Z| <= depth``.
+    """
+    b = grid.bounds
+    box = SeedingBox(tuple(b[0]), tuple(b[1]), (-depth, depth))
+    area = (b[0, 1] - b[0, 0]) * (b[1, 1] - b[1, 0]) / footprint(camera) ** 2
+    return random_particles(box, int(round(per_lenslet * area)), rng)
+
+
+def isolated_field(grid: VolumeGrid, camera: CameraModel, rng: np.random.Generator, *,
+                   depth: float = PARTICLE_DEPTH, spacing_lenslets: int = 10) -> np.ndarray:
+    """Particles that share no micro-image, (N, 3) metres.
+
+    One per ``spacing_lenslets`` footprints along x and y (wider than the blur disc of a
+    particle at ``depth``), inside :func:`interior_margin` of the field's edges, each at a
+    random point of its footprint, at depths spread evenly over ``[-depth, depth]`` in random
+    order.
+    """
+    b = footprint(camera)
+    if 2 * interior_margin(camera, depth) > spacing_lenslets * b:
+        raise ValueError(f"spacing_lenslets = {spacing_lenslets} is narrower than the blur disc "
+                         f"at depth {depth * 1e3:g} mm")
+    half = grid.bounds[:2, 1] - interior_margin(camera, depth) - b / 2
+    kx, ky = (int(h // (spacing_lenslets * b)) for h in half)
+    x = np.arange(-kx, kx + 1) * spacing_lenslets * b
+    y = np.arange(-ky, ky + 1) * spacing_lenslets * b
+    xx, yy = np.meshgrid(x, y)
+    n = xx.size
+    z = np.linspace(-depth, depth, n)
+    rng.shuffle(z)
+    jitter = rng.uniform(-0.5, 0.5, (n, 2)) * b
+    return np.column_stack([xx.ravel() + jitter[:, 0], yy.ravel() + jitter[:, 1], z])
+
+
+def render(camera: CameraModel, positions, *, seed: int, noise: bool = False,
+           rng: np.random.Generator | None = None) -> np.ndarray:
+    """Render equally bright point particles.
+
+    Irradiance, or with ``noise`` 16-bit counts with the photon noise of a 20,000-electron
+    full well (``rng`` draws it).
+    """
+    img = particle_image(camera, positions, rays_per_particle=RAYS_PER_PARTICLE, seed=seed)
+    if noise:
+        return finish_image(img, noise="poisson", bit_depth=16, rng=rng)
+    return img
+
+
+# --------------------------------------------------------------------------------------------
+# Scores
+# --------------------------------------------------------------------------------------------
+
+
+def match_particles(true, found, tolerance) -> np.ndarray:
+    """One-to-one matches of found to true particles within an ellipsoid.
+
+    Parameters
+    ----------
+    true, found : (N, 3), (M, 3) array_like
+        Positions ``(x, y, z)``, metres.
+    tolerance : (3,) array_like
+        Semi-axes of the ellipsoid ``(x, y, z)``, metres: a pair matches when
+        ``sum(((f - t) / tolerance) ** 2) <= 1``.
+
+    Returns
+    -------
+    (K, 2) int ndarray
+        Index pairs ``(true, found)``, closest pairs (in units of the tolerance) taken first.
+    """
+    t = np.asarray(true, float).reshape(-1, 3)
+    f = np.asarray(found, float).reshape(-1, 3)
+    tol = np.asarray(tolerance, float)
+    if len(t) == 0 or len(f) == 0:
+        return np.zeros((0, 2), int)
+    pairs = cKDTree(t / tol).sparse_distance_matrix(cKDTree(f / tol), 1.0,
+                                                    output_type="ndarray")
+    order = np.argsort(pairs["v"], kind="stable")
+    used_t = np.zeros(len(t), bool)
+    used_f = np.zeros(len(f), bool)
+    out = []
+    for i, j in zip(pairs["i"][order], pairs["j"][order], strict=True):
+        if not used_t[i] and not used_f[j]:
+            used_t[i] = used_f[j] = True
+            out.append((i, j))
+    return np.array(out, int).reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class Region:
+    """The evaluated part of the volume: the grid less a lateral margin (metres)."""
+
+    grid: VolumeGrid
+    margin: float
+
+    @property
+    def slices(self) -> tuple[slice, slice, slice]:
+        """Voxel slices ``[z, y, x]`` of the region."""
+        m = [int(math.ceil(self.margin / self.grid.voxel[i] - 1e-9)) for i in (1, 0)]
+        nz, ny, nx = self.grid.shape
+        return slice(0, nz), slice(m[0], ny - m[0]), slice(m[1], nx - m[1])
+
+    def contains(self, points) -> np.ndarray:
+        """Whether each point (N, 3) lies in the region (laterally)."""
+        p = np.asarray(points, float).reshape(-1, 3)
+        s = self.slices
+        ok = np.ones(len(p), bool)
+        for axis, sl in ((0, s[2]), (1, s[1])):
+            lo = self.grid.origin[axis] + (sl.start - 0.5) * self.grid.voxel[axis]
+            hi = self.grid.origin[axis] + (sl.stop - 0.5) * self.grid.voxel[axis]
+            ok &= (p[:, axis] >= lo) & (p[:, axis] < hi)
+        return ok
+
+
+def field_q(volumes, grid: VolumeGrid, positions, sigma_vox,
+            region: Region | None = None) -> float:
+    """Return Q of a volume against Gaussian blobs at the true positions.
+
+    The blobs have σ ``sigma_vox`` (z, y, x voxels) at ``positions`` (N, 3, metres); Q is
+    taken over ``region`` (default: the whole grid).
+
+    ``volumes`` and ``positions`` may also be lists (several images of one study): Q is then
+    taken over all of them together, Σ over every voxel of every volume.
+    """
+    if isinstance(volumes, np.ndarray):
+        volumes, positions = [volumes], [positions]
+    s = region.slices if region is not None else (slice(None),) * 3
+    num = ee = tt = 0.0
+    for vol, pos in zip(volumes, positions, strict=True):
+        e = np.asarray(vol, np.float64)[s]
+        t = gaussian_truth_volume(grid, pos, sigma_vox=sigma_vox)[s].astype(np.float64)
+        num += float(np.sum(e * t))
+        ee += float(np.sum(e * e))
+        tt += float(np.sum(t * t))
+    if ee == 0 or tt == 0:
+        raise ReconstructionError("Q is undefined: a volume or its truth is all zero")
+    return num / math.sqrt(ee * tt)
+
+
+def matched_sigma(volumes, grid: VolumeGrid, positions, *,
+                  sigma_z_vox=(0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0),
+                  sigma_xy_vox=(0.3, 0.4, 0.5, 0.7, 1.0),
+                  region: Region | None = None) -> dict:
+    """Find the Gaussian blob (σ_z, σ_xy in voxels) that maximises Q against ``volumes``.
+
+    Used on reconstructions of isolated particles: the blob that a reconstruction without
+    crosstalk makes of a point particle is the truth a crowded field is compared with.
+    ``volumes``/``positions`` as in :func:`field_q`. Returns ``{"sigma_vox": (z, y, x),
+    "q": Q, "scan": [[σ_z, σ_xy, Q], ...]}``.
+    """
+    scan = []
+    for sz in sigma_z_vox:
+        for sxy in sigma_xy_vox:
+            scan.append([sz, sxy, field_q(volumes, grid, positions, (sz, sxy, sxy), region)])
+    best = max(scan, key=lambda r: r[2])
+    return {"sigma_vox": (best[0], best[1], best[1]), "q": best[2], "scan": scan}
+
+
+def score(result: VolumeResult, positions, *, tolerance, sigmas: dict, region: Region,
+          focal_slab: float = 1e-3) -> dict:
+    """Score one reconstruction against the true particles.
+
+    Parameters
+    ----------
+    result : VolumeResult
+        Volume and particles from :func:`~plenopiv.pipeline.reconstruct_volume`.
+    positions : (N, 3) array_like
+        True particle positions, metres.
+    tolerance : (3,) array_like
+        Matching ellipsoid (x, y, z), metres (:func:`match_particles`).
+    sigmas : dict
+        Truth blobs for Q: name -> σ ``(z, y, x)`` in voxels.
+    region : Region
+        Where rates and Q are counted.
+    focal_slab : float
+        Half-thickness (metres) of the slab about the nominal focal plane whose share of
+        Σ E² is reported (``focal_share``; ``focal_share_truth`` for the first truth blob).
+
+    Returns
+    -------
+    dict
+        ``q`` (name -> Q), ``n_true``, ``n_found``, ``detection_rate``, ``ghost_rate``,
+        ``ghost_near_rate`` (ghosts within two matching tolerances of a true particle: second
+        peaks of a real particle rather than free-standing ghosts), ``bias_m`` and ``rms_m``
+        (found - true, x y z), ``elongation``, ``masked_rate`` (true particles with no
+        light at all within their matching ellipsoid: removed before or during the
+        iterations, typically by the soft line-of-sight mask), ``focal_share``,
+        ``focal_share_truth``.
+
+    Notes
+    -----
+    Rates count the true particles and the detections inside ``region``; a detection may
+    match a true particle just outside it (and vice versa), so the margin creates neither
+    ghosts nor misses. Elongation is the median over the matched pairs of σ_z / sqrt(σ_x σ_y)
+    of the detected blobs (metres), the lateral σ floored at voxel/√12, the σ of a uniformly
+    filled voxel: a particle held by one column of voxels has a centroid σ ≈ 0 laterally.
+    """
+    grid = result.grid
+    found = np.asarray(result.particle_position_effective, float).reshape(-1, 3)
+    pos = np.asarray(positions, float)
+    tol = np.asarray(tolerance, float)
+    pairs = match_particles(pos, found, tol)
+    t_in = region.contains(pos)
+    f_in = region.contains(found)
+    matched_t = np.zeros(len(pos), bool)
+    matched_f = np.zeros(len(found), bool)
+    matched_t[pairs[:, 0]] = True
+    matched_f[pairs[:, 1]] = True
+    ghosts = f_in & ~matched_f
+    near = np.zeros(len(found), bool)
+    if ghosts.any():
+        d, _ = cKDTree(pos / tol).query(found[ghosts] / tol)
+        near[np.flatnonzero(ghosts)] = d <= 2.0
+    n_true, n_found = int(t_in.sum()), int(f_in.sum())
+    out = {"q": {name: field_q(result.volume, grid, pos, sg, region)
+                 for name, sg in sigmas.items()},
+           "n_true": n_true, "n_found": n_found,
+           "detection_rate": float(matched_t[t_in].sum() / max(n_true, 1)),
+           "ghost_rate": float(ghosts.sum() / max(n_found, 1)),
+           "ghost_near_rate": float(near.sum() / max(n_found, 1))}
+    vol = np.asarray(result.volume)
+    reach = np.ceil(tol[::-1] / np.asarray(grid.voxel)[::-1]).astype(int)   # z, y, x voxels
+    centre = np.rint(world_to_voxel(pos[t_in], grid.origin, grid.voxel)).astype(int)
+    lo = np.clip(centre - reach, 0, None)
+    hi = np.minimum(centre + reach + 1, grid.shape)
+    masked = [not np.any(vol[a[0]:b[0], a[1]:b[1], a[2]:b[2]]) for a, b in zip(lo, hi,
+                                                                                 strict=True)]
+    out["masked_rate"] = float(np.mean(masked)) if masked else 0.0
+    p = pairs[t_in[pairs[:, 0]]]
+    if len(p):
+        err = found[p[:, 1]] - pos[p[:, 0]]
+        size = np.asarray(result.particle_size)[p[:, 1]]
+        floor = math.sqrt(grid.voxel[0] * grid.voxel[1]) / math.sqrt(12)
+        lateral = np.maximum(np.sqrt(size[:, 0] * size[:, 1]), floor)
+        out.update(bias_m=err.mean(axis=0).tolist(),
+                   rms_m=np.sqrt((err ** 2).mean(axis=0)).tolist(),
+                   elongation=float(np.median(size[:, 2] / lateral)))
+    else:
+        out.update(bias_m=[math.nan] * 3, rms_m=[math.nan] * 3, elongation=math.nan)
+    sl = region.slices
+    slab = np.abs(grid.z) < focal_slab
+    e2 = np.sum(np.asarray(result.volume, np.float64)[sl] ** 2, axis=(1, 2))
+    first = next(iter(sigmas.values()))
+    t2 = np.sum(gaussian_truth_volume(grid, pos, sigma_vox=first)[sl].astype(np.float64) ** 2,
+                axis=(1, 2))
+    out["focal_share"] = float(e2[slab].sum() / max(e2.sum(), 1e-300))
+    out["focal_share_truth"] = float(t2[slab].sum() / max(t2.sum(), 1e-300))
+    return out
+
+
+def cell_sigma(grid: VolumeGrid, camera: CameraModel) -> tuple[float, float, float]:
+    """Truth blob whose full width at half maximum is the resolution cell, σ (z, y, x) voxels.
+
+    σ = cell / (2 sqrt(2 ln 2)) per axis (:func:`resolution_cell`): the sharpest particle the
+    camera can resolve, independent of the reconstruction algorithm.
+    """
+    lat, dep = resolution_cell(camera)
+    k = 2 * math.sqrt(2 * math.log(2))
+    return (dep / k / grid.voxel[2], lat / k / grid.voxel[1], lat / k / grid.voxel[0])
+
+
+def particle_settings(grid: VolumeGrid, camera: CameraModel, *,
+                      threshold: float = 0.05) -> ParticleSettings:
+    """Particle extraction matched to the grid and to the camera's resolution cell.
+
+    Peaks closer than the resolution cell are one particle (semi-axes: the depth cell in
+    depth voxels, and 1.5 lateral cells so that the diagonal neighbour column merges too); the
+    centroid box is ±1 lateral cell and ±1 mm in depth (about 2 σ_z of a reconstructed
+    particle). ``threshold``, the peak's fraction of the volume's maximum, is lower than the
+    library's 0.1 because a reconstruction piles the light of a particle near the focal plane
+    into a few voxels several times brighter than a particle elsewhere.
+    """
+    lat, dep = resolution_cell(camera)
+    sub = max(1, int(round(lat / grid.voxel[0])))
+    dz = grid.voxel[2]
+    return ParticleSettings(threshold=threshold, method="centroid",
+                            min_separation_vox=(max(dep / dz, 1.0), 1.5 * sub, 1.5 * sub),
+                            box_vox=(max(1, int(round(1e-3 / dz))), sub, sub),
+                            fit_spacing_vox=(2, 1, 1), internal_correction="none")
+
+
+def reconstruct_and_score(calibration: Calibration, image, weights: Weights, positions, *,
+                          settings: ReconstructionSettings, particles: ParticleSettings,
+                          tolerance, sigmas: dict, region: Region):
+    """Run :func:`~plenopiv.pipeline.reconstruct_volume` and :func:`score`.
+
+    Returns ``(row, volume)``. A reconstruction that fails gives a row holding ``"error"`` and
+    a None volume instead of raising, so that one case cannot stop a study.
+    """
+    t0 = time.perf_counter()
+    try:
+        res = reconstruct_volume(calibration, image, weights.grid, settings=settings,
+                                 particles=particles, weights=weights)
+    except ReconstructionError as exc:
+        return {"error": str(exc), "time_s": time.perf_counter() - t0}, None
+    t1 = time.perf_counter()
+    row = score(res, positions, tolerance=tolerance, sigmas=sigmas, region=region)
+    row["time_s"] = t1 - t0
+    return row, res.volume
+
+
+# --------------------------------------------------------------------------------------------
+# The study
+# --------------------------------------------------------------------------------------------
+
+
+def settings_label(s: ReconstructionSettings) -> str:
+    """Describe reconstruction settings in a few words.
+
+    Method and sweeps, the relaxation when it is not 1, and the thresholds that differ from
+    the library's defaults.
+    """
+    if s.iterations == 0:
+        parts = ["MLOS (0 it)"]
+    else:
+        parts = [s.method, f"{s.iterations} it"]
+        if s.relaxation != 1.0:
+            parts.append(f"relaxation {s.relaxation:g}")
+    default = _study_settings()
+    for key in ("pixel_threshold", "dark_tolerance"):
+        if getattr(s, key) != getattr(default, key):
+            parts.append(f"{key} {getattr(s, key):g}")
+    return ", ".join(parts)
+
+
+def _row(case: str, density: float, settings: ReconstructionSettings, row: dict,
+         **extra) -> dict:
+    return {"case": case, "density_ppl": density, "settings": settings.model_dump(),
+            "label": settings_label(settings), **extra, **row}
+
+
+#: Reconstructions of the isolated particles; "smart, 20 it" defines the matched truth blob.
+ISOLATED_CASES = {"MLOS (0 it)": dict(iterations=0),
+                  "mart, 5 it (relaxation 1)": dict(method="mart", iterations=5),
+                  "smart, 5 it (defaults)": dict(),
+                  "smart, 20 it": dict(method="smart", iterations=20)}
+
+#: Remedies tried at the highest density: (group, settings).
+REMEDIES = (
+    ("relaxation (mart)", dict(method="mart", iterations=5, relaxation=0.3)),
+    ("relaxation (mart)", dict(method="mart", iterations=5, relaxation=0.1)),
+    ("relaxation (mart)", dict(method="mart", iterations=5, relaxation=0.03)),
+    ("relaxation (mart)", dict(method="mart", iterations=10, relaxation=0.03)),
+    ("fewer iterations (mart)", dict(method="mart", iterations=1)),
+    ("relaxation (block)", dict(method="block", iterations=5, relaxation=0.03)),
+    ("more iterations (smart)", dict(method="smart", iterations=20)),
+    ("more iterations (smart)", dict(method="smart", iterations=50)),
+    ("relaxation (smart)", dict(method="smart", iterations=10, relaxation=2.0)),
+    ("pixel_threshold", dict(method="smart", iterations=20, pixel_threshold=0.0)),
+    ("pixel_threshold", dict(method="smart", iterations=20, pixel_threshold=0.02)),
+    ("dark_tolerance", dict(method="smart", iterations=20, dark_tolerance=0.3)),
+    ("dark_tolerance", dict(method="smart", iterations=20, dark_tolerance=1.0)),
+)
+
+#: The settings recommended by the study, run at every density.
+RECOMMENDED = dict(method="smart", iterations=20)
+
+
+def run(out: str | Path, *, rows: int = 61, cols: int = 91, densities=DENSITIES,
+        seed: int = 20261122, remedies: bool = True, voxel_study: bool = True) -> dict:
+    """Run the study and write ``field_quality.json``, ``field_quality.md`` and PNG figures.
+
+    Parameters
+    ----------
+    out : path
+        Output folder (created).
+    rows, cols : int
+        Lenslets of the camera patch.
+    densities : sequence of float
+        Particles per lenslet of the main table; remedies run at the largest.
+    seed : int
+        Seed of the particle positions and of the ray tracer.
+    remedies, voxel_study : bool
+        Also run the remedies at the highest density / the voxel-size study (on a 31 × 45
+        patch: a half-footprint grid of the full patch needs about 14 GB).
+
+    Returns
+    -------
+    dict
+        Paths written and headline numbers.
+    """
+    t_start = time.perf_counter()
+    timings = {}
+
+    def lap(name):
+        timings[name] = time.perf_counter() - t_start - sum(timings.values())
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    cam = study_camera(rows, cols)
+    cal = Calibration.from_camera(cam)
+    grid = study_grid(cam)
+    lat, dep = resolution_cell(cam)
+    tolerance = (lat, lat, dep)
+    region = Region(grid, interior_margin(cam))
+    psettings = particle_settings(grid, cam)
+    weights = study_weights(cal, grid)
+    lap("weights_s")
+
+    # 1. isolated particles: the blob a reconstruction makes of a single point particle
+    iso_pos = [isolated_field(grid, cam, rng) for _ in range(2)]
+    iso_img = [render(cam, p, seed=seed + k) for k, p in enumerate(iso_pos)]
+    isolated, iso_vol = {}, {}
+    for name, kw in ISOLATED_CASES.items():
+        s = _study_settings(**kw)
+        try:
+            vols = [reconstruct_volume(cal, img, grid, settings=s, particles=psettings,
+                                       weights=weights).volume for img in iso_img]
+        except ReconstructionError as exc:
+            isolated[name] = {"error": str(exc)}
+            continue
+        isolated[name] = {**matched_sigma(vols, grid, iso_pos, region=region),
+                          "n_particles": int(sum(len(p) for p in iso_pos))}
+        iso_vol[name] = vols
+    lap("isolated_s")
+
+    sigmas = {"cell": cell_sigma(grid, cam)}
+    for key, name in (("matched", "smart, 20 it"), ("MLOS", "MLOS (0 it)")):
+        if "sigma_vox" in isolated.get(name, {}):
+            sigmas[key] = tuple(isolated[name]["sigma_vox"])
+    for name, vols in iso_vol.items():
+        isolated[name]["q_at"] = {k: field_q(vols, grid, iso_pos, sg, region)
+                                  for k, sg in sigmas.items()}
+
+    # 2. densities × methods × iterations, library defaults otherwise
+    fields = {}
+    for k, d in enumerate(densities):
+        pos = seed_field(grid, cam, d, rng)
+        fields[d] = (pos, render(cam, pos, seed=seed + 100 + k))
+    dmax = max(densities)
+    main, kept = [], {}
+    for d in densities:
+        pos, img = fields[d]
+        cases = [_study_settings(iterations=0)]
+        cases += [_study_settings(method=m, iterations=n) for m in METHODS
+                  for n in ITERATIONS]
+        for s in cases:
+            row, vol = reconstruct_and_score(cal, img, weights, pos, settings=s,
+                                             particles=psettings, tolerance=tolerance,
+                                             sigmas=sigmas, region=region)
+            main.append(_row("main", d, s, row))
+            if d == dmax and (s.iterations == 0 or (s.method == "mart" and s.iterations == 5)
+                              or s == _study_settings()):
+                kept[settings_label(s)] = vol
+    lap("main_s")
+
+    # 3. remedies at the highest density; the recommendation at every density
+    rem = []
+    if remedies:
+        pos, img = fields[dmax]
+        for group, kw in REMEDIES:
+            s = _study_settings(**kw)
+            row, vol = reconstruct_and_score(cal, img, weights, pos, settings=s,
+                                             particles=psettings, tolerance=tolerance,
+                                             sigmas=sigmas, region=region)
+            rem.append(_row(group, dmax, s, row))
+            if kw == RECOMMENDED:
+                kept[settings_label(s)] = vol
+        noisy = render(cam, pos, seed=seed + 200, noise=True, rng=rng)
+        for s in (_study_settings(), _study_settings(**RECOMMENDED)):
+            row, _ = reconstruct_and_score(cal, noisy, weights, pos, settings=s,
+                                           particles=psettings, tolerance=tolerance,
+                                           sigmas=sigmas, region=region)
+            rem.append(_row("photon noise (20,000 e- full well, 16 bit)", dmax, s, row))
+        for d in densities:
+            if d == dmax:
+                continue
+            p2, i2 = fields[d]
+            s = _study_settings(**RECOMMENDED)
+            row, _ = reconstruct_and_score(cal, i2, weights, p2, settings=s,
+                                           particles=psettings, tolerance=tolerance,
+                                           sigmas=sigmas, region=region)
+            rem.append(_row("recommended", d, s, row))
+    lap("remedies_s")
+    del weights
+
+    # 4. voxel size, on a smaller patch
+    vox = voxel_size_study(rng, seed=seed + 300, density=dmax) if voxel_study else []
+    lap("voxel_size_s")
+
+    # Q against the truth blob size, for the figure
+    pos = fields[dmax][0]
+    sigma_scan = {}
+    for name in iso_vol:
+        if name in ("MLOS (0 it)", "smart, 20 it"):
+            sigma_scan[f"isolated, {name}"] = isolated[name]["scan"]
+    for name, vol in kept.items():
+        if vol is not None:
+            sigma_scan[f"{dmax:g} ppl, {name}"] = matched_sigma(vol, grid, pos,
+                                                                region=region)["scan"]
+    lap("figures_s")
+    timings["total_s"] = time.perf_counter() - t_start
+
+    results = {
+        "camera": cam.to_dict(), "grid": grid.to_dict(), "voxel_m": list(grid.voxel),
+        "footprint_m": footprint(cam), "resolution_cell_m": [lat, dep],
+        "match_tolerance_m": list(tolerance), "evaluation_margin_m": region.margin,
+        "particle_depth_m": PARTICLE_DEPTH, "rays_per_particle": RAYS_PER_PARTICLE,
+        "particle_settings": psettings.model_dump(),
+        "default_reconstruction": _study_settings().model_dump(),
+        "truth_sigma_vox": sigmas, "seed": seed, "isolated": isolated, "main": main,
+        "remedies": rem, "voxel_size": vox, "sigma_scan": sigma_scan, "timings_s": timings}
+    with atomic_path(out / "field_quality.json") as tmp:
+        tmp.write_text(json.dumps(results, indent=1, default=_json_default))
+    with atomic_path(out / "field_quality.md") as tmp:
+        tmp.write_text(_markdown(results))
+    figures = _plot(results, kept, grid, pos, sigmas, out)
+    at_max = [r for r in main + rem if "q" in r and r["density_ppl"] == dmax
+              and "noise" not in r["case"]]
+    best = max(at_max, key=lambda r: r["q"]["matched"]) if at_max else None
+    default = next((r for r in at_max if r["case"] == "main"
+                    and r["settings"] == _study_settings().model_dump()), None)
+    return {"out": str(out), "figures": [str(p) for p in figures],
+            "truth_sigma_vox": sigmas,
+            "q_default_at_max_density": None if default is None else default["q"]["matched"],
+            "q_best_at_max_density": None if best is None else best["q"]["matched"],
+            "best": None if best is None else best["label"], "total_s": timings["total_s"]}
+
+
+def voxel_size_study(rng: np.random.Generator, *, seed: int, density: float = 0.3,
+                     rows: int = 31, cols: int = 45) -> list[dict]:
+    """Compare voxel sizes on a ``rows`` × ``cols``-lenslet patch (same optics).
+
+    Grids: a footprint × 0.25 mm (the main study's), half a footprint laterally, and 0.125 mm
+    in depth; reconstructions: MLOS, the defaults and the recommendation. Q uses blobs of the
+    same physical size on every grid (the main study's cell blob, σ = resolution cell / 2.355)
+    and, as ``best``, the blob that fits each reconstruction best (σ scanned).
+    """
+    cam = study_camera(rows, cols)
+    cal = Calibration.from_camera(cam)
+    lat, dep = resolution_cell(cam)
+    base = study_grid(cam)
+    pos = seed_field(base, cam, density, rng)
+    img = render(cam, pos, seed=seed)
+    out = []
+    for sub, dz in ((1, DEPTH_VOXEL), (2, DEPTH_VOXEL), (1, DEPTH_VOXEL / 2)):
+        grid = study_grid(cam, subdivision=sub, depth_voxel=dz)
+        region = Region(grid, interior_margin(cam))
+        weights = study_weights(cal, grid)
+        sig = {"cell": cell_sigma(grid, cam)}
+        for s in (_study_settings(iterations=0), _study_settings(),
+                  _study_settings(**RECOMMENDED)):
+            row, vol = reconstruct_and_score(cal, img, weights, pos, settings=s,
+                                             particles=particle_settings(grid, cam),
+                                             tolerance=(lat, lat, dep), sigmas=sig,
+                                             region=region)
+            if vol is not None:
+                best = matched_sigma(vol, grid, pos, region=region,
+                                     sigma_z_vox=tuple(x * DEPTH_VOXEL / dz
+                                                       for x in (0.75, 1, 1.5, 2, 3)),
+                                     sigma_xy_vox=tuple(x * sub for x in (0.3, 0.4, 0.5, 0.7)))
+                row["q"]["best"] = best["q"]
+                row["best_sigma_mm"] = [best["sigma_vox"][0] * dz * 1e3,
+                                        best["sigma_vox"][1] * grid.voxel[0] * 1e3]
+            out.append(_row("voxel size", density, s, row, camera=f"{rows} x {cols}",
+                            voxel_mm=[v * 1e3 for v in grid.voxel], nnz=weights.nnz))
+        del weights
+    return out
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+# --------------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------------
+
+_COLUMNS = ("| ppl | reconstruction | Q cell | Q matched | Q MLOS-blob | detection | ghosts "
+            "(near) | bias x, y, z (µm) | rms x, y, z (µm) | elongation | focal-slab E² "
+            "(truth) | masked |")
+
+
+def _fmt_row(r: dict, extra: str = "") -> str:
+    head = f"| {r['density_ppl']:g} | {r['label']}{extra} |"
+    if "error" in r:
+        return head + f" failed: {r['error'][:80]} |" + " |" * 10
+    q = r["q"]
+    b = [v * 1e6 for v in r["bias_m"]]
+    s = [v * 1e6 for v in r["rms_m"]]
+
+    def qq(k):
+        return f"{q[k]:.3f}" if k in q else "–"
+
+    return (head + f" {qq('cell')} | {qq('matched')} | {qq('MLOS')} | "
+            f"{r['detection_rate']:.2f} | {r['ghost_rate']:.2f} ({r['ghost_near_rate']:.2f}) | "
+            f"{b[0]:+.0f}, {b[1]:+.0f}, {b[2]:+.0f} | {s[0]:.0f}, {s[1]:.0f}, {s[2]:.0f} | "
+            f"{r['elongation']:.1f} | {r['focal_share']:.2f} ({r['focal_share_truth']:.2f}) | "
+            f"{r['masked_rate']:.3f} |")
+
+
+def _table(rows, extra=lambda r: "") -> list[str]:
+    return [_COLUMNS, "|" + "---|" * 12] + [_fmt_row(r, extra(r)) for r in rows]
+
+
+def _markdown(r: dict) -> str:
+    v = [x * 1e3 for x in r["voxel_m"]]
+    vz, vx = r["voxel_m"][2] * 1e3, r["voxel_m"][0] * 1e3
+    sig = r["truth_sigma_vox"]
+    d = r["default_reconstruction"]
+    blobs = "; ".join(f"**{k}** σ = ({s[0]:.2f}, {s[1]:.2f}, {s[2]:.2f}) voxels = "
+                      f"{s[0] * vz:.3f} mm in z, {s[1] * vx:.3f} mm in x, y"
+                      for k, s in sig.items())
+    lines = [
+        "# Reconstruction quality of particle fields (synthetic)", "",
+        "Generated by `python pipelines/validate_fields.py` "
+        "(`plenopiv.validation.field_quality`); numbers in `field_quality.json`.", "",
+        "## Setup", "",
+        f"- Camera: {r['camera']['name']}: S_i = S_o = 100 mm (M = -1), f/"
+        f"{r['camera']['main_lens']['f_number']:g} (micro-images 114 µm in the 125 µm pitch), "
+        f"lenslet footprint {r['footprint_m'] * 1e3:.3f} mm on the focal plane.",
+        f"- Grid: shape {r['grid']['shape']} [z, y, x], voxels {v[0]:.3f} × {v[1]:.3f} × "
+        f"{v[2]:.3f} mm (x, y, z): one lenslet footprint laterally, aligned with the "
+        f"footprints; Z in ±{r['grid']['z_mm'][1]:.1f} mm. The depth voxel is about half the "
+        "depth resolution cell.",
+        f"- Particles: uniform over the field of view and |Z| ≤ "
+        f"{r['particle_depth_m'] * 1e3:g} mm, equally bright, {r['rays_per_particle']} rays "
+        "each, no noise unless stated; density in particles per lenslet (ppl, per footprint "
+        "area over the whole depth).",
+        f"- Resolution cell: lateral {r['resolution_cell_m'][0] * 1e3:.3f} mm (a footprint), "
+        f"depth {r['resolution_cell_m'][1] * 1e3:.2f} mm (footprint × S_o/D: the depth step "
+        "that moves the two extreme views by one footprint against each other). A detection "
+        "matches a true particle inside the ellipsoid with these semi-axes (one-to-one, "
+        "closest first).",
+        f"- Rates and Q count only the region {r['evaluation_margin_m'] * 1e3:.2f} mm inside "
+        "the lateral edges (the blur radius of a particle at the deepest Z: nearer the edge "
+        "some views of a particle miss the lenslet array).",
+        f"- Reconstruction: `reconstruct_volume` with the library's defaults unless stated "
+        f"(method {d['method']}, {d['iterations']} iterations, relaxation {d['relaxation']:g}, "
+        f"pixel_threshold {d['pixel_threshold']:g}, dark_tolerance {d['dark_tolerance']:g}).",
+        f"- Particle extraction: {r['particle_settings']}.",
+        f"- Truth blobs for Q (`gaussian_truth_volume`): {blobs}. *cell*: full width at half "
+        "maximum = the resolution cell (the sharpest particle the optics resolve); *matched*: "
+        "the blob that maximises Q against SMART-20 reconstructions of isolated particles; "
+        "*MLOS-blob*: the same for the MLOS first guess (long in depth).",
+        "- Columns: ghosts (near) = ghost rate, and in brackets the part of it within two "
+        "matching tolerances of a true particle (a second peak of a real particle rather than "
+        "a free ghost); elongation = median σ_z/σ_xy of the detected particles; focal-slab E² "
+        "= share of Σ E² within |Z| < 1 mm (in brackets: of the cell truth); masked = true "
+        "particles without any light inside their matching ellipsoid (removed by the soft "
+        "line-of-sight mask, which the iterations cannot undo).", "",
+        "## Isolated particles (no two share a micro-image)", "",
+        "| reconstruction | n | best σ (z, y, x voxels) | Q at best σ | "
+        + " | ".join(f"Q {k}" for k in sig) + " |", "|---|---|---|---|" + "---|" * len(sig)]
+    for k, x in r["isolated"].items():
+        if "error" in x:
+            lines.append(f"| {k} | failed: {x['error'][:60]} | | |" + " |" * len(sig))
+        else:
+            qa = " | ".join(f"{x['q_at'][kk]:.3f}" for kk in sig)
+            lines.append(f"| {k} | {x['n_particles']} | {tuple(x['sigma_vox'])} | "
+                         f"{x['q']:.3f} | {qa} |")
+    lines[lines.index("## Setup"):lines.index("## Setup")] = [*_summary(r), ""]
+    lines += ["", "## Densities × methods × iterations", "", *_table(r["main"])]
+    if r["remedies"]:
+        lines += ["", f"## Remedies at {max(x['density_ppl'] for x in r['main']):g} ppl, and the "
+                  "recommendation at every density", "",
+                  *_table(r["remedies"], lambda x: f" [{x['case']}]")]
+    if r["voxel_size"]:
+        lines += ["", f"## Voxel size ({r['voxel_size'][0]['camera']}-lenslet patch, same optics, "
+                  f"{r['voxel_size'][0]['density_ppl']:g} ppl)", "",
+                  "Q cell uses the cell blob of each grid (the same physical size); *best* is Q "
+                  "against the blob that fits that reconstruction best.", "",
+                  "| voxel x × z (mm) | weights (M) | reconstruction | Q cell | Q best (σ_z, "
+                  "σ_xy mm) | detection | ghosts (near) | masked | rms x, y, z (µm) | "
+                  "time (s) |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for x in r["voxel_size"]:
+            if "error" in x:
+                lines.append(f"| {x['voxel_mm'][0]:.4g} × {x['voxel_mm'][2]:.4g} | | "
+                             f"{x['label']} | failed | | | | | | |")
+                continue
+            s = [e * 1e6 for e in x["rms_m"]]
+            bs = x.get("best_sigma_mm", [math.nan, math.nan])
+            lines.append(f"| {x['voxel_mm'][0]:.4g} × {x['voxel_mm'][2]:.4g} | "
+                         f"{x['nnz'] / 1e6:.0f} | {x['label']} | {x['q']['cell']:.3f} | "
+                         f"{x['q'].get('best', math.nan):.3f} ({bs[0]:.3f}, {bs[1]:.3f}) | "
+                         f"{x['detection_rate']:.2f} | {x['ghost_rate']:.2f} "
+                         f"({x['ghost_near_rate']:.2f}) | {x['masked_rate']:.3f} | "
+                         f"{s[0]:.0f}, {s[1]:.0f}, {s[2]:.0f} | "
+                         f"{x['time_s']:.0f} |")
+    t = r["timings_s"]
+    lines += ["", "Timings (s, wall clock): " + ", ".join(f"{k} {v:.0f}" for k, v in t.items()),
+              ""]
+    return "\n".join(lines)
+
+
+def _summary(r: dict) -> list[str]:
+    """Headline numbers, computed from the results."""
+    dmax = max(x["density_ppl"] for x in r["main"])
+    rows = [x for x in r["main"] + r["remedies"] if "q" in x]
+    default = r["default_reconstruction"]
+    at = [x for x in rows if x["density_ppl"] == dmax and "noise" not in x["case"]]
+    out = ["## Summary", ""]
+    d = next((x for x in at if x["case"] == "main" and x["settings"] == default), None)
+    if d is not None:
+        verdict = "meets" if d["q"]["matched"] >= 0.75 else "misses"
+        out.append(f"- Defaults ({d['label']}) at {dmax:g} ppl: Q = {d['q']['matched']:.3f} "
+                   f"(matched truth; cell {d['q']['cell']:.3f}), {verdict} the goal Q ≥ 0.75; "
+                   f"detection {d['detection_rate']:.2f}, ghosts {d['ghost_rate']:.2f}.")
+    if at:
+        b = max(at, key=lambda x: x["q"]["matched"])
+        out.append(f"- Best at {dmax:g} ppl: {b['label']} ({b['case']}): Q = "
+                   f"{b['q']['matched']:.3f} (cell {b['q']['cell']:.3f}), detection "
+                   f"{b['detection_rate']:.2f}, ghosts {b['ghost_rate']:.2f}.")
+    mart = [x for x in r["main"] if "q" in x and x["settings"]["method"] == "mart"
+            and x["settings"]["iterations"] == 5 and x["settings"]["relaxation"] == 1.0]
+    iso = r["isolated"].get("mart, 5 it (relaxation 1)", {})
+    if mart:
+        qs = [x["q"]["matched"] for x in mart]
+        out.append(f"- Row-action MART at relaxation 1 (5 it): Q = {min(qs):.2f}-{max(qs):.2f} "
+                   "at every density" + (f", and {iso['q_at']['matched']:.2f} for isolated "
+                                         "particles" if "q_at" in iso else "")
+                   + ": the step, not the density, limits it (see the relaxation rows).")
+    mlos = [x for x in r["main"] if "q" in x and x["settings"]["iterations"] == 0]
+    if len(mlos) > 1:
+        out.append("- MLOS first guess: Q (cell) " + " → ".join(
+            f"{x['q']['cell']:.2f}" for x in mlos) + ", ghost rate " + " → ".join(
+            f"{x['ghost_rate']:.2f}" for x in mlos) + " over " + ", ".join(
+            f"{x['density_ppl']:g}" for x in mlos) + " ppl.")
+    return out
+
+
+def _plot(results: dict, volumes: dict, grid: VolumeGrid, positions, sigmas, out: Path):
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    paths = []
+    keys = (("q", "Q (matched truth blob)"), ("detection_rate", "detection rate"),
+            ("ghost_rate", "ghost rate"))
+
+    def value(r, key):
+        return r["q"].get("matched", math.nan) if key == "q" else r[key]
+
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.4))
+    main = [r for r in results["main"] if "q" in r]
+    colours = {"mart": "C0", "block": "C1", "smart": "C2"}
+    for m in METHODS:
+        for n in ITERATIONS:
+            rr = [r for r in main if r["settings"]["method"] == m
+                  and r["settings"]["iterations"] == n]
+            for a, (key, _) in zip(ax, keys, strict=True):
+                a.plot([r["density_ppl"] for r in rr], [value(r, key) for r in rr],
+                       "o-" if n == ITERATIONS[0] else "s--", color=colours[m],
+                       label=f"{m}, {n} it")
+    mlos = [r for r in main if r["settings"]["iterations"] == 0]
+    rec = sorted((r for r in results["remedies"] if "q" in r and r["case"] in (
+        "recommended", "more iterations (smart)") and r["label"] == "smart, 20 it"),
+        key=lambda r: r["density_ppl"])
+    for a, (key, name) in zip(ax, keys, strict=True):
+        a.plot([r["density_ppl"] for r in mlos], [value(r, key) for r in mlos], "k:",
+               label="MLOS (0 it)")
+        if rec:
+            a.plot([r["density_ppl"] for r in rec], [value(r, key) for r in rec], "r*-", lw=2,
+                   ms=9, label="smart, 20 it")
+        a.set_xlabel("particles per lenslet")
+        a.set_ylabel(name)
+        a.grid(alpha=0.3)
+    ax[0].axhline(0.75, color="grey", lw=0.8)
+    ax[0].set_ylim(0, 1)
+    ax[1].set_ylim(0, 1.02)
+    ax[2].set_ylim(0, max(0.6, ax[2].get_ylim()[1]))
+    ax[0].legend(fontsize=7, ncol=2)
+    cam = results["camera"]["microlens_array"]
+    fig.suptitle(f"Particle fields, {cam['rows']} × {cam['cols']} lenslets, 50 mm lens at "
+                 "M = -1, f/2.2: quality against seeding density")
+    fig.tight_layout()
+    paths.append(out / "field_quality_density.png")
+    _savefig(fig, paths[-1])
+
+    # x-z slabs through the highest-density volume: truth and reconstructions
+    truth = gaussian_truth_volume(grid, positions, sigma_vox=sigmas.get("matched",
+                                                                        sigmas["cell"]))
+    panels = [("truth (matched blobs)", truth)] + [(k, v) for k, v in volumes.items()
+                                                   if v is not None]
+    ny, nx = grid.shape[1], grid.shape[2]
+    yc = ny // 2
+    slab = slice(yc - 1, yc + 2)
+    xs = slice(nx // 2 - 24, nx // 2 + 24) if nx > 48 else slice(None)
+    x = grid.x[xs] * 1e3
+    vy = world_to_voxel(positions, grid.origin, grid.voxel)
+    near = (np.abs(vy[:, 1] - yc) <= 1.5) & (positions[:, 0] * 1e3 >= x[0] - 0.06) & \
+        (positions[:, 0] * 1e3 <= x[-1] + 0.06)
+    fig, axs = plt.subplots(1, len(panels), figsize=(2.6 * len(panels) + 0.5, 6.4),
+                            sharey=True)
+    ext = [x[0] - vx_half(grid), x[-1] + vx_half(grid), grid.bounds[2, 1] * 1e3,
+           grid.bounds[2, 0] * 1e3]
+    for a, (name, vol) in zip(np.atleast_1d(axs), panels, strict=True):
+        img = np.asarray(vol)[:, slab, xs].max(axis=1)
+        top = np.percentile(img[img > 0], 99.5) if np.any(img > 0) else 1.0
+        a.imshow(img, extent=ext, aspect="auto", cmap="magma", vmin=0, vmax=top,
+                 interpolation="nearest")
+        a.plot(positions[near, 0] * 1e3, positions[near, 2] * 1e3, "+", color="cyan", ms=7,
+               mew=1.0)
+        a.set_title(name, fontsize=9)
+        a.set_xlabel("X (mm)")
+    np.atleast_1d(axs)[0].set_ylabel("Z (mm), + away from the camera")
+    fig.suptitle(f"{max(r['density_ppl'] for r in results['main']):g} ppl: x-z slab of 3 "
+                 "voxels in y (maximum), cyan + = true particles in the slab", fontsize=10)
+    fig.tight_layout()
+    paths.append(out / "field_quality_slices.png")
+    _savefig(fig, paths[-1])
+
+    # Q against the size of the truth blob
+    scans = results.get("sigma_scan", {})
+    if scans:
+        fig, ax = plt.subplots(1, len(scans), figsize=(3.6 * len(scans), 3.6), sharey=True)
+        vz = grid.voxel[2] * 1e3
+        for a, (name, scan) in zip(np.atleast_1d(ax), scans.items(), strict=True):
+            arr = np.asarray(scan, float)
+            for sxy in np.unique(arr[:, 1]):
+                m = arr[:, 1] == sxy
+                a.plot(arr[m, 0] * vz, arr[m, 2], "o-", ms=3,
+                       label=f"σ_xy {sxy * grid.voxel[0] * 1e3:.3f} mm")
+            a.set_title(name, fontsize=9)
+            a.set_xlabel("truth σ_z (mm)")
+            a.grid(alpha=0.3)
+        np.atleast_1d(ax)[0].set_ylabel("Q")
+        np.atleast_1d(ax)[0].legend(fontsize=7)
+        fig.suptitle("Q against the size of the Gaussian truth blob", fontsize=10)
+        fig.tight_layout()
+        paths.append(out / "field_quality_truth_sigma.png")
+        _savefig(fig, paths[-1])
+    return paths
+
+
+def vx_half(grid: VolumeGrid) -> float:
+    """Half a lateral voxel, mm (for image extents)."""
+    return grid.voxel[0] * 1e3 / 2
+
+
+def _savefig(fig, path):
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
