@@ -31,10 +31,18 @@ def auburn_camera():
     return load_camera("auburn_135mm")
 
 
+def shared_data_path(*parts) -> Path:
+    """A file or folder of the third-party data ../shared/data, or a clear skip when absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"third-party data folder {SHARED_DATA} not found; these tests need the "
+                    "project's shared/ folder beside the repository (see shared/data/README.md)")
+    if not path.exists():
+        pytest.skip(f"third-party file {path} not found in {SHARED_DATA}")
+    return path
+
+
 @pytest.fixture(scope="session")
 def shared_data():
     """The third-party data folder ../shared/data, or a clear skip when it is absent."""
-    if not SHARED_DATA.is_dir():
-        pytest.skip(f"third-party data folder {SHARED_DATA} not found; these tests need the "
-                    "project's shared/ folder beside the repository")
-    return SHARED_DATA
+    return shared_data_path()

@@ -8,7 +8,6 @@ lattice), so every centre is known exactly. Third-party reference images are rea
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +16,7 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.special import erf
 
+from conftest import shared_data_path
 from plenopiv.calibration import _spot_kernels as K
 from plenopiv.calibration.spots import (
     Lattice,
@@ -27,8 +27,6 @@ from plenopiv.calibration.spots import (
     fit_lattice,
 )
 from plenopiv.errors import CalibrationError, ImageError
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 # ``rng`` (a seeded np.random.Generator) comes from tests/conftest.py.
 
@@ -574,15 +572,7 @@ def test_gaussian_kernel_matches_numpy_twin(rng):
 
 
 def _data(*parts):
-    path = DATA.joinpath(*parts)
-    if not DATA.is_dir():
-        pytest.skip(
-            f"third-party data folder ../shared/data not found; expected {DATA} "
-            "(see shared/data/README.md)"
-        )
-    if not path.exists():
-        pytest.skip(f"third-party file {path} not found")
-    return path
+    return shared_data_path(*parts)
 
 
 def _read_png(path):

@@ -7,13 +7,13 @@ parallax return a known depth.
 
 from __future__ import annotations
 
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
+from conftest import shared_data_path
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera import load_camera
 from plenopiv.lightfield import light_field, perspective_view, refocus
@@ -33,16 +33,13 @@ from plenopiv.validation.letters import (
     source_alpha,
 )
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "plenoptomos_letters_ULF"
+LETTERS = "plenoptomos_letters_ULF"
 
 
 @pytest.fixture(scope="module")
 def letters():
     """The letters data, calibrated from the white image, its light field and flat image."""
-    if not DATA.is_dir():
-        pytest.skip(f"third-party data folder {DATA} not found; these tests need the project's "
-                    "shared/data/plenoptomos_letters_ULF beside the repository")
-    data = load_letters(DATA)
+    data = load_letters(shared_data_path(LETTERS))
     wcal = calibrate_white(data)
     lf = light_field(wcal.calibration)
     image = flat_field(data.raw, data.white, data.dark)
