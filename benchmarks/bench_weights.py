@@ -18,7 +18,6 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera import load_camera
 from plenopiv.lightfield import light_field
 from plenopiv.mart import reconstruct
-from plenopiv.pipeline import normalised_rows
 from plenopiv.validation.vortex import VortexCase, aligned_grid
 from plenopiv.weights import build_weights
 
@@ -55,7 +54,7 @@ def main(argv=None):
     x = rng.random(p.n_voxels).astype(np.float32)
     y = rng.random(p.n_pixels).astype(np.float32)
     t_scipy = best_of(lambda: (m @ x, m.T @ y))
-    norm, scale = normalised_rows(w)
+    norm, scale = w.normalised
     # a sparse particle-like volume (0.2 % of the voxels lit) projected to an image
     truth = (rng.random(p.n_voxels) < 0.002).astype(np.float32)
     img = ((m @ truth) / scale).astype(np.float32)

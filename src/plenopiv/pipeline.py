@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,6 +29,9 @@ from plenopiv.particles import find_particles
 from plenopiv.projector import SparseProjector
 from plenopiv.volume import VolumeGrid
 from plenopiv.weights import Weights, cached_weights
+
+if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
+    from plenopiv.piv import PIVSettings
 
 Progress = Callable[[str, float], None] | None
 
@@ -115,12 +119,6 @@ def load_volume(path: str | Path) -> VolumeResult:
     return VolumeResult(vol, grid, corr, pos_e, pos, inten, size)
 
 
-def normalised_rows(weights: Weights) -> tuple[SparseProjector, np.ndarray]:
-    """W with every row scaled to a maximum of 1 and each row's scale (see
-    :attr:`plenopiv.weights.Weights.normalised`; computed once per weights object)."""
-    return weights.normalised
-
-
 def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
                        settings: ReconstructionSettings = ReconstructionSettings(),
                        particles: ParticleSettings = ParticleSettings(),
@@ -151,7 +149,7 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     elif weights.grid != grid:
         raise ReconstructionError("the given weights were built for another volume grid")
     t["weights_s"] = time.perf_counter() - t0
-    proj, row_scale = normalised_rows(weights)
+    proj, row_scale = weights.normalised
     raw = weights.image_vector(img)
     threshold = settings.pixel_threshold * float(img.max())
     # rows that barely touch the volume (their beam mostly passes beside it) would claim the
@@ -264,7 +262,7 @@ def gaussian_truth_volume(grid: VolumeGrid, positions, intensities=None, *,
 # --------------------------------------------------------------------------------------------
 
 
-def piv_settings(cfg) -> "PIVSettings":  # noqa: UP037 - imported lazily
+def piv_settings(cfg) -> PIVSettings:
     """PIV settings from a ``[piv]`` config table (:class:`plenopiv.config.PIVConfig`)."""
     from plenopiv.piv import PIVSettings
 
