@@ -36,7 +36,11 @@ An exception raised by ``process`` is deterministic for a given input (a corrupt
 config): it is caught on the worker, recorded (type, message, traceback) and NOT retried. A
 worker process that dies while running a job (segfault, ``os._exit``, killed for memory) is a
 different matter: dask gives the job to another worker, up to ``retries`` more times, then
-records it as failed (``KilledWorker``).
+records it as failed (``KilledWorker``). Dask counts a death against every job assigned to
+the dead worker, the one it was running and any waiting behind it; so that an innocent pair
+is not charged, no more pairs are submitted than the cluster has worker slots. A pair that
+dask re-assigns after a death, while the other workers are busy or restarting, can still
+wait behind a crashing one and share its count: give ``retries`` ≥ 2 where pairs crash.
 """
 
 from __future__ import annotations
@@ -881,17 +885,21 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
     jobs = _check_jobs(jobs)
     _check_process(process)
     kind = _cluster_kind(cluster)
+    slots = None                      # pairs run at once, when known before the cluster starts
     n_workers = _positive_int(n_workers, "n_workers")
     threads = _positive_int(threads_per_worker, "threads_per_worker")
     retries = _positive_int(retries, "retries", allow_none=False, minimum=0)
     if kind == "local":
         n_workers, threads = _local_size(n_workers, threads)
         options = _check_options(cluster_options, _LOCAL_OPTIONS, kind)
+        slots = n_workers
     elif kind == "slurm":
         options = _check_options(cluster_options, _SLURM_OPTIONS, kind)
         _import_jobqueue()
-        kw, _ = slurm_cluster_kwargs(options, threads_per_worker=threads, n_workers=n_workers)
+        kw, n_jobs = slurm_cluster_kwargs(options, threads_per_worker=threads,
+                                          n_workers=n_workers)
         threads = threads or max(1, kw["job_cpu"] // kw["processes"])
+        slots = n_jobs * kw["processes"]
     else:
         options = _check_options(cluster_options, (), kind)
     summary_file = Path(summary_path) if summary_path is not None else \
@@ -914,7 +922,7 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
         with _open_client(kind, cluster, n_workers, threads, retries, options) as client:
             results.update(_submit_and_collect(client, todo, process,
                                                threads=threads if kind != "address" else None,
-                                               retries=retries,
+                                               slots=slots, retries=retries,
                                                progress=progress, total=len(jobs),
                                                skipped=len(jobs) - len(todo),
                                                known_retries=kind != "address"))
@@ -932,34 +940,60 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
     return summary
 
 
+def _worker_slots(client, requested: int | None) -> int:
+    """Pairs the cluster can run at once: the size asked for, else its worker threads now.
+
+    The size asked for wins where known (local and SLURM): a SLURM cluster whose jobs are
+    still queued reports fewer workers than it will have, and the client's view of the
+    workers briefly holds both the dead and the restarted one after a worker dies.
+    """
+    if requested:
+        return requested
+    info = client.scheduler_info()
+    return max(1, sum(w.get("nthreads", 1) for w in info.get("workers", {}).values()))
+
+
 def _submit_and_collect(client, todo: Sequence[PairJob], process, *, threads: int | None,
-                        retries: int, progress: bool, total: int, skipped: int,
+                        slots: int | None, retries: int, progress: bool, total: int, skipped: int,
                         known_retries: bool) -> dict[str, JobResult]:
     from distributed import as_completed
     from tqdm import tqdm
 
     token = uuid.uuid4().hex[:8]
     by_key = {}
-    futures = []
-    for job in todo:
+
+    def submit(job: PairJob):
         # retries=0: an error that escapes _run_job (a task that cannot even be unpickled on
         # the worker) is as deterministic as one inside `process`; a worker that dies is
         # another matter, handled by the scheduler's allowed-failures (= `retries`)
         fut = client.submit(_run_job, process, job, threads, key=f"pair-{job.name}-{token}",
                             pure=False, retries=0)
         by_key[fut.key] = job
-        futures.append(fut)
+        return fut
+
+    # At most one pair in flight per worker slot. The scheduler would otherwise send every
+    # task to a worker at once (small task groups are not queued on the scheduler), and a
+    # pair waiting behind a crashing one on the same worker would be charged for its deaths.
+    pending = list(reversed(todo))
+    in_flight = as_completed(loop=client.loop)
+
+    def top_up():
+        while pending and in_flight.count() < _worker_slots(client, slots):
+            in_flight.add(submit(pending.pop()))
+
+    top_up()
     results: dict[str, JobResult] = {}
     n_failed = 0
     with tqdm(total=total, initial=skipped, desc="plenopiv batch", unit="pair",
               disable=not progress, file=sys.stderr, leave=False, dynamic_ncols=True) as bar:
-        for fut in as_completed(futures, loop=client.loop):
-            job = by_key[fut.key]
+        for fut in in_flight:
+            job = by_key.pop(fut.key)
             try:
                 res = fut.result()
             except Exception as exc:  # noqa: BLE001 - the task erred outside `process`
                 res = _lost_result(job, exc, retries if known_retries else None)
             fut.release()
+            top_up()
             results[job.name] = res
             if res.status == "failed":
                 n_failed += 1
