@@ -54,6 +54,11 @@ class ReconstructionSettings(_Strict):
     f_number : aperture of the recording (default: the camera's).
     min_lit : pixels whose aperture cell is less than this fraction inside the aperture are
         not used.
+    projector : "auto" (explicit weights while they fit in max_weights_gb, else matrix-free)
+        | "sparse" (explicit CSR weights, cached) | "lattice" (matrix-free, axis-aligned
+        square lattices; method "smart" only). See :mod:`plenopiv.lattice`.
+    max_weights_gb : memory allowed for the explicit weights, GB (default: 40 % of the
+        machine's memory).
     """
 
     method: Literal["mart", "block", "smart"] = "smart"
@@ -70,6 +75,8 @@ class ReconstructionSettings(_Strict):
     dark_tolerance: float = Field(0.5, ge=0, le=1)
     f_number: float | None = Field(None, gt=0)
     min_lit: float = Field(0.5, gt=0, le=1)
+    projector: Literal["auto", "sparse", "lattice"] = "auto"
+    max_weights_gb: float | None = Field(None, gt=0, allow_inf_nan=False)
 
 
 class ParticleSettings(_Strict):

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from plenopiv import _lightfield_kernels as _lk
 from plenopiv.calibration.model import Calibration
 from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import CalibrationError
@@ -97,7 +98,7 @@ class LightField:
 
 
 def light_field(calibration: Calibration, *, f_number: float | None = None,
-                min_lit: float = 0.5) -> LightField:
+                min_lit: float = 0.5, edge_centroid: bool = True) -> LightField:
     """Map every lit pixel of the calibrated camera to its ray.
 
     Parameters
@@ -107,6 +108,10 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
         Aperture of the recording (default: the camera's f-number).
     min_lit : float
         Keep pixels whose aperture cell is at least this fraction inside the aperture.
+    edge_centroid : bool
+        Trace a pixel cut by the aperture's edge through the centroid of its cell's lit part
+        (default), or through the cell centre (the model of the matrix-free
+        :class:`~plenopiv.lattice.LatticeProjector`).
     """
     cam = calibration.camera
     si = calibration.image_distance
@@ -144,10 +149,11 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
     # aperture position of each pixel (x along cols, y along rows)
     ux = -rel_c * pp * si / fbar
     uy = -rel_r * pp * si / fbar
-    lit, dux, duy = _lit_fraction(ux, uy, cell, radius)
+    lit, dux, duy = _lit_inside(ux, uy, inside, cell, radius)
     # a pixel cut by the aperture's edge sees only the lit part of its cell: its ray goes
     # through the centroid of that part, not through the cell centre
-    ux, uy = ux + dux, uy + duy
+    if edge_centroid:
+        ux, uy = ux + dux, uy + duy
     keep = inside & (lit >= min_lit)
     k_idx, _ = np.nonzero(keep)
     pix = (rows[keep].astype(np.int64) * shape[1] + cols[keep])
@@ -163,21 +169,42 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
         footprint=cam.microlens_array.pitch * so / si, shape=shape)
 
 
+def _lit_inside(ux, uy, inside, cell, radius):
+    """:func:`_lit_fraction` (numba) of the pixels ``inside``; zeros elsewhere."""
+    out = [np.zeros(ux.shape) for _ in range(3)]
+    for full, part in zip(out, _lk.lit_fraction(ux[inside], uy[inside], cell, radius, 8),
+                          strict=True):
+        full[inside] = part
+    return out
+
+
 def _lit_fraction(ux, uy, cell, radius, n=8):
     """Fraction of a cell × cell square centred at (ux, uy) inside the disc, and the offset
-    of the centroid of its inside part (n × n samples)."""
-    o = (np.arange(n) - (n - 1) / 2) * (cell / n)
-    count = np.zeros(ux.shape)
+    of the centroid of its inside part (n × n samples; only cells that the disc's edge
+    crosses are sampled, the others are wholly lit or wholly dark)."""
+    ux, uy = np.asarray(ux, float), np.asarray(uy, float)
+    dist = np.hypot(ux, uy)
+    reach = cell * math.sqrt(0.5)
+    lit = (dist + reach <= radius).astype(float)
     sx = np.zeros(ux.shape)
     sy = np.zeros(ux.shape)
+    edge = np.abs(dist - radius) < reach
+    ex, ey = ux[edge], uy[edge]
+    o = (np.arange(n) - (n - 1) / 2) * (cell / n)
+    count = np.zeros(ex.shape)
+    ax = np.zeros(ex.shape)
+    ay = np.zeros(ex.shape)
     for a in o:
         for b in o:
-            inside = (ux + a) ** 2 + (uy + b) ** 2 <= radius ** 2
+            inside = (ex + a) ** 2 + (ey + b) ** 2 <= radius ** 2
             count += inside
-            sx += a * inside
-            sy += b * inside
+            ax += a * inside
+            ay += b * inside
     safe = np.maximum(count, 1)
-    return count / (n * n), sx / safe, sy / safe
+    lit[edge] = count / (n * n)
+    sx[edge] = ax / safe
+    sy[edge] = ay / safe
+    return lit, sx, sy
 
 
 PERSPECTIVE_INTERPOLATIONS = ("nearest", "linear")

@@ -26,7 +26,6 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.io import check_image, write_h5
 from plenopiv.mart import mlos, reconstruct
 from plenopiv.particles import find_particles
-from plenopiv.projector import SparseProjector
 from plenopiv.volume import VolumeGrid
 from plenopiv.weights import Weights, cached_weights
 
@@ -144,17 +143,25 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t0 = time.perf_counter()
     img = check_image(image, shape=calibration.camera.sensor.shape, name="particle image")
     if weights is None:
+        projector = settings.projector
+        if projector == "auto" and settings.method != "smart":
+            projector = "sparse"        # row-action and block MART walk explicit rows
         weights, _ = cached_weights(calibration, grid, cache_dir=cache_dir,
-                                    f_number=settings.f_number, min_lit=settings.min_lit)
+                                    f_number=settings.f_number, min_lit=settings.min_lit,
+                                    projector=projector, max_weights_gb=settings.max_weights_gb)
     elif weights.grid != grid:
         raise ReconstructionError("the given weights were built for another volume grid")
+    if weights.matrix_free and settings.method != "smart":
+        raise ReconstructionError(
+            f"[reconstruction] method = {settings.method!r} walks the rows of explicit weights; "
+            "the matrix-free lattice projector supports method = \"smart\" only")
     t["weights_s"] = time.perf_counter() - t0
     proj, row_scale = weights.normalised
     raw = weights.image_vector(img)
     threshold = settings.pixel_threshold * float(img.max())
     # rows that barely touch the volume (their beam mostly passes beside it) would claim the
     # light of particles outside the volume: leave them out
-    nonempty = np.diff(proj.indptr) > 0
+    nonempty = weights.row_max > 0
     touching = nonempty & (row_scale >= 0.25 * float(np.percentile(row_scale[nonempty], 95)))
     bright = (raw > threshold) & touching
     if not bright.any():
@@ -176,7 +183,7 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     dark_weight = np.asarray(proj.back(((raw <= threshold) & touching).astype(np.float32)))
     with np.errstate(invalid="ignore", divide="ignore"):
         keep = (seen > 0) & (dark_weight <= settings.dark_tolerance * seen)
-    lit = _rows(proj, bright)
+    lit = proj.select_rows(bright)
     first = np.where(keep, mlos(values[bright], lit), np.float32(0.0))
     blocks = None
     if settings.method == "block":
@@ -200,16 +207,6 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t["particles_s"] = time.perf_counter() - t2
     return VolumeResult(vol, grid, corr, eff, corr.points(eff) if len(eff) else eff,
                         found.intensity, found.size_world(grid.voxel), t)
-
-
-def _rows(proj: SparseProjector, rows: np.ndarray) -> SparseProjector:
-    """The projector restricted to the selected rows (a boolean mask)."""
-    counts = np.diff(proj.indptr)[rows]
-    indptr = np.zeros(len(counts) + 1, np.int64)
-    np.cumsum(counts, out=indptr[1:])
-    take = np.repeat(rows, np.diff(proj.indptr))
-    return SparseProjector(indptr, proj.indices[take], proj.data[take], n_voxels=proj.n_voxels,
-                           check=False)
 
 
 def _perspective_blocks(weights: Weights, calibration: Calibration, settings) -> np.ndarray:

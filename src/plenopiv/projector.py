@@ -367,6 +367,32 @@ class SparseProjector:
                         self._scratch, out)
         return out
 
+    def row_max(self) -> np.ndarray:
+        """``max_j w_ij`` per pixel (float32, shape (n_pixels,); 0 for an empty row)."""
+        counts = np.diff(self._indptr)
+        out = np.zeros(self.n_pixels, np.float32)
+        nonempty = counts > 0
+        if nonempty.any():
+            out[nonempty] = np.maximum.reduceat(self._data, self._indptr[:-1][nonempty])
+        return out
+
+    def scale_rows(self, factors) -> SparseProjector:
+        """W with row i multiplied by ``factors[i]`` (a new projector; indices shared)."""
+        f = np.asarray(factors, np.float32)
+        data = (self._data * np.repeat(f, np.diff(self._indptr))).astype(np.float32)
+        return SparseProjector(self._indptr, self._indices, data, n_voxels=self.n_voxels,
+                               check=False)
+
+    def select_rows(self, mask) -> SparseProjector:
+        """The projector of the rows where ``mask`` (bool, n_pixels) is true (a copy)."""
+        rows = np.asarray(mask, bool)
+        counts = np.diff(self._indptr)[rows]
+        indptr = np.zeros(len(counts) + 1, np.int64)
+        np.cumsum(counts, out=indptr[1:])
+        take = np.repeat(rows, np.diff(self._indptr))
+        return SparseProjector(indptr, self._indices[take], self._data[take],
+                               n_voxels=self.n_voxels, check=False)
+
     def row_sums(self) -> np.ndarray:
         """``sum_j w_ij`` per pixel (float32, shape (n_pixels,)); computed once and cached."""
         if self._row_sums is None:

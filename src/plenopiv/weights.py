@@ -27,6 +27,7 @@ import functools
 import hashlib
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +39,8 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.errors import ReconstructionError
 from plenopiv.io import write_h5
 from plenopiv.lightfield import LightField, light_field
-from plenopiv.projector import SparseProjector
+from plenopiv.lattice import LatticeProjector, separable_axes
+from plenopiv.projector import Projector, SparseProjector
 from plenopiv.volume import VolumeGrid
 
 WEIGHTS_VERSION = 3
@@ -50,8 +52,9 @@ class Weights:
 
     Attributes
     ----------
-    projector : SparseProjector
-        W (rows: lit pixels, columns: voxels), CSR float32 / int32.
+    projector : SparseProjector or LatticeProjector
+        W (rows: lit pixels, columns: voxels): CSR float32 / int32, or computed on the fly
+        for an axis-aligned lattice (:mod:`plenopiv.lattice`).
     pixel : (P,) int64
         Flat sensor pixel index of each row.
     grid : VolumeGrid
@@ -59,33 +62,37 @@ class Weights:
         Hash of what the weights depend on (camera, calibration, grid, options).
     """
 
-    projector: SparseProjector
+    projector: SparseProjector | LatticeProjector
     pixel: np.ndarray
     grid: VolumeGrid
     key: str
 
     @functools.cached_property
-    def normalised(self) -> tuple[SparseProjector, np.ndarray]:
+    def row_max(self) -> np.ndarray:
+        """Largest weight of each row, float32 (0 for a row that misses the volume)."""
+        return np.asarray(self.projector.row_max(), np.float32)
+
+    @functools.cached_property
+    def normalised(self) -> tuple[Projector, np.ndarray]:
         """W with every row scaled to a maximum of 1, and each row's scale (computed once).
 
         MART raises a voxel's factor to the power μ w_ij; with the physical weights (fractions
         of a particle's light, ~1e-3) the updates would be tiny. Scaling row i and pixel i by
         the same c_i = 1/max_j w_ij leaves the system I = W E and its solution unchanged.
+        Empty rows keep scale 1.
         """
-        p = self.projector
-        counts = np.diff(p.indptr)
-        row_max = np.zeros(len(counts), np.float32)
-        nz = counts > 0
-        row_max[nz] = np.maximum.reduceat(p.data, p.indptr[:-1][nz])
-        safe = np.where(row_max > 0, row_max, 1.0).astype(np.float32)
-        data = (p.data / np.repeat(safe, counts)).astype(np.float32)
-        return SparseProjector(p.indptr, p.indices, data, n_voxels=p.n_voxels,
-                               check=False), safe
+        safe = np.where(self.row_max > 0, self.row_max, 1.0).astype(np.float32)
+        return self.projector.scale_rows(1.0 / safe), safe
 
     @property
     def nnz(self) -> int:
-        """Number of non-zero weights."""
-        return self.projector.nnz
+        """Number of stored non-zero weights (0 for the matrix-free lattice projector)."""
+        return int(getattr(self.projector, "nnz", 0))
+
+    @property
+    def matrix_free(self) -> bool:
+        """True for the lattice projector (no stored weights)."""
+        return isinstance(self.projector, LatticeProjector)
 
     def image_vector(self, image) -> np.ndarray:
         """The rows' pixel values of a full sensor image, float32 (P,)."""
@@ -203,19 +210,82 @@ def weights_key(calibration: Calibration, grid: VolumeGrid, *, f_number: float |
     return h.hexdigest()
 
 
+#: Bytes per explicit non-zero in a reconstruction: W (8), its row-normalised copy (4) and the
+#: copy restricted to the bright rows (8 × their share; counted in full).
+BYTES_PER_NONZERO = 20
+PROJECTORS = ("auto", "sparse", "lattice")
+
+
+def estimate_nnz(lf: LightField, grid: VolumeGrid, *, min_weight: float = 1e-7,
+                 sample: int = 101) -> int:
+    """Non-zeros of the explicit W, counted on every ``sample``-th ray and scaled up."""
+    check_grid_in_view(lf, grid)
+    ux, uy, xfx, xfy, lit = (np.ascontiguousarray(a[::sample]) for a in _lf_arrays(lf))
+    area = math.pi * lf.aperture_radius ** 2
+    counts = K.count_nnz(ux, uy, xfx, xfy, lit, lf.object_distance, lf.cell, lf.footprint, area,
+                         np.ascontiguousarray(grid.z, dtype=np.float64), grid.origin[0],
+                         grid.origin[1], grid.voxel[0], grid.voxel[1], grid.shape[2],
+                         grid.shape[1], float(min_weight))
+    return int(counts.sum() * lf.n_rays / max(len(counts), 1))
+
+
+def memory_budget_gb() -> float:
+    """Default memory for explicit weights: 40 % of this machine's physical memory (GB)."""
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        total = 8e9
+    return 0.4 * total / 1e9
+
+
+def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto",
+                     max_weights_gb: float | None = None, min_weight: float = 1e-7) -> str:
+    """``"sparse"`` or ``"lattice"`` for a reconstruction of ``grid`` from ``lf``.
+
+    ``"auto"`` keeps the explicit weights while their estimated memory
+    (:data:`BYTES_PER_NONZERO` × :func:`estimate_nnz`) fits in ``max_weights_gb`` (default
+    :func:`memory_budget_gb`), and takes the matrix-free lattice projector beyond that.
+
+    Raises
+    ------
+    ReconstructionError
+        The explicit weights would not fit and the lattice is not axis-aligned, or
+        ``"lattice"`` was asked for such a calibration.
+    """
+    if projector not in PROJECTORS:
+        raise ValueError(f"projector = {projector!r}: expected one of {PROJECTORS}")
+    if projector == "sparse":
+        return "sparse"
+    if projector == "auto":
+        budget = memory_budget_gb() if max_weights_gb is None else float(max_weights_gb)
+        need = BYTES_PER_NONZERO * estimate_nnz(lf, grid, min_weight=min_weight) / 1e9
+        if need <= budget:
+            return "sparse"
+        if separable_axes(lf) is None:
+            raise ReconstructionError(
+                f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
+                "allowed ([reconstruction] max_weights_gb), and this calibration's lattice is "
+                "not axis-aligned, which the matrix-free projector needs: reduce the volume "
+                "(fewer or larger voxels) or raise max_weights_gb")
+    return "lattice"
+
+
 def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str | Path | None,
                    f_number: float | None = None, min_lit: float = 0.5,
-                   min_weight: float = 1e-7) -> tuple[Weights, bool]:
+                   min_weight: float = 1e-7, projector: str = "auto",
+                   max_weights_gb: float | None = None) -> tuple[Weights, bool]:
     """Load the weights from ``cache_dir`` when built before for the same geometry, else build
     (and save) them. Returns ``(weights, from_cache)``.
 
     The file name carries the key, and the key stored inside is checked again, so weights of
     another camera, calibration or grid are never reused; a corrupt cache file is rebuilt.
+    ``projector`` (see :func:`choose_projector`) may pick the matrix-free lattice projector
+    instead, which is built in seconds and never cached.
     """
     key = weights_key(calibration, grid, f_number=f_number, min_lit=min_lit,
                       min_weight=min_weight)
     path = None if cache_dir is None else Path(cache_dir) / f"weights-{key[:24]}.h5"
-    if path is not None and path.exists():
+    if projector != "lattice" and path is not None and path.exists():
         try:
             with h5py.File(path, "r") as fh:
                 if fh.attrs.get("key") == key:
@@ -225,6 +295,11 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
         except (OSError, KeyError, ValueError):
             pass   # unreadable or from another geometry: rebuild below
     lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
+    kind = choose_projector(lf, grid, projector=projector, max_weights_gb=max_weights_gb,
+                            min_weight=min_weight)
+    if kind == "lattice":
+        check_grid_in_view(lf, grid)
+        return Weights(LatticeProjector.from_light_field(lf, grid), lf.pixel, grid, key), False
     w = build_weights(lf, grid, min_weight=min_weight, key=key)
     if path is not None:
         p = w.projector

@@ -1,0 +1,274 @@
+"""A matrix-free projector for cameras with an axis-aligned square lenslet lattice.
+
+The explicit weights of a full 16 MP camera and a 287 × 193 × 200 volume hold ~1.2·10¹⁰
+non-zeros (~100 GB in CSR). :class:`LatticeProjector` computes the same weights on the fly
+from two small tables instead, using the structure of the lattice: where the lattice rows and
+columns run along the sensor's, a pixel's beam is, on every depth slice, the product of a
+profile along x that depends only on the pixel's sensor column and a profile along y that
+depends only on its sensor row (see :mod:`plenopiv._lattice_kernels`). A projection is then
+two thin contractions per slice; its memory is one (slices × voxel rows × sensor columns)
+float32 buffer plus tables of a few MB.
+
+It implements the :class:`~plenopiv.projector.Projector` protocol (``forward``, ``back``,
+``row_sums``, ``column_sums``), which is all that MLOS and SMART need; row-action MART and the
+block variant walk explicit rows and stay with :class:`~plenopiv.projector.SparseProjector`.
+
+Differences from the explicit weights (:func:`plenopiv.weights.build_weights`), both small:
+
+- a pixel cut by the aperture's edge is traced through its cell centre, not through the
+  centroid of the cell's lit part (its weight still carries the lit fraction); set
+  ``edge_centroid=False`` in :func:`plenopiv.lightfield.light_field` to make the two agree;
+- weights are not dropped below ``min_weight``.
+
+With both aligned, the projections agree to float32 rounding (tests).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from plenopiv import _lattice_kernels as _k
+from plenopiv.errors import ReconstructionError
+from plenopiv.lightfield import LightField
+from plenopiv.volume import VolumeGrid
+
+__all__ = ["LatticeProjector", "separable_axes"]
+
+#: Sensor rows per task of the forward contraction (they share the slices' rows in cache).
+ROW_BLOCK = 16
+
+
+def separable_axes(lf: LightField, *, tolerance: float = 0.02) -> tuple | None:
+    """Per-column and per-row ray coordinates, or None when the rays are not separable.
+
+    Returns ``(u_col, xf_col, u_row, xf_row)`` (metres, one value per sensor column/row;
+    NaN where no ray lies) when every ray's aperture x and focal-plane x depend only on its
+    sensor column, and its y coordinates only on its row, within ``tolerance`` of an aperture
+    cell and of a lenslet footprint respectively. The aperture coordinate of a line is that
+    of its fully lit pixels' cell centres; a line with only edge pixels (cut by the aperture)
+    takes its neighbour's minus its offset in cells.
+    """
+    rows, cols = lf.shape
+    r = lf.pixel // cols
+    c = lf.pixel % cols
+    xf = lf.focal_plane_position
+    full = lf.lit >= 1.0 - 1e-9
+    out = []
+    for line, n, axis in ((c, cols, 0), (r, rows, 1)):
+        x_line = _line_mean(line, xf[:, axis], np.ones_like(full), n)
+        u_line = _line_mean(line, lf.u[:, axis], full, n)
+        _fill_edge_lines(u_line, x_line, lf.cell, lf.footprint)
+        du = np.abs(lf.u[full, axis] - u_line[line[full]])
+        dx = np.abs(xf[:, axis] - x_line[line])
+        if (du.size and du.max() > tolerance * lf.cell) or dx.max() > tolerance * lf.footprint:
+            return None
+        out += [u_line, x_line]
+    return tuple(out)
+
+
+def _line_mean(line, values, use, n):
+    """Mean of ``values`` over the rays ``use`` of each line (NaN where none)."""
+    total = np.bincount(line[use], weights=values[use], minlength=n)
+    count = np.bincount(line[use], minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return total / count
+
+
+def _fill_edge_lines(u_line, x_line, cell, footprint, reach=4):
+    """Give lines with rays but no fully lit ray the aperture coordinate of their cell
+    centre: that of the nearest line of the same lenslet, minus the offset times a cell
+    (u = -(pixel - spot) · cell)."""
+    missing = np.flatnonzero(np.isnan(u_line) & np.isfinite(x_line))
+    n = len(u_line)
+    for d in range(1, reach + 1):
+        if not missing.size:
+            return
+        for step in (d, -d):
+            q = missing + step
+            ok = (q >= 0) & (q < n)
+            p, q = missing[ok], q[ok]
+            good = np.isfinite(u_line[q]) & (np.abs(x_line[q] - x_line[p]) < 0.5 * footprint)
+            u_line[p[good]] = u_line[q[good]] + step * cell
+            missing = np.flatnonzero(np.isnan(u_line) & np.isfinite(x_line))
+            if not missing.size:
+                return
+
+
+def _transpose_rows(ys, yc, yw, ny) -> dict:
+    """The row profiles by voxel row: for voxel row iy on slice k, the sensor rows that reach
+    it and their weights are ``t_row``/``t_w[t_ptr[iy * nz + k]:t_ptr[iy * nz + k + 1]]``."""
+    nz, nrow, kmax = yw.shape
+    k, r, j = np.nonzero(np.arange(kmax)[None, None, :] < yc[:, :, None])
+    key = (ys[k, r].astype(np.int64) + j) * nz + k
+    order = np.argsort(key, kind="stable")
+    ptr = np.searchsorted(key[order], np.arange(ny * nz + 1)).astype(np.int64)
+    return {"t_ptr": ptr, "t_row": r[order].astype(np.int32),
+            "t_w": np.ascontiguousarray(yw[k, r, j][order])}
+
+
+class LatticeProjector:
+    """W for a lattice-aligned camera, never stored: see the module docstring.
+
+    Build it with :meth:`from_light_field`. ``select_rows`` and ``scale_rows`` return cheap
+    views that share the tables (a subset of the rays, or the rays scaled).
+
+    Memory: the tables (2 × slices × (rows + cols) × ``kmax`` × 8 bytes), the rays (16 bytes
+    each) and a float32 buffer of slices × voxel rows × used sensor columns, allocated per
+    projection (757 MB for the Auburn camera and 200 slices).
+    """
+
+    def __init__(self, tables: dict, ray_row, ray_col, ray_scale, grid: VolumeGrid):
+        self._t = tables
+        self._ray_row = np.ascontiguousarray(ray_row, np.int64)
+        self._ray_col = np.ascontiguousarray(ray_col, np.int64)
+        self._scale = np.ascontiguousarray(ray_scale, np.float32)
+        if np.any(np.diff(self._ray_row) < 0):
+            raise ReconstructionError("LatticeProjector rays must be sorted by sensor row")
+        self.grid = grid
+        n_rows = tables["ys"].shape[1]
+        self._row_ptr = np.searchsorted(self._ray_row, np.arange(n_rows + 1)).astype(np.int64)
+        self._row_used = np.diff(self._row_ptr) > 0
+        self._row_sums: np.ndarray | None = None
+        self._column_sums: np.ndarray | None = None
+
+    # -- construction ----------------------------------------------------------------------
+    @classmethod
+    def from_light_field(cls, lf: LightField, grid: VolumeGrid, *,
+                         tolerance: float = 0.02) -> LatticeProjector:
+        """The projector of ``lf``'s lit pixels onto ``grid``.
+
+        Raises
+        ------
+        ReconstructionError
+            The rays are not separable (a rotated or hexagonal lattice, or calibrated centres
+            that scatter by more than ``tolerance`` of a cell or footprint).
+        """
+        axes = separable_axes(lf, tolerance=tolerance)
+        if axes is None:
+            raise ReconstructionError(
+                "the matrix-free lattice projector needs an axis-aligned square lenslet "
+                "lattice (rays whose x depends only on the sensor column and y only on the "
+                "row); this calibration's lattice is rotated, hexagonal or irregular: use "
+                "[reconstruction] projector = \"sparse\"")
+        u_col, xf_col, u_row, xf_row = axes
+        cols = lf.pixel % lf.shape[1]
+        c0, c1 = int(cols.min()), int(cols.max()) + 1
+        so = lf.object_distance
+        t = np.ascontiguousarray((so + grid.z) / so, np.float64)
+        a, b = lf.cell, lf.footprint
+        al = np.abs(1.0 - t) * a
+        be = t * b
+        half = 0.5 * (al + be)
+        area = math.pi * lf.aperture_radius ** 2
+        vx, vy = float(grid.voxel[0]), float(grid.voxel[1])
+        nz, ny, nx = grid.shape
+        kmax = int(math.ceil(float((al + be).max()) / min(vx, vy))) + 2
+        tables = {"c0": c0}
+        for name, u, xf, origin, vox, n in (("x", u_col[c0:c1], xf_col[c0:c1], grid.origin[0],
+                                             vx, nx),
+                                            ("y", u_row, xf_row, grid.origin[1], vy, ny)):
+            valid = np.isfinite(u) & np.isfinite(xf)
+            u = np.where(valid, u, 0.0)
+            xf = np.where(valid, xf, 0.0)
+            start = np.zeros((nz, len(u)), np.int32)
+            count = np.zeros((nz, len(u)), np.int32)
+            w = np.zeros((nz, len(u), kmax), np.float32)
+            worst = _k.axis_tables(u, xf, valid, t, al, be, half, float(origin), vox, n, kmax,
+                                   start, count, w)
+            if worst > kmax:    # cannot happen: kmax bounds the beam's width
+                raise ReconstructionError(f"beam profile of {worst} voxels > table {kmax}")
+            tables[name + "s"], tables[name + "c"], tables[name + "w"] = start, count, w
+        # the per-slice factor (a β)² / (A Δx Δy) of the explicit weights goes with y
+        tables["yw"] *= ((a * be) ** 2 / (area * vx * vy)).astype(np.float32)[:, None, None]
+        tables.update(_transpose_rows(tables["ys"], tables["yc"], tables["yw"], ny))
+        tables["col_max"] = np.ascontiguousarray(tables["xw"].max(axis=2).T)
+        tables["row_max"] = np.ascontiguousarray(tables["yw"].max(axis=2).T)
+        rows = lf.pixel // lf.shape[1]
+        return cls(tables, rows, cols - c0, lf.lit, grid)
+
+    # -- views -----------------------------------------------------------------------------
+    def select_rows(self, mask) -> LatticeProjector:
+        """The projector of the rays where ``mask`` (bool, n_pixels) is true."""
+        mask = np.asarray(mask, bool)
+        return LatticeProjector(self._t, self._ray_row[mask], self._ray_col[mask],
+                                self._scale[mask], self.grid)
+
+    def scale_rows(self, factors) -> LatticeProjector:
+        """The projector with row i multiplied by ``factors[i]``."""
+        return LatticeProjector(self._t, self._ray_row, self._ray_col,
+                                self._scale * np.asarray(factors, np.float32), self.grid)
+
+    # -- the Projector protocol ------------------------------------------------------------
+    @property
+    def n_pixels(self) -> int:
+        """Number of rays (rows of W)."""
+        return int(self._ray_row.shape[0])
+
+    @property
+    def n_voxels(self) -> int:
+        """Number of voxels (columns of W)."""
+        return int(self.grid.n_voxels)
+
+    @property
+    def nbytes(self) -> int:
+        """Memory of the tables and rays in bytes (not the per-call buffer)."""
+        arrays = [v for v in self._t.values() if isinstance(v, np.ndarray)]
+        arrays += [self._ray_row, self._ray_col, self._scale, self._row_ptr]
+        return int(sum(x.nbytes for x in arrays))
+
+    def _buffer(self) -> np.ndarray:
+        nz, ny, _ = self.grid.shape
+        return np.empty((nz, ny, self._t["xs"].shape[1]), np.float32)
+
+    def forward(self, volume, *, out=None) -> np.ndarray:
+        """``I = W·E`` for E of n_voxels values (``[z, y, x]`` order); float32 (n_pixels,)."""
+        e = np.asarray(volume)
+        if e.size != self.n_voxels:
+            raise ReconstructionError(f"volume has {e.size} values; the projector expects "
+                                      f"n_voxels = {self.n_voxels}")
+        e = np.ascontiguousarray(e.reshape(self.grid.shape), np.float32)
+        t = self._t
+        tmp = _k.contract_x(e, t["xs"], t["xc"], t["xw"], self._buffer())
+        if out is None:
+            out = np.empty(self.n_pixels, np.float32)
+        return _k.contract_y(tmp, t["ys"], t["yc"], t["yw"], self._row_ptr, self._ray_col,
+                             self._scale, ROW_BLOCK, out)
+
+    def back(self, image, *, out=None) -> np.ndarray:
+        """``r = Wᵀ·I`` for I of n_pixels values; float32 (n_voxels,)."""
+        y = np.asarray(image)
+        if y.size != self.n_pixels:
+            raise ReconstructionError(f"image has {y.size} values; the projector expects "
+                                      f"n_pixels = {self.n_pixels}")
+        t = self._t
+        n_rows, n_cols = t["ys"].shape[1], t["xs"].shape[1]
+        dense = np.zeros((n_rows, n_cols), np.float32)
+        dense[self._ray_row, self._ray_col] = y.reshape(-1).astype(np.float32) * self._scale
+        used = self._row_used & dense.any(axis=1)
+        tmp = _k.spread_y(dense, used, t["t_ptr"], t["t_row"], t["t_w"], self._buffer())
+        vol = _k.spread_x(tmp, t["xs"], t["xc"], t["xw"],
+                          np.empty(self.grid.shape, np.float32))
+        if out is None:
+            return vol.reshape(-1)
+        out[:] = vol.reshape(-1)
+        return out
+
+    def row_sums(self) -> np.ndarray:
+        """``sum_j w_ij`` per ray (float32); computed once and cached."""
+        if self._row_sums is None:
+            self._row_sums = self.forward(np.ones(self.n_voxels, np.float32))
+        return self._row_sums
+
+    def column_sums(self) -> np.ndarray:
+        """``sum_i w_ij`` per voxel (float32); computed once and cached."""
+        if self._column_sums is None:
+            self._column_sums = self.back(np.ones(self.n_pixels, np.float32))
+        return self._column_sums
+
+    def row_max(self) -> np.ndarray:
+        """``max_j w_ij`` per ray (float32)."""
+        t = self._t
+        return _k.row_max(self._ray_row, self._ray_col, self._scale, t["col_max"],
+                          t["row_max"], np.empty(self.n_pixels, np.float32))
