@@ -1,0 +1,244 @@
+"""Full-camera scale: a 16 MP plenoptic pair reconstructed and correlated on this machine.
+
+Not a unit test. Run ``python benchmarks/full_camera.py [--particles 20000 --iterations 5
+--json]``. The Auburn camera (3280 × 4904 px, 193 × 287 lenslets, 135 mm lens, 10.4 mm
+substrate) records a Lamb-Oseen vortex (axis along y, so particles move in depth); the
+volume is 287 × 193 × 200 voxels of one lenslet footprint (0.26 mm) each way. Its explicit
+weights would hold ~1.2·10¹⁰ non-zeros (~100 GB), so the pipeline's ``projector = "auto"``
+takes the matrix-free lattice projector.
+
+Stages, each printed with its wall time and the process's peak resident memory during it:
+
+1. render the pair with the project's ray tracer (cached in ``benchmarks/_cache/``);
+2. light field and lattice projector (shared by both exposures);
+3. reconstruct A and B (MLOS + ``--iterations`` SMART sweeps, particles); Q of A against
+   Gaussian blobs of the camera's resolution cell at the true positions;
+4. 3-D PIV of the pair; RMS error per component against the flow, in voxels;
+5. the explicit-weight path on a 41 × 61-lenslet patch of the same camera at the same
+   seeding density (cropped region): Q with explicit weights and with the lattice projector
+   (both SMART), and the time and Q of plain row-action MART with explicit weights, which
+   gives the speed-up.
+
+With ``--json`` the last line is one JSON object: ``reconstruct_seconds`` (per volume),
+``reconstruct_peak_gb``, ``q``, ``pair_seconds`` (two volumes + PIV, the weights included),
+``velocity_rms_vox`` (u, v, w), and the patch figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import json
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.camera import load_camera
+from plenopiv.config import ParticleSettings, ReconstructionSettings
+from plenopiv.io import atomic_path
+from plenopiv.mart import reconstruction_quality
+from plenopiv.pipeline import correlate, gaussian_truth_volume, reconstruct_volume
+from plenopiv.piv import PIVSettings
+from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
+from plenopiv.validation import field_quality as fq
+from plenopiv.validation.vortex import VortexCase, _flow, aligned_grid, compare_with_truth
+from plenopiv.weights import cached_weights
+
+CACHE = Path(__file__).parent / "_cache"
+
+
+# ---- measuring ---------------------------------------------------------------------------------
+
+
+def _rss_gb() -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024 / 1e9
+    return float("nan")
+
+
+@contextlib.contextmanager
+def stage(name: str, log: dict):
+    """Time a stage and sample the process's resident memory every 10 ms while it runs."""
+    peak = [_rss_gb()]
+    done = threading.Event()
+
+    def sample():
+        while not done.wait(0.01):
+            peak[0] = max(peak[0], _rss_gb())
+
+    th = threading.Thread(target=sample, daemon=True)
+    th.start()
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        seconds = time.perf_counter() - t0
+        done.set()
+        th.join()
+        peak[0] = max(peak[0], _rss_gb())
+        log[name] = {"seconds": round(seconds, 2), "peak_gb": round(peak[0], 2)}
+        print(f"{name:<28s} {seconds:8.1f} s   peak {peak[0]:6.2f} GB", file=sys.stderr,
+              flush=True)
+
+
+# ---- the case ----------------------------------------------------------------------------------
+
+
+def full_case(args) -> tuple:
+    cam = load_camera("auburn_135mm")
+    cal = Calibration.from_camera(cam)
+    eff = cal.effective_camera
+    b = eff.microlens_array.pitch * eff.object_distance / eff.image_distance
+    case = VortexCase(flow="oseen", camera="auburn_135mm", depth=99.5 * b,
+                      max_displacement=args.displacement_vox * b, lateral_fill=1.0,
+                      voxel_depth_factor=1.0, dt=1e-3, seed=args.seed)
+    grid = aligned_grid(eff, case)
+    box = SeedingBox(tuple(grid.bounds[0] * 0.95), tuple(grid.bounds[1] * 0.95),
+                     (-0.8 * case.depth, 0.8 * case.depth))
+    return cam, cal, case, grid, box, _flow(case, box)
+
+
+def render_pair(cam, flow, case, box, n, rays):
+    key = hashlib.sha256(json.dumps([cam.to_dict(), repr(flow), case.dt, box.x, box.y, box.z,
+                                     n, rays, case.seed], sort_keys=True,
+                                    default=str).encode()).hexdigest()[:16]
+    path = CACHE / f"full_pair_{key}.npz"
+    if path.exists():
+        d = np.load(path)
+        return d["a"], d["b"], d["pa"], d["pb"], True
+    pair = simulate_pair(cam, flow, dt=case.dt, box=box, n_particles=n,
+                         rng=np.random.default_rng(case.seed), rays_per_particle=rays)
+    CACHE.mkdir(exist_ok=True)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, a=pair.image_a.astype(np.float32), b=pair.image_b.astype(np.float32),
+                 pa=pair.positions_a, pb=pair.positions_b)
+    return pair.image_a, pair.image_b, pair.positions_a, pair.positions_b, False
+
+
+def patch_study(args, log: dict) -> dict:
+    """Explicit weights against the lattice projector on a 41 × 61-lenslet patch."""
+    cam = fq.study_camera(41, 61, preset="auburn_135mm")
+    cal = Calibration.from_camera(cam)
+    b = fq.footprint(cam)
+    grid = fq.study_grid(cam, depth=20 * b, depth_voxel=b)
+    rng = np.random.default_rng(args.seed + 1)
+    per_lenslet = args.particles / (193 * 287)
+    box = SeedingBox(tuple(grid.bounds[0] * 0.95), tuple(grid.bounds[1] * 0.95),
+                     (-16 * b, 16 * b))
+    n = int(round(per_lenslet * 41 * 61 * 0.95 ** 2))
+    pos = np.column_stack([rng.uniform(*box.x, n), rng.uniform(*box.y, n),
+                           rng.uniform(*box.z, n)])
+    img = fq.render(cam, pos, seed=args.seed)
+    sigma = fq.cell_sigma(grid, cam)
+    truth = gaussian_truth_volume(grid, pos, sigma_vox=sigma)
+    out = {"lenslets": [41, 61], "grid": list(grid.shape), "particles": n}
+    smart = ReconstructionSettings(iterations=args.iterations)
+    for kind in ("sparse", "lattice"):
+        with stage(f"patch {kind} SMART", log):
+            t0 = time.perf_counter()
+            w, _ = cached_weights(cal, grid, cache_dir=None, projector=kind)
+            t_w = time.perf_counter() - t0
+            r = reconstruct_volume(cal, img, grid, settings=smart, weights=w)
+        out[f"{kind}_smart"] = {"q": reconstruction_quality(r.volume, truth),
+                                "weights_s": t_w, "reconstruct_s": log[f"patch {kind} SMART"]
+                                ["seconds"], "nnz": w.nnz}
+    for mu in (0.03,):
+        name = f"patch row-action MART mu={mu}"
+        with stage(name, log):
+            w, _ = cached_weights(cal, grid, cache_dir=None, projector="sparse")
+            r = reconstruct_volume(cal, img, grid, weights=w, settings=ReconstructionSettings(
+                method="mart", relaxation=mu, iterations=args.iterations))
+        out["mart"] = {"relaxation": mu, "q": reconstruction_quality(r.volume, truth),
+                       "seconds": log[name]["seconds"]}
+    out["speedup_lattice_smart_vs_mart"] = (out["mart"]["seconds"]
+                                            / out["lattice_smart"]["reconstruct_s"])
+    return out
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--particles", type=int, default=20000)
+    p.add_argument("--rays", type=int, default=2048, help="rays per particle")
+    p.add_argument("--iterations", type=int, default=5, help="SMART sweeps after MLOS")
+    p.add_argument("--displacement-vox", type=float, default=3.0,
+                   help="largest displacement, lateral voxels")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--skip-patch", action="store_true")
+    p.add_argument("--json", action="store_true", help="end with one JSON line")
+    args = p.parse_args(argv)
+    log: dict = {}
+
+    cam, cal, case, grid, box, flow = full_case(args)
+    print(f"grid {grid.shape} (z, y, x), voxel {np.round(np.array(grid.voxel) * 1e3, 4)} mm; "
+          f"{args.particles} particles", file=sys.stderr)
+    with stage("render pair", log):
+        ia, ib, pa, pb, cached = render_pair(cam, flow, case, box, args.particles, args.rays)
+    log["render pair"]["cached"] = cached
+
+    settings = ReconstructionSettings(iterations=args.iterations)
+    particles = ParticleSettings()
+    with stage("weights (light field)", log):
+        w, _ = cached_weights(cal, grid, cache_dir=None, f_number=settings.f_number,
+                              min_lit=settings.min_lit, projector=settings.projector,
+                              max_weights_gb=settings.max_weights_gb)
+        _ = w.normalised
+    print(f"projector: {'lattice (matrix-free)' if w.matrix_free else 'explicit'}",
+          file=sys.stderr)
+    vols = {}
+    for name, img in (("A", ia), ("B", ib)):
+        with stage(f"reconstruct {name}", log):
+            vols[name] = reconstruct_volume(cal, img, grid, settings=settings,
+                                            particles=particles, weights=w)
+    sigma = fq.cell_sigma(grid, cal.effective_camera)
+    q = reconstruction_quality(vols["A"].volume,
+                               gaussian_truth_volume(grid, pa, sigma_vox=sigma))
+    windows = ((32, 32, 32), (16, 16, 16))
+    piv = PIVSettings(windows=windows, overlap=0.5, passes=3)
+    with stage("PIV", log):
+        vec = correlate(vols["A"], vols["B"], piv)      # displacements (no dt given)
+    err = compare_with_truth(vec, flow, case.dt, grid, windows[-1])
+    rec_s = [log[f"reconstruct {n}"]["seconds"] for n in "AB"]
+    result = {
+        "camera": "auburn_135mm", "grid_shape": list(grid.shape),
+        "particles": args.particles, "iterations": args.iterations,
+        "projector": "lattice" if w.matrix_free else "sparse",
+        "weights_seconds": log["weights (light field)"]["seconds"],
+        "reconstruct_seconds": round(float(np.mean(rec_s)), 2),
+        "reconstruct_peak_gb": max(log[f"reconstruct {n}"]["peak_gb"] for n in "AB"),
+        "q": round(q, 4),
+        "pair_seconds": round(log["weights (light field)"]["seconds"] + sum(rec_s)
+                              + log["PIV"]["seconds"], 2),
+        "piv_seconds": log["PIV"]["seconds"],
+        "velocity_rms_vox": [round(v, 4) for v in err["rms_vox"]],
+        "velocity_bias_vox": [round(v, 4) for v in err["bias_vox"]],
+        "valid_fraction": err.get("valid_fraction"),
+        "particles_found_a": len(vols["A"].particle_position),
+        "stages": log,
+    }
+    if not args.skip_patch:
+        result["patch"] = patch_study(args, log)
+    if args.json:
+        print(json.dumps(result, default=_json_default))
+    else:
+        print(json.dumps(result, indent=1, default=_json_default))
+    return result
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, float) and math.isnan(o):
+        return None
+    return str(o)
+
+
+if __name__ == "__main__":
+    main()
