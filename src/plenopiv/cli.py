@@ -22,7 +22,6 @@ from plenopiv.camera import CameraModel, load_camera, preset_names
 from plenopiv.errors import ConfigError, PlenopivError
 from plenopiv.io import to_json, write_h5, write_image
 
-
 # ---- shared helpers ------------------------------------------------------------------------
 
 
@@ -353,8 +352,7 @@ def cmd_run(args) -> dict:
     """Many pairs end to end on dask (local processes, SLURM, or a running scheduler)."""
     from plenopiv.batch import batch_options, discover_pairs, run_batch
     from plenopiv.config import load_experiment
-    from plenopiv.pipeline import ExperimentPairProcess, experiment_calibration
-    from plenopiv.weights import cached_weights
+    from plenopiv.pipeline import ExperimentPairProcess, experiment_calibration, weights_for
 
     exp = load_experiment(args.experiment)
     im = exp.images
@@ -376,9 +374,8 @@ def cmd_run(args) -> dict:
     # build (or find) the weights once, before the workers start: they load them from disk
     t0 = time.perf_counter()
     cache = exp.output.weights_cache
-    _, hit = cached_weights(cal, exp.volume, cache_dir=exp.path(cache) if cache else None,
-                            f_number=exp.reconstruction.f_number,
-                            min_lit=exp.reconstruction.min_lit)
+    _, hit = weights_for(cal, exp.volume, exp.reconstruction,
+                         cache_dir=exp.path(cache) if cache else None)
     opts = batch_options(exp.batch.model_dump())
     if args.cluster is not None:
         opts["cluster"] = args.cluster

@@ -118,6 +118,21 @@ def load_volume(path: str | Path) -> VolumeResult:
     return VolumeResult(vol, grid, corr, pos_e, pos, inten, size)
 
 
+def weights_for(calibration: Calibration, grid: VolumeGrid, settings: ReconstructionSettings,
+                cache_dir: str | Path | None = None) -> tuple[Weights, bool]:
+    """The weights a reconstruction with ``settings`` uses: explicit (cached in ``cache_dir``)
+    or the matrix-free lattice projector, by ``settings.projector``; ``(weights, from_cache)``.
+
+    Row-action and block MART walk explicit rows, so ``"auto"`` keeps them explicit.
+    """
+    projector = settings.projector
+    if projector == "auto" and settings.method != "smart":
+        projector = "sparse"
+    return cached_weights(calibration, grid, cache_dir=cache_dir, f_number=settings.f_number,
+                          min_lit=settings.min_lit, projector=projector,
+                          max_weights_gb=settings.max_weights_gb)
+
+
 def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
                        settings: ReconstructionSettings = ReconstructionSettings(),
                        particles: ParticleSettings = ParticleSettings(),
@@ -143,12 +158,7 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t0 = time.perf_counter()
     img = check_image(image, shape=calibration.camera.sensor.shape, name="particle image")
     if weights is None:
-        projector = settings.projector
-        if projector == "auto" and settings.method != "smart":
-            projector = "sparse"        # row-action and block MART walk explicit rows
-        weights, _ = cached_weights(calibration, grid, cache_dir=cache_dir,
-                                    f_number=settings.f_number, min_lit=settings.min_lit,
-                                    projector=projector, max_weights_gb=settings.max_weights_gb)
+        weights, _ = weights_for(calibration, grid, settings, cache_dir=cache_dir)
     elif weights.grid != grid:
         raise ReconstructionError("the given weights were built for another volume grid")
     if weights.matrix_free and settings.method != "smart":
@@ -403,10 +413,8 @@ def process_pair(calibration: Calibration, image_a, image_b, experiment, *,
     t0 = time.perf_counter()
     if weights is None:
         cache = experiment.output.weights_cache
-        weights, _ = cached_weights(calibration, experiment.volume,
-                                    cache_dir=experiment.path(cache) if cache else None,
-                                    f_number=experiment.reconstruction.f_number,
-                                    min_lit=experiment.reconstruction.min_lit)
+        weights, _ = weights_for(calibration, experiment.volume, experiment.reconstruction,
+                                 cache_dir=experiment.path(cache) if cache else None)
     kw = dict(settings=experiment.reconstruction, particles=experiment.particles,
               weights=weights, progress=progress)
     va = reconstruct_volume(calibration, image_a, experiment.volume, **kw)

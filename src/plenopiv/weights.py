@@ -38,8 +38,8 @@ from plenopiv import _weights_kernels as K
 from plenopiv.calibration.model import Calibration
 from plenopiv.errors import ReconstructionError
 from plenopiv.io import write_h5
-from plenopiv.lightfield import LightField, light_field
 from plenopiv.lattice import LatticeProjector, separable_axes
+from plenopiv.lightfield import LightField, light_field
 from plenopiv.projector import Projector, SparseProjector
 from plenopiv.volume import VolumeGrid
 
