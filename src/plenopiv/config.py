@@ -82,19 +82,25 @@ class ReconstructionSettings(_Strict):
 class ParticleSettings(_Strict):
     """``[particles]``: 3-D peak detection.
 
-    threshold : a particle's peak must exceed this fraction of the volume's maximum.
+    threshold : a particle's peak must exceed this fraction of the reference intensity.
+    threshold_reference : "bright" (default: the 99.9th percentile of the positive voxels,
+        which a few hot voxels cannot move; at 16 MP the maximum was 21 times it and a
+        threshold on the maximum found 1 % of the particles) | "maximum" (the volume's maximum).
     method : sub-voxel estimator, "centroid" (intensity-weighted over box_vox; the better one
         for the depth-elongated particles of plenoptic reconstructions) | "gaussian" (3-point
         per axis).
     min_separation_vox, box_vox, fit_spacing_vox : ``[z, y, x]`` voxels (see
-        :func:`plenopiv.particles.find_particles`).
+        :func:`plenopiv.particles.find_particles`). ``None`` (default): from the camera's
+        resolution cell (:func:`plenopiv.pipeline.particle_options`): peaks within one cell
+        are one particle, the centroid box is ±1 cell.
     internal_correction : "auto" | "none" | "plate" (see :mod:`plenopiv.corrections`).
     """
 
     threshold: float = Field(0.1, ge=0, lt=1)
+    threshold_reference: Literal["bright", "maximum"] = "bright"
     method: Literal["gaussian", "centroid"] = "centroid"
-    min_separation_vox: tuple[float, float, float] = (8.0, 2.0, 2.0)
-    box_vox: tuple[int, int, int] = (8, 2, 2)
+    min_separation_vox: tuple[float, float, float] | None = None
+    box_vox: tuple[int, int, int] | None = None
     fit_spacing_vox: tuple[int, int, int] = (2, 1, 1)
     internal_correction: Literal["auto", "none", "plate"] = "auto"
 

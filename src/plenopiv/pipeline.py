@@ -118,6 +118,50 @@ def load_volume(path: str | Path) -> VolumeResult:
     return VolumeResult(vol, grid, corr, pos_e, pos, inten, size)
 
 
+def resolution_cell(calibration: Calibration, f_number: float | None = None
+                    ) -> tuple[float, float]:
+    """Lateral and depth resolution of the calibrated camera at its focal plane, metres.
+
+    Lateral: one lenslet footprint b = p_m S_o/S_i. Depth: the two edge views of the
+    aperture (diameter D) see a particle at depth Z shifted by D Z/S_o against each other,
+    so depths a footprint of shift apart are told apart: ΔZ = b S_o/D. Effective
+    (air-equivalent) distances.
+    """
+    cam = calibration.effective_camera
+    n = cam.main_lens.f_number if f_number is None else f_number
+    b = cam.microlens_array.pitch * cam.object_distance / cam.image_distance
+    return b, b * cam.object_distance * n / cam.main_lens.focal_length
+
+
+def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration: Calibration,
+                     volume, *, f_number: float | None = None) -> dict:
+    """Keywords of :func:`~plenopiv.particles.find_particles` for ``particles`` and a volume.
+
+    The threshold is ``particles.threshold`` times the reference intensity (the 99.9th
+    percentile of the positive voxels, or the maximum). Unset separation and box follow the
+    resolution cell (:func:`resolution_cell`) in voxels of ``grid``: peaks closer than one
+    cell (1.5 cells laterally, so that diagonal neighbours merge) are one particle; the
+    centroid box is ±1 cell.
+    """
+    v = np.asarray(volume)
+    if particles.threshold_reference == "maximum":
+        ref = float(v.max())
+    else:
+        pos = v[v > 0]
+        ref = float(np.percentile(pos, 99.9)) if pos.size else 0.0
+    lat, dep = resolution_cell(calibration, f_number)
+    vx, vy, vz = (float(a) for a in grid.voxel)
+    sep = particles.min_separation_vox
+    if sep is None:
+        sep = (max(dep / vz, 1.0), max(1.5 * lat / vy, 1.0), max(1.5 * lat / vx, 1.0))
+    box = particles.box_vox
+    if box is None:
+        box = tuple(max(1, int(round(c / d))) for c, d in ((dep, vz), (lat, vy), (lat, vx)))
+    return {"threshold": particles.threshold * ref, "method": particles.method,
+            "min_separation_vox": tuple(sep), "box_vox": tuple(box),
+            "fit_spacing_vox": particles.fit_spacing_vox}
+
+
 def weights_for(calibration: Calibration, grid: VolumeGrid, settings: ReconstructionSettings,
                 cache_dir: str | Path | None = None) -> tuple[Weights, bool]:
     """The weights a reconstruction with ``settings`` uses: explicit (cached in ``cache_dir``)
@@ -209,9 +253,7 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     if vmax <= 0:
         raise ReconstructionError("the reconstructed volume is empty: no particle light in "
                                   "the volume (check [volume] and the image)")
-    found = find_particles(vol, threshold=particles.threshold * vmax, method=particles.method,
-                           min_separation_vox=particles.min_separation_vox,
-                           box_vox=particles.box_vox, fit_spacing_vox=particles.fit_spacing_vox)
+    found = find_particles(vol, **particle_options(particles, grid, calibration, vol))
     eff = found.position_world(grid.origin, grid.voxel)
     corr = DepthCorrection.for_camera(calibration.camera, internal=particles.internal_correction)
     t["particles_s"] = time.perf_counter() - t2

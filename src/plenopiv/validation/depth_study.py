@@ -52,6 +52,10 @@ from plenopiv.synthetic.images import particle_image
 from plenopiv.volume import VolumeGrid
 from plenopiv.weights import cached_weights
 
+#: Particle extraction of this study (fixed, so that its tables stay reproducible): the
+#: library's defaults when it was written.
+STUDY_PARTICLES = ParticleSettings(threshold=0.1, threshold_reference="maximum",
+                                   min_separation_vox=(8.0, 2.0, 2.0), box_vox=(8, 2, 2))
 #: True depths of the thesis's study, metres (-10 … +10 mm in 1 mm steps).
 DEPTHS = np.round(np.arange(-10, 11) * 1e-3, 12)
 #: The external interface of §5.1: water, l1 = 40 mm (n1, n2, l1 in metres).
@@ -359,7 +363,7 @@ def measure_depths(case: DepthCase, depths=DEPTHS, *, rays_per_particle: int = 2
         ``grid`` (config dict) and ``seconds``.
     """
     t0 = time.perf_counter()
-    particles = ParticleSettings() if particles is None else particles
+    particles = STUDY_PARTICLES if particles is None else particles
     depths = np.asarray(depths, dtype=float)
     cam = case.camera
     expected = expected_effective_depth(cam, depths)
@@ -878,7 +882,7 @@ def run(out: str | Path, *, depths=DEPTHS, rays_per_particle: int = 20000,
         "geometry": geometry,
         "cases": {c.name: {"label": c.label, "note": c.note, "camera": c.camera.to_dict(),
                            "reconstruction": c.settings.model_dump(),
-                           "particles": ParticleSettings().model_dump(),
+                           "particles": STUDY_PARTICLES.model_dump(),
                            "corrections": {k: v.to_dict() for k, v in c.corrections.items()}}
                   for c in cases},
         "measured": measured,

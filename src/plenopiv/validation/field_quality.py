@@ -428,7 +428,8 @@ def particle_settings(grid: VolumeGrid, camera: CameraModel, *,
     lat, dep = resolution_cell(camera)
     sub = max(1, int(round(lat / grid.voxel[0])))
     dz = grid.voxel[2]
-    return ParticleSettings(threshold=threshold, method="centroid",
+    return ParticleSettings(threshold=threshold, threshold_reference="maximum",
+                            method="centroid",
                             min_separation_vox=(max(dep / dz, 1.0), 1.5 * sub, 1.5 * sub),
                             box_vox=(max(1, int(round(1e-3 / dz))), sub, sub),
                             fit_spacing_vox=(2, 1, 1), internal_correction="none")
