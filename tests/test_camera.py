@@ -18,6 +18,7 @@ from plenopiv.camera import (
     preset_names,
 )
 from plenopiv.errors import ConfigError
+from plenopiv.optics import propagation, system_matrix, thin_lens
 
 BASE = {
     "name": "t",
@@ -73,9 +74,15 @@ def test_units_are_converted_once_to_si():
     assert cam.microlens_array.pitch == pytest.approx(125e-6)
     assert cam.main_lens.focal_length == pytest.approx(0.135)
     assert cam.image_distance == pytest.approx(0.2)
-    # thin lens: 1/So + 1/Si = 1/f and M = -Si/So
-    assert 1 / cam.object_distance + 1 / cam.image_distance == pytest.approx(1 / 0.135)
-    assert cam.magnification == pytest.approx(-cam.image_distance / cam.object_distance)
+    # S_o = f S_i / (S_i - f) = 135 · 200 / 65 mm, worked by hand: 415.385 mm, M = -0.48148
+    assert cam.object_distance == pytest.approx(0.415385, rel=1e-5)
+    assert cam.magnification == pytest.approx(-0.48148, rel=1e-4)
+    # and the two planes are conjugate: the ray-transfer matrix object -> lens -> image has
+    # B = 0 (every ray from an object point meets at one image point) and A = M
+    m = system_matrix(propagation(cam.object_distance), thin_lens(0.135),
+                      propagation(cam.image_distance))
+    assert abs(m[0, 1]) < 1e-12
+    assert m[0, 0] == pytest.approx(cam.magnification, rel=1e-9)
 
 
 @pytest.mark.parametrize("path, value, expect", [
