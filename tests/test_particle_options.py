@@ -26,7 +26,7 @@ def grid_of(shape, voxel):
 
 def test_resolution_cell_of_the_m1_camera(cal):
     cam = cal.effective_camera
-    lat, dep = resolution_cell(cal)
+    lat, dep = resolution_cell(cal.effective_camera)
     # M = -1: the footprint is the lenslet pitch; depth cell b S_o / D with D = f / N
     assert lat == pytest.approx(cam.microlens_array.pitch, rel=1e-9)
     d = cam.main_lens.focal_length / cam.main_lens.f_number
@@ -34,7 +34,7 @@ def test_resolution_cell_of_the_m1_camera(cal):
 
 
 def test_unset_separation_and_box_follow_the_resolution_cell(cal):
-    lat, dep = resolution_cell(cal)
+    lat, dep = resolution_cell(cal.effective_camera)
     grid = grid_of((40, 30, 30), (lat / 2, lat / 2, dep / 4))
     opts = particle_options(ParticleSettings(), grid, cal, np.ones(grid.shape, np.float32))
     assert opts["min_separation_vox"] == pytest.approx((4.0, 3.0, 3.0))
@@ -60,7 +60,7 @@ def test_bright_reference_ignores_a_hot_voxel(cal):
     for c in centres:
         vol += np.exp(-0.5 * (((z - c[0]) / 1.5) ** 2 + (y - c[1]) ** 2 + (x - c[2]) ** 2))
     vol[20, 30, 30] = 50.0 * vol.max()
-    lat, dep = resolution_cell(cal)
+    lat, dep = resolution_cell(cal.effective_camera)
     grid = grid_of(shape, (lat, lat, dep / 4))
     found = {}
     for ref in ("bright", "maximum"):

@@ -32,6 +32,7 @@ import numpy as np
 from plenopiv import _lattice_kernels as _k
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
+from plenopiv.projector import CachedSums, _as_vector
 from plenopiv.volume import VolumeGrid
 
 __all__ = ["LatticeProjector", "separable_axes"]
@@ -108,7 +109,7 @@ def _transpose_rows(ys, yc, yw, ny) -> dict:
             "t_w": np.ascontiguousarray(yw[k, r, j][order])}
 
 
-class LatticeProjector:
+class LatticeProjector(CachedSums):
     """W for a lattice-aligned camera, never stored: see the module docstring.
 
     Build it with :meth:`from_light_field`. ``select_rows`` and ``scale_rows`` return cheap
@@ -130,8 +131,6 @@ class LatticeProjector:
         n_rows = tables["ys"].shape[1]
         self._row_ptr = np.searchsorted(self._ray_row, np.arange(n_rows + 1)).astype(np.int64)
         self._row_used = np.diff(self._row_ptr) > 0
-        self._row_sums: np.ndarray | None = None
-        self._column_sums: np.ndarray | None = None
 
     # -- construction ----------------------------------------------------------------------
     @classmethod
@@ -224,11 +223,7 @@ class LatticeProjector:
 
     def forward(self, volume, *, out=None) -> np.ndarray:
         """``I = W·E`` for E of n_voxels values (``[z, y, x]`` order); float32 (n_pixels,)."""
-        e = np.asarray(volume)
-        if e.size != self.n_voxels:
-            raise ReconstructionError(f"volume has {e.size} values; the projector expects "
-                                      f"n_voxels = {self.n_voxels}")
-        e = np.ascontiguousarray(e.reshape(self.grid.shape), np.float32)
+        e = _as_vector(volume, self.n_voxels, "volume", "n_voxels").reshape(self.grid.shape)
         t = self._t
         tmp = _k.contract_x(e, t["xs"], t["xc"], t["xw"], self._buffer())
         if out is None:
@@ -238,14 +233,11 @@ class LatticeProjector:
 
     def back(self, image, *, out=None) -> np.ndarray:
         """``r = Wᵀ·I`` for I of n_pixels values; float32 (n_voxels,)."""
-        y = np.asarray(image)
-        if y.size != self.n_pixels:
-            raise ReconstructionError(f"image has {y.size} values; the projector expects "
-                                      f"n_pixels = {self.n_pixels}")
+        y = _as_vector(image, self.n_pixels, "image", "n_pixels")
         t = self._t
         n_rows, n_cols = t["ys"].shape[1], t["xs"].shape[1]
         dense = np.zeros((n_rows, n_cols), np.float32)
-        dense[self._ray_row, self._ray_col] = y.reshape(-1).astype(np.float32) * self._scale
+        dense[self._ray_row, self._ray_col] = y * self._scale
         used = self._row_used & dense.any(axis=1)
         tmp = _k.spread_y(dense, used, t["t_ptr"], t["t_row"], t["t_w"], self._buffer())
         vol = _k.spread_x(tmp, t["xs"], t["xc"], t["xw"],
@@ -254,18 +246,6 @@ class LatticeProjector:
             return vol.reshape(-1)
         out[:] = vol.reshape(-1)
         return out
-
-    def row_sums(self) -> np.ndarray:
-        """``sum_j w_ij`` per ray (float32); computed once and cached."""
-        if self._row_sums is None:
-            self._row_sums = self.forward(np.ones(self.n_voxels, np.float32))
-        return self._row_sums
-
-    def column_sums(self) -> np.ndarray:
-        """``sum_i w_ij`` per voxel (float32); computed once and cached."""
-        if self._column_sums is None:
-            self._column_sums = self.back(np.ones(self.n_pixels, np.float32))
-        return self._column_sums
 
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per ray (float32)."""

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
+from plenopiv.camera import CameraModel
 from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.corrections import DepthCorrection
 from plenopiv.errors import ReconstructionError
@@ -118,19 +119,24 @@ def load_volume(path: str | Path) -> VolumeResult:
     return VolumeResult(vol, grid, corr, pos_e, pos, inten, size)
 
 
-def resolution_cell(calibration: Calibration, f_number: float | None = None
-                    ) -> tuple[float, float]:
-    """Lateral and depth resolution of the calibrated camera at its focal plane, metres.
+def footprint(camera: CameraModel) -> float:
+    """Lenslet footprint on the nominal focal plane, p_m S_o/S_i, metres."""
+    return camera.microlens_array.pitch * camera.object_distance / camera.image_distance
 
-    Lateral: one lenslet footprint b = p_m S_o/S_i. Depth: the two edge views of the
-    aperture (diameter D) see a particle at depth Z shifted by D Z/S_o against each other,
-    so depths a footprint of shift apart are told apart: ΔZ = b S_o/D. Effective
-    (air-equivalent) distances.
+
+def resolution_cell(camera: CameraModel, f_number: float | None = None) -> tuple[float, float]:
+    """Lateral and depth resolution of the camera near the focal plane, metres.
+
+    Lateral: one lenslet footprint b = p_m S_o/S_i. Depth: the views at the two edges of the
+    aperture (diameter D = f_m/N) see a particle at depth Z displaced by D Z/S_o relative to
+    each other, so two depths are told apart when that shift changes by one footprint:
+    ΔZ = b S_o/D (0.55 mm for the 50 mm lens at M = -1, f/2.2). The ratio ΔZ/b = S_o/D is the
+    depth elongation expected of a reconstructed particle. Give the effective camera
+    (``calibration.effective_camera``) for effective coordinates.
     """
-    cam = calibration.effective_camera
-    n = cam.main_lens.f_number if f_number is None else f_number
-    b = cam.microlens_array.pitch * cam.object_distance / cam.image_distance
-    return b, b * cam.object_distance * n / cam.main_lens.focal_length
+    n = camera.main_lens.f_number if f_number is None else f_number
+    b = footprint(camera)
+    return b, b * camera.object_distance * n / camera.main_lens.focal_length
 
 
 def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration: Calibration,
@@ -149,7 +155,7 @@ def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration:
     else:
         pos = v[v > 0]
         ref = float(np.percentile(pos, 99.9)) if pos.size else 0.0
-    lat, dep = resolution_cell(calibration, f_number)
+    lat, dep = resolution_cell(calibration.effective_camera, f_number)
     vx, vy, vz = (float(a) for a in grid.voxel)
     sep = particles.min_separation_vox
     if sep is None:

@@ -24,6 +24,7 @@ column sums).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
@@ -34,7 +35,7 @@ import numpy as np
 from plenopiv import _projector_kernels as _k
 from plenopiv.errors import ReconstructionError
 
-__all__ = ["Projector", "RowAccessProjector", "RowSchedule", "SparseProjector"]
+__all__ = ["CachedSums", "Projector", "RowAccessProjector", "RowSchedule", "SparseProjector"]
 
 
 @runtime_checkable
@@ -150,7 +151,28 @@ class RowSchedule:
         return int(sum(a.nbytes for a in arrays if a is not None))
 
 
-class SparseProjector:
+class CachedSums:
+    """``row_sums`` and ``column_sums`` of a projector from its ``forward`` and ``back``,
+    each computed on first use (a projector is immutable; its row views are new objects)."""
+
+    @functools.cached_property
+    def _row_sums(self) -> np.ndarray:
+        return self.forward(np.ones(self.n_voxels, np.float32))
+
+    @functools.cached_property
+    def _column_sums(self) -> np.ndarray:
+        return self.back(np.ones(self.n_pixels, np.float32))
+
+    def row_sums(self) -> np.ndarray:
+        """``sum_j w_ij`` per pixel (float32, shape (n_pixels,)); computed once and cached."""
+        return self._row_sums
+
+    def column_sums(self) -> np.ndarray:
+        """``sum_i w_ij`` per voxel (float32, shape (n_voxels,)); computed once and cached."""
+        return self._column_sums
+
+
+class SparseProjector(CachedSums):
     """W as an explicit CSR matrix: rows = pixels, columns = voxels.
 
     Parameters
@@ -244,8 +266,6 @@ class SparseProjector:
         self._indices = np.ascontiguousarray(indices, dtype=np.int32)
         self._data = np.ascontiguousarray(data, dtype=np.float32)
         self._n_voxels = n_voxels
-        self._row_sums: np.ndarray | None = None
-        self._column_sums: np.ndarray | None = None
         self._transpose = bool(transpose)
         self._transposed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._scratch: np.ndarray | None = None
@@ -392,18 +412,6 @@ class SparseProjector:
         take = np.repeat(rows, np.diff(self._indptr))
         return SparseProjector(indptr, self._indices[take], self._data[take],
                                n_voxels=self.n_voxels, check=False)
-
-    def row_sums(self) -> np.ndarray:
-        """``sum_j w_ij`` per pixel (float32, shape (n_pixels,)); computed once and cached."""
-        if self._row_sums is None:
-            self._row_sums = self.forward(np.ones(self.n_voxels, np.float32))
-        return self._row_sums
-
-    def column_sums(self) -> np.ndarray:
-        """``sum_i w_ij`` per voxel (float32, shape (n_voxels,)); computed once and cached."""
-        if self._column_sums is None:
-            self._column_sums = self.back(np.ones(self.n_pixels, np.float32))
-        return self._column_sums
 
     # -- row schedules -------------------------------------------------------------------
     def row_schedule(self, *, chunk_rows: int = 16) -> RowSchedule:

@@ -105,11 +105,16 @@ class Weights:
         return img.reshape(shape)
 
 
-def _lf_arrays(lf: LightField):
+def _kernel_args(lf: LightField, grid: VolumeGrid, min_weight: float, step: int = 1) -> tuple:
+    """Arguments of the weight kernels for every ``step``-th ray of ``lf``."""
     xf = lf.focal_plane_position
-    return (np.ascontiguousarray(lf.u[:, 0]), np.ascontiguousarray(lf.u[:, 1]),
-            np.ascontiguousarray(xf[:, 0]), np.ascontiguousarray(xf[:, 1]),
-            np.ascontiguousarray(lf.lit, dtype=np.float64))
+    rays = tuple(np.ascontiguousarray(a[::step]) for a in (lf.u[:, 0], lf.u[:, 1], xf[:, 0],
+                                                            xf[:, 1]))
+    lit = np.ascontiguousarray(lf.lit[::step], dtype=np.float64)
+    area = math.pi * lf.aperture_radius ** 2
+    return (*rays, lit, lf.object_distance, lf.cell, lf.footprint, area,
+            np.ascontiguousarray(grid.z, dtype=np.float64), grid.origin[0], grid.origin[1],
+            grid.voxel[0], grid.voxel[1], grid.shape[2], grid.shape[1], float(min_weight))
 
 
 def check_grid_in_view(lf: LightField, grid: VolumeGrid) -> None:
@@ -138,15 +143,7 @@ def build_weights(lf: LightField, grid: VolumeGrid, *, min_weight: float = 1e-7,
         Weights at or below this (dimensionless fraction of a particle's light) are dropped.
     """
     check_grid_in_view(lf, grid)
-    ux, uy, xfx, xfy, lit = _lf_arrays(lf)
-    a, b = lf.cell, lf.footprint
-    area = math.pi * lf.aperture_radius ** 2
-    zs = np.ascontiguousarray(grid.z, dtype=np.float64)
-    ox, oy = grid.origin[0], grid.origin[1]
-    vx, vy = grid.voxel[0], grid.voxel[1]
-    nz, ny, nx = grid.shape
-    args = (ux, uy, xfx, xfy, lit, lf.object_distance, a, b, area, zs, ox, oy, vx, vy, nx, ny,
-            float(min_weight))
+    args = _kernel_args(lf, grid, min_weight)
     counts = K.count_nnz(*args)
     indptr = np.zeros(len(counts) + 1, np.int64)
     np.cumsum(counts, out=indptr[1:])
@@ -220,12 +217,7 @@ def estimate_nnz(lf: LightField, grid: VolumeGrid, *, min_weight: float = 1e-7,
                  sample: int = 101) -> int:
     """Non-zeros of the explicit W, counted on every ``sample``-th ray and scaled up."""
     check_grid_in_view(lf, grid)
-    ux, uy, xfx, xfy, lit = (np.ascontiguousarray(a[::sample]) for a in _lf_arrays(lf))
-    area = math.pi * lf.aperture_radius ** 2
-    counts = K.count_nnz(ux, uy, xfx, xfy, lit, lf.object_distance, lf.cell, lf.footprint, area,
-                         np.ascontiguousarray(grid.z, dtype=np.float64), grid.origin[0],
-                         grid.origin[1], grid.voxel[0], grid.voxel[1], grid.shape[2],
-                         grid.shape[1], float(min_weight))
+    counts = K.count_nnz(*_kernel_args(lf, grid, min_weight, sample))
     return int(counts.sum() * lf.n_rays / max(len(counts), 1))
 
 

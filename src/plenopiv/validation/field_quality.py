@@ -40,7 +40,13 @@ from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.conventions import world_to_voxel
 from plenopiv.errors import ReconstructionError
 from plenopiv.io import atomic_path
-from plenopiv.pipeline import VolumeResult, gaussian_truth_volume, reconstruct_volume
+from plenopiv.pipeline import (
+    VolumeResult,
+    footprint,
+    gaussian_truth_volume,
+    reconstruct_volume,
+    resolution_cell,
+)
 from plenopiv.synthetic.images import finish_image, particle_image
 from plenopiv.synthetic.seeding import SeedingBox, random_particles
 from plenopiv.volume import VolumeGrid
@@ -89,25 +95,6 @@ def study_camera(rows: int = 61, cols: int = 91, *, preset: str = "auburn_50mm")
                     int(math.ceil(cols * spot_pitch_px)) + 6, base.sensor.pixel_pitch)
     return base.replace(sensor=sensor, microlens_array=mla,
                         name=f"{base.name}, {rows} x {cols}-lenslet patch, no substrate")
-
-
-def footprint(camera: CameraModel) -> float:
-    """Lenslet footprint on the nominal focal plane, p_m S_o/S_i, metres."""
-    return camera.microlens_array.pitch * camera.object_distance / camera.image_distance
-
-
-def resolution_cell(camera: CameraModel, f_number: float | None = None) -> tuple[float, float]:
-    """Lateral and depth resolution of the camera near the focal plane, metres.
-
-    Lateral: one lenslet footprint b = p_m S_o/S_i. Depth: the views at the two edges of the
-    aperture (diameter D = f_m/N) see a particle at depth Z displaced by D Z/S_o relative to
-    each other, so two depths are told apart when that shift changes by one footprint:
-    ΔZ = b S_o/D (0.55 mm for the 50 mm lens at M = -1, f/2.2). The ratio ΔZ/b = S_o/D is the
-    depth elongation expected of a reconstructed particle.
-    """
-    n = camera.main_lens.f_number if f_number is None else f_number
-    b = footprint(camera)
-    return b, b * camera.object_distance * n / camera.main_lens.focal_length
 
 
 def study_grid(camera: CameraModel, *, depth: float = GRID_DEPTH,
