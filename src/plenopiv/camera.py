@@ -446,6 +446,27 @@ class CameraModel:
         """Return a copy with whole sections replaced (``sensor=..., main_lens=...``)."""
         return dataclasses.replace(self, **sections)
 
+    def patch(self, rows: int, cols: int, *, substrate: bool = True,
+              margin_px: int = 3) -> CameraModel:
+        """Return the central ``rows`` × ``cols``-lenslet patch of this camera.
+
+        The optics, pixel pitch and f-number are kept; the sensor is cut to the patch's
+        micro-images (pitch × (1 + f̄/S_i) each, in pixels) plus ``margin_px`` pixels a side,
+        so small test cameras keep the full camera's geometry. Odd counts put a lenslet on the
+        axis. ``substrate=False`` also removes the plate in front of the lenslets.
+        """
+        if rows < 1 or cols < 1:
+            raise ConfigError(f"patch of {rows} x {cols} lenslets: expected at least 1 x 1")
+        mla = dataclasses.replace(self.microlens_array, rows=int(rows), cols=int(cols),
+                                  **({} if substrate else {"substrate": None}))
+        spot_pitch_px = self.pitch_px * (1 + mla.sensor_distance / self.image_distance)
+        sensor = dataclasses.replace(
+            self.sensor, rows=int(math.ceil(rows * spot_pitch_px)) + 2 * margin_px,
+            cols=int(math.ceil(cols * spot_pitch_px)) + 2 * margin_px)
+        plate = "" if substrate or self.microlens_array.substrate is None else ", no substrate"
+        return self.replace(sensor=sensor, microlens_array=mla,
+                            name=f"{self.name}, {rows} x {cols}-lenslet patch{plate}")
+
     def with_image_distance(self, image_distance: float) -> CameraModel:
         """Return a copy with another effective image distance S_i,eff (metres)."""
         return self.replace(main_lens=dataclasses.replace(self.main_lens,

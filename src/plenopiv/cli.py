@@ -320,8 +320,11 @@ def cmd_validate(args) -> dict:
         from plenopiv.validation.vortex import VortexCase, run_case
 
         s = run_case(VortexCase(flow=case, camera=args.camera, seed=args.seed,
-                                particles_per_lenslet=args.particles_per_lenslet), args.out)
+                                particles_per_lenslet=args.particles_per_lenslet,
+                                lenslets=None if args.lenslets is None else tuple(args.lenslets),
+                                lateral_oversampling=args.lateral_oversampling), args.out)
         out = {"errors": s["errors"], "n_particles": s["n_particles"],
+               "grid_shape": s["grid_shape"], "voxel_mm": s["voxel_mm"],
                "timings_s": s["timings_s"], "products": s["products"]}
     elif case == "calibration":
         from plenopiv.validation.calibration_study import run
@@ -335,6 +338,10 @@ def cmd_validate(args) -> dict:
         from plenopiv.validation.depth_study import run
 
         out = run(args.out)
+    elif case == "vortex":
+        from plenopiv.validation.vortex_study import run
+
+        out = run(args.out, progress=lambda _msg: None)
     elif case == "fields":
         from plenopiv.validation.field_quality import run
 
@@ -503,14 +510,19 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(func=cmd_run)
 
     val = sub.add_parser("validate", help="validation studies (thesis figures, vortex flows)")
-    val.add_argument("case", choices=("oseen", "hill", "calibration", "depth", "fields",
-                                      "letters"),
-                     help="oseen/hill: whole chain on a vortex; calibration: Figs 3.8, 3.9, "
-                          "5.5; depth: Tables 5.1, 5.2; fields: particle-field quality; "
-                          "letters: light field on the real plenoptomos image")
+    val.add_argument("case", choices=("oseen", "hill", "vortex", "calibration", "depth",
+                                      "fields", "letters"),
+                     help="oseen/hill: whole chain on a vortex; vortex: both against flow "
+                          "size and voxel; calibration: Figs 3.8, 3.9, 5.5; depth: Tables "
+                          "5.1, 5.2; fields: particle-field quality; letters: light field on "
+                          "the real plenoptomos image")
     val.add_argument("--out", required=True, help="output folder")
     val.add_argument("--camera", default="small_m1", help="camera for oseen/hill")
     val.add_argument("--particles-per-lenslet", type=float, default=0.15)
+    val.add_argument("--lenslets", type=int, nargs=2, metavar=("ROWS", "COLS"),
+                     help="oseen/hill: run on the central ROWS x COLS lenslets of the camera")
+    val.add_argument("--lateral-oversampling", type=int, default=1, metavar="K",
+                     help="oseen/hill: lateral voxels per lenslet footprint (default 1)")
     val.add_argument("--seed", type=int, default=1)
     _add_common(val)
     val.set_defaults(func=cmd_validate)

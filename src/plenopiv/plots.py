@@ -19,6 +19,7 @@ def _figure(*args, **kw):
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 
+    kw.setdefault("layout", "constrained")
     return plt, plt.figure(*args, **kw)
 
 
@@ -132,7 +133,7 @@ def volume_slices(volume, x, y, z, path, *, particles=None, title="") -> Path:
     return _save(plt, fig, path)
 
 
-def vector_slices(vectors, path, *, truth=None, title="") -> Path:
+def vector_slices(vectors, path, *, title="") -> Path:
     """In-plane vectors on the x-y plane nearest Z = 0 and the x-z plane through the middle,
     coloured by the out-of-plane component (metres or m/s as stored)."""
     plt, fig = _figure(figsize=(13, 5.5))
@@ -164,4 +165,44 @@ def vector_slices(vectors, path, *, truth=None, title="") -> Path:
     ax.invert_yaxis()
     if title:
         fig.suptitle(title)
+    return _save(plt, fig, path)
+
+
+def vector_comparison(x, y, z, measured, truth, valid, path, *, voxel, title="") -> Path:
+    """Measured against true displacement on the x-z plane through the middle of the volume.
+
+    ``x, y, z``: window-centre coordinates, metres; ``measured``, ``truth``: displacement
+    fields of shape (3, nz, ny, nx) in voxels (u, v, w); ``valid``: (nz, ny, nx) mask;
+    ``voxel``: (dx, dy, dz), metres, for the axis labels. Rows: true, measured, error;
+    columns: u (lateral) and w (depth), each with the in-plane vectors drawn on top.
+    """
+    plt, fig = _figure(figsize=(11, 11))
+    x, z = np.asarray(x) * 1e3, np.asarray(z) * 1e3
+    iy = len(y) // 2
+    ok = np.asarray(valid, bool)[:, iy]
+    err = np.where(ok, measured[:, :, iy] - truth[:, :, iy], np.nan)
+    rows = (("true", truth[:, :, iy]), ("measured", np.where(ok, measured[:, :, iy], np.nan)),
+            ("measured - true", err))
+    X, Z = np.meshgrid(x, z, indexing="xy")
+    for r, (name, f) in enumerate(rows):
+        for c, (comp, label) in enumerate(((0, "u"), (2, "w"))):
+            ax = fig.add_subplot(3, 2, 2 * r + c + 1)
+            if r < 2:
+                lim = np.nanmax(np.abs(truth[comp])) or 1.0
+            else:
+                lim = max(np.nanmax(np.abs(err[comp])) if np.isfinite(err[comp]).any()
+                          else 0.0, 0.1)
+            m = ax.pcolormesh(X, Z, f[comp], cmap="coolwarm", vmin=-lim, vmax=lim,
+                              shading="nearest")
+            fig.colorbar(m, ax=ax, label=f"{label} (voxels)")
+            if r < 2:
+                ax.quiver(X, Z, np.nan_to_num(f[0]), np.nan_to_num(f[2]), angles="xy",
+                          color="k", width=0.003)
+            ax.set_title(f"{name} {label} at Y = {y[iy] * 1e3:.2f} mm")
+            ax.set_xlabel("X (mm)")
+            ax.set_ylabel("Z (mm), + away from camera")
+            ax.invert_yaxis()
+    if title:
+        fig.suptitle(f"{title}\nvoxel {voxel[0] * 1e3:.3f} x {voxel[1] * 1e3:.3f} x "
+                     f"{voxel[2] * 1e3:.3f} mm")
     return _save(plt, fig, path)

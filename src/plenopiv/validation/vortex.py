@@ -25,8 +25,9 @@ from plenopiv.config import (
     ReconstructionSettings,
 )
 from plenopiv.io import atomic_path
-from plenopiv.pipeline import process_pair, save_pair
-from plenopiv.synthetic.flows import HillVortex, LambOseen, advect
+from plenopiv.plots import vector_comparison
+from plenopiv.pipeline import footprint, process_pair, save_pair
+from plenopiv.synthetic.flows import HillVortex, LambOseen, Uniform, advect
 from plenopiv.synthetic.images import (
     Ruler,
     alignment_image,
@@ -39,19 +40,30 @@ from plenopiv.synthetic.seeding import SeedingBox, particle_count, simulate_pair
 from plenopiv.volume import VolumeGrid
 
 
+#: The flows a case can run.
+FLOWS = ("oseen", "hill", "uniform")
+
+
 @dataclass(frozen=True)
 class VortexCase:
     """One synthetic case. Lengths in metres, seconds for dt.
 
     Attributes
     ----------
-    flow : {"oseen", "hill"}
+    flow : {"oseen", "hill", "uniform"} ("uniform": every particle moves by
+        ``max_displacement`` along x, for the sub-voxel response)
     camera : preset name or path
     particles_per_lenslet : seeding density
     depth : half depth of the seeded and reconstructed volume, metres
     max_displacement : largest particle displacement, metres
     lateral_fill : fraction of the field of view seeded and reconstructed
-    voxel_depth_factor : depth voxel / lateral voxel
+    voxel_depth_factor : depth voxel / lenslet footprint
+    lenslets : (rows, cols) to run on the central patch of the camera (None: all of it)
+    lateral_oversampling : lateral voxels per lenslet footprint (1: the footprint grid of the
+        thesis; 2 halves the voxel, which removes most of the peak locking of footprint
+        voxels, see docs/validation/vortex.md)
+    windows : interrogation windows per pass (z, y, x) in voxels of the footprint grid; the
+        lateral edges are multiplied by ``lateral_oversampling``
     """
 
     flow: str = "oseen"
@@ -67,6 +79,27 @@ class VortexCase:
     calibrate: bool = True
     seed: int = 1
     windows: tuple = ((16, 16, 16), (12, 12, 12))
+    lenslets: tuple[int, int] | None = None
+    lateral_oversampling: int = 1
+
+    def __post_init__(self):
+        if self.flow not in FLOWS:
+            raise ValueError(f"flow = {self.flow!r}: expected one of {FLOWS}")
+        k = self.lateral_oversampling
+        if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
+            raise ValueError(f"lateral_oversampling = {k!r}: expected an int >= 1")
+
+    @property
+    def windows_vox(self) -> tuple:
+        """The windows in voxels of this case's grid."""
+        k = self.lateral_oversampling
+        return tuple((wz, wy * k, wx * k) for wz, wy, wx in self.windows)
+
+
+def case_camera(case: VortexCase) -> CameraModel:
+    """The true camera of a case: the preset, or its central ``case.lenslets`` patch."""
+    cam = load_camera(case.camera)
+    return cam if case.lenslets is None else cam.patch(*case.lenslets)
 
 
 def _flow(case: VortexCase, box: SeedingBox):
@@ -79,13 +112,15 @@ def _flow(case: VortexCase, box: SeedingBox):
     if case.flow == "hill":
         return HillVortex(radius=0.8 * min(half_y, case.depth), speed=vmax / 1.5,
                           axis=(1.0, 0.0, 0.0))
-    raise ValueError(f"flow = {case.flow!r}: expected 'oseen' or 'hill'")
+    if case.flow == "uniform":
+        return Uniform((vmax, 0.0, 0.0))
+    raise ValueError(f"flow = {case.flow!r}: expected one of {FLOWS}")
 
 
 def aligned_grid(camera: CameraModel, case: VortexCase) -> VolumeGrid:
     """A grid whose lateral voxels are the lenslet footprints on the focal plane (centred on
     them), in effective coordinates."""
-    b = camera.microlens_array.pitch * camera.object_distance / camera.image_distance
+    b = footprint(camera)
     hx, hy = field_of_view(camera, 0.0)
     nx = int(case.lateral_fill * hx / b)
     ny = int(case.lateral_fill * hy / b)
@@ -94,23 +129,41 @@ def aligned_grid(camera: CameraModel, case: VortexCase) -> VolumeGrid:
     if camera.external_interface is not None:
         eff_depth *= camera.external_interface.depth_ratio
     nz = int(np.ceil(eff_depth / dz))
+    lat = b / case.lateral_oversampling
     return VolumeGrid.from_bounds(((-nx - 0.5) * b, (nx + 0.5) * b), ((-ny - 0.5) * b,
                                   (ny + 0.5) * b), (-(nz + 0.5) * dz, (nz + 0.5) * dz),
-                                  voxel=(b, b, dz))
+                                  voxel=(lat, lat, dz))
 
 
-def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox) -> dict:
+def true_displacement(vectors, flow, dt) -> np.ndarray:
+    """The flow's displacement at the window centres, (3, nz, ny, nx), metres.
+
+    PIV measures the displacement of the particles around a window centre between the
+    exposures, i.e. of the material point that sits at the centre half-way between them.
+    """
+    Z, Y, X = np.meshgrid(vectors.z, vectors.y, vectors.x, indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    d = advect(flow, pts, dt / 2) - advect(flow, pts, -dt / 2)
+    return d.T.reshape((3,) + X.shape)
+
+
+def _rms_bias(err: np.ndarray) -> dict:
+    if not len(err):
+        return {"n_vectors": 0, "bias_vox": [np.nan] * 3, "rms_vox": [np.nan] * 3}
+    return {"n_vectors": int(len(err)), "bias_vox": err.mean(axis=0).tolist(),
+            "rms_vox": np.sqrt((err ** 2).mean(axis=0)).tolist()}
+
+
+def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
+                       depth_bands: int = 3) -> dict:
     """Error of the measured field against the flow's displacement at the window centres.
 
     Returns bias and rms per component in voxels (lateral voxel for u, v; depth voxel for w),
-    over valid vectors at least half a window inside the volume.
+    over valid vectors at least half a window inside the volume; and the same in
+    ``depth_bands`` bands of |Z| (distance from the focal plane), the first one nearest focus.
     """
-    x, y, z = vectors.x, vectors.y, vectors.z
-    Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
-    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
-    # PIV measures the displacement of the particles around the window centre between the
-    # exposures, i.e. of the material point that sits at the centre half-way between them
-    truth = advect(flow, pts, dt / 2) - advect(flow, pts, -dt / 2)
+    Z, Y, X = np.meshgrid(vectors.z, vectors.y, vectors.x, indexing="ij")
+    truth = true_displacement(vectors, flow, dt).reshape(3, -1).T
     meas = np.stack([vectors.u.ravel(), vectors.v.ravel(), vectors.w.ravel()], axis=1)
     b = grid.bounds
     wz, wy, wx = window_vox
@@ -120,10 +173,16 @@ def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox) -> dict:
     ok = np.asarray(vectors.valid).ravel() & inner
     vox = np.array([grid.voxel[0], grid.voxel[1], grid.voxel[2]])
     err = (meas[ok] - truth[ok]) / vox
-    return {"n_vectors": int(ok.sum()), "valid_fraction": float(np.mean(vectors.valid)),
-            "bias_vox": err.mean(axis=0).tolist() if len(err) else [np.nan] * 3,
-            "rms_vox": np.sqrt((err ** 2).mean(axis=0)).tolist() if len(err) else [np.nan] * 3,
-            "true_max_displacement_vox": (np.abs(truth) / vox).max(axis=0).tolist()}
+    out = {**_rms_bias(err), "valid_fraction": float(np.mean(vectors.valid)),
+           "true_max_displacement_vox": (np.abs(truth) / vox).max(axis=0).tolist()}
+    z_abs = np.abs(Z.ravel()[ok])
+    edges = np.linspace(0.0, z_abs.max() if len(z_abs) else 0.0, depth_bands + 1)
+    edges[-1] = np.inf
+    out["by_depth"] = [{"abs_z_mm": [float(lo * 1e3), float(min(hi, z_abs.max()) * 1e3)],
+                        **_rms_bias(err[(z_abs >= lo) & (z_abs < hi)])}
+                       for lo, hi in zip(edges[:-1], edges[1:], strict=True)] if len(
+                           z_abs) else []
+    return out
 
 
 def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
@@ -132,7 +191,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     rng = np.random.default_rng(case.seed)
-    truth_cam = load_camera(case.camera)
+    truth_cam = case_camera(case)
     timings = {}
 
     # calibration images and calibration (or the exact model calibration)
@@ -176,7 +235,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
 
     exp = Experiment(camera=cal.camera, volume=grid,
                      reconstruction=ReconstructionSettings(),
-                     piv=PIVConfig(windows=list(case.windows), overlap=0.5, passes=3),
+                     piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5, passes=3),
                      images=ImagesConfig(dt_s=case.dt),
                      output=OutputConfig(directory=str(out), weights_cache=""),
                      base_dir=out)
@@ -189,7 +248,13 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
 
     # comparison with the truth: displacement (the saved field holds velocity when dt is set)
     disp = replace(res.vectors, dt=None)
-    err = compare_with_truth(disp, flow, case.dt, grid, case.windows[-1])
+    err = compare_with_truth(disp, flow, case.dt, grid, case.windows_vox[-1])
+    vox = np.asarray(grid.voxel)[:, None, None, None]
+    measured = np.stack([disp.u, disp.v, disp.w]) / vox
+    truth = true_displacement(disp, flow, case.dt) / vox
+    paths["png_truth"] = str(vector_comparison(
+        disp.x, disp.y, disp.z, measured, truth, disp.valid, out / "pair_vs_truth.png",
+        voxel=grid.voxel, title=f"{case.flow}: measured against true displacement"))
     found = len(res.volume_a.particle_position)
     summary = {"case": case.__dict__, "n_particles": n, "n_found_a": found,
                "calibration": cal_summary, "grid_shape": list(grid.shape),
