@@ -163,3 +163,20 @@ def test_camera_model_is_frozen():
     assert isinstance(cam.replace(name="y"), CameraModel)
     with pytest.raises(ConfigError, match="thickness"):
         Substrate(0.0, 1.5)
+
+
+def test_patch_keeps_the_optics_and_cuts_the_sensor_to_the_micro_images():
+    from plenopiv.camera import load_camera
+
+    full = load_camera("auburn_50mm")
+    p = full.patch(11, 21)
+    assert (p.microlens_array.rows, p.microlens_array.cols) == (11, 21)
+    assert p.main_lens == full.main_lens and p.sensor.pixel_pitch == full.sensor.pixel_pitch
+    assert p.microlens_array.substrate == full.microlens_array.substrate
+    # micro-image pitch on the sensor: p_m (1 + f/S_i) = 125 µm · 1.005 = 16.98 px of 7.4 µm
+    spot_px = 125e-6 * (1 + 500e-6 / 100e-3) / 7.4e-6
+    assert p.sensor.cols == math.ceil(21 * spot_px) + 6
+    assert p.sensor.rows == math.ceil(11 * spot_px) + 6
+    assert full.patch(11, 21, substrate=False).microlens_array.substrate is None
+    with pytest.raises(ConfigError, match="patch"):
+        full.patch(0, 3)

@@ -25,8 +25,8 @@ from plenopiv.config import (
     ReconstructionSettings,
 )
 from plenopiv.io import atomic_path
-from plenopiv.plots import vector_comparison
 from plenopiv.pipeline import footprint, process_pair, save_pair
+from plenopiv.plots import vector_comparison
 from plenopiv.synthetic.flows import HillVortex, LambOseen, Uniform, advect
 from plenopiv.synthetic.images import (
     Ruler,
@@ -38,7 +38,6 @@ from plenopiv.synthetic.images import (
 )
 from plenopiv.synthetic.seeding import SeedingBox, particle_count, simulate_pair
 from plenopiv.volume import VolumeGrid
-
 
 #: The flows a case can run.
 FLOWS = ("oseen", "hill", "uniform")
