@@ -20,7 +20,7 @@ if __name__ == "__main__":
     a = ap.parse_args()
     if a.quick:
         summary = run(a.out, work=a.work, seed=a.seed, scales=SCALES[:1],
-                      shifts=(1.0, 1.25, 1.5), oversampled=None)
+                      shifts=(1.0, 1.25, 1.5), oversampled=())
     else:
         summary = run(a.out, work=a.work, seed=a.seed)
     print(json.dumps(summary))
