@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -35,18 +34,14 @@ def auburn_camera():
 def shared_data_path(*parts) -> Path:
     """A file or folder of the third-party data ../shared/data.
 
-    The data are never copied into the repository. Where the folder is absent (a user's own
-    clone) these tests are skipped with a message that says so; under CI (``CI=true``, where
-    the folder sits beside the clone) its absence is an error, and so, always, is a missing
-    file in a folder that is present: the tests' known answers would go unchecked.
+    The data are never copied into the repository. Their known answers (spot centres, the
+    real camera's lattice) are what these tests check, so a missing folder or file is a
+    failure that names the path and what is expected there, never a silent skip.
     """
-    path = SHARED_DATA.joinpath(*parts)
     if not SHARED_DATA.is_dir():
-        msg = (f"third-party data folder {SHARED_DATA} not found; these tests need the "
-               "project's shared/ folder beside the repository (see shared/data/README.md)")
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+        pytest.fail(f"third-party data folder {SHARED_DATA} not found; these tests need the "
+                    "project's shared/ folder beside the repository (see shared/data/README.md)")
+    path = SHARED_DATA.joinpath(*parts)
     if not path.exists():
         pytest.fail(f"third-party file {path} not found in {SHARED_DATA}: the data folder is "
                     "incomplete")
@@ -55,5 +50,5 @@ def shared_data_path(*parts) -> Path:
 
 @pytest.fixture(scope="session")
 def shared_data():
-    """The third-party data folder ../shared/data, or a clear skip when it is absent."""
+    """The third-party data folder ../shared/data; a clear failure when it is absent."""
     return shared_data_path()

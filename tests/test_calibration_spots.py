@@ -2,7 +2,7 @@
 
 Synthetic images are rendered here with NumPy (pixel-integrated Gaussian spots on a known
 lattice), so every centre is known exactly. Third-party reference images are read from
-``<repo>/../shared/data`` (tests marked ``data``) and skipped when that folder is absent.
+``<repo>/../shared/data`` (tests marked ``data``) and fail, naming the path, when that folder is absent.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Light field on real data (the plenoptomos letters image) and on ray-traced particles.
 
-The real-data tests read ``../shared/data/plenoptomos_letters_ULF`` and skip when it is absent.
+The real-data tests read ``../shared/data/plenoptomos_letters_ULF`` and fail, naming the path, when it is absent.
 The synthetic tests check what the real-data tests cannot: that the focus sweep and the
 parallax return a known depth.
 """

@@ -423,9 +423,10 @@ def test_bad_volumes_raise_piv_errors(small_pair):
 
 
 def test_accepts_the_project_volume_grid(small_pair):
-    volume = pytest.importorskip("plenopiv.volume")
+    from plenopiv.volume import VolumeGrid
+
     a, b = small_pair
-    grid = volume.VolumeGrid(origin=(1e-3, 2e-3, 3e-3), voxel=(1e-4, 2e-4, 3e-4), shape=a.shape)
+    grid = VolumeGrid(origin=(1e-3, 2e-3, 3e-3), voxel=(1e-4, 2e-4, 3e-4), shape=a.shape)
     s = PIVSettings(windows=16, passes=2)
     field = correlate_volumes(a, b, grid, settings=s)
     in_voxels = correlate_volumes(a, b, unit_grid(), settings=s)
