@@ -62,3 +62,25 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
             tmp.write_bytes(b"half")
             raise RuntimeError("crash while writing")
     assert not any(tmp_path.iterdir())
+
+
+def test_products_are_checked_for_kind_and_completeness(tmp_path):
+    """A volume file read as a calibration, a truncated or incomplete product: each a clear
+    error naming the file, from the one product reader."""
+    import h5py
+
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.errors import CalibrationError, ReconstructionError
+    from plenopiv.pipeline import load_volume
+
+    with h5py.File(tmp_path / "v.h5", "w") as fh:
+        fh.attrs["product"] = "volume"          # the attribute, none of the datasets
+    with pytest.raises(CalibrationError, match=r"v\.h5.*not a plenopiv calibration file"):
+        Calibration.load(tmp_path / "v.h5")
+    with pytest.raises(ReconstructionError, match=r"volume file .*v\.h5.*corrupt or incomplete"):
+        load_volume(tmp_path / "v.h5")
+    (tmp_path / "t.h5").write_bytes(b"\x89HDF\r\n\x1a\n truncated")
+    with pytest.raises(ReconstructionError, match="corrupt or incomplete"):
+        load_volume(tmp_path / "t.h5")
+    with pytest.raises(ReconstructionError, match="not found"):
+        load_volume(tmp_path / "missing.h5")

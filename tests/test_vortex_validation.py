@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plenopiv.validation.vortex import VortexCase, run_case
+from plenopiv.pipeline import footprint
+from plenopiv.validation.vortex import VortexCase, case_camera, run_case
 
 LATERAL, DEPTH = 0.2, 1.0
 
@@ -71,7 +72,7 @@ def test_footprint_voxels_lock_sub_voxel_shifts_and_half_footprints_do_not(tmp_p
     image, so footprint-sized voxels pull displacements towards whole footprints (peak
     locking); halving the voxel lets the out-of-focus views place the particle.
     """
-    shift = 1.25 * 0.125e-3
+    shift = 1.25 * footprint(case_camera(VortexCase()))     # the CI camera's footprint
     coarse = _errors(tmp_path_factory, flow="uniform", max_displacement=shift)
     fine = _errors(tmp_path_factory, flow="uniform", max_displacement=shift,
                    lateral_oversampling=2)

@@ -110,6 +110,30 @@ def read_image(spec: str | Path) -> np.ndarray:
     return img
 
 
+@contextlib.contextmanager
+def open_product(path: str | Path, product: str, error: type[Exception]) -> Iterator[h5py.File]:
+    """Open a plenopiv HDF5 product for reading, checking that it is one of kind ``product``.
+
+    A missing file, another product, and a read inside the block that fails (``OSError``,
+    ``KeyError``, ``ValueError``: a truncated file, a missing dataset or attribute) all raise
+    ``error`` naming the file; an ``error`` raised inside the block passes unchanged.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise error(f"{product} file {str(p)!r} not found")
+    try:
+        with h5py.File(p, "r") as fh:
+            if fh.attrs.get("product") != product:
+                raise error(f"{str(p)!r} is not a plenopiv {product} file "
+                            f"(product = {fh.attrs.get('product')!r})")
+            yield fh
+    except error:
+        raise
+    except (OSError, KeyError, ValueError) as exc:
+        raise error(f"{product} file {str(p)!r} is corrupt or incomplete: "
+                    f"{type(exc).__name__}: {exc}") from None
+
+
 def _datasets(fh: h5py.File) -> list[str]:
     names: list[str] = []
     fh.visititems(lambda n, o: names.append("/" + n) if isinstance(o, h5py.Dataset) else None)

@@ -90,29 +90,17 @@ class VolumeResult:
 
 def load_volume(path: str | Path) -> VolumeResult:
     """Read a volume product written by :meth:`VolumeResult.save`."""
-    import h5py
+    from plenopiv.io import open_product
 
-    p = Path(path)
-    if not p.exists():
-        raise ReconstructionError(f"volume file {str(p)!r} not found")
-    try:
-        with h5py.File(p, "r") as fh:
-            if fh.attrs.get("product") != "volume":
-                raise ReconstructionError(f"{str(p)!r} is not a plenopiv volume file "
-                                          f"(product = {fh.attrs.get('product')!r})")
-            x, y, ze = fh["/x"][()], fh["/y"][()], fh["/z_effective"][()]
-            vol = fh["/volume"][()]
-            corr = DepthCorrection(float(fh.attrs["depth_correction_external"]),
-                                   float(fh.attrs["depth_correction_internal"]))
-            pos = fh["/particles/position_m"][()]
-            pos_e = fh["/particles/position_effective_m"][()]
-            inten = fh["/particles/intensity"][()]
-            size = fh["/particles/size_m"][()]
-    except ReconstructionError:
-        raise
-    except (OSError, KeyError, ValueError) as exc:
-        raise ReconstructionError(f"volume file {str(p)!r} is corrupt or incomplete: "
-                                  f"{type(exc).__name__}: {exc}") from None
+    with open_product(path, "volume", ReconstructionError) as fh:
+        x, y, ze = fh["/x"][()], fh["/y"][()], fh["/z_effective"][()]
+        vol = fh["/volume"][()]
+        corr = DepthCorrection(float(fh.attrs["depth_correction_external"]),
+                               float(fh.attrs["depth_correction_internal"]))
+        pos = fh["/particles/position_m"][()]
+        pos_e = fh["/particles/position_effective_m"][()]
+        inten = fh["/particles/intensity"][()]
+        size = fh["/particles/size_m"][()]
     step = [a[1] - a[0] if len(a) > 1 else 1.0 for a in (x, y, ze)]
     grid = VolumeGrid((float(x[0]), float(y[0]), float(ze[0])), tuple(float(v) for v in step),
                       vol.shape)

@@ -14,14 +14,13 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from plenopiv import optics
 from plenopiv.camera import CameraModel, camera_from_dict
 from plenopiv.conventions import sensor_to_pixel
 from plenopiv.errors import CalibrationError
-from plenopiv.io import write_h5
+from plenopiv.io import open_product, write_h5
 
 
 @dataclass(frozen=True)
@@ -115,27 +114,15 @@ class Calibration:
     @classmethod
     def load(cls, path: str | Path) -> Calibration:
         """Read a calibration product written by :meth:`save`."""
-        p = Path(path)
-        if not p.exists():
-            raise CalibrationError(f"calibration file {str(p)!r} not found")
-        try:
-            with h5py.File(p, "r") as fh:
-                if fh.attrs.get("product") != "calibration":
-                    raise CalibrationError(f"{str(p)!r} is not a plenopiv calibration file "
-                                           f"(product = {fh.attrs.get('product')!r})")
-                cfg = json.loads(fh.attrs["config"])
-                a = fh.attrs
-                return cls(camera=camera_from_dict(cfg["camera"], source=f"{p}:config"),
-                           centre_px=fh["/lenslets/centre_px"][()],
-                           focal_spot_px=fh["/lenslets/focal_spot_px"][()],
-                           grid_index=fh["/lenslets/grid_index"][()].astype(int),
-                           image_distance=float(a["image_distance_m"]),
-                           method=str(a["method"]), offset=tuple(a["offset_m"]),
-                           rotation=float(a["rotation_rad"]),
-                           rms_residual_px=float(a["rms_residual_px"]),
-                           extra=json.loads(a.get("extra", "{}")))
-        except CalibrationError:
-            raise
-        except (OSError, KeyError, ValueError) as exc:
-            raise CalibrationError(f"calibration file {str(p)!r} is corrupt or incomplete: "
-                                   f"{type(exc).__name__}: {exc}") from None
+        with open_product(path, "calibration", CalibrationError) as fh:
+            cfg = json.loads(fh.attrs["config"])
+            a = fh.attrs
+            return cls(camera=camera_from_dict(cfg["camera"], source=f"{path}:config"),
+                       centre_px=fh["/lenslets/centre_px"][()],
+                       focal_spot_px=fh["/lenslets/focal_spot_px"][()],
+                       grid_index=fh["/lenslets/grid_index"][()].astype(int),
+                       image_distance=float(a["image_distance_m"]),
+                       method=str(a["method"]), offset=tuple(a["offset_m"]),
+                       rotation=float(a["rotation_rad"]),
+                       rms_residual_px=float(a["rms_residual_px"]),
+                       extra=json.loads(a.get("extra", "{}")))

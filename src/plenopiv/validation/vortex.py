@@ -154,15 +154,18 @@ def _rms_bias(err: np.ndarray) -> dict:
 
 
 def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
-                       depth_bands: int = 3) -> dict:
+                       depth_bands: int = 3, truth: np.ndarray | None = None) -> dict:
     """Error of the measured field against the flow's displacement at the window centres.
 
     Returns bias and rms per component in voxels (lateral voxel for u, v; depth voxel for w),
     over valid vectors at least half a window inside the volume; and the same in
     ``depth_bands`` bands of |Z| (distance from the focal plane), the first one nearest focus.
+    ``truth``: :func:`true_displacement` of these vectors when already computed.
     """
     Z, Y, X = np.meshgrid(vectors.z, vectors.y, vectors.x, indexing="ij")
-    truth = true_displacement(vectors, flow, dt).reshape(3, -1).T
+    if truth is None:
+        truth = true_displacement(vectors, flow, dt)
+    truth = truth.reshape(3, -1).T
     meas = np.stack([vectors.u.ravel(), vectors.v.ravel(), vectors.w.ravel()], axis=1)
     b = grid.bounds
     wz, wy, wx = window_vox
@@ -247,12 +250,12 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
 
     # comparison with the truth: displacement (the saved field holds velocity when dt is set)
     disp = replace(res.vectors, dt=None)
-    err = compare_with_truth(disp, flow, case.dt, grid, case.windows_vox[-1])
+    truth = true_displacement(disp, flow, case.dt)
+    err = compare_with_truth(disp, flow, case.dt, grid, case.windows_vox[-1], truth=truth)
     vox = np.asarray(grid.voxel)[:, None, None, None]
     measured = np.stack([disp.u, disp.v, disp.w]) / vox
-    truth = true_displacement(disp, flow, case.dt) / vox
     paths["png_truth"] = str(vector_comparison(
-        disp.x, disp.y, disp.z, measured, truth, disp.valid, out / "pair_vs_truth.png",
+        disp.x, disp.y, disp.z, measured, truth / vox, disp.valid, out / "pair_vs_truth.png",
         voxel=grid.voxel, title=f"{case.flow}: measured against true displacement"))
     found = len(res.volume_a.particle_position)
     summary = {"case": case.__dict__, "n_particles": n, "n_found_a": found,

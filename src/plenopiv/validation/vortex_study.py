@@ -23,12 +23,14 @@ import json
 import re
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from plenopiv.io import atomic_path
-from plenopiv.validation.vortex import VortexCase, run_case
+from plenopiv.pipeline import footprint
+from plenopiv.validation.vortex import VortexCase, case_camera, run_case
 
 #: (label, case keywords) of the scale series: the CI camera, then growing patches.
 SCALES = (
@@ -96,11 +98,10 @@ def run(out: str | Path, *, work: str | Path | None = None, seed: int = 1,
             case = VortexCase(flow=flow, seed=seed, **kw)
             voxel_rows.append(_run(label, case, work, out))
             progress(f"{flow} {label}: rms {np.round(voxel_rows[-1]['rms_vox'], 3)}")
-    b = 0.125e-3                      # the lenslet footprint of the small_m1 camera, metres
     for k in (1, 2):
         for s in shifts:
-            case = VortexCase(flow="uniform", seed=seed, max_displacement=s * b,
-                              lateral_oversampling=k)
+            case = VortexCase(flow="uniform", seed=seed, lateral_oversampling=k)
+            case = replace(case, max_displacement=s * footprint(case_camera(case)))
             row = _run(f"shift {s:g} footprints", case, work, None)
             row["shift_footprints"] = s
             shift_rows.append(row)
