@@ -29,7 +29,15 @@ worker processes, so it must be importable there). It
 A product is complete when :func:`is_complete` says so: it opens as HDF5 and its root
 attribute ``complete`` is true. Only complete products are skipped on resume; a product
 without the mark (a process that died between its writes, or a file from elsewhere) is
-recomputed and replaced. When ``process`` returns but its product is not complete, the job is
+recomputed and replaced.
+
+Resume is keyed on what made each product. A job may carry an ``identity``: a mapping of
+content hashes (``plenopiv run``: the experiment's settings, the calibration file, the two
+images). ``process`` stores it in the product (root attribute ``identity``, JSON;
+``mark_complete(path, identity=job.identity)`` does both). A complete product whose stored
+identity differs from the job's (other settings, another calibration, other images, or
+another pair's product copied over the name) is recomputed, and the summary lists it under
+``recomputed`` with what changed. When ``process`` returns but its product is not complete, the job is
 recorded as failed (a resume would otherwise redo it forever).
 
 An exception raised by ``process`` is deterministic for a given input (a corrupt image, a bad
@@ -60,21 +68,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from plenopiv.errors import ConfigError, PlenopivError
+from plenopiv.errors import EXIT_INTERRUPTED, ConfigError, PlenopivError
 from plenopiv.io import atomic_path, to_json
 
 __all__ = [
     "COMPLETE_ATTR",
     "SUMMARY_NAME",
     "THREAD_ENV_VARS",
+    "IDENTITY_ATTR",
     "BatchError",
+    "BatchInterrupted",
     "BatchSummary",
     "JobResult",
     "PairJob",
     "batch_options",
+    "check_batch_options",
     "discover_pairs",
     "is_complete",
     "mark_complete",
+    "product_identity",
     "run_batch",
     "slurm_cluster_kwargs",
     "thread_env",
@@ -82,6 +94,9 @@ __all__ = [
 
 #: Root attribute of a product that marks it complete (the last thing ``process`` writes).
 COMPLETE_ATTR = "complete"
+#: Root attribute of a product holding the identity (JSON) of the settings and inputs it was
+#: made from.
+IDENTITY_ATTR = "identity"
 #: File name of the batch summary written in the output folder.
 SUMMARY_NAME = "batch_summary.json"
 #: Environment variables that set the thread pools of numba and the BLAS/OpenMP libraries.
@@ -102,6 +117,19 @@ class BatchError(PlenopivError):
     """A batch job broke the contract of :func:`run_batch` (e.g. its product is not complete)."""
 
 
+class BatchInterrupted(PlenopivError):
+    """The batch was stopped by Ctrl-C; its summary was written and a rerun resumes it.
+
+    ``summary`` holds :meth:`BatchSummary.to_dict` of the pairs finished before the stop.
+    """
+
+    exit_status = EXIT_INTERRUPTED
+
+    def __init__(self, message: str, summary: dict):
+        super().__init__(message)
+        self.summary = summary
+
+
 # ---- jobs ----------------------------------------------------------------------------------
 
 
@@ -118,12 +146,16 @@ class PairJob:
         The first and second exposure: an image file (TIFF, PNG) or ``file.h5:/dataset``.
     output : Path
         The product of this pair, an HDF5 file (``.h5``/``.hdf5``).
+    identity : mapping of str to str, optional
+        What makes this pair's product (e.g. hashes of the settings, the calibration and the
+        two images); stored in the product by ``process``, compared on resume.
     """
 
     name: str
     image_a: str
     image_b: str
     output: Path
+    identity: Mapping[str, str] | None = field(default=None, compare=False)
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name.strip() or "/" in self.name \
@@ -141,7 +173,8 @@ class PairJob:
     def to_dict(self) -> dict:
         """Return the job as JSON-friendly values."""
         return {"name": self.name, "image_a": self.image_a, "image_b": self.image_b,
-                "output": str(self.output)}
+                "output": str(self.output),
+                "identity": None if self.identity is None else dict(self.identity)}
 
 
 def _natural_key(s: str):
@@ -319,7 +352,8 @@ def _pair_files(a, b, pattern_a, pattern_b, pair_by) -> list[tuple[Path, Path]]:
         return [(pa, pb) for (_, pa), (_, pb) in zip(a, b, strict=True)]
     if not unique:
         raise ConfigError(f"pair_by='stem': the wildcards of {pattern_a!r} / {pattern_b!r} do "
-                          "not tell the files apart; use pair_by='order'")
+                          "not tell the files apart; use pair_by='order' ([images] pair_by = "
+                          "\"order\" in an experiment file)")
     only_a = [str(keys_a[k]) for k in keys_a.keys() - common]
     only_b = [str(keys_b[k]) for k in keys_b.keys() - common]
     if only_a or only_b:
@@ -333,15 +367,17 @@ def _pair_files(a, b, pattern_a, pattern_b, pair_by) -> list[tuple[Path, Path]]:
         raise ConfigError(f"pattern_a {pattern_a!r} ({len(a)} files) and pattern_b "
                           f"{pattern_b!r} ({len(b)} files) do not pair by their wildcard "
                           f"parts: {'; '.join(parts)}. Add the missing files, or use "
-                          "pair_by='order' to pair them in sorted order")
+                          "pair_by='order' ([images] pair_by = \"order\" in an experiment "
+                          "file) to pair them in sorted order")
     return [(p, keys_b[k]) for k, p in a]
 
 
 # ---- completeness --------------------------------------------------------------------------
 
 
-def mark_complete(path: str | Path) -> None:
-    """Mark the HDF5 product ``path`` complete: the root attribute ``complete = True``.
+def mark_complete(path: str | Path, identity: Mapping[str, str] | None = None) -> None:
+    """Mark the HDF5 product ``path`` complete: the root attribute ``complete = True``
+    (and ``identity``, the job's, when given).
 
     Call it as the last write of a product, after the file has been written and closed (or on
     the temporary path inside an :func:`plenopiv.io.atomic_path` block). See the module
@@ -350,7 +386,48 @@ def mark_complete(path: str | Path) -> None:
     import h5py
 
     with h5py.File(path, "r+") as fh:
+        if identity is not None:
+            fh.attrs[IDENTITY_ATTR] = json.dumps(dict(identity), sort_keys=True)
+        fh.flush()
         fh.attrs[COMPLETE_ATTR] = True
+
+
+def product_identity(path: str | Path) -> dict | None:
+    """The identity stored in a product (None when it has none or cannot be read)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as fh:
+            raw = fh.attrs.get(IDENTITY_ATTR)
+    except Exception:  # noqa: BLE001 - unreadable: no identity
+        return None
+    if raw is None:
+        return None
+    try:
+        out = json.loads(raw)
+    except (TypeError, ValueError):
+        return None
+    return out if isinstance(out, dict) else None
+
+
+_IDENTITY_WORDS = {"settings": "the settings", "calibration": "the calibration",
+                   "image_a": "the first image", "image_b": "the second image"}
+
+
+def _stale_reason(job: PairJob) -> str | None:
+    """Why a complete product must be recomputed for ``job`` (None: it may be kept)."""
+    if job.identity is None:
+        return None
+    stored = product_identity(job.output)
+    if stored is None:
+        return ("the product records no identity of its settings and inputs (made by an "
+                "older plenopiv or elsewhere)")
+    want = dict(job.identity)
+    changed = [k for k in sorted(set(want) | set(stored)) if want.get(k) != stored.get(k)]
+    if not changed:
+        return None
+    return "made with other " + ", ".join(_IDENTITY_WORDS.get(k, k).replace("the ", "", 1)
+                                          for k in changed)
 
 
 def is_complete(path: str | Path) -> bool:
@@ -371,18 +448,26 @@ def is_complete(path: str | Path) -> bool:
 
 
 def _remove_stale_parts(jobs: Sequence[PairJob]) -> list[Path]:
-    """Delete the ``.part`` temporaries that a killed run left beside the jobs' products."""
+    """Delete the temporaries that a killed run left beside the jobs' products.
+
+    :func:`plenopiv.io.atomic_path` names them ``.{final name}.XXXXXXXX.part`` (and a
+    writer that appends a suffix, ``.part.vti``). Caught: those of the product itself, of its
+    side products (``.{stem}.png...``) and of every file named after the pair
+    (``.{name}_volume_A.h5...``, ``.{name}_vectors.vti...``).
+    """
     removed = []
     for job in jobs:
         folder = job.output.parent
         if not folder.is_dir():
             continue
-        # atomic_path names them ".{final name}.XXXXXXXX.part"; the stem also catches the
-        # temporaries of side products such as ".{stem}.png.XXXXXXXX.part"
-        for p in folder.glob(f".{glob.escape(job.output.stem)}.*.part"):
-            with contextlib.suppress(FileNotFoundError):
-                p.unlink()
-                removed.append(p)
+        prefixes = {glob.escape(job.output.stem), glob.escape(job.name)}
+        patterns = [f".{pre}{sep}*.part{tail}" for pre in prefixes for sep in (".", "_")
+                    for tail in ("", ".*")]
+        for pattern in patterns:
+            for p in folder.glob(pattern):
+                with contextlib.suppress(FileNotFoundError):
+                    p.unlink()
+                    removed.append(p)
     return removed
 
 
@@ -393,7 +478,8 @@ def _remove_stale_parts(jobs: Sequence[PairJob]) -> list[Path]:
 class JobResult:
     """What became of one job.
 
-    status : "done" | "skipped" (complete product found) | "failed".
+    status : "done" | "skipped" (complete product found) | "failed" | "interrupted" (not
+    finished when the batch was stopped).
     seconds : time in ``process`` (wall clock, s); ``start``/``end`` are epoch seconds.
     result : the dict ``process`` returned (None unless done).
     error_type, error, traceback : the failure (None unless failed).
@@ -429,6 +515,9 @@ class BatchSummary:
 
     done, skipped : names of the pairs computed now / found complete.
     failed : ``(name, "ErrorType: message")`` of each failed pair.
+    recomputed : ``(name, reason)`` of each complete product found made from other settings
+        or inputs, and recomputed (its pair is also in ``done`` or ``failed``).
+    interrupted : names of the pairs not finished when the batch was stopped (Ctrl-C).
     seconds : wall-clock time of the whole batch (s), cluster start and stop included.
     results : one :class:`JobResult` per job, in the order of the jobs.
     """
@@ -443,6 +532,8 @@ class BatchSummary:
     threads_per_worker: int | None = None
     removed_parts: tuple[str, ...] = ()
     summary_path: str | None = None
+    recomputed: tuple[tuple[str, str], ...] = ()
+    interrupted: tuple[str, ...] = ()
 
     @property
     def n_jobs(self) -> int:
@@ -451,8 +542,8 @@ class BatchSummary:
 
     @property
     def ok(self) -> bool:
-        """True when no pair failed."""
-        return not self.failed
+        """True when no pair failed and none was left unfinished."""
+        return not self.failed and not self.interrupted
 
     def result(self, name: str) -> JobResult:
         """Return the result of the pair ``name``."""
@@ -471,6 +562,9 @@ class BatchSummary:
              "n_skipped": len(self.skipped), "n_failed": len(self.failed),
              "done": list(self.done), "skipped": list(self.skipped),
              "failed": [{"name": n, "error": e} for n, e in self.failed],
+             "n_recomputed": len(self.recomputed),
+             "recomputed": [{"name": n, "reason": r} for n, r in self.recomputed],
+             "n_interrupted": len(self.interrupted), "interrupted": list(self.interrupted),
              "seconds": round(self.seconds, 3), "cluster": self.cluster,
              "n_workers": self.n_workers, "threads_per_worker": self.threads_per_worker,
              "removed_parts": list(self.removed_parts), "summary_path": self.summary_path,
@@ -500,6 +594,10 @@ def _run_job(process: Callable[[PairJob], Any], job: PairJob,
             raise BatchError(f"process returned but {str(job.output)!r} is not a complete "
                              f"product: write it atomically and call mark_complete() last "
                              f"(root attribute {COMPLETE_ATTR!r} = True)")
+        if job.identity is not None and product_identity(job.output) != dict(job.identity):
+            raise BatchError(f"process returned but {str(job.output)!r} does not record the "
+                             f"job's identity (root attribute {IDENTITY_ATTR!r}): "
+                             "mark_complete(path, identity=job.identity)")
         return JobResult(job.name, "done", str(job.output), time.perf_counter() - t0,
                          result=dict(out), worker=worker, pid=pid, start=start, end=time.time())
     except (Exception, SystemExit) as exc:  # noqa: BLE001 - a failed pair is recorded, not fatal
@@ -827,6 +925,19 @@ def _default_summary_path(jobs: Sequence[PairJob]) -> Path:
     return Path(os.path.commonpath(sorted(parents))) / SUMMARY_NAME
 
 
+def check_batch_options(*, cluster: str = "local", n_workers: int | None = None,
+                        threads_per_worker: int | None = None, retries: int = 2,
+                        cluster_options: Mapping | None = None) -> None:
+    """Check the cluster options of :func:`run_batch` without starting anything (so that a
+    command can refuse them before its own long preparations)."""
+    kind = _cluster_kind(cluster)
+    _positive_int(n_workers, "n_workers")
+    _positive_int(threads_per_worker, "threads_per_worker")
+    _positive_int(retries, "retries", allow_none=False, minimum=0)
+    allowed = {"local": _LOCAL_OPTIONS, "slurm": _SLURM_OPTIONS}.get(kind, ())
+    _check_options(cluster_options, allowed, kind)
+
+
 def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
               cluster: str = "local", n_workers: int | None = None,
               threads_per_worker: int | None = None, resume: bool = True, retries: int = 2,
@@ -881,6 +992,9 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
     ------
     ConfigError
         For bad arguments, before anything runs or is deleted.
+    BatchInterrupted
+        On Ctrl-C (KeyboardInterrupt): the cluster is closed, the summary (pairs finished so
+        far; the others ``interrupted``) is written, and a rerun resumes.
     """
     jobs = _check_jobs(jobs)
     _check_process(process)
@@ -912,20 +1026,32 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
             p.unlink()
             removed.append(p)
     results: dict[str, JobResult] = {}
+    recomputed: list[tuple[str, str]] = []
     todo = []
     for job in jobs:
         if resume and is_complete(job.output):
-            results[job.name] = JobResult(job.name, "skipped", str(job.output))
-        else:
-            todo.append(job)
-    if todo:
-        with _open_client(kind, cluster, n_workers, threads, retries, options) as client:
-            results.update(_submit_and_collect(client, todo, process,
-                                               threads=threads if kind != "address" else None,
-                                               slots=slots, retries=retries,
-                                               progress=progress, total=len(jobs),
-                                               skipped=len(jobs) - len(todo),
-                                               known_retries=kind != "address"))
+            reason = _stale_reason(job)
+            if reason is None:
+                results[job.name] = JobResult(job.name, "skipped", str(job.output))
+                continue
+            recomputed.append((job.name, reason))
+        todo.append(job)
+    interrupted = False
+    try:
+        if todo:
+            with _open_client(kind, cluster, n_workers, threads, retries, options) as client:
+                _submit_and_collect(client, todo, process, results,
+                                    threads=threads if kind != "address" else None,
+                                    slots=slots, retries=retries, progress=progress,
+                                    total=len(jobs), skipped=len(jobs) - len(todo),
+                                    known_retries=kind != "address")
+    except KeyboardInterrupt:
+        interrupted = True
+    for job in jobs:
+        if job.name not in results:
+            results[job.name] = JobResult(job.name, "interrupted", str(job.output))
+    if interrupted:          # a write killed part way leaves a temporary: remove it now
+        removed += _remove_stale_parts(jobs)
     ordered = tuple(results[j.name] for j in jobs)
     summary = BatchSummary(
         done=tuple(r.name for r in ordered if r.status == "done"),
@@ -934,9 +1060,17 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
                      if r.status == "failed"),
         seconds=time.perf_counter() - t0, results=ordered, cluster=cluster,
         n_workers=n_workers, threads_per_worker=threads,
-        removed_parts=tuple(str(p) for p in removed), summary_path=str(summary_file))
+        removed_parts=tuple(str(p) for p in removed), summary_path=str(summary_file),
+        recomputed=tuple(recomputed),
+        interrupted=tuple(r.name for r in ordered if r.status == "interrupted"))
     with atomic_path(summary_file) as tmp:
         tmp.write_text(json.dumps(summary.to_dict(tracebacks=True), indent=1) + "\n")
+    if interrupted:
+        raise BatchInterrupted(
+            f"interrupted (Ctrl-C) after {len(summary.done)} of {summary.n_jobs} pairs "
+            f"({len(summary.interrupted)} not finished, {len(summary.failed)} failed); "
+            f"summary written to {summary_file}; run the same command again to resume",
+            summary.to_dict())
     return summary
 
 
@@ -953,9 +1087,12 @@ def _worker_slots(client, requested: int | None) -> int:
     return max(1, sum(w.get("nthreads", 1) for w in info.get("workers", {}).values()))
 
 
-def _submit_and_collect(client, todo: Sequence[PairJob], process, *, threads: int | None,
+def _submit_and_collect(client, todo: Sequence[PairJob], process,
+                        results: dict[str, JobResult], *, threads: int | None,
                         slots: int | None, retries: int, progress: bool, total: int, skipped: int,
                         known_retries: bool) -> dict[str, JobResult]:
+    """Run ``todo`` on the cluster, filling ``results`` as pairs finish (so that a Ctrl-C
+    leaves the finished ones in it)."""
     from distributed import as_completed
     from tqdm import tqdm
 
@@ -982,7 +1119,6 @@ def _submit_and_collect(client, todo: Sequence[PairJob], process, *, threads: in
             in_flight.add(submit(pending.pop()))
 
     top_up()
-    results: dict[str, JobResult] = {}
     n_failed = 0
     with tqdm(total=total, initial=skipped, desc="plenopiv batch", unit="pair",
               disable=not progress, file=sys.stderr, leave=False, dynamic_ncols=True) as bar:

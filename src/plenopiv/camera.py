@@ -535,17 +535,69 @@ class _CameraCfg(_Strict):
     external_interface: _ExternalCfg | None = None
 
 
+_BRANCH_WORDS = {"float": "a number", "int": "an integer", "str": "a string",
+                 "bool": "true or false", "dict": "a table", "none": "nothing",
+                 "list": "a list", "tuple": "a list"}
+
+
+def _branch_text(part: str) -> str | None:
+    """What a pydantic union branch in an error location expects, or None if ``part`` is a
+    field name."""
+    if part in _BRANCH_WORDS:
+        return _BRANCH_WORDS[part]
+    if "[" in part:
+        head, _, inner = part.partition("[")
+        if head in ("tuple", "list"):
+            items = [t.strip() for t in inner.rstrip("]").split(",") if t.strip()]
+            if head == "tuple" and items and "..." not in items:
+                kinds = {_BRANCH_WORDS.get(t, t) for t in items}
+                word = "numbers" if kinds <= {"a number", "an integer"} else "values"
+                return f"a list of {len(items)} {word}"
+            return "a list"
+        return part
+    if part.startswith("function-") or part.startswith("literal"):
+        return None
+    return None
+
+
 def format_validation_error(exc: ValidationError, what: str, model: type[BaseModel]) -> str:
-    """Turn a pydantic error into lines that name the key, the value and the expectation."""
-    lines = []
+    """Turn a pydantic error into lines that name the key, the value and the expectation.
+
+    A key that accepts several forms (``voxel_mm``: a number or a list of 3) gets one line
+    naming the value and the forms, not one line per form.
+    """
+    lines: list[str] = []
+    unions: dict[str, tuple[Any, list[str]]] = {}
     for err in exc.errors():
-        loc = [str(p) for p in err["loc"]]
+        raw = [p for p in err["loc"]]
+        fields: list[str] = []
+        branch = None
+        for part in raw:
+            b = _branch_text(part) if isinstance(part, str) else None
+            if b is not None:
+                branch = b
+                break
+            fields.append(str(part) if isinstance(part, str) else f"[{part}]")
+        loc: list[str] = []
+        for f in fields:       # list indices attach to the key before them: voxel_mm[1]
+            if f.startswith("[") and loc:
+                loc[-1] += f
+            else:
+                loc.append(f)
         section = ".".join(loc[:-1])
         key = loc[-1] if loc else "?"
         where = f"[{section}] {key}" if section else key
         kind = err["type"]
+        if branch is not None:
+            value, forms = unions.setdefault(where, (None, []))
+            if raw[len(fields)] == raw[-1] or value is None:
+                value = err.get("input") if raw[len(fields)] == raw[-1] else value
+            if branch not in forms:
+                forms.append(branch)
+            unions[where] = (value, forms)
+            continue
         if kind == "extra_forbidden":
-            valid = _valid_keys(model, loc[:-1])
+            valid = _valid_keys(model, [p for p in loc[:-1]])
             lines.append(f"unknown key {where!s}; valid keys here: {', '.join(valid)}")
         elif kind == "missing":
             sub = _submodel(model, loc)
@@ -555,6 +607,8 @@ def format_validation_error(exc: ValidationError, what: str, model: type[BaseMod
                 lines.append(f"missing key {where}")
         else:
             lines.append(f"{where} = {err.get('input')!r}: {err['msg'].lower()}")
+    for where, (value, forms) in unions.items():
+        lines.append(f"{where} = {value!r}: expected {' or '.join(forms)}")
     return f"{what}: " + "; ".join(lines)
 
 
@@ -656,8 +710,14 @@ def read_toml(path: str | Path, what: str = "config") -> dict:
             return tomllib.load(fh)
     except FileNotFoundError:
         raise ConfigError(f"{what} file {str(p)!r} not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{what} file {str(p)!r} is a folder: expected a TOML file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{what} file {str(p)!r} is not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{what} file {str(p)!r} is not UTF-8 text (byte "
+                          f"0x{exc.object[exc.start]:02x} at offset {exc.start}): expected a "
+                          "TOML file") from None
     except OSError as exc:
         raise ConfigError(f"{what} file {str(p)!r} cannot be read: {exc}") from None
 
@@ -669,6 +729,9 @@ def preset_names() -> list[str]:
 
 def load_camera(path_or_name: str | Path) -> CameraModel:
     """Load a camera from a TOML file, or a shipped preset by name (see :func:`preset_names`)."""
+    if not isinstance(path_or_name, (str, Path)) or not str(path_or_name).strip():
+        raise ConfigError(f"camera {path_or_name!r}: expected a camera TOML file or a preset "
+                          f"name ({', '.join(preset_names())})")
     p = Path(path_or_name)
     if not p.exists() and p.suffix == "" and str(path_or_name) in preset_names():
         p = PRESET_DIR / f"{path_or_name}.toml"

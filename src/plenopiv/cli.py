@@ -1,8 +1,13 @@
 """The ``plenopiv`` command (DESIGN.md §7). Every subcommand takes ``--json``.
 
 Orchestration only: parse, validate, call the library, write products atomically, report.
-Errors that plenopiv raises on purpose are printed as one line (``error: ...``) with exit
-status 2; nothing is written when an input is rejected.
+
+One error path (:func:`main`): every failure is one line on stderr, ``error: ...``, naming the
+thing, the value and what was expected, and with ``--json`` also one JSON object holding
+``"error"`` on stdout. Exit status (README "Exit status"): 0 done; 1 a computation or a write
+failed (a full disk, pairs of a batch failed); 2 bad input, refused before any work (nothing
+is written); 130 interrupted (Ctrl-C). Arguments, output paths and sizes are checked before
+the computation, next to each subcommand; no input file is ever overwritten.
 """
 
 from __future__ import annotations
@@ -10,8 +15,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import re
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -19,8 +27,15 @@ from tqdm import tqdm
 
 from plenopiv import __version__
 from plenopiv.camera import CameraModel, load_camera, preset_names
-from plenopiv.errors import ConfigError, PlenopivError
-from plenopiv.io import to_json, write_h5, write_image
+from plenopiv.errors import (
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    ConfigError,
+    PlenopivError,
+    PlenopivWarning,
+    ResourceError,
+)
+from plenopiv.io import check_output_path, to_json, write_h5, write_image
 
 # ---- shared helpers ------------------------------------------------------------------------
 
@@ -32,10 +47,71 @@ def _progress_bar(total: int, desc: str, quiet: bool):
 
 
 def _camera_from_args(args) -> CameraModel:
+    from plenopiv.resources import check_sensor
+
     cam = load_camera(args.camera)
     if getattr(args, "image_distance_mm", None) is not None:
+        _number("--image-distance-mm", args.image_distance_mm, minimum=0, open_min=True)
         cam = cam.with_image_distance(args.image_distance_mm * 1e-3)
+    check_sensor(cam)
     return cam
+
+
+# ---- argument checks (each subcommand checks its own before any work) ------------------------
+
+
+def _number(flag: str, value, *, minimum=None, maximum=None, open_min=False, open_max=False,
+            unit: str = "") -> float | None:
+    """A finite number within bounds, or a ConfigError naming the flag, the value and the
+    expected range. None passes (an unset option)."""
+    if value is None:
+        return None
+    v = float(value)
+    parts = []
+    if minimum is not None:
+        parts.append(f"{'>' if open_min else '>='} {minimum:g}")
+    if maximum is not None:
+        parts.append(f"{'<' if open_max else '<='} {maximum:g}")
+    ok = math.isfinite(v)
+    if ok and minimum is not None:
+        ok = v > minimum if open_min else v >= minimum
+    if ok and maximum is not None:
+        ok = v < maximum if open_max else v <= maximum
+    if not ok:
+        rng = " and ".join(parts)
+        raise ConfigError(f"{flag} {value!r}: expected a finite number"
+                          + (f" {rng}" if rng else "") + (f" ({unit})" if unit else ""))
+    return v
+
+
+def _integer(flag: str, value, *, minimum: int, maximum: int) -> int | None:
+    if value is None:
+        return None
+    if not minimum <= value <= maximum:
+        raise ConfigError(f"{flag} {value}: expected an integer from {minimum} to {maximum}")
+    return value
+
+
+#: Largest seed accepted (numpy accepts any non-negative integer; the ray tracer takes 32 bits)
+MAX_SEED = 2 ** 32 - 1
+
+
+def _seed(value) -> int:
+    return _integer("--seed", value, minimum=0, maximum=MAX_SEED)
+
+
+def _input_files(*specs) -> list[str]:
+    """The files among the command's inputs (file.h5:/dataset → file.h5; preset names out)."""
+    from plenopiv.io import split_dataset_spec
+
+    out = []
+    for s in specs:
+        if s is None:
+            continue
+        path, _ = split_dataset_spec(s)
+        if path.exists():
+            out.append(str(path))
+    return out
 
 
 def _finish(irr, args, rng):
@@ -46,10 +122,13 @@ def _finish(irr, args, rng):
                         full_well=args.full_well, read_noise=args.read_noise, rng=rng)
 
 
-def _check_out(path: str, suffixes: tuple[str, ...]) -> Path:
-    p = Path(path)
-    if p.suffix.lower() not in suffixes:
-        raise ConfigError(f"--out {path!r}: expected a file ending in {' or '.join(suffixes)}")
+def _check_out(path: str, suffixes: tuple[str, ...], inputs=(), beside=()) -> Path:
+    """Check ``--out`` before any work: suffix, not a folder, writable, not an input; and the
+    files written beside it (``beside``: suffixes such as ".png") likewise."""
+    p = check_output_path(path, suffixes=suffixes, inputs=inputs)
+    for suffix in beside:
+        check_output_path(p.with_suffix(suffix), inputs=inputs,
+                          what=f"{suffix[1:].upper()} written beside --out")
     return p
 
 
@@ -65,6 +144,7 @@ def cmd_simulate(args) -> dict:
     """Render a synthetic image (or a pair) and write it."""
     from plenopiv.synthetic import images as S
 
+    _check_simulate_args(args)
     cam = _camera_from_args(args)
     rng = np.random.default_rng(args.seed)
     kind = args.kind
@@ -72,7 +152,7 @@ def cmd_simulate(args) -> dict:
     summary: dict = {"command": f"simulate {kind}", "camera": cam.name,
                      "image_distance_mm": cam.image_distance * 1e3}
     if kind in ("focal-point", "alignment", "ruler"):
-        out = _check_out(args.out, (".tif", ".tiff", ".png"))
+        out = _check_out(args.out, (".tif", ".tiff", ".png"), inputs=_input_files(args.camera))
         bar, tick = _progress_bar(cam.microlens_array.count if kind != "ruler" else 32,
                                   f"render {kind}", args.quiet or args.json)
         with bar:
@@ -100,6 +180,35 @@ def cmd_simulate(args) -> dict:
     return summary
 
 
+def _check_simulate_args(args) -> None:
+    """The options of ``simulate``, before the camera is loaded or anything rendered."""
+    _seed(args.seed)
+    _number("--f-number", args.f_number, minimum=0, open_min=True)
+    _number("--blur-px", args.blur_px, minimum=0, maximum=100, unit="pixels")
+    _number("--full-well", args.full_well, minimum=0, open_min=True, unit="electrons")
+    _number("--read-noise", args.read_noise, minimum=0, unit="counts")
+    if args.kind == "ruler":
+        _number("--spacing-mm", args.spacing_mm, minimum=0, open_min=True, unit="mm")
+        _number("--tick-width-mm", args.tick_width_mm, minimum=0, open_min=True,
+                maximum=args.spacing_mm, open_max=True, unit="mm, less than --spacing-mm")
+        _number("--depth-mm", args.depth_mm, unit="mm")
+        _integer("--rays-per-lenslet", args.rays_per_lenslet, minimum=1, maximum=10 ** 6)
+    if args.kind in ("particles", "pair"):
+        _number("--particles-per-lenslet", args.particles_per_lenslet, minimum=0,
+                open_min=True, maximum=100)
+        _number("--particles-per-mm3", args.particles_per_mm3, minimum=0, open_min=True)
+        _integer("--n-particles", args.n_particles, minimum=1, maximum=10 ** 7)
+        lo = _number("--depth-mm ZMIN", args.depth_mm[0], unit="mm")
+        _number("--depth-mm ZMAX", args.depth_mm[1], minimum=lo, open_min=True,
+                unit="mm, more than ZMIN")
+        _number("--fill", args.fill, minimum=0, open_min=True, maximum=1)
+        _integer("--rays-per-particle", args.rays_per_particle, minimum=1, maximum=10 ** 6)
+    if args.kind == "pair":
+        _number("--dt", args.dt, minimum=0, open_min=True, unit="seconds")
+        _number("--max-displacement-mm", args.max_displacement_mm, minimum=0, open_min=True,
+                unit="mm")
+
+
 def _seeding(cam: CameraModel, args, rng):
     from plenopiv.synthetic.seeding import SeedingBox, particle_count
 
@@ -113,6 +222,9 @@ def _seeding(cam: CameraModel, args, rng):
         n = particle_count(cam, box, per_lenslet=args.particles_per_lenslet)
     if n < 1:
         raise ConfigError(f"the seeding gives {n} particles: expected at least 1")
+    if n > 10 ** 7:
+        raise ResourceError(f"the seeding gives {n} particles: expected at most 10^7 (lower "
+                            "the density)")
     return box, n
 
 
@@ -148,7 +260,8 @@ def _simulate_particles(cam: CameraModel, args, rng) -> dict:
     config = {"camera": cam.to_dict(), "simulate": {k: v for k, v in vars(args).items()
                                                     if k not in ("func",)}}
     if args.kind == "particles":
-        out = _check_out(args.out, (".tif", ".tiff", ".png", ".h5"))
+        out = _check_out(args.out, (".tif", ".tiff", ".png", ".h5"),
+                         inputs=_input_files(args.camera))
         pos = random_particles(box, n, rng)
         bar, tick = _progress_bar(n, "render particles", quiet)
         with bar:
@@ -161,7 +274,11 @@ def _simulate_particles(cam: CameraModel, args, rng) -> dict:
         else:
             write_image(out, img, metadata={"camera": cam.to_dict(), **info})
         return {**info, "out": str(out), **_image_summary(img)}
-    out = _check_out(args.out, (".h5",))
+    out = _check_out(args.out, (".h5",), inputs=_input_files(args.camera))
+    if not args.no_tiff:
+        for tag in "AB":
+            check_output_path(out.with_name(f"{out.stem}_{tag}.tif"),
+                              inputs=_input_files(args.camera), what=f"the {tag} TIFF beside --out")
     flow = _flow_from_args(cam, args, box)
     bar, tick = _progress_bar(2 * n, "render pair", quiet)
     with bar:
@@ -197,11 +314,19 @@ def cmd_calibrate(args) -> dict:
     from plenopiv.calibration.pipeline import calibrate
     from plenopiv.io import read_image
 
-    cam = load_camera(args.camera)
-    out = _check_out(args.out, (".h5",))
+    from plenopiv.resources import check_sensor
+
+    _number("--ruler-spacing-mm", args.ruler_spacing_mm, minimum=0, open_min=True, unit="mm")
+    _number("--max-missing-fraction", args.max_missing_fraction, minimum=0, maximum=1,
+            open_max=True)
     if args.method in ("magnification", "both") and (args.ruler is None or
                                                       args.ruler_spacing_mm is None):
         raise ConfigError(f"--method {args.method} needs --ruler IMG and --ruler-spacing-mm")
+    cam = load_camera(args.camera)
+    check_sensor(cam)
+    inputs = _input_files(args.camera, args.focal_point, args.alignment, args.ruler)
+    out = _check_out(args.out, (".h5",), inputs=inputs,
+                     beside=() if args.no_report else (".png",))
     t0 = time.perf_counter()
     fp = read_image(args.focal_point)
     al = None if args.alignment is None else read_image(args.alignment)
@@ -235,10 +360,14 @@ def cmd_reconstruct(args) -> dict:
     from plenopiv.config import load_experiment
     from plenopiv.io import read_image
     from plenopiv.pipeline import experiment_calibration, reconstruct_volume
+    from plenopiv.resources import check_grid
 
-    out = _check_out(args.out, (".h5",))
     exp = load_experiment(args.config)
+    inputs = _input_files(args.calibration, args.image, args.config)
+    out = _check_out(args.out, (".h5",), inputs=inputs,
+                     beside=(".png",) if exp.output.png else ())
     cal = experiment_calibration(exp, args.calibration)
+    check_grid(exp.volume)
     img = read_image(args.image)
     t0 = time.perf_counter()
     bar = tqdm(total=100, desc="reconstruct", disable=args.quiet or args.json or None,
@@ -279,15 +408,24 @@ def cmd_piv(args) -> dict:
     from plenopiv.config import PIVConfig
     from plenopiv.pipeline import correlate, load_volume, piv_settings
 
-    out = _check_out(args.out, (".h5",))
-    if args.dt is not None and not args.dt > 0:
-        raise ConfigError(f"--dt {args.dt}: expected a positive time in seconds")
-    t0 = time.perf_counter()
-    va, vb = load_volume(args.volume_a), load_volume(args.volume_b)
+    from plenopiv.config import MAX_WINDOW_VOX
+    from plenopiv.piv import MIN_WINDOW_VOX
+
+    _number("--dt", args.dt, minimum=0, open_min=True, unit="seconds between the exposures")
+    for w in args.windows or ():
+        if min(w) < MIN_WINDOW_VOX or max(w) > MAX_WINDOW_VOX:
+            raise ConfigError(f"--windows {' '.join(map(str, w))}: expected three window edges "
+                              f"WZ WY WX of {MIN_WINDOW_VOX} to {MAX_WINDOW_VOX} voxels")
+    inputs = _input_files(args.volume_a, args.volume_b, args.config)
+    beside = (() if args.no_vtk else (".vti",)) + (() if args.no_png else (".png",))
+    out = _check_out(args.out, (".h5",), inputs=inputs, beside=beside)
     cfg = PIVConfig() if args.config is None else _experiment(args.config).piv
     if args.windows:
         cfg = cfg.model_copy(update={"windows": [tuple(w) for w in args.windows]})
-    vec = correlate(va, vb, piv_settings(cfg), dt=args.dt)
+    settings = piv_settings(cfg)
+    t0 = time.perf_counter()
+    va, vb = load_volume(args.volume_a), load_volume(args.volume_b)
+    vec = correlate(va, vb, settings, dt=args.dt)
     files = vec.save(out, config={"piv": cfg.model_dump(), "volume_a": str(args.volume_a),
                                   "volume_b": str(args.volume_b), "dt_s": args.dt},
                      vtk=not args.no_vtk, extra_attrs={"complete": True})
@@ -314,6 +452,13 @@ def _experiment(path):
 
 def cmd_validate(args) -> dict:
     """Studies that reproduce the thesis's figures and validate the whole chain."""
+    _seed(args.seed)
+    _number("--particles-per-lenslet", args.particles_per_lenslet, minimum=0, open_min=True,
+            maximum=100)
+    _integer("--lateral-oversampling", args.lateral_oversampling, minimum=1, maximum=16)
+    for flag, n in zip(("--lenslets ROWS", "--lenslets COLS"), args.lenslets or (), strict=False):
+        _integer(flag, n, minimum=1, maximum=100_000)
+    check_output_path(args.out, what="--out", folder=True)
     t0 = time.perf_counter()
     case = args.case
     if case in ("oseen", "hill"):
@@ -357,11 +502,26 @@ def cmd_validate(args) -> dict:
 
 def cmd_run(args) -> dict:
     """Many pairs end to end on dask (local processes, SLURM, or a running scheduler)."""
-    from plenopiv.batch import batch_options, discover_pairs, run_batch
+    from plenopiv.batch import (
+        BatchInterrupted,
+        batch_options,
+        check_batch_options,
+        discover_pairs,
+        run_batch,
+    )
     from plenopiv.config import load_experiment
+    from plenopiv.errors import ComputationError
     from plenopiv.pipeline import ExperimentPairProcess, experiment_calibration, weights_for
+    from plenopiv.resources import check_grid
 
+    _integer("--workers", args.workers, minimum=1, maximum=4096)
     exp = load_experiment(args.experiment)
+    opts = batch_options(exp.batch.model_dump())
+    if args.cluster is not None:
+        opts["cluster"] = args.cluster
+    if args.workers is not None:
+        opts["n_workers"] = args.workers
+    check_batch_options(**opts)
     im = exp.images
     if im.calibration is None:
         raise ConfigError(f"{args.experiment}: [images] calibration is not set: expected the "
@@ -370,31 +530,55 @@ def cmd_run(args) -> dict:
         raise ConfigError(f"{args.experiment}: [images] needs a and b (glob patterns of the "
                           "two exposures) or pairs (HDF5 files with /image_a and /image_b)")
     out_dir = exp.path(exp.output.directory)
+    check_output_path(out_dir, what="[output] directory", folder=True)
     if im.pairs is not None:
         jobs = discover_pairs(im.pairs, out_dir=out_dir, root=exp.base_dir,
                               output_name="{name}_vectors.h5")
     else:
         jobs = discover_pairs(im.a, im.b, out_dir=out_dir, root=exp.base_dir,
-                              output_name="{name}_vectors.h5")
+                              output_name="{name}_vectors.h5", pair_by=im.pair_by)
     cal_path = exp.path(im.calibration)
     cal = experiment_calibration(exp, cal_path)
+    check_grid(exp.volume)
+    jobs = _with_identities(jobs, exp, cal_path)
     # build (or find) the weights once, before the workers start: they load them from disk
     t0 = time.perf_counter()
     cache = exp.output.weights_cache
     _, hit = weights_for(cal, exp.volume, exp.reconstruction,
                          cache_dir=exp.path(cache) if cache else None)
-    opts = batch_options(exp.batch.model_dump())
-    if args.cluster is not None:
-        opts["cluster"] = args.cluster
-    if args.workers is not None:
-        opts["n_workers"] = args.workers
     process = ExperimentPairProcess(str(Path(args.experiment).resolve()), str(cal_path.resolve()),
                                     str(out_dir))
-    summary = run_batch(jobs, process, resume=args.resume,
-                        progress=not (args.quiet or args.json), **opts)
-    return {"command": "run", "out": str(out_dir), "weights_from_cache": hit,
-            "weights_s": round(time.perf_counter() - t0, 3) if not hit else 0.0,
-            **summary.to_dict()}
+    head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit}
+    try:
+        summary = run_batch(jobs, process, resume=args.resume,
+                            progress=not (args.quiet or args.json), **opts)
+    except BatchInterrupted as exc:
+        exc.summary = {**head, **exc.summary}
+        raise
+    result = {**head, "weights_s": round(time.perf_counter() - t0, 3) if not hit else 0.0,
+              **summary.to_dict()}
+    if summary.failed:
+        names = ", ".join(f"{n} ({e})" for n, e in summary.failed[:3])
+        more = "" if len(summary.failed) <= 3 else f" and {len(summary.failed) - 3} more"
+        err = ComputationError(f"{len(summary.failed)} of {summary.n_jobs} pairs failed: "
+                               f"{names}{more}; see {summary.summary_path}")
+        err.summary = result
+        raise err
+    return result
+
+
+def _with_identities(jobs, exp, cal_path):
+    """Give each job the identity of what makes its product: the experiment's settings, the
+    calibration file and the two images (content hashes); resume recomputes a product made
+    from anything else."""
+    from dataclasses import replace
+
+    from plenopiv.io import file_identity
+    from plenopiv.pipeline import settings_identity
+
+    common = {"settings": settings_identity(exp), "calibration": file_identity(cal_path)}
+    return [replace(j, identity={**common, "image_a": file_identity(j.image_a),
+                                 "image_b": file_identity(j.image_b)}) for j in jobs]
 
 
 # ---- demo ----------------------------------------------------------------------------------
@@ -405,6 +589,8 @@ def cmd_demo(args) -> dict:
     Lamb-Oseen vortex pair -> two volumes -> 3-D PIV -> errors against the truth."""
     from plenopiv.validation.vortex import VortexCase, run_case
 
+    _seed(args.seed)
+    check_output_path(args.out, what="--out", folder=True)
     bar = tqdm(total=100, desc="demo", disable=args.quiet or args.json or None,
                file=sys.stderr, leave=False)
     with bar:
@@ -443,9 +629,30 @@ def _add_image_options(p: argparse.ArgumentParser):
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
 
 
+class UsageError(PlenopivError):
+    """A command line that argparse rejects (unknown option, missing or malformed value)."""
+
+
+#: Negative numbers as option values: argparse's own pattern misses ``-1e-3`` and ``-inf``.
+_NEGATIVE_NUMBER = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$|^-(?:inf|infinity|nan)$",
+                              re.IGNORECASE)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with plenopiv's error path: a usage error raises :class:`UsageError` (one
+    ``error:`` line, exit 2, JSON with ``--json``) instead of exiting; ``-1e-3`` is a value."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = _NEGATIVE_NUMBER
+
+    def error(self, message):
+        raise UsageError(f"{self.prog}: {message} (see {self.prog} --help)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``plenopiv`` argument parser."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="plenopiv", description="Tomographic plenoptic PIV: simulate, calibrate, "
         "reconstruct and correlate.")
     parser.add_argument("--version", action="version", version=f"plenopiv {__version__}")
@@ -582,19 +789,80 @@ def _print_human(summary: dict):
         print(f"{k}: {v}")
 
 
+def _command_of(argv: list[str]) -> str | None:
+    words = [a for a in argv if not a.startswith("-")]
+    if not words:
+        return None
+    return " ".join(words[:2]) if words[0] == "simulate" and len(words) > 1 else words[0]
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _report_failure(exc: BaseException, status: int, command: str | None, as_json: bool,
+                    warned: list[str]) -> int:
+    """Print a failure the one way: an ``error:`` line on stderr and, with ``--json``, one
+    JSON object holding ``"error"`` on stdout. Return the exit status."""
+    msg = _one_line(exc) or type(exc).__name__
+    if as_json:
+        obj = {**getattr(exc, "summary", {}), "command": command, "error": msg,
+               "error_type": type(exc).__name__, "exit_status": status}
+        if warned:
+            obj["warnings"] = warned
+        print(to_json(obj))
+    print(f"error: {msg}", file=sys.stderr)
+    return status
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``plenopiv`` command."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Entry point of the ``plenopiv`` command; returns the exit status.
+
+    0: done. 1: a computation or a write failed (a full disk, failed pairs of ``run``, an
+    unexpected error). 2: bad input, refused before any work. 130: interrupted (Ctrl-C).
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    as_json = "--json" in argv
+    command = _command_of(argv)
+    warned: list[str] = []
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = _one_line(message)
+        warned.append(text)
+        print(f"warning: {text}", file=sys.stderr)
+
     try:
-        summary = args.func(args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", PlenopivWarning)
+            warnings.showwarning = show
+            try:
+                args = build_parser().parse_args(argv)
+            except SystemExit as exc:          # --help, --version
+                return exc.code if isinstance(exc.code, int) else 0
+            command = args.command if args.command != "simulate" else f"simulate {args.kind}"
+            as_json = bool(getattr(args, "json", as_json))
+            summary = args.func(args)
     except PlenopivError as exc:
-        if getattr(args, "json", False):
-            print(json.dumps({"command": args.command, "error": str(exc),
-                              "error_type": type(exc).__name__}))
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    if args.json:
+        return _report_failure(exc, exc.exit_status, command, as_json, warned)
+    except KeyboardInterrupt:
+        exc = PlenopivError("interrupted (Ctrl-C); products written so far are complete, "
+                            "temporaries are removed on the next run")
+        return _report_failure(exc, EXIT_INTERRUPTED, command, as_json, warned)
+    except MemoryError as exc:
+        err = ResourceError(f"out of memory ({type(exc).__name__}: {_one_line(exc)}): use "
+                            "a smaller volume, sensor or batch")
+        return _report_failure(err, EXIT_FAILED, command, as_json, warned)
+    except Exception as exc:  # noqa: BLE001 - the one error path: no traceback for users
+        if os.environ.get("PLENOPIV_TRACEBACK"):
+            import traceback
+
+            traceback.print_exc()
+        err = PlenopivError(f"unexpected {type(exc).__name__}: {_one_line(exc)} (a bug in "
+                            "plenopiv; set PLENOPIV_TRACEBACK=1 to see where)")
+        return _report_failure(err, EXIT_FAILED, command, as_json, warned)
+    if warned:
+        summary = {**summary, "warnings": warned}
+    if as_json:
         print(to_json(summary))
     else:
         _print_human(summary)

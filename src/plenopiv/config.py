@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from plenopiv.camera import (
     CameraModel,
@@ -33,8 +33,14 @@ from plenopiv.errors import ConfigError
 from plenopiv.volume import VolumeGrid, volume_from_dict
 
 
+#: More MART sweeps than this is refused: 10 is the default, a few hundred already converge.
+MAX_ITERATIONS = 10_000
+#: The largest PIV window edge, voxels (a 1024³ float32 window pair is 8 GB).
+MAX_WINDOW_VOX = 1024
+
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class ReconstructionSettings(_Strict):
@@ -62,7 +68,7 @@ class ReconstructionSettings(_Strict):
     """
 
     method: Literal["mart", "block", "smart"] = "smart"
-    iterations: int = Field(10, ge=0)
+    iterations: int = Field(10, ge=0, le=MAX_ITERATIONS)
     relaxation: float | None = Field(None, gt=0, allow_inf_nan=False)
 
     @property
@@ -108,18 +114,31 @@ class ParticleSettings(_Strict):
 class PIVConfig(_Strict):
     """``[piv]``: cross-correlation (windows in voxels ``[z, y, x]`` per pass)."""
 
-    windows: list[tuple[int, int, int]] = [(24, 16, 16), (16, 12, 12)]
+    windows: list[tuple[int, int, int]] = Field([(24, 16, 16), (16, 12, 12)], min_length=1)
     overlap: float = Field(0.5, ge=0, lt=1)
-    passes: int | None = Field(3, ge=1)
+    passes: int | None = Field(3, ge=1, le=100)
     deformation: bool = True
     median_threshold: float = Field(2.0, gt=0)
+
+    @field_validator("windows")
+    @classmethod
+    def _window_edges(cls, v):
+        from plenopiv.piv import MIN_WINDOW_VOX
+
+        for w in v:
+            if min(w) < MIN_WINDOW_VOX or max(w) > MAX_WINDOW_VOX:
+                raise ValueError(f"window {list(w)}: expected edges of {MIN_WINDOW_VOX} to "
+                                 f"{MAX_WINDOW_VOX} voxels [wz, wy, wx]")
+        return v
 
 
 class ImagesConfig(_Strict):
     """``[images]``: the image pairs of ``plenopiv run``.
 
-    a, b : glob patterns of the first and second exposures (paired in sorted order), or
+    a, b : glob patterns of the first and second exposures, or
     pairs : glob pattern of HDF5 files each holding ``/image_a`` and ``/image_b``.
+    pair_by : how a and b pair up: "auto" (default), "stem" (the parts matched by the
+        wildcards agree) or "order" (sorted order); see :func:`plenopiv.batch.discover_pairs`.
     dt_s : time between the exposures, seconds (velocity in m/s when given).
     calibration : the calibration product (.h5), relative to the experiment file.
     """
@@ -127,6 +146,7 @@ class ImagesConfig(_Strict):
     a: str | None = None
     b: str | None = None
     pairs: str | None = None
+    pair_by: Literal["auto", "stem", "order"] = "auto"
     dt_s: float | None = Field(None, gt=0)
     calibration: str | None = None
 

@@ -11,6 +11,7 @@ The stages are the library's stage functions; this module chooses defaults, keep
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -23,7 +24,7 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera import CameraModel
 from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.corrections import DepthCorrection
-from plenopiv.errors import ReconstructionError
+from plenopiv.errors import CalibrationError, ConfigError, PIVError, ReconstructionError
 from plenopiv.io import check_image, write_h5
 from plenopiv.mart import mlos, reconstruct
 from plenopiv.particles import find_particles
@@ -161,8 +162,12 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
     """The weights a reconstruction with ``settings`` uses: explicit (cached in ``cache_dir``)
     or the matrix-free lattice projector, by ``settings.projector``; ``(weights, from_cache)``.
 
-    Row-action and block MART walk explicit rows, so ``"auto"`` keeps them explicit.
+    Row-action and block MART walk explicit rows, so ``"auto"`` keeps them explicit. A grid
+    whose arrays cannot fit in memory is refused before anything is estimated.
     """
+    from plenopiv.resources import check_grid
+
+    check_grid(grid)
     projector = settings.projector
     if projector == "auto" and settings.method != "smart":
         projector = "sparse"
@@ -192,9 +197,13 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     progress : callable, optional
         ``progress(stage, fraction)`` for long stages.
     """
+    from plenopiv.resources import check_grid
+
     t = {}
     t0 = time.perf_counter()
-    img = check_image(image, shape=calibration.camera.sensor.shape, name="particle image")
+    check_grid(grid)
+    img = check_image(image, shape=calibration.camera.sensor.shape, name="particle image",
+                      particles=True)
     if weights is None:
         weights, _ = weights_for(calibration, grid, settings, cache_dir=cache_dir)
     elif weights.grid != grid:
@@ -309,9 +318,27 @@ def piv_settings(cfg) -> PIVSettings:
     """PIV settings from a ``[piv]`` config table (:class:`plenopiv.config.PIVConfig`)."""
     from plenopiv.piv import PIVSettings
 
-    return PIVSettings(windows=tuple(tuple(w) for w in cfg.windows), overlap=cfg.overlap,
-                       passes=cfg.passes, deformation=cfg.deformation,
-                       median_threshold=cfg.median_threshold)
+    try:
+        return PIVSettings(windows=tuple(tuple(w) for w in cfg.windows), overlap=cfg.overlap,
+                           passes=cfg.passes, deformation=cfg.deformation,
+                           median_threshold=cfg.median_threshold)
+    except ValueError as exc:
+        raise ConfigError(f"[piv] {exc}") from None
+
+
+def check_dt(dt, what: str = "dt") -> float | None:
+    """``dt`` (seconds between the exposures) as a float; None stays None (displacements).
+
+    Raises :class:`~plenopiv.errors.ConfigError` unless it is a finite number > 0.
+    """
+    if dt is None:
+        return None
+    if isinstance(dt, bool) or not isinstance(dt, (int, float, np.integer, np.floating)):
+        raise ConfigError(f"{what} = {dt!r}: expected a time in seconds (a number > 0) or None")
+    if not (math.isfinite(float(dt)) and dt > 0):
+        raise ConfigError(f"{what} = {float(dt)!r} s: expected a finite time > 0 between the "
+                          "two exposures")
+    return float(dt)
 
 
 @dataclass(frozen=True)
@@ -342,6 +369,9 @@ class VectorResult:
     dt: float | None = None
     n_replaced: int = 0
 
+    def __post_init__(self):
+        object.__setattr__(self, "dt", check_dt(self.dt, "VectorResult dt"))
+
     @classmethod
     def from_field(cls, field, correction: DepthCorrection, dt=None) -> VectorResult:
         """Convert a :class:`plenopiv.piv.VectorField` of effective coordinates."""
@@ -368,12 +398,12 @@ class VectorResult:
                  "quantity": "displacement" if self.dt is None else "velocity",
                  "n_replaced": self.n_replaced, "Conventions": "CF-1.8",
                  **(extra_attrs or {})}
-        p = write_h5(path, ds, attrs=attrs, units=units, config=config, kind="vectors")
-        _cf_dimensions(p, names)
-        out = [p]
-        if vtk:
-            out.append(self.save_vtk(Path(path).with_suffix("")))
-        return out
+        # the .vti first, then the HDF5 file: its `complete` mark (extra_attrs) is the last
+        # thing written, inside its temporary, so a failed write leaves nothing marked
+        vti = self.save_vtk(Path(path).with_suffix("")) if vtk else None
+        p = write_h5(path, ds, attrs=attrs, units=units, config=config, kind="vectors",
+                     finalize=lambda fh: _cf_dimensions(fh, names))
+        return [p] if vti is None else [p, vti]
 
     def save_vtk(self, stem: Path) -> Path:
         """A ``.vti`` image data file (ParaView) with the vector field and validity."""
@@ -394,36 +424,42 @@ class VectorResult:
             "valid": np.ascontiguousarray(self.valid.transpose(2, 1, 0), np.float64)}
         final = Path(str(stem) + ".vti")
         with atomic_path(final) as tmp:
-            written = imageToVTK(str(tmp.with_suffix("")), origin=origin, spacing=sp,
-                                 pointData=data)
+            # pyevtk appends ".vti": it writes TMP.vti, which atomic_path removes on failure
+            written = imageToVTK(str(tmp), origin=origin, spacing=sp, pointData=data)
             Path(written).replace(tmp)
         return final
 
 
-def _cf_dimensions(path: Path, names) -> None:
-    """Attach the 1-D coordinates as HDF5 dimension scales so that xarray/netCDF see them."""
-    import h5py
-
-    with h5py.File(path, "a") as fh:
-        for axis in ("x", "y", "z"):
-            fh[axis].make_scale(axis)
-            fh[axis].attrs["axis"] = axis.upper()
-            fh[axis].attrs["standard_name"] = {"x": "projection_x_coordinate",
-                                               "y": "projection_y_coordinate",
-                                               "z": "depth"}[axis]
-        for name in ("u", "v", "w", "valid", "snr"):
-            for dim, axis in enumerate(("z", "y", "x")):
-                fh[name].dims[dim].attach_scale(fh[axis])
-        for comp, axis in names.items():
-            fh[comp].attrs["long_name"] = f"{fh.attrs['quantity']} along {axis}"
+def _cf_dimensions(fh, names) -> None:
+    """Attach the 1-D coordinates as HDF5 dimension scales so that xarray/netCDF see them
+    (on the open file being written)."""
+    for axis in ("x", "y", "z"):
+        fh[axis].make_scale(axis)
+        fh[axis].attrs["axis"] = axis.upper()
+        fh[axis].attrs["standard_name"] = {"x": "projection_x_coordinate",
+                                           "y": "projection_y_coordinate",
+                                           "z": "depth"}[axis]
+    for name in ("u", "v", "w", "valid", "snr"):
+        for dim, axis in enumerate(("z", "y", "x")):
+            fh[name].dims[dim].attach_scale(fh[axis])
+    for comp, axis in names.items():
+        fh[comp].attrs["long_name"] = f"{fh.attrs['quantity']} along {axis}"
 
 
 def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, dt=None,
               workers=None, progress=None) -> VectorResult:
     """3-D PIV between two reconstructed volumes of the same grid (effective coordinates),
     returned in physical coordinates."""
-    from plenopiv.piv import correlate_volumes
+    from plenopiv.piv import PIVSettings, correlate_volumes
 
+    for name, r in (("result_a", result_a), ("result_b", result_b)):
+        if not isinstance(r, VolumeResult):
+            raise PIVError(f"correlate: {name} is a {type(r).__name__}: expected a "
+                           "VolumeResult (reconstruct_volume or load_volume)")
+    if settings is not None and not isinstance(settings, PIVSettings):
+        raise PIVError(f"correlate: settings is a {type(settings).__name__}: expected a "
+                       "PIVSettings (or None for the defaults)")
+    dt = check_dt(dt)
     if result_a.grid != result_b.grid:
         raise ReconstructionError("the two volumes were reconstructed on different grids")
     field = correlate_volumes(result_a.volume, result_b.volume, result_a.grid,
@@ -507,33 +543,108 @@ class ExperimentPairProcess:
         from plenopiv.config import load_experiment
         from plenopiv.io import read_image
 
+        import json
+
         exp = load_experiment(self.experiment_path)
         cal = experiment_calibration(exp, self.calibration_path)
         ia, ib = read_image(job.image_a), read_image(job.image_b)
         res = process_pair(cal, ia, ib, exp)
-        paths = save_pair(res, self.out_dir, job.name, exp,
-                          extra_attrs={"image_a": str(job.image_a),
-                                       "image_b": str(job.image_b)})
+        extra = {"image_a": str(job.image_a), "image_b": str(job.image_b)}
+        if getattr(job, "identity", None) is not None:
+            extra["identity"] = json.dumps(dict(job.identity), sort_keys=True)
+        paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra)
         vec = res.vectors
         return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),
                 "n_particles_a": len(res.volume_a.particle_position),
                 **{k: round(v, 3) for k, v in res.timings.items()}}
 
 
+def _camera_differences(made_for: CameraModel, used: CameraModel) -> list[str]:
+    """What differs between the camera a calibration was made for and the one it is used
+    with: sensor, lattice, main-lens focal length (S_i is the calibration's to give)."""
+    def close(a, b):
+        return math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-12)
+
+    out = []
+    a, b = made_for, used
+    if a.sensor.shape != b.sensor.shape:
+        out.append(f"sensor {a.sensor.rows} × {a.sensor.cols} px ≠ "
+                   f"{b.sensor.rows} × {b.sensor.cols} px")
+    if not close(a.sensor.pixel_pitch, b.sensor.pixel_pitch):
+        out.append(f"pixel pitch {a.sensor.pixel_pitch * 1e6:g} µm ≠ "
+                   f"{b.sensor.pixel_pitch * 1e6:g} µm")
+    ma, mb = a.microlens_array, b.microlens_array
+    if (ma.rows, ma.cols, ma.grid) != (mb.rows, mb.cols, mb.grid):
+        out.append(f"lattice {ma.rows} × {ma.cols} {ma.grid} ≠ {mb.rows} × {mb.cols} {mb.grid}")
+    for name, va, vb in (("lenslet pitch", ma.pitch, mb.pitch),
+                         ("lenslet focal length", ma.focal_length, mb.focal_length),
+                         ("lenslet-sensor distance", ma.sensor_distance, mb.sensor_distance)):
+        if not close(va, vb):
+            out.append(f"{name} {va * 1e6:g} µm ≠ {vb * 1e6:g} µm")
+    if not close(a.main_lens.focal_length, b.main_lens.focal_length):
+        out.append(f"main lens focal length {a.main_lens.focal_length * 1e3:g} mm ≠ "
+                   f"{b.main_lens.focal_length * 1e3:g} mm")
+    return out
+
+
+#: The experiment camera's nominal S_i may differ from the calibrated one by this fraction;
+#: beyond it the camera was refocused (or is another one) and needs its own calibration.
+IMAGE_DISTANCE_TOLERANCE = 0.1
+
+
+def _describe(camera: CameraModel, image_distance: float | None) -> str:
+    si = "" if image_distance is None else f", S_i = {image_distance * 1e3:.5g} mm"
+    mla = camera.microlens_array
+    return (f"{camera.name!r} (main lens f = {camera.main_lens.focal_length * 1e3:g} mm{si}, "
+            f"{mla.rows} × {mla.cols} lenslets of {mla.pitch * 1e6:g} µm, sensor "
+            f"{camera.sensor.rows} × {camera.sensor.cols} px)")
+
+
+def product_settings(experiment) -> dict:
+    """The settings of an experiment that shape a pair's products: the camera, the grid, the
+    reconstruction, particle and PIV tables, dt and the side products (vtk, png). Not the
+    image patterns, the batch, the folders or the weight cache."""
+    d = experiment.to_dict()
+    return {"camera": d["camera"], "volume": d["volume"],
+            "reconstruction": d["reconstruction"], "particles": d["particles"],
+            "piv": d["piv"], "dt_s": d["images"].get("dt_s"),
+            "vtk": d["output"].get("vtk"), "png": d["output"].get("png")}
+
+
+def settings_identity(experiment) -> str:
+    """SHA-256 of :func:`product_settings` (canonical JSON): equal when, and only when, the
+    products would be made with the same settings."""
+    import hashlib
+
+    from plenopiv.io import to_json
+
+    return hashlib.sha256(to_json(product_settings(experiment)).encode()).hexdigest()
+
+
 def experiment_calibration(experiment, calibration_path) -> Calibration:
     """The calibration to use with an experiment: S_i and the lenslets from the calibration
-    product, the interfaces and back-side model from the experiment's camera."""
+    product, the interfaces and back-side model from the experiment's camera.
+
+    The calibration product records the camera it was made for; used with another camera
+    (sensor, lattice or main-lens focal length differ, or the experiment's nominal S_i is
+    more than 10 % from the calibrated one) it is a
+    :class:`~plenopiv.errors.CalibrationError` naming both cameras and what differs.
+    """
     cal = Calibration.load(calibration_path)
     cam = experiment.camera
-    if (cal.camera.sensor.shape != cam.sensor.shape
-            or cal.camera.microlens_array.pitch != cam.microlens_array.pitch):
-        from plenopiv.errors import ConfigError
-
-        raise ConfigError(f"the calibration {str(calibration_path)!r} was made for another "
-                          f"camera (sensor {cal.camera.sensor.shape}, pitch "
-                          f"{cal.camera.microlens_array.pitch * 1e6:g} µm) than the "
-                          f"experiment's ({cam.sensor.shape}, "
-                          f"{cam.microlens_array.pitch * 1e6:g} µm)")
+    diffs = _camera_differences(cal.camera, cam)
+    nominal = cam.main_lens.image_distance
+    if not diffs and nominal is not None and \
+            abs(nominal - cal.image_distance) > IMAGE_DISTANCE_TOLERANCE * cal.image_distance:
+        diffs.append(f"calibrated S_i {cal.image_distance * 1e3:.5g} mm against the "
+                     f"experiment camera's image_distance_mm = {nominal * 1e3:.5g} (more than "
+                     f"{IMAGE_DISTANCE_TOLERANCE:.0%} apart: refocused?)")
+    if diffs:
+        raise CalibrationError(
+            f"the calibration {str(calibration_path)!r} was made for camera "
+            f"{_describe(cal.camera, cal.image_distance)} but the experiment's camera is "
+            f"{_describe(cam, nominal)}: {'; '.join(diffs)}. Use this camera's calibration "
+            "(plenopiv calibrate) or the experiment file of the calibrated camera")
     from dataclasses import replace
 
     return replace(cal, camera=cam.with_image_distance(cal.image_distance))

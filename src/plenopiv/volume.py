@@ -17,6 +17,11 @@ from plenopiv.camera import format_validation_error
 from plenopiv.errors import ConfigError
 
 
+#: More voxels than this is refused at once: the voxel-pixel weights index voxels with
+#: 32-bit integers, and a float32 volume of 2^31 voxels alone is 8.6 GB.
+MAX_VOXELS = float(2 ** 31 - 1)
+
+
 @dataclass(frozen=True)
 class VolumeGrid:
     """A regular voxel grid.
@@ -50,6 +55,11 @@ class VolumeGrid:
         the voxels fill the box) or ``shape = (nz, ny, nx)``.
         """
         bounds = np.array([x, y, z], dtype=float)
+        if bounds.shape == (3, 2):
+            for axis, (lo, hi) in zip("xyz", bounds, strict=True):
+                if not (np.isfinite(lo) and np.isfinite(hi)):
+                    raise ConfigError(f"[volume] {axis}_mm = {[float(lo) * 1e3, float(hi) * 1e3]}: expected "
+                                      "finite numbers [lo, hi]")
         if bounds.shape != (3, 2) or not np.all(bounds[:, 1] > bounds[:, 0]):
             raise ConfigError(f"[volume] bounds x, y, z = {bounds.tolist()} m: expected "
                               "[lo, hi] with hi > lo on every axis")
@@ -61,12 +71,29 @@ class VolumeGrid:
             counts = np.array([nx, ny, nz])
         else:
             v = np.broadcast_to(np.asarray(voxel, dtype=float), (3,))
-            if not np.all(v > 0):
-                raise ConfigError(f"[volume] voxel_mm = {np.asarray(voxel) * 1e3}: expected > 0")
-            counts = np.maximum(1, np.rint(span / v)).astype(int)
+            if not np.all(np.isfinite(v) & (v > 0)):
+                raise ConfigError(f"[volume] voxel_mm = {(np.asarray(voxel) * 1e3).tolist()}: "
+                                  "expected finite values > 0")
+            for axis, vi, si in zip("xyz", v, span, strict=True):
+                if vi > si * (1 + 1e-9):
+                    raise ConfigError(
+                        f"[volume] voxel_mm = {vi * 1e3:g} is larger than the box along "
+                        f"{axis} ({si * 1e3:g} mm, {axis}_mm): expected a voxel smaller than "
+                        "the box (several voxels along every axis)")
+            n = span / v
+            if float(np.prod(n)) > MAX_VOXELS:
+                raise ConfigError(
+                    f"[volume] voxel_mm = {(v * 1e3).tolist()} on a box of "
+                    f"{(span * 1e3).tolist()} mm gives {float(np.prod(n)):.3g} voxels: "
+                    f"expected at most {MAX_VOXELS:.0e} (use larger voxels or a smaller box)")
+            counts = np.maximum(1, np.rint(n)).astype(int)
         if np.any(counts < 1):
             raise ConfigError(f"[volume] shape = {counts[::-1].tolist()}: expected at least one "
                               "voxel along every axis")
+        if float(np.prod(counts.astype(float))) > MAX_VOXELS:
+            raise ConfigError(f"[volume] shape = {counts[::-1].tolist()} is "
+                              f"{float(np.prod(counts.astype(float))):.3g} voxels: expected at "
+                              f"most {MAX_VOXELS:.0e} (use larger voxels or a smaller box)")
         size = span / counts
         origin = bounds[:, 0] + size / 2
         return cls(tuple(origin), tuple(size), (int(counts[2]), int(counts[1]), int(counts[0])))
@@ -133,6 +160,14 @@ class _VolumeCfg(BaseModel):
 
 def volume_from_dict(cfg: dict, *, source: str = "[volume]") -> VolumeGrid:
     """Validate a ``[volume]`` table (x_mm, y_mm, z_mm, voxel_mm or shape) and build the grid."""
+    vox = cfg.get("voxel_mm") if isinstance(cfg, dict) else None
+    if isinstance(vox, (list, tuple)) and len(vox) != 3:
+        raise ConfigError(f"{source}: [volume] voxel_mm = {list(vox)!r}: expected one number "
+                          "(cubic voxels) or a list of 3 numbers [dx, dy, dz]")
+    shp = cfg.get("shape") if isinstance(cfg, dict) else None
+    if shp is not None and not (isinstance(shp, (list, tuple)) and len(shp) == 3):
+        raise ConfigError(f"{source}: [volume] shape = {shp!r}: expected a list of 3 voxel "
+                          "counts [nz, ny, nx]")
     try:
         c = _VolumeCfg.model_validate(cfg)
     except ValidationError as exc:

@@ -6,6 +6,12 @@ the effective image distance S_i,eff and how it was obtained. It is saved as the
 of DESIGN.md §7 (``/lenslets/centre_px``, ``/lenslets/focal_spot_px``,
 ``/lenslets/grid_index``; attributes ``image_distance_m``, ``method``, ``offset_m``,
 ``rotation_rad``, ``rms_residual_px``).
+
+The product records the camera it was made for: the root attribute ``camera`` (the camera's
+config as JSON: sensor, lattice, main lens with the calibrated S_i) and ``camera_summary``
+(one line: lens focal length, S_i, lattice, sensor). Using it with another camera is an error
+naming both (:func:`plenopiv.pipeline.experiment_calibration`). Files written before these
+attributes existed are read from the camera in their ``config`` attribute.
 """
 
 from __future__ import annotations
@@ -100,7 +106,16 @@ class Calibration:
     def save(self, path: str | Path, *, config: dict | None = None) -> Path:
         """Write the calibration product (HDF5, atomic)."""
         cfg = {"camera": self.camera.to_dict(), **(config or {})}
-        attrs = {"image_distance_m": self.image_distance, "method": self.method,
+        made_for = self.effective_camera
+        mla = made_for.microlens_array
+        attrs = {"camera": made_for.to_json(),
+                 "camera_summary": (
+                     f"{made_for.name}: main lens f = "
+                     f"{made_for.main_lens.focal_length * 1e3:g} mm, S_i = "
+                     f"{self.image_distance * 1e3:.6g} mm, {mla.rows} x {mla.cols} {mla.grid} "
+                     f"lenslets of {mla.pitch * 1e6:g} um, sensor {made_for.sensor.rows} x "
+                     f"{made_for.sensor.cols} px of {made_for.sensor.pixel_pitch * 1e6:g} um"),
+                 "image_distance_m": self.image_distance, "method": self.method,
                  "offset_m": np.asarray(self.offset, float), "rotation_rad": self.rotation,
                  "rms_residual_px": self.rms_residual_px, "n_lenslets": self.n_lenslets,
                  "extra": json.dumps(self.extra, default=float)}
@@ -115,9 +130,13 @@ class Calibration:
     def load(cls, path: str | Path) -> Calibration:
         """Read a calibration product written by :meth:`save`."""
         with open_product(path, "calibration", CalibrationError) as fh:
-            cfg = json.loads(fh.attrs["config"])
             a = fh.attrs
-            return cls(camera=camera_from_dict(cfg["camera"], source=f"{path}:config"),
+            if "camera" in a:
+                camera = camera_from_dict(json.loads(a["camera"]), source=f"{path}:camera")
+            else:             # written before the camera attribute: the config's camera
+                camera = camera_from_dict(json.loads(a["config"])["camera"],
+                                          source=f"{path}:config")
+            return cls(camera=camera,
                        centre_px=fh["/lenslets/centre_px"][()],
                        focal_spot_px=fh["/lenslets/focal_spot_px"][()],
                        grid_index=fh["/lenslets/grid_index"][()].astype(int),

@@ -47,6 +47,9 @@ def focal_point_image(camera: CameraModel, *, f_number: float | None = None,
     §3.1.1, Eqs. 3.11 and 4.8). Each spot is weighted by cos⁴ of its chief ray (natural
     vignetting), uniformly within the spot, so the vignetting does not bias the centroid.
     """
+    if f_number is not None and not (np.isfinite(f_number) and f_number > 0):
+        raise ConfigError(f"f_number = {f_number!r}: expected a finite number > 0 (or None "
+                          "for the camera's)")
     radius = camera.main_lens.focal_length / (f_number or camera.main_lens.f_number) / 2
     pupil = symmetric_disc_points(radius, pupil_across)
     return render_lenslet_bundles(camera, pupil_points=pupil, cell_across=cell_across,
@@ -158,6 +161,13 @@ def particle_image(camera: CameraModel, positions, intensities=None, *,
     Rays are traced exactly: Snell at the external interface (each ray solved to reach its
     lens-plane sample), ideal thin main lens, Snell into the substrate, thin lenslets.
     """
+    if isinstance(rays_per_particle, bool) or not isinstance(rays_per_particle,
+                                                              (int, np.integer)) \
+            or rays_per_particle < 1:
+        raise ConfigError(f"rays_per_particle = {rays_per_particle!r}: expected an integer >= 1")
+    if f_number is not None and not (np.isfinite(f_number) and f_number > 0):
+        raise ConfigError(f"f_number = {f_number!r}: expected a finite number > 0 (or None "
+                          "for the camera's)")
     pos = np.asarray(positions, dtype=float)
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ConfigError(f"particle positions have shape {pos.shape}: expected (N, 3) (X, Y, Z)")
@@ -205,6 +215,14 @@ def finish_image(irradiance, *, exposure: float | None = None, blur_px: float = 
         raise ConfigError(f"noise = {noise!r}: expected one of {NOISE_MODELS}")
     if bit_depth not in (8, 16, None):
         raise ConfigError(f"bit_depth = {bit_depth!r}: expected 8, 16 or None (float)")
+    for name, value, strict in (("blur_px", blur_px, False), ("full_well", full_well, True),
+                                ("read_noise", read_noise, False),
+                                ("peak_fraction", peak_fraction, True)):
+        if not (np.isfinite(value) and (value > 0 if strict else value >= 0)):
+            raise ConfigError(f"{name} = {value!r}: expected a finite number "
+                              f"{'> 0' if strict else '>= 0'}")
+    if exposure is not None and not (np.isfinite(exposure) and exposure > 0):
+        raise ConfigError(f"exposure = {exposure!r}: expected a finite number > 0")
     img = np.asarray(irradiance, dtype=np.float64)
     if blur_px > 0:
         img = ndimage.gaussian_filter(img, blur_px, mode="constant")

@@ -56,6 +56,8 @@ def particle_count(camera: CameraModel, box: SeedingBox, *, per_lenslet: float |
 
 def random_particles(box: SeedingBox, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` particle positions (N, 3) ``(X, Y, Z)``, metres, uniform in ``box``."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise ConfigError(f"particle count = {n!r}: expected an integer >= 0")
     lo = np.array([box.x[0], box.y[0], box.z[0]])
     hi = np.array([box.x[1], box.y[1], box.z[1]])
     return lo + (hi - lo) * rng.random((int(n), 3))
@@ -98,8 +100,8 @@ def simulate_pair(camera: CameraModel, flow, *, dt: float, box: SeedingBox, n_pa
     ``intensity_spread`` is the relative standard deviation of particle brightness
     (log-normal); 0 makes every particle equally bright.
     """
-    if not dt > 0:
-        raise ConfigError(f"dt = {dt!r} s: expected > 0")
+    if not (np.isfinite(dt) and dt > 0):
+        raise ConfigError(f"dt = {dt!r} s: expected a finite time > 0")
     pa = random_particles(box, n_particles, rng)
     pb = advect(flow, pa, dt)
     if intensity_spread > 0:

@@ -1,0 +1,67 @@
+"""Up-front size checks: refuse work that cannot fit this machine before allocating anything.
+
+A volume, a sensor or an array beyond the memory available is refused at once with the
+figure (:class:`~plenopiv.errors.ResourceError`), never after minutes of estimation or with
+numpy's ``_ArrayMemoryError`` traceback.
+"""
+
+from __future__ import annotations
+
+import os
+
+from plenopiv.errors import ResourceError
+
+#: Bytes per voxel of a reconstruction besides its weights: the float32 volume, the MART
+#: correction and first guess, the line-of-sight mask and the particle search (~8 float32).
+BYTES_PER_VOXEL = 32
+#: Bytes per sensor pixel of rendering or reading an image (float64 irradiance, its copies).
+BYTES_PER_PIXEL = 40
+
+
+def available_memory() -> int:
+    """Memory available to this process now, bytes (``MemAvailable``; else physical)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
+        return 8 * 1024 ** 3
+
+
+def format_bytes(n: float) -> str:
+    """``n`` bytes as text (kB ... TiB)."""
+    for unit, size in (("TiB", 1024 ** 4), ("GiB", 1024 ** 3), ("MiB", 1024 ** 2),
+                       ("kiB", 1024)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{n:.0f} B"
+
+
+def check_memory(nbytes: float, what: str, *, hint: str = "") -> None:
+    """Raise :class:`ResourceError` when ``nbytes`` exceed the memory available now."""
+    avail = available_memory()
+    if nbytes > avail:
+        raise ResourceError(f"{what} needs about {format_bytes(nbytes)} of memory but this "
+                            f"machine has {format_bytes(avail)} available"
+                            + (f": {hint}" if hint else ""))
+
+
+def check_grid(grid, what: str = "the [volume] grid") -> None:
+    """Refuse a reconstruction grid whose arrays alone would not fit in memory."""
+    n = float(grid.shape[0]) * grid.shape[1] * grid.shape[2]
+    check_memory(n * BYTES_PER_VOXEL,
+                 f"{what} of {list(grid.shape)} = {n:.3g} voxels",
+                 hint="use larger voxels (voxel_mm) or a smaller box")
+
+
+def check_sensor(camera, what: str = "the camera's sensor") -> None:
+    """Refuse a sensor whose images would not fit in memory."""
+    rows, cols = camera.sensor.shape
+    n = float(rows) * cols
+    check_memory(n * BYTES_PER_PIXEL, f"{what} of {rows} × {cols} = {n:.3g} pixels",
+                 hint="check [sensor] rows and cols")
