@@ -428,3 +428,208 @@ def test_summary_to_dict_is_plain_json():
     r = d["results"][0]["result"]
     assert r["rms"] == 0.25 and r["shape"] == [2, 3] and r["odd"].startswith("<object")
     assert s.ok and s.n_jobs == 1 and d["n_done"] == 1
+
+
+# ---- issue #14: keyed resume, stale temporaries, Ctrl-C, full disk --------------------------
+
+
+def keyed_mean_difference(job: PairJob) -> dict:
+    """The contract with an identity: stored in the product with the complete mark."""
+    a = read_image(job.image_a).astype(np.float64)
+    b = read_image(job.image_b).astype(np.float64)
+    write_h5(job.output, {"/difference": b - a}, kind="test product")
+    mark_complete(job.output, identity=job.identity)
+    return {"mean_difference": float((b - a).mean())}
+
+
+def slow_mean_difference(job: PairJob) -> dict:
+    import time
+
+    time.sleep(1.5)
+    return keyed_mean_difference(job)
+
+
+def with_identity(jobs, settings="s1"):
+    from dataclasses import replace
+
+    from plenopiv.io import file_identity
+
+    return [replace(j, identity={"settings": settings, "image_a": file_identity(j.image_a),
+                                 "image_b": file_identity(j.image_b)}) for j in jobs]
+
+
+def test_resume_recomputes_products_made_from_other_settings_or_inputs(tmp_path, rng):
+    make_pairs(tmp_path / "images", 3, rng)
+    jobs = with_identity(discover_pairs("images/*_A.tif", "images/*_B.tif", out_dir="out",
+                                        root=tmp_path))
+    first = run_batch(jobs, keyed_mean_difference, n_workers=1, progress=False)
+    assert first.done == ("pair_00", "pair_01", "pair_02") and first.recomputed == ()
+    assert batch.product_identity(jobs[0].output) == dict(jobs[0].identity)
+
+    # the same settings and inputs: nothing to do (no cluster behind this address)
+    same = run_batch(jobs, keyed_mean_difference, cluster="tcp://127.0.0.1:9", progress=False)
+    assert same.skipped == ("pair_00", "pair_01", "pair_02")
+
+    # another pair's complete product copied over a name; one made before identities; and
+    # an image edited since
+    out = tmp_path / "out"
+    (out / "pair_00.h5").write_bytes((out / "pair_01.h5").read_bytes())
+    with h5py.File(out / "pair_02.h5", "r+") as fh:
+        del fh.attrs[batch.IDENTITY_ATTR]
+    assert is_complete(out / "pair_00.h5") and is_complete(out / "pair_02.h5")
+    second = run_batch(jobs, keyed_mean_difference, n_workers=1, progress=False)
+    assert second.done == ("pair_00", "pair_02") and second.skipped == ("pair_01",)
+    reasons = dict(second.recomputed)
+    assert reasons["pair_00"] == "made with other first image, second image"
+    assert "records no identity" in reasons["pair_02"]
+    d = second.to_dict()
+    assert d["n_recomputed"] == 2 and d["recomputed"][0]["name"] == "pair_00"
+    assert h5py.File(out / "pair_00.h5")["/difference"][()].mean() == 0.0   # pair 0's own
+
+    # the settings changed: every pair is recomputed, and the summary says why
+    third = run_batch(with_identity(jobs, settings="s2"), keyed_mean_difference, n_workers=1,
+                      progress=False)
+    assert third.done == ("pair_00", "pair_01", "pair_02")
+    assert {r for _, r in third.recomputed} == {"made with other settings"}
+    on_disk = json.loads((out / batch.SUMMARY_NAME).read_text())
+    assert on_disk["n_recomputed"] == 3
+
+    # a process that does not store the identity breaks the contract: failed, not looping
+    broken = run_batch(with_identity(jobs, settings="s3"), mean_difference, n_workers=1,
+                       progress=False)
+    assert len(broken.failed) == 3 and "does not record the job's identity" in broken.failed[0][1]
+
+
+def test_temporaries_of_every_product_of_a_pair_are_removed(tmp_path, rng):
+    make_pairs(tmp_path / "images", 2, rng)
+    jobs = discover_pairs("images/*_A.tif", "images/*_B.tif", out_dir="out", root=tmp_path,
+                          output_name="{name}_vectors.h5")
+    out = tmp_path / "out"
+    out.mkdir()
+    for j in jobs:
+        write_h5(j.output, {"/x": np.zeros(2)}, attrs={batch.COMPLETE_ATTR: True})
+    stale = [".pair_00_volume_A.h5.k1ll3d00.part", ".pair_00_volume_B.h5.k1ll3d01.part",
+             ".pair_00_vectors.vti.k1ll3d02.part", ".pair_00_vectors.vti.k1ll3d03.part.vti",
+             ".pair_01_vectors.h5.k1ll3d04.part", ".pair_01_vectors.png.k1ll3d05.part"]
+    for name in stale:
+        (out / name).write_bytes(b"half")
+    keep = out / ".other_vectors.h5.abcdefgh.part"      # not one of this batch's pairs
+    keep.write_bytes(b"")
+    s = run_batch(jobs, mean_difference, cluster="tcp://127.0.0.1:9", progress=False)
+    assert s.skipped == ("pair_00", "pair_01")
+    assert sorted(Path(p).name for p in s.removed_parts) == sorted(stale)
+    assert not any((out / n).exists() for n in stale) and keep.exists()
+
+
+INTERRUPTED_BATCH = """
+import sys
+sys.path.insert(0, {tests!r})
+from test_batch import slow_mean_difference, with_identity
+from plenopiv.batch import BatchInterrupted, discover_pairs, run_batch
+jobs = with_identity(discover_pairs("images/*_A.tif", "images/*_B.tif", out_dir="out",
+                                    root={root!r}))
+try:
+    run_batch(jobs, slow_mean_difference, n_workers=1, progress=False)
+except BatchInterrupted as exc:
+    print("INTERRUPTED", exc, flush=True)
+    sys.exit(130)
+print("FINISHED", flush=True)
+"""
+
+
+def test_ctrl_c_stops_cleanly_writes_the_summary_and_resumes(tmp_path, rng):
+    import signal
+    import subprocess
+    import time
+
+    make_pairs(tmp_path / "images", 6, rng)
+    out = tmp_path / "out"
+    env = dict(os.environ)
+    src = str(Path(__file__).resolve().parents[1] / "src")
+    env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
+    code = INTERRUPTED_BATCH.format(tests=str(Path(__file__).parent), root=str(tmp_path))
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not (out / "pair_01.h5").exists():
+        time.sleep(0.1)
+    assert (out / "pair_01.h5").exists(), proc.communicate(timeout=30)
+    time.sleep(0.5)                               # pair_00 is reported done by now
+    os.killpg(proc.pid, signal.SIGINT)          # Ctrl-C reaches the whole process group
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, (stdout, stderr)
+    assert "INTERRUPTED interrupted (Ctrl-C)" in stdout and "Traceback" not in stderr
+    summary = json.loads((out / batch.SUMMARY_NAME).read_text())
+    assert summary["n_done"] >= 1 and summary["n_interrupted"] >= 1
+    assert summary["n_done"] + summary["n_interrupted"] + summary["n_failed"] == 6
+    assert parts(out) == []
+    for name in summary["done"]:
+        assert is_complete(out / f"{name}.h5")
+
+    # the same command again resumes: the finished pairs are skipped, the rest computed
+    jobs = with_identity(discover_pairs("images/*_A.tif", "images/*_B.tif", out_dir="out",
+                                        root=tmp_path))
+    again = run_batch(jobs, keyed_mean_difference, n_workers=2, progress=False)
+    assert set(again.skipped) >= set(summary["done"])
+    assert len(again.done) + len(again.skipped) == 6 and again.ok
+
+
+def test_a_full_disk_is_an_error_that_leaves_nothing_marked_complete(tmp_path, monkeypatch):
+    """ENOSPC part way through a product: a WriteError naming the file, and neither the
+    product, its .vti nor a temporary is left."""
+    import errno
+
+    from plenopiv.errors import WriteError
+    from plenopiv.pipeline import VectorResult
+
+    n = (2, 3, 4)
+    vec = VectorResult(np.arange(4.0), np.arange(3.0), np.arange(2.0), *(np.ones(n),) * 3,
+                       np.ones(n, bool), np.ones(n), dt=1e-3)
+    calls = {"n": 0}
+    create = h5py.Group.create_dataset
+
+    def full_after_three(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] > 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return create(self, *args, **kwargs)
+
+    monkeypatch.setattr(h5py.Group, "create_dataset", full_after_three)
+    with pytest.raises(WriteError, match=r"vectors\.h5' failed: no space left on device"):
+        vec.save(tmp_path / "vectors.h5", vtk=True, extra_attrs={batch.COMPLETE_ATTR: True})
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["vectors.vti"]   # the .vti came first
+    (tmp_path / "vectors.vti").unlink()
+
+    # the disk fills while the .vti is written: no stray temporary, no product
+    import pyevtk.hl
+
+    def full_vti(path, **kwargs):
+        Path(path + ".vti").write_bytes(b"<VTKFile half")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pyevtk.hl, "imageToVTK", full_vti)
+    with pytest.raises(WriteError, match="no space left on device"):
+        vec.save(tmp_path / "vectors.h5", vtk=True, extra_attrs={batch.COMPLETE_ATTR: True})
+    assert list(tmp_path.iterdir()) == []
+
+    # in a batch: the pair fails with the reason, the others go on, nothing marked complete
+    monkeypatch.undo()
+    assert not is_complete(tmp_path / "vectors.h5")
+
+
+def enospc_on_pair_01(job: PairJob) -> dict:
+    import errno
+
+    if job.name == "pair_01":
+        raise OSError(errno.ENOSPC, "No space left on device")
+    return mean_difference(job)
+
+
+def test_full_disk_pair_fails_alone(tmp_path, rng):
+    make_pairs(tmp_path / "images", 3, rng)
+    jobs = discover_pairs("images/*_A.tif", "images/*_B.tif", out_dir="out", root=tmp_path)
+    s = run_batch(jobs, enospc_on_pair_01, n_workers=1, progress=False)
+    assert s.done == ("pair_00", "pair_02") and not s.ok
+    assert s.failed[0][0] == "pair_01" and "No space left on device" in s.failed[0][1]
+    assert not (tmp_path / "out" / "pair_01.h5").exists()

@@ -102,3 +102,24 @@ def test_plenopiv_run_batch_with_resume(tmp_path, capsys):
     assert main(["run", str(tmp_path / "exp.toml"), "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert sorted(s["skipped"]) == ["run_1", "run_2"] and s["weights_from_cache"]
+
+    # issue #14: the [piv] windows change -> both pairs recomputed, and the summary says why;
+    # a killed write's temporary of a volume is removed
+    exp = tmp_path / "exp.toml"
+    exp.write_text(exp.read_text().replace("[[12, 12, 12]]", "[[16, 16, 16]]"))
+    (tmp_path / "out" / ".run_1_volume_A.h5.k1ll3d00.part").write_bytes(b"half")
+    assert main(["run", str(exp), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert sorted(s["done"]) == ["run_1", "run_2"] and s["n_recomputed"] == 2
+    assert {r["reason"] for r in s["recomputed"]} == {"made with other settings"}
+    assert any(p.endswith(".run_1_volume_A.h5.k1ll3d00.part") for p in s["removed_parts"])
+
+    # a corrupt pair among good ones: it fails alone, and `plenopiv run` exits 1 naming it
+    (tmp_path / "pairs" / "run_3.h5").write_bytes(b"\x89HDF\r\n\x1a\n truncated")
+    code = main(["run", str(exp), "--json"])
+    out, err = capsys.readouterr()
+    s = json.loads(out)
+    assert code == 1 and "Traceback" not in err
+    assert err.startswith("error: 1 of 3 pairs failed: run_3 (")
+    assert s["error"].startswith("1 of 3 pairs failed") and s["exit_status"] == 1
+    assert sorted(s["skipped"]) == ["run_1", "run_2"] and s["failed"][0]["name"] == "run_3"

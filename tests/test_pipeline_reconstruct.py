@@ -125,5 +125,7 @@ def test_cli_reconstruct_product(tmp_path, capsys, small_camera):
     other.save(tmp_path / "other.h5")
     code = main(["reconstruct", str(tmp_path / "other.h5"), str(tmp_path / "img.tif"),
                  "--config", str(tmp_path / "exp.toml"), "--out", str(tmp_path / "v2.h5")])
-    assert code == 2 and "another camera" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert code == 2 and "was made for camera 'Auburn" in err
+    assert "sensor 3280 × 4904 px ≠ 700 × 1040 px" in err
     assert not (tmp_path / "v2.h5").exists()

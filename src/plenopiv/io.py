@@ -458,13 +458,46 @@ def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
     p = Path(path)
     attrs = dict(attrs or {})
     complete = attrs.pop("complete", None)
+    size = sum(np.asarray(a).nbytes for a in datasets.values())
     with atomic_path(p) as tmp:
-        try:
-            _write_h5_file(tmp, datasets, attrs, units, config, kind, compress, finalize,
+        if size <= IN_MEMORY_BYTES:
+            # HDF5 built in memory, then written with plain writes: a full disk is a clean
+            # OSError here, never an HDF5 library error (h5py can crash when it later frees
+            # the objects of a file whose writes failed)
+            import io as _io
+
+            buf = _io.BytesIO()
+            _write_h5_file(buf, datasets, attrs, units, config, kind, compress, finalize,
                            complete)
-        except RuntimeError as exc:      # h5py reports a failed flush or close so
-            raise write_failure(p, exc) from None
+            with open(tmp, "wb") as fh:
+                fh.write(buf.getbuffer())
+                fh.flush()
+                os.fsync(fh.fileno())
+        else:
+            _check_free_space(p, size)
+            try:
+                _write_h5_file(tmp, datasets, attrs, units, config, kind, compress, finalize,
+                               complete)
+            except RuntimeError as exc:      # h5py reports a failed flush or close so
+                raise write_failure(p, exc) from None
     return p
+
+
+#: Products up to this size are built in memory and written with plain file writes.
+IN_MEMORY_BYTES = 1 << 29
+
+
+def _check_free_space(path: Path, nbytes: int) -> None:
+    import shutil
+
+    try:
+        free = shutil.disk_usage(path.parent).free
+    except OSError:
+        return
+    if free < nbytes:
+        raise WriteError(f"writing {str(path)!r} needs up to {nbytes / 1e6:.4g} MB but its "
+                         f"disk has {free / 1e6:.4g} MB free: no space left on device; "
+                         "nothing was written under that name")
 
 
 def _write_h5_file(tmp, datasets, attrs, units, config, kind, compress, finalize,
