@@ -117,6 +117,8 @@ def inputs(tmp_path_factory):
         "wrong_cal": experiment(extra="[images]\npairs = \"img.h5\"\ncalibration = "
                                 "\"cal_135.h5\""),
         "dt_inf": experiment(extra="[images]\ndt_s = inf"),
+        "clash": experiment(extra="[images]\npairs = \"clash/*.h5\"\ncalibration = "
+                            "\"cal.h5\"\n[output]\ndirectory = \"clash\""),
         "unknown_key": experiment(extra="[piv]\nwindow = [[16, 16, 16]]"),
     }
     for name, text in variants.items():
@@ -124,6 +126,9 @@ def inputs(tmp_path_factory):
     (d / "cnt").mkdir()
     for n in ("1_A", "2_A", "1_B"):
         tifffile.imwrite(d / "cnt" / f"{n}.tif", np.ones((4, 4), np.uint16))
+    (d / "clash").mkdir()
+    for n in ("p", "p_volume_A"):
+        (d / "clash" / f"{n}.h5").write_bytes((d / "img.h5").read_bytes())
     (d / "folder.h5").mkdir()
     (d / "folder.tif").mkdir()
     (d / "existing_dir").mkdir()
@@ -306,6 +311,8 @@ CASES = [
     ("run-a-b-counts", "run {d}/count.toml", 2, "matches 2 files but pattern_b"),
     ("run-calibration-of-other-camera", "run {d}/wrong_cal.toml --json", 2, "was made for"),
     ("run-cluster-flag", "run {d}/bad_cluster.toml --cluster slurm://x", 2, "slurm://x"),
+    ("run-product-overwrites-input", "run {d}/clash.toml", 2,
+     "clash/p_volume_A.h5', which is one of the batch's inputs"),
     # ---- the command line itself ----
     ("no-command", "", 2, "required"),
     ("unknown-command", "fly", 2, "invalid choice"),

@@ -37,8 +37,10 @@ images). ``process`` stores it in the product (root attribute ``identity``, JSON
 ``mark_complete(path, identity=job.identity)`` does both). A complete product whose stored
 identity differs from the job's (other settings, another calibration, other images, or
 another pair's product copied over the name) is recomputed, and the summary lists it under
-``recomputed`` with what changed. When ``process`` returns but its product is not complete, the job is
-recorded as failed (a resume would otherwise redo it forever).
+``recomputed`` with what changed.
+
+When ``process`` returns but its product is not complete (or does not record the job's
+identity), the job is recorded as failed (a resume would otherwise redo it forever).
 
 An exception raised by ``process`` is deterministic for a given input (a corrupt image, a bad
 config): it is caught on the worker, recorded (type, message, traceback) and NOT retried. A
@@ -69,7 +71,7 @@ from pathlib import Path
 from typing import Any
 
 from plenopiv.errors import EXIT_INTERRUPTED, ConfigError, PlenopivError
-from plenopiv.io import atomic_path, to_json
+from plenopiv.io import atomic_path, finite_json, to_json
 
 __all__ = [
     "COMPLETE_ATTR",
@@ -569,7 +571,7 @@ class BatchSummary:
              "n_workers": self.n_workers, "threads_per_worker": self.threads_per_worker,
              "removed_parts": list(self.removed_parts), "summary_path": self.summary_path,
              "results": [r.to_dict(tracebacks=tracebacks) for r in self.results]}
-        return json.loads(json.dumps(d, default=_json_default))
+        return finite_json(json.loads(json.dumps(d, default=_json_default)))
 
 
 def _run_job(process: Callable[[PairJob], Any], job: PairJob,
@@ -1083,7 +1085,8 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
         recomputed=tuple(recomputed),
         interrupted=tuple(r.name for r in ordered if r.status == "interrupted"))
     with atomic_path(summary_file) as tmp:
-        tmp.write_text(json.dumps(summary.to_dict(tracebacks=True), indent=1) + "\n")
+        tmp.write_text(json.dumps(summary.to_dict(tracebacks=True), indent=1,
+                                  allow_nan=False) + "\n")
     if interrupted:
         raise BatchInterrupted(
             f"interrupted (Ctrl-C) after {len(summary.done)} of {summary.n_jobs} pairs "

@@ -13,7 +13,6 @@ the computation, next to each subcommand; no input file is ever overwritten.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import re
@@ -313,7 +312,6 @@ def cmd_calibrate(args) -> dict:
     """Calibrate a camera from its images and write the calibration product."""
     from plenopiv.calibration.pipeline import calibrate
     from plenopiv.io import read_image
-
     from plenopiv.resources import check_sensor
 
     _number("--ruler-spacing-mm", args.ruler_spacing_mm, minimum=0, open_min=True, unit="mm")
@@ -405,10 +403,8 @@ def cmd_reconstruct(args) -> dict:
 
 def cmd_piv(args) -> dict:
     """Cross-correlate two volume products into a vector field."""
-    from plenopiv.config import PIVConfig
+    from plenopiv.config import MAX_WINDOW_VOX, PIVConfig
     from plenopiv.pipeline import correlate, load_volume, piv_settings
-
-    from plenopiv.config import MAX_WINDOW_VOX
     from plenopiv.piv import MIN_WINDOW_VOX
 
     _number("--dt", args.dt, minimum=0, open_min=True, unit="seconds between the exposures")
@@ -538,6 +534,7 @@ def cmd_run(args) -> dict:
         jobs = discover_pairs(im.a, im.b, out_dir=out_dir, root=exp.base_dir,
                               output_name="{name}_vectors.h5", pair_by=im.pair_by)
     cal_path = exp.path(im.calibration)
+    _check_products_spare_inputs(jobs, [args.experiment, cal_path])
     cal = experiment_calibration(exp, cal_path)
     check_grid(exp.volume)
     jobs = _with_identities(jobs, exp, cal_path)
@@ -565,6 +562,23 @@ def cmd_run(args) -> dict:
         err.summary = result
         raise err
     return result
+
+
+def _check_products_spare_inputs(jobs, others) -> None:
+    """No file a pair writes (vectors, volumes, .vti, PNGs) may be one of the batch's inputs
+    (an image, the experiment file, the calibration)."""
+    from plenopiv.io import split_dataset_spec
+
+    inputs = {split_dataset_spec(p)[0].resolve() for j in jobs for p in (j.image_a, j.image_b)}
+    inputs |= {Path(p).resolve() for p in others}
+    for j in jobs:
+        folder, name = j.output.parent, j.name
+        for f in (j.output, folder / f"{name}_volume_A.h5", folder / f"{name}_volume_B.h5",
+                  j.output.with_suffix(".vti"), folder / f"{name}_volume_A.png",
+                  folder / f"{name}_vectors.png"):
+            if f.resolve() in inputs:
+                raise ConfigError(f"pair {name!r} would write {str(f)!r}, which is one of the "
+                                  "batch's inputs; choose another [output] directory")
 
 
 def _with_identities(jobs, exp, cal_path):
@@ -848,6 +862,11 @@ def main(argv: list[str] | None = None) -> int:
         exc = PlenopivError("interrupted (Ctrl-C); products written so far are complete, "
                             "temporaries are removed on the next run")
         return _report_failure(exc, EXIT_INTERRUPTED, command, as_json, warned)
+    except OSError as exc:             # a read or write outside plenopiv's own checks
+        where = f" ({exc.filename})" if exc.filename else ""
+        err = PlenopivError(f"a file operation failed{where}: {type(exc).__name__}: "
+                            f"{_one_line(exc.strerror or exc)}")
+        return _report_failure(err, EXIT_FAILED, command, as_json, warned)
     except MemoryError as exc:
         err = ResourceError(f"out of memory ({type(exc).__name__}: {_one_line(exc)}): use "
                             "a smaller volume, sensor or batch")

@@ -32,7 +32,6 @@ from plenopiv.camera import (
 from plenopiv.errors import ConfigError
 from plenopiv.volume import VolumeGrid, volume_from_dict
 
-
 #: More MART sweeps than this is refused: 10 is the default, a few hundred already converge.
 MAX_ITERATIONS = 10_000
 #: The largest PIV window edge, voxels (a 1024³ float32 window pair is 8 GB).

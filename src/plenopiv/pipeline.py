@@ -540,10 +540,10 @@ class ExperimentPairProcess:
 
     def __call__(self, job) -> dict:
         """Process one :class:`plenopiv.batch.PairJob`; returns a small summary."""
+        import json
+
         from plenopiv.config import load_experiment
         from plenopiv.io import read_image
-
-        import json
 
         exp = load_experiment(self.experiment_path)
         cal = experiment_calibration(exp, self.calibration_path)

@@ -16,7 +16,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from plenopiv.camera import format_validation_error
 from plenopiv.errors import ConfigError
 
-
 #: More voxels than this is refused at once: the voxel-pixel weights index voxels with
 #: 32-bit integers, and a float32 volume of 2^31 voxels alone is 8.6 GB.
 MAX_VOXELS = float(2 ** 31 - 1)
@@ -58,8 +57,9 @@ class VolumeGrid:
         if bounds.shape == (3, 2):
             for axis, (lo, hi) in zip("xyz", bounds, strict=True):
                 if not (np.isfinite(lo) and np.isfinite(hi)):
-                    raise ConfigError(f"[volume] {axis}_mm = {[float(lo) * 1e3, float(hi) * 1e3]}: expected "
-                                      "finite numbers [lo, hi]")
+                    shown = [float(lo) * 1e3, float(hi) * 1e3]
+                    raise ConfigError(f"[volume] {axis}_mm = {shown}: expected finite numbers "
+                                      "[lo, hi]")
         if bounds.shape != (3, 2) or not np.all(bounds[:, 1] > bounds[:, 0]):
             raise ConfigError(f"[volume] bounds x, y, z = {bounds.tolist()} m: expected "
                               "[lo, hi] with hi > lo on every axis")
