@@ -447,3 +447,20 @@ def test_bad_invocations_as_real_processes(argv, words, inputs):
     if "--json" in args:
         assert "error" in json.loads(res.stdout)
     assert tree(inputs) == before
+
+
+def test_a_rerun_removes_the_temporaries_of_a_killed_write(inputs, tmp_path, capsys):
+    """`plenopiv piv` killed while writing left hidden temporaries: the next run of the same
+    command removes them and writes its products."""
+    out = tmp_path / "w.h5"
+    stale = [tmp_path / ".w.h5.k1ll3d00.part", tmp_path / ".w.vti.k1ll3d01.part.vti",
+             tmp_path / ".w.vti.k1ll3d02.part"]
+    for p in stale:
+        p.write_bytes(b"half")
+    other = tmp_path / ".x.h5.k1ll3d03.part"             # another output's: left alone
+    other.write_bytes(b"")
+    code = main(["piv", str(inputs / "va.h5"), str(inputs / "vb.h5"), "--out", str(out),
+                 "--windows", "4", "4", "4", "--no-png", "--quiet"])
+    capsys.readouterr()
+    assert code == 0 and out.exists() and (tmp_path / "w.vti").exists()
+    assert not any(p.exists() for p in stale) and other.exists()

@@ -128,7 +128,23 @@ def _check_out(path: str, suffixes: tuple[str, ...], inputs=(), beside=()) -> Pa
     for suffix in beside:
         check_output_path(p.with_suffix(suffix), inputs=inputs,
                           what=f"{suffix[1:].upper()} written beside --out")
+    _remove_stale_temporaries([p, *(p.with_suffix(x) for x in beside)])
     return p
+
+
+def _remove_stale_temporaries(paths) -> None:
+    """Delete the hidden temporaries that a killed earlier run left for these outputs
+    (``.NAME.XXXXXXXX.part``, and ``.part.vti`` of the VTK writer)."""
+    import contextlib
+    import glob
+
+    for p in paths:
+        if not p.parent.is_dir():
+            continue
+        for pattern in (f".{glob.escape(p.name)}.*.part", f".{glob.escape(p.name)}.*.part.*"):
+            for t in p.parent.glob(pattern):
+                with contextlib.suppress(OSError):
+                    t.unlink()
 
 
 def _image_summary(img) -> dict:

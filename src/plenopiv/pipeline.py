@@ -461,7 +461,12 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
                        "PIVSettings (or None for the defaults)")
     dt = check_dt(dt)
     if result_a.grid != result_b.grid:
-        raise ReconstructionError("the two volumes were reconstructed on different grids")
+        def text(g):
+            return (f"{list(g.shape)} voxels of {[round(v * 1e3, 6) for v in g.voxel]} mm from "
+                    f"{[round(v * 1e3, 6) for v in g.origin]} mm")
+        raise ReconstructionError("the two volumes were reconstructed on different grids "
+                                  f"(A: {text(result_a.grid)}; B: {text(result_b.grid)}): "
+                                  "expected the same [volume] for both exposures")
     field = correlate_volumes(result_a.volume, result_b.volume, result_a.grid,
                               settings=settings, workers=workers, progress=progress)
     return VectorResult.from_field(field, result_a.correction, dt)

@@ -175,5 +175,10 @@ def volume_from_dict(cfg: dict, *, source: str = "[volume]") -> VolumeGrid:
                           .replace(f"{source}: ", f"{source}: [volume] ")) from None
     mm = 1e-3
     voxel = None if c.voxel_mm is None else np.asarray(c.voxel_mm, float) * mm
-    return VolumeGrid.from_bounds(np.array(c.x_mm) * mm, np.array(c.y_mm) * mm,
-                                  np.array(c.z_mm) * mm, voxel=voxel, shape=c.shape)
+    try:
+        return VolumeGrid.from_bounds(np.array(c.x_mm) * mm, np.array(c.y_mm) * mm,
+                                      np.array(c.z_mm) * mm, voxel=voxel, shape=c.shape)
+    except ConfigError as exc:
+        if source == "[volume]":
+            raise
+        raise ConfigError(f"{source}: {exc}") from None
