@@ -511,13 +511,18 @@ class ExperimentPairProcess:
         cal = experiment_calibration(exp, self.calibration_path)
         ia, ib = read_image(job.image_a), read_image(job.image_b)
         res = process_pair(cal, ia, ib, exp)
+        tracked = {}
+        if exp.tracking.enabled:  # before the vectors file, which marks the pair complete
+            from plenopiv.tracking.pair import track_and_save
+
+            tracked = track_and_save(cal, ia, ib, res, exp, self.out_dir, job.name)
         paths = save_pair(res, self.out_dir, job.name, exp,
                           extra_attrs={"image_a": str(job.image_a),
                                        "image_b": str(job.image_b)})
         vec = res.vectors
         return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),
                 "n_particles_a": len(res.volume_a.particle_position),
-                **{k: round(v, 3) for k, v in res.timings.items()}}
+                **{k: round(v, 3) for k, v in res.timings.items()}, **tracked}
 
 
 def experiment_calibration(experiment, calibration_path) -> Calibration:

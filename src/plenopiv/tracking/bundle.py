@@ -1,0 +1,382 @@
+r"""Ray-bundle particle positions: the 3-D point nearest the rays that saw the particle.
+
+A reconstructed particle is elongated in depth (4-10 times its width): its centroid inherits
+the reconstruction's depth blur. The light field itself holds sharper information. Every lit
+pixel is a ray of the calibrated light field (:mod:`plenopiv.lightfield`); the pixels that
+received a particle's light are those whose rays pass within a beam width of it, across every
+lenslet that sees it. The point that minimises the intensity-weighted sum of squared
+perpendicular distances to those rays is the particle's position, in closed form (3 x 3 normal
+equations per particle). Starting from the volume centroid, the rays are selected around the
+current estimate and the point is solved again (``iterations`` times).
+
+Effective coordinates (air-equivalent, DESIGN.md §4): a ray through aperture point u (the lens
+plane, Z = -S_o,eff) and focal-plane point X_f = s/M (Z = 0). The external-interface and plate
+corrections (:class:`plenopiv.corrections.DepthCorrection`) turn the result into physical
+coordinates exactly as for centroids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from plenopiv.errors import ReconstructionError
+from plenopiv.lightfield import LightField
+
+__all__ = ["BundlePositions", "BundleSettings", "bundle_positions", "closest_point",
+           "closest_points", "ray_lines"]
+
+
+@dataclass(frozen=True)
+class BundleSettings:
+    """Options of :func:`bundle_positions`.
+
+    Attributes
+    ----------
+    radius : float
+        A ray belongs to a particle when it passes within ``radius`` half beam widths of it
+        (dimensionless, > 0). The half beam width at depth Z is
+        ``(b |t| + c |1 - t|) / 2`` with b the lenslet footprint, c the aperture cell and
+        t = (S_o + Z)/S_o: a pixel sees the particle when its chief ray misses it by less.
+    iterations : int
+        Solves, each re-selecting the rays around the previous estimate (>= 1; the first one
+        starts from the seed).
+    seed_depth_error : float
+        Depth uncertainty of the seeds, in depth resolution cells (>= 0): the first selection
+        widens the radius by the lateral drift of the steepest ray over that depth.
+    floor : float
+        Pixel values at or below this fraction of the image's maximum carry no weight; above
+        it a pixel weighs ``value - floor * max`` (dimensionless, in [0, 1)).
+    min_rays : int
+        Fewer selected rays than this leave the particle at its seed, flagged (>= 3).
+    """
+
+    radius: float = 1.0
+    iterations: int = 2
+    seed_depth_error: float = 0.5
+    floor: float = 0.003
+    min_rays: int = 6
+
+    def __post_init__(self):
+        if not (np.isfinite(self.radius) and self.radius > 0):
+            raise ValueError(f"bundle radius = {self.radius!r}: expected a number > 0 "
+                             "(half beam widths)")
+        if int(self.iterations) != self.iterations or self.iterations < 1:
+            raise ValueError(f"bundle iterations = {self.iterations!r}: expected an int >= 1")
+        if not (np.isfinite(self.seed_depth_error) and self.seed_depth_error >= 0):
+            raise ValueError(f"seed_depth_error = {self.seed_depth_error!r}: expected >= 0 "
+                             "depth cells")
+        if not (0 <= self.floor < 1):
+            raise ValueError(f"bundle floor = {self.floor!r}: expected a fraction in [0, 1)")
+        if int(self.min_rays) != self.min_rays or self.min_rays < 3:
+            raise ValueError(f"bundle min_rays = {self.min_rays!r}: expected an int >= 3")
+
+
+@dataclass(frozen=True, eq=False)
+class BundlePositions:
+    """Ray-bundle positions of N particles (effective coordinates).
+
+    Attributes
+    ----------
+    position : (N, 3) float64
+        ``(x, y, z)`` in metres, effective (air-equivalent) coordinates.
+    covariance : (N, 3, 3) float64
+        Covariance of each position from the fit, m² (see :func:`bundle_positions`).
+    n_rays : (N,) int64
+        Rays in the final fit.
+    n_lenslets : (N,) int64
+        Lenslets those rays came through.
+    converged : (N,) bool
+        False where too few rays were found (the position is then the seed's).
+    """
+
+    position: np.ndarray
+    covariance: np.ndarray
+    n_rays: np.ndarray
+    n_lenslets: np.ndarray
+    converged: np.ndarray
+
+    def __len__(self) -> int:
+        """Return the number of particles."""
+        return int(self.position.shape[0])
+
+    @property
+    def uncertainty(self) -> np.ndarray:
+        """Standard uncertainty per axis ``(x, y, z)``, metres (N, 3)."""
+        return np.sqrt(np.maximum(np.einsum("nii->ni", self.covariance), 0.0))
+
+
+def ray_lines(lf: LightField) -> tuple[np.ndarray, np.ndarray]:
+    """Every ray of a light field as a line in effective volume coordinates.
+
+    Returns
+    -------
+    origin : (P, 3) float64
+        The ray's point on the main-lens plane ``(u_x, u_y, -S_o,eff)``, metres.
+    direction : (P, 3) float64
+        Unit vector from there to its focal-plane point ``(X_f, 0)``.
+    """
+    so = lf.object_distance
+    origin = np.column_stack([lf.u, np.full(lf.n_rays, -so)])
+    d = np.column_stack([lf.focal_plane_position - lf.u, np.full(lf.n_rays, so)])
+    return origin, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def closest_point(origin, direction, weight=None) -> np.ndarray:
+    r"""Return the point nearest a bundle of lines in the weighted least-squares sense.
+
+    Parameters
+    ----------
+    origin : array_like, shape (R, 3)
+        A point of each line, metres.
+    direction : array_like, shape (R, 3)
+        Each line's direction (normalised here; must not be zero).
+    weight : array_like, shape (R,), optional
+        Non-negative weights (default 1).
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        The point P minimising :math:`\sum_i w_i |(I - d_i d_i^T)(P - a_i)|^2`.
+
+    Raises
+    ------
+    ValueError
+        Fewer than two non-parallel lines carry weight (the point is undefined).
+
+    Notes
+    -----
+    Setting the gradient to zero gives the normal equations
+    :math:`\left(\sum_i w_i M_i\right) P = \sum_i w_i M_i a_i` with the projector
+    :math:`M_i = I - d_i d_i^T` onto the plane normal to line i.
+
+    Examples
+    --------
+    >>> closest_point([[0, 0, 0], [1, 0, 0]], [[1, 0, 0], [0, 1, 0]]).round(12) + 0.0
+    array([1., 0., 0.])
+    """
+    a = np.asarray(origin, float).reshape(-1, 3)
+    d = np.asarray(direction, float).reshape(-1, 3)
+    w = np.ones(len(a)) if weight is None else np.asarray(weight, float).reshape(-1)
+    if len(d) != len(a) or len(w) != len(a):
+        raise ValueError(f"origin, direction and weight must have the same length; got "
+                         f"{len(a)}, {len(d)}, {len(w)}")
+    p, _, ok = closest_points(np.zeros(len(a), np.int64), a, d, w, 1)
+    if not ok[0]:
+        raise ValueError("the lines do not define a point: fewer than two non-parallel "
+                         "lines with positive weight")
+    return p[0]
+
+
+def closest_points(group, origin, direction, weight, n_groups: int):
+    """:func:`closest_point` for many bundles at once.
+
+    Parameters
+    ----------
+    group : (R,) int
+        Bundle index of each line, in ``[0, n_groups)``.
+    origin, direction : (R, 3)
+        Lines, as in :func:`closest_point` (directions need not be unit vectors).
+    weight : (R,)
+        Non-negative weights.
+    n_groups : int
+
+    Returns
+    -------
+    point : (n_groups, 3)
+        NaN for bundles without a solution.
+    normal : (n_groups, 3, 3)
+        The normal matrix ``sum_i w_i M_i`` of each bundle.
+    ok : (n_groups,) bool
+        The normal matrix is well conditioned (reciprocal condition number > 1e-12).
+    """
+    g = np.asarray(group, np.int64)
+    d = np.asarray(direction, float)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    a = np.asarray(origin, float)
+    w = np.asarray(weight, float)
+    normal = np.empty((n_groups, 3, 3))
+    rhs = np.empty((n_groups, 3))
+    eye = np.eye(3)
+    for i in range(3):
+        for j in range(3):
+            m_ij = eye[i, j] - d[:, i] * d[:, j]
+            normal[:, i, j] = np.bincount(g, w * m_ij, n_groups)
+        ma = a[:, i] - d[:, i] * np.einsum("ij,ij->i", d, a)
+        rhs[:, i] = np.bincount(g, w * ma, n_groups)
+    point = np.full((n_groups, 3), np.nan)
+    ev = np.linalg.eigvalsh(normal)
+    ok = (ev[:, -1] > 0) & (ev[:, 0] > 1e-12 * np.maximum(ev[:, -1], 1e-300))
+    if ok.any():
+        point[ok] = np.linalg.solve(normal[ok], rhs[ok][..., None])[..., 0]
+    return point, normal, ok
+
+
+def _lenslet_table(lf: LightField):
+    """Rays grouped by lenslet: (order, ptr, lenslet conjugates X_f (K, 2), K)."""
+    order = np.argsort(lf.lenslet, kind="stable")
+    k = int(lf.lenslet.max()) + 1 if lf.n_rays else 0
+    ptr = np.searchsorted(lf.lenslet[order], np.arange(k + 1))
+    conj = np.zeros((k, 2))
+    has = ptr[1:] > ptr[:-1]
+    conj[has] = lf.focal_plane_position[order[ptr[:-1][has]]]
+    return order, ptr, conj, has
+
+
+def _half_beam(lf: LightField, depth) -> np.ndarray:
+    """Half width of a pixel's beam at effective depth ``depth`` (metres)."""
+    t = (lf.object_distance + np.asarray(depth, float)) / lf.object_distance
+    return 0.5 * (lf.footprint * np.abs(t) + lf.cell * np.abs(1.0 - t))
+
+
+def bundle_positions(lf: LightField, image, seeds, *,
+                     settings: BundleSettings = BundleSettings(), depth_cell: float | None = None,
+                     chunk: int = 1024) -> BundlePositions:
+    r"""Refine particle positions to the point nearest the bundle of rays that saw each.
+
+    Parameters
+    ----------
+    lf : LightField
+        The calibrated light field (of the recording's f-number).
+    image : ndarray, shape ``lf.shape``
+        The raw image (dark-subtracted for real data).
+    seeds : array_like, shape (N, 3)
+        First estimates ``(x, y, z)`` in effective coordinates, metres (volume centroids).
+    settings : BundleSettings
+    depth_cell : float, optional
+        Depth resolution cell, metres, for ``settings.seed_depth_error`` (default
+        ``footprint * S_o / (2 R)`` with R the aperture radius).
+    chunk : int
+        Particles per vectorised batch (memory only).
+
+    Returns
+    -------
+    BundlePositions
+
+    Notes
+    -----
+    Rays: ``a_i = (u_i, -S_o)``, direction ``(X_f,i - u_i, S_o)``; weights
+    ``w_i = max(I_i - floor, 0)``. The point solves
+    :math:`(\sum_i w_i M_i) P = \sum_i w_i M_i a_i` (:func:`closest_point`).
+
+    Covariance: the sandwich (cluster-robust) estimator with the lenslets as clusters, plus
+    the quantisation of the lenslet plane. All rays of one lenslet pass through its
+    conjugate X_f = s/M, whereas the light reached it anywhere on its footprint b (t b at
+    depth Z), so each lenslet's bundle is placed with a lateral error of variance
+    (t b)²/12. With :math:`A = \sum_i w_i M_i`, the residual
+    :math:`r_i = M_i (P - a_i)` and per lenslet k the sums :math:`g_k = \sum_{i \in k} w_i r_i`,
+    :math:`W_k = \sum_{i \in k} w_i`, :math:`\bar M_k = \sum_{i \in k} w_i M_i / W_k`:
+
+    .. math:: C = A^{-1}\Big(\sum_k g_k g_k^T + \frac{(t b)^2}{12}\sum_k W_k^2\,
+              \bar M_k \Pi \bar M_k\Big) A^{-1}
+
+    with Π the lateral projector diag(1, 1, 0). A particle seen through one lenslet (near
+    focus) so gets σ_x = t b/√12 and a depth uncertainty of its depth of field.
+    """
+    img = np.asarray(image)
+    if img.shape != tuple(lf.shape):
+        raise ReconstructionError(f"image is {img.shape}; the light field's sensor is "
+                                  f"{tuple(lf.shape)}")
+    seeds = np.asarray(seeds, float).reshape(-1, 3)
+    if not np.isfinite(seeds).all():
+        raise ValueError("seed positions contain NaN or infinity")
+    n = len(seeds)
+    values = lf.values(img).astype(np.float64)
+    top = float(values.max()) if len(values) else 0.0
+    weight = np.maximum(values - settings.floor * top, 0.0)
+    order, ptr, conj, has = _lenslet_table(lf)
+    lens_ids = np.flatnonzero(has)
+    tree = cKDTree(conj[has])
+    origin, direction = ray_lines(lf)
+    if depth_cell is None:
+        depth_cell = lf.footprint * lf.object_distance / (2.0 * lf.aperture_radius)
+    slope = lf.aperture_radius / lf.object_distance
+
+    pos = seeds.copy()
+    cov = np.full((n, 3, 3), np.nan)
+    n_rays = np.zeros(n, np.int64)
+    n_lens = np.zeros(n, np.int64)
+    conv = np.zeros(n, bool)
+    for lo in range(0, n, chunk):
+        hi = min(n, lo + chunk)
+        est = seeds[lo:hi].copy()
+        ok = np.ones(hi - lo, bool)
+        for it in range(settings.iterations):
+            widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
+            radius = settings.radius * _half_beam(lf, est[:, 2]) + widen
+            pid, ray = _select_rays(lf, order, ptr, lens_ids, tree, est, radius)
+            w = weight[ray]
+            nr = np.bincount(pid, w > 0, hi - lo)
+            p, normal, good = closest_points(pid, origin[ray], direction[ray], w, hi - lo)
+            good &= nr >= settings.min_rays
+            est = np.where(good[:, None], p, est)
+            ok = good
+        pos[lo:hi] = est
+        conv[lo:hi] = ok
+        c, nl = _covariance(lf, pid, ray, w, origin, direction, est, normal, ok)
+        cov[lo:hi] = c
+        n_rays[lo:hi] = np.bincount(pid, w > 0, hi - lo)
+        n_lens[lo:hi] = nl
+    return BundlePositions(pos, cov, n_rays, n_lens, conv)
+
+
+def _select_rays(lf, order, ptr, lens_ids, tree, centre, radius):
+    """(particle, ray) pairs whose ray passes within ``radius`` (N,) of ``centre`` (N, 3)."""
+    so, ap = lf.object_distance, lf.aperture_radius
+    t = (so + centre[:, 2]) / so
+    reach = (ap * np.abs(1.0 - t) + radius) / np.abs(t)
+    lists = tree.query_ball_point(centre[:, :2] / t[:, None], reach)
+    counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+    if counts.sum() == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    pid = np.repeat(np.arange(len(lists)), counts)
+    lens = lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])]
+    n_r = ptr[lens + 1] - ptr[lens]
+    pid = np.repeat(pid, n_r)
+    first = np.repeat(ptr[lens] - (np.cumsum(n_r) - n_r), n_r)
+    ray = order[first + np.arange(len(first))]
+    xy = lf.u[ray] * (1.0 - t[pid, None]) + lf.focal_plane_position[ray] * t[pid, None]
+    miss = np.hypot(*(xy - centre[pid, :2]).T)
+    keep = miss <= radius[pid]
+    return pid[keep], ray[keep]
+
+
+def _covariance(lf, pid, ray, w, origin, direction, point, normal, ok):
+    """Sandwich covariance clustered by lenslet (see :func:`bundle_positions`)."""
+    n = len(point)
+    cov = np.full((n, 3, 3), np.nan)
+    n_lens = np.zeros(n, np.int64)
+    if not len(pid):
+        return cov, n_lens
+    d = direction[ray]
+    diff = point[pid] - origin[ray]
+    r = diff - d * np.einsum("ij,ij->i", d, diff)[:, None]
+    # cluster = (particle, lenslet)
+    key = pid * (int(lf.lenslet.max()) + 1) + lf.lenslet[ray]
+    uniq, cl = np.unique(key, return_inverse=True)
+    n_cl = len(uniq)
+    cl_pid = uniq // (int(lf.lenslet.max()) + 1)
+    n_lens = np.bincount(cl_pid, minlength=n)
+    g = np.stack([np.bincount(cl, w * r[:, i], n_cl) for i in range(3)], axis=1)
+    wk = np.bincount(cl, w, n_cl)
+    mbar = np.empty((n_cl, 3, 3))
+    eye = np.eye(3)
+    for i in range(3):
+        for j in range(3):
+            mbar[:, i, j] = np.bincount(cl, w * (eye[i, j] - d[:, i] * d[:, j]), n_cl)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mbar /= wk[:, None, None]
+    mbar = np.nan_to_num(mbar)
+    t = (lf.object_distance + point[cl_pid, 2]) / lf.object_distance
+    quant = (t * lf.footprint) ** 2 / 12.0 * wk ** 2
+    lat = mbar[:, :, :2] @ mbar[:, :2, :]
+    meat_k = g[:, :, None] * g[:, None, :] + np.nan_to_num(quant)[:, None, None] * lat
+    meat = np.zeros((n, 3, 3))
+    np.add.at(meat, cl_pid, meat_k)
+    good = np.flatnonzero(ok)
+    if len(good):
+        inv = np.linalg.inv(normal[good])
+        cov[good] = inv @ meat[good] @ inv
+    return cov, n_lens
