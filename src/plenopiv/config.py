@@ -174,17 +174,17 @@ class TrackingConfig(_Strict):
     median_threshold : normalised median test of a track against its neighbouring tracks (3.0).
     median_epsilon_cells : noise floor of that test, resolution cells (0.1).
     bundle_radius : a ray belongs to a particle when it passes within this many half beam
-        widths of it (1.0).
+        widths of it (1.5).
     bundle_iterations : ray selections and solves per particle, the first around the volume
-        centroid (2).
+        centroid (4).
     """
 
     enabled: bool = False
     search_radius_cells: float = Field(1.0, gt=0, allow_inf_nan=False)
     median_threshold: float = Field(3.0, gt=0, allow_inf_nan=False)
     median_epsilon_cells: float = Field(0.1, gt=0, allow_inf_nan=False)
-    bundle_radius: float = Field(1.0, gt=0, allow_inf_nan=False)
-    bundle_iterations: int = Field(2, ge=1)
+    bundle_radius: float = Field(1.5, gt=0, allow_inf_nan=False)
+    bundle_iterations: int = Field(4, ge=1)
 
 
 class _ExperimentCfg(_Strict):

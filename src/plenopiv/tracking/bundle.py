@@ -53,8 +53,8 @@ class BundleSettings:
         Fewer selected rays than this leave the particle at its seed, flagged (>= 3).
     """
 
-    radius: float = 1.0
-    iterations: int = 2
+    radius: float = 1.5
+    iterations: int = 4
     seed_depth_error: float = 0.5
     floor: float = 0.003
     min_rays: int = 6
@@ -233,7 +233,7 @@ def _half_beam(lf: LightField, depth) -> np.ndarray:
 
 def bundle_positions(lf: LightField, image, seeds, *,
                      settings: BundleSettings = BundleSettings(), depth_cell: float | None = None,
-                     chunk: int = 1024) -> BundlePositions:
+                     brightness=None, chunk: int = 1024) -> BundlePositions:
     r"""Refine particle positions to the point nearest the bundle of rays that saw each.
 
     Parameters
@@ -248,8 +248,11 @@ def bundle_positions(lf: LightField, image, seeds, *,
     depth_cell : float, optional
         Depth resolution cell, metres, for ``settings.seed_depth_error`` (default
         ``footprint * S_o / (2 R)`` with R the aperture radius).
+    brightness : array_like, shape (N,), optional
+        Relative brightness of each particle (e.g. the volume's integrated intensity), for
+        sharing the rays that pass several particles (default: all equal).
     chunk : int
-        Particles per vectorised batch (memory only).
+        Particles per vectorised ray selection (memory only).
 
     Returns
     -------
@@ -257,9 +260,14 @@ def bundle_positions(lf: LightField, image, seeds, *,
 
     Notes
     -----
-    Rays: ``a_i = (u_i, -S_o)``, direction ``(X_f,i - u_i, S_o)``; weights
-    ``w_i = max(I_i - floor, 0)``. The point solves
-    :math:`(\sum_i w_i M_i) P = \sum_i w_i M_i a_i` (:func:`closest_point`).
+    Rays: ``a_i = (u_i, -S_o)``, direction ``(X_f,i - u_i, S_o)``. A ray i passing particle p
+    at miss distance m (its lateral distance at the particle's depth) within the selection
+    radius r_p is expected to carry ``k_ip = B_p (1 - m/r_p)`` of its light (B_p the
+    brightness, the beam profile taken as a cone); its weight for particle p is its share of
+    the pixel value, ``w_ip = max(I_i - floor, 0) k_ip / sum_q k_iq``, so that a pixel lit by
+    two particles does not pull each towards the other. An isolated particle weighs its rays
+    by their values. The point solves :math:`(\sum_i w_i M_i) P = \sum_i w_i M_i a_i`
+    (:func:`closest_point`).
 
     Covariance: the sandwich (cluster-robust) estimator with the lenslets as clusters, plus
     the quantisation of the lenslet plane. All rays of one lenslet pass through its
@@ -269,11 +277,17 @@ def bundle_positions(lf: LightField, image, seeds, *,
     :math:`r_i = M_i (P - a_i)` and per lenslet k the sums :math:`g_k = \sum_{i \in k} w_i r_i`,
     :math:`W_k = \sum_{i \in k} w_i`, :math:`\bar M_k = \sum_{i \in k} w_i M_i / W_k`:
 
-    .. math:: C = A^{-1}\Big(\sum_k g_k g_k^T + \frac{(t b)^2}{12}\sum_k W_k^2\,
-              \bar M_k \Pi \bar M_k\Big) A^{-1}
+    .. math:: C_r = A^{-1}\Big(\sum_k g_k g_k^T\Big) A^{-1},\qquad
+              C_q = A^{-1}\frac{(t b)^2}{12}\sum_k\Big(W_k^2\,\bar M_k \Pi \bar M_k
+              + \frac{v_k v_k^T}{\mathrm{var}_k\theta}\Big) A^{-1}
 
-    with Π the lateral projector diag(1, 1, 0). A particle seen through one lenslet (near
-    focus) so gets σ_x = t b/√12 and a depth uncertainty of its depth of field.
+    with Π the lateral projector diag(1, 1, 0), θ the rays' slopes, var_k θ their weighted
+    variance in lenslet k and :math:`v_k = \sum_{i\in k} w_i M_i (\theta_i - \bar\theta_k, 0)`:
+    the first term shifts the lenslet's fan sideways, the second moves its convergence point
+    in depth. The reported variance per axis is the larger of C_r and C_q (the residuals of a
+    many-lenslet bundle already hold the quantisation), with the correlations of
+    C_r + C_q. A particle seen through one lenslet (near focus) has no residual scatter and
+    so gets σ_x = t b/√12 and a depth uncertainty of its depth of field.
     """
     img = np.asarray(image)
     if img.shape != tuple(lf.shape):
@@ -293,44 +307,45 @@ def bundle_positions(lf: LightField, image, seeds, *,
     if depth_cell is None:
         depth_cell = lf.footprint * lf.object_distance / (2.0 * lf.aperture_radius)
     slope = lf.aperture_radius / lf.object_distance
+    bright = np.ones(n) if brightness is None else np.asarray(brightness, float).reshape(n)
 
     pos = seeds.copy()
-    cov = np.full((n, 3, 3), np.nan)
-    n_rays = np.zeros(n, np.int64)
-    n_lens = np.zeros(n, np.int64)
-    conv = np.zeros(n, bool)
-    for lo in range(0, n, chunk):
-        hi = min(n, lo + chunk)
-        est = seeds[lo:hi].copy()
-        ok = np.ones(hi - lo, bool)
-        for it in range(settings.iterations):
-            widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
-            radius = settings.radius * _half_beam(lf, est[:, 2]) + widen
-            pid, ray = _select_rays(lf, order, ptr, lens_ids, tree, est, radius)
-            w = weight[ray]
-            nr = np.bincount(pid, w > 0, hi - lo)
-            p, normal, good = closest_points(pid, origin[ray], direction[ray], w, hi - lo)
-            good &= nr >= settings.min_rays
-            est = np.where(good[:, None], p, est)
-            ok = good
-        pos[lo:hi] = est
-        conv[lo:hi] = ok
-        c, nl = _covariance(lf, pid, ray, w, origin, direction, est, normal, ok)
-        cov[lo:hi] = c
-        n_rays[lo:hi] = np.bincount(pid, w > 0, hi - lo)
-        n_lens[lo:hi] = nl
-    return BundlePositions(pos, cov, n_rays, n_lens, conv)
+    ok = np.ones(n, bool)
+    for it in range(settings.iterations):
+        widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
+        pid, ray, share = [], [], []
+        for lo in range(0, n, chunk):
+            hi = min(n, lo + chunk)
+            radius = settings.radius * _half_beam(lf, pos[lo:hi, 2]) + widen
+            p_, r_, m_ = _select_rays(lf, order, ptr, lens_ids, tree, pos[lo:hi], radius)
+            pid.append(p_ + lo)
+            ray.append(r_)
+            share.append(np.maximum(1.0 - m_ / radius[p_], 0.0) * bright[p_ + lo])
+        pid, ray, share = (np.concatenate(a) for a in (pid, ray, share))
+        # a ray that passes several particles is shared among them in proportion to their
+        # expected contributions (beam overlap x brightness)
+        total = np.bincount(ray, share, lf.n_rays)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = weight[ray] * np.where(total[ray] > 0, share / total[ray], 0.0)
+        nr = np.bincount(pid, w > 0, n)
+        p, normal, good = closest_points(pid, origin[ray], direction[ray], w, n)
+        good &= nr >= settings.min_rays
+        pos = np.where(good[:, None], p, pos)
+        ok = good
+    pos = np.where(ok[:, None], pos, seeds)
+    cov, n_lens = _covariance(lf, pid, ray, w, origin, direction, pos, normal, ok)
+    return BundlePositions(pos, cov, np.bincount(pid, w > 0, n), n_lens, ok)
 
 
 def _select_rays(lf, order, ptr, lens_ids, tree, centre, radius):
-    """(particle, ray) pairs whose ray passes within ``radius`` (N,) of ``centre`` (N, 3)."""
+    """(particle, ray, miss) of the rays passing within ``radius`` (N,) of ``centre`` (N, 3)."""
     so, ap = lf.object_distance, lf.aperture_radius
     t = (so + centre[:, 2]) / so
     reach = (ap * np.abs(1.0 - t) + radius) / np.abs(t)
     lists = tree.query_ball_point(centre[:, :2] / t[:, None], reach)
     counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
     if counts.sum() == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     pid = np.repeat(np.arange(len(lists)), counts)
     lens = lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])]
     n_r = ptr[lens + 1] - ptr[lens]
@@ -340,7 +355,7 @@ def _select_rays(lf, order, ptr, lens_ids, tree, centre, radius):
     xy = lf.u[ray] * (1.0 - t[pid, None]) + lf.focal_plane_position[ray] * t[pid, None]
     miss = np.hypot(*(xy - centre[pid, :2]).T)
     keep = miss <= radius[pid]
-    return pid[keep], ray[keep]
+    return pid[keep], ray[keep], miss[keep]
 
 
 def _covariance(lf, pid, ray, w, origin, direction, point, normal, ok):
@@ -350,33 +365,56 @@ def _covariance(lf, pid, ray, w, origin, direction, point, normal, ok):
     n_lens = np.zeros(n, np.int64)
     if not len(pid):
         return cov, n_lens
+    use = w > 0
+    pid, ray, w = pid[use], ray[use], w[use]
+    if not len(pid):
+        return cov, n_lens
     d = direction[ray]
     diff = point[pid] - origin[ray]
     r = diff - d * np.einsum("ij,ij->i", d, diff)[:, None]
     # cluster = (particle, lenslet)
-    key = pid * (int(lf.lenslet.max()) + 1) + lf.lenslet[ray]
-    uniq, cl = np.unique(key, return_inverse=True)
+    n_k = int(lf.lenslet.max()) + 1
+    uniq, cl = np.unique(pid * n_k + lf.lenslet[ray], return_inverse=True)
     n_cl = len(uniq)
-    cl_pid = uniq // (int(lf.lenslet.max()) + 1)
+    cl_pid = uniq // n_k
     n_lens = np.bincount(cl_pid, minlength=n)
-    g = np.stack([np.bincount(cl, w * r[:, i], n_cl) for i in range(3)], axis=1)
     wk = np.bincount(cl, w, n_cl)
-    mbar = np.empty((n_cl, 3, 3))
+    g = np.stack([np.bincount(cl, w * r[:, i], n_cl) for i in range(3)], axis=1)
+    mw = np.empty((len(w), 3, 3))
     eye = np.eye(3)
     for i in range(3):
         for j in range(3):
-            mbar[:, i, j] = np.bincount(cl, w * (eye[i, j] - d[:, i] * d[:, j]), n_cl)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mbar /= wk[:, None, None]
-    mbar = np.nan_to_num(mbar)
+            mw[:, i, j] = w * (eye[i, j] - d[:, i] * d[:, j])
+    mbar = np.stack([np.stack([np.bincount(cl, mw[:, i, j], n_cl) for j in range(3)], axis=1)
+                     for i in range(3)], axis=1) / wk[:, None, None]
     t = (lf.object_distance + point[cl_pid, 2]) / lf.object_distance
-    quant = (t * lf.footprint) ** 2 / 12.0 * wk ** 2
-    lat = mbar[:, :, :2] @ mbar[:, :2, :]
-    meat_k = g[:, :, None] * g[:, None, :] + np.nan_to_num(quant)[:, None, None] * lat
-    meat = np.zeros((n, 3, 3))
-    np.add.at(meat, cl_pid, meat_k)
+    var_q = (t * lf.footprint) ** 2 / 12.0
+    # lateral placement of the lenslet's fan: a shift delta of all its rays
+    lat = (wk ** 2)[:, None, None] * (mbar[:, :, :2] @ mbar[:, :2, :])
+    # convergence of the fan: its rays are spread over the footprint, not through one point,
+    # so they tilt by dtheta * eps with eps of variance var_q / var(theta)
+    theta = d[:, :2] / d[:, 2:3]
+    mean = np.stack([np.bincount(cl, w * theta[:, i], n_cl) for i in range(2)], axis=1)
+    dth = theta - mean[cl] / wk[cl, None]
+    var_t = np.bincount(cl, w * (dth ** 2).sum(axis=1), n_cl) / wk
+    v = np.einsum("nij,nj->ni", mw[:, :, :2], dth)
+    v = np.stack([np.bincount(cl, v[:, i], n_cl) for i in range(3)], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        v = np.where(var_t[:, None] > 0, v / np.sqrt(var_t)[:, None], 0.0)
+    meat_r = np.zeros((n, 3, 3))
+    np.add.at(meat_r, cl_pid, g[:, :, None] * g[:, None, :])
+    meat_q = np.zeros((n, 3, 3))
+    np.add.at(meat_q, cl_pid, var_q[:, None, None] * (lat + v[:, :, None] * v[:, None, :]))
     good = np.flatnonzero(ok)
     if len(good):
         inv = np.linalg.inv(normal[good])
-        cov[good] = inv @ meat[good] @ inv
+        c_r, c_q = inv @ meat_r[good] @ inv, inv @ meat_q[good] @ inv
+        # the scatter the fit sees and the quantisation it cannot see overlap (the
+        # residuals of a many-lenslet bundle hold the quantisation): per axis the larger
+        # variance, with the correlations of their sum
+        both = c_r + c_q
+        sd = np.sqrt(np.maximum(np.einsum("nii->ni", both), 1e-300))
+        keep = np.sqrt(np.maximum(np.einsum("nii->ni", c_r), np.einsum("nii->ni", c_q)))
+        cov[good] = both / (sd[:, :, None] * sd[:, None, :]) * (keep[:, :, None]
+                                                                 * keep[:, None, :])
     return cov, n_lens

@@ -13,8 +13,8 @@ suits both the sharp lateral and the blurred depth direction.
    trilinearly (the PIV vector belongs to the material point half-way between the exposures);
 2. candidates: the nearest particle of B within ``search_radius`` of the prediction;
 3. consistency both ways: that particle's nearest predicted A must be the same particle;
-4. neighbours: a track whose displacement fails the normalised median test against its
-   neighbouring tracks (Westerweel & Scarano 2005) is rejected.
+4. neighbours: a track whose deviation from its prediction fails the normalised median test
+   against those of its neighbouring tracks (Westerweel & Scarano 2005) is rejected.
 """
 
 from __future__ import annotations
@@ -241,7 +241,9 @@ def match_particles(positions_a, positions_b, predicted_b, scale, *,
     n_mutual = int((~mutual).sum())
     ia, ib, dist, quality, n_cand = ia[mutual], ib[mutual], dist[mutual], quality[mutual], \
         n_cand[mutual]
-    bad = neighbour_median_test(pa[ia] / sc, (pb[ib] - pa[ia]) / sc,
+    # the test runs on the deviation from the prediction: the correlation field has removed
+    # the resolved flow (gradients included), what is left is position noise and mismatch
+    bad = neighbour_median_test(pa[ia] / sc, (pb[ib] - pred[ia]) / sc,
                                 threshold=settings.median_threshold,
                                 epsilon=settings.median_epsilon,
                                 neighbours=settings.neighbours,

@@ -38,6 +38,9 @@ class TrackResult:
         Distance of the B particle from its PIV prediction, resolution cells.
     index_a, index_b : (N,) int
         Rows of the particle tables of the two volumes.
+    n_lenslets_a, n_lenslets_b : (N,) int
+        Lenslets whose rays fixed each position (1: the particle is in focus and its
+        lateral position is known to a footprint only).
     dt : float or None
         Seconds between the exposures.
     counts : dict
@@ -52,6 +55,8 @@ class TrackResult:
     residual_cells: np.ndarray
     index_a: np.ndarray
     index_b: np.ndarray
+    n_lenslets_a: np.ndarray
+    n_lenslets_b: np.ndarray
     dt: float | None = None
     counts: dict = field(default_factory=dict)
 
@@ -85,7 +90,7 @@ def physical_bundle(lf: LightField, image, volume: VolumeResult,
     and its uncertainty are scaled by the volume's depth correction like the centroids.
     """
     b = bundle_positions(lf, image, volume.particle_position_effective, settings=settings,
-                         depth_cell=depth_cell)
+                         depth_cell=depth_cell, brightness=volume.particle_intensity)
     corr = volume.correction
     pos = corr.points(b.position) if len(b) else b.position.reshape(0, 3)
     unc = b.uncertainty * np.array([1.0, 1.0, corr.scale])
@@ -136,7 +141,7 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
               "rejected_two_way": m.rejected_mutual, "rejected_median": m.rejected_median,
               "tracks": len(m)}
     return TrackResult(pa[ia], pb[ib], ua[ia], ub[ib], m.quality, m.residual, ia, ib,
-                       vectors.dt, counts)
+                       ba.n_lenslets[ia], bb.n_lenslets[ib], vectors.dt, counts)
 
 
 def bin_tracks(tracks: TrackResult, vectors: VectorResult, *, min_tracks: int = 1

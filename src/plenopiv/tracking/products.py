@@ -7,8 +7,9 @@
     ``/uncertainty_a_m``, ``/uncertainty_b_m`` of the positions; ``/quality`` (N,) the match
     uniqueness 1 - d1/d2 (1 unique, 0 ambiguous); ``/residual_cells`` (N,) the distance of B
     from its PIV prediction in resolution cells; ``/index_a``, ``/index_b`` the rows of the
-    volumes' particle tables. Attributes: ``n_tracks``, ``dt_s`` (NaN if unknown), the counts
-    of the matching, the resolved config.
+    volumes' particle tables; ``/n_lenslets_a``, ``/n_lenslets_b`` the lenslets that fixed each
+    position (1: in focus, lateral position known to a footprint only). Attributes:
+    ``n_tracks``, ``dt_s`` (NaN if unknown), the counts of the matching, the resolved config.
 ``TRACKS.vtp``
     VTK XML PolyData: one line A -> B per track, its data on both end points.
 ``TRACKS_binned.h5``
@@ -30,7 +31,7 @@ __all__ = ["TRACK_DATASETS", "write_tracks", "write_vtp"]
 #: The datasets every tracks product holds (``/velocity_m_s`` too when dt is known).
 TRACK_DATASETS = ("/position_a_m", "/position_b_m", "/displacement_m", "/uncertainty_m",
                   "/uncertainty_a_m", "/uncertainty_b_m", "/quality", "/residual_cells",
-                  "/index_a", "/index_b")
+                  "/index_a", "/index_b", "/n_lenslets_a", "/n_lenslets_b")
 
 
 def write_tracks(path: str | Path, tracks: TrackResult, *, config: dict | None = None,
@@ -41,16 +42,19 @@ def write_tracks(path: str | Path, tracks: TrackResult, *, config: dict | None =
           "/uncertainty_a_m": tracks.uncertainty_a, "/uncertainty_b_m": tracks.uncertainty_b,
           "/quality": tracks.quality, "/residual_cells": tracks.residual_cells,
           "/index_a": tracks.index_a.astype(np.int64),
-          "/index_b": tracks.index_b.astype(np.int64)}
+          "/index_b": tracks.index_b.astype(np.int64),
+          "/n_lenslets_a": tracks.n_lenslets_a.astype(np.int64),
+          "/n_lenslets_b": tracks.n_lenslets_b.astype(np.int64)}
     units = {k: "m" for k in ds if k.endswith("_m")}
-    units.update({"/quality": "1", "/residual_cells": "1", "/index_a": "1", "/index_b": "1"})
+    units.update({k: "1" for k in ("/quality", "/residual_cells", "/index_a", "/index_b",
+                                   "/n_lenslets_a", "/n_lenslets_b")})
     if tracks.dt is not None:
         ds["/velocity_m_s"] = tracks.velocity
         units["/velocity_m_s"] = "m s-1"
     attrs = {"n_tracks": len(tracks), "dt_s": np.nan if tracks.dt is None else tracks.dt,
              "axes": "x, y, z", **{f"count_{k}": v for k, v in tracks.counts.items()},
              **(extra_attrs or {})}
-    p = write_h5(path, {k: np.asarray(v, float) if not k.startswith("/index") else v
+    p = write_h5(path, {k: v if v.dtype == np.int64 else np.asarray(v, float)
                         for k, v in ds.items()}, attrs=attrs, units=units, config=config,
                  kind="tracks")
     out = [p]

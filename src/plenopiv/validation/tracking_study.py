@@ -111,8 +111,11 @@ def measure_case(case: VortexCase) -> dict:
         ``n_tracks``, ``tracked_fraction`` (true particles with a correct track / n_true),
         ``wrong_match_rate`` (tracks whose A and B are not the same true particle / tracks),
         ``track_rms_vox`` / ``track_bias_vox`` (displacement error of the correct tracks,
-        x y z, in voxels of the grid), ``piv_grid_rms_vox`` (correlation against the flow on
-        its grid, :func:`~plenopiv.validation.vortex.compare_with_truth`), ``piv_at_tracks_rms_vox``
+        x y z, in voxels of the grid), ``track_rms_vox_off_focus`` (the tracks whose two ends
+        were each seen through more than one lenslet, ``off_focus_fraction`` of them),
+        ``track_within_2sigma`` (fraction within ±2 reported uncertainties),
+        ``piv_grid_rms_vox`` (correlation against the flow on its grid,
+        :func:`~plenopiv.validation.vortex.compare_with_truth`), ``piv_at_tracks_rms_vox``
         (correlation interpolated at the correct tracks' mid-points against their true
         displacement), ``binned_rms_vox`` (tracks binned on the PIV grid against the flow),
         ``position_rms_vox`` for ``bundle`` and ``centroid`` (A particles of the correct
@@ -159,6 +162,7 @@ def measure_case(case: VortexCase) -> dict:
     piv_grid = compare_with_truth(disp, flow, case.dt, grid, case.windows_vox[-1])
     binned = compare_with_truth(bin_tracks(tracks, disp), flow, case.dt, grid,
                                 case.windows_vox[-1])
+    sharp = (tracks.n_lenslets_a[correct] > 1) & (tracks.n_lenslets_b[correct] > 1)
     return {
         "flow": case.flow, "particles_per_lenslet": case.particles_per_lenslet,
         "seed": case.seed, "grid_shape": list(grid.shape),
@@ -169,8 +173,16 @@ def measure_case(case: VortexCase) -> dict:
         "wrong_match_rate": float((~correct).mean()) if len(tracks) else np.nan,
         "track_rms_vox": rms_per_axis(err),
         "track_bias_vox": err.mean(axis=0).tolist() if len(err) else [np.nan] * 3,
+        "off_focus_fraction": float(sharp.mean()) if len(sharp) else np.nan,
+        "track_rms_vox_off_focus": rms_per_axis(err[sharp]),
+        "piv_at_tracks_rms_vox_off_focus": rms_per_axis(((piv_d - true_d) / vox)[sharp]),
+        "track_within_2sigma": (np.abs(err * vox) <= 2 * tracks.uncertainty[correct]).mean(
+            axis=0).tolist() if len(err) else [np.nan] * 3,
         "piv_grid_rms_vox": piv_grid["rms_vox"],
         "piv_at_tracks_rms_vox": rms_per_axis((piv_d - true_d) / vox),
+        "position_rms_vox_off_focus": {
+            "bundle": rms_per_axis((pos_err_b / vox)[tracks.n_lenslets_a[correct] > 1]),
+            "centroid": rms_per_axis((pos_err_c / vox)[tracks.n_lenslets_a[correct] > 1])},
         "binned_rms_vox": binned["rms_vox"], "binned_valid_fraction":
             binned["valid_fraction"],
         "position_rms_vox": {"bundle": rms_per_axis(pos_err_b / vox),
