@@ -284,3 +284,36 @@ def test_track_command_end_to_end(tmp_path, capsys):
                  "--config", str(tmp_path / "exp.toml"), "--out", str(tmp_path / "t2.h5"),
                  "--vectors", s["files"]["binned"], "--json"])
     assert code == 0 and json.loads(capsys.readouterr().out)["n_tracks"] > 0
+
+
+def test_tracking_in_a_batch_pair_and_its_config(tmp_path):
+    """`[tracking] enabled = true`: the per-pair work of `plenopiv run` writes NAME_tracks.h5."""
+    from plenopiv.batch import PairJob
+    from plenopiv.camera import load_camera
+    from plenopiv.config import load_experiment
+    from plenopiv.errors import ConfigError
+    from plenopiv.pipeline import ExperimentPairProcess
+
+    cam = load_camera("small_m1")
+    Calibration.from_camera(cam).save(tmp_path / "cal.h5")
+    pair = tmp_path / "p1.h5"
+    assert main(["simulate", "pair", "small_m1", "--n-particles", "30", "--rays-per-particle",
+                 "512", "--depth-mm", "-1.5", "1.5", "--fill", "0.4", "--seed", "2",
+                 "--no-tiff", "--quiet", "--out", str(pair)]) == 0
+    text = ('camera = "small_m1"\n[volume]\nx_mm = [-1.6875, 1.6875]\n'
+            'y_mm = [-1.1875, 1.1875]\nz_mm = [-2.0, 2.0]\nvoxel_mm = 0.125\n'
+            '[piv]\nwindows = [[16, 12, 12]]\npasses = 2\n[images]\ndt_s = 1e-3\n'
+            '[output]\npng = false\nvtk = false\nweights_cache = ""\n'
+            '[tracking]\nenabled = true\nsearch_radius_cells = 1.5\n')
+    (tmp_path / "exp.toml").write_text(text)
+    assert load_experiment(tmp_path / "exp.toml").tracking.search_radius_cells == 1.5
+    job = PairJob("p1", f"{pair}:/image_a", f"{pair}:/image_b", tmp_path / "p1_vectors.h5")
+    s = ExperimentPairProcess(str(tmp_path / "exp.toml"), str(tmp_path / "cal.h5"),
+                              str(tmp_path))(job)
+    assert s["n_tracks"] > 0 and (tmp_path / "p1_tracks.h5").exists()
+    with h5py.File(tmp_path / "p1_tracks.h5", "r") as fh:
+        assert fh["/displacement_m"].shape == (s["n_tracks"], 3)
+        assert json.loads(fh.attrs["config"])["tracking"]["enabled"] is True
+    (tmp_path / "bad.toml").write_text(text + "search_radius = 2\n")
+    with pytest.raises(ConfigError, match="search_radius"):
+        load_experiment(tmp_path / "bad.toml")
