@@ -313,20 +313,9 @@ def bundle_positions(lf: LightField, image, seeds, *,
     ok = np.ones(n, bool)
     for it in range(settings.iterations):
         widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
-        pid, ray, share = [], [], []
-        for lo in range(0, n, chunk):
-            hi = min(n, lo + chunk)
-            radius = settings.radius * _half_beam(lf, pos[lo:hi, 2]) + widen
-            p_, r_, m_ = _select_rays(lf, order, ptr, lens_ids, tree, pos[lo:hi], radius)
-            pid.append(p_ + lo)
-            ray.append(r_)
-            share.append(np.maximum(1.0 - m_ / radius[p_], 0.0) * bright[p_ + lo])
-        pid, ray, share = (np.concatenate(a) for a in (pid, ray, share))
-        # a ray that passes several particles is shared among them in proportion to their
-        # expected contributions (beam overlap x brightness)
-        total = np.bincount(ray, share, lf.n_rays)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w = weight[ray] * np.where(total[ray] > 0, share / total[ray], 0.0)
+        radius = settings.radius * _half_beam(lf, pos[:, 2]) + widen
+        pid, ray, w = _shared_rays(lf, (order, ptr, lens_ids, tree), pos, radius, weight,
+                                   bright, chunk)
         nr = np.bincount(pid, w > 0, n)
         p, normal, good = closest_points(pid, origin[ray], direction[ray], w, n)
         good &= nr >= settings.min_rays
@@ -335,6 +324,26 @@ def bundle_positions(lf: LightField, image, seeds, *,
     pos = np.where(ok[:, None], pos, seeds)
     cov, n_lens = _covariance(lf, pid, ray, w, origin, direction, pos, normal, ok)
     return BundlePositions(pos, cov, np.bincount(pid, w > 0, n), n_lens, ok)
+
+
+def _shared_rays(lf, index, pos, radius, weight, bright, chunk):
+    """(particle, ray, weight) of every ray within ``radius`` (N,) of a particle.
+
+    A ray that passes several particles is shared among them in proportion to their expected
+    contributions (beam overlap x brightness).
+    """
+    pid, ray, share = [], [], []
+    for lo in range(0, len(pos), chunk):
+        hi = min(len(pos), lo + chunk)
+        p_, r_, m_ = _select_rays(lf, *index, pos[lo:hi], radius[lo:hi])
+        pid.append(p_ + lo)
+        ray.append(r_)
+        share.append(np.maximum(1.0 - m_ / radius[p_ + lo], 0.0) * bright[p_ + lo])
+    pid, ray, share = (np.concatenate(a) for a in (pid, ray, share))
+    total = np.bincount(ray, share, lf.n_rays)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = weight[ray] * np.where(total[ray] > 0, share / total[ray], 0.0)
+    return pid, ray, w
 
 
 def _select_rays(lf, order, ptr, lens_ids, tree, centre, radius):
