@@ -25,7 +25,10 @@ from scipy.spatial import cKDTree
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 
-__all__ = ["BundlePositions", "BundleSettings", "bundle_positions", "closest_point",
+#: Implementations of :func:`bundle_positions`.
+ENGINES = ("numba", "numpy")
+
+__all__ = ["ENGINES", "BundlePositions", "BundleSettings", "bundle_positions", "closest_point",
            "closest_points", "ray_lines"]
 
 
@@ -206,12 +209,18 @@ def closest_points(group, origin, direction, weight, n_groups: int):
             normal[:, i, j] = np.bincount(g, w * m_ij, n_groups)
         ma = a[:, i] - d[:, i] * np.einsum("ij,ij->i", d, a)
         rhs[:, i] = np.bincount(g, w * ma, n_groups)
-    point = np.full((n_groups, 3), np.nan)
+    point, ok = _solve(normal, rhs)
+    return point, normal, ok
+
+
+def _solve(normal, rhs):
+    """Solve each well-conditioned 3 x 3 system (reciprocal condition > 1e-12); NaN else."""
+    point = np.full((len(normal), 3), np.nan)
     ev = np.linalg.eigvalsh(normal)
     ok = (ev[:, -1] > 0) & (ev[:, 0] > 1e-12 * np.maximum(ev[:, -1], 1e-300))
     if ok.any():
         point[ok] = np.linalg.solve(normal[ok], rhs[ok][..., None])[..., 0]
-    return point, normal, ok
+    return point, ok
 
 
 def _lenslet_table(lf: LightField):
@@ -233,7 +242,8 @@ def _half_beam(lf: LightField, depth) -> np.ndarray:
 
 def bundle_positions(lf: LightField, image, seeds, *,
                      settings: BundleSettings = BundleSettings(), depth_cell: float | None = None,
-                     brightness=None, chunk: int = 1024) -> BundlePositions:
+                     brightness=None, chunk: int = 1024,
+                     engine: str = "numba") -> BundlePositions:
     r"""Refine particle positions to the point nearest the bundle of rays that saw each.
 
     Parameters
@@ -252,7 +262,9 @@ def bundle_positions(lf: LightField, image, seeds, *,
         Relative brightness of each particle (e.g. the volume's integrated intensity), for
         sharing the rays that pass several particles (default: all equal).
     chunk : int
-        Particles per vectorised ray selection (memory only).
+        Particles per vectorised ray selection (``engine="numpy"``; memory only).
+    engine : {"numba", "numpy"}
+        The compiled kernels (default) or their plain NumPy twin (same estimator).
 
     Returns
     -------
@@ -289,6 +301,8 @@ def bundle_positions(lf: LightField, image, seeds, *,
     C_r + C_q. A particle seen through one lenslet (near focus) has no residual scatter and
     so gets σ_x = t b/√12 and a depth uncertainty of its depth of field.
     """
+    if engine not in ENGINES:
+        raise ValueError(f"engine = {engine!r}: expected one of {ENGINES}")
     img = np.asarray(image)
     if img.shape != tuple(lf.shape):
         raise ReconstructionError(f"image is {img.shape}; the light field's sensor is "
@@ -303,7 +317,10 @@ def bundle_positions(lf: LightField, image, seeds, *,
     order, ptr, conj, has = _lenslet_table(lf)
     lens_ids = np.flatnonzero(has)
     tree = cKDTree(conj[has])
-    origin, direction = ray_lines(lf)
+    if engine == "numba":
+        rays = _sorted_rays(lf, order, weight)
+    else:
+        origin, direction = ray_lines(lf)
     if depth_cell is None:
         depth_cell = lf.footprint * lf.object_distance / (2.0 * lf.aperture_radius)
     slope = lf.aperture_radius / lf.object_distance
@@ -311,19 +328,99 @@ def bundle_positions(lf: LightField, image, seeds, *,
 
     pos = seeds.copy()
     ok = np.ones(n, bool)
+    index = (order, ptr, lens_ids, tree)
     for it in range(settings.iterations):
         widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
-        radius = settings.radius * _half_beam(lf, pos[:, 2]) + widen
-        pid, ray, w = _shared_rays(lf, (order, ptr, lens_ids, tree), pos, radius, weight,
-                                   bright, chunk)
-        nr = np.bincount(pid, w > 0, n)
-        p, normal, good = closest_points(pid, origin[ray], direction[ray], w, n)
+        centre, radius = pos, settings.radius * _half_beam(lf, pos[:, 2]) + widen
+        if engine == "numba":
+            cand, total, normal, rhs, nr = _numba_normal_equations(lf, index, rays, centre,
+                                                                   radius, bright)
+            p, good = _solve(normal, rhs)
+        else:
+            pid, ray, w = _shared_rays(lf, index, centre, radius, weight, bright, chunk)
+            nr = np.bincount(pid, w > 0, n)
+            p, normal, good = closest_points(pid, origin[ray], direction[ray], w, n)
         good &= nr >= settings.min_rays
         pos = np.where(good[:, None], p, pos)
         ok = good
     pos = np.where(ok[:, None], pos, seeds)
-    cov, n_lens = _covariance(lf, pid, ray, w, origin, direction, pos, normal, ok)
-    return BundlePositions(pos, cov, np.bincount(pid, w > 0, n), n_lens, ok)
+    if engine == "numba":
+        cov, n_lens = _numba_covariance(lf, index, rays, cand, centre, radius, bright, total,
+                                        pos, normal, ok)
+    else:
+        cov, n_lens = _covariance(lf, pid, ray, w, origin, direction, pos, normal, ok)
+    return BundlePositions(pos, cov, nr.astype(np.int64), n_lens, ok)
+
+
+def _candidates(lf, index, centre, radius):
+    """Candidate lenslets of each particle as CSR ``(lptr (N+1,), lidx)`` (lenslet ids)."""
+    _, _, lens_ids, tree = index
+    so, ap = lf.object_distance, lf.aperture_radius
+    t = (so + centre[:, 2]) / so
+    reach = (ap * np.abs(1.0 - t) + radius) / np.abs(t)
+    lists = tree.query_ball_point(centre[:, :2] / t[:, None], reach)
+    counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+    lptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    lidx = (lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])]
+            if counts.sum() else np.zeros(0, np.int64)).astype(np.int64)
+    return lptr, lidx
+
+
+def _sorted_rays(lf, order, weight):
+    """Ray arrays of the kernels, sorted by lenslet: (u (P, 2), X_f (P, 2), weight (P,))."""
+    return (np.ascontiguousarray(lf.u[order], np.float64),
+            np.ascontiguousarray(lf.focal_plane_position[order], np.float64),
+            np.ascontiguousarray(weight[order], np.float64))
+
+
+def _numba_normal_equations(lf, index, rays, centre, radius, bright):
+    """Run one solve on the numba path: candidates, ray shares, normal equations."""
+    from plenopiv.tracking import _kernels as _k
+
+    ptr = index[1].astype(np.int64)
+    lptr, lidx = _candidates(lf, index, centre, radius)
+    u, xf, w = rays
+    n = len(centre)
+    c, r, b = (np.ascontiguousarray(a, np.float64) for a in (centre, radius, bright))
+    total = np.zeros(lf.n_rays)
+    _k.ray_shares(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, total)
+    normal, rhs, nr = np.zeros((n, 3, 3)), np.zeros((n, 3)), np.zeros(n, np.int64)
+    _k.normal_equations(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, w, total,
+                        normal, rhs, nr)
+    return (lptr, lidx), total, normal, rhs, nr
+
+
+def _numba_covariance(lf, index, rays, cand, centre, radius, bright, total, point, normal, ok):
+    """Return :func:`_covariance` by the numba path (same estimator)."""
+    from plenopiv.tracking import _kernels as _k
+
+    n = len(point)
+    u, xf, w = rays
+    meat_r, meat_q = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
+    n_lens = np.zeros(n, np.int64)
+    c, r, b, pt = (np.ascontiguousarray(a, np.float64) for a in (centre, radius, bright, point))
+    _k.covariance_sums(c, r, b, cand[0], cand[1], index[1].astype(np.int64), u, xf,
+                       lf.object_distance, lf.cell, w, total, pt, lf.footprint, meat_r, meat_q,
+                       n_lens)
+    return _combine(normal, meat_r, meat_q, ok), n_lens
+
+
+def _combine(normal, meat_r, meat_q, ok):
+    """Covariance from the two meats: per axis the larger variance (see bundle_positions)."""
+    cov = np.full((len(normal), 3, 3), np.nan)
+    good = np.flatnonzero(ok)
+    if len(good):
+        inv = np.linalg.inv(normal[good])
+        c_r, c_q = inv @ meat_r[good] @ inv, inv @ meat_q[good] @ inv
+        # the scatter the fit sees and the quantisation it cannot see overlap (the
+        # residuals of a many-lenslet bundle hold the quantisation): per axis the larger
+        # variance, with the correlations of their sum
+        both = c_r + c_q
+        sd = np.sqrt(np.maximum(np.einsum("nii->ni", both), 1e-300))
+        keep = np.sqrt(np.maximum(np.einsum("nii->ni", c_r), np.einsum("nii->ni", c_q)))
+        cov[good] = both / (sd[:, :, None] * sd[:, None, :]) * (keep[:, :, None]
+                                                                 * keep[:, None, :])
+    return cov
 
 
 def _shared_rays(lf, index, pos, radius, weight, bright, chunk):
@@ -409,21 +506,12 @@ def _covariance(lf, pid, ray, w, origin, direction, point, normal, ok):
     v = np.einsum("nij,nj->ni", mw[:, :, :2], dth)
     v = np.stack([np.bincount(cl, v[:, i], n_cl) for i in range(3)], axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        v = np.where(var_t[:, None] > 0, v / np.sqrt(var_t)[:, None], 0.0)
+        # (a lenslet with one ray, or rays of one slope, has no convergence to place; the
+        # slopes of one lenslet's pixels differ by a cell / S_o ~ 0.01, variance ~ 1e-4)
+        v = np.where(var_t[:, None] > 1e-12, v / np.sqrt(var_t)[:, None], 0.0)
     meat_r = np.zeros((n, 3, 3))
     np.add.at(meat_r, cl_pid, g[:, :, None] * g[:, None, :])
     meat_q = np.zeros((n, 3, 3))
     np.add.at(meat_q, cl_pid, var_q[:, None, None] * (lat + v[:, :, None] * v[:, None, :]))
-    good = np.flatnonzero(ok)
-    if len(good):
-        inv = np.linalg.inv(normal[good])
-        c_r, c_q = inv @ meat_r[good] @ inv, inv @ meat_q[good] @ inv
-        # the scatter the fit sees and the quantisation it cannot see overlap (the
-        # residuals of a many-lenslet bundle hold the quantisation): per axis the larger
-        # variance, with the correlations of their sum
-        both = c_r + c_q
-        sd = np.sqrt(np.maximum(np.einsum("nii->ni", both), 1e-300))
-        keep = np.sqrt(np.maximum(np.einsum("nii->ni", c_r), np.einsum("nii->ni", c_q)))
-        cov[good] = both / (sd[:, :, None] * sd[:, None, :]) * (keep[:, :, None]
-                                                                 * keep[:, None, :])
+    cov = _combine(normal, meat_r, meat_q, ok)
     return cov, n_lens
