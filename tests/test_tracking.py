@@ -69,8 +69,9 @@ def thesis_light_field():
     return cam, cal, light_field(cal)
 
 
+@pytest.mark.parametrize("engine", ["numba", "numpy"])
 @pytest.mark.parametrize("depth", [-3e-3, 2.5e-3])
-def test_bundle_position_of_a_rendered_particle(thesis_light_field, depth):
+def test_bundle_position_of_a_rendered_particle(thesis_light_field, depth, engine):
     """One particle off focus, seeded half a depth cell and a third of a footprint away.
 
     Tolerances from the optics: the lateral position averages the rays of ~30 lenslets whose
@@ -85,7 +86,7 @@ def test_bundle_position_of_a_rendered_particle(thesis_light_field, depth):
     img = particle_image(cam, [truth], rays_per_particle=20000, seed=3)
     cell = resolution_cell(cal.effective_camera)[1]
     seed = truth + np.array([0.3 * b, -0.3 * b, 0.5 * cell])
-    res = bundle_positions(lf, img, seed[None], depth_cell=cell)
+    res = bundle_positions(lf, img, seed[None], depth_cell=cell, engine=engine)
     err = res.position[0] - truth
     assert res.converged[0] and res.n_lenslets[0] > 10
     assert np.abs(err[:2]).max() < 0.15 * b
@@ -93,6 +94,26 @@ def test_bundle_position_of_a_rendered_particle(thesis_light_field, depth):
     assert np.all(np.abs(err) <= 3 * res.uncertainty[0])
     # the reported uncertainty is a fraction of the resolution cell, not a blanket figure
     assert res.uncertainty[0, 2] < 0.5 * cell
+
+
+def test_numba_kernels_match_their_numpy_twin(thesis_light_field, rng):
+    """Several overlapping particles (shared rays), seeded off: both engines agree."""
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    truth = np.column_stack([rng.uniform(-4, 4, (6, 2)) * b, rng.uniform(-3e-3, 3e-3, 6)])
+    img = particle_image(cam, truth, rays_per_particle=4000, seed=5)
+    seeds = truth + rng.normal(0, 0.2, (6, 3)) * [b, b, 4 * b]
+    cell = resolution_cell(cal.effective_camera)[1]
+    res = {e: bundle_positions(lf, img, seeds, depth_cell=cell, engine=e,
+                               brightness=np.linspace(1, 2, 6)) for e in ("numba", "numpy")}
+    a, c = res["numba"], res["numpy"]
+    np.testing.assert_allclose(a.position, c.position, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a.covariance, c.covariance, rtol=1e-8,
+                               atol=1e-12 * np.nanmax(np.abs(c.covariance)))
+    np.testing.assert_array_equal(a.n_rays, c.n_rays)
+    np.testing.assert_array_equal(a.n_lenslets, c.n_lenslets)
+    with pytest.raises(ValueError, match="engine"):
+        bundle_positions(lf, img, seeds, engine="cuda")
 
 
 def test_bundle_rejects_a_wrong_image_and_bad_settings(thesis_light_field):
@@ -105,9 +126,10 @@ def test_bundle_rejects_a_wrong_image_and_bad_settings(thesis_light_field):
         BundleSettings(iterations=0)
 
 
-def test_bundle_of_a_dark_image_does_not_converge(thesis_light_field):
+@pytest.mark.parametrize("engine", ["numba", "numpy"])
+def test_bundle_of_a_dark_image_does_not_converge(thesis_light_field, engine):
     _, _, lf = thesis_light_field
-    res = bundle_positions(lf, np.zeros(lf.shape), np.array([[0.0, 0.0, 1e-3]]))
+    res = bundle_positions(lf, np.zeros(lf.shape), np.array([[0.0, 0.0, 1e-3]]), engine=engine)
     assert not res.converged[0]
     np.testing.assert_allclose(res.position[0], [0.0, 0.0, 1e-3])
 
