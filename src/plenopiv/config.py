@@ -171,7 +171,8 @@ class TrackingConfig(_Strict):
     enabled : also track the particles of every pair in ``plenopiv run`` (``NAME_tracks.h5``).
     search_radius_cells : largest distance of a partner from its PIV-predicted position, in
         resolution cells (lateral footprint, depth cell) (1.0).
-    median_threshold : normalised median test of a track against its neighbouring tracks (3.0).
+    median_threshold : normalised median test of a track's deviation from its prediction
+        against its neighbouring tracks (2.0, as Westerweel & Scarano 2005 for PIV).
     median_epsilon_cells : noise floor of that test, resolution cells (0.1).
     bundle_radius : a ray belongs to a particle when it passes within this many half beam
         widths of it (1.5).
@@ -181,7 +182,7 @@ class TrackingConfig(_Strict):
 
     enabled: bool = False
     search_radius_cells: float = Field(1.0, gt=0, allow_inf_nan=False)
-    median_threshold: float = Field(3.0, gt=0, allow_inf_nan=False)
+    median_threshold: float = Field(2.0, gt=0, allow_inf_nan=False)
     median_epsilon_cells: float = Field(0.1, gt=0, allow_inf_nan=False)
     bundle_radius: float = Field(1.5, gt=0, allow_inf_nan=False)
     bundle_iterations: int = Field(4, ge=1)

@@ -51,7 +51,7 @@ class MatchSettings:
     """
 
     search_radius: float = 1.0
-    median_threshold: float = 3.0
+    median_threshold: float = 2.0
     median_epsilon: float = 0.1
     neighbours: int = 8
     neighbour_radius: float = 8.0
@@ -146,7 +146,7 @@ def predict_positions(vectors, positions) -> np.ndarray:
     return p + interpolate_displacement(*args, p + 0.5 * d)
 
 
-def neighbour_median_test(positions, displacements, *, threshold: float = 3.0,
+def neighbour_median_test(positions, displacements, *, threshold: float = 2.0,
                           epsilon: float = 0.1, neighbours: int = 8,
                           radius: float = np.inf) -> np.ndarray:
     r"""Normalised median test of scattered displacements (Westerweel & Scarano 2005).
