@@ -24,40 +24,59 @@ def _miss(u, xf, i, t, cx, cy):
 
 
 @numba.njit(cache=True)
-def _window(xf, first, t, cx, cy, r, margin):
-    """Return the band ``(lo, hi)`` of aperture y that can hold selected rays of a lenslet.
+def _window(u, xf, first, last, t, cx, cy, r, margin):
+    """Return ``(start, lo_y, lo_x, hi_x)``: where a lenslet's candidate rays begin.
 
-    ``first`` is the lenslet's first ray. A selected u satisfies ``|u (1 - t) + X_f t - c| <= r``
-    so it lies within ``r / |1 - t|`` of ``u* = (c - X_f t) / (1 - t)``; ``margin`` covers the
-    pixels' edge-centroid offsets.
+    A selected ray's u satisfies ``|u (1 - t) + X_f t - c| <= r``, so it lies within
+    ``h = r / |1 - t|`` of ``u* = (c - X_f t) / (1 - t)``. A lenslet's rays run down in
+    aperture y (pixel rows in order), so the first candidate is found by bisection on
+    ``u_y <= u*_y + h``, and the scan stops below ``u*_y - h``; ``margin`` covers the pixels'
+    edge-centroid offsets.
     """
     s = 1.0 - t
     if abs(s) < 1e-12:
-        return -np.inf, np.inf
-    uy = (cy - xf[first, 1] * t) / s
+        return first, -np.inf, -np.inf, np.inf
     h = r / abs(s) + margin
-    return uy - h, uy + h
+    uy = (cy - xf[first, 1] * t) / s
+    ux = (cx - xf[first, 0] * t) / s
+    hi = uy + h
+    a, b = first, last
+    while a < b:
+        mid = (a + b) // 2
+        if u[mid, 1] > hi:
+            a = mid + 1
+        else:
+            b = mid
+    return a, uy - h, ux - h, ux + h
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def ray_shares(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, total):
-    """Add to ``total[ray]`` every particle's expected share ``B (1 - m/r)`` of the ray."""
-    for p in range(centre.shape[0]):
-        t = (so + centre[p, 2]) / so
-        r = radius[p]
-        for a in range(lptr[p], lptr[p + 1]):
-            k = lidx[a]
-            if rptr[k + 1] == rptr[k]:
-                continue
-            lo, hi = _window(xf, rptr[k], t, centre[p, 0], centre[p, 1], r, margin)
-            for i in range(rptr[k], rptr[k + 1]):
-                if u[i, 1] > hi:      # a lenslet's rays run down in aperture y (pixel rows)
+    """Set ``total[c, ray]`` to the sum of every particle's expected share ``B (1 - m/r)``.
+
+    ``total`` (C, P) holds one row per chunk of particles (chunks run in parallel); the
+    caller sums the rows.
+    """
+    n = centre.shape[0]
+    n_chunks = total.shape[0]
+    for c in numba.prange(n_chunks):
+        for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            t = (so + centre[p, 2]) / so
+            r = radius[p]
+            for a in range(lptr[p], lptr[p + 1]):
+                k = lidx[a]
+                if rptr[k + 1] == rptr[k]:
                     continue
-                if u[i, 1] < lo:
-                    break
-                m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
-                if m <= r:
-                    total[i] += max(1.0 - m / r, 0.0) * bright[p]
+                start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
+                                                centre[p, 1], r, margin)
+                for i in range(start, rptr[k + 1]):
+                    if u[i, 1] < lo:
+                        break
+                    if u[i, 0] < lo_x or u[i, 0] > hi_x:
+                        continue
+                    m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
+                    if m <= r:
+                        total[c, i] += max(1.0 - m / r, 0.0) * bright[p]
 
 
 @numba.njit(cache=True)
@@ -88,12 +107,13 @@ def normal_equations(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin
             k = lidx[q]
             if rptr[k + 1] == rptr[k]:
                 continue
-            lo, hi = _window(xf, rptr[k], t, centre[p, 0], centre[p, 1], r, margin)
-            for i in range(rptr[k], rptr[k + 1]):
-                if u[i, 1] > hi:      # a lenslet's rays run down in aperture y (pixel rows)
-                    continue
+            start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
+                                            centre[p, 1], r, margin)
+            for i in range(start, rptr[k + 1]):
                 if u[i, 1] < lo:
                     break
+                if u[i, 0] < lo_x or u[i, 0] > hi_x:
+                    continue
                 m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
                 if m > r or total[i] <= 0.0:
                     continue
@@ -137,12 +157,13 @@ def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin,
             ty = 0.0
             if rptr[k + 1] == rptr[k]:
                 continue
-            lo, hi = _window(xf, rptr[k], t, centre[p, 0], centre[p, 1], r, margin)
-            for i in range(rptr[k], rptr[k + 1]):
-                if u[i, 1] > hi:      # a lenslet's rays run down in aperture y (pixel rows)
-                    continue
+            start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
+                                            centre[p, 1], r, margin)
+            for i in range(start, rptr[k + 1]):
                 if u[i, 1] < lo:
                     break
+                if u[i, 0] < lo_x or u[i, 0] > hi_x:
+                    continue
                 m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
                 if m > r or total[i] <= 0.0:
                     continue
@@ -164,12 +185,13 @@ def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin,
             var_t = 0.0
             if rptr[k + 1] == rptr[k]:
                 continue
-            lo, hi = _window(xf, rptr[k], t, centre[p, 0], centre[p, 1], r, margin)
-            for i in range(rptr[k], rptr[k + 1]):
-                if u[i, 1] > hi:      # a lenslet's rays run down in aperture y (pixel rows)
-                    continue
+            start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
+                                            centre[p, 1], r, margin)
+            for i in range(start, rptr[k + 1]):
                 if u[i, 1] < lo:
                     break
+                if u[i, 0] < lo_x or u[i, 0] > hi_x:
+                    continue
                 m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
                 if m > r or total[i] <= 0.0:
                     continue

@@ -375,6 +375,8 @@ def _sorted_rays(lf, order, weight):
 
 def _numba_normal_equations(lf, index, rays, centre, radius, bright):
     """Run one solve on the numba path: candidates, ray shares, normal equations."""
+    import numba
+
     from plenopiv.tracking import _kernels as _k
 
     ptr = index[1].astype(np.int64)
@@ -382,8 +384,9 @@ def _numba_normal_equations(lf, index, rays, centre, radius, bright):
     u, xf, w = rays
     n = len(centre)
     c, r, b = (np.ascontiguousarray(a, np.float64) for a in (centre, radius, bright))
-    total = np.zeros(lf.n_rays)
-    _k.ray_shares(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, total)
+    chunks = np.zeros((max(1, min(numba.get_num_threads(), n)), lf.n_rays))
+    _k.ray_shares(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, chunks)
+    total = chunks.sum(axis=0)
     normal, rhs, nr = np.zeros((n, 3, 3)), np.zeros((n, 3)), np.zeros(n, np.int64)
     _k.normal_equations(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, w, total,
                         normal, rhs, nr)
