@@ -190,7 +190,8 @@ def markdown(result: dict, figures: list[str]) -> str:
                    f"depth rms {r['track_rms_vox'][2]:.3f} (≤ {t['depth_vox']})"),
                   ("better", all(a < b for a, b in zip(r["track_rms_vox"],
                                                        r["piv_grid_rms_vox"], strict=True)),
-                   f"correlation {_v(r['piv_grid_rms_vox'])}")]
+                   f"better than the correlation's rms {_v(r['piv_grid_rms_vox'])} on every "
+                   "axis")]
         lines.append(f"- **{flow}, 0.15 particles per lenslet** ({r['n_seeds']} seeds, "
                      f"{r['n_true']} true particles): "
                      + "; ".join(f"{txt} — {'met' if ok else 'not met'}"
@@ -201,6 +202,22 @@ def markdown(result: dict, figures: list[str]) -> str:
               f"{_v(s['rms_mm']['centroid'])}, "
               f"ray bundle {_v(s['rms_mm']['bundle'])}; bundle errors within ±2σ reported: "
               f"{_v(s['within_2sigma'], 2)} (x, y, z).", ""]
+    lines += ["## Reading", "",
+              "- The ray bundle places a particle 3 to 4 times better in depth than the volume "
+              "centroid, alone (single particles) and in the seeded fields (the bundle and "
+              "centroid position columns below), and 2 to 4 times better laterally.",
+              "- In the seeded fields the bundle's depth error grows from ~0.03 mm alone to "
+              "~0.1 mm: rays of neighbouring particles pass within a beam width of the particle "
+              "(a pixel lit by two detected particles is shared between them, but not the light "
+              "of particles the reconstruction missed). The tracks' depth error (0.6-0.8 "
+              "voxel at 0.15 particles per lenslet) is then about the correlation's: the 0.4 "
+              "voxel target is not met on this footprint-sized grid (depth voxel = 0.23 of the "
+              "depth resolution cell).",
+              "- A particle in focus lights one lenslet whatever its position on it: its "
+              "lateral position is known to a footprint only (the tracks whose ends were seen "
+              "through one lenslet are left out of the off-focus column). The reported "
+              "uncertainty covers that; in depth it is conservative (all errors within ±2σ).",
+              ""]
     lines += ["## Density sweep (mean over seeds)", "",
               "| flow | ppl | seeds | tracked | wrong | tracks rms x, y, z | off-focus tracks rms "
               "(fraction) | correlation rms (grid) | correlation at tracks | binned tracks rms "
