@@ -203,9 +203,9 @@ def markdown(result: dict, figures: list[str]) -> str:
               f"ray bundle {_v(s['rms_mm']['bundle'])}; bundle errors within ±2σ reported: "
               f"{_v(s['within_2sigma'], 2)} (x, y, z).", ""]
     lines += ["## Reading", "",
-              "- The ray bundle places a particle 3 to 4 times better in depth than the volume "
-              "centroid, alone (single particles) and in the seeded fields (the bundle and "
-              "centroid position columns below), and 2 to 4 times better laterally.",
+              "- The ray bundle places a particle 3 to 6 times better in depth than the volume "
+              "centroid (seeded fields: the bundle and centroid position columns below; single "
+              "particles: 6 times) and 1.5 to 3 times better laterally.",
               "- In the seeded fields the bundle's depth error grows from ~0.03 mm alone to "
               "~0.1 mm: rays of neighbouring particles pass within a beam width of the particle "
               "(a pixel lit by two detected particles is shared between them, but not the light "
