@@ -184,6 +184,29 @@ class OutputConfig(_Strict):
     weights_cache: str = ".plenopiv-cache"
 
 
+class TrackingConfig(_Strict):
+    """``[tracking]``: particle tracks from the light field (:mod:`plenopiv.tracking`).
+
+    enabled : also track the particles of every pair in ``plenopiv run`` (``NAME_tracks.h5``).
+    search_radius_cells : largest distance of a partner from its PIV-predicted position, in
+        resolution cells (lateral footprint, depth cell) (1.0).
+    median_threshold : normalised median test of a track's deviation from its prediction
+        against its neighbouring tracks (2.0, as Westerweel & Scarano 2005 for PIV).
+    median_epsilon_cells : noise floor of that test, resolution cells (0.1).
+    bundle_radius : a ray belongs to a particle when it passes within this many half beam
+        widths of it (1.5).
+    bundle_iterations : ray selections and solves per particle, the first around the volume
+        centroid (4).
+    """
+
+    enabled: bool = False
+    search_radius_cells: float = Field(1.0, gt=0, allow_inf_nan=False)
+    median_threshold: float = Field(2.0, gt=0, allow_inf_nan=False)
+    median_epsilon_cells: float = Field(0.1, gt=0, allow_inf_nan=False)
+    bundle_radius: float = Field(1.5, gt=0, allow_inf_nan=False)
+    bundle_iterations: int = Field(4, ge=1)
+
+
 class _ExperimentCfg(_Strict):
     camera: str | dict
     volume: dict
@@ -193,6 +216,7 @@ class _ExperimentCfg(_Strict):
     images: ImagesConfig = ImagesConfig()
     batch: BatchConfig = BatchConfig()
     output: OutputConfig = OutputConfig()
+    tracking: TrackingConfig = TrackingConfig()
 
 
 @dataclass(frozen=True)
@@ -209,21 +233,22 @@ class Experiment:
     output: OutputConfig = OutputConfig()
     base_dir: Path = Path(".")
     source: dict = field(default_factory=dict, compare=False, repr=False)
+    tracking: TrackingConfig = TrackingConfig()
 
     def path(self, relative: str | None) -> Path | None:
-        """A path of the config, resolved against the experiment file's folder."""
+        """Return a path of the config, resolved against the experiment file's folder."""
         if relative is None:
             return None
         p = Path(relative)
         return p if p.is_absolute() else self.base_dir / p
 
     def to_dict(self) -> dict:
-        """The resolved configuration (camera in full), for product attributes."""
+        """Return the resolved configuration (camera in full), for product attributes."""
         return {"camera": self.camera.to_dict(), "volume": self.volume.to_dict(),
                 "reconstruction": self.reconstruction.model_dump(),
                 "particles": self.particles.model_dump(), "piv": self.piv.model_dump(),
                 "images": self.images.model_dump(), "batch": self.batch.model_dump(),
-                "output": self.output.model_dump()}
+                "output": self.output.model_dump(), "tracking": self.tracking.model_dump()}
 
 
 def experiment_from_dict(cfg: dict, *, base_dir: Path = Path("."),
@@ -241,7 +266,7 @@ def experiment_from_dict(cfg: dict, *, base_dir: Path = Path("."),
         camera = load_camera(cand if cand.exists() else c.camera)
     grid = volume_from_dict(c.volume, source=source)
     return Experiment(camera, grid, c.reconstruction, c.particles, c.piv, c.images, c.batch,
-                      c.output, base_dir, cfg)
+                      c.output, base_dir, cfg, tracking=c.tracking)
 
 
 def load_experiment(path: str | Path) -> Experiment:

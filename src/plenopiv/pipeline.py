@@ -557,11 +557,16 @@ class ExperimentPairProcess:
         extra = {"image_a": str(job.image_a), "image_b": str(job.image_b)}
         if getattr(job, "identity", None) is not None:
             extra["identity"] = json.dumps(dict(job.identity), sort_keys=True)
+        tracked = {}
+        if exp.tracking.enabled:  # before the vectors file, which marks the pair complete
+            from plenopiv.tracking.pair import track_and_save
+
+            tracked = track_and_save(cal, ia, ib, res, exp, self.out_dir, job.name)
         paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra)
         vec = res.vectors
         return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),
                 "n_particles_a": len(res.volume_a.particle_position),
-                **{k: round(v, 3) for k, v in res.timings.items()}}
+                **{k: round(v, 3) for k, v in res.timings.items()}, **tracked}
 
 
 def _camera_differences(made_for: CameraModel, used: CameraModel) -> list[str]:
@@ -607,12 +612,12 @@ def _describe(camera: CameraModel, image_distance: float | None) -> str:
 
 def product_settings(experiment) -> dict:
     """The settings of an experiment that shape a pair's products: the camera, the grid, the
-    reconstruction, particle and PIV tables, dt and the side products (vtk, png). Not the
-    image patterns, the batch, the folders or the weight cache."""
+    reconstruction, particle, PIV and tracking tables, dt and the side products (vtk, png).
+    Not the image patterns, the batch, the folders or the weight cache."""
     d = experiment.to_dict()
     return {"camera": d["camera"], "volume": d["volume"],
             "reconstruction": d["reconstruction"], "particles": d["particles"],
-            "piv": d["piv"], "dt_s": d["images"].get("dt_s"),
+            "piv": d["piv"], "tracking": d.get("tracking"), "dt_s": d["images"].get("dt_s"),
             "vtk": d["output"].get("vtk"), "png": d["output"].get("png")}
 
 

@@ -1,0 +1,221 @@
+"""numba kernels behind :mod:`plenopiv.tracking.bundle` (private; arrays and scalars only).
+
+Rays are lines ``(u, -S_o) -> (X_f, 0)`` of the light field, stored sorted by lenslet (rays
+``rptr[k]:rptr[k + 1]`` belong to lenslet k, so a lenslet's rays are read contiguously); a
+particle's candidate lenslets are a CSR table (``lptr``, ``lidx``). The plain NumPy twin is
+the ``engine="numpy"`` path of :func:`plenopiv.tracking.bundle.bundle_positions`; the tests
+run both.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True)
+def _miss(u, xf, i, t, cx, cy):
+    """Lateral distance at the particle's depth (t = (S_o + Z)/S_o) of ray i from (cx, cy)."""
+    x = u[i, 0] * (1.0 - t) + xf[i, 0] * t - cx
+    y = u[i, 1] * (1.0 - t) + xf[i, 1] * t - cy
+    return math.sqrt(x * x + y * y)
+
+
+@numba.njit(cache=True)
+def _window(u, xf, first, last, t, cx, cy, r, margin):
+    """Return ``(start, lo_y, lo_x, hi_x)``: where a lenslet's candidate rays begin.
+
+    A selected ray's u satisfies ``|u (1 - t) + X_f t - c| <= r``, so it lies within
+    ``h = r / |1 - t|`` of ``u* = (c - X_f t) / (1 - t)``. A lenslet's rays run down in
+    aperture y (pixel rows in order), so the first candidate is found by bisection on
+    ``u_y <= u*_y + h``, and the scan stops below ``u*_y - h``; ``margin`` covers the pixels'
+    edge-centroid offsets.
+    """
+    s = 1.0 - t
+    if abs(s) < 1e-12:
+        return first, -np.inf, -np.inf, np.inf
+    h = r / abs(s) + margin
+    uy = (cy - xf[first, 1] * t) / s
+    ux = (cx - xf[first, 0] * t) / s
+    hi = uy + h
+    a, b = first, last
+    while a < b:
+        mid = (a + b) // 2
+        if u[mid, 1] > hi:
+            a = mid + 1
+        else:
+            b = mid
+    return a, uy - h, ux - h, ux + h
+
+
+@numba.njit(cache=True, parallel=True)
+def ray_shares(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, total):
+    """Set ``total[c, ray]`` to the sum of every particle's expected share ``B (1 - m/r)``.
+
+    ``total`` (C, P) holds one row per chunk of particles (chunks run in parallel); the
+    caller sums the rows.
+    """
+    n = centre.shape[0]
+    n_chunks = total.shape[0]
+    for c in numba.prange(n_chunks):
+        for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            t = (so + centre[p, 2]) / so
+            r = radius[p]
+            for a in range(lptr[p], lptr[p + 1]):
+                k = lidx[a]
+                if rptr[k + 1] == rptr[k]:
+                    continue
+                start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
+                                                centre[p, 1], r, margin)
+                for i in range(start, rptr[k + 1]):
+                    if u[i, 1] < lo:
+                        break
+                    if u[i, 0] < lo_x or u[i, 0] > hi_x:
+                        continue
+                    m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
+                    if m <= r:
+                        total[c, i] += max(1.0 - m / r, 0.0) * bright[p]
+
+
+@numba.njit(cache=True)
+def _ray(u, xf, so, i, d, a):
+    """Fill ``d`` with ray i's unit direction and ``a`` with its lens-plane point."""
+    d[0] = xf[i, 0] - u[i, 0]
+    d[1] = xf[i, 1] - u[i, 1]
+    d[2] = so
+    n = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    for j in range(3):
+        d[j] /= n
+    a[0], a[1], a[2] = u[i, 0], u[i, 1], -so
+
+
+@numba.njit(cache=True, parallel=True)
+def normal_equations(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, weight,
+                     total, normal, rhs, nrays):
+    """Accumulate ``sum w M`` (N, 3, 3), ``sum w M a`` (N, 3) and the rays with w > 0 (N,).
+
+    ``w = weight[ray] * B (1 - m/r) / total[ray]``: the ray's share of its pixel value.
+    """
+    for p in numba.prange(centre.shape[0]):
+        t = (so + centre[p, 2]) / so
+        r = radius[p]
+        d = np.empty(3)
+        a = np.empty(3)
+        for q in range(lptr[p], lptr[p + 1]):
+            k = lidx[q]
+            if rptr[k + 1] == rptr[k]:
+                continue
+            start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
+                                            centre[p, 1], r, margin)
+            for i in range(start, rptr[k + 1]):
+                if u[i, 1] < lo:
+                    break
+                if u[i, 0] < lo_x or u[i, 0] > hi_x:
+                    continue
+                m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
+                if m > r or total[i] <= 0.0:
+                    continue
+                w = weight[i] * max(1.0 - m / r, 0.0) * bright[p] / total[i]
+                if w <= 0.0:
+                    continue
+                nrays[p] += 1
+                _ray(u, xf, so, i, d, a)
+                da = d[0] * a[0] + d[1] * a[1] + d[2] * a[2]
+                for j in range(3):
+                    for c in range(3):
+                        normal[p, j, c] += w * ((1.0 if j == c else 0.0) - d[j] * d[c])
+                    rhs[p, j] += w * (a[j] - d[j] * da)
+
+
+@numba.njit(cache=True, parallel=True)
+def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, weight,
+                    total, point, footprint, meat_r, meat_q, nlens):
+    """Accumulate the two meats of the bundle covariance, per particle, by lenslet.
+
+    ``centre``/``radius`` select the rays (as in the last solve), ``point`` is the solution.
+    ``meat_r = sum_k g_k g_k^T``; ``meat_q = (t b)^2/12 sum_k (S_k[:, :2] S_k[:2, :] +
+    v_k v_k^T / var_k)`` with ``S_k = sum w M``, ``v_k = sum w M (dtheta, 0)``; ``nlens``
+    counts the lenslets with weight (see :func:`plenopiv.tracking.bundle.bundle_positions`).
+    """
+    for p in numba.prange(centre.shape[0]):
+        t = (so + centre[p, 2]) / so
+        r = radius[p]
+        tp = (so + point[p, 2]) / so
+        var_q = (tp * footprint) ** 2 / 12.0
+        d = np.empty(3)
+        a = np.empty(3)
+        g = np.empty(3)
+        s = np.empty((3, 3))
+        v = np.empty(3)
+        res = np.empty(3)
+        for q in range(lptr[p], lptr[p + 1]):
+            k = lidx[q]
+            wk = 0.0
+            tx = 0.0
+            ty = 0.0
+            if rptr[k + 1] == rptr[k]:
+                continue
+            start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
+                                            centre[p, 1], r, margin)
+            for i in range(start, rptr[k + 1]):
+                if u[i, 1] < lo:
+                    break
+                if u[i, 0] < lo_x or u[i, 0] > hi_x:
+                    continue
+                m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
+                if m > r or total[i] <= 0.0:
+                    continue
+                w = weight[i] * max(1.0 - m / r, 0.0) * bright[p] / total[i]
+                if w <= 0.0:
+                    continue
+                _ray(u, xf, so, i, d, a)
+                wk += w
+                tx += w * d[0] / d[2]
+                ty += w * d[1] / d[2]
+            if wk <= 0.0:
+                continue
+            nlens[p] += 1
+            tx /= wk
+            ty /= wk
+            g[:] = 0.0
+            s[:, :] = 0.0
+            v[:] = 0.0
+            var_t = 0.0
+            if rptr[k + 1] == rptr[k]:
+                continue
+            start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
+                                            centre[p, 1], r, margin)
+            for i in range(start, rptr[k + 1]):
+                if u[i, 1] < lo:
+                    break
+                if u[i, 0] < lo_x or u[i, 0] > hi_x:
+                    continue
+                m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
+                if m > r or total[i] <= 0.0:
+                    continue
+                w = weight[i] * max(1.0 - m / r, 0.0) * bright[p] / total[i]
+                if w <= 0.0:
+                    continue
+                _ray(u, xf, so, i, d, a)
+                for j in range(3):
+                    res[j] = point[p, j] - a[j]
+                dr = d[0] * res[0] + d[1] * res[1] + d[2] * res[2]
+                dtx = d[0] / d[2] - tx
+                dty = d[1] / d[2] - ty
+                var_t += w * (dtx * dtx + dty * dty)
+                for j in range(3):
+                    g[j] += w * (res[j] - d[j] * dr)
+                    for c in range(3):
+                        s[j, c] += w * ((1.0 if j == c else 0.0) - d[j] * d[c])
+                    mj = (1.0 if j == 0 else 0.0) * dtx + (1.0 if j == 1 else 0.0) * dty \
+                        - d[j] * (d[0] * dtx + d[1] * dty)
+                    v[j] += w * mj
+            var_t /= wk
+            for j in range(3):
+                for c in range(3):
+                    meat_r[p, j, c] += g[j] * g[c]
+                    lat = s[j, 0] * s[0, c] + s[j, 1] * s[1, c]
+                    vv = v[j] * v[c] / var_t if var_t > 1e-12 else 0.0
+                    meat_q[p, j, c] += var_q * (lat + vv)

@@ -1,0 +1,520 @@
+r"""Ray-bundle particle positions: the 3-D point nearest the rays that saw the particle.
+
+A reconstructed particle is elongated in depth (4-10 times its width): its centroid inherits
+the reconstruction's depth blur. The light field itself holds sharper information. Every lit
+pixel is a ray of the calibrated light field (:mod:`plenopiv.lightfield`); the pixels that
+received a particle's light are those whose rays pass within a beam width of it, across every
+lenslet that sees it. The point that minimises the intensity-weighted sum of squared
+perpendicular distances to those rays is the particle's position, in closed form (3 x 3 normal
+equations per particle). Starting from the volume centroid, the rays are selected around the
+current estimate and the point is solved again (``iterations`` times).
+
+Effective coordinates (air-equivalent, DESIGN.md §4): a ray through aperture point u (the lens
+plane, Z = -S_o,eff) and focal-plane point X_f = s/M (Z = 0). The external-interface and plate
+corrections (:class:`plenopiv.corrections.DepthCorrection`) turn the result into physical
+coordinates exactly as for centroids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from plenopiv.errors import ReconstructionError
+from plenopiv.lightfield import LightField
+
+#: Implementations of :func:`bundle_positions`.
+ENGINES = ("numba", "numpy")
+
+__all__ = ["ENGINES", "BundlePositions", "BundleSettings", "bundle_positions", "closest_point",
+           "closest_points", "ray_lines"]
+
+
+@dataclass(frozen=True)
+class BundleSettings:
+    """Options of :func:`bundle_positions`.
+
+    Attributes
+    ----------
+    radius : float
+        A ray belongs to a particle when it passes within ``radius`` half beam widths of it
+        (dimensionless, > 0). The half beam width at depth Z is
+        ``(b |t| + c |1 - t|) / 2`` with b the lenslet footprint, c the aperture cell and
+        t = (S_o + Z)/S_o: a pixel sees the particle when its chief ray misses it by less.
+    iterations : int
+        Solves, each re-selecting the rays around the previous estimate (>= 1; the first one
+        starts from the seed).
+    seed_depth_error : float
+        Depth uncertainty of the seeds, in depth resolution cells (>= 0): the first selection
+        widens the radius by the lateral drift of the steepest ray over that depth.
+    floor : float
+        Pixel values at or below this fraction of the image's maximum carry no weight; above
+        it a pixel weighs ``value - floor * max`` (dimensionless, in [0, 1)).
+    min_rays : int
+        Fewer selected rays than this leave the particle at its seed, flagged (>= 3).
+    """
+
+    radius: float = 1.5
+    iterations: int = 4
+    seed_depth_error: float = 0.5
+    floor: float = 0.003
+    min_rays: int = 6
+
+    def __post_init__(self):
+        if not (np.isfinite(self.radius) and self.radius > 0):
+            raise ValueError(f"bundle radius = {self.radius!r}: expected a number > 0 "
+                             "(half beam widths)")
+        if int(self.iterations) != self.iterations or self.iterations < 1:
+            raise ValueError(f"bundle iterations = {self.iterations!r}: expected an int >= 1")
+        if not (np.isfinite(self.seed_depth_error) and self.seed_depth_error >= 0):
+            raise ValueError(f"seed_depth_error = {self.seed_depth_error!r}: expected >= 0 "
+                             "depth cells")
+        if not (0 <= self.floor < 1):
+            raise ValueError(f"bundle floor = {self.floor!r}: expected a fraction in [0, 1)")
+        if int(self.min_rays) != self.min_rays or self.min_rays < 3:
+            raise ValueError(f"bundle min_rays = {self.min_rays!r}: expected an int >= 3")
+
+
+@dataclass(frozen=True, eq=False)
+class BundlePositions:
+    """Ray-bundle positions of N particles (effective coordinates).
+
+    Attributes
+    ----------
+    position : (N, 3) float64
+        ``(x, y, z)`` in metres, effective (air-equivalent) coordinates.
+    covariance : (N, 3, 3) float64
+        Covariance of each position from the fit, m² (see :func:`bundle_positions`).
+    n_rays : (N,) int64
+        Rays in the final fit.
+    n_lenslets : (N,) int64
+        Lenslets those rays came through.
+    converged : (N,) bool
+        False where too few rays were found (the position is then the seed's).
+    """
+
+    position: np.ndarray
+    covariance: np.ndarray
+    n_rays: np.ndarray
+    n_lenslets: np.ndarray
+    converged: np.ndarray
+
+    def __len__(self) -> int:
+        """Return the number of particles."""
+        return int(self.position.shape[0])
+
+    @property
+    def uncertainty(self) -> np.ndarray:
+        """Standard uncertainty per axis ``(x, y, z)``, metres (N, 3)."""
+        return np.sqrt(np.maximum(np.einsum("nii->ni", self.covariance), 0.0))
+
+
+def ray_lines(lf: LightField) -> tuple[np.ndarray, np.ndarray]:
+    """Every ray of a light field as a line in effective volume coordinates.
+
+    Returns
+    -------
+    origin : (P, 3) float64
+        The ray's point on the main-lens plane ``(u_x, u_y, -S_o,eff)``, metres.
+    direction : (P, 3) float64
+        Unit vector from there to its focal-plane point ``(X_f, 0)``.
+    """
+    so = lf.object_distance
+    origin = np.column_stack([lf.u, np.full(lf.n_rays, -so)])
+    d = np.column_stack([lf.focal_plane_position - lf.u, np.full(lf.n_rays, so)])
+    return origin, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def closest_point(origin, direction, weight=None) -> np.ndarray:
+    r"""Return the point nearest a bundle of lines in the weighted least-squares sense.
+
+    Parameters
+    ----------
+    origin : array_like, shape (R, 3)
+        A point of each line, metres.
+    direction : array_like, shape (R, 3)
+        Each line's direction (normalised here; must not be zero).
+    weight : array_like, shape (R,), optional
+        Non-negative weights (default 1).
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        The point P minimising :math:`\sum_i w_i |(I - d_i d_i^T)(P - a_i)|^2`.
+
+    Raises
+    ------
+    ValueError
+        Fewer than two non-parallel lines carry weight (the point is undefined).
+
+    Notes
+    -----
+    Setting the gradient to zero gives the normal equations
+    :math:`\left(\sum_i w_i M_i\right) P = \sum_i w_i M_i a_i` with the projector
+    :math:`M_i = I - d_i d_i^T` onto the plane normal to line i.
+
+    Examples
+    --------
+    >>> closest_point([[0, 0, 0], [1, 0, 0]], [[1, 0, 0], [0, 1, 0]]).round(12) + 0.0
+    array([1., 0., 0.])
+    """
+    a = np.asarray(origin, float).reshape(-1, 3)
+    d = np.asarray(direction, float).reshape(-1, 3)
+    w = np.ones(len(a)) if weight is None else np.asarray(weight, float).reshape(-1)
+    if len(d) != len(a) or len(w) != len(a):
+        raise ValueError(f"origin, direction and weight must have the same length; got "
+                         f"{len(a)}, {len(d)}, {len(w)}")
+    p, _, ok = closest_points(np.zeros(len(a), np.int64), a, d, w, 1)
+    if not ok[0]:
+        raise ValueError("the lines do not define a point: fewer than two non-parallel "
+                         "lines with positive weight")
+    return p[0]
+
+
+def closest_points(group, origin, direction, weight, n_groups: int):
+    """:func:`closest_point` for many bundles at once.
+
+    Parameters
+    ----------
+    group : (R,) int
+        Bundle index of each line, in ``[0, n_groups)``.
+    origin, direction : (R, 3)
+        Lines, as in :func:`closest_point` (directions need not be unit vectors).
+    weight : (R,)
+        Non-negative weights.
+    n_groups : int
+
+    Returns
+    -------
+    point : (n_groups, 3)
+        NaN for bundles without a solution.
+    normal : (n_groups, 3, 3)
+        The normal matrix ``sum_i w_i M_i`` of each bundle.
+    ok : (n_groups,) bool
+        The normal matrix is well conditioned (reciprocal condition number > 1e-12).
+    """
+    g = np.asarray(group, np.int64)
+    d = np.asarray(direction, float)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    a = np.asarray(origin, float)
+    w = np.asarray(weight, float)
+    normal = np.empty((n_groups, 3, 3))
+    rhs = np.empty((n_groups, 3))
+    eye = np.eye(3)
+    for i in range(3):
+        for j in range(3):
+            m_ij = eye[i, j] - d[:, i] * d[:, j]
+            normal[:, i, j] = np.bincount(g, w * m_ij, n_groups)
+        ma = a[:, i] - d[:, i] * np.einsum("ij,ij->i", d, a)
+        rhs[:, i] = np.bincount(g, w * ma, n_groups)
+    point, ok = _solve(normal, rhs)
+    return point, normal, ok
+
+
+def _solve(normal, rhs):
+    """Solve each well-conditioned 3 x 3 system (reciprocal condition > 1e-12); NaN else."""
+    point = np.full((len(normal), 3), np.nan)
+    ev = np.linalg.eigvalsh(normal)
+    ok = (ev[:, -1] > 0) & (ev[:, 0] > 1e-12 * np.maximum(ev[:, -1], 1e-300))
+    if ok.any():
+        point[ok] = np.linalg.solve(normal[ok], rhs[ok][..., None])[..., 0]
+    return point, ok
+
+
+def _lenslet_table(lf: LightField):
+    """Rays grouped by lenslet: (order, ptr, lenslet conjugates X_f (K, 2), K)."""
+    order = np.argsort(lf.lenslet, kind="stable")
+    k = int(lf.lenslet.max()) + 1 if lf.n_rays else 0
+    ptr = np.searchsorted(lf.lenslet[order], np.arange(k + 1))
+    conj = np.zeros((k, 2))
+    has = ptr[1:] > ptr[:-1]
+    conj[has] = lf.focal_plane_position[order[ptr[:-1][has]]]
+    return order, ptr, conj, has
+
+
+def _half_beam(lf: LightField, depth) -> np.ndarray:
+    """Half width of a pixel's beam at effective depth ``depth`` (metres)."""
+    t = (lf.object_distance + np.asarray(depth, float)) / lf.object_distance
+    return 0.5 * (lf.footprint * np.abs(t) + lf.cell * np.abs(1.0 - t))
+
+
+def bundle_positions(lf: LightField, image, seeds, *,
+                     settings: BundleSettings = BundleSettings(), depth_cell: float | None = None,
+                     brightness=None, chunk: int = 1024,
+                     engine: str = "numba") -> BundlePositions:
+    r"""Refine particle positions to the point nearest the bundle of rays that saw each.
+
+    Parameters
+    ----------
+    lf : LightField
+        The calibrated light field (of the recording's f-number).
+    image : ndarray, shape ``lf.shape``
+        The raw image (dark-subtracted for real data).
+    seeds : array_like, shape (N, 3)
+        First estimates ``(x, y, z)`` in effective coordinates, metres (volume centroids).
+    settings : BundleSettings
+    depth_cell : float, optional
+        Depth resolution cell, metres, for ``settings.seed_depth_error`` (default
+        ``footprint * S_o / (2 R)`` with R the aperture radius).
+    brightness : array_like, shape (N,), optional
+        Relative brightness of each particle (e.g. the volume's integrated intensity), for
+        sharing the rays that pass several particles (default: all equal).
+    chunk : int
+        Particles per vectorised ray selection (``engine="numpy"``; memory only).
+    engine : {"numba", "numpy"}
+        The compiled kernels (default) or their plain NumPy twin (same estimator).
+
+    Returns
+    -------
+    BundlePositions
+
+    Notes
+    -----
+    Rays: ``a_i = (u_i, -S_o)``, direction ``(X_f,i - u_i, S_o)``. A ray i passing particle p
+    at miss distance m (its lateral distance at the particle's depth) within the selection
+    radius r_p is expected to carry ``k_ip = B_p (1 - m/r_p)`` of its light (B_p the
+    brightness, the beam profile taken as a cone); its weight for particle p is its share of
+    the pixel value, ``w_ip = max(I_i - floor, 0) k_ip / sum_q k_iq``, so that a pixel lit by
+    two particles does not pull each towards the other. An isolated particle weighs its rays
+    by their values. The point solves :math:`(\sum_i w_i M_i) P = \sum_i w_i M_i a_i`
+    (:func:`closest_point`).
+
+    Covariance: the sandwich (cluster-robust) estimator with the lenslets as clusters, plus
+    the quantisation of the lenslet plane. All rays of one lenslet pass through its
+    conjugate X_f = s/M, whereas the light reached it anywhere on its footprint b (t b at
+    depth Z), so each lenslet's bundle is placed with a lateral error of variance
+    (t b)²/12. With :math:`A = \sum_i w_i M_i`, the residual
+    :math:`r_i = M_i (P - a_i)` and per lenslet k the sums :math:`g_k = \sum_{i \in k} w_i r_i`,
+    :math:`W_k = \sum_{i \in k} w_i`, :math:`\bar M_k = \sum_{i \in k} w_i M_i / W_k`:
+
+    .. math:: C_r = A^{-1}\Big(\sum_k g_k g_k^T\Big) A^{-1},\qquad
+              C_q = A^{-1}\frac{(t b)^2}{12}\sum_k\Big(W_k^2\,\bar M_k \Pi \bar M_k
+              + \frac{v_k v_k^T}{\mathrm{var}_k\theta}\Big) A^{-1}
+
+    with Π the lateral projector diag(1, 1, 0), θ the rays' slopes, var_k θ their weighted
+    variance in lenslet k and :math:`v_k = \sum_{i\in k} w_i M_i (\theta_i - \bar\theta_k, 0)`:
+    the first term shifts the lenslet's fan sideways, the second moves its convergence point
+    in depth. The reported variance per axis is the larger of C_r and C_q (the residuals of a
+    many-lenslet bundle already hold the quantisation), with the correlations of
+    C_r + C_q. A particle seen through one lenslet (near focus) has no residual scatter and
+    so gets σ_x = t b/√12 and a depth uncertainty of its depth of field.
+    """
+    if engine not in ENGINES:
+        raise ValueError(f"engine = {engine!r}: expected one of {ENGINES}")
+    img = np.asarray(image)
+    if img.shape != tuple(lf.shape):
+        raise ReconstructionError(f"image is {img.shape}; the light field's sensor is "
+                                  f"{tuple(lf.shape)}")
+    seeds = np.asarray(seeds, float).reshape(-1, 3)
+    if not np.isfinite(seeds).all():
+        raise ValueError("seed positions contain NaN or infinity")
+    n = len(seeds)
+    values = lf.values(img).astype(np.float64)
+    top = float(values.max()) if len(values) else 0.0
+    weight = np.maximum(values - settings.floor * top, 0.0)
+    order, ptr, conj, has = _lenslet_table(lf)
+    lens_ids = np.flatnonzero(has)
+    tree = cKDTree(conj[has])
+    if engine == "numba":
+        rays = _sorted_rays(lf, order, weight)
+    else:
+        origin, direction = ray_lines(lf)
+    if depth_cell is None:
+        depth_cell = lf.footprint * lf.object_distance / (2.0 * lf.aperture_radius)
+    slope = lf.aperture_radius / lf.object_distance
+    bright = np.ones(n) if brightness is None else np.asarray(brightness, float).reshape(n)
+
+    pos = seeds.copy()
+    ok = np.ones(n, bool)
+    index = (order, ptr, lens_ids, tree)
+    for it in range(settings.iterations):
+        widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
+        centre, radius = pos, settings.radius * _half_beam(lf, pos[:, 2]) + widen
+        if engine == "numba":
+            cand, total, normal, rhs, nr = _numba_normal_equations(lf, index, rays, centre,
+                                                                   radius, bright)
+            p, good = _solve(normal, rhs)
+        else:
+            pid, ray, w = _shared_rays(lf, index, centre, radius, weight, bright, chunk)
+            nr = np.bincount(pid, w > 0, n)
+            p, normal, good = closest_points(pid, origin[ray], direction[ray], w, n)
+        good &= nr >= settings.min_rays
+        pos = np.where(good[:, None], p, pos)
+        ok = good
+    pos = np.where(ok[:, None], pos, seeds)
+    if engine == "numba":
+        cov, n_lens = _numba_covariance(lf, index, rays, cand, centre, radius, bright, total,
+                                        pos, normal, ok)
+    else:
+        cov, n_lens = _covariance(lf, pid, ray, w, origin, direction, pos, normal, ok)
+    return BundlePositions(pos, cov, nr.astype(np.int64), n_lens, ok)
+
+
+def _candidates(lf, index, centre, radius):
+    """Candidate lenslets of each particle as CSR ``(lptr (N+1,), lidx)`` (lenslet ids)."""
+    _, _, lens_ids, tree = index
+    so, ap = lf.object_distance, lf.aperture_radius
+    t = (so + centre[:, 2]) / so
+    reach = (ap * np.abs(1.0 - t) + radius) / np.abs(t)
+    lists = tree.query_ball_point(centre[:, :2] / t[:, None], reach)
+    counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+    lptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    lidx = (lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])]
+            if counts.sum() else np.zeros(0, np.int64)).astype(np.int64)
+    return lptr, lidx
+
+
+def _sorted_rays(lf, order, weight):
+    """Ray arrays of the kernels, sorted by lenslet: (u (P, 2), X_f (P, 2), weight (P,))."""
+    return (np.ascontiguousarray(lf.u[order], np.float64),
+            np.ascontiguousarray(lf.focal_plane_position[order], np.float64),
+            np.ascontiguousarray(weight[order], np.float64))
+
+
+def _numba_normal_equations(lf, index, rays, centre, radius, bright):
+    """Run one solve on the numba path: candidates, ray shares, normal equations."""
+    import numba
+
+    from plenopiv.tracking import _kernels as _k
+
+    ptr = index[1].astype(np.int64)
+    lptr, lidx = _candidates(lf, index, centre, radius)
+    u, xf, w = rays
+    n = len(centre)
+    c, r, b = (np.ascontiguousarray(a, np.float64) for a in (centre, radius, bright))
+    chunks = np.zeros((max(1, min(numba.get_num_threads(), n)), lf.n_rays))
+    _k.ray_shares(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, chunks)
+    total = chunks.sum(axis=0)
+    normal, rhs, nr = np.zeros((n, 3, 3)), np.zeros((n, 3)), np.zeros(n, np.int64)
+    _k.normal_equations(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, w, total,
+                        normal, rhs, nr)
+    return (lptr, lidx), total, normal, rhs, nr
+
+
+def _numba_covariance(lf, index, rays, cand, centre, radius, bright, total, point, normal, ok):
+    """Return :func:`_covariance` by the numba path (same estimator)."""
+    from plenopiv.tracking import _kernels as _k
+
+    n = len(point)
+    u, xf, w = rays
+    meat_r, meat_q = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
+    n_lens = np.zeros(n, np.int64)
+    c, r, b, pt = (np.ascontiguousarray(a, np.float64) for a in (centre, radius, bright, point))
+    _k.covariance_sums(c, r, b, cand[0], cand[1], index[1].astype(np.int64), u, xf,
+                       lf.object_distance, lf.cell, w, total, pt, lf.footprint, meat_r, meat_q,
+                       n_lens)
+    return _combine(normal, meat_r, meat_q, ok), n_lens
+
+
+def _combine(normal, meat_r, meat_q, ok):
+    """Covariance from the two meats: per axis the larger variance (see bundle_positions)."""
+    cov = np.full((len(normal), 3, 3), np.nan)
+    good = np.flatnonzero(ok)
+    if len(good):
+        inv = np.linalg.inv(normal[good])
+        c_r, c_q = inv @ meat_r[good] @ inv, inv @ meat_q[good] @ inv
+        # the scatter the fit sees and the quantisation it cannot see overlap (the
+        # residuals of a many-lenslet bundle hold the quantisation): per axis the larger
+        # variance, with the correlations of their sum
+        both = c_r + c_q
+        sd = np.sqrt(np.maximum(np.einsum("nii->ni", both), 1e-300))
+        keep = np.sqrt(np.maximum(np.einsum("nii->ni", c_r), np.einsum("nii->ni", c_q)))
+        cov[good] = both / (sd[:, :, None] * sd[:, None, :]) * (keep[:, :, None]
+                                                                 * keep[:, None, :])
+    return cov
+
+
+def _shared_rays(lf, index, pos, radius, weight, bright, chunk):
+    """(particle, ray, weight) of every ray within ``radius`` (N,) of a particle.
+
+    A ray that passes several particles is shared among them in proportion to their expected
+    contributions (beam overlap x brightness).
+    """
+    pid, ray, share = [], [], []
+    for lo in range(0, len(pos), chunk):
+        hi = min(len(pos), lo + chunk)
+        p_, r_, m_ = _select_rays(lf, *index, pos[lo:hi], radius[lo:hi])
+        pid.append(p_ + lo)
+        ray.append(r_)
+        share.append(np.maximum(1.0 - m_ / radius[p_ + lo], 0.0) * bright[p_ + lo])
+    pid, ray, share = (np.concatenate(a) for a in (pid, ray, share))
+    total = np.bincount(ray, share, lf.n_rays)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = weight[ray] * np.where(total[ray] > 0, share / total[ray], 0.0)
+    return pid, ray, w
+
+
+def _select_rays(lf, order, ptr, lens_ids, tree, centre, radius):
+    """(particle, ray, miss) of the rays passing within ``radius`` (N,) of ``centre`` (N, 3)."""
+    so, ap = lf.object_distance, lf.aperture_radius
+    t = (so + centre[:, 2]) / so
+    reach = (ap * np.abs(1.0 - t) + radius) / np.abs(t)
+    lists = tree.query_ball_point(centre[:, :2] / t[:, None], reach)
+    counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+    if counts.sum() == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    pid = np.repeat(np.arange(len(lists)), counts)
+    lens = lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])]
+    n_r = ptr[lens + 1] - ptr[lens]
+    pid = np.repeat(pid, n_r)
+    first = np.repeat(ptr[lens] - (np.cumsum(n_r) - n_r), n_r)
+    ray = order[first + np.arange(len(first))]
+    xy = lf.u[ray] * (1.0 - t[pid, None]) + lf.focal_plane_position[ray] * t[pid, None]
+    miss = np.hypot(*(xy - centre[pid, :2]).T)
+    keep = miss <= radius[pid]
+    return pid[keep], ray[keep], miss[keep]
+
+
+def _covariance(lf, pid, ray, w, origin, direction, point, normal, ok):
+    """Sandwich covariance clustered by lenslet (see :func:`bundle_positions`)."""
+    n = len(point)
+    cov = np.full((n, 3, 3), np.nan)
+    n_lens = np.zeros(n, np.int64)
+    if not len(pid):
+        return cov, n_lens
+    use = w > 0
+    pid, ray, w = pid[use], ray[use], w[use]
+    if not len(pid):
+        return cov, n_lens
+    d = direction[ray]
+    diff = point[pid] - origin[ray]
+    r = diff - d * np.einsum("ij,ij->i", d, diff)[:, None]
+    # cluster = (particle, lenslet)
+    n_k = int(lf.lenslet.max()) + 1
+    uniq, cl = np.unique(pid * n_k + lf.lenslet[ray], return_inverse=True)
+    n_cl = len(uniq)
+    cl_pid = uniq // n_k
+    n_lens = np.bincount(cl_pid, minlength=n)
+    wk = np.bincount(cl, w, n_cl)
+    g = np.stack([np.bincount(cl, w * r[:, i], n_cl) for i in range(3)], axis=1)
+    mw = np.empty((len(w), 3, 3))
+    eye = np.eye(3)
+    for i in range(3):
+        for j in range(3):
+            mw[:, i, j] = w * (eye[i, j] - d[:, i] * d[:, j])
+    mbar = np.stack([np.stack([np.bincount(cl, mw[:, i, j], n_cl) for j in range(3)], axis=1)
+                     for i in range(3)], axis=1) / wk[:, None, None]
+    t = (lf.object_distance + point[cl_pid, 2]) / lf.object_distance
+    var_q = (t * lf.footprint) ** 2 / 12.0
+    # lateral placement of the lenslet's fan: a shift delta of all its rays
+    lat = (wk ** 2)[:, None, None] * (mbar[:, :, :2] @ mbar[:, :2, :])
+    # convergence of the fan: its rays are spread over the footprint, not through one point,
+    # so they tilt by dtheta * eps with eps of variance var_q / var(theta)
+    theta = d[:, :2] / d[:, 2:3]
+    mean = np.stack([np.bincount(cl, w * theta[:, i], n_cl) for i in range(2)], axis=1)
+    dth = theta - mean[cl] / wk[cl, None]
+    var_t = np.bincount(cl, w * (dth ** 2).sum(axis=1), n_cl) / wk
+    v = np.einsum("nij,nj->ni", mw[:, :, :2], dth)
+    v = np.stack([np.bincount(cl, v[:, i], n_cl) for i in range(3)], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # (a lenslet with one ray, or rays of one slope, has no convergence to place; the
+        # slopes of one lenslet's pixels differ by a cell / S_o ~ 0.01, variance ~ 1e-4)
+        v = np.where(var_t[:, None] > 1e-12, v / np.sqrt(var_t)[:, None], 0.0)
+    meat_r = np.zeros((n, 3, 3))
+    np.add.at(meat_r, cl_pid, g[:, :, None] * g[:, None, :])
+    meat_q = np.zeros((n, 3, 3))
+    np.add.at(meat_q, cl_pid, var_q[:, None, None] * (lat + v[:, :, None] * v[:, None, :]))
+    cov = _combine(normal, meat_r, meat_q, ok)
+    return cov, n_lens

@@ -1,0 +1,235 @@
+"""One pair's particle tracks: bundle positions in A and B, PIV-guided matching (orchestration).
+
+::
+
+    volume centroids (A, B) --ray bundles of the raw images--> effective positions
+        --depth corrections--> physical positions --PIV prediction + matching--> tracks
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.config import TrackingConfig
+from plenopiv.lightfield import LightField, light_field
+from plenopiv.pipeline import VectorResult, VolumeResult, resolution_cell
+from plenopiv.tracking.bundle import BundlePositions, BundleSettings, bundle_positions
+from plenopiv.tracking.matching import MatchSettings, match_particles, predict_positions
+
+__all__ = ["TrackResult", "bin_tracks", "physical_bundle", "track_pair"]
+
+
+@dataclass(frozen=True, eq=False)
+class TrackResult:
+    """Particle tracks between exposures A and B (physical coordinates, metres).
+
+    Attributes
+    ----------
+    position_a, position_b : (N, 3)
+        Ray-bundle positions ``(x, y, z)`` at the two exposures, depth corrections applied.
+    uncertainty_a, uncertainty_b : (N, 3)
+        Standard uncertainty of those positions from the bundle fits, metres.
+    quality : (N,)
+        Match uniqueness 1 - d1/d2 (:class:`plenopiv.tracking.matching.Matches`).
+    residual_cells : (N,)
+        Distance of the B particle from its PIV prediction, resolution cells.
+    index_a, index_b : (N,) int
+        Rows of the particle tables of the two volumes.
+    n_lenslets_a, n_lenslets_b : (N,) int
+        Lenslets whose rays fixed each position (1: the particle is in focus and its
+        lateral position is known to a footprint only).
+    dt : float or None
+        Seconds between the exposures.
+    counts : dict
+        Particles in A and B, bundle fits that failed, matches dropped by each test.
+    """
+
+    position_a: np.ndarray
+    position_b: np.ndarray
+    uncertainty_a: np.ndarray
+    uncertainty_b: np.ndarray
+    quality: np.ndarray
+    residual_cells: np.ndarray
+    index_a: np.ndarray
+    index_b: np.ndarray
+    n_lenslets_a: np.ndarray
+    n_lenslets_b: np.ndarray
+    dt: float | None = None
+    counts: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        """Return the number of tracks."""
+        return int(len(self.position_a))
+
+    @property
+    def displacement(self) -> np.ndarray:
+        """B - A, metres (N, 3)."""
+        return self.position_b - self.position_a
+
+    @property
+    def uncertainty(self) -> np.ndarray:
+        """Standard uncertainty of the displacement per axis (independent fits), metres."""
+        return np.hypot(self.uncertainty_a, self.uncertainty_b)
+
+    @property
+    def velocity(self) -> np.ndarray | None:
+        """Displacement / dt in m/s, or None without dt."""
+        return None if self.dt is None else self.displacement / self.dt
+
+
+def physical_bundle(lf: LightField, image, volume: VolumeResult,
+                    settings: BundleSettings, depth_cell: float) -> tuple[np.ndarray,
+                                                                          np.ndarray,
+                                                                          BundlePositions]:
+    """Bundle positions of a volume's particles, corrected to physical coordinates.
+
+    Returns ``(position (N, 3) m, uncertainty (N, 3) m, raw BundlePositions)``; the depth
+    and its uncertainty are scaled by the volume's depth correction like the centroids.
+    """
+    b = bundle_positions(lf, image, volume.particle_position_effective, settings=settings,
+                         depth_cell=depth_cell, brightness=volume.particle_intensity)
+    corr = volume.correction
+    pos = corr.points(b.position) if len(b) else b.position.reshape(0, 3)
+    unc = b.uncertainty * np.array([1.0, 1.0, corr.scale])
+    return pos, unc, b
+
+
+def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResult,
+               volume_b: VolumeResult, vectors: VectorResult, *,
+               settings: TrackingConfig | None = None, f_number: float | None = None,
+               min_lit: float = 0.5, lf: LightField | None = None) -> TrackResult:
+    """Track the particles of a pair with the correlation field as predictor.
+
+    Parameters
+    ----------
+    calibration : Calibration
+    image_a, image_b : ndarray
+        The raw images of the two exposures.
+    volume_a, volume_b : VolumeResult
+        Their reconstructions (particle centroids seed the bundle fits).
+    vectors : VectorResult
+        The pair's correlation field (physical coordinates), the predictor.
+    settings : TrackingConfig, optional
+        ``[tracking]`` options (default: the defaults).
+    f_number, min_lit : optional
+        Aperture and pixel selection of the light field (as in ``[reconstruction]``).
+    lf : LightField, optional
+        A light field already built for this calibration.
+    """
+    settings = TrackingConfig() if settings is None else settings
+    if lf is None:
+        lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
+    lat, dep = resolution_cell(calibration.effective_camera, f_number)
+    bs = BundleSettings(radius=settings.bundle_radius, iterations=settings.bundle_iterations)
+    pa, ua, ba = physical_bundle(lf, image_a, volume_a, bs, dep)
+    pb, ub, bb = physical_bundle(lf, image_b, volume_b, bs, dep)
+    # only converged fits take part (the others keep their seed and are left out)
+    ia_ok, ib_ok = np.flatnonzero(ba.converged), np.flatnonzero(bb.converged)
+    scale = np.array([lat, lat, dep * volume_a.correction.scale])
+    ms = MatchSettings(search_radius=settings.search_radius_cells,
+                       median_threshold=settings.median_threshold,
+                       median_epsilon=settings.median_epsilon_cells)
+    pred = predict_positions(vectors, pa[ia_ok])
+    m = match_particles(pa[ia_ok], pb[ib_ok], pred, scale, settings=ms)
+    ia, ib = ia_ok[m.index_a], ib_ok[m.index_b]
+    counts = {"particles_a": len(pa), "particles_b": len(pb),
+              "bundle_failed_a": int((~ba.converged).sum()),
+              "bundle_failed_b": int((~bb.converged).sum()),
+              "rejected_two_way": m.rejected_mutual, "rejected_median": m.rejected_median,
+              "tracks": len(m)}
+    return TrackResult(pa[ia], pb[ib], ua[ia], ub[ib], m.quality, m.residual, ia, ib,
+                       ba.n_lenslets[ia], bb.n_lenslets[ib], vectors.dt, counts)
+
+
+def bin_tracks(tracks: TrackResult, vectors: VectorResult, *, min_tracks: int = 1
+               ) -> VectorResult:
+    """Average the tracks onto the PIV grid: Eulerian field of the vectors' schema.
+
+    Each track counts in the grid cell (centred on a vector, one grid step wide) holding its
+    mid-point (A + B)/2. ``u, v, w`` are the mean displacements (metres), ``valid`` where at
+    least ``min_tracks`` tracks fell, ``snr`` holds the number of tracks of the cell.
+    """
+    shape = (len(vectors.z), len(vectors.y), len(vectors.x))
+    mid = 0.5 * (tracks.position_a + tracks.position_b)
+    idx = []
+    for k, axis in enumerate((vectors.z, vectors.y, vectors.x)):
+        a = np.asarray(axis, float)
+        step = a[1] - a[0] if len(a) > 1 else np.inf
+        i = np.rint((mid[:, 2 - k] - a[0]) / step) if np.isfinite(step) else np.zeros(len(mid))
+        idx.append(i.astype(np.int64) if len(mid) else np.zeros(0, np.int64))
+    idx = np.array(idx).reshape(3, -1)
+    inside = np.all((idx >= 0) & (idx < np.array(shape)[:, None]), axis=0)
+    flat = np.ravel_multi_index(idx[:, inside], shape) if inside.any() else np.zeros(0, int)
+    n = np.bincount(flat, minlength=int(np.prod(shape)))
+    d = tracks.displacement[inside]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = [np.bincount(flat, d[:, c], n.size) / n for c in range(3)]
+    valid = (n >= min_tracks).reshape(shape)
+    comp = [np.where(valid, m.reshape(shape), 0.0) for m in mean]
+    return VectorResult(np.asarray(vectors.x), np.asarray(vectors.y), np.asarray(vectors.z),
+                        comp[0], comp[1], comp[2], valid, n.reshape(shape).astype(float),
+                        vectors.dt, 0)
+
+
+def track_images(calibration: Calibration, image_a, image_b, experiment, *,
+                 volume_a: VolumeResult | None = None, volume_b: VolumeResult | None = None,
+                 vectors: VectorResult | None = None, progress=None) -> tuple:
+    """Tracks of one pair with an experiment's settings, reusing what is given.
+
+    Volumes not given are reconstructed (weights built once), vectors not given are
+    correlated. Returns ``(TrackResult, volume_a, volume_b, vectors, timings)``.
+    """
+    import time
+
+    from plenopiv.pipeline import correlate, piv_settings, reconstruct_volume, weights_for
+
+    t = {}
+    t0 = time.perf_counter()
+    rec = experiment.reconstruction
+    if volume_a is None or volume_b is None:
+        cache = experiment.output.weights_cache
+        weights, _ = weights_for(calibration, experiment.volume, rec,
+                                 cache_dir=experiment.path(cache) if cache else None)
+        kw = dict(settings=rec, particles=experiment.particles, weights=weights,
+                  progress=progress)
+        if volume_a is None:
+            volume_a = reconstruct_volume(calibration, image_a, experiment.volume, **kw)
+        if volume_b is None:
+            volume_b = reconstruct_volume(calibration, image_b, experiment.volume, **kw)
+    t["reconstruct_s"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    if vectors is None:
+        vectors = correlate(volume_a, volume_b, piv_settings(experiment.piv),
+                            dt=experiment.images.dt_s)
+    t["piv_s"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    tracks = track_pair(calibration, image_a, image_b, volume_a, volume_b, vectors,
+                        settings=experiment.tracking, f_number=rec.f_number,
+                        min_lit=rec.min_lit)
+    t["track_s"] = time.perf_counter() - t2
+    return tracks, volume_a, volume_b, vectors, t
+
+
+def track_and_save(calibration: Calibration, image_a, image_b, result, experiment,
+                   out_dir, name: str) -> dict:
+    """Batch hook (``[tracking] enabled``): track a processed pair, write ``NAME_tracks.h5``.
+
+    ``result`` is the pair's :class:`plenopiv.pipeline.PairResult`; returns a small summary.
+    """
+    import time
+    from pathlib import Path
+
+    from plenopiv.tracking.products import save_track_products
+
+    t0 = time.perf_counter()
+    rec = experiment.reconstruction
+    tracks = track_pair(calibration, image_a, image_b, result.volume_a, result.volume_b,
+                        result.vectors, settings=experiment.tracking, f_number=rec.f_number,
+                        min_lit=rec.min_lit)
+    paths = save_track_products(tracks, result.vectors, Path(out_dir) / f"{name}_tracks.h5",
+                                config=experiment.to_dict(), vtk=experiment.output.vtk)
+    return {"tracks": paths["tracks"], "n_tracks": len(tracks),
+            "track_s": round(time.perf_counter() - t0, 3)}

@@ -1,0 +1,246 @@
+"""Report of the tracking study: ``tracking.json``, ``tracking.md`` and figures.
+
+Runs :mod:`plenopiv.validation.tracking_study` and writes its numbers (I/O only).
+
+``python pipelines/validate_tracking.py --out docs/validation``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from plenopiv.io import atomic_path
+from plenopiv.validation.tracking_study import measure_case, measure_single_particles
+from plenopiv.validation.vortex import VortexCase
+
+#: Seeding densities of the sweep, particles per lenslet.
+DENSITIES = (0.05, 0.1, 0.15, 0.2, 0.3)
+#: The issue's targets at 0.15 particles per lenslet.
+TARGET = {"tracked": 0.5, "wrong": 0.02, "lateral_vox": 0.1, "depth_vox": 0.4,
+          "depth_goal_vox": 0.15}
+#: Depths of the single-particle series (thesis §5.1), metres.
+SINGLE_DEPTHS = np.round(np.arange(-10, 11) * 1e-3, 12)
+
+
+def run(out: str | Path, *, densities=DENSITIES, seeds=(1,), extra_seeds=(2, 3),
+        single_depths=SINGLE_DEPTHS, progress=print) -> dict:
+    """Measure and write the report; returns the paths and the run time."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    rows = []
+    for flow in ("oseen", "hill"):
+        for ppl in densities:
+            for seed in seeds + (extra_seeds if ppl == 0.15 else ()):
+                r = measure_case(VortexCase(flow=flow, particles_per_lenslet=ppl, seed=seed))
+                rows.append(r)
+                progress(f"{flow} {ppl} seed {seed}: tracked {r['tracked_fraction']:.2f}, "
+                         f"wrong {r['wrong_match_rate']:.3f}, rms {np.round(r['track_rms_vox'], 3)}"
+                         f" vs PIV {np.round(r['piv_grid_rms_vox'], 3)}")
+    single = measure_single_particles(single_depths)
+    progress(f"single particles: rms mm {single['rms_mm']}")
+    result = {"cases": rows, "single": _jsonable(single), "target": TARGET,
+              "seconds": round(time.perf_counter() - t0, 1)}
+    with atomic_path(out / "tracking.json") as tmp:
+        tmp.write_text(json.dumps(result, indent=1, default=_json_default))
+    figs = _figures(result, out)
+    with atomic_path(out / "tracking.md") as tmp:
+        tmp.write_text(markdown(result, [f.name for f in figs]))
+    return {"json": str(out / "tracking.json"), "markdown": str(out / "tracking.md"),
+            "figures": [str(f) for f in figs], "seconds": result["seconds"]}
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    return str(o)
+
+
+def _jsonable(d: dict) -> dict:
+    return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in d.items()}
+
+
+# ---- figures ---------------------------------------------------------------------------------
+
+
+def _figures(result: dict, out: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    s = result["single"]
+    z = np.asarray(s["depth_m"]) * 1e3
+    cen, bun = np.asarray(s["centroid_error_m"]) * 1e3, np.asarray(s["bundle_error_m"]) * 1e3
+    sig = np.asarray(s["bundle_sigma_m"]) * 1e3
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
+    for k, ax in enumerate(axes):
+        ax.plot(z, cen[:, k], "o-", label="volume centroid")
+        ax.errorbar(z, bun[:, k], yerr=2 * sig[:, k], fmt="s-", capsize=2,
+                    label="ray bundle (±2σ reported)")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel("true depth Z (mm)")
+        ax.set_ylabel(f"{'xyz'[k]} error (mm)")
+        ax.set_title(f"single particle: {'xyz'[k]}")
+    axes[0].legend(fontsize=8)
+    p = out / "tracking_single_particles.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    paths.append(p)
+
+    fig, axes = plt.subplots(2, 3, figsize=(13, 7), constrained_layout=True)
+    for row, flow in enumerate(("oseen", "hill")):
+        rs = _seed_mean([r for r in result["cases"] if r["flow"] == flow])
+        d = [r["particles_per_lenslet"] for r in rs]
+        ax = axes[row, 0]
+        ax.plot(d, [r["tracked_fraction"] for r in rs], "o-", label="tracked fraction")
+        ax.plot(d, [r["wrong_match_rate"] for r in rs], "s-", label="wrong-match rate")
+        ax.axhline(TARGET["tracked"], color="C0", ls=":")
+        ax.axhline(TARGET["wrong"], color="C1", ls=":")
+        ax.set_title(f"{flow}: matching")
+        ax.set_xlabel("particles per lenslet")
+        ax.legend(fontsize=8)
+        for col, (axis, lab) in enumerate(((0, "lateral x"), (2, "depth z")), start=1):
+            ax = axes[row, col]
+            ax.plot(d, [r["track_rms_vox"][axis] for r in rs], "o-", label="tracks")
+            ax.plot(d, [r["piv_grid_rms_vox"][axis] for r in rs], "s-",
+                    label="correlation (grid)")
+            ax.plot(d, [r["piv_at_tracks_rms_vox"][axis] for r in rs], "^--",
+                    label="correlation at the tracks")
+            ax.plot(d, [r["position_rms_vox"]["bundle"][axis] for r in rs], "v:",
+                    label="bundle position (A)")
+            ax.plot(d, [r["position_rms_vox"]["centroid"][axis] for r in rs], "x:",
+                    label="centroid position (A)")
+            ax.axhline(TARGET["lateral_vox" if axis < 2 else "depth_vox"], color="k", ls=":")
+            ax.set_title(f"{flow}: rms error, {lab} (voxels)")
+            ax.set_xlabel("particles per lenslet")
+            ax.set_yscale("log")
+        axes[row, 1].legend(fontsize=7)
+    p = out / "tracking_density.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    paths.append(p)
+    return paths
+
+
+def _seed_mean(rows: list[dict]) -> list[dict]:
+    """Rows averaged over seeds per density (fractions and rms: mean; rms via mean square)."""
+    out = []
+    for d in sorted({r["particles_per_lenslet"] for r in rows}):
+        g = [r for r in rows if r["particles_per_lenslet"] == d]
+        m = {"particles_per_lenslet": d, "n_seeds": len(g), "flow": g[0]["flow"]}
+        for k in ("tracked_fraction", "wrong_match_rate", "off_focus_fraction"):
+            m[k] = float(np.mean([r[k] for r in g]))
+        for k in ("track_rms_vox", "piv_grid_rms_vox", "piv_at_tracks_rms_vox",
+                  "track_rms_vox_off_focus", "binned_rms_vox"):
+            m[k] = np.sqrt(np.mean([np.square(r[k]) for r in g], axis=0)).tolist()
+        m["position_rms_vox"] = {k: np.sqrt(np.mean([np.square(r["position_rms_vox"][k])
+                                                     for r in g], axis=0)).tolist()
+                                 for k in ("bundle", "centroid")}
+        for k in ("track_within_2sigma", "within_2sigma"):
+            m[k] = np.mean([r[k] for r in g], axis=0).tolist()
+        m["n_true"] = int(sum(r["n_true"] for r in g))
+        m["n_tracks"] = int(sum(r["n_tracks"] for r in g))
+        m["track_s"] = float(np.mean([r["timings_s"]["track"] for r in g]))
+        out.append(m)
+    return out
+
+
+# ---- markdown --------------------------------------------------------------------------------
+
+
+def _v(x, n=3) -> str:
+    return ", ".join(f"{a:.{n}f}" for a in x)
+
+
+def markdown(result: dict, figures: list[str]) -> str:
+    """Return the Markdown report of a :func:`run` result."""
+    t = result["target"]
+    lines = ["# Particle tracking from the light field", "",
+             "Generated by `python pipelines/validate_tracking.py --out docs/validation` "
+             f"({result['seconds']:.0f} s). Whole chain of `docs/validation/vortex.md` on the "
+             "CI camera (41 x 61 lenslets, 50 mm lens at M = -1, f/2.2, voxel = one lenslet "
+             "footprint = 0.125 mm each way; depth resolution cell 0.55 mm), calibration from "
+             "images, then `plenopiv.tracking`: ray-bundle positions of the particles of A and "
+             "B, matched with the correlation field as predictor. Errors in voxels; "
+             "a track is correct when one true particle lies within one resolution cell "
+             "of both its ends (cells of 0.125, 0.125, 0.55 mm), wrong otherwise; the "
+             "tracked fraction counts the true particles with a correct track.", ""]
+    lines += ["## Summary", ""]
+    for flow in ("oseen", "hill"):
+        rs = [r for r in _seed_mean([c for c in result["cases"] if c["flow"] == flow])
+              if r["particles_per_lenslet"] == 0.15]
+        if not rs:
+            continue
+        r = rs[0]
+        checks = [("tracked", r["tracked_fraction"] >= t["tracked"],
+                   f"{r['tracked_fraction']:.0%} tracked (≥ {t['tracked']:.0%})"),
+                  ("wrong", r["wrong_match_rate"] <= t["wrong"],
+                   f"{r['wrong_match_rate']:.1%} wrong matches (≤ {t['wrong']:.0%})"),
+                  ("lateral", max(r["track_rms_vox"][:2]) <= t["lateral_vox"],
+                   f"lateral rms {_v(r['track_rms_vox'][:2])} (≤ {t['lateral_vox']})"),
+                  ("depth", r["track_rms_vox"][2] <= t["depth_vox"],
+                   f"depth rms {r['track_rms_vox'][2]:.3f} (≤ {t['depth_vox']})"),
+                  ("better", all(a < b for a, b in zip(r["track_rms_vox"],
+                                                       r["piv_grid_rms_vox"], strict=True)),
+                   f"better than the correlation's rms {_v(r['piv_grid_rms_vox'])} on every "
+                   "axis")]
+        lines.append(f"- **{flow}, 0.15 particles per lenslet** ({r['n_seeds']} seeds, "
+                     f"{r['n_true']} true particles): "
+                     + "; ".join(f"{txt} — {'met' if ok else 'not met'}"
+                                 for _, ok, txt in checks) + ".")
+    s = result["single"]
+    lines += [f"- **Single particles** (thesis §5.1 geometry, Z = -10 … +10 mm, "
+              f"{s['n_found']} found): rms error x, y, z (mm) centroid "
+              f"{_v(s['rms_mm']['centroid'])}, "
+              f"ray bundle {_v(s['rms_mm']['bundle'])}; bundle errors within ±2σ reported: "
+              f"{_v(s['within_2sigma'], 2)} (x, y, z).", ""]
+    lines += ["## Reading", "",
+              "- The ray bundle places a particle 3 to 6 times better in depth than the volume "
+              "centroid (seeded fields: the bundle and centroid position columns below; single "
+              "particles: 6 times) and 1.5 to 3 times better laterally.",
+              "- In the seeded fields the bundle's depth error grows from ~0.03 mm alone to "
+              "~0.1 mm: rays of neighbouring particles pass within a beam width of the particle "
+              "(a pixel lit by two detected particles is shared between them, but not the light "
+              "of particles the reconstruction missed). The tracks' depth error (0.6-0.8 "
+              "voxel at 0.15 particles per lenslet) is then about the correlation's: the 0.4 "
+              "voxel target is not met on this footprint-sized grid (depth voxel = 0.23 of the "
+              "depth resolution cell).",
+              "- A particle in focus lights one lenslet whatever its position on it: its "
+              "lateral position is known to a footprint only (the tracks whose ends were seen "
+              "through one lenslet are left out of the off-focus column). The reported "
+              "uncertainty covers that; in depth it is conservative (all errors within ±2σ).",
+              ""]
+    lines += ["## Density sweep (mean over seeds)", "",
+              "| flow | ppl | seeds | tracked | wrong | tracks rms x, y, z | off-focus tracks rms "
+              "(fraction) | correlation rms (grid) | correlation at tracks | binned tracks rms "
+              "| bundle pos. rms (A) | centroid pos. rms (A) | tracks within ±2σ | track s |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for flow in ("oseen", "hill"):
+        for r in _seed_mean([c for c in result["cases"] if c["flow"] == flow]):
+            lines.append(
+                f"| {flow} | {r['particles_per_lenslet']} | {r['n_seeds']} | "
+                f"{r['tracked_fraction']:.2f} | {r['wrong_match_rate']:.3f} | "
+                f"{_v(r['track_rms_vox'])} | {_v(r['track_rms_vox_off_focus'])} "
+                f"({r['off_focus_fraction']:.2f}) | {_v(r['piv_grid_rms_vox'])} | "
+                f"{_v(r['piv_at_tracks_rms_vox'])} | {_v(r['binned_rms_vox'])} | "
+                f"{_v(r['position_rms_vox']['bundle'])} | "
+                f"{_v(r['position_rms_vox']['centroid'])} | {_v(r['track_within_2sigma'], 2)} "
+                f"| {r['track_s']:.1f} |")
+    lines += ["", "## Single particles (thesis §5.1)", "",
+              "| Z (mm) | centroid error x, y, z (µm) | bundle error x, y, z (µm) | bundle σ "
+              "x, y, z (µm) | lenslets |", "|---|---|---|---|---|"]
+    for i, z in enumerate(s["depth_m"]):
+        lines.append(f"| {z * 1e3:+.0f} | {_v(np.asarray(s['centroid_error_m'][i]) * 1e6, 1)} | "
+                     f"{_v(np.asarray(s['bundle_error_m'][i]) * 1e6, 1)} | "
+                     f"{_v(np.asarray(s['bundle_sigma_m'][i]) * 1e6, 1)} | "
+                     f"{s['n_lenslets'][i]} |")
+    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    return "\n".join(lines)

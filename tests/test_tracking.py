@@ -1,0 +1,341 @@
+"""Tracking: ray-bundle positions, PIV-guided matching, the tracks product, ``plenopiv track``."""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+from types import SimpleNamespace
+
+import h5py
+import numpy as np
+import pytest
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.cli import main
+from plenopiv.lightfield import light_field
+from plenopiv.pipeline import resolution_cell
+from plenopiv.synthetic.images import particle_image
+from plenopiv.tracking.bundle import (
+    BundleSettings,
+    bundle_positions,
+    closest_point,
+    closest_points,
+)
+from plenopiv.tracking.matching import (
+    MatchSettings,
+    interpolate_displacement,
+    match_particles,
+    neighbour_median_test,
+    predict_positions,
+)
+from plenopiv.tracking.pair import TrackResult, bin_tracks
+from plenopiv.tracking.products import TRACK_DATASETS, load_vectors, write_tracks
+from plenopiv.validation.depth_study import thesis_camera
+
+# ---- least-squares point of a ray bundle ----------------------------------------------------
+
+
+def test_exact_rays_through_a_point_return_it(rng):
+    p = rng.normal(size=3)
+    d = rng.normal(size=(50, 3))
+    a = p + d * rng.uniform(-5, 5, (50, 1))        # points on lines through p
+    w = rng.uniform(0.1, 2.0, 50)
+    np.testing.assert_allclose(closest_point(a, d, w), p, atol=1e-10)
+    # several bundles at once, each with its own point
+    q = rng.normal(size=(4, 3))
+    g = np.repeat(np.arange(4), 10)
+    dd = rng.normal(size=(40, 3))
+    aa = q[g] + dd * rng.uniform(-3, 3, (40, 1))
+    pts, _, ok = closest_points(g, aa, dd, np.ones(40), 4)
+    assert ok.all()
+    np.testing.assert_allclose(pts, q, atol=1e-10)
+
+
+def test_least_squares_point_of_two_skew_lines_is_their_midpoint():
+    # x axis and a line along y at z = 2: the nearest point is half-way, (0, 0, 1)
+    p = closest_point([[0, 0, 0], [0, 0, 2]], [[1, 0, 0], [0, 1, 0]])
+    np.testing.assert_allclose(p, [0, 0, 1], atol=1e-12)
+
+
+def test_parallel_lines_have_no_point():
+    with pytest.raises(ValueError, match="do not define a point"):
+        closest_point([[0, 0, 0], [1, 0, 0]], [[0, 0, 1], [0, 0, 1]])
+
+
+@pytest.fixture(scope="module")
+def thesis_light_field():
+    cam = thesis_camera(lenslets=25, sensor_px=430)
+    cal = Calibration.from_camera(cam)
+    return cam, cal, light_field(cal)
+
+
+@pytest.mark.parametrize("engine", ["numba", "numpy"])
+@pytest.mark.parametrize("depth", [-3e-3, 2.5e-3])
+def test_bundle_position_of_a_rendered_particle(thesis_light_field, depth, engine):
+    """One particle off focus, seeded half a depth cell and a third of a footprint away.
+
+    Tolerances from the optics: the lateral position averages the rays of ~30 lenslets whose
+    conjugates are placed to a footprint b (σ ≈ b/√12/√30 ≈ 0.05 b), so 0.15 b; in depth the
+    parallax over the aperture (angle R/S_o = 0.11) turns that into σ_z ≈ 0.05 b/0.11 ≈ 0.5 b:
+    1.5 b, a quarter of the depth resolution cell (b S_o/D = 4.4 b) that the centroid reaches.
+    The reported uncertainty must cover the error (3 σ).
+    """
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    truth = np.array([0.23 * b, -0.31 * b, depth])
+    img = particle_image(cam, [truth], rays_per_particle=20000, seed=3)
+    cell = resolution_cell(cal.effective_camera)[1]
+    seed = truth + np.array([0.3 * b, -0.3 * b, 0.5 * cell])
+    res = bundle_positions(lf, img, seed[None], depth_cell=cell, engine=engine)
+    err = res.position[0] - truth
+    assert res.converged[0] and res.n_lenslets[0] > 10
+    assert np.abs(err[:2]).max() < 0.15 * b
+    assert abs(err[2]) < 1.5 * b
+    assert np.all(np.abs(err) <= 3 * res.uncertainty[0])
+    # the reported uncertainty is a fraction of the resolution cell, not a blanket figure
+    assert res.uncertainty[0, 2] < 0.5 * cell
+
+
+def test_numba_kernels_match_their_numpy_twin(thesis_light_field, rng):
+    """Several overlapping particles (shared rays), seeded off: both engines agree."""
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    truth = np.column_stack([rng.uniform(-4, 4, (6, 2)) * b, rng.uniform(-3e-3, 3e-3, 6)])
+    img = particle_image(cam, truth, rays_per_particle=4000, seed=5)
+    seeds = truth + rng.normal(0, 0.2, (6, 3)) * [b, b, 4 * b]
+    cell = resolution_cell(cal.effective_camera)[1]
+    res = {e: bundle_positions(lf, img, seeds, depth_cell=cell, engine=e,
+                               brightness=np.linspace(1, 2, 6)) for e in ("numba", "numpy")}
+    a, c = res["numba"], res["numpy"]
+    np.testing.assert_allclose(a.position, c.position, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a.covariance, c.covariance, rtol=1e-8,
+                               atol=1e-12 * np.nanmax(np.abs(c.covariance)))
+    np.testing.assert_array_equal(a.n_rays, c.n_rays)
+    np.testing.assert_array_equal(a.n_lenslets, c.n_lenslets)
+    with pytest.raises(ValueError, match="engine"):
+        bundle_positions(lf, img, seeds, engine="cuda")
+
+
+def test_bundle_rejects_a_wrong_image_and_bad_settings(thesis_light_field):
+    _, _, lf = thesis_light_field
+    with pytest.raises(Exception, match="sensor"):
+        bundle_positions(lf, np.zeros((3, 3)), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="radius"):
+        BundleSettings(radius=0)
+    with pytest.raises(ValueError, match="iterations"):
+        BundleSettings(iterations=0)
+
+
+@pytest.mark.parametrize("engine", ["numba", "numpy"])
+def test_bundle_of_a_dark_image_does_not_converge(thesis_light_field, engine):
+    _, _, lf = thesis_light_field
+    res = bundle_positions(lf, np.zeros(lf.shape), np.array([[0.0, 0.0, 1e-3]]), engine=engine)
+    assert not res.converged[0]
+    np.testing.assert_allclose(res.position[0], [0.0, 0.0, 1e-3])
+
+
+# ---- matching --------------------------------------------------------------------------------
+
+CELL = np.array([0.125e-3, 0.125e-3, 0.55e-3])
+
+
+def _field(fn, lo=-3e-3, hi=3e-3, n=13):
+    """A displacement field sampled on a grid (the shape of a VectorResult)."""
+    x = y = z = np.linspace(lo, hi, n)
+    Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
+    d = fn(np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)).reshape(Z.shape + (3,))
+    return SimpleNamespace(x=x, y=y, z=z, u=d[..., 0], v=d[..., 1], w=d[..., 2])
+
+
+def test_matching_recovers_a_shift_with_no_wrong_match(rng):
+    n = 400
+    pa = rng.uniform(-2.5e-3, 2.5e-3, (n, 3))
+    shift = np.array([0.3e-3, -0.2e-3, 0.4e-3])
+    pb = pa + shift + rng.normal(0, 0.02, (n, 3)) * CELL      # position noise 0.02 cell
+    # 10 % of the particles are lost in B, and B has 10 % of unrelated particles (ghosts)
+    lost = rng.random(n) < 0.1
+    ghosts = rng.uniform(-2.5e-3, 2.5e-3, (n // 10, 3))
+    b_all = np.concatenate([pb[~lost], ghosts])
+    perm = rng.permutation(len(b_all))
+    b_all = b_all[perm]
+    owner = np.concatenate([np.flatnonzero(~lost), np.full(len(ghosts), -1)])[perm]
+    # the correlation field predicts the shift to 0.1 cell
+    vec = _field(lambda p: np.broadcast_to(shift + 0.1 * CELL * np.array([1, -1, 1]), p.shape))
+    m = match_particles(pa, b_all, predict_positions(vec, pa), CELL)
+    assert len(m) > 0.8 * (~lost).sum()
+    assert np.all(owner[m.index_b] == m.index_a)        # zero wrong matches
+    d = b_all[m.index_b] - pa[m.index_a]
+    np.testing.assert_allclose(np.median(d, axis=0), shift, atol=0.01 * CELL.min())
+
+
+def test_matching_follows_a_known_rotation(rng):
+    """Solid-body rotation about the y axis (particles move in depth), 2° between exposures."""
+    n = 300
+    pa = rng.uniform(-2.5e-3, 2.5e-3, (n, 3))
+    ang = np.deg2rad(2.0)
+    rot = np.array([[np.cos(ang), 0, np.sin(ang)], [0, 1, 0], [-np.sin(ang), 0, np.cos(ang)]])
+    pb = pa @ rot.T
+    perm = rng.permutation(n)
+    vec = _field(lambda p: p @ rot.T - p)     # the rotation's displacement field
+    m = match_particles(pa, pb[perm], predict_positions(vec, pa), CELL)
+    assert len(m) == n
+    assert np.all(perm[m.index_b] == m.index_a)
+    np.testing.assert_allclose(pb[perm][m.index_b] - pa[m.index_a], (pa @ rot.T - pa)[m.index_a],
+                               atol=1e-15)
+
+
+def test_two_way_check_rejects_a_contested_particle():
+    # two A particles predicted onto the same single B particle: only the nearer one keeps it
+    pa = np.array([[0.0, 0, 0], [0.05e-3, 0, 0]])
+    pred = np.array([[1e-6, 0, 0], [0.05e-3, 0, 0]])
+    m = match_particles(pa, np.array([[0.0, 0, 0]]), pred, CELL,
+                        settings=MatchSettings(search_radius=1.0))
+    assert list(m.index_a) == [0] and m.rejected_mutual == 1
+
+
+def test_neighbour_median_test_flags_an_inconsistent_track(rng):
+    p = rng.uniform(0, 10, (200, 3))
+    d = np.tile([1.0, 0.5, -0.2], (200, 1)) + rng.normal(0, 0.02, (200, 3))
+    d[17] += [0.0, 0.0, 1.0]
+    bad = neighbour_median_test(p, d, threshold=3.0, epsilon=0.1, radius=5.0)
+    assert bad[17] and bad.sum() == 1
+
+
+def test_interpolation_is_exact_for_a_linear_field(rng):
+    vec = _field(lambda p: p @ np.array([[0.1, 0.2, 0.0], [0.0, -0.1, 0.3], [0.05, 0, 0]]))
+    p = rng.uniform(-2e-3, 2e-3, (20, 3))
+    d = interpolate_displacement(vec.x, vec.y, vec.z, vec.u, vec.v, vec.w, p)
+    np.testing.assert_allclose(d, p @ np.array([[0.1, 0.2, 0.0], [0.0, -0.1, 0.3],
+                                                 [0.05, 0, 0]]), atol=1e-15)
+
+
+def test_match_settings_name_the_bad_value():
+    with pytest.raises(ValueError, match="search_radius"):
+        MatchSettings(search_radius=-1)
+    with pytest.raises(ValueError, match="neighbours"):
+        MatchSettings(neighbours=2)
+
+
+# ---- products --------------------------------------------------------------------------------
+
+
+def _tracks(rng, n=25, dt=1e-3):
+    pa = rng.uniform(-1e-3, 1e-3, (n, 3))
+    pb = pa + [1e-4, 0, -2e-4]
+    s = np.full((n, 3), 1e-5)
+    return TrackResult(pa, pb, s, s, np.ones(n), np.zeros(n), np.arange(n), np.arange(n),
+                       np.full(n, 5), np.full(n, 6), dt, {"tracks": n})
+
+
+def test_tracks_product_has_the_documented_datasets(tmp_path, rng):
+    t = _tracks(rng)
+    files = write_tracks(tmp_path / "t.h5", t, config={"x": 1})
+    with h5py.File(files[0], "r") as fh:
+        for name in TRACK_DATASETS + ("/velocity_m_s",):
+            assert name in fh, name
+        assert fh["/displacement_m"].shape == (25, 3)
+        assert fh["/position_a_m"].attrs["units"] == "m"
+        assert fh["/velocity_m_s"].attrs["units"] == "m s-1"
+        np.testing.assert_allclose(fh["/velocity_m_s"][0], [0.1, 0, -0.2])
+        assert fh.attrs["product"] == "tracks" and fh.attrs["n_tracks"] == 25
+    root = ET.parse(files[1]).getroot()
+    piece = root.find("PolyData/Piece")
+    assert piece.get("NumberOfLines") == "25" and piece.get("NumberOfPoints") == "50"
+    # without dt there is no velocity
+    files = write_tracks(tmp_path / "n.h5", _tracks(rng, dt=None), vtk=False)
+    with h5py.File(files[0], "r") as fh:
+        assert "/velocity_m_s" not in fh and np.isnan(fh.attrs["dt_s"])
+
+
+def test_binned_tracks_average_in_their_cell(rng):
+    t = _tracks(rng, n=200)
+    vec = _field(lambda p: np.zeros(p.shape), lo=-1e-3, hi=1e-3, n=5)
+    vec = SimpleNamespace(**vars(vec), dt=1e-3)
+    b = bin_tracks(t, vec)
+    assert b.valid.any() and b.snr[b.valid].sum() <= 200
+    np.testing.assert_allclose(b.u[b.valid], 1e-4)
+    np.testing.assert_allclose(b.w[b.valid], -2e-4)
+
+
+# ---- the command -----------------------------------------------------------------------------
+
+
+def test_track_command_end_to_end(tmp_path, capsys):
+    """`plenopiv track` on the CI camera: a uniform shift of 1.5 footprints along x."""
+    from plenopiv.camera import load_camera
+
+    cam = load_camera("small_m1")
+    Calibration.from_camera(cam).save(tmp_path / "cal.h5")
+    pair = tmp_path / "pair.h5"
+    assert main(["simulate", "pair", "small_m1", "--n-particles", "40", "--flow", "uniform",
+                 "--max-displacement-mm", "0.1875", "--rays-per-particle", "1024",
+                 "--depth-mm", "-1.5", "1.5", "--fill", "0.4", "--seed", "4", "--no-tiff",
+                 "--quiet", "--out", str(pair)]) == 0
+    (tmp_path / "exp.toml").write_text(
+        'camera = "small_m1"\n[volume]\nx_mm = [-1.6875, 1.6875]\ny_mm = [-1.1875, 1.1875]\n'
+        'z_mm = [-2.0, 2.0]\nvoxel_mm = 0.125\n[piv]\nwindows = [[16, 12, 12]]\npasses = 2\n'
+        '[images]\ndt_s = 1e-3\n[output]\npng = false\n[tracking]\nenabled = true\n')
+    capsys.readouterr()
+    out = tmp_path / "tracks.h5"
+    code = main(["track", str(tmp_path / "cal.h5"), f"{pair}:/image_a", f"{pair}:/image_b",
+                 "--config", str(tmp_path / "exp.toml"), "--out", str(out), "--json"])
+    s = json.loads(capsys.readouterr().out)
+    assert code == 0 and s["command"] == "track"
+    with h5py.File(pair, "r") as fh:
+        truth = fh["/truth/displacement_m"][()]
+    assert s["n_tracks"] >= 0.3 * len(truth)
+    with h5py.File(out, "r") as fh:
+        d = fh["/displacement_m"][()]
+        v = fh["/velocity_m_s"][()]
+        sig = fh["/uncertainty_m"][()]
+        sharp = (fh["/n_lenslets_a"][()] > 1) & (fh["/n_lenslets_b"][()] > 1)
+    # every track within 3 of its reported uncertainties of the flow (1.5 footprints along x);
+    # off focus (seen through several lenslets) the median within 0.1 voxel laterally and
+    # 0.5 voxel in depth (one track's depth error is ~1 voxel rms, docs/validation/tracking.md)
+    assert np.all(np.abs(d - truth[0]) <= 3 * sig)
+    assert sharp.sum() >= 5
+    assert np.all(np.abs(np.median(d[sharp], axis=0) - truth[0])
+                  <= np.array([0.1, 0.1, 0.5]) * 0.125e-3)
+    np.testing.assert_allclose(v, d / 1e-3)
+    assert out.with_suffix(".vtp").exists()
+    binned = load_vectors(s["files"]["binned"])
+    assert binned.u.shape == (len(binned.z), len(binned.y), len(binned.x))
+    assert binned.valid.any()
+    # reusing the volumes and vectors of a pair gives the same tracks
+    code = main(["track", str(tmp_path / "cal.h5"), f"{pair}:/image_a", f"{pair}:/image_b",
+                 "--config", str(tmp_path / "exp.toml"), "--out", str(tmp_path / "t2.h5"),
+                 "--vectors", s["files"]["binned"], "--json"])
+    assert code == 0 and json.loads(capsys.readouterr().out)["n_tracks"] > 0
+
+
+def test_tracking_in_a_batch_pair_and_its_config(tmp_path):
+    """`[tracking] enabled = true`: the per-pair work of `plenopiv run` writes NAME_tracks.h5."""
+    from plenopiv.batch import PairJob
+    from plenopiv.camera import load_camera
+    from plenopiv.config import load_experiment
+    from plenopiv.errors import ConfigError
+    from plenopiv.pipeline import ExperimentPairProcess
+
+    cam = load_camera("small_m1")
+    Calibration.from_camera(cam).save(tmp_path / "cal.h5")
+    pair = tmp_path / "p1.h5"
+    assert main(["simulate", "pair", "small_m1", "--n-particles", "30", "--rays-per-particle",
+                 "512", "--depth-mm", "-1.5", "1.5", "--fill", "0.4", "--seed", "2",
+                 "--no-tiff", "--quiet", "--out", str(pair)]) == 0
+    text = ('camera = "small_m1"\n[volume]\nx_mm = [-1.6875, 1.6875]\n'
+            'y_mm = [-1.1875, 1.1875]\nz_mm = [-2.0, 2.0]\nvoxel_mm = 0.125\n'
+            '[piv]\nwindows = [[16, 12, 12]]\npasses = 2\n[images]\ndt_s = 1e-3\n'
+            '[output]\npng = false\nvtk = false\nweights_cache = ""\n'
+            '[tracking]\nenabled = true\nsearch_radius_cells = 1.5\n')
+    (tmp_path / "exp.toml").write_text(text)
+    assert load_experiment(tmp_path / "exp.toml").tracking.search_radius_cells == 1.5
+    job = PairJob("p1", f"{pair}:/image_a", f"{pair}:/image_b", tmp_path / "p1_vectors.h5")
+    s = ExperimentPairProcess(str(tmp_path / "exp.toml"), str(tmp_path / "cal.h5"),
+                              str(tmp_path))(job)
+    assert s["n_tracks"] > 0 and (tmp_path / "p1_tracks.h5").exists()
+    with h5py.File(tmp_path / "p1_tracks.h5", "r") as fh:
+        assert fh["/displacement_m"].shape == (s["n_tracks"], 3)
+        assert json.loads(fh.attrs["config"])["tracking"]["enabled"] is True
+    (tmp_path / "bad.toml").write_text(text + "search_radius = 2\n")
+    with pytest.raises(ConfigError, match="search_radius"):
+        load_experiment(tmp_path / "bad.toml")
