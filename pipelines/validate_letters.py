@@ -3,20 +3,21 @@ perspective views, parallax and a focus sweep over alpha; writes PNG figures, JS
 
     python pipelines/validate_letters.py --out docs/validation
 
-``--data`` names the data folder (default ../shared/data/plenoptomos_letters_ULF).
+``--data`` names the third-party data folder holding plenoptomos_letters_ULF/ (default:
+$PLENOPIV_DATA, else ../shared/data beside the current folder or the repository).
 """
 
 import argparse
 import json
 from pathlib import Path
 
-from plenopiv.validation.letters import DATA_NAME, run
+from plenopiv.validation.letters import find_data_dir, run
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="docs/validation")
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared"
-                                          / "data" / DATA_NAME),
-                    help="folder holding the letters_ULF_M1 images and .ini")
+                                          / "data"),
+                    help="third-party data folder holding plenoptomos_letters_ULF/")
     a = ap.parse_args()
-    print(json.dumps(run(a.out, data_dir=a.data)))
+    print(json.dumps(run(a.out, data_dir=find_data_dir(a.data))))

@@ -2,7 +2,8 @@
 
 Synthetic images are rendered here with NumPy (pixel-integrated Gaussian spots on a known
 lattice), so every centre is known exactly. Third-party reference images are read from
-``<repo>/../shared/data`` (tests marked ``data``) and fail, naming the path, when that folder is absent.
+``<repo>/../shared/data`` (tests marked ``data``): skipped, naming the folder and how to get the
+data, when that folder is absent (a failure under ``CI=true``; see ``conftest.shared_data_path``).
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Light field on real data (the plenoptomos letters image) and on ray-traced particles.
 
-The real-data tests read ``../shared/data/plenoptomos_letters_ULF`` and fail, naming the path, when it is absent.
+The real-data tests read ``../shared/data/plenoptomos_letters_ULF``: skipped with the folder and
+how to get it when it is absent (a failure under ``CI=true``; see ``conftest.shared_data_path``).
 The synthetic tests check what the real-data tests cannot: that the focus sweep and the
 parallax return a known depth.
 """

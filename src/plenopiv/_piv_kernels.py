@@ -427,6 +427,21 @@ def _deform_cubic_numpy(coeffs, field, factor, pad):
 # --------------------------------------------------------------------------------------------
 
 
+@numba.njit(cache=True)
+def _small_median(a, n):
+    """Median of ``a[:n]`` (n >= 1), sorting ``a[:n]`` in place: an insertion sort of at most
+    26 values, which compiles in a fraction of the time of ``np.median``."""
+    for i in range(1, n):
+        v = a[i]
+        j = i - 1
+        while j >= 0 and a[j] > v:
+            a[j + 1] = a[j]
+            j -= 1
+        a[j + 1] = v
+    h = n // 2
+    return a[h] if n % 2 else 0.5 * (a[h - 1] + a[h])
+
+
 @numba.njit(cache=True, parallel=True)
 def _neighbour_median_numba(field, usable):
     ncomp, nz, ny, nx = field.shape
@@ -459,11 +474,11 @@ def _neighbour_median_numba(field, usable):
                             count += 1
             if count == 0:
                 continue
-            med = np.median(values[:count])
+            med = _small_median(values, count)
             for q in range(count):
                 dev[q] = abs(values[q] - med)
             median[c, i, j, m] = med
-            residual[c, i, j, m] = np.median(dev[:count])
+            residual[c, i, j, m] = _small_median(dev, count)
     return median, residual
 
 

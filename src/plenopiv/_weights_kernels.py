@@ -89,8 +89,9 @@ def count_nnz(ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny,
     dummy_i = np.zeros(0, np.int32)
     dummy_w = np.zeros(0, np.float32)
     for i in prange(n):
-        counts[i] = _row(i, ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny,
-                         min_w, dummy_i, dummy_w, False)
+        # np.int64: the parallel loop's index is unsigned; one type compiles _row once
+        counts[i] = _row(np.int64(i), ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx,
+                         vy, nx, ny, min_w, dummy_i, dummy_w, False)
     return counts
 
 
@@ -101,5 +102,5 @@ def fill_rows(indptr, ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy,
     n = ux.shape[0]
     for i in prange(n):
         s, e = indptr[i], indptr[i + 1]
-        _row(i, ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny, min_w,
-             indices[s:e], data[s:e], True)
+        _row(np.int64(i), ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny,
+             min_w, indices[s:e], data[s:e], True)

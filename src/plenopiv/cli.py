@@ -40,9 +40,50 @@ from plenopiv.io import check_output_path, to_json, write_h5, write_image
 
 
 def _progress_bar(total: int, desc: str, quiet: bool):
-    bar = tqdm(total=total, desc=desc, unit="", disable=quiet or None, leave=False,
+    # disable=None: tqdm shows the bar only when stderr is a terminal (never in logs)
+    bar = tqdm(total=total, desc=desc, unit="", disable=True if quiet else None, leave=False,
                file=sys.stderr, dynamic_ncols=True)
     return bar, (lambda n: bar.update(n))
+
+
+class _StageBar:
+    """One progress bar over a command's named stages, on a terminal only.
+
+    ``stages`` maps each stage the library reports (``progress(stage, fraction)``) to its
+    expected share of the time; a reported stage counts for the longest listed name it starts
+    with ("piv pass 2/3" for "piv"). The bar shows the stage and the overall percentage, and
+    never goes back. A stage not listed only changes the text.
+    """
+
+    def __init__(self, desc: str, stages: dict[str, float], quiet: bool):
+        self.desc = desc
+        self.bar = tqdm(total=100, desc=desc, disable=True if quiet else None, leave=False,
+                        file=sys.stderr, dynamic_ncols=True,
+                        bar_format="{desc} {percentage:3.0f}%|{bar}| {elapsed}")
+        total = float(sum(stages.values())) or 1.0
+        self.span, acc = {}, 0.0
+        for name, weight in stages.items():
+            self.span[name] = (acc / total, weight / total)
+            acc += weight
+
+    def __call__(self, stage: str, fraction: float = 0.0) -> None:
+        self.bar.set_description_str(f"{self.desc}: {stage}", refresh=False)
+        names = [k for k in self.span if stage.startswith(k)]
+        if names:
+            lo, width = self.span[max(names, key=len)]
+            n = int(100 * (lo + width * min(max(float(fraction), 0.0), 1.0)))
+            self.bar.n = max(self.bar.n, n)
+        self.bar.refresh()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self) -> None:
+        """Remove the bar."""
+        self.bar.close()
 
 
 def _camera_from_args(args) -> CameraModel:
@@ -342,15 +383,20 @@ def cmd_calibrate(args) -> dict:
     out = _check_out(args.out, (".h5",), inputs=inputs,
                      beside=() if args.no_report else (".png",))
     t0 = time.perf_counter()
+    progress = _StageBar("calibrate", {"read images": 5, "spots and S_i": 75, "report": 20},
+                         args.quiet or args.json)
+    progress("read images")
     fp = read_image(args.focal_point)
     al = None if args.alignment is None else read_image(args.alignment)
     ru = None if args.ruler is None else read_image(args.ruler)
+    progress("spots and S_i")
     report = calibrate(cam, fp, alignment_image=al, ruler_image=ru,
                        ruler_spacing=(None if args.ruler_spacing_mm is None
                                       else args.ruler_spacing_mm * 1e-3),
                        ruler_axis=args.ruler_axis, method=args.method,
                        fit_misplacement=not args.no_misplacement,
                        max_missing_fraction=args.max_missing_fraction)
+    progress("report")
     inputs = {"focal_point": args.focal_point, "alignment": args.alignment,
               "ruler": args.ruler, "ruler_spacing_mm": args.ruler_spacing_mm,
               "method": args.method}
@@ -362,6 +408,7 @@ def cmd_calibrate(args) -> dict:
         png = out.with_suffix(".png")
         calibration_report(report, fp, png)
         summary["report"] = str(png)
+    progress.close()
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     return summary
 
@@ -384,13 +431,8 @@ def cmd_reconstruct(args) -> dict:
     check_grid(exp.volume)
     img = read_image(args.image)
     t0 = time.perf_counter()
-    bar = tqdm(total=100, desc="reconstruct", disable=args.quiet or args.json or None,
-               file=sys.stderr, leave=False)
-    with bar:
-        def progress(stage, fraction):
-            bar.set_description(stage)
-            bar.n = int(100 * fraction)
-            bar.refresh()
+    stages = {"weights": 30, "mart": 60, "particles": 10}
+    with _StageBar("reconstruct", stages, args.quiet or args.json) as progress:
         cache = exp.output.weights_cache
         res = reconstruct_volume(cal, img, exp.volume, settings=exp.reconstruction,
                                  particles=exp.particles, progress=progress,
@@ -437,7 +479,10 @@ def cmd_piv(args) -> dict:
     settings = piv_settings(cfg)
     t0 = time.perf_counter()
     va, vb = load_volume(args.volume_a), load_volume(args.volume_b)
-    vec = correlate(va, vb, settings, dt=args.dt)
+    with _StageBar("piv", {"piv": 1}, args.quiet or args.json) as bar:
+        bar("piv")
+        vec = correlate(va, vb, settings, dt=args.dt, progress=lambda info: bar(
+            f"piv pass {info['pass']}/{info['passes']}", info["pass"] / info["passes"]))
     files = vec.save(out, config={"piv": cfg.model_dump(), "volume_a": str(args.volume_a),
                                   "volume_b": str(args.volume_b), "dt_s": args.dt},
                      vtk=not args.no_vtk, extra_attrs={"complete": True})
@@ -491,6 +536,158 @@ def _experiment(path):
     return load_experiment(path)
 
 
+# ---- plan ------------------------------------------------------------------------------------
+
+
+def _box_from_args(args, cam) -> dict | None:
+    """A ``[volume]`` table from --x-mm/--y-mm/--z-mm/--voxel-mm (None when none is given)."""
+    given = {k: getattr(args, k) for k in ("x_mm", "y_mm", "z_mm", "voxel_mm")}
+    if all(v is None for v in given.values()):
+        return None
+    return {k: (list(v) if k != "voxel_mm" or len(v) > 1 else v[0])
+            for k, v in given.items() if v is not None}
+
+
+def cmd_plan(args) -> dict:
+    """Resolution, recommended voxels and windows, size, memory and time of a reconstruction."""
+    from plenopiv import planning
+    from plenopiv.camera import read_toml
+    from plenopiv.config import PIVConfig, ReconstructionSettings, experiment_from_dict
+    from plenopiv.volume import volume_from_dict
+
+    path = Path(args.config)
+    table = read_toml(path, "config") if path.suffix.lower() == ".toml" else {}
+    is_experiment = "volume" in table or "camera" in table
+    box = _box_from_args(args, None)
+    if is_experiment:
+        cfg = dict(table)
+        if box is not None:
+            volume = dict(cfg.get("volume", {}))
+            if "voxel_mm" in box:
+                volume.pop("shape", None)
+            volume.update(box)
+            cfg["volume"] = volume
+        exp = experiment_from_dict(cfg, base_dir=path.parent, source=str(path))
+        camera, grid = exp.camera, exp.volume
+        recon, piv_cfg = exp.reconstruction, exp.piv
+        calibration = args.calibration or (exp.path(exp.images.calibration)
+                                           if exp.images.calibration else None)
+        if calibration is not None and not Path(calibration).exists():
+            calibration = args.calibration      # not made yet: the camera's S_i then
+    else:
+        camera = load_camera(args.config)
+        recon, piv_cfg = ReconstructionSettings(), PIVConfig()
+        calibration = args.calibration
+        grid = None
+    if args.f_number is not None:
+        recon = recon.model_copy(update={"f_number": args.f_number})
+    if args.windows:
+        piv_cfg = piv_cfg.model_copy(update={"windows": [tuple(w) for w in args.windows]})
+    if args.image_distance_mm is not None:
+        camera = camera.with_image_distance(args.image_distance_mm * 1e-3)
+    elif calibration is not None:
+        from plenopiv.calibration.model import Calibration
+
+        camera = camera.with_image_distance(Calibration.load(calibration).image_distance)
+    if grid is None:
+        cam = planning.camera_resolution(camera, recon.f_number)
+        fx, fy = (0.9 * v * 1e3 for v in cam.field_of_view)
+        dz = 4 * cam.depth_cell * 1e3
+        vox = [v * 1e3 for v in planning.recommended_voxel(cam)]
+        default = {"x_mm": [-fx, fx], "y_mm": [-fy, fy], "z_mm": [-dz, dz], "voxel_mm": vox}
+        grid = volume_from_dict({**default, **(box or {})}, source="plan options")
+        if args.windows is None:
+            piv_cfg = piv_cfg.model_copy(update={
+                "windows": list(planning.recommended_windows(cam, grid.voxel))})
+    t0 = time.perf_counter()
+    if args.no_measure:
+        rates = planning.BENCHMARK_RATES
+    else:
+        with _StageBar("plan", {"measure": 1}, args.quiet or args.json) as bar:
+            bar("measure rates on this machine")
+            rates = planning.measure_rates(camera, grid, f_number=recon.f_number,
+                                           min_lit=recon.min_lit, piv=piv_cfg)
+    result = planning.plan(camera, grid, reconstruction=recon, piv=piv_cfg, rates=rates)
+    return {"command": "plan", "config": str(args.config),
+            "kind": "experiment" if is_experiment else "camera", **result.to_dict(),
+            "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def _print_plan(p: dict) -> None:
+    """``plenopiv plan`` for people."""
+    def mm(v):
+        return _fmt(float(v))
+
+    def box(b):
+        return f"[{mm(b[0])}, {mm(b[1])}]"
+
+    vol, rec, cell = p["volume"], p["recommended"], p["resolution_cell_mm"]
+    fov = p["field_of_view_mm"]
+    vx, vy, vz = vol["voxel_mm"]
+    nz, ny, nx = vol["shape"]
+    rows = [
+        ("camera", f"{p['camera']}, f/{_fmt(p['f_number'])}"),
+        ("resolution cell", f"{mm(cell['lateral'])} mm laterally (one lenslet footprint), "
+                            f"{mm(cell['depth'])} mm in depth"),
+        ("near-focus zone", f"|Z| < {mm(p['near_focus_mm'][1])} mm: a particle there lights "
+                            "one lenslet, so depth motion is under-measured"),
+        ("field of view", f"x ±{mm(fov['x'][1])} mm, y ±{mm(fov['y'][1])} mm at the focal "
+                          "plane"),
+        ("volume", f"x {box(vol['x_mm'])}, y {box(vol['y_mm'])}, z {box(vol['z_mm'])} mm; "
+                   f"voxel {mm(vx)} x {mm(vy)} x {mm(vz)} mm"),
+        ("", f"{nx} x {ny} x {nz} voxels (x, y, z) = {p['n_voxels']:,}"),
+        ("PIV windows", " then ".join(str(w) for w in p["windows_vox"])
+         + f" voxels (z, y, x), {p['passes']} passes, overlap {_fmt(p['overlap'])}"),
+    ]
+    last = p["windows_vox"][-1]
+    rows.append(("", f"last window {mm(last[2] * vx)} x {mm(last[1] * vy)} x "
+                     f"{mm(last[0] * vz)} mm (x, y, z): flow structures smaller than this "
+                     "are smoothed"))
+    vec = p["vectors_per_pass"]
+    rows.append(("", "vectors per pass (z, y, x): " + ", ".join(str(v) for v in vec)
+                 + ("" if p["windows_fit"] else "  <- the windows do not fit")))
+    rv = rec["voxel_mm"]
+    rows.append(("recommended", f"voxel {mm(rv[0])} x {mm(rv[1])} x {mm(rv[2])} mm "
+                                "(half a footprint; a quarter of the depth cell), windows "
+                                + " then ".join(str(w) for w in rec["windows_vox"])))
+    rows.append(("", f"{' x '.join(str(n) for n in rec['shape'][::-1])} voxels (x, y, z); "
+                     f"last pass {rec['vectors_last_pass']} vectors (z, y, x); seed about "
+                     f"{_fmt(rec['particles_per_lenslet'])} particles per lenslet (the "
+                     "validated density)"))
+    def count(n):
+        return f"{n / 1e9:.3g} billion" if n >= 1e9 else f"{n / 1e6:.3g} million"
+
+    sparse = p["projector"] == "sparse"
+    rows.append(("size", f"{count(p['n_rays'])} rays, {count(p['nnz'])} non-zero weights; "
+                         + ("explicit (sparse) weights" if sparse else
+                            "matrix-free lattice projector (the explicit weights would not "
+                            "fit)")))
+    mem = p["memory_gb"]
+    rows.append(("memory", (f"weights {_fmt(mem['weights'])} GB (a cache file of "
+                            f"{_fmt(mem['weights_cache_file'])} GB on disk), " if sparse else "")
+                 + f"peak {_fmt(mem['peak'])} GB of this machine's "
+                   f"{_fmt(p['available_memory_gb'])} GB"))
+    t = p["time_s"]
+    rows.append(("time", f"weights {_fmt(t['weights'])} s"
+                         + (" (once, then cached)" if sparse else "") + ", one volume "
+                         f"{_fmt(t['volume'])} s, PIV {_fmt(t['piv'])} s; a pair "
+                         f"{_fmt(t['pair'])} s ({_fmt(t['pair_cached_weights'])} s with cached "
+                         "weights)"))
+    rows.append(("", f"time model: {p['time_model']}"))
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"{k.ljust(width)}  {v}")
+    for title in ("warnings", "advice"):
+        if p[title]:
+            print(f"{title}:")
+            for line in p[title]:
+                print(f"  - {line}")
+    if p["advice"] or p["warnings"]:
+        print("recommended [volume] and [piv] for this box:")
+        for line in rec["toml"].splitlines():
+            print(f"  {line}" if line else "")
+
+
 # ---- validate --------------------------------------------------------------------------------
 
 
@@ -520,9 +717,13 @@ def cmd_validate(args) -> dict:
 
         out = run(args.out)
     elif case == "letters":
-        from plenopiv.validation.letters import run
+        from plenopiv.validation.letters import find_data_dir, run
 
-        out = run(args.out)
+        try:
+            data = find_data_dir(args.data)
+        except FileNotFoundError as exc:
+            raise ConfigError(str(exc)) from None
+        out = run(args.out, data_dir=data)
     elif case == "depth":
         from plenopiv.validation.depth_study import run
 
@@ -591,6 +792,7 @@ def cmd_run(args) -> dict:
     cache = exp.output.weights_cache
     _, hit = weights_for(cal, exp.volume, exp.reconstruction,
                          cache_dir=exp.path(cache) if cache else None)
+    weights_s = time.perf_counter() - t0
     process = ExperimentPairProcess(str(Path(args.experiment).resolve()), str(cal_path.resolve()),
                                     str(out_dir))
     head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit}
@@ -600,7 +802,7 @@ def cmd_run(args) -> dict:
     except BatchInterrupted as exc:
         exc.summary = {**head, **exc.summary}
         raise
-    result = {**head, "weights_s": round(time.perf_counter() - t0, 3) if not hit else 0.0,
+    result = {**head, "weights_s": round(weights_s, 3) if not hit else 0.0,
               **summary.to_dict()}
     if summary.failed:
         names = ", ".join(f"{n} ({e})" for n, e in summary.failed[:3])
@@ -653,13 +855,9 @@ def cmd_demo(args) -> dict:
 
     _seed(args.seed)
     check_output_path(args.out, what="--out", folder=True)
-    bar = tqdm(total=100, desc="demo", disable=args.quiet or args.json or None,
-               file=sys.stderr, leave=False)
-    with bar:
-        def progress(stage, fraction):
-            bar.set_description(f"demo: {stage}")
-            bar.n = int(100 * fraction)
-            bar.refresh()
+    stages = {"calibration images": 12, "calibrate": 10, "simulate pair": 6, "weights": 14,
+              "volume A": 12, "volume B": 12, "piv": 12, "products": 22}
+    with _StageBar("demo", stages, args.quiet or args.json) as progress:
         s = run_case(VortexCase(flow="oseen", seed=args.seed), args.out, progress=progress)
     e = s["errors"]
     return {"command": "demo", "out": str(args.out), "camera": s["case"]["camera"],
@@ -782,6 +980,33 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(trk)
     trk.set_defaults(func=cmd_track)
 
+    plan = sub.add_parser(
+        "plan", help="resolution, recommended voxels and windows, memory and time of a "
+                     "reconstruction, before running it")
+    plan.add_argument("config", help="experiment TOML (camera + [volume]), or a camera TOML "
+                                     "or preset name with the box given by --x-mm ...")
+    for axis in ("x", "y", "z"):
+        plan.add_argument(f"--{axis}-mm", type=float, nargs=2, metavar=("LO", "HI"),
+                          help=f"box along {axis} (mm; replaces the experiment's; default for "
+                               "a camera: " + ("90 %% of the field of view)" if axis != "z"
+                                               else "±4 depth cells)"))
+    plan.add_argument("--voxel-mm", type=float, nargs="+", metavar="MM",
+                      help="voxel edge, one value or DX DY DZ (mm; default for a camera: the "
+                           "recommended voxel)")
+    plan.add_argument("--windows", type=int, nargs=3, action="append", metavar=("WZ", "WY", "WX"),
+                      help="PIV window per pass in voxels (repeat for several passes)")
+    plan.add_argument("--f-number", type=float, help="aperture of the recording (default: the "
+                                                     "camera's or [reconstruction] f_number)")
+    plan.add_argument("--image-distance-mm", type=float,
+                      help="effective S_i (mm) when the camera file does not give it")
+    plan.add_argument("--calibration", metavar="CAL.h5",
+                      help="take S_i from this calibration product")
+    plan.add_argument("--no-measure", action="store_true",
+                      help="estimate times from the benchmark figures instead of timing the "
+                           "kernels here (no numba compilation)")
+    _add_common(plan)
+    plan.set_defaults(func=cmd_plan)
+
     run = sub.add_parser("run", help="many image pairs end to end (dask batch)")
     run.add_argument("experiment", help="experiment TOML with [images], [batch], [output]")
     run.add_argument("--resume", action=argparse.BooleanOptionalAction, default=True,
@@ -799,13 +1024,19 @@ def build_parser() -> argparse.ArgumentParser:
                           "5.1, 5.2; fields: particle-field quality; letters: light field on "
                           "the real plenoptomos image")
     val.add_argument("--out", required=True, help="output folder")
-    val.add_argument("--camera", default="small_m1", help="camera for oseen/hill")
-    val.add_argument("--particles-per-lenslet", type=float, default=0.15)
+    val.add_argument("--data", metavar="DIR",
+                     help="letters: the third-party data folder holding "
+                          "plenoptomos_letters_ULF/ (default: $PLENOPIV_DATA, else "
+                          "../shared/data beside the current folder or the source tree)")
+    val.add_argument("--camera", default="small_m1",
+                     help="oseen/hill: camera preset or TOML (default small_m1)")
+    val.add_argument("--particles-per-lenslet", type=float, default=0.15,
+                     help="oseen/hill: seeding density (default 0.15)")
     val.add_argument("--lenslets", type=int, nargs=2, metavar=("ROWS", "COLS"),
                      help="oseen/hill: run on the central ROWS x COLS lenslets of the camera")
     val.add_argument("--lateral-oversampling", type=int, default=1, metavar="K",
                      help="oseen/hill: lateral voxels per lenslet footprint (default 1)")
-    val.add_argument("--seed", type=int, default=1)
+    val.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     _add_common(val)
     val.set_defaults(func=cmd_validate)
 
@@ -859,9 +1090,78 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _print_human(summary: dict):
+def _fmt(value) -> str:
+    """A value for people: numbers to 4 significant digits, numpy scalars as numbers, lists
+    and small dicts on one line."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, bool) or value is None:
+        return str(value).lower() if isinstance(value, bool) else "-"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return str(value)
+        if value != 0 and (abs(value) >= 1e6 or abs(value) < 1e-3):
+            return f"{value:.3e}"
+        return f"{value:.4g}"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return ", ".join(f"{k} {_fmt(v)}" for k, v in value.items())
+    return str(value)
+
+
+def _print_lines(summary: dict, indent: str = "") -> None:
+    """``key: value`` lines; a dict of dicts or lists of dicts as an indented block."""
     for k, v in summary.items():
-        print(f"{k}: {v}")
+        if isinstance(v, dict) and (any(isinstance(x, (dict, list)) for x in v.values())
+                                    or len(_fmt(v)) > 90):
+            print(f"{indent}{k}:")
+            _print_lines(v, indent + "  ")
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            print(f"{indent}{k}:")
+            for x in v:
+                print(f"{indent}  - {_fmt(x)}")
+        else:
+            print(f"{indent}{k}: {_fmt(v)}")
+
+
+def _print_run(s: dict) -> None:
+    """``plenopiv run``: one row per pair, then the totals."""
+    rows = [("pair", "status", "valid", "particles A", "time (s)")]
+    errors = []
+    for r in s.get("results", []):
+        res = r.get("result") or {}
+        valid = res.get("valid_fraction")
+        rows.append((r["name"], r["status"], "-" if valid is None else f"{valid:.0%}",
+                     str(res.get("n_particles_a", "-")),
+                     f"{r['seconds']:.1f}" if r["status"] == "done" else "-"))
+        if r["status"] == "failed":
+            errors.append(f"  {r['name']}: {r.get('error_type')}: {r.get('error')}")
+    width = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    for row in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(row, width, strict=True)).rstrip())
+    threads = s.get("threads_per_worker")
+    print(f"{s['n_jobs']} pairs: {s['n_done']} done, {s['n_skipped']} skipped, "
+          f"{s['n_failed']} failed in {s['seconds']:.1f} s ({s.get('cluster')} cluster, "
+          f"{s.get('n_workers') or '?'} workers x {threads or '?'} threads)")
+    if errors:
+        print("failed:")
+        print("\n".join(errors))
+    weights = ("from the cache" if s.get("weights_from_cache")
+               else f"built in {s.get('weights_s', 0.0):.1f} s")
+    print(f"weights: {weights}")
+    print(f"products: {s['out']}  (summary: {s.get('summary_path')})")
+
+
+def _print_human(summary: dict):
+    """Print a command's summary for people (``--json`` prints it as it is)."""
+    printer = {"run": _print_run, "plan": _print_plan}.get(summary.get("command"))
+    if printer is not None:
+        printer(summary)
+    else:
+        _print_lines(summary)
 
 
 def _command_of(argv: list[str]) -> str | None:

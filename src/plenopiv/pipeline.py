@@ -205,6 +205,8 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     img = check_image(image, shape=calibration.camera.sensor.shape, name="particle image",
                       particles=True)
     if weights is None:
+        if progress is not None:
+            progress("weights", 0.0)
         weights, _ = weights_for(calibration, grid, settings, cache_dir=cache_dir)
     elif weights.grid != grid:
         raise ReconstructionError("the given weights were built for another volume grid")
@@ -252,6 +254,8 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t["mart_s"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
+    if progress is not None:
+        progress("particles", 0.0)
     vmax = float(vol.max())
     if vmax <= 0:
         raise ReconstructionError("the reconstructed volume is empty: no particle light in "
@@ -489,18 +493,38 @@ def process_pair(calibration: Calibration, image_a, image_b, experiment, *,
     vectors, with the experiment's settings (:class:`plenopiv.config.Experiment`)."""
     t0 = time.perf_counter()
     if weights is None:
+        if progress is not None:
+            progress("weights", 0.0)
         cache = experiment.output.weights_cache
         weights, _ = weights_for(calibration, experiment.volume, experiment.reconstruction,
                                  cache_dir=experiment.path(cache) if cache else None)
     kw = dict(settings=experiment.reconstruction, particles=experiment.particles,
-              weights=weights, progress=progress)
-    va = reconstruct_volume(calibration, image_a, experiment.volume, **kw)
-    vb = reconstruct_volume(calibration, image_b, experiment.volume, **kw)
+              weights=weights)
+    va = reconstruct_volume(calibration, image_a, experiment.volume, **kw,
+                            progress=_volume_progress(progress, "A"))
+    vb = reconstruct_volume(calibration, image_b, experiment.volume, **kw,
+                            progress=_volume_progress(progress, "B"))
     t1 = time.perf_counter()
+    if progress is not None:
+        progress("piv", 0.0)
     vec = correlate(va, vb, piv_settings(experiment.piv), dt=experiment.images.dt_s,
-                    workers=workers)
+                    workers=workers, progress=None if progress is None else (
+                        lambda info: progress(f"piv pass {info['pass']}/{info['passes']}",
+                                              info["pass"] / info["passes"])))
     t2 = time.perf_counter()
     return PairResult(va, vb, vec, {"reconstruct_s": t1 - t0, "piv_s": t2 - t1})
+
+
+def _volume_progress(progress: Progress, tag: str) -> Progress:
+    """The progress of one volume of a pair, reported as ``"volume A: mart"`` etc., its
+    fraction over the whole volume (MART about 90 % of it)."""
+    if progress is None:
+        return None
+
+    def report(stage: str, fraction: float) -> None:
+        share = {"mart": 0.9 * fraction, "particles": 0.95}.get(stage, 0.0)
+        progress(f"volume {tag}: {stage}", share)
+    return report
 
 
 def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,

@@ -158,6 +158,12 @@ class _VolumeCfg(BaseModel):
         return self
 
 
+#: The form of the ``[volume]`` keys, appended to every error about them.
+VOLUME_FORM = ("; expected x_mm, y_mm, z_mm = [lo, hi] (mm, hi > lo), and voxel_mm = an edge "
+               "or [dx, dy, dz] (mm) or shape = [nz, ny, nx], e.g. x_mm = [-7, 7], "
+               "voxel_mm = 0.13")
+
+
 def volume_from_dict(cfg: dict, *, source: str = "[volume]") -> VolumeGrid:
     """Validate a ``[volume]`` table (x_mm, y_mm, z_mm, voxel_mm or shape) and build the grid."""
     vox = cfg.get("voxel_mm") if isinstance(cfg, dict) else None
@@ -172,7 +178,7 @@ def volume_from_dict(cfg: dict, *, source: str = "[volume]") -> VolumeGrid:
         c = _VolumeCfg.model_validate(cfg)
     except ValidationError as exc:
         raise ConfigError(format_validation_error(exc, source, _VolumeCfg)
-                          .replace(f"{source}: ", f"{source}: [volume] ")) from None
+                          .replace(f"{source}: ", f"{source}: [volume] ") + VOLUME_FORM) from None
     mm = 1e-3
     voxel = None if c.voxel_mm is None else np.asarray(c.voxel_mm, float) * mm
     try:

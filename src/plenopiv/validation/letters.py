@@ -59,9 +59,63 @@ SOURCE_ALPHA = 0.95
 ALPHAS = tuple(np.round(np.arange(0.85, 1.10 + 1e-9, 0.005), 4))
 
 
+#: Where the data set comes from (for messages).
+DATA_SOURCE = ("https://github.com/cicwi/plenoptomos, folder examples/data (letters_ULF_M1*.png "
+               "and letters_ULF_M1.ini)")
+
+
+def data_candidates() -> list[Path]:
+    """Third-party data folders looked in, in order: ``$PLENOPIV_DATA``, ``../shared/data``
+    beside the current folder, and ``../shared/data`` beside the source tree (a clone
+    installed in editable mode)."""
+    import os
+
+    out = []
+    if os.environ.get("PLENOPIV_DATA"):
+        out.append(Path(os.environ["PLENOPIV_DATA"]))
+    out.append(Path.cwd().parent / "shared" / "data")
+    out.append(Path(__file__).resolve().parents[3].parent / "shared" / "data")
+    seen, unique = set(), []
+    for p in out:
+        key = str(p.resolve()) if p.exists() else str(p)
+        if key not in seen:
+            seen.add(key)
+            unique.append(p)
+    return unique
+
+
+def _letters_in(folder: Path) -> Path:
+    """``folder`` itself when it holds the images, else its ``plenoptomos_letters_ULF``."""
+    return folder if (folder / FILES["raw"]).is_file() else folder / DATA_NAME
+
+
+def find_data_dir(data: str | Path | None = None) -> Path:
+    """The letters folder: under ``data`` (the third-party data folder, or the letters folder
+    itself), else under the first of :func:`data_candidates` that holds it.
+
+    Raises
+    ------
+    FileNotFoundError
+        Naming the folders tried and where the data come from.
+    """
+    tried = [Path(data)] if data is not None else data_candidates()
+    for folder in tried:
+        d = _letters_in(folder)
+        if all((d / f).is_file() for f in FILES.values()):
+            return d
+    names = ", ".join(str(_letters_in(f)) for f in tried)
+    raise FileNotFoundError(f"the letters data set is not in {names}: get it from "
+                            f"{DATA_SOURCE} into DIR/{DATA_NAME}/ and pass --data DIR (or set "
+                            "PLENOPIV_DATA=DIR)")
+
+
 def default_data_dir() -> Path:
-    """``../shared/data/plenoptomos_letters_ULF`` beside the repository (editable install)."""
-    return Path(__file__).resolve().parents[3].parent / "shared" / "data" / DATA_NAME
+    """The letters folder found by :func:`find_data_dir`, or where the repository expects it
+    (``../shared/data/plenoptomos_letters_ULF`` beside the source tree) when absent."""
+    try:
+        return find_data_dir()
+    except FileNotFoundError:
+        return Path(__file__).resolve().parents[3].parent / "shared" / "data" / DATA_NAME
 
 
 # --------------------------------------------------------------------------------------------

@@ -196,12 +196,20 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
     truth_cam = case_camera(case)
     timings = {}
 
+    def report(stage, fraction=0.0):
+        if progress is not None:
+            progress(stage, fraction)
+
     # calibration images and calibration (or the exact model calibration)
     if case.calibrate:
+        report("calibration images", 0.0)
         fp = finish_image(focal_point_image(truth_cam, f_number=16), noise="poisson", rng=rng)
+        report("calibration images", 0.3)
         al = finish_image(alignment_image(truth_cam), noise="poisson", rng=rng)
+        report("calibration images", 0.5)
         ru = finish_image(ruler_image(truth_cam, Ruler(1e-3), rays_per_lenslet=1000),
                           noise="poisson", rng=rng)
+        report("calibrate")
         # the user's camera file does not know S_i
         user_cam = truth_cam.replace(main_lens=replace(truth_cam.main_lens,
                                                        image_distance=None))
@@ -218,6 +226,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
     timings["calibrate_s"] = time.perf_counter() - t0
 
     # the pair
+    report("simulate pair")
     t1 = time.perf_counter()
     grid = aligned_grid(cal.effective_camera, case)
     box = SeedingBox(tuple(grid.bounds[0] * 0.98), tuple(grid.bounds[1] * 0.98),
@@ -244,6 +253,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
     t2 = time.perf_counter()
     res = process_pair(cal, ia, ib, exp, progress=progress)
     timings.update(res.timings)
+    report("products")
     paths = save_pair(res, out, "pair", exp, extra_attrs={"flow": case.flow})
     timings["total_s"] = time.perf_counter() - t0
     timings["pair_s"] = time.perf_counter() - t2

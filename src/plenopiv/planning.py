@@ -1,0 +1,720 @@
+"""Plan a reconstruction before running it (``plenopiv plan``).
+
+From a camera and a box this module computes, without reconstructing anything:
+
+* the resolution cell: one lenslet footprint b = p_m S_o/S_i laterally and b S_o/D in depth
+  (:func:`plenopiv.pipeline.resolution_cell`), and the near-focus zone |Z| < b S_o/D, where a
+  particle's blur on the focal plane (D |Z|/S_o) is smaller than one footprint, so that it lights
+  one lenslet and its depth motion is under-measured (docs/validation/vortex.md);
+* the recommended voxel and PIV windows for this camera: the settings that met the vortex
+  targets in docs/validation/vortex.md (half-footprint lateral voxels; windows of
+  16 → 12 footprints laterally and about 3.6 → 2.7 depth cells in depth), scaled to the camera;
+* whether the windows fit the box, and how many vectors each pass gives;
+* the size of the reconstruction (voxels, rays, non-zero weights), its memory and its time on
+  this machine.
+
+The weight count is computed, not sampled from a full light field (which would take seconds and
+gigabytes for a 16 MP camera): the rays of one micro-image are traced once on a 3 × 3-lenslet
+patch and repeated at every lenslet, and a ray's beam crosses a depth slice as a box whose
+voxel count is separable in x and y (:mod:`plenopiv.weights`).
+
+Times come from rates: ``measure_rates`` times the reconstruction's own kernels (weight
+build, forward and back projection, the lattice projector) and the PIV on small samples in this
+process; :data:`BENCHMARK_RATES` are figures of the project's 2-core machine (see there),
+used when measuring is not wanted. ``Plan.time_model`` says which.
+
+Everything here is computation; printing belongs to :mod:`plenopiv.cli`.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from plenopiv.camera import CameraModel
+from plenopiv.config import PIVConfig, ReconstructionSettings
+from plenopiv.errors import ConfigError
+from plenopiv.volume import VolumeGrid
+
+#: Lateral voxel per lenslet footprint: half-footprint voxels remove the peak locking of
+#: footprint voxels (bias 0.000 instead of -0.10 footprint, docs/validation/vortex.md).
+LATERAL_VOXEL_PER_FOOTPRINT = 0.5
+#: Depth voxel per depth cell (b S_o/D): the validated grid of docs/validation/vortex.md had a
+#: depth voxel of 1/4.4 cell; a particle then spans about four voxels in depth.
+DEPTH_VOXEL_PER_CELL = 0.25
+#: Windows (first pass, last pass) of the validated vortex runs, in lenslet footprints
+#: laterally and in depth cells in depth: 32 → 24 half-footprint voxels, 16 → 12 voxels of
+#: 1/4.4 cell in depth.
+WINDOW_FOOTPRINTS = (16.0, 12.0)
+WINDOW_DEPTH_CELLS = (3.6, 2.7)
+#: Seeding density of the validated runs, particles per lenslet.
+VALIDATED_PARTICLES_PER_LENSLET = 0.15
+
+#: Bytes of an explicit reconstruction per non-zero weight
+#: (:data:`plenopiv.weights.BYTES_PER_NONZERO`).
+BYTES_PER_NONZERO = 20
+#: Bytes per ray while the light field is built (temporaries included; measured on the Auburn
+#: camera: 2.9 GB peak for 11.6 million rays).
+BYTES_PER_RAY_LIGHT_FIELD = 250
+#: Bytes per voxel held by one reconstruction (volume, first guess, masks, MART corrections).
+BYTES_PER_VOXEL_RECONSTRUCT = 48
+#: Bytes per voxel held by the PIV of a pair (two volumes, deformed copies, spline
+#: coefficients, window spectra).
+BYTES_PER_VOXEL_PIV = 160
+#: The interpreter with numpy, scipy and numba loaded, bytes.
+BASE_BYTES = 0.3e9
+
+
+@dataclass(frozen=True)
+class Rates:
+    """Seconds per unit of work, and where they come from.
+
+    build_s_per_nnz : building explicit weights (count + fill), per non-zero.
+    sweep_s_per_nnz : one forward plus one back projection with explicit weights, per non-zero.
+    sweep_s_per_call : the same, per sweep, whatever the non-zeros (the grid's voxels).
+    lattice_s_per_call, piv_s_per_call : the fixed cost of a lattice sweep, of a PIV.
+    lattice_s_per_ray_slice : one forward plus one back projection with the lattice projector,
+        per ray and depth slice.
+    piv_s_per_window_voxel : 3-D PIV, per window voxel correlated (summed over the windows of
+        every pass; the deformation of the volumes between passes included).
+    source : "measured" (in this process) or "benchmark".
+    threads : numba threads the rates were measured with.
+    """
+
+    build_s_per_nnz: float
+    sweep_s_per_nnz: float
+    lattice_s_per_ray_slice: float
+    piv_s_per_window_voxel: float
+    source: str
+    sweep_s_per_call: float = 0.0
+    lattice_s_per_call: float = 0.0
+    piv_s_per_call: float = 0.0
+    threads: int = 2
+
+
+#: Rates used without measuring (``plenopiv plan --no-measure``), from the project's 2-core
+#: machine: the explicit weights and sweeps measured by :func:`measure_rates` on the box of
+#: ``configs/experiments/small_test.toml`` while the machine was shared with other work (load
+#: about 12; an idle machine is several times faster); the lattice projector and the PIV from
+#: ``benchmarks/full_camera.py`` (README "Full-camera scale": one 16 MP volume with 5 SMART
+#: sweeps in 17.1 s; PIV with 32³ → 16³ windows, 3 passes, in 8.6 s).
+BENCHMARK_RATES = Rates(build_s_per_nnz=1.2e-7, sweep_s_per_nnz=1.5e-8, sweep_s_per_call=0.07,
+                        lattice_s_per_ray_slice=1.2e-9, piv_s_per_window_voxel=4e-8,
+                        source="benchmark", threads=2)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """The camera's resolution near the focal plane (effective coordinates), metres."""
+
+    name: str
+    footprint: float
+    depth_cell: float
+    near_focus: float
+    field_of_view: tuple[float, float]
+    f_number: float
+    object_distance: float
+    magnification: float
+    n_lenslets: int
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Everything ``plenopiv plan`` reports. Lengths in metres, memory in bytes, time in s."""
+
+    camera: Camera
+    grid: VolumeGrid
+    windows: tuple[tuple[int, int, int], ...]
+    passes: int
+    overlap: float
+    vectors: tuple[tuple[int, int, int], ...]
+    recommended_voxel: tuple[float, float, float]
+    recommended_windows: tuple[tuple[int, int, int], ...]
+    recommended_grid: VolumeGrid
+    recommended_vectors: tuple[int, int, int]
+    n_rays: int
+    nnz: int
+    projector: str
+    memory: dict
+    time: dict
+    time_model: str
+    available_memory: float
+    warnings: tuple[str, ...] = ()
+    advice: tuple[str, ...] = ()
+    particles_per_lenslet: float = VALIDATED_PARTICLES_PER_LENSLET
+
+    @property
+    def fits(self) -> bool:
+        """True when every pass's windows fit the box."""
+        return all(min(v) > 0 for v in self.vectors)
+
+    def recommended_toml(self) -> str:
+        """``[volume]`` and ``[piv]`` tables with the recommended voxel and windows."""
+        g = self.recommended_grid
+        b = g.bounds * 1e3
+        vox = ", ".join(_mm(v * 1e3) for v in self.recommended_voxel)
+        win = ", ".join("[" + ", ".join(str(int(w)) for w in ws) + "]"
+                        for ws in self.recommended_windows)
+        return ("[volume]\n"
+                f"x_mm = [{_mm(b[0, 0])}, {_mm(b[0, 1])}]\n"
+                f"y_mm = [{_mm(b[1, 0])}, {_mm(b[1, 1])}]\n"
+                f"z_mm = [{_mm(b[2, 0])}, {_mm(b[2, 1])}]\n"
+                f"voxel_mm = [{vox}]\n\n"
+                "[piv]\n"
+                f"windows = [{win}]\n")
+
+    def to_dict(self) -> dict:
+        """Plain JSON values; lengths in mm, memory in GB, times in s."""
+        c, g = self.camera, self.grid
+        return {
+            "camera": c.name,
+            "f_number": c.f_number,
+            "footprint_mm": c.footprint * 1e3,
+            "resolution_cell_mm": {"lateral": c.footprint * 1e3, "depth": c.depth_cell * 1e3},
+            "near_focus_mm": [-c.near_focus * 1e3, c.near_focus * 1e3],
+            "field_of_view_mm": {"x": [-c.field_of_view[0] * 1e3, c.field_of_view[0] * 1e3],
+                                 "y": [-c.field_of_view[1] * 1e3, c.field_of_view[1] * 1e3]},
+            "volume": {"x_mm": (g.bounds[0] * 1e3).tolist(), "y_mm": (g.bounds[1] * 1e3).tolist(),
+                       "z_mm": (g.bounds[2] * 1e3).tolist(),
+                       "voxel_mm": [v * 1e3 for v in g.voxel], "shape": list(g.shape)},
+            "n_voxels": g.n_voxels,
+            "windows_vox": [list(w) for w in self.windows],
+            "passes": self.passes,
+            "overlap": self.overlap,
+            "vectors_per_pass": [list(v) for v in self.vectors],
+            "windows_fit": self.fits,
+            "recommended": {"voxel_mm": [v * 1e3 for v in self.recommended_voxel],
+                            "windows_vox": [list(w) for w in self.recommended_windows],
+                            "shape": list(self.recommended_grid.shape),
+                            "vectors_last_pass": list(self.recommended_vectors),
+                            "particles_per_lenslet": self.particles_per_lenslet,
+                            "toml": self.recommended_toml()},
+            "n_rays": self.n_rays,
+            "nnz": self.nnz,
+            "projector": self.projector,
+            "memory_gb": {k: v / 1e9 for k, v in self.memory.items()},
+            "available_memory_gb": self.available_memory / 1e9,
+            "time_s": dict(self.time),
+            "time_model": self.time_model,
+            "warnings": list(self.warnings),
+            "advice": list(self.advice),
+        }
+
+
+def _size(mm) -> str:
+    return " x ".join(f"{v:.3g}" for v in mm)
+
+
+def _mm(mm: float) -> str:
+    """A length in mm, short: 3 decimals at most, no trailing zeros."""
+    s = f"{mm:.3f}".rstrip("0").rstrip(".")
+    return "0" if s in ("-0", "") else s
+
+
+# ---- the camera ------------------------------------------------------------------------------
+
+
+def camera_resolution(camera: CameraModel, f_number: float | None = None) -> Camera:
+    """Footprint, depth cell, near-focus zone and field of view of ``camera`` (effective)."""
+    from plenopiv.pipeline import resolution_cell
+    from plenopiv.synthetic.images import field_of_view
+
+    n = camera.main_lens.f_number if f_number is None else f_number
+    lat, dep = resolution_cell(camera, n)
+    return Camera(name=camera.name, footprint=lat, depth_cell=dep, near_focus=dep,
+                  field_of_view=field_of_view(camera, 0.0), f_number=n,
+                  object_distance=camera.object_distance, magnification=camera.magnification,
+                  n_lenslets=camera.microlens_array.count)
+
+
+def recommended_voxel(cam: Camera) -> tuple[float, float, float]:
+    """``(dx, dy, dz)``: half a footprint laterally, a quarter of the depth cell in depth."""
+    lat = LATERAL_VOXEL_PER_FOOTPRINT * cam.footprint
+    return (lat, lat, DEPTH_VOXEL_PER_CELL * cam.depth_cell)
+
+
+#: The last pass should give at least this many vectors along every axis (50 % overlap):
+#: windows are capped at 1/2.5 of the box's voxels along an axis.
+MIN_VECTORS_LAST_PASS = 4
+
+
+def recommended_windows(cam: Camera, voxel, shape=None) -> tuple[tuple[int, int, int], ...]:
+    """Windows ``(wz, wy, wx)`` (first pass, last pass) in voxels of ``voxel``.
+
+    The validated physical sizes (:data:`WINDOW_FOOTPRINTS`, :data:`WINDOW_DEPTH_CELLS`),
+    rounded to even voxels; with ``shape`` (the box, ``(nz, ny, nx)`` voxels) the last window
+    is capped so that the last pass gives :data:`MIN_VECTORS_LAST_PASS` vectors along every
+    axis, and the first is at most 4/3 of it. On the small camera with a box 4.5 depth cells
+    deep, capping the depth window (3.6 → 1.5 cells) raised the correlation of u with a
+    Lamb-Oseen vortex from -0.05 to 0.93 (the vortex's depth scale is one depth cell).
+    """
+    def even(w, lo=6):
+        return max(lo, 2 * int(math.floor(w / 2 + 0.25)))
+
+    first, last = [], []
+    for axis in range(3):                    # z, y, x
+        if axis == 0:
+            size = [c * cam.depth_cell / voxel[2] for c in WINDOW_DEPTH_CELLS]
+        else:
+            size = [f * cam.footprint / voxel[2 - axis] for f in WINDOW_FOOTPRINTS]
+        w_first, w_last = even(size[0]), even(size[1])
+        if shape is not None:
+            cap = even(2 * shape[axis] / (MIN_VECTORS_LAST_PASS + 1), lo=4)
+            if w_last > cap:
+                w_last = cap
+                w_first = min(w_first, even(4 * w_last / 3, lo=4))
+            w_first = min(w_first, shape[axis])
+        first.append(w_first)
+        last.append(w_last)
+    return (tuple(first), tuple(last))
+
+
+def vectors_per_pass(shape, windows, overlap: float, passes: int):
+    """Vectors ``(nz, ny, nx)`` of every pass (0 along an axis the window does not fit)."""
+    out = []
+    for k in range(passes):
+        w = windows[min(k, len(windows) - 1)]
+        counts = []
+        for n, wk in zip(shape, w, strict=True):
+            step = max(1, int(round(wk * (1 - overlap))))
+            counts.append(0 if wk > n else (n - wk) // step + 1)
+        out.append(tuple(counts))
+    return tuple(out)
+
+
+# ---- size of the weights -----------------------------------------------------------------------
+
+
+def _ray_pattern(camera: CameraModel, f_number, min_lit):
+    """Aperture positions ``u`` (R, 2) and ``lit`` (R,) of the rays of the lenslet on the
+    axis, with the light field's cell, footprint, aperture radius and S_o."""
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.lightfield import light_field
+
+    mla = camera.microlens_array
+    patch = camera.patch(min(3, mla.rows), min(3, mla.cols))
+    lf = light_field(Calibration.from_camera(patch), f_number=f_number, min_lit=min_lit)
+    if not lf.n_rays:
+        raise ConfigError(f"camera {camera.name!r}: no pixel is lit at this f-number")
+    sel = lf.lenslet == lf.lenslet[int(np.argmin(np.hypot(*lf.s.T)))]
+    return lf.u[sel], lf.lit[sel], lf
+
+
+def _axis_counts(u, pos, t, al, be, origin, vox, n):
+    """Voxels (summed over lenslet positions ``pos``) that each pattern ray's beam overlaps
+    along one axis on every slice: (R, nz)."""
+    half = 0.5 * (al + be)
+    out = np.zeros((len(u), len(t)), np.float64)
+    for k in range(len(t)):
+        m = (1.0 - t[k]) * u[:, None] + t[k] * pos[None, :]
+        i0 = np.maximum(np.floor((m - half[k] - origin) / vox + 0.5), 0)
+        i1 = np.minimum(np.floor((m + half[k] - origin) / vox + 0.5), n - 1)
+        out[:, k] = np.maximum(i1 - i0 + 1, 0).sum(axis=1)
+    return out
+
+
+def estimate_size(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
+                  min_lit: float = 0.5) -> tuple[int, int]:
+    """``(n_rays, nnz)``: rays of the camera and non-zero weights of the explicit W for
+    ``grid``, from the ray pattern of one micro-image repeated at every lenslet.
+
+    Separable per axis: a square lattice's lenslets are a product of columns and rows; a
+    hexagonal one is two such products (even and odd rows).
+    """
+    u, lit, lf = _ray_pattern(camera, f_number, min_lit)
+    mla = camera.microlens_array
+    centres = mla.nominal_centres() / camera.magnification     # X_f on the focal plane
+    rows = mla.grid_index()[:, 0]
+    so = lf.object_distance
+    t = (so + grid.z) / so
+    al = np.abs(1.0 - t) * lf.cell
+    be = t * lf.footprint
+    nz, ny, nx = grid.shape
+    nnz = 0.0
+    for parity in ((0, 1) if mla.grid == "hexagonal" else (None,)):
+        sel = rows % 2 == parity if parity is not None else np.ones(len(rows), bool)
+        if not sel.any():
+            continue
+        xs = np.unique(np.round(centres[sel, 0], 12))
+        ys = np.unique(np.round(centres[sel, 1], 12))
+        cx = _axis_counts(u[:, 0], xs, t, al, be, grid.origin[0], grid.voxel[0], nx)
+        cy = _axis_counts(u[:, 1], ys, t, al, be, grid.origin[1], grid.voxel[1], ny)
+        nnz += float((cx * cy).sum())
+    return int(len(u) * mla.count), int(nnz)
+
+
+# ---- rates -----------------------------------------------------------------------------------
+
+
+def _best(fn, budget_s: float, min_reps: int = 2, max_reps: int = 10) -> float:
+    """Shortest time of a few calls of ``fn`` (the least disturbed by other work)."""
+    best, start, reps = math.inf, time.perf_counter(), 0
+    while reps < min_reps or (time.perf_counter() - start < budget_s and reps < max_reps):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+        reps += 1
+    return best
+
+
+def _slope(x1: float, t1: float, x2: float, t2: float) -> tuple[float, float]:
+    """``(rate, fixed)`` with t = fixed + rate x through two timings; the rate is kept at
+    least a quarter of t2/x2 (timing noise on a busy machine)."""
+    rate = (t2 - t1) / (x2 - x1) if x2 > x1 else t2 / x2
+    rate = max(rate, 0.25 * t2 / x2)
+    return rate, max(t2 - rate * x2, 0.0)
+
+
+def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
+                  min_lit: float = 0.5, piv: PIVConfig | None = None,
+                  budget_s: float = 2.0) -> Rates:
+    """Time the reconstruction's kernels and the PIV on samples of this plan.
+
+    Each is timed at two sample sizes (the shortest of a few calls), which separates the rate
+    per unit of work from the fixed cost per call: the weights of a few hundred lenslets'
+    rays built on ``grid`` (the kernels of :mod:`plenopiv.weights`) and projected forward and
+    back; the lattice projector on two patches of the camera, on the grid's slices; the PIV
+    of two random particle volumes of two and three first windows a side. The first call on
+    a machine also compiles the kernels (cached on disk), before any timing.
+    """
+    import numba
+
+    from plenopiv import _weights_kernels as K
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.lattice import LatticeProjector
+    from plenopiv.lightfield import light_field
+    from plenopiv.projector import SparseProjector
+
+    u, lit, lf = _ray_pattern(camera, f_number, min_lit)
+    mla = camera.microlens_array
+    centres = mla.nominal_centres() / camera.magnification
+    b = grid.bounds
+    inside = np.flatnonzero((centres[:, 0] >= b[0, 0]) & (centres[:, 0] <= b[0, 1])
+                            & (centres[:, 1] >= b[1, 0]) & (centres[:, 1] <= b[1, 1]))
+    if not len(inside):
+        inside = np.array([int(np.argmin(np.hypot(*centres.T)))])
+    rng = np.random.default_rng(0)
+    pick = rng.choice(inside, size=min(len(inside), 128), replace=False)
+    xf = np.repeat(centres[pick], len(u), axis=0)
+    uu = np.tile(u, (len(pick), 1))
+    ll = np.tile(lit, len(pick)).astype(np.float64)
+    area = math.pi * lf.aperture_radius ** 2
+
+    def args(n):
+        return (np.ascontiguousarray(uu[:n, 0]), np.ascontiguousarray(uu[:n, 1]),
+                np.ascontiguousarray(xf[:n, 0]), np.ascontiguousarray(xf[:n, 1]),
+                np.ascontiguousarray(ll[:n]), lf.object_distance, lf.cell, lf.footprint, area,
+                np.ascontiguousarray(grid.z, dtype=np.float64), grid.origin[0], grid.origin[1],
+                grid.voxel[0], grid.voxel[1], grid.shape[2], grid.shape[1], 1e-7)
+
+    def build(a):
+        counts = K.count_nnz(*a)
+        indptr = np.zeros(len(counts) + 1, np.int64)
+        np.cumsum(counts, out=indptr[1:])
+        idx = np.empty(indptr[-1], np.int32)
+        data = np.empty(indptr[-1], np.float32)
+        K.fill_rows(indptr, *a, idx, data)
+        return indptr, idx, data
+
+    build(args(1))                                   # compile (or load) the kernels
+    vol = np.ones(grid.n_voxels, np.float32)
+    samples = []
+    for n in (max(len(uu) // 4, 1), len(uu)):
+        a = args(n)
+        t_build = _best(lambda a=a: build(a), 0.1 * budget_s)
+        indptr, idx, data = build(a)
+        proj = SparseProjector(indptr, idx, data, n_voxels=grid.n_voxels, check=False)
+        img = np.ones(proj.n_pixels, np.float32)
+        proj.back(proj.forward(vol))                 # compile, allocate the scratch
+        t_sweep = _best(lambda p=proj, i=img: (p.back(i), p.forward(vol)), 0.1 * budget_s)
+        samples.append((max(int(indptr[-1]), 1), t_build, t_sweep))
+    (n1, b1, s1), (n2, b2, s2) = samples
+    build_rate, _ = _slope(n1, b1, n2, b2)
+    sweep_rate, sweep_call = _slope(n1, s1, n2, s2)
+
+    # the lattice projector on two patches, the grid's slices
+    lattice_rate, lattice_call = BENCHMARK_RATES.lattice_s_per_ray_slice, 0.0
+    if mla.grid == "square":
+        points = []
+        for k in sorted({min(7, mla.rows, mla.cols), min(19, mla.rows, mla.cols)}):
+            patch = camera.patch(k, k)
+            plf = light_field(Calibration.from_camera(patch), f_number=f_number,
+                              min_lit=min_lit, edge_centroid=False)
+            half = np.abs(plf.focal_plane_position).max(axis=0) + plf.footprint
+            sub = VolumeGrid.from_bounds((-half[0], half[0]), (-half[1], half[1]),
+                                         tuple(grid.bounds[2]), voxel=grid.voxel)
+            lp = LatticeProjector.from_light_field(plf, sub)
+            vs = np.ones(sub.n_voxels, np.float32)
+            ones = np.ones(lp.n_pixels, np.float32)
+            lp.back(lp.forward(vs))
+            t = _best(lambda lp=lp, o=ones, v=vs: (lp.back(o), lp.forward(v)), 0.15 * budget_s)
+            points.append((lp.n_pixels * sub.shape[0], t))
+        if len(points) == 2:
+            lattice_rate, lattice_call = _slope(*points[0], *points[1])
+        else:
+            lattice_rate = points[0][1] / points[0][0]
+
+    piv_rate, piv_call = _measure_piv(piv or PIVConfig(), grid, 0.2 * budget_s)
+    return Rates(build_s_per_nnz=build_rate, sweep_s_per_nnz=sweep_rate,
+                 sweep_s_per_call=sweep_call, lattice_s_per_ray_slice=lattice_rate,
+                 lattice_s_per_call=lattice_call, piv_s_per_window_voxel=piv_rate,
+                 piv_s_per_call=piv_call, source="measured", threads=numba.get_num_threads())
+
+
+def _window_voxels(shape, windows, overlap, passes) -> float:
+    """Window voxels correlated over all passes (the PIV's work)."""
+    total = 0.0
+    for k, n in enumerate(vectors_per_pass(shape, windows, overlap, passes)):
+        w = windows[min(k, len(windows) - 1)]
+        total += float(np.prod(n)) * float(np.prod(w))
+    return total
+
+
+def _measure_piv(cfg: PIVConfig, grid: VolumeGrid, budget_s: float) -> tuple[float, float]:
+    """``(seconds per window voxel, seconds per call)`` of this plan's PIV: correlations of
+    two random particle volumes of two and three first windows a side (the grid where
+    smaller), after a small run that compiles the kernels."""
+    from plenopiv.pipeline import piv_settings
+    from plenopiv.piv import correlate_volumes
+
+    rng = np.random.default_rng(1)
+    points = []
+    for scale in (0.0, 2.0, 3.0):            # the first, tiny run compiles the kernels
+        shape = tuple(int(min(n, max(8, scale * w))) for n, w in
+                      zip(grid.shape, cfg.windows[0], strict=True))
+        windows = [tuple(min(w, n) for w, n in zip(ws, shape, strict=True))
+                   for ws in cfg.windows]
+        run = piv_settings(cfg.model_copy(update={"windows": windows}))
+        a = np.zeros(shape, np.float32)
+        idx = tuple(rng.integers(0, n, max(8, int(np.prod(shape) / 300))) for n in shape)
+        a[idx] = 1.0
+        bb = np.roll(a, 1, axis=2)
+        g = VolumeGrid((0.0, 0.0, 0.0), tuple(float(v) for v in grid.voxel), shape)
+        t = _best(lambda a=a, bb=bb, g=g, run=run: correlate_volumes(a, bb, g, settings=run),
+                  budget_s / 2, min_reps=1, max_reps=3)
+        if scale:
+            points.append((_window_voxels(shape, windows, cfg.overlap, run.passes), t))
+    (x1, t1), (x2, t2) = points
+    if x2 <= x1:
+        return t2 / max(x2, 1.0), 0.0
+    return _slope(x1, t1, x2, t2)
+
+
+# ---- the plan --------------------------------------------------------------------------------
+
+
+def available_memory() -> float:
+    """Physical memory of this machine, bytes."""
+    try:
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 8e9
+
+
+def _snap_grid(grid: VolumeGrid, voxel) -> VolumeGrid:
+    b = grid.bounds
+    return VolumeGrid.from_bounds(b[0], b[1], b[2], voxel=np.asarray(voxel, float))
+
+
+def plan(camera: CameraModel, grid: VolumeGrid, *,
+         reconstruction: ReconstructionSettings | None = None, piv: PIVConfig | None = None,
+         rates: Rates | None = None, memory_total: float | None = None) -> Plan:
+    """Plan the reconstruction of ``grid`` (effective coordinates) with ``camera``.
+
+    ``camera`` must know its image distance (from the camera file, or a calibration's
+    ``effective_camera``). ``reconstruction`` and ``piv``: the experiment's tables (default:
+    the defaults). ``rates``: :func:`measure_rates` (this machine) or
+    :data:`BENCHMARK_RATES` (default).
+    """
+    from plenopiv.weights import memory_budget_gb
+
+    reconstruction = reconstruction or ReconstructionSettings()
+    piv = piv or PIVConfig()
+    try:
+        _ = camera.image_distance
+    except ConfigError:
+        raise ConfigError(f"camera {camera.name!r}: [main_lens] image_distance_mm is not set; "
+                          "plan needs it: give --image-distance-mm or --calibration CAL.h5"
+                          ) from None
+    rates = rates or BENCHMARK_RATES
+    total_mem = available_memory() if memory_total is None else float(memory_total)
+    cam = camera_resolution(camera, reconstruction.f_number)
+    windows = tuple(tuple(int(v) for v in w) for w in piv.windows)
+    passes = piv.passes or len(windows)
+    vectors = vectors_per_pass(grid.shape, windows, piv.overlap, passes)
+    rec_vox = recommended_voxel(cam)
+    rec_grid = _snap_grid(grid, rec_vox)
+    rec_win = recommended_windows(cam, rec_grid.voxel, rec_grid.shape)
+    rec_vectors = vectors_per_pass(rec_grid.shape, rec_win, piv.overlap, len(rec_win))[-1]
+
+    n_rays, nnz = estimate_size(camera, grid, f_number=reconstruction.f_number,
+                                min_lit=reconstruction.min_lit)
+    budget = (memory_budget_gb() if reconstruction.max_weights_gb is None
+              else reconstruction.max_weights_gb) * 1e9
+    projector = reconstruction.projector
+    square = (camera.microlens_array.grid == "square"
+              and camera.microlens_array.rotation == 0.0)
+    if projector == "auto":
+        if reconstruction.method != "smart" or BYTES_PER_NONZERO * nnz <= budget or not square:
+            projector = "sparse"
+        else:
+            projector = "lattice"
+    n_vox = grid.n_voxels
+    lf_bytes = BYTES_PER_RAY_LIGHT_FIELD * n_rays
+    vol_bytes = BYTES_PER_VOXEL_RECONSTRUCT * n_vox
+    if projector == "sparse":
+        w_bytes = BYTES_PER_NONZERO * nnz
+        build = BASE_BYTES + lf_bytes + 8.0 * nnz
+        recon = BASE_BYTES + w_bytes + vol_bytes + 8 * n_rays
+    else:
+        nz, ny, _ = grid.shape
+        buf = 4.0 * nz * ny * camera.sensor.cols                  # the per-call buffer
+        w_bytes = 0.0
+        build = BASE_BYTES + lf_bytes
+        recon = BASE_BYTES + 16 * n_rays + buf + vol_bytes
+    piv_bytes = BASE_BYTES + BYTES_PER_VOXEL_PIV * n_vox
+    cache_file = 8.0 * nnz + 16.0 * n_rays if projector == "sparse" else 0.0
+    memory = {"weights": w_bytes, "weights_build_peak": build, "reconstruct_peak": recon,
+              "piv_peak": piv_bytes, "peak": max(build, recon, piv_bytes),
+              "weights_cache_file": cache_file}
+
+    memory_cache = memory["weights_cache_file"]
+    sweeps = reconstruction.iterations + 3      # MLOS, masks and row scaling: ~3 sweeps
+    if projector == "sparse":
+        # light field, weights, and the cache file written at ~250 MB/s
+        t_weights = 2e-7 * n_rays + rates.build_s_per_nnz * nnz + memory_cache / 250e6
+        t_volume = (rates.sweep_s_per_nnz * nnz + rates.sweep_s_per_call) * sweeps
+    else:
+        t_weights = 2e-7 * n_rays                # light field and tables
+        t_volume = (rates.lattice_s_per_ray_slice * n_rays * grid.shape[0]
+                    + rates.lattice_s_per_call) * sweeps
+    t_volume += 5e-8 * n_vox                     # particle detection
+    t_piv = rates.piv_s_per_call + rates.piv_s_per_window_voxel * _window_voxels(
+        grid.shape, windows, piv.overlap, passes)
+    times = {"weights": t_weights, "volume": t_volume, "piv": t_piv,
+             "pair": t_weights + 2 * t_volume + t_piv,
+             "pair_cached_weights": 2 * t_volume + t_piv}
+    model = ("rates measured in this process" if rates.source == "measured"
+             else "benchmark rates of the project's 2-core machine (planning.BENCHMARK_RATES)")
+    model = f"{model}, {rates.threads} threads"
+
+    warnings, advice = _advise(cam, grid, windows, vectors, piv.overlap, rec_grid, rec_win,
+                               memory, total_mem, projector, camera)
+    return Plan(camera=cam, grid=grid, windows=windows, passes=passes, overlap=piv.overlap,
+                vectors=vectors, recommended_voxel=tuple(rec_grid.voxel),
+                recommended_windows=rec_win, recommended_grid=rec_grid,
+                recommended_vectors=rec_vectors, n_rays=n_rays, nnz=nnz,
+                projector=projector, memory=memory, time=times, time_model=model,
+                available_memory=total_mem, warnings=tuple(warnings), advice=tuple(advice))
+
+
+def _advise(cam: Camera, grid: VolumeGrid, windows, vectors, overlap, rec_grid, rec_win,
+            memory, total_mem, projector, camera) -> tuple[list[str], list[str]]:
+    """Warnings (the run would fail or mislead) and concrete advice (what to change)."""
+    warnings: list[str] = []
+    advice: list[str] = []
+    b = grid.bounds * 1e3
+    fp, cell = cam.footprint * 1e3, cam.depth_cell * 1e3
+    vx, vy, vz = (v * 1e3 for v in grid.voxel)
+
+    # windows against the box
+    for k in range(len(vectors)):
+        w = windows[min(k, len(windows) - 1)]
+        short = [(ax, wk, nk) for ax, wk, nk in zip("zyx", w, grid.shape, strict=True) if wk > nk]
+        if short:
+            parts = []
+            for ax, wk, nk in short:
+                i = "xyz".index(ax)
+                need = wk * grid.voxel[i] * 1e3
+                parts.append(f"{ax}: window {wk} voxels > {nk} voxels of the volume; make "
+                             f"{ax}_mm span at least {need:.3g} mm")
+            warnings.append(f"the PIV windows of pass {k + 1} do not fit the volume "
+                            f"{list(grid.shape)} (z, y, x): {'; '.join(parts)}, or use "
+                            "smaller [piv] windows; every pair would fail with \"windows "
+                            "larger than the volume\"")
+            break
+    if all(min(v) > 0 for v in vectors):
+        last = vectors[-1]
+        thin = [ax for ax, n in zip("zyx", last, strict=True) if n < 3]
+        if thin:
+            warnings.append(f"the last pass gives {last[0]} × {last[1]} × {last[2]} vectors "
+                            f"(z, y, x): fewer than 3 along {', '.join(thin)}, so the median "
+                            "test has few neighbours there; enlarge the box or shrink the "
+                            "windows along it")
+
+    # the box against the field of view
+    fx, fy = (v * 1e3 for v in cam.field_of_view)
+    out = []
+    if b[0, 0] < -fx * 1.001 or b[0, 1] > fx * 1.001:
+        out.append(f"x_mm = [{_mm(b[0, 0])}, {_mm(b[0, 1])}] reaches beyond "
+                   f"±{fx:.3g} mm")
+    if b[1, 0] < -fy * 1.001 or b[1, 1] > fy * 1.001:
+        out.append(f"y_mm = [{_mm(b[1, 0])}, {_mm(b[1, 1])}] reaches beyond "
+                   f"±{fy:.3g} mm")
+    if out:
+        warnings.append(f"the box leaves the field of view at the focal plane: {'; '.join(out)}"
+                        ": voxels outside are seen by few pixels and hold noise")
+
+    # voxels
+    if vx > 0.75 * fp or vy > 0.75 * fp:
+        advice.append(f"lateral voxel {vx:.3g} mm is {vx / fp:.2g} footprint ({fp:.3g} mm): "
+                      "displacements lock to whole footprints (bias -0.10 footprint at a "
+                      "1.25-footprint shift, docs/validation/vortex.md); use "
+                      f"{rec_grid.voxel[0] * 1e3:.3g} mm (half a footprint)")
+    elif vx < 0.3 * fp:
+        advice.append(f"lateral voxel {vx:.3g} mm is {vx / fp:.2g} footprint: finer than a "
+                      "third of a footprint costs voxels without resolving more; "
+                      f"{rec_grid.voxel[0] * 1e3:.3g} mm is enough")
+    elong = cell / vz
+    if elong > 6:
+        advice.append(f"depth voxel {vz:.3g} mm is 1/{elong:.2g} of the depth cell "
+                      f"({cell:.3g} mm): a particle spans about {elong:.0f} voxels in depth; "
+                      f"use {rec_grid.voxel[2] * 1e3:.3g} mm (a quarter of the cell), which "
+                      "is what the windows below are sized for")
+    elif elong < 2:
+        advice.append(f"depth voxel {vz:.3g} mm is {1 / elong:.2g} depth cells: particles are "
+                      f"under two voxels long in depth; use {rec_grid.voxel[2] * 1e3:.3g} mm")
+
+    # windows against the recommended ones (physical sizes: voxels may differ)
+    rv = np.array(rec_grid.voxel[::-1]) * 1e3                       # z, y, x in mm
+    own = np.array([vz, vy, vx])
+    for k, (w, r) in enumerate(zip((windows[0], windows[-1]), rec_win, strict=True)):
+        mine, theirs = np.array(w) * own, np.array(r) * rv
+        ratio = mine / theirs
+        if np.any(ratio < 0.6) or np.any(ratio > 1.7):
+            which = "first" if k == 0 else "last"
+            advice.append(f"the {which} window {list(w)} voxels is {_size(mine)} mm (z, y, x); "
+                          f"for this camera and box use about {_size(theirs)} mm, i.e. {list(r)} "
+                          "voxels of the recommended voxel")
+        if len(windows) == 1:
+            break
+    capped = [ax for ax, r, ful in zip("zyx", rec_win[-1],
+                                       recommended_windows(cam, rec_grid.voxel)[-1], strict=True)
+              if r < ful]
+    if capped:
+        advice.append(f"this box is small along {', '.join(capped)} for the validated windows "
+                      f"({WINDOW_FOOTPRINTS[-1]:g} footprints, {WINDOW_DEPTH_CELLS[-1]:g} depth "
+                      f"cells): the recommended windows are cut to give {MIN_VECTORS_LAST_PASS} "
+                      "vectors along every axis (finer, noisier vectors); a larger box keeps "
+                      "the validated size")
+    if advice:
+        advice.append("recommended [piv] windows for the recommended voxel: "
+                      + " then ".join(str(list(w)) for w in rec_win))
+
+    # depth of the box
+    nf = cam.near_focus * 1e3
+    if b[2, 0] >= -nf and b[2, 1] <= nf:
+        advice.append(f"the whole box lies in the near-focus zone |Z| < {nf:.3g} mm, where a "
+                      "particle lights one lenslet and depth motion is under-measured: extend "
+                      "z_mm beyond it")
+    if memory["peak"] > 0.8 * total_mem:
+        warnings.append(f"the reconstruction needs about {memory['peak'] / 1e9:.3g} GB, "
+                        f"{memory['peak'] / total_mem:.0%} of this machine's "
+                        f"{total_mem / 1e9:.3g} GB: use larger voxels or a smaller box"
+                        + ("" if projector == "lattice" else
+                           ", or [reconstruction] projector = \"lattice\""))
+    return warnings, advice
