@@ -71,13 +71,21 @@ __all__ = [
 ]
 
 GRIDS = ("square", "hexagonal")
-METHODS = ("centroid", "gaussian")
+METHODS = ("auto", "window", "centroid", "gaussian")
+RESOLVED_METHODS = ("window", "centroid", "gaussian")
 BACKGROUNDS = ("local", "none")
 
-# The iteration limits of the sub-pixel estimators; both converge in a few passes.
+# The iteration limits of the sub-pixel estimators; all converge in a few passes.
 _CENTROID_MAX_ITER = 20
 _CENTROID_TOL_PX = 1e-4
 _GAUSS_MAX_ITER = 50
+_WINDOW_MAX_ITER = 50
+_WINDOW_TOL_PX = 1e-7
+# The window method: window radius = the radius holding this fraction of a spot's light,
+# plus _WINDOW_MARGIN_PX; the background annulus is _ANNULUS_PX wide, outside the window.
+_ENERGY_FRACTION = 0.99
+_WINDOW_MARGIN_PX = 1.0
+_ANNULUS_PX = 2.0
 
 
 class SpotFlag(enum.IntFlag):
@@ -177,12 +185,24 @@ class SpotSet:
     window_radius_px : float
         Radius of the circular window of each centre, px.
     method : str
-        ``"centroid"`` or ``"gaussian"``.
+        The estimator that gave the centres: ``"window"``, ``"centroid"`` or ``"gaussian"``
+        (``"auto"`` is resolved to one of them).
     grid : str or None
         The grid type the caller gave (``"square"``, ``"hexagonal"``), or None.
     rejected_px : ndarray of float64, shape (K, 2)
         Centres of candidates rejected because their light sat in less than ``min_area_px``
         (hot pixels), ``(row, col)`` px.
+    spot_radius_px : float
+        Radius holding 99 % of a spot's light (background-subtracted, all clean spots
+        stacked), px; NaN when not measured. At most half the pitch.
+    spot_rms_radius_px : float
+        Root-mean-square radius of the stacked spot within half a pitch, px; a uniform disc
+        of diameter ``D`` has ``D / (2 sqrt(2))``. NaN when not measured.
+    moment_radius_px : float
+        Window radius of the ``"window"`` method, px (NaN for the other methods).
+    annulus_px : tuple of float
+        Inner and outer radius of the background annulus of the ``"window"`` method, px
+        (``(nan, nan)`` without one).
     """
 
     centres_px: np.ndarray
@@ -195,6 +215,10 @@ class SpotSet:
     method: str = "centroid"
     grid: str | None = None
     rejected_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    spot_radius_px: float = float("nan")
+    spot_rms_radius_px: float = float("nan")
+    moment_radius_px: float = float("nan")
+    annulus_px: tuple = (float("nan"), float("nan"))
 
     def __post_init__(self):
         c = _frozen(self.centres_px, np.float64).reshape(-1, 2)
@@ -215,7 +239,10 @@ class SpotSet:
             self, "rejected_px", _frozen(self.rejected_px, np.float64).reshape(-1, 2)
         )
         object.__setattr__(self, "image_shape", tuple(int(s) for s in self.image_shape))
-        _check_choice("SpotSet.method", self.method, METHODS)
+        _check_choice("SpotSet.method", self.method, RESOLVED_METHODS)
+        for name in ("spot_radius_px", "spot_rms_radius_px", "moment_radius_px"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        object.__setattr__(self, "annulus_px", tuple(float(v) for v in self.annulus_px))
         if self.grid is not None:
             _check_choice("SpotSet.grid", self.grid, GRIDS)
         if not (self.pitch_px > 0 and self.window_radius_px > 0):
@@ -588,8 +615,9 @@ def detect_spots(
     grid=None,
     threshold=0.1,
     detection_threshold=0.15,
-    method="centroid",
+    method="auto",
     window_radius_px=None,
+    moment_radius_px=None,
     background="local",
     min_area_px=1.5,
     dim_fraction=0.5,
@@ -613,12 +641,22 @@ def detect_spots(
     detection_threshold : float, 0 < detection_threshold < 1
         A local maximum of the smoothed image is a candidate spot when its height is at least
         this fraction of the typical spot height (the 95th percentile of all local maxima).
-    method : {"centroid", "gaussian"}
-        Sub-pixel estimator. ``"centroid"`` (default): the iterative thresholded centroid.
+    method : {"auto", "window", "centroid", "gaussian"}
+        Sub-pixel estimator. ``"window"``: the first moment in a soft-edged circular window
+        sized from the measured spot (the radius holding 99 % of its light plus 1 px) above
+        a plane fitted to an annulus around it, with no threshold (unbiased at any sub-pixel
+        phase; see Notes). ``"centroid"``: the iterative thresholded centroid.
         ``"gaussian"``: a least-squares circular 2-D Gaussian plus offset, started from the
-        centroid.
+        centroid. ``"auto"`` (default): ``"window"`` when the spots are small enough for the
+        window and its annulus to fit between neighbours (``2 r99 + 4 <= pitch`` and
+        ``r99 <= 0.35 pitch``, r99 the radius holding 99 % of a spot's light: focal-point and
+        alignment images), else ``"centroid"`` (white images, micro-images that fill the
+        pitch).
     window_radius_px : float, optional
-        Radius of the circular window around each spot, px; default half the pitch.
+        Radius of the circular window of the first, thresholded centroid, which also decides
+        whether a spot is cut by the image edge (``EDGE``), px; default half the pitch.
+    moment_radius_px : float, optional
+        ``"window"`` method only: radius of its window, px; default measured (above).
     background : {"local", "none"}
         ``"local"``: subtract a smooth background (box minimum over 1.25 pitch, then box
         mean, then the expected noise bias of that minimum); candidate heights are measured
@@ -649,11 +687,30 @@ def detect_spots(
     -----
     Steps: validate; estimate the pitch if needed; subtract the background; smooth with a
     Gaussian of standard deviation ``pitch / 6`` and take local maxima at least half a pitch
-    apart as candidates; refine each candidate with the iterative thresholded centroid (the
+    apart as candidates, each at least ``detection_threshold`` of the spots around it (so the
+    dim lenslets of a vignetted corner are found) and clearly above the noise; refine each
+    candidate with the iterative thresholded centroid (the
     window is re-centred on the estimate until it moves by less than 1e-4 px, so a
     point-symmetric spot carries no window bias); reject candidates smaller than
-    ``min_area_px`` (hot pixels) and merge candidates closer than a quarter pitch; optionally
-    fit a Gaussian; flag partial (``EDGE``), dim and saturated spots.
+    ``min_area_px`` (hot pixels) and merge candidates closer than a quarter pitch; measure
+    the spot size from all clean spots stacked; refine with the window centroid or the
+    Gaussian fit; flag partial (``EDGE``), dim and saturated spots.
+
+    Why the window centroid for small spots. Subtracting a threshold from every pixel and
+    dropping the pixels below it makes the centroid of a pixel-sampled spot depend on where
+    the spot sits on the pixel grid: for 1-5 px spots this bias reaches 0.01-0.02 px, and as
+    a focal-point image's spots step through every sub-pixel phase across the array (a
+    non-integer pitch) it becomes a spurious spot-lattice scale, which the focal-point
+    method reads as an S_i error of up to a millimetre at 405 mm (docs/validation/
+    calibration_study.md). The first moment of all the spot's light has no such bias when
+    the pixel response reproduces linear functions (a bilinear splat, or any optics blur of
+    about half a pixel or more on a pixel-integrating sensor): measured on 1-4 px discs with
+    0-1 px Gaussian blur at ten sub-pixel phases, it stays within 0.0003 px where the
+    thresholded centroid is off by 0.008-0.025 px and a Gaussian fit by 0.002-0.04 px
+    (``benchmarks/bench_spots.py`` prints the table). Its window is soft-edged (a pixel
+    counts by about the fraction of it inside the circle), so the window's own moment follows
+    the estimate smoothly, and a plane fitted to the annulus just outside it removes any
+    background level and slope, which would otherwise pull the estimate.
 
     Measured on the PlenoptiCam reference images with exact centres (``b``, ``c``, ``d``:
     720 x 720 px, pitches 66.7, 13.1 and 7.7 px, about 10 % multiplicative pixel noise), rms
@@ -667,6 +724,7 @@ def detect_spots(
     gaussian  0.047, 0.048 px   0.068, 0.064 px   0.074, 0.074 px   0.265 px
     ========  ================  ================  ================  ======================
 
+    (These micro-images fill their pitch: ``"auto"`` takes the centroid on all four.)
     Both keep the mean bias below 0.01 px. The centroid is as good or better on all of these,
     makes no assumption about the spot profile (a white-image disc is not a Gaussian, hence
     the Gaussian's large residual there) and is about twice as fast, so it is the default.
@@ -778,6 +836,23 @@ def detect_spots(
         centres, intensity, area = centres[~drop], intensity[~drop], area[~drop]
 
     flags = np.zeros(centres.shape[0], dtype=np.uint8)
+    n_rows, n_cols = work.shape
+    interior = ~_edge_mask(centres, radius, (n_rows, n_cols))
+    spot_r, spot_rms = _spot_size(work, centres[interior], pitch)
+    if method == "auto":
+        method = "window" if _window_fits(spot_r, pitch) else "centroid"
+    moment_r, annulus = float("nan"), (float("nan"), float("nan"))
+    if method == "window" and centres.shape[0]:
+        moment_r, annulus = _window_geometry(spot_r, pitch, moment_radius_px)
+        a_in, a_out = (0.0, 0.0) if not np.isfinite(annulus[0]) else annulus
+        refined, _flux, _bg = _k.window_centroid_numba(
+            work, np.ascontiguousarray(centres), moment_r, a_in, a_out, _WINDOW_MAX_ITER,
+            _WINDOW_TOL_PX
+        )
+        good = np.all(np.isfinite(refined), axis=1)
+        good[good] = np.hypot(*(refined[good] - centres[good]).T) < 0.25 * pitch
+        centres[good] = refined[good]
+        flags[~good] |= np.uint8(SpotFlag.FIT_FAILED)
     if method == "gaussian" and centres.shape[0]:
         sigma0 = np.clip(np.sqrt(area / 4.0), 0.5, radius / 2.0)
         params = _k.gaussian_fit_numba(
@@ -789,7 +864,6 @@ def detect_spots(
 
     order = np.lexsort((centres[:, 1], centres[:, 0]))
     centres, intensity, area, flags = centres[order], intensity[order], area[order], flags[order]
-    n_rows, n_cols = work.shape
     flags[_edge_mask(centres, radius, (n_rows, n_cols))] |= np.uint8(SpotFlag.EDGE)
     if sat_level is not None and centres.shape[0]:
         sat_px = np.argwhere(raw == sat_level)
@@ -808,7 +882,81 @@ def detect_spots(
         method=method,
         grid=grid,
         rejected_px=rejected,
+        spot_radius_px=spot_r,
+        spot_rms_radius_px=spot_rms,
+        moment_radius_px=moment_r,
+        annulus_px=annulus,
     )
+
+
+def _spot_size(work, centres, pitch):
+    """Radius holding 99 % of a spot's light and its rms radius, px, from the stacked spots.
+
+    The light of every given spot within half a pitch is summed in rings of 0.1 px about its
+    centre. The darkest ring beyond 0.3 pitch is taken as the remaining background per pixel
+    and removed; the radii follow from the cumulative sum. NaN when there are no spots or no
+    light.
+    """
+    if centres.shape[0] == 0:
+        return float("nan"), float("nan")
+    r_max = 0.5 * pitch
+    bin_px = 0.1
+    energy, count = _k.radial_energy_numba(
+        work, np.ascontiguousarray(centres, dtype=np.float64), r_max, bin_px
+    )
+    r = (np.arange(energy.size) + 0.5) * bin_px
+    have = count > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_px = np.where(have, energy / np.where(have, count, 1.0), np.nan)
+    outer = have & (r >= 0.3 * pitch)
+    pedestal = float(np.nanmin(per_px[outer])) if np.any(outer) else 0.0
+    e = np.where(have, energy - pedestal * count, 0.0)
+    total = e.sum()
+    if not total > 0:
+        return float("nan"), float("nan")
+    cum = np.cumsum(e)
+    k = int(np.argmax(cum >= _ENERGY_FRACTION * total))
+    r99 = min((k + 1) * bin_px, r_max)
+    rms = math.sqrt(max(float(np.sum(e * r * r) / total), 0.0))
+    return float(r99), float(rms)
+
+
+def _window_fits(spot_r, pitch):
+    """Whether spots of 99 % radius ``spot_r`` leave room for the window method (``"auto"``).
+
+    The window (``spot_r + 1``) and its 2 px annulus must fit between neighbours
+    (``2 spot_r + 4 <= pitch``), and the spot must be clearly smaller than its cell
+    (``spot_r <= 0.35 pitch``); micro-images that fill the cell (white images, whose 99 %
+    radius is near half the pitch) keep the thresholded centroid.
+    """
+    return bool(np.isfinite(spot_r) and 2.0 * spot_r + 4.0 <= pitch and spot_r <= 0.35 * pitch)
+
+
+def _window_geometry(spot_r, pitch, moment_radius_px):
+    """Window radius and background annulus ``(inner, outer)`` of the window method, px.
+
+    The window holds the spot's 99 % radius plus a margin; the annulus lies just outside it,
+    ``_ANNULUS_PX`` wide, and must stay clear of the neighbours' light (their 99 % radius
+    one pitch away); ``(nan, nan)`` when less than a pixel of it fits (then the image's
+    local background stands alone).
+    """
+    if not np.isfinite(spot_r):
+        spot_r = 0.25 * pitch
+    if moment_radius_px is None:
+        rad = spot_r + _WINDOW_MARGIN_PX
+    else:
+        rad = float(moment_radius_px)
+        if not (np.isfinite(rad) and 1.0 <= rad <= pitch):
+            raise ValueError(
+                f"moment_radius_px must satisfy 1 <= moment_radius_px <= pitch ({pitch:.2f} px); "
+                f"got {moment_radius_px!r}"
+            )
+    rad = float(min(max(rad, 1.5), 0.5 * pitch)) if moment_radius_px is None else rad
+    inner = rad + 0.5
+    outer = min(inner + _ANNULUS_PX, pitch - spot_r - 0.5)
+    if outer - inner < 1.0:
+        return rad, (float("nan"), float("nan"))
+    return rad, (float(inner), float(outer))
 
 
 def _edge_mask(centres, radius, shape):
