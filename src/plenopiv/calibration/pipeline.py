@@ -39,6 +39,8 @@ from plenopiv.errors import CalibrationError
 from plenopiv.io import check_image
 
 METHODS = ("focal-point", "magnification", "both")
+# harmonics of the sub-pixel phase bias fitted with each lattice (fit_lattice)
+PHASE_HARMONICS = 2
 
 
 @dataclass(frozen=True)
@@ -150,7 +152,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
 
     # 1. focal spots
     spots = detect_spots(fp, grid=mla.grid, threshold=spot_threshold)
-    lat = fit_lattice(spots, grid=mla.grid, image_shape=shape)
+    lat = fit_lattice(spots, grid=mla.grid, image_shape=shape, phase_harmonics=PHASE_HARMONICS)
     good = lat.inlier & ((lat.flags & (SpotFlag.EDGE | SpotFlag.SATURATED | SpotFlag.OUTLIER))
                          == 0)
     centre_rc = (np.array(shape) - 1) / 2.0
@@ -162,9 +164,10 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
         # collimated light focuses to (almost) one pixel: accept one-pixel spots here; a hot
         # pixel is then rejected by the lattice fit as off-lattice instead
         a_spots = detect_spots(al, grid=mla.grid, threshold=spot_threshold, min_area_px=0.9)
-        align_lat = fit_lattice(a_spots, grid=mla.grid, image_shape=shape)
+        align_lat = fit_lattice(a_spots, grid=mla.grid, image_shape=shape,
+                                phase_harmonics=PHASE_HARMONICS)
         a_ok = align_lat.inlier & ((align_lat.flags & SpotFlag.EDGE) == 0)
-        lenslet_px = align_lat.centres_px[a_ok]
+        lenslet_px = align_lat.corrected_centres_px[a_ok]
         lenslet_idx = align_lat.grid_index[a_ok]
         source = "alignment image"
         lenslet_pitch_px = float(np.mean(align_lat.pitch_px))
@@ -184,7 +187,8 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     margin = spots.window_radius_px + 1
     expected = np.all((predicted >= margin) & (predicted <= np.array(shape) - 1 - margin), axis=1)
     lenslet_px, lenslet_idx = lenslet_px[expected], lenslet_idx[expected]
-    pair = _pair(lat.centres_px, lenslet_px, scale0, centre_rc, 0.35 * lenslet_pitch_px)
+    focal_px = lat.corrected_centres_px
+    pair = _pair(focal_px, lenslet_px, scale0, centre_rc, 0.35 * lenslet_pitch_px)
     use = good & (pair >= 0)
     if use.sum() < 16:
         raise CalibrationError(f"only {int(use.sum())} focal spots could be paired with a "
@@ -202,7 +206,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
             "the focal-point image, the aperture and spot_threshold")
 
     d_m = pixel_to_sensor(lenslet_px[spot_of >= 0], shape, pp)
-    p_m = pixel_to_sensor(lat.centres_px[spot_of[spot_of >= 0]], shape, pp)
+    p_m = pixel_to_sensor(focal_px[spot_of[spot_of >= 0]], shape, pp)
 
     # 3. focal-point fit
     spot_model = SpotModel.from_camera(camera)
@@ -216,7 +220,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     # every lenslet gets a focal spot: measured, or (missing) predicted by the fitted model
     spots_px = np.empty_like(lenslet_px)
     found = spot_of >= 0
-    spots_px[found] = lat.centres_px[spot_of[found]]
+    spots_px[found] = focal_px[spot_of[found]]
     if len(missing):
         d_missing = apply_misplacement(pixel_to_sensor(lenslet_px[missing], shape, pp),
                                        fit.offset, fit.rotation)
@@ -247,7 +251,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
                                                         if meth != "magnification"
                                                         else mag.sigma_image_distance)})
     return CalibrationReport(cal, lat, align_lat, fit, mag, int(len(missing)), missing_index,
-                             source, lat.centres_px[spot_of[found]], notes)
+                             source, focal_px[spot_of[found]], notes)
 
 
 def _magnification(camera, ruler_image, lat: Lattice, spacing, axis) -> MagnificationResult:

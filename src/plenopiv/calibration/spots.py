@@ -81,9 +81,13 @@ _CENTROID_TOL_PX = 1e-4
 _GAUSS_MAX_ITER = 50
 _WINDOW_MAX_ITER = 50
 _WINDOW_TOL_PX = 1e-7
-# The window method: window radius = the radius holding this fraction of a spot's light,
-# plus _WINDOW_MARGIN_PX; the background annulus is _ANNULUS_PX wide, outside the window.
+# The window method: window radius = _WINDOW_SCALE times the radius holding 99 % of a spot's
+# light plus 0.5 px (5.8 standard deviations of a Gaussian spot: its truncated tail moves the
+# first moment by < 1e-5 px at any phase), less where the annulus would reach the
+# neighbours, never less than that radius plus _WINDOW_MARGIN_PX; the background annulus is
+# _ANNULUS_PX wide, just outside the window.
 _ENERGY_FRACTION = 0.99
+_WINDOW_SCALE = 1.75
 _WINDOW_MARGIN_PX = 1.0
 _ANNULUS_PX = 2.0
 
@@ -302,6 +306,11 @@ class Lattice:
         fitted on a hexagonal one (``basis[1] / 2`` for a regular hexagonal array).
     image_shape : tuple of int or None
         ``(n_rows, n_cols)`` of the image, when known.
+    phase_bias_px : ndarray, shape (N, 2)
+        The fitted periodic bias of each measured centre against its sub-pixel phase
+        (``fit_lattice(phase_harmonics=...)``), ``(row, col)`` px; zero when not fitted.
+        ``residual_px`` is measured minus fitted minus this bias;
+        :attr:`corrected_centres_px` removes it from the measured centres.
     """
 
     grid: str
@@ -318,6 +327,7 @@ class Lattice:
     origin_std_px: np.ndarray
     odd_row_shift_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
     image_shape: tuple | None = None
+    phase_bias_px: np.ndarray | None = None
 
     def __post_init__(self):
         _check_choice("Lattice.grid", self.grid, GRIDS)
@@ -345,6 +355,11 @@ class Lattice:
             if a.shape[0] != n:
                 raise ValueError(f"Lattice.{name} has {a.shape[0]} entries; expected {n}")
             object.__setattr__(self, name, a)
+        bias = np.zeros((n, 2)) if self.phase_bias_px is None else self.phase_bias_px
+        bias = _frozen(bias, np.float64).reshape(-1, 2)
+        if bias.shape[0] != n:
+            raise ValueError(f"Lattice.phase_bias_px has {bias.shape[0]} rows; expected {n}")
+        object.__setattr__(self, "phase_bias_px", bias)
         object.__setattr__(
             self, "missing_index", _frozen(self.missing_index, np.int64).reshape(-1, 2)
         )
@@ -353,6 +368,11 @@ class Lattice:
             object.__setattr__(self, "image_shape", tuple(int(s) for s in self.image_shape))
 
     # derived values -----------------------------------------------------------------------
+    @property
+    def corrected_centres_px(self):
+        """Measured centres less their fitted phase bias, ``(row, col)`` px, shape (N, 2)."""
+        return self.centres_px - self.phase_bias_px
+
     @property
     def pitch_px(self):
         """Spacing between adjacent lattice rows and adjacent columns, ``(rows, cols)`` px.
@@ -643,7 +663,7 @@ def detect_spots(
         this fraction of the typical spot height (the 95th percentile of all local maxima).
     method : {"auto", "window", "centroid", "gaussian"}
         Sub-pixel estimator. ``"window"``: the first moment in a soft-edged circular window
-        sized from the measured spot (the radius holding 99 % of its light plus 1 px) above
+        sized from the measured spot (1.75 times the radius holding 99 % of its light) above
         a plane fitted to an annulus around it, with no threshold (unbiased at any sub-pixel
         phase; see Notes). ``"centroid"``: the iterative thresholded centroid.
         ``"gaussian"``: a least-squares circular 2-D Gaussian plus offset, started from the
@@ -935,7 +955,8 @@ def _window_fits(spot_r, pitch):
 def _window_geometry(spot_r, pitch, moment_radius_px):
     """Window radius and background annulus ``(inner, outer)`` of the window method, px.
 
-    The window holds the spot's 99 % radius plus a margin; the annulus lies just outside it,
+    The window reaches 1.75 times the spot's 99 % radius (+ 0.5 px), where room allows, and at
+    least that radius plus 1 px; the annulus lies just outside it,
     ``_ANNULUS_PX`` wide, and must stay clear of the neighbours' light (their 99 % radius
     one pitch away); ``(nan, nan)`` when less than a pixel of it fits (then the image's
     local background stands alone).
@@ -943,7 +964,8 @@ def _window_geometry(spot_r, pitch, moment_radius_px):
     if not np.isfinite(spot_r):
         spot_r = 0.25 * pitch
     if moment_radius_px is None:
-        rad = spot_r + _WINDOW_MARGIN_PX
+        rad = max(min(_WINDOW_SCALE * spot_r + 0.5, pitch - spot_r - 0.5 - _ANNULUS_PX - 0.5),
+                  spot_r + _WINDOW_MARGIN_PX)
     else:
         rad = float(moment_radius_px)
         if not (np.isfinite(rad) and 1.0 <= rad <= pitch):
@@ -989,6 +1011,9 @@ def _dim_mask(centres, intensity, flags, dim_fraction, k=8):
 # Lattice fitting
 # ----------------------------------------------------------------------------------------------
 
+# The phase-bias terms of a lattice fit are kept when their chi-square against their own
+# standard errors exceeds this (a "10 sigma" amplitude)
+_PHASE_CHI2 = 100.0
 _NEIGHBOUR_FACTOR = 1.25  # neighbours: closer than this times the median nearest distance
 _INDEX_TOL = 0.25  # largest fractional-index error of a lattice spot
 
@@ -1092,6 +1117,8 @@ def fit_lattice(
     max_missing_fraction=None,
     outlier_threshold_px=None,
     min_size=4,
+    phase_harmonics=0,
+    max_shape_error=0.05,
 ):
     """Index the spots on a regular lattice and fit it by linear least squares.
 
@@ -1123,6 +1150,24 @@ def fit_lattice(
         (median-absolute-deviation) residual scale per axis, at least 2 % of the pitch.
     min_size : int
         Smallest accepted lattice, ``min_size x min_size`` lenslets.
+    phase_harmonics : int
+        Fit, together with the lattice, a periodic bias of each measured coordinate against
+        its own sub-pixel phase: ``sum_n a_n sin(2 pi n x) + b_n cos(2 pi n x)``, ``n = 1 ..
+        phase_harmonics``, per axis (0, the default: none). This is the pixel-locking of any
+        centre estimator on spots too sharp for the pixel grid (a pixel-integrating sensor
+        with little optical blur); since the pitch is not a whole number of pixels the spots
+        sample every phase, so the bias is measured and removed from the lattice
+        (``phase_bias_px``). An axis whose spots bunch at a few phases (resultant length of
+        any harmonic above 0.8) gets no correction (its bias is then a constant offset), nor
+        one whose fitted terms do not stand out of their own noise by 10 standard errors
+        (chi-square 100: irregularly placed lenslets, noise), which they would only add to.
+    max_shape_error : float or None
+        The fitted lattice must have the shape of its grid type: a square grid's row step
+        perpendicular to its column step and as long, a hexagonal grid's row step
+        perpendicular, ``sqrt(3) / 2`` of the pitch long, and its odd rows shifted by half a
+        pitch. A departure larger than this fraction (default 5 %; an angle counts in
+        radians) raises :class:`CalibrationError`: a grid type forced on the other kind of
+        array. None skips the check.
 
     Returns
     -------
@@ -1224,7 +1269,7 @@ def fit_lattice(
     frac = np.max(np.abs(q - mn), axis=1)
     flags[(frac >= _INDEX_TOL) & ((flags & SpotFlag.EDGE) == 0)] |= np.uint8(SpotFlag.OFF_LATTICE)
     index = _grid_index(mn, grid, flags)
-    coef, res, _ = _offset_fit(index, pts, grid, (flags & _NOT_FITTED) == 0)
+    coef, res, _, _ = _offset_fit(index, pts, grid, (flags & _NOT_FITTED) == 0)
     if image_shape is not None:
         # a lenslet is also partial when the window around its fitted position leaves the
         # image: a cut spot's measured centre is pulled inwards and can look complete
@@ -1234,8 +1279,11 @@ def fit_lattice(
     index = _normalise_index(index, grid, flags)
 
     # least squares with outlier rejection; duplicates resolved by residual
+    phase_harmonics = int(phase_harmonics)
+    if phase_harmonics < 0:
+        raise ValueError(f"phase_harmonics must be an integer >= 0; got {phase_harmonics!r}")
     fitted = (flags & _NOT_FITTED) == 0
-    coef, res, cov_scale = _offset_fit(index, pts, grid, fitted)
+    coef, res, cov_scale, bias = _offset_fit(index, pts, grid, fitted, phase_harmonics)
     for _ in range(2):
         fitted, flags = _reject(index, res, flags, fitted, d0, outlier_threshold_px)
         if np.count_nonzero(fitted) < need:
@@ -1243,8 +1291,10 @@ def fit_lattice(
                 f"only {np.count_nonzero(fitted)} of {n} spots fit a regular lattice; expected "
                 f"at least {need} ({min_size} x {min_size})"
             )
-        coef, res, cov_scale = _offset_fit(index, pts, grid, fitted)
+        coef, res, cov_scale, bias = _offset_fit(index, pts, grid, fitted, phase_harmonics)
     origin, basis, shift = coef[0], np.stack([coef[1], coef[2]]), _shift(coef, grid)
+    if max_shape_error is not None:
+        _check_shape(grid, basis, shift, float(max_shape_error))
     is_edge = (flags & SpotFlag.EDGE) != 0
 
     extent = index[fitted].max(axis=0) - index[fitted].min(axis=0) + 1
@@ -1273,9 +1323,12 @@ def fit_lattice(
             f"{100 * max_missing_fraction:g} %; missing grid indices {shown}"
         )
 
-    dof = max(int(np.count_nonzero(fitted)) - coef.shape[0], 1)
+    n_par = coef.shape[0] + np.array([2 * phase_harmonics * bool(np.any(bias[:, a]))
+                                      for a in (0, 1)])
+    dof = np.maximum(int(np.count_nonzero(fitted)) - n_par, 1)
     s2 = np.sum(res[fitted] ** 2, axis=0) / dof  # per axis (row, col), px^2
-    std = np.sqrt(np.outer(np.diag(cov_scale), s2))  # rows: origin, e_row, e_col[, shift]
+    # rows: origin, e_row, e_col[, shift]; columns: axis (row, col)
+    std = np.sqrt(np.column_stack([np.diag(cov_scale[a]) * s2[a] for a in (0, 1)]))
     rms = float(np.sqrt(np.mean(np.sum(res[fitted] ** 2, axis=1))))
     return Lattice(
         grid=grid,
@@ -1292,7 +1345,37 @@ def fit_lattice(
         origin_std_px=std[0],
         odd_row_shift_px=shift,
         image_shape=image_shape,
+        phase_bias_px=bias,
     )
+
+
+def _check_shape(grid, basis, shift, tol):
+    """Raise CalibrationError when the fitted lattice does not have its grid type's shape."""
+    e_row, e_col = basis
+    p_col = float(np.hypot(*e_col))
+    p_row = float(np.hypot(*e_row))
+    shear = abs(math.asin(np.clip((e_row @ e_col) / (p_row * p_col), -1.0, 1.0)))
+    other = "hexagonal" if grid == "square" else "square"
+    ratio_expected = 1.0 if grid == "square" else math.sqrt(3.0) / 2.0
+    checks = [
+        ("the angle between its row and column steps departs from 90 degrees by "
+         f"{math.degrees(shear):.1f} degrees", shear, f"{math.degrees(tol):.1f} degrees"),
+        (f"its row spacing is {p_row / p_col:.3f} of its pitch, expected {ratio_expected:.3f}",
+         abs(p_row / (ratio_expected * p_col) - 1.0), f"{100 * tol:g} %"),
+    ]
+    if grid == "hexagonal":
+        dev = float(np.hypot(*(shift - 0.5 * e_col))) / p_col
+        checks.append(
+            (f"its odd rows are shifted by ({shift[0]:.2f}, {shift[1]:.2f}) px, expected half "
+             f"a pitch along its rows ({0.5 * e_col[0]:.2f}, {0.5 * e_col[1]:.2f}) px", dev,
+             f"{100 * tol:g} % of the pitch")
+        )
+    for text, value, limit in checks:
+        if value > tol:
+            raise CalibrationError(
+                f"the spots do not form a {grid} lattice: {text} (at most {limit}, "
+                f"max_shape_error = {tol:g}); is the grid type wrong (a {other} array)?"
+            )
 
 
 def _grid_index(mn, grid, flags):
@@ -1379,17 +1462,56 @@ def _design(index, grid):
     return np.column_stack(cols)
 
 
-def _offset_fit(index, pts, grid, fitted):
-    """Fit ``pts = origin + i e_row + j e_col (+ (i mod 2) shift)`` to the fitted spots.
+def _phase_design(x, harmonics):
+    """Columns ``sin(2 pi n x), cos(2 pi n x)``, ``n = 1 .. harmonics``, of coordinates x."""
+    cols = []
+    for k in range(1, harmonics + 1):
+        cols += [np.sin(2.0 * math.pi * k * x), np.cos(2.0 * math.pi * k * x)]
+    return np.column_stack(cols) if cols else np.zeros((x.shape[0], 0))
+
+
+def _phases_spread(x, harmonics):
+    """Whether coordinates ``x`` sample every sub-pixel phase (no harmonic bunches them)."""
+    return all(
+        abs(np.mean(np.exp(2j * math.pi * k * x))) <= 0.8 for k in range(1, harmonics + 1)
+    )
+
+
+def _offset_fit(index, pts, grid, fitted, harmonics=0):
+    """Fit ``pts = origin + i e_row + j e_col (+ (i mod 2) shift) (+ phase bias)``.
 
     Returns the coefficient rows (origin, e_row, e_col[, odd-row shift]), the residuals of every
-    spot and ``(X^T X)^-1`` for the standard errors.
+    spot (less its phase bias), ``(X^T X)^-1`` of each axis for the standard errors (the
+    lattice block, shape (2, k, k)) and the fitted phase bias of every spot (N, 2; zero
+    without harmonics, or on an axis whose phases bunch).
     """
     x = _design(index, grid)
-    coef, *_ = np.linalg.lstsq(x[fitted], pts[fitted], rcond=None)
-    res = pts - x @ coef
-    cov_scale = np.linalg.inv(x[fitted].T @ x[fitted])
-    return coef, res, cov_scale
+    k = x.shape[1]
+    coef = np.zeros((k, 2))
+    cov_scale = np.zeros((2, k, k))
+    bias = np.zeros(pts.shape)
+    n_fit = int(np.count_nonzero(fitted))
+    for a in (0, 1):
+        xa = x
+        if harmonics and n_fit >= 10 * (k + 2 * harmonics) \
+                and _phases_spread(pts[fitted, a], harmonics):
+            xa = np.column_stack([x, _phase_design(pts[:, a], harmonics)])
+            ca, *_ = np.linalg.lstsq(xa[fitted], pts[fitted, a], rcond=None)
+            inv = np.linalg.inv(xa[fitted].T @ xa[fitted])
+            r = pts[fitted, a] - xa[fitted] @ ca
+            s2 = float(r @ r) / max(n_fit - xa.shape[1], 1)
+            c = ca[k:]
+            # keep the phase terms only when they stand far out of their own noise (a lattice
+            # whose lenslets are irregularly placed would otherwise pass its scatter on)
+            chi2 = float(c @ np.linalg.solve(inv[k:, k:], c)) / s2 if s2 > 0 else np.inf
+            if not chi2 > _PHASE_CHI2:
+                xa = x
+        ca, *_ = np.linalg.lstsq(xa[fitted], pts[fitted, a], rcond=None)
+        coef[:, a] = ca[:k]
+        bias[:, a] = xa[:, k:] @ ca[k:]
+        cov_scale[a] = np.linalg.inv(xa[fitted].T @ xa[fitted])[:k, :k]
+    res = pts - x @ coef - bias
+    return coef, res, cov_scale, bias
 
 
 def _reject(index, res, flags, fitted, d0, outlier_threshold_px):
