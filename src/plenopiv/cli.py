@@ -76,18 +76,20 @@ def cmd_simulate(args) -> dict:
         bar, tick = _progress_bar(cam.microlens_array.count if kind != "ruler" else 32,
                                   f"render {kind}", args.quiet or args.json)
         with bar:
+            render = _render_options(args)
+            summary.update(render)
             if kind == "focal-point":
                 f_number = args.f_number or cam.main_lens.f_number
-                irr = S.focal_point_image(cam, f_number=f_number, progress=tick)
+                irr = S.focal_point_image(cam, f_number=f_number, progress=tick, **render)
                 summary["f_number"] = f_number
             elif kind == "alignment":
-                irr = S.alignment_image(cam, progress=tick)
+                irr = S.alignment_image(cam, progress=tick, **render)
             else:
                 ruler = S.Ruler(spacing=args.spacing_mm * 1e-3,
                                 tick_width=args.tick_width_mm * 1e-3, depth=args.depth_mm * 1e-3)
                 bar.total = None
                 irr = S.ruler_image(cam, ruler, f_number=args.f_number, seed=args.seed,
-                                    rays_per_lenslet=args.rays_per_lenslet)
+                                    rays_per_lenslet=args.rays_per_lenslet, **render)
                 summary.update(spacing_mm=args.spacing_mm, depth_mm=args.depth_mm)
         img = _finish(irr, args, rng)
         meta = {"plenopiv": __version__, "kind": kind, "camera": cam.to_dict(), **summary}
@@ -98,6 +100,12 @@ def cmd_simulate(args) -> dict:
     summary.update(out=str(out), **_image_summary(img),
                    seconds=round(time.perf_counter() - t0, 3))
     return summary
+
+
+def _render_options(args) -> dict:
+    """The rendering choices of ``simulate`` (splat, PSF, sensor shift) as keyword arguments."""
+    return {"splat": args.splat, "psf_px": args.psf_px,
+            "sensor_shift_px": tuple(args.sensor_shift_px)}
 
 
 def _seeding(cam: CameraModel, args, rng):
@@ -153,7 +161,8 @@ def _simulate_particles(cam: CameraModel, args, rng) -> dict:
         bar, tick = _progress_bar(n, "render particles", quiet)
         with bar:
             irr = particle_image(cam, pos, rays_per_particle=args.rays_per_particle,
-                                 f_number=args.f_number, seed=args.seed, progress=tick)
+                                 f_number=args.f_number, seed=args.seed, progress=tick,
+                                 **_render_options(args))
         img = _finish(irr, args, rng)
         if out.suffix.lower() == ".h5":
             write_h5(out, {"/image": img, "/truth/position_m": pos},
@@ -211,7 +220,9 @@ def cmd_calibrate(args) -> dict:
                                       else args.ruler_spacing_mm * 1e-3),
                        ruler_axis=args.ruler_axis, method=args.method,
                        fit_misplacement=not args.no_misplacement,
-                       max_missing_fraction=args.max_missing_fraction)
+                       max_missing_fraction=args.max_missing_fraction,
+                       max_rms_residual_pitch=args.max_rms_residual_pitch,
+                       spot_method=args.spot_method)
     inputs = {"focal_point": args.focal_point, "alignment": args.alignment,
               "ruler": args.ruler, "ruler_spacing_mm": args.ruler_spacing_mm,
               "method": args.method}
@@ -471,8 +482,15 @@ def build_parser() -> argparse.ArgumentParser:
                      default="focal-point", help="which S_i to keep (default focal-point)")
     cal.add_argument("--no-misplacement", action="store_true",
                      help="fit S_i only, not the MLA offset and rotation")
-    cal.add_argument("--max-missing-fraction", type=float, default=0.25,
-                     help="more missing focal spots than this is an error (default 0.25)")
+    cal.add_argument("--max-missing-fraction", type=float, default=0.05,
+                     help="more missing spots than this fraction of the lattice is an error "
+                          "(default 0.05)")
+    cal.add_argument("--max-rms-residual-pitch", type=float, default=0.015,
+                     help="refuse an image whose spots fit their lattice worse than this "
+                          "fraction of the pitch, rms (default 0.015)")
+    cal.add_argument("--spot-method", choices=("auto", "window", "centroid", "gaussian"),
+                     default="auto", help="spot-centre estimator (default auto: the window "
+                     "centroid for focal-point and alignment spots)")
     cal.add_argument("--no-report", action="store_true", help="no PNG report beside --out")
     cal.add_argument("--out", required=True, help="calibration product (.h5)")
     _add_common(cal)
@@ -542,6 +560,16 @@ def build_parser() -> argparse.ArgumentParser:
                        help="override [main_lens] image_distance_mm (effective S_i)")
         p.add_argument("--f-number", type=float, default=None,
                        help="stop for this image (default: the camera's f_number)")
+        if kind != "pair":
+            p.add_argument("--splat", choices=("bilinear", "pixel"), default="bilinear",
+                           help="a ray's energy shared by area among the 4 nearest pixel "
+                                "centres (default), or all into the pixel it hits")
+            p.add_argument("--psf-px", type=float, default=0.0,
+                           help="Gaussian point-spread sigma before the pixels integrate, "
+                                "pixels (default 0)")
+            p.add_argument("--sensor-shift-px", type=float, nargs=2, default=(0.0, 0.0),
+                           metavar=("DROW", "DCOL"),
+                           help="shift the image content by a (sub-)pixel amount (default 0 0)")
         _add_image_options(p)
         _add_common(p)
         p.set_defaults(func=cmd_simulate)

@@ -32,7 +32,16 @@ from plenopiv.calibration.image_distance import (
     magnification_from_ticks,
 )
 from plenopiv.calibration.model import Calibration
-from plenopiv.calibration.spots import Lattice, SpotFlag, detect_spots, fit_lattice
+from plenopiv.calibration.spots import (
+    MAX_MISSING_FRACTION,
+    MAX_RMS_RESIDUAL_PITCH,
+    Lattice,
+    SpotFlag,
+    SpotSet,
+    check_lattice,
+    detect_spots,
+    fit_lattice,
+)
 from plenopiv.camera import CameraModel, apply_misplacement
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
@@ -57,6 +66,8 @@ class CalibrationReport:
     lenslet_source: str
     fit_spots_px: np.ndarray
     notes: list = field(default_factory=list)
+    focal_spots: SpotSet | None = None
+    alignment_spots: SpotSet | None = None
 
     def summary(self) -> dict:
         """The one-object JSON summary of ``plenopiv calibrate --json``."""
@@ -72,7 +83,11 @@ class CalibrationReport:
             "grid": self.focal_lattice.grid,
             "pitch_px": [float(v) for v in self.focal_lattice.pitch_px],
             "lenslet_centres_from": self.lenslet_source,
+            "lattice": {"focal_point": _lattice_summary(self.focal_lattice, self.focal_spots)},
         }
+        if self.alignment_lattice is not None:
+            out["lattice"]["alignment"] = _lattice_summary(self.alignment_lattice,
+                                                           self.alignment_spots)
         if self.focal_fit is not None:
             f = self.focal_fit
             out["focal_point"] = {"image_distance_mm": f.image_distance * 1e3,
@@ -93,6 +108,16 @@ class CalibrationReport:
         if self.notes:
             out["notes"] = list(self.notes)
         return out
+
+
+def _lattice_summary(lat: Lattice, spots: SpotSet | None) -> dict:
+    """Lattice quality and the spot estimator of one calibration image (JSON-ready)."""
+    out = dict(lat.quality)
+    if spots is not None:
+        out.update(spot_method=spots.method, spot_radius_px=spots.spot_radius_px,
+                   spot_rms_radius_px=spots.spot_rms_radius_px)
+    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+            for k, v in out.items()}
 
 
 def _pair(focal_px, lenslet_px, scale, centre_rc, max_dist):
@@ -118,8 +143,9 @@ def _pair(focal_px, lenslet_px, scale, centre_rc, max_dist):
 def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
               ruler_image=None, ruler_spacing: float | None = None, ruler_axis: str = "x",
               method: str = "focal-point", fit_misplacement: bool = True,
-              max_missing_fraction: float = 0.25, spot_threshold: float = 0.1
-              ) -> CalibrationReport:
+              max_missing_fraction: float = MAX_MISSING_FRACTION, spot_threshold: float = 0.1,
+              max_rms_residual_pitch: float = MAX_RMS_RESIDUAL_PITCH,
+              spot_method: str = "auto") -> CalibrationReport:
     """Calibrate ``camera`` from its images.
 
     Parameters
@@ -138,8 +164,24 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
         Which S_i the calibration keeps. "both" keeps the focal-point value and reports the
         magnification value beside it.
     max_missing_fraction : float
-        More missing focal spots than this fraction is an error; fewer are filled from the
-        fitted model and reported.
+        More missing spots than this fraction (default 5 %) is an error: of the lattice
+        positions inside the focal-point (or alignment) image, and of the lenslets without a
+        focal spot. Fewer are filled from the fitted model and reported.
+    spot_threshold : float
+        Threshold of the first, thresholded centroid of every spot (detect_spots).
+    max_rms_residual_pitch : float
+        A focal-point or alignment image whose spots fit their lattice worse than this
+        fraction of the pitch (rms, default 1.5 %) is refused: not a calibration image, or
+        not of this camera (:func:`~plenopiv.calibration.spots.check_lattice`).
+    spot_method : str
+        Spot-centre estimator (:func:`~plenopiv.calibration.spots.detect_spots`); the default
+        ``"auto"`` takes the window centroid for focal-point and alignment spots.
+
+    Notes
+    -----
+    Each lattice is fitted together with its spots' sub-pixel phase bias (pixel-locking,
+    ``fit_lattice(phase_harmonics=2)``), which is removed from the spot centres when it
+    stands out of the noise; the lattice quality of both images goes into the summary.
     """
     if method not in METHODS:
         raise ValueError(f"method = {method!r}: expected one of {METHODS}")
@@ -151,21 +193,27 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     notes: list[str] = []
 
     # 1. focal spots
-    spots = detect_spots(fp, grid=mla.grid, threshold=spot_threshold)
+    spots = detect_spots(fp, grid=mla.grid, threshold=spot_threshold, method=spot_method)
     lat = fit_lattice(spots, grid=mla.grid, image_shape=shape, phase_harmonics=PHASE_HARMONICS)
+    check_lattice(lat, what="the focal-point image", max_missing_fraction=max_missing_fraction,
+                  max_rms_residual_pitch=max_rms_residual_pitch)
     good = lat.inlier & ((lat.flags & (SpotFlag.EDGE | SpotFlag.SATURATED | SpotFlag.OUTLIER))
                          == 0)
     centre_rc = (np.array(shape) - 1) / 2.0
 
     # 2. lenslet centres: the set of lenslets that exist, and their lattice indices
-    align_lat = None
+    align_lat = a_spots = None
     if alignment_image is not None:
         al = check_image(alignment_image, shape=shape, name="alignment image")
         # collimated light focuses to (almost) one pixel: accept one-pixel spots here; a hot
         # pixel is then rejected by the lattice fit as off-lattice instead
-        a_spots = detect_spots(al, grid=mla.grid, threshold=spot_threshold, min_area_px=0.9)
+        a_spots = detect_spots(al, grid=mla.grid, threshold=spot_threshold, min_area_px=0.9,
+                               method=spot_method)
         align_lat = fit_lattice(a_spots, grid=mla.grid, image_shape=shape,
                                 phase_harmonics=PHASE_HARMONICS)
+        check_lattice(align_lat, what="the alignment image",
+                      max_missing_fraction=max_missing_fraction,
+                      max_rms_residual_pitch=max_rms_residual_pitch)
         a_ok = align_lat.inlier & ((align_lat.flags & SpotFlag.EDGE) == 0)
         lenslet_px = align_lat.corrected_centres_px[a_ok]
         lenslet_idx = align_lat.grid_index[a_ok]
@@ -249,9 +297,11 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
                       extra={"n_missing": int(len(missing)),
                              "sigma_image_distance_m": (fit.sigma_image_distance
                                                         if meth != "magnification"
-                                                        else mag.sigma_image_distance)})
+                                                        else mag.sigma_image_distance),
+                             "focal_spot_rms_radius_px": spots.spot_rms_radius_px,
+                             "spot_method": spots.method})
     return CalibrationReport(cal, lat, align_lat, fit, mag, int(len(missing)), missing_index,
-                             source, focal_px[spot_of[found]], notes)
+                             source, focal_px[spot_of[found]], notes, spots, a_spots)
 
 
 def _magnification(camera, ruler_image, lat: Lattice, spacing, axis) -> MagnificationResult:

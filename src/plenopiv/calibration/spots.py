@@ -68,6 +68,7 @@ __all__ = [
     "estimate_pitch",
     "detect_spots",
     "fit_lattice",
+    "check_lattice",
 ]
 
 GRIDS = ("square", "hexagonal")
@@ -425,6 +426,36 @@ class Lattice:
         return self.n_missing / total if total else 0.0
 
     @property
+    def quality(self):
+        """How well the spots fit a regular lattice, as a JSON-ready dict.
+
+        Keys: ``grid``; ``pitch_px`` (rows, cols); ``rotation_rad``; ``shear_deg`` (the row
+        step's departure from perpendicular); ``rms_residual_px`` and ``rms_residual_pitch``
+        (the same over the mean pitch); ``n_spots``, ``n_fitted`` (inliers), ``n_edge``,
+        ``n_off_lattice``, ``n_outliers``; ``n_missing`` and ``missing_fraction``;
+        ``phase_bias_px``, the largest fitted sub-pixel phase bias (0 when none was fitted).
+        :func:`check_lattice` refuses a lattice by these figures.
+        """
+        f = self.flags
+        pitch = self.pitch_px
+        return {
+            "grid": self.grid,
+            "pitch_px": [float(v) for v in pitch],
+            "rotation_rad": self.rotation_rad,
+            "shear_deg": math.degrees(self.shear_rad),
+            "rms_residual_px": self.rms_residual_px,
+            "rms_residual_pitch": self.rms_residual_px / float(np.mean(pitch)),
+            "n_spots": len(self.centres_px),
+            "n_fitted": int(np.count_nonzero(self.inlier)),
+            "n_edge": int(np.count_nonzero(f & SpotFlag.EDGE)),
+            "n_off_lattice": int(np.count_nonzero(f & SpotFlag.OFF_LATTICE)),
+            "n_outliers": int(np.count_nonzero(f & SpotFlag.OUTLIER)),
+            "n_missing": self.n_missing,
+            "missing_fraction": self.missing_fraction,
+            "phase_bias_px": float(np.abs(self.phase_bias_px).max()) if len(f) else 0.0,
+        }
+
+    @property
     def flagged(self):
         """Every flagged spot: a tuple of ``(spot number, (row index, col index), reasons)``."""
         return tuple(
@@ -660,7 +691,11 @@ def detect_spots(
         ``max(I - threshold * P, 0)`` where ``P`` is the spot's peak height above background.
     detection_threshold : float, 0 < detection_threshold < 1
         A local maximum of the smoothed image is a candidate spot when its height is at least
-        this fraction of the typical spot height (the 95th percentile of all local maxima).
+        this fraction of the bright spots around it (the 90th percentile of the local maxima
+        within about 4 x 4 to 12 x 12 pitches), so that the dim lenslets of a vignetted
+        corner are found; it must also stand 8 standard deviations of the smoothed image's
+        noise above the gaps between spots, and at least a tenth of this fraction of the
+        typical spot of the whole image (the 95th percentile).
     method : {"auto", "window", "centroid", "gaussian"}
         Sub-pixel estimator. ``"window"``: the first moment in a soft-edged circular window
         sized from the measured spot (1.75 times the radius holding 99 % of its light) above
@@ -808,6 +843,7 @@ def detect_spots(
     cand = np.argwhere(is_max)
     height = smooth[is_max]
     del is_max
+    noise = 0.0
     if background == "local":
         # The box minimum sits a few noise standard deviations below the true background.
         # Candidate heights are measured from the typical level of the smoothed image's local
@@ -832,7 +868,17 @@ def detect_spots(
             "background"
         )
     cand, height = cand[positive], height[positive]
-    strong = height >= detection_threshold * np.percentile(height, 95)
+    # A candidate is a spot when it reaches detection_threshold of the bright spots around it
+    # (the local reference, so that the dim lenslets of a vignetted corner are found), stands
+    # clearly out of the noise of the smoothed image, and is not negligible against the
+    # image's typical spot (1/10 of detection_threshold of it).
+    sigma_smooth = noise / (2.0 * math.sqrt(math.pi) * max(pitch / 6.0, 0.7))
+    ref = _local_reference(cand, height, work.shape, pitch)
+    strong = (
+        (height >= detection_threshold * ref)
+        & (height >= _NOISE_FLOOR * sigma_smooth)
+        & (height >= 0.1 * detection_threshold * np.percentile(height, 95))
+    )
     cand = cand[strong].astype(np.float64)
 
     centres, intensity, area, _peak = _k.centroid_refine_numba(
@@ -907,6 +953,29 @@ def detect_spots(
         moment_radius_px=moment_r,
         annulus_px=annulus,
     )
+
+
+def _local_reference(cand, height, shape, pitch):
+    """Typical height of the bright spots around each candidate.
+
+    Candidates are binned into cells of ``_REFERENCE_CELL`` pitches; a cell's level is the
+    90th percentile of its candidates' heights, and a candidate's reference the highest level
+    among its cell and the eight around it (so a dim lenslet is not its own reference).
+    """
+    cell = _REFERENCE_CELL * pitch
+    n_r = max(int(math.ceil(shape[0] / cell)), 1)
+    n_c = max(int(math.ceil(shape[1] / cell)), 1)
+    ir = np.minimum((cand[:, 0] / cell).astype(np.int64), n_r - 1)
+    ic = np.minimum((cand[:, 1] / cell).astype(np.int64), n_c - 1)
+    key = ir * n_c + ic
+    order = np.argsort(key, kind="stable")
+    k_sorted, h_sorted = key[order], height[order]
+    level = np.zeros(n_r * n_c)
+    starts = np.flatnonzero(np.r_[True, k_sorted[1:] != k_sorted[:-1]])
+    for a, b in zip(starts, np.r_[starts[1:], k_sorted.size], strict=True):
+        level[k_sorted[a]] = np.percentile(h_sorted[a:b], 90)
+    level = ndi.maximum_filter(level.reshape(n_r, n_c), size=3, mode="nearest")
+    return level[ir, ic]
 
 
 def _spot_size(work, centres, pitch):
@@ -1011,6 +1080,10 @@ def _dim_mask(centres, intensity, flags, dim_fraction, k=8):
 # Lattice fitting
 # ----------------------------------------------------------------------------------------------
 
+# Candidate spots: the local reference is taken over cells of this many pitches, and a spot
+# must stand this many standard deviations of the smoothed image's noise above the gaps
+_REFERENCE_CELL = 4.0
+_NOISE_FLOOR = 8.0
 # The phase-bias terms of a lattice fit are kept when their chi-square against their own
 # standard errors exceeds this (a "10 sigma" amplitude)
 _PHASE_CHI2 = 100.0
@@ -1376,6 +1449,60 @@ def _check_shape(grid, basis, shift, tol):
                 f"the spots do not form a {grid} lattice: {text} (at most {limit}, "
                 f"max_shape_error = {tol:g}); is the grid type wrong (a {other} array)?"
             )
+
+
+MAX_RMS_RESIDUAL_PITCH = 0.015
+MAX_MISSING_FRACTION = 0.05
+
+
+def check_lattice(lattice, *, what="the image", max_rms_residual_pitch=MAX_RMS_RESIDUAL_PITCH,
+                  max_missing_fraction=MAX_MISSING_FRACTION):
+    """Refuse a lattice that says its image is not a calibration image of this camera.
+
+    Parameters
+    ----------
+    lattice : Lattice
+    what : str
+        How the error names the image (e.g. ``"the focal-point image"``).
+    max_rms_residual_pitch : float or None
+        Largest rms lattice residual as a fraction of the pitch (default 1.5 %: 0.25 px at a
+        17 px pitch; focal-point and white images reach 0.001-0.01 of the pitch, a scene or
+        ruler image 0.02 and more). None skips the check.
+    max_missing_fraction : float or None
+        Largest fraction of the lattice positions inside the image that hold no spot
+        (default 5 %). None skips the check.
+
+    Returns
+    -------
+    dict
+        ``lattice.quality``.
+
+    Raises
+    ------
+    CalibrationError
+        Naming the figure, its value and the threshold.
+    """
+    q = lattice.quality
+    hint = ("is it a focal-point, alignment or white image of this camera, not a scene or a "
+            "ruler?")
+    if max_rms_residual_pitch is not None and q["rms_residual_pitch"] > max_rms_residual_pitch:
+        raise CalibrationError(
+            f"{what}: the spots fit a regular {q['grid']} lattice only to "
+            f"{q['rms_residual_px']:.3f} px rms, {100 * q['rms_residual_pitch']:.2f} % of its "
+            f"pitch {float(np.mean(q['pitch_px'])):.2f} px (at most "
+            f"{100 * max_rms_residual_pitch:g} %, max_rms_residual_pitch); {hint}"
+        )
+    if max_missing_fraction is not None and q["missing_fraction"] > max_missing_fraction:
+        shown = ", ".join(f"({i}, {j})" for i, j in lattice.missing_index[:6])
+        more = " ..." if lattice.n_missing > 6 else ""
+        raise CalibrationError(
+            f"{what}: {q['n_missing']} lattice positions inside the image hold no spot, "
+            f"{100 * q['missing_fraction']:.1f} % of them (at most "
+            f"{100 * max_missing_fraction:g} %, max_missing_fraction); grid indices "
+            f"{shown}{more}; {hint} (dark corners outside the lens's image circle: raise "
+            "max_missing_fraction)"
+        )
+    return q
 
 
 def _grid_index(mn, grid, flags):
