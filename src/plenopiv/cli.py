@@ -215,7 +215,8 @@ def cmd_calibrate(args) -> dict:
     fp = read_image(args.focal_point)
     al = None if args.alignment is None else read_image(args.alignment)
     ru = None if args.ruler is None else read_image(args.ruler)
-    report = calibrate(cam, fp, alignment_image=al, ruler_image=ru,
+    wh = None if args.white is None else read_image(args.white)
+    report = calibrate(cam, fp, alignment_image=al, ruler_image=ru, white_image=wh,
                        ruler_spacing=(None if args.ruler_spacing_mm is None
                                       else args.ruler_spacing_mm * 1e-3),
                        ruler_axis=args.ruler_axis, method=args.method,
@@ -225,6 +226,7 @@ def cmd_calibrate(args) -> dict:
                        spot_method=args.spot_method)
     inputs = {"focal_point": args.focal_point, "alignment": args.alignment,
               "ruler": args.ruler, "ruler_spacing_mm": args.ruler_spacing_mm,
+              "white": args.white,
               "method": args.method}
     report.calibration.save(out, config={"inputs": inputs, "summary": report.summary()})
     summary = {"command": "calibrate", "out": str(out), **report.summary()}
@@ -475,6 +477,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--alignment", metavar="IMG",
                      help="alignment image (collimated light); default: the nominal lattice")
     cal.add_argument("--ruler", metavar="IMG", help="ruler image on the nominal focal plane")
+    cal.add_argument("--white", metavar="IMG",
+                     help="white image at the working aperture: checks the camera's f_number "
+                          "against its micro-image size")
     cal.add_argument("--ruler-spacing-mm", type=float, help="ruler tick spacing (mm)")
     cal.add_argument("--ruler-axis", choices=("x", "y"), default="x",
                      help="direction along which the ticks repeat (default x, along columns)")

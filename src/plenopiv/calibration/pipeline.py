@@ -41,11 +41,13 @@ from plenopiv.calibration.spots import (
     check_lattice,
     detect_spots,
     fit_lattice,
+    micro_image_diameter,
 )
 from plenopiv.camera import CameraModel, apply_misplacement
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
 from plenopiv.io import check_image
+from plenopiv.lightfield import MICRO_IMAGE_TOLERANCE, micro_image_diameter_px
 
 METHODS = ("focal-point", "magnification", "both")
 # harmonics of the sub-pixel phase bias fitted with each lattice (fit_lattice)
@@ -68,6 +70,7 @@ class CalibrationReport:
     notes: list = field(default_factory=list)
     focal_spots: SpotSet | None = None
     alignment_spots: SpotSet | None = None
+    white: dict | None = None
 
     def summary(self) -> dict:
         """The one-object JSON summary of ``plenopiv calibrate --json``."""
@@ -105,6 +108,8 @@ class CalibrationReport:
                                     "magnification": m.magnification,
                                     "object_distance_mm": m.object_distance * 1e3,
                                     "n_ticks": int(np.isfinite(m.tick_positions).sum())}
+        if self.white is not None:
+            out["white_image"] = dict(self.white)
         if self.notes:
             out["notes"] = list(self.notes)
         return out
@@ -145,7 +150,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
               method: str = "focal-point", fit_misplacement: bool = True,
               max_missing_fraction: float = MAX_MISSING_FRACTION, spot_threshold: float = 0.1,
               max_rms_residual_pitch: float = MAX_RMS_RESIDUAL_PITCH,
-              spot_method: str = "auto") -> CalibrationReport:
+              spot_method: str = "auto", white_image=None) -> CalibrationReport:
     """Calibrate ``camera`` from its images.
 
     Parameters
@@ -176,6 +181,11 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     spot_method : str
         Spot-centre estimator (:func:`~plenopiv.calibration.spots.detect_spots`); the default
         ``"auto"`` takes the window centroid for focal-point and alignment spots.
+    white_image : ndarray, optional
+        A white image at the working aperture (the camera's ``f_number``): its micro-image
+        diameter is measured and stored (``extra["micro_image_diameter_px"]``), and a
+        camera f-number that models it more than 1.25 times larger or smaller is noted in
+        the report; :func:`~plenopiv.lightfield.light_field` warns on the same comparison.
 
     Notes
     -----
@@ -260,7 +270,19 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     spot_model = SpotModel.from_camera(camera)
     fit = fit_focal_points(d_m, p_m, spot_model, fit_misplacement=fit_misplacement)
 
-    # 4. magnification method
+    # 4. the micro-image size at the working aperture
+    white = None
+    if white_image is not None:
+        white = _white(camera, white_image, fit.image_distance, max_missing_fraction,
+                       max_rms_residual_pitch)
+        if not 1 / MICRO_IMAGE_TOLERANCE <= white["model_over_measured"] <= MICRO_IMAGE_TOLERANCE:
+            notes.append(
+                f"the white image shows micro-images {white['micro_image_diameter_px']:.1f} px "
+                f"across, but [main_lens] f_number = {white['f_number']:g} models "
+                f"{white['modelled_diameter_px']:.1f} px (as from f_number = "
+                f"{white['implied_f_number']:.3g}): set f_number to the recording's aperture")
+
+    # 5. magnification method
     mag = None
     if ruler_image is not None and ruler_spacing is not None:
         mag = _magnification(camera, ruler_image, lat, ruler_spacing, ruler_axis)
@@ -299,9 +321,32 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
                                                         if meth != "magnification"
                                                         else mag.sigma_image_distance),
                              "focal_spot_rms_radius_px": spots.spot_rms_radius_px,
-                             "spot_method": spots.method})
+                             "spot_method": spots.method,
+                             **({} if white is None else
+                                {"micro_image_diameter_px": white["micro_image_diameter_px"]})})
     return CalibrationReport(cal, lat, align_lat, fit, mag, int(len(missing)), missing_index,
-                             source, focal_px[spot_of[found]], notes, spots, a_spots)
+                             source, focal_px[spot_of[found]], notes, spots, a_spots, white)
+
+
+def _white(camera: CameraModel, white_image, image_distance, max_missing_fraction,
+           max_rms_residual_pitch) -> dict:
+    """Measure the micro-image diameter of a white image and model it from the f-number."""
+    shape = camera.sensor.shape
+    wh = check_image(white_image, shape=shape, name="white image").astype(float)
+    grid = camera.microlens_array.grid
+    w_spots = detect_spots(wh, grid=grid)
+    w_lat = fit_lattice(w_spots, grid=grid, image_shape=shape)
+    check_lattice(w_lat, what="the white image", max_missing_fraction=max_missing_fraction,
+                  max_rms_residual_pitch=max_rms_residual_pitch)
+    complete = (w_lat.flags & SpotFlag.EDGE) == 0
+    black = float(np.percentile(wh, 1.0))
+    measured = micro_image_diameter(wh - black, w_lat.predict(w_lat.grid_index[complete]),
+                                    float(np.mean(w_lat.pitch_px)))
+    n_f = camera.main_lens.f_number
+    model = micro_image_diameter_px(camera, image_distance, n_f)
+    return {"micro_image_diameter_px": measured, "modelled_diameter_px": model,
+            "f_number": n_f, "model_over_measured": model / measured,
+            "implied_f_number": n_f * model / measured}
 
 
 def _magnification(camera, ruler_image, lat: Lattice, spacing, axis) -> MagnificationResult:

@@ -69,6 +69,7 @@ __all__ = [
     "detect_spots",
     "fit_lattice",
     "check_lattice",
+    "micro_image_diameter",
 ]
 
 GRIDS = ("square", "hexagonal")
@@ -1449,6 +1450,46 @@ def _check_shape(grid, basis, shift, tol):
                 f"the spots do not form a {grid} lattice: {text} (at most {limit}, "
                 f"max_shape_error = {tol:g}); is the grid type wrong (a {other} array)?"
             )
+
+
+def micro_image_diameter(image, centres_px, pitch_px):
+    """Mean diameter (px) of the bright micro-images of a white (full-aperture) image.
+
+    Each is ``2 sqrt(A / pi)``, ``A`` the number of pixels within half a pitch of its centre
+    that are brighter than half its plateau (the median within 0.15 pitch of the centre,
+    at least 1.5 px); only micro-images wholly inside the image count.
+
+    Parameters
+    ----------
+    image : array_like, shape (R, C)
+        Background-subtracted white image.
+    centres_px : array_like, shape (N, 2)
+        Micro-image centres ``(row, col)``, px.
+    pitch_px : float
+        Micro-image pitch, px.
+
+    Raises
+    ------
+    CalibrationError
+        No micro-image lies wholly inside the image.
+    """
+    w = np.asarray(image, float)
+    h = int(math.ceil(pitch_px / 2)) + 1
+    rr, cc = np.mgrid[-h : h + 1, -h : h + 1]
+    core = max(0.15 * pitch_px, 1.5)
+    out = []
+    for r, c in np.asarray(centres_px, float):
+        r0, c0 = int(round(r)), int(round(c))
+        if r0 - h < 0 or c0 - h < 0 or r0 + h >= w.shape[0] or c0 + h >= w.shape[1]:
+            continue
+        patch = w[r0 - h : r0 + h + 1, c0 - h : c0 + h + 1]
+        d = np.hypot(rr + r0 - r, cc + c0 - c)
+        plateau = np.median(patch[d < core])
+        area = np.count_nonzero((patch > 0.5 * plateau) & (d < pitch_px / 2))
+        out.append(2.0 * math.sqrt(area / math.pi))
+    if not out:
+        raise CalibrationError("no complete micro-image to measure its diameter")
+    return float(np.mean(out))
 
 
 MAX_RMS_RESIDUAL_PITCH = 0.015
