@@ -103,7 +103,7 @@ def cmd_simulate(args) -> dict:
 
 
 def _render_options(args) -> dict:
-    """The rendering choices of ``simulate`` (splat, PSF, sensor shift) as keyword arguments."""
+    """Return the rendering choices of ``simulate`` (splat, PSF, sensor shift) as kwargs."""
     return {"splat": args.splat, "psf_px": args.psf_px,
             "sensor_shift_px": tuple(args.sensor_shift_px)}
 
@@ -223,7 +223,8 @@ def cmd_calibrate(args) -> dict:
                        fit_misplacement=not args.no_misplacement,
                        max_missing_fraction=args.max_missing_fraction,
                        max_rms_residual_pitch=args.max_rms_residual_pitch,
-                       spot_method=args.spot_method)
+                       spot_method=args.spot_method,
+                       focal_point_f_number=args.focal_point_f_number)
     inputs = {"focal_point": args.focal_point, "alignment": args.alignment,
               "ruler": args.ruler, "ruler_spacing_mm": args.ruler_spacing_mm,
               "white": args.white,
@@ -474,6 +475,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("camera", help="camera TOML file or preset name")
     cal.add_argument("--focal-point", required=True, metavar="IMG",
                      help="focal-point image (white sheet, stopped-down lens)")
+    cal.add_argument("--focal-point-f-number", type=float, metavar="N",
+                     help="stop of the focal-point image (e.g. 16): fit the spots' centroids "
+                          "over it, not their chief rays (they differ through a plate)")
     cal.add_argument("--alignment", metavar="IMG",
                      help="alignment image (collimated light); default: the nominal lattice")
     cal.add_argument("--ruler", metavar="IMG", help="ruler image on the nominal focal plane")

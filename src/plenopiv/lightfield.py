@@ -47,8 +47,9 @@ def micro_image_diameter_px(camera, image_distance: float, f_number: float) -> f
     pixels within this disc (plus a pixel).
     """
     d = camera.main_lens.focal_length / f_number
-    if camera.microlens_array.back_side == "thesis" and camera.microlens_array.substrate is not None:
-        d /= camera.microlens_array.substrate.refractive_index
+    mla = camera.microlens_array
+    if mla.back_side == "thesis" and mla.substrate is not None:
+        d /= mla.substrate.refractive_index
     return d * camera.microlens_array.sensor_distance / image_distance / camera.sensor.pixel_pitch
 
 

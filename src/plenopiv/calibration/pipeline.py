@@ -150,7 +150,9 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
               method: str = "focal-point", fit_misplacement: bool = True,
               max_missing_fraction: float = MAX_MISSING_FRACTION, spot_threshold: float = 0.1,
               max_rms_residual_pitch: float = MAX_RMS_RESIDUAL_PITCH,
-              spot_method: str = "auto", white_image=None) -> CalibrationReport:
+              spot_method: str = "auto", white_image=None,
+              focal_point_f_number: float | None = None,
+              phase_harmonics: int = PHASE_HARMONICS) -> CalibrationReport:
     """Calibrate ``camera`` from its images.
 
     Parameters
@@ -181,6 +183,13 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     spot_method : str
         Spot-centre estimator (:func:`~plenopiv.calibration.spots.detect_spots`); the default
         ``"auto"`` takes the window centroid for focal-point and alignment spots.
+    focal_point_f_number : float, optional
+        The stop of the focal-point image (f/16 in the thesis). Given, the focal-point fit
+        predicts each spot's centroid over that stop instead of its chief ray: through a
+        plate they differ (with the "thesis" back side by 0.03 mm of S_i at 145 mm, f/16).
+    phase_harmonics : int
+        Harmonics of the sub-pixel phase bias fitted with each lattice (default 2; 0: none),
+        see :func:`~plenopiv.calibration.spots.fit_lattice`.
     white_image : ndarray, optional
         A white image at the working aperture (the camera's ``f_number``): its micro-image
         diameter is measured and stored (``extra["micro_image_diameter_px"]``), and a
@@ -204,7 +213,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
 
     # 1. focal spots
     spots = detect_spots(fp, grid=mla.grid, threshold=spot_threshold, method=spot_method)
-    lat = fit_lattice(spots, grid=mla.grid, image_shape=shape, phase_harmonics=PHASE_HARMONICS)
+    lat = fit_lattice(spots, grid=mla.grid, image_shape=shape, phase_harmonics=phase_harmonics)
     check_lattice(lat, what="the focal-point image", max_missing_fraction=max_missing_fraction,
                   max_rms_residual_pitch=max_rms_residual_pitch)
     good = lat.inlier & ((lat.flags & (SpotFlag.EDGE | SpotFlag.SATURATED | SpotFlag.OUTLIER))
@@ -220,7 +229,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
         a_spots = detect_spots(al, grid=mla.grid, threshold=spot_threshold, min_area_px=0.9,
                                method=spot_method)
         align_lat = fit_lattice(a_spots, grid=mla.grid, image_shape=shape,
-                                phase_harmonics=PHASE_HARMONICS)
+                                phase_harmonics=phase_harmonics)
         check_lattice(align_lat, what="the alignment image",
                       max_missing_fraction=max_missing_fraction,
                       max_rms_residual_pitch=max_rms_residual_pitch)
@@ -267,7 +276,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     p_m = pixel_to_sensor(focal_px[spot_of[spot_of >= 0]], shape, pp)
 
     # 3. focal-point fit
-    spot_model = SpotModel.from_camera(camera)
+    spot_model = SpotModel.from_camera(camera, focal_point_f_number=focal_point_f_number)
     fit = fit_focal_points(d_m, p_m, spot_model, fit_misplacement=fit_misplacement)
 
     # 4. the micro-image size at the working aperture
