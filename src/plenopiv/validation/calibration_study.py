@@ -321,8 +321,8 @@ def _markdown(results: dict) -> str:
         "(µm) | rotation error (µrad) | rms residual (px) | old rms residual (px) |",
         "|---|---|---|---|---|---|---|---|---|"]
     for r in results["fig_3_8"]:
-        lines.append(f"| {r['true_mm']:.2f} | {r['fitted_mm']:.4f} | {r['error_mm'] * 1e3:.2f} | "
-                     f"{r['old_error_mm'] * 1e3:.1f} | {r['sigma_mm'] * 1e3:.3f} | "
+        lines.append(f"| {r['true_mm']:.2f} | {r['fitted_mm']:.4f} | {r['error_mm'] * 1e3:.4f} | "
+                     f"{r['old_error_mm'] * 1e3:.2f} | {r['sigma_mm'] * 1e3:.4f} | "
                      f"{r['offset_error_um'][0]:.4f}, {r['offset_error_um'][1]:.4f} | "
                      f"{r['rotation_error_urad']:.3f} | {r['rms_residual_px']:.5f} | "
                      f"{r['old_rms_residual_px']:.4f} |")
@@ -360,8 +360,73 @@ def _markdown(results: dict) -> str:
         lines.append(f"| {r['plate_mm']:g} mm, n {r['plate_n']:g} | {r['back_side']} | "
                      f"{r['true_mm']:.2f} | {r['plate_model_mm']:.4f} | "
                      f"{r['chief_ray_model_mm']:.4f} | {r['original_model_mm']:.3f} |")
-    lines += ["", f"Run time {results['seconds']:.0f} s."]
+    lines += ["", "## What the tables show", "", *_notes(results), "",
+              f"Run time {results['seconds']:.0f} s."]
     return "\n".join(lines) + "\n"
+
+
+def _notes(results: dict) -> list[str]:
+    """The findings, with their figures taken from the results."""
+    f38 = results["fig_3_8"]
+    rc = results["rendering_choices"]
+    pn = {r["true_mm"]: r for r in results["photon_noise"]}
+    f55 = results["fig_5_5"]
+
+    def worst(rows, key):
+        return max(abs(r[key]) for r in rows)
+
+    sharp = [r for r in rc if r["splat"] == "pixel" and r["psf_px"] < 0.5]
+    fine = [r for r in rc if not (r["splat"] == "pixel" and r["psf_px"] < 0.5)]
+    thesis = [r for r in f55 if r["back_side"] == "thesis"]
+    return [
+        "- **Spot centres without phase bias.** An S_i error of 1 mm at 405 mm is a "
+        "spot-lattice scale error of 3e-6, 0.0015 px at the edge of a 40 x 60 array: any bias "
+        "of the spot centre that depends on where the spot sits on the pixel grid becomes a "
+        "scale, because a non-integer pitch steps the spots through the phases across the "
+        "array. The thresholded centroid carries 0.005-0.025 px of it on 1-4 px spots; on the "
+        f"issue's camera it misses S_i by up to {worst(rc, 'old_error_mm'):.2f} mm (table "
+        "above). On the full camera the phases are mixed over 55 000 spots and the old "
+        f"centroid reached {worst(f38, 'old_error_mm') * 1e3:.1f} µm, which is why the "
+        "project's own study had not seen it. The window centroid (a soft-edged window of "
+        "1.75 times the spot's 99 % radius, a plane fitted to an annulus just outside it, no "
+        "threshold) is the first moment of all of the spot's light: exact for an area splat "
+        f"and for a blurred pixel-integrating sensor, {worst(f38, 'error_mm') * 1e3:.4f} µm "
+        f"on the full camera and {worst(fine, 'error_mm'):.4f} mm on the issue's camera.",
+        "- **The limit: spots sharper than the pixel grid.** On a pixel-integrating sensor a "
+        "1-2 px spot with less than about half a pixel of optics blur aliases: the first "
+        "moment of any estimator is pulled towards pixel centres by 0.005-0.05 px. The lattice "
+        "fit removes the part that is a function of each coordinate's own phase "
+        "(`phase_harmonics=2`, kept only when 10 standard errors out of the noise), which "
+        "brings half a pixel of blur to within 0.002 mm, but with sigma 0.3 px "
+        f"{worst(sharp, 'error_mm'):.3f} mm remain at 405 mm. Real lenslets (f/4, 7.4 µm "
+        "pixels) give about 0.12 px of diffraction blur: stop down less for the focal-point "
+        "image (bigger spots alias less) or check the residual phase bias in the report.",
+        "- **Photon noise is the floor, not the estimator.** At 0.9 x 4095 counts the S_i "
+        f"error's rms is {pn[145.0]['rms_error_mm']:.3f} / {pn[200.0]['rms_error_mm']:.3f} / "
+        f"{pn[270.0]['rms_error_mm']:.3f} / {pn[405.0]['rms_error_mm']:.3f} mm at 145 / 200 / "
+        f"270 / 405 mm, as the fit's own sigma says ({pn[145.0]['sigma_mm']:.3f} / "
+        f"{pn[200.0]['sigma_mm']:.3f} / {pn[270.0]['sigma_mm']:.3f} / "
+        f"{pn[405.0]['sigma_mm']:.3f} mm), every realisation within 2 sigma. The window "
+        "centroid's variance is within 2-7 % of the Cramer-Rao bound of these spots (uniform "
+        "discs of 1.4-4 px, PSF 0.5 px, Poisson), so no estimator can do much better: 0.05 mm "
+        "at 270 mm holds in rms on this 2400-lenslet camera but not for every realisation. "
+        "The thresholded centroid added a bias of "
+        f"{pn[145.0]['old_mean_error_mm']:+.3f} / {pn[200.0]['old_mean_error_mm']:+.3f} / "
+        f"{pn[270.0]['old_mean_error_mm']:+.3f} / {pn[405.0]['old_mean_error_mm']:+.3f} mm.",
+        "- **Through a plate the spot's centroid is not its chief ray.** The slope behind a "
+        "plate is not linear in the pupil point, so the centroid of the light from the whole "
+        "f/16 stop sits off the chief ray by a fraction of order (stop radius / S_i)^2 of the "
+        "spot's displacement. With the \"thesis\" back side the chief-ray model (the thesis's) "
+        f"reads S_i up to {worst(thesis, 'chief_ray_model_error_mm'):.3f} mm long; predicting "
+        "the centroid over the stop (`calibrate --focal-point-f-number 16`) leaves "
+        f"{worst(f55, 'plate_model_error_mm'):.4f} mm for both plates and both back sides.",
+        "- **Not modelled here.** A real white sheet sends each ray in with cos^4 of its own "
+        "angle, not its lenslet's chief ray: that brightens the side of each spot nearer the "
+        "axis and shrinks the spot lattice by a fraction (stop radius / S_i)^2, which the "
+        "focal-point method reads as an S_i about 0.12 mm long at 145 mm and 0.04 mm at 405 "
+        "mm (f/16). Neither the renders nor the model include it; the lens corrections of "
+        "thesis §5.5 absorb it with the other pupil effects.",
+    ]
 
 
 def run(out: str | Path, *, camera: str = "auburn_135mm", repeats: int = 20,
