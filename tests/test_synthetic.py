@@ -10,6 +10,7 @@ import pytest
 from plenopiv import optics as O
 from plenopiv.camera import ExternalInterface, Substrate
 from plenopiv.conventions import sensor_to_pixel
+from plenopiv.errors import ConfigError
 from plenopiv.synthetic import _kernels as K
 from plenopiv.synthetic import _reference as R
 from plenopiv.synthetic.images import (
@@ -89,8 +90,10 @@ def test_trace_kernel_matches_numpy_twin(small_camera, rng, grid, plate, back_si
     assert np.allclose(sy1[same], sy2[same], rtol=0, atol=1e-12)
 
 
-def test_splat_kernel_matches_numpy_twin(small_camera, rng):
-    g = geometry_vector(small_camera)
+@pytest.mark.parametrize("splat, shift", [("bilinear", (0.0, 0.0)), ("pixel", (0.0, 0.0)),
+                                          ("bilinear", (0.3, -0.45)), ("pixel", (-0.2, 0.7))])
+def test_splat_kernel_matches_numpy_twin(small_camera, rng, splat, shift):
+    g = geometry_vector(small_camera, splat=splat, sensor_shift_px=shift)
     shape = small_camera.sensor.shape
     sx = rng.uniform(-1.1, 1.1, 500) * small_camera.sensor.width / 2
     sy = rng.uniform(-1.1, 1.1, 500) * small_camera.sensor.height / 2
@@ -110,6 +113,37 @@ def test_splat_preserves_energy_and_first_moment(small_camera):
     expect = sensor_to_pixel([3.3e-6, -1.7e-6], img.shape, small_camera.sensor.pixel_pitch)
     assert (img * rr).sum() / 2 == pytest.approx(expect[0])
     assert (img * cc).sum() / 2 == pytest.approx(expect[1])
+
+
+@pytest.mark.parametrize("choice", [dict(), dict(psf_px=0.6), dict(splat="pixel"),
+                                    dict(splat="pixel", psf_px=0.6),
+                                    dict(sensor_shift_px=(0.31, -0.27)),
+                                    dict(splat="pixel", psf_px=0.6, sensor_shift_px=(-0.4, 0.2))])
+def test_rendering_choices_keep_energy_and_move_by_the_sensor_shift(small_camera, choice):
+    """Every choice keeps the light; a bilinear splat or a PSF-blurred pixel sensor keeps the
+    image's first moment (the mean of the rays), shifted by exactly the sensor shift."""
+    ref = focal_point_image(small_camera, f_number=16)
+    img = focal_point_image(small_camera, f_number=16, **choice)
+    assert img.shape == ref.shape and img.sum() == pytest.approx(ref.sum(), rel=1e-12)
+    rr, cc = np.indices(img.shape)
+
+    def moment(a):
+        return np.array([(a * rr).sum(), (a * cc).sum()]) / a.sum()
+
+    shift = np.asarray(choice.get("sensor_shift_px", (0.0, 0.0)))
+    tol = 1e-2 if choice.get("splat") == "pixel" and not choice.get("psf_px") else 1e-9
+    assert np.allclose(moment(img) - moment(ref), shift, atol=tol)
+    if choice.get("splat") == "pixel" and not choice.get("psf_px"):
+        assert np.count_nonzero(img) < np.count_nonzero(ref)   # whole rays, no sharing
+
+
+def test_rendering_options_are_checked(small_camera):
+    with pytest.raises(ConfigError, match="splat = 'nearest'"):
+        focal_point_image(small_camera, f_number=16, splat="nearest")
+    with pytest.raises(ConfigError, match="psf_px = -0.5"):
+        alignment_image(small_camera, psf_px=-0.5)
+    with pytest.raises(ConfigError, match="sensor_shift_px"):
+        focal_point_image(small_camera, f_number=16, sensor_shift_px=(0.1,))
 
 
 def test_object_ray_kernel_matches_numpy_twin(small_camera, rng):

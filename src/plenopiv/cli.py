@@ -212,18 +212,20 @@ def cmd_simulate(args) -> dict:
         bar, tick = _progress_bar(cam.microlens_array.count if kind != "ruler" else 32,
                                   f"render {kind}", args.quiet or args.json)
         with bar:
+            render = _render_options(args)
+            summary.update(render)
             if kind == "focal-point":
                 f_number = args.f_number or cam.main_lens.f_number
-                irr = S.focal_point_image(cam, f_number=f_number, progress=tick)
+                irr = S.focal_point_image(cam, f_number=f_number, progress=tick, **render)
                 summary["f_number"] = f_number
             elif kind == "alignment":
-                irr = S.alignment_image(cam, progress=tick)
+                irr = S.alignment_image(cam, progress=tick, **render)
             else:
                 ruler = S.Ruler(spacing=args.spacing_mm * 1e-3,
                                 tick_width=args.tick_width_mm * 1e-3, depth=args.depth_mm * 1e-3)
                 bar.total = None
                 irr = S.ruler_image(cam, ruler, f_number=args.f_number, seed=args.seed,
-                                    rays_per_lenslet=args.rays_per_lenslet)
+                                    rays_per_lenslet=args.rays_per_lenslet, **render)
                 summary.update(spacing_mm=args.spacing_mm, depth_mm=args.depth_mm)
         img = _finish(irr, args, rng)
         meta = {"plenopiv": __version__, "kind": kind, "camera": cam.to_dict(), **summary}
@@ -241,6 +243,9 @@ def _check_simulate_args(args) -> None:
     _seed(args.seed)
     _number("--f-number", args.f_number, minimum=0, open_min=True)
     _number("--blur-px", args.blur_px, minimum=0, maximum=100, unit="pixels")
+    _number("--psf-px", getattr(args, "psf_px", None), minimum=0, maximum=100, unit="pixels")
+    for shift in getattr(args, "sensor_shift_px", ()):
+        _number("--sensor-shift-px", shift, minimum=-1e6, maximum=1e6, unit="pixels")
     _number("--full-well", args.full_well, minimum=0, open_min=True, unit="electrons")
     _number("--read-noise", args.read_noise, minimum=0, unit="counts")
     if args.kind == "ruler":
@@ -263,6 +268,12 @@ def _check_simulate_args(args) -> None:
         _number("--dt", args.dt, minimum=0, open_min=True, unit="seconds")
         _number("--max-displacement-mm", args.max_displacement_mm, minimum=0, open_min=True,
                 unit="mm")
+
+
+def _render_options(args) -> dict:
+    """Return the rendering choices of ``simulate`` (splat, PSF, sensor shift) as kwargs."""
+    return {"splat": args.splat, "psf_px": args.psf_px,
+            "sensor_shift_px": tuple(args.sensor_shift_px)}
 
 
 def _seeding(cam: CameraModel, args, rng):
@@ -322,7 +333,8 @@ def _simulate_particles(cam: CameraModel, args, rng) -> dict:
         bar, tick = _progress_bar(n, "render particles", quiet)
         with bar:
             irr = particle_image(cam, pos, rays_per_particle=args.rays_per_particle,
-                                 f_number=args.f_number, seed=args.seed, progress=tick)
+                                 f_number=args.f_number, seed=args.seed, progress=tick,
+                                 **_render_options(args))
         img = _finish(irr, args, rng)
         if out.suffix.lower() == ".h5":
             write_h5(out, {"/image": img, "/truth/position_m": pos},
@@ -374,12 +386,17 @@ def cmd_calibrate(args) -> dict:
     _number("--ruler-spacing-mm", args.ruler_spacing_mm, minimum=0, open_min=True, unit="mm")
     _number("--max-missing-fraction", args.max_missing_fraction, minimum=0, maximum=1,
             open_max=True)
+    _number("--max-rms-residual-pitch", args.max_rms_residual_pitch, minimum=0, open_min=True,
+            maximum=1, unit="fraction of the lenslet pitch")
+    if args.focal_point_f_number is not None:
+        _number("--focal-point-f-number", args.focal_point_f_number, minimum=0, open_min=True)
     if args.method in ("magnification", "both") and (args.ruler is None or
                                                       args.ruler_spacing_mm is None):
         raise ConfigError(f"--method {args.method} needs --ruler IMG and --ruler-spacing-mm")
     cam = load_camera(args.camera)
     check_sensor(cam)
-    inputs = _input_files(args.camera, args.focal_point, args.alignment, args.ruler)
+    inputs = _input_files(args.camera, args.focal_point, args.alignment, args.ruler,
+                          args.white)
     out = _check_out(args.out, (".h5",), inputs=inputs,
                      beside=() if args.no_report else (".png",))
     t0 = time.perf_counter()
@@ -389,16 +406,21 @@ def cmd_calibrate(args) -> dict:
     fp = read_image(args.focal_point)
     al = None if args.alignment is None else read_image(args.alignment)
     ru = None if args.ruler is None else read_image(args.ruler)
+    wh = None if args.white is None else read_image(args.white)
     progress("spots and S_i")
-    report = calibrate(cam, fp, alignment_image=al, ruler_image=ru,
+    report = calibrate(cam, fp, alignment_image=al, ruler_image=ru, white_image=wh,
                        ruler_spacing=(None if args.ruler_spacing_mm is None
                                       else args.ruler_spacing_mm * 1e-3),
                        ruler_axis=args.ruler_axis, method=args.method,
                        fit_misplacement=not args.no_misplacement,
-                       max_missing_fraction=args.max_missing_fraction)
+                       max_missing_fraction=args.max_missing_fraction,
+                       max_rms_residual_pitch=args.max_rms_residual_pitch,
+                       spot_method=args.spot_method,
+                       focal_point_f_number=args.focal_point_f_number)
     progress("report")
     inputs = {"focal_point": args.focal_point, "alignment": args.alignment,
               "ruler": args.ruler, "ruler_spacing_mm": args.ruler_spacing_mm,
+              "white": args.white,
               "method": args.method}
     report.calibration.save(out, config={"inputs": inputs, "summary": report.summary()})
     summary = {"command": "calibrate", "out": str(out), **report.summary()}
@@ -928,9 +950,15 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("camera", help="camera TOML file or preset name")
     cal.add_argument("--focal-point", required=True, metavar="IMG",
                      help="focal-point image (white sheet, stopped-down lens)")
+    cal.add_argument("--focal-point-f-number", type=float, metavar="N",
+                     help="stop of the focal-point image (e.g. 16): fit the spots' centroids "
+                          "over it, not their chief rays (they differ through a plate)")
     cal.add_argument("--alignment", metavar="IMG",
                      help="alignment image (collimated light); default: the nominal lattice")
     cal.add_argument("--ruler", metavar="IMG", help="ruler image on the nominal focal plane")
+    cal.add_argument("--white", metavar="IMG",
+                     help="white image at the working aperture: checks the camera's f_number "
+                          "against its micro-image size")
     cal.add_argument("--ruler-spacing-mm", type=float, help="ruler tick spacing (mm)")
     cal.add_argument("--ruler-axis", choices=("x", "y"), default="x",
                      help="direction along which the ticks repeat (default x, along columns)")
@@ -938,8 +966,15 @@ def build_parser() -> argparse.ArgumentParser:
                      default="focal-point", help="which S_i to keep (default focal-point)")
     cal.add_argument("--no-misplacement", action="store_true",
                      help="fit S_i only, not the MLA offset and rotation")
-    cal.add_argument("--max-missing-fraction", type=float, default=0.25,
-                     help="more missing focal spots than this is an error (default 0.25)")
+    cal.add_argument("--max-missing-fraction", type=float, default=0.05,
+                     help="more missing spots than this fraction of the lattice is an error "
+                          "(default 0.05)")
+    cal.add_argument("--max-rms-residual-pitch", type=float, default=0.015,
+                     help="refuse an image whose spots fit their lattice worse than this "
+                          "fraction of the pitch, rms (default 0.015)")
+    cal.add_argument("--spot-method", choices=("auto", "window", "centroid", "gaussian"),
+                     default="auto", help="spot-centre estimator (default auto: the window "
+                     "centroid for focal-point and alignment spots)")
     cal.add_argument("--no-report", action="store_true", help="no PNG report beside --out")
     cal.add_argument("--out", required=True, help="calibration product (.h5)")
     _add_common(cal)
@@ -1055,6 +1090,16 @@ def build_parser() -> argparse.ArgumentParser:
                        help="override [main_lens] image_distance_mm (effective S_i)")
         p.add_argument("--f-number", type=float, default=None,
                        help="stop for this image (default: the camera's f_number)")
+        if kind != "pair":
+            p.add_argument("--splat", choices=("bilinear", "pixel"), default="bilinear",
+                           help="a ray's energy shared by area among the 4 nearest pixel "
+                                "centres (default), or all into the pixel it hits")
+            p.add_argument("--psf-px", type=float, default=0.0,
+                           help="Gaussian point-spread sigma before the pixels integrate, "
+                                "pixels (default 0)")
+            p.add_argument("--sensor-shift-px", type=float, nargs=2, default=(0.0, 0.0),
+                           metavar=("DROW", "DCOL"),
+                           help="shift the image content by a (sub-)pixel amount (default 0 0)")
         _add_image_options(p)
         _add_common(p)
         p.set_defaults(func=cmd_simulate)

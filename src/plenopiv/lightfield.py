@@ -18,6 +18,7 @@ receive light and are left out.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,30 @@ from plenopiv import _lightfield_kernels as _lk
 from plenopiv.calibration.model import Calibration
 from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import CalibrationError
+
+
+class LightFieldWarning(UserWarning):
+    """The light field's model does not match its calibration (micro-image size, rays)."""
+
+
+# modelled and measured micro-image diameters may differ by this factor before a warning
+MICRO_IMAGE_TOLERANCE = 1.25
+# fewer rays per lenslet than this on average: the light field is nearly empty
+MIN_RAYS_PER_LENSLET = 4.0
+
+
+def micro_image_diameter_px(camera, image_distance: float, f_number: float) -> float:
+    """Modelled micro-image diameter, px: the aperture ``f_m / N`` seen from the lenslets.
+
+    ``f_m / N * f̄ / S_i`` on the sensor (divided by the plate's index with the "thesis" back
+    side, whose rays keep their in-glass angle). :func:`light_field` takes each lenslet's
+    pixels within this disc (plus a pixel).
+    """
+    d = camera.main_lens.focal_length / f_number
+    mla = camera.microlens_array
+    if mla.back_side == "thesis" and mla.substrate is not None:
+        d /= mla.substrate.refractive_index
+    return d * camera.microlens_array.sensor_distance / image_distance / camera.sensor.pixel_pitch
 
 
 @dataclass(frozen=True)
@@ -88,6 +113,23 @@ class LightField:
         t = (self.object_distance + depth) / self.object_distance
         return self.u + (self.focal_plane_position - self.u) * t
 
+    @property
+    def alpha_range(self) -> tuple[float, float]:
+        """The refocus parameters α this light field supports, ``(α_min, α_max)``.
+
+        Refocusing moves a ray through aperture point u by ``u (1/α - 1)`` on the lenslet
+        plane; α is supported while the rays from the aperture's edge move by at most half
+        the smaller extent of the lenslet array, ``R |1/α - 1| <= W / 2`` (beyond it most
+        views miss most of the array and the refocused image is empty). ``α_max`` is
+        infinite when ``W / 2 >= R``.
+        """
+        if self.n_rays == 0:
+            return (1.0, 1.0)
+        w = float(np.min(np.ptp(self.s, axis=0))) + self.footprint * self.image_distance \
+            / self.object_distance
+        q = 0.5 * w / self.aperture_radius
+        return (1.0 / (1.0 + q), math.inf if q >= 1.0 else 1.0 / (1.0 - q))
+
     def values(self, image) -> np.ndarray:
         """The image's value for every ray (P,)."""
         img = np.asarray(image)
@@ -112,6 +154,15 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
         Trace a pixel cut by the aperture's edge through the centroid of its cell's lit part
         (default), or through the cell centre (the model of the matrix-free
         :class:`~plenopiv.lattice.LatticeProjector`).
+
+    Warns
+    -----
+    LightFieldWarning
+        When the f-number makes the modelled micro-images more than 1.25 times larger or
+        smaller than the white image of the calibration shows
+        (``calibration.extra["micro_image_diameter_px"]``), when they are larger than the
+        micro-image pitch, or when fewer than 4 rays per lenslet remain: the views and
+        refocused images would be mostly blank or NaN. Each message names ``f_number``.
     """
     cam = calibration.camera
     si = calibration.image_distance
@@ -134,6 +185,7 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
     # a micro-image pitch of its own spot (so that no pixel belongs to two lenslets)
     r_img_px = radius * fbar / si / pp
     pitch_px = cam.pitch_px * (1 + fbar / si)
+    _check_micro_images(calibration, n_f, 2.0 * r_img_px, pitch_px)
     r_max = min(r_img_px + 1.0, 0.5 * pitch_px)
     half = int(math.ceil(r_max)) + 1
     off = np.arange(-half, half + 1)
@@ -162,11 +214,42 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
     if len(pix) and np.any(np.diff(pix) == 0):
         raise CalibrationError("two lenslets claim the same pixel: the focal spots are closer "
                                "than the aperture image; check the f-number and calibration")
+    n_lenslets = max(len(spots), 1)
+    if len(pix) < MIN_RAYS_PER_LENSLET * n_lenslets:
+        warnings.warn(
+            f"the light field keeps {len(pix)} rays for {n_lenslets} lenslets "
+            f"({len(pix) / n_lenslets:.2g} per lenslet, fewer than {MIN_RAYS_PER_LENSLET:g}): "
+            f"with f_number = {n_f:g} the modelled micro-images are {2 * r_img_px:.2f} px "
+            "across; views and refocused images will be mostly blank or NaN (check f_number)",
+            LightFieldWarning, stacklevel=2)
     return LightField(
         pixel=pix, lenslet=k_idx[order].astype(np.int32), s=centres_m[k_idx[order]],
         u=np.stack([ux[keep], uy[keep]], axis=1)[order], lit=lit[keep][order],
         image_distance=si, object_distance=so, aperture_radius=radius, cell=cell,
         footprint=cam.microlens_array.pitch * so / si, shape=shape)
+
+
+def _check_micro_images(calibration: Calibration, n_f: float, model_px: float,
+                        pitch_px: float) -> None:
+    """Warn when the modelled micro-image size contradicts the calibration (see light_field)."""
+    measured = calibration.extra.get("micro_image_diameter_px")
+    if measured is not None and np.isfinite(measured) and measured > 0:
+        ratio = model_px / float(measured)
+        if not 1.0 / MICRO_IMAGE_TOLERANCE <= ratio <= MICRO_IMAGE_TOLERANCE:
+            implied = n_f * ratio
+            warnings.warn(
+                f"f_number = {n_f:g} makes the micro-images {model_px:.1f} px across, but the "
+                f"white image of the calibration shows {float(measured):.1f} px (as from "
+                f"f_number = {implied:.3g}); the light field takes each lenslet's pixels "
+                f"within the modelled size, so it {'misses' if ratio < 1 else 'adds dark'} "
+                "pixels: set [main_lens] f_number (or f_number=) to the recording's aperture",
+                LightFieldWarning, stacklevel=3)
+            return
+    if model_px > MICRO_IMAGE_TOLERANCE * pitch_px:
+        warnings.warn(
+            f"f_number = {n_f:g} makes the micro-images {model_px:.1f} px across, more than "
+            f"their pitch {pitch_px:.1f} px: they would overlap, and each lenslet keeps only "
+            "the pixels within half a pitch (check f_number)", LightFieldWarning, stacklevel=3)
 
 
 def _lit_inside(ux, uy, inside, cell, radius):
@@ -278,7 +361,8 @@ def refocus(image, lf: LightField, alpha: float, *, pitch: float | None = None,
     lf : LightField
     alpha : float
         α > 1 focuses in front of the nominal focal plane (nearer the camera), α < 1 behind it;
-        α = 1 is the nominal focal plane.
+        α = 1 is the nominal focal plane. It must lie within ``lf.alpha_range``
+        (:attr:`LightField.alpha_range`), else ValueError gives that range.
     pitch : float
         ``method="splat"`` only: output grid spacing on the lenslet plane, metres.
     shape_lenslets : (rows, cols)
@@ -320,6 +404,13 @@ def refocus(image, lf: LightField, alpha: float, *, pitch: float | None = None,
     """
     if not alpha > 0:
         raise ValueError(f"alpha = {alpha!r}: expected > 0")
+    lo, hi = lf.alpha_range
+    if not lo <= alpha <= hi:
+        raise ValueError(
+            f"alpha = {alpha!r} is outside the range this light field supports, "
+            f"{lo:.4g} <= alpha <= {hi:.4g}: beyond it the rays from the aperture's edge move "
+            "by more than half the lenslet array and the refocused image is empty "
+            "(LightField.alpha_range)")
     if method not in REFOCUS_METHODS:
         raise ValueError(f"method = {method!r}: expected one of {REFOCUS_METHODS}")
     if method == "fourier":

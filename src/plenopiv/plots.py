@@ -96,7 +96,15 @@ def calibration_report(report, image, path) -> Path:
                      f" mm  (M = {m['magnification']:.4f}, {m['n_ticks']} ticks)")
         lines.append(f"    depth of focus ± {m['sigma_depth_of_focus_mm']:.3f} mm, "
                      f"height ± {m['sigma_height_mm']:.3f} mm")
-    lines += ["", f"kept: {s['image_distance_mm']:.3f} mm ({s['method']})"]
+    lines += ["", f"kept: {s['image_distance_mm']:.3f} mm ({s['method']})", "",
+              "lattice quality:"]
+    for name, q in s.get("lattice", {}).items():
+        lines.append(f"  {name}: {q['grid']}, rms {q['rms_residual_px']:.4f} px "
+                     f"({100 * q['rms_residual_pitch']:.2f} % of pitch), "
+                     f"{q['n_missing']} missing ({100 * q['missing_fraction']:.1f} %)")
+        lines.append(f"    {q['n_fitted']} of {q['n_spots']} spots fitted, "
+                     f"{q['n_off_lattice']} off-lattice, spot centres: "
+                     f"{q.get('spot_method', '?')}, phase bias {q['phase_bias_px']:.4f} px")
     for n in report.notes:
         lines += ["", "note: " + n[:110]]
     ax.text(0.0, 1.0, "\n".join(lines), va="top", family="monospace", fontsize=9)

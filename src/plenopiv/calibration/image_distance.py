@@ -46,23 +46,37 @@ class SpotModel:
     thickness: float = 0.0
     refractive_index: float = 1.0
     pupil_offset: float = 0.0
+    stop_radius: float = 0.0
 
     @classmethod
     def from_camera(cls, camera: CameraModel, *, back_side: str | None = None,
-                    ignore_substrate: bool = False) -> SpotModel:
-        """The spot model of ``camera`` (optionally another back side, or without the plate)."""
+                    ignore_substrate: bool = False,
+                    focal_point_f_number: float | None = None) -> SpotModel:
+        """The spot model of ``camera`` (optionally another back side, or without the plate).
+
+        ``focal_point_f_number``: the stop of the focal-point image; the model then predicts
+        each spot's centroid over that stop rather than its chief ray (they differ through a
+        plate, see :func:`plenopiv.optics.focal_spot_exact`).
+        """
         mla = camera.microlens_array
         t = 0.0 if ignore_substrate else camera.plate_thickness
         n = 1.0 if ignore_substrate else camera.plate_index
+        stop = 0.0 if focal_point_f_number is None else \
+            camera.main_lens.focal_length / float(focal_point_f_number) / 2.0
         return cls(mla.sensor_distance, back_side or mla.back_side, t, n,
-                   camera.main_lens.exit_pupil_offset)
+                   camera.main_lens.exit_pupil_offset, stop)
 
     def predict(self, centres, image_distance, *, model: str = "exact") -> np.ndarray:
-        """Spot positions (N, 2), metres, for lenslet centres (N, 2) and S_i,eff."""
+        """Spot positions (N, 2), metres, for lenslet centres (N, 2) and S_i,eff.
+
+        ``"exact"``: the exact chief ray, or with ``stop_radius`` the spot's centroid over
+        the stop; ``"paraxial"``: Eq. 3.11 / 4.8.
+        """
         kw = dict(back_side=self.back_side, thickness=self.thickness,
                   refractive_index=self.refractive_index, pupil_offset=self.pupil_offset)
         if model == "exact":
-            return optics.focal_spot_exact(centres, image_distance, self.sensor_distance, **kw)
+            return optics.focal_spot_exact(centres, image_distance, self.sensor_distance,
+                                           stop_radius=self.stop_radius, **kw)
         if model == "paraxial":
             return np.asarray(centres) * optics.focal_spot_scale(image_distance,
                                                                  self.sensor_distance, **kw)

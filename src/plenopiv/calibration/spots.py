@@ -68,16 +68,30 @@ __all__ = [
     "estimate_pitch",
     "detect_spots",
     "fit_lattice",
+    "check_lattice",
+    "micro_image_diameter",
 ]
 
 GRIDS = ("square", "hexagonal")
-METHODS = ("centroid", "gaussian")
+METHODS = ("auto", "window", "centroid", "gaussian")
+RESOLVED_METHODS = ("window", "centroid", "gaussian")
 BACKGROUNDS = ("local", "none")
 
-# The iteration limits of the sub-pixel estimators; both converge in a few passes.
+# The iteration limits of the sub-pixel estimators; all converge in a few passes.
 _CENTROID_MAX_ITER = 20
 _CENTROID_TOL_PX = 1e-4
 _GAUSS_MAX_ITER = 50
+_WINDOW_MAX_ITER = 50
+_WINDOW_TOL_PX = 1e-7
+# The window method: window radius = _WINDOW_SCALE times the radius holding 99 % of a spot's
+# light plus 0.5 px (5.8 standard deviations of a Gaussian spot: its truncated tail moves the
+# first moment by < 1e-5 px at any phase), less where the annulus would reach the
+# neighbours, never less than that radius plus _WINDOW_MARGIN_PX; the background annulus is
+# _ANNULUS_PX wide, just outside the window.
+_ENERGY_FRACTION = 0.99
+_WINDOW_SCALE = 1.75
+_WINDOW_MARGIN_PX = 1.0
+_ANNULUS_PX = 2.0
 
 
 class SpotFlag(enum.IntFlag):
@@ -177,12 +191,24 @@ class SpotSet:
     window_radius_px : float
         Radius of the circular window of each centre, px.
     method : str
-        ``"centroid"`` or ``"gaussian"``.
+        The estimator that gave the centres: ``"window"``, ``"centroid"`` or ``"gaussian"``
+        (``"auto"`` is resolved to one of them).
     grid : str or None
         The grid type the caller gave (``"square"``, ``"hexagonal"``), or None.
     rejected_px : ndarray of float64, shape (K, 2)
         Centres of candidates rejected because their light sat in less than ``min_area_px``
         (hot pixels), ``(row, col)`` px.
+    spot_radius_px : float
+        Radius holding 99 % of a spot's light (background-subtracted, all clean spots
+        stacked), px; NaN when not measured. At most half the pitch.
+    spot_rms_radius_px : float
+        Root-mean-square radius of the stacked spot within half a pitch, px; a uniform disc
+        of diameter ``D`` has ``D / (2 sqrt(2))``. NaN when not measured.
+    moment_radius_px : float
+        Window radius of the ``"window"`` method, px (NaN for the other methods).
+    annulus_px : tuple of float
+        Inner and outer radius of the background annulus of the ``"window"`` method, px
+        (``(nan, nan)`` without one).
     """
 
     centres_px: np.ndarray
@@ -195,6 +221,10 @@ class SpotSet:
     method: str = "centroid"
     grid: str | None = None
     rejected_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    spot_radius_px: float = float("nan")
+    spot_rms_radius_px: float = float("nan")
+    moment_radius_px: float = float("nan")
+    annulus_px: tuple = (float("nan"), float("nan"))
 
     def __post_init__(self):
         c = _frozen(self.centres_px, np.float64).reshape(-1, 2)
@@ -215,7 +245,10 @@ class SpotSet:
             self, "rejected_px", _frozen(self.rejected_px, np.float64).reshape(-1, 2)
         )
         object.__setattr__(self, "image_shape", tuple(int(s) for s in self.image_shape))
-        _check_choice("SpotSet.method", self.method, METHODS)
+        _check_choice("SpotSet.method", self.method, RESOLVED_METHODS)
+        for name in ("spot_radius_px", "spot_rms_radius_px", "moment_radius_px"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        object.__setattr__(self, "annulus_px", tuple(float(v) for v in self.annulus_px))
         if self.grid is not None:
             _check_choice("SpotSet.grid", self.grid, GRIDS)
         if not (self.pitch_px > 0 and self.window_radius_px > 0):
@@ -275,6 +308,11 @@ class Lattice:
         fitted on a hexagonal one (``basis[1] / 2`` for a regular hexagonal array).
     image_shape : tuple of int or None
         ``(n_rows, n_cols)`` of the image, when known.
+    phase_bias_px : ndarray, shape (N, 2)
+        The fitted periodic bias of each measured centre against its sub-pixel phase
+        (``fit_lattice(phase_harmonics=...)``), ``(row, col)`` px; zero when not fitted.
+        ``residual_px`` is measured minus fitted minus this bias;
+        :attr:`corrected_centres_px` removes it from the measured centres.
     """
 
     grid: str
@@ -291,6 +329,7 @@ class Lattice:
     origin_std_px: np.ndarray
     odd_row_shift_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
     image_shape: tuple | None = None
+    phase_bias_px: np.ndarray | None = None
 
     def __post_init__(self):
         _check_choice("Lattice.grid", self.grid, GRIDS)
@@ -318,6 +357,11 @@ class Lattice:
             if a.shape[0] != n:
                 raise ValueError(f"Lattice.{name} has {a.shape[0]} entries; expected {n}")
             object.__setattr__(self, name, a)
+        bias = np.zeros((n, 2)) if self.phase_bias_px is None else self.phase_bias_px
+        bias = _frozen(bias, np.float64).reshape(-1, 2)
+        if bias.shape[0] != n:
+            raise ValueError(f"Lattice.phase_bias_px has {bias.shape[0]} rows; expected {n}")
+        object.__setattr__(self, "phase_bias_px", bias)
         object.__setattr__(
             self, "missing_index", _frozen(self.missing_index, np.int64).reshape(-1, 2)
         )
@@ -326,6 +370,11 @@ class Lattice:
             object.__setattr__(self, "image_shape", tuple(int(s) for s in self.image_shape))
 
     # derived values -----------------------------------------------------------------------
+    @property
+    def corrected_centres_px(self):
+        """Measured centres less their fitted phase bias, ``(row, col)`` px, shape (N, 2)."""
+        return self.centres_px - self.phase_bias_px
+
     @property
     def pitch_px(self):
         """Spacing between adjacent lattice rows and adjacent columns, ``(rows, cols)`` px.
@@ -376,6 +425,36 @@ class Lattice:
         found = int(np.count_nonzero((self.flags & SpotFlag.EDGE) == 0))
         total = found + self.n_missing
         return self.n_missing / total if total else 0.0
+
+    @property
+    def quality(self):
+        """How well the spots fit a regular lattice, as a JSON-ready dict.
+
+        Keys: ``grid``; ``pitch_px`` (rows, cols); ``rotation_rad``; ``shear_deg`` (the row
+        step's departure from perpendicular); ``rms_residual_px`` and ``rms_residual_pitch``
+        (the same over the mean pitch); ``n_spots``, ``n_fitted`` (inliers), ``n_edge``,
+        ``n_off_lattice``, ``n_outliers``; ``n_missing`` and ``missing_fraction``;
+        ``phase_bias_px``, the largest fitted sub-pixel phase bias (0 when none was fitted).
+        :func:`check_lattice` refuses a lattice by these figures.
+        """
+        f = self.flags
+        pitch = self.pitch_px
+        return {
+            "grid": self.grid,
+            "pitch_px": [float(v) for v in pitch],
+            "rotation_rad": self.rotation_rad,
+            "shear_deg": math.degrees(self.shear_rad),
+            "rms_residual_px": self.rms_residual_px,
+            "rms_residual_pitch": self.rms_residual_px / float(np.mean(pitch)),
+            "n_spots": len(self.centres_px),
+            "n_fitted": int(np.count_nonzero(self.inlier)),
+            "n_edge": int(np.count_nonzero(f & SpotFlag.EDGE)),
+            "n_off_lattice": int(np.count_nonzero(f & SpotFlag.OFF_LATTICE)),
+            "n_outliers": int(np.count_nonzero(f & SpotFlag.OUTLIER)),
+            "n_missing": self.n_missing,
+            "missing_fraction": self.missing_fraction,
+            "phase_bias_px": float(np.abs(self.phase_bias_px).max()) if len(f) else 0.0,
+        }
 
     @property
     def flagged(self):
@@ -588,8 +667,9 @@ def detect_spots(
     grid=None,
     threshold=0.1,
     detection_threshold=0.15,
-    method="centroid",
+    method="auto",
     window_radius_px=None,
+    moment_radius_px=None,
     background="local",
     min_area_px=1.5,
     dim_fraction=0.5,
@@ -612,13 +692,27 @@ def detect_spots(
         ``max(I - threshold * P, 0)`` where ``P`` is the spot's peak height above background.
     detection_threshold : float, 0 < detection_threshold < 1
         A local maximum of the smoothed image is a candidate spot when its height is at least
-        this fraction of the typical spot height (the 95th percentile of all local maxima).
-    method : {"centroid", "gaussian"}
-        Sub-pixel estimator. ``"centroid"`` (default): the iterative thresholded centroid.
+        this fraction of the bright spots around it (the 90th percentile of the local maxima
+        within about 4 x 4 to 12 x 12 pitches), so that the dim lenslets of a vignetted
+        corner are found; it must also stand 8 standard deviations of the smoothed image's
+        noise above the gaps between spots, and at least a tenth of this fraction of the
+        typical spot of the whole image (the 95th percentile).
+    method : {"auto", "window", "centroid", "gaussian"}
+        Sub-pixel estimator. ``"window"``: the first moment in a soft-edged circular window
+        sized from the measured spot (1.75 times the radius holding 99 % of its light) above
+        a plane fitted to an annulus around it, with no threshold (unbiased at any sub-pixel
+        phase; see Notes). ``"centroid"``: the iterative thresholded centroid.
         ``"gaussian"``: a least-squares circular 2-D Gaussian plus offset, started from the
-        centroid.
+        centroid. ``"auto"`` (default): ``"window"`` when the spots are small enough for the
+        window and its annulus to fit between neighbours (``2 r99 + 4 <= pitch`` and
+        ``r99 <= 0.35 pitch``, r99 the radius holding 99 % of a spot's light: focal-point and
+        alignment images), else ``"centroid"`` (white images, micro-images that fill the
+        pitch).
     window_radius_px : float, optional
-        Radius of the circular window around each spot, px; default half the pitch.
+        Radius of the circular window of the first, thresholded centroid, which also decides
+        whether a spot is cut by the image edge (``EDGE``), px; default half the pitch.
+    moment_radius_px : float, optional
+        ``"window"`` method only: radius of its window, px; default measured (above).
     background : {"local", "none"}
         ``"local"``: subtract a smooth background (box minimum over 1.25 pitch, then box
         mean, then the expected noise bias of that minimum); candidate heights are measured
@@ -649,11 +743,30 @@ def detect_spots(
     -----
     Steps: validate; estimate the pitch if needed; subtract the background; smooth with a
     Gaussian of standard deviation ``pitch / 6`` and take local maxima at least half a pitch
-    apart as candidates; refine each candidate with the iterative thresholded centroid (the
+    apart as candidates, each at least ``detection_threshold`` of the spots around it (so the
+    dim lenslets of a vignetted corner are found) and clearly above the noise; refine each
+    candidate with the iterative thresholded centroid (the
     window is re-centred on the estimate until it moves by less than 1e-4 px, so a
     point-symmetric spot carries no window bias); reject candidates smaller than
-    ``min_area_px`` (hot pixels) and merge candidates closer than a quarter pitch; optionally
-    fit a Gaussian; flag partial (``EDGE``), dim and saturated spots.
+    ``min_area_px`` (hot pixels) and merge candidates closer than a quarter pitch; measure
+    the spot size from all clean spots stacked; refine with the window centroid or the
+    Gaussian fit; flag partial (``EDGE``), dim and saturated spots.
+
+    Why the window centroid for small spots. Subtracting a threshold from every pixel and
+    dropping the pixels below it makes the centroid of a pixel-sampled spot depend on where
+    the spot sits on the pixel grid: for 1-5 px spots this bias reaches 0.01-0.02 px, and as
+    a focal-point image's spots step through every sub-pixel phase across the array (a
+    non-integer pitch) it becomes a spurious spot-lattice scale, which the focal-point
+    method reads as an S_i error of up to a millimetre at 405 mm (docs/validation/
+    calibration_study.md). The first moment of all the spot's light has no such bias when
+    the pixel response reproduces linear functions (a bilinear splat, or any optics blur of
+    about half a pixel or more on a pixel-integrating sensor): measured on 1-4 px discs with
+    0-1 px Gaussian blur at ten sub-pixel phases, it stays within 0.0003 px where the
+    thresholded centroid is off by 0.008-0.025 px and a Gaussian fit by 0.002-0.04 px
+    (``benchmarks/bench_spots.py`` prints the table). Its window is soft-edged (a pixel
+    counts by about the fraction of it inside the circle), so the window's own moment follows
+    the estimate smoothly, and a plane fitted to the annulus just outside it removes any
+    background level and slope, which would otherwise pull the estimate.
 
     Measured on the PlenoptiCam reference images with exact centres (``b``, ``c``, ``d``:
     720 x 720 px, pitches 66.7, 13.1 and 7.7 px, about 10 % multiplicative pixel noise), rms
@@ -667,6 +780,7 @@ def detect_spots(
     gaussian  0.047, 0.048 px   0.068, 0.064 px   0.074, 0.074 px   0.265 px
     ========  ================  ================  ================  ======================
 
+    (These micro-images fill their pitch: ``"auto"`` takes the centroid on all four.)
     Both keep the mean bias below 0.01 px. The centroid is as good or better on all of these,
     makes no assumption about the spot profile (a white-image disc is not a Gaussian, hence
     the Gaussian's large residual there) and is about twice as fast, so it is the default.
@@ -730,6 +844,7 @@ def detect_spots(
     cand = np.argwhere(is_max)
     height = smooth[is_max]
     del is_max
+    noise = 0.0
     if background == "local":
         # The box minimum sits a few noise standard deviations below the true background.
         # Candidate heights are measured from the typical level of the smoothed image's local
@@ -754,7 +869,17 @@ def detect_spots(
             "background"
         )
     cand, height = cand[positive], height[positive]
-    strong = height >= detection_threshold * np.percentile(height, 95)
+    # A candidate is a spot when it reaches detection_threshold of the bright spots around it
+    # (the local reference, so that the dim lenslets of a vignetted corner are found), stands
+    # clearly out of the noise of the smoothed image, and is not negligible against the
+    # image's typical spot (1/10 of detection_threshold of it).
+    sigma_smooth = noise / (2.0 * math.sqrt(math.pi) * max(pitch / 6.0, 0.7))
+    ref = _local_reference(cand, height, work.shape, pitch)
+    strong = (
+        (height >= detection_threshold * ref)
+        & (height >= _NOISE_FLOOR * sigma_smooth)
+        & (height >= 0.1 * detection_threshold * np.percentile(height, 95))
+    )
     cand = cand[strong].astype(np.float64)
 
     centres, intensity, area, _peak = _k.centroid_refine_numba(
@@ -778,6 +903,23 @@ def detect_spots(
         centres, intensity, area = centres[~drop], intensity[~drop], area[~drop]
 
     flags = np.zeros(centres.shape[0], dtype=np.uint8)
+    n_rows, n_cols = work.shape
+    interior = ~_edge_mask(centres, radius, (n_rows, n_cols))
+    spot_r, spot_rms = _spot_size(work, centres[interior], pitch)
+    if method == "auto":
+        method = "window" if _window_fits(spot_r, pitch) else "centroid"
+    moment_r, annulus = float("nan"), (float("nan"), float("nan"))
+    if method == "window" and centres.shape[0]:
+        moment_r, annulus = _window_geometry(spot_r, pitch, moment_radius_px)
+        a_in, a_out = (0.0, 0.0) if not np.isfinite(annulus[0]) else annulus
+        refined, _flux, _bg = _k.window_centroid_numba(
+            work, np.ascontiguousarray(centres), moment_r, a_in, a_out, _WINDOW_MAX_ITER,
+            _WINDOW_TOL_PX
+        )
+        good = np.all(np.isfinite(refined), axis=1)
+        good[good] = np.hypot(*(refined[good] - centres[good]).T) < 0.25 * pitch
+        centres[good] = refined[good]
+        flags[~good] |= np.uint8(SpotFlag.FIT_FAILED)
     if method == "gaussian" and centres.shape[0]:
         sigma0 = np.clip(np.sqrt(area / 4.0), 0.5, radius / 2.0)
         params = _k.gaussian_fit_numba(
@@ -789,7 +931,6 @@ def detect_spots(
 
     order = np.lexsort((centres[:, 1], centres[:, 0]))
     centres, intensity, area, flags = centres[order], intensity[order], area[order], flags[order]
-    n_rows, n_cols = work.shape
     flags[_edge_mask(centres, radius, (n_rows, n_cols))] |= np.uint8(SpotFlag.EDGE)
     if sat_level is not None and centres.shape[0]:
         sat_px = np.argwhere(raw == sat_level)
@@ -808,7 +949,106 @@ def detect_spots(
         method=method,
         grid=grid,
         rejected_px=rejected,
+        spot_radius_px=spot_r,
+        spot_rms_radius_px=spot_rms,
+        moment_radius_px=moment_r,
+        annulus_px=annulus,
     )
+
+
+def _local_reference(cand, height, shape, pitch):
+    """Typical height of the bright spots around each candidate.
+
+    Candidates are binned into cells of ``_REFERENCE_CELL`` pitches; a cell's level is the
+    90th percentile of its candidates' heights, and a candidate's reference the highest level
+    among its cell and the eight around it (so a dim lenslet is not its own reference).
+    """
+    cell = _REFERENCE_CELL * pitch
+    n_r = max(int(math.ceil(shape[0] / cell)), 1)
+    n_c = max(int(math.ceil(shape[1] / cell)), 1)
+    ir = np.minimum((cand[:, 0] / cell).astype(np.int64), n_r - 1)
+    ic = np.minimum((cand[:, 1] / cell).astype(np.int64), n_c - 1)
+    key = ir * n_c + ic
+    order = np.argsort(key, kind="stable")
+    k_sorted, h_sorted = key[order], height[order]
+    level = np.zeros(n_r * n_c)
+    starts = np.flatnonzero(np.r_[True, k_sorted[1:] != k_sorted[:-1]])
+    for a, b in zip(starts, np.r_[starts[1:], k_sorted.size], strict=True):
+        level[k_sorted[a]] = np.percentile(h_sorted[a:b], 90)
+    level = ndi.maximum_filter(level.reshape(n_r, n_c), size=3, mode="nearest")
+    return level[ir, ic]
+
+
+def _spot_size(work, centres, pitch):
+    """Radius holding 99 % of a spot's light and its rms radius, px, from the stacked spots.
+
+    The light of every given spot within half a pitch is summed in rings of 0.1 px about its
+    centre. The darkest ring beyond 0.3 pitch is taken as the remaining background per pixel
+    and removed; the radii follow from the cumulative sum. NaN when there are no spots or no
+    light.
+    """
+    if centres.shape[0] == 0:
+        return float("nan"), float("nan")
+    r_max = 0.5 * pitch
+    bin_px = 0.1
+    energy, count = _k.radial_energy_numba(
+        work, np.ascontiguousarray(centres, dtype=np.float64), r_max, bin_px
+    )
+    r = (np.arange(energy.size) + 0.5) * bin_px
+    have = count > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_px = np.where(have, energy / np.where(have, count, 1.0), np.nan)
+    outer = have & (r >= 0.3 * pitch)
+    pedestal = float(np.nanmin(per_px[outer])) if np.any(outer) else 0.0
+    e = np.where(have, energy - pedestal * count, 0.0)
+    total = e.sum()
+    if not total > 0:
+        return float("nan"), float("nan")
+    cum = np.cumsum(e)
+    k = int(np.argmax(cum >= _ENERGY_FRACTION * total))
+    r99 = min((k + 1) * bin_px, r_max)
+    rms = math.sqrt(max(float(np.sum(e * r * r) / total), 0.0))
+    return float(r99), float(rms)
+
+
+def _window_fits(spot_r, pitch):
+    """Whether spots of 99 % radius ``spot_r`` leave room for the window method (``"auto"``).
+
+    The window (``spot_r + 1``) and its 2 px annulus must fit between neighbours
+    (``2 spot_r + 4 <= pitch``), and the spot must be clearly smaller than its cell
+    (``spot_r <= 0.35 pitch``); micro-images that fill the cell (white images, whose 99 %
+    radius is near half the pitch) keep the thresholded centroid.
+    """
+    return bool(np.isfinite(spot_r) and 2.0 * spot_r + 4.0 <= pitch and spot_r <= 0.35 * pitch)
+
+
+def _window_geometry(spot_r, pitch, moment_radius_px):
+    """Window radius and background annulus ``(inner, outer)`` of the window method, px.
+
+    The window reaches 1.75 times the spot's 99 % radius (+ 0.5 px), where room allows, and at
+    least that radius plus 1 px; the annulus lies just outside it,
+    ``_ANNULUS_PX`` wide, and must stay clear of the neighbours' light (their 99 % radius
+    one pitch away); ``(nan, nan)`` when less than a pixel of it fits (then the image's
+    local background stands alone).
+    """
+    if not np.isfinite(spot_r):
+        spot_r = 0.25 * pitch
+    if moment_radius_px is None:
+        rad = max(min(_WINDOW_SCALE * spot_r + 0.5, pitch - spot_r - 0.5 - _ANNULUS_PX - 0.5),
+                  spot_r + _WINDOW_MARGIN_PX)
+    else:
+        rad = float(moment_radius_px)
+        if not (np.isfinite(rad) and 1.0 <= rad <= pitch):
+            raise ValueError(
+                f"moment_radius_px must satisfy 1 <= moment_radius_px <= pitch ({pitch:.2f} px); "
+                f"got {moment_radius_px!r}"
+            )
+    rad = float(min(max(rad, 1.5), 0.5 * pitch)) if moment_radius_px is None else rad
+    inner = rad + 0.5
+    outer = min(inner + _ANNULUS_PX, pitch - spot_r - 0.5)
+    if outer - inner < 1.0:
+        return rad, (float("nan"), float("nan"))
+    return rad, (float(inner), float(outer))
 
 
 def _edge_mask(centres, radius, shape):
@@ -841,6 +1081,13 @@ def _dim_mask(centres, intensity, flags, dim_fraction, k=8):
 # Lattice fitting
 # ----------------------------------------------------------------------------------------------
 
+# Candidate spots: the local reference is taken over cells of this many pitches, and a spot
+# must stand this many standard deviations of the smoothed image's noise above the gaps
+_REFERENCE_CELL = 4.0
+_NOISE_FLOOR = 8.0
+# The phase-bias terms of a lattice fit are kept when their chi-square against their own
+# standard errors exceeds this (a "10 sigma" amplitude)
+_PHASE_CHI2 = 100.0
 _NEIGHBOUR_FACTOR = 1.25  # neighbours: closer than this times the median nearest distance
 _INDEX_TOL = 0.25  # largest fractional-index error of a lattice spot
 
@@ -944,6 +1191,8 @@ def fit_lattice(
     max_missing_fraction=None,
     outlier_threshold_px=None,
     min_size=4,
+    phase_harmonics=0,
+    max_shape_error=0.05,
 ):
     """Index the spots on a regular lattice and fit it by linear least squares.
 
@@ -975,6 +1224,24 @@ def fit_lattice(
         (median-absolute-deviation) residual scale per axis, at least 2 % of the pitch.
     min_size : int
         Smallest accepted lattice, ``min_size x min_size`` lenslets.
+    phase_harmonics : int
+        Fit, together with the lattice, a periodic bias of each measured coordinate against
+        its own sub-pixel phase: ``sum_n a_n sin(2 pi n x) + b_n cos(2 pi n x)``, ``n = 1 ..
+        phase_harmonics``, per axis (0, the default: none). This is the pixel-locking of any
+        centre estimator on spots too sharp for the pixel grid (a pixel-integrating sensor
+        with little optical blur); since the pitch is not a whole number of pixels the spots
+        sample every phase, so the bias is measured and removed from the lattice
+        (``phase_bias_px``). An axis whose spots bunch at a few phases (resultant length of
+        any harmonic above 0.8) gets no correction (its bias is then a constant offset), nor
+        one whose fitted terms do not stand out of their own noise by 10 standard errors
+        (chi-square 100: irregularly placed lenslets, noise), which they would only add to.
+    max_shape_error : float or None
+        The fitted lattice must have the shape of its grid type: a square grid's row step
+        perpendicular to its column step and as long, a hexagonal grid's row step
+        perpendicular, ``sqrt(3) / 2`` of the pitch long, and its odd rows shifted by half a
+        pitch. A departure larger than this fraction (default 5 %; an angle counts in
+        radians) raises :class:`CalibrationError`: a grid type forced on the other kind of
+        array. None skips the check.
 
     Returns
     -------
@@ -1076,7 +1343,7 @@ def fit_lattice(
     frac = np.max(np.abs(q - mn), axis=1)
     flags[(frac >= _INDEX_TOL) & ((flags & SpotFlag.EDGE) == 0)] |= np.uint8(SpotFlag.OFF_LATTICE)
     index = _grid_index(mn, grid, flags)
-    coef, res, _ = _offset_fit(index, pts, grid, (flags & _NOT_FITTED) == 0)
+    coef, res, _, _ = _offset_fit(index, pts, grid, (flags & _NOT_FITTED) == 0)
     if image_shape is not None:
         # a lenslet is also partial when the window around its fitted position leaves the
         # image: a cut spot's measured centre is pulled inwards and can look complete
@@ -1086,8 +1353,11 @@ def fit_lattice(
     index = _normalise_index(index, grid, flags)
 
     # least squares with outlier rejection; duplicates resolved by residual
+    phase_harmonics = int(phase_harmonics)
+    if phase_harmonics < 0:
+        raise ValueError(f"phase_harmonics must be an integer >= 0; got {phase_harmonics!r}")
     fitted = (flags & _NOT_FITTED) == 0
-    coef, res, cov_scale = _offset_fit(index, pts, grid, fitted)
+    coef, res, cov_scale, bias = _offset_fit(index, pts, grid, fitted, phase_harmonics)
     for _ in range(2):
         fitted, flags = _reject(index, res, flags, fitted, d0, outlier_threshold_px)
         if np.count_nonzero(fitted) < need:
@@ -1095,8 +1365,10 @@ def fit_lattice(
                 f"only {np.count_nonzero(fitted)} of {n} spots fit a regular lattice; expected "
                 f"at least {need} ({min_size} x {min_size})"
             )
-        coef, res, cov_scale = _offset_fit(index, pts, grid, fitted)
+        coef, res, cov_scale, bias = _offset_fit(index, pts, grid, fitted, phase_harmonics)
     origin, basis, shift = coef[0], np.stack([coef[1], coef[2]]), _shift(coef, grid)
+    if max_shape_error is not None:
+        _check_shape(grid, basis, shift, float(max_shape_error))
     is_edge = (flags & SpotFlag.EDGE) != 0
 
     extent = index[fitted].max(axis=0) - index[fitted].min(axis=0) + 1
@@ -1125,9 +1397,12 @@ def fit_lattice(
             f"{100 * max_missing_fraction:g} %; missing grid indices {shown}"
         )
 
-    dof = max(int(np.count_nonzero(fitted)) - coef.shape[0], 1)
+    n_par = coef.shape[0] + np.array([2 * phase_harmonics * bool(np.any(bias[:, a]))
+                                      for a in (0, 1)])
+    dof = np.maximum(int(np.count_nonzero(fitted)) - n_par, 1)
     s2 = np.sum(res[fitted] ** 2, axis=0) / dof  # per axis (row, col), px^2
-    std = np.sqrt(np.outer(np.diag(cov_scale), s2))  # rows: origin, e_row, e_col[, shift]
+    # rows: origin, e_row, e_col[, shift]; columns: axis (row, col)
+    std = np.sqrt(np.column_stack([np.diag(cov_scale[a]) * s2[a] for a in (0, 1)]))
     rms = float(np.sqrt(np.mean(np.sum(res[fitted] ** 2, axis=1))))
     return Lattice(
         grid=grid,
@@ -1144,7 +1419,131 @@ def fit_lattice(
         origin_std_px=std[0],
         odd_row_shift_px=shift,
         image_shape=image_shape,
+        phase_bias_px=bias,
     )
+
+
+def _check_shape(grid, basis, shift, tol):
+    """Raise CalibrationError when the fitted lattice does not have its grid type's shape."""
+    e_row, e_col = basis
+    p_col = float(np.hypot(*e_col))
+    p_row = float(np.hypot(*e_row))
+    shear = abs(math.asin(np.clip((e_row @ e_col) / (p_row * p_col), -1.0, 1.0)))
+    other = "hexagonal" if grid == "square" else "square"
+    ratio_expected = 1.0 if grid == "square" else math.sqrt(3.0) / 2.0
+    checks = [
+        ("the angle between its row and column steps departs from 90 degrees by "
+         f"{math.degrees(shear):.1f} degrees", shear, f"{math.degrees(tol):.1f} degrees"),
+        (f"its row spacing is {p_row / p_col:.3f} of its pitch, expected {ratio_expected:.3f}",
+         abs(p_row / (ratio_expected * p_col) - 1.0), f"{100 * tol:g} %"),
+    ]
+    if grid == "hexagonal":
+        dev = float(np.hypot(*(shift - 0.5 * e_col))) / p_col
+        checks.append(
+            (f"its odd rows are shifted by ({shift[0]:.2f}, {shift[1]:.2f}) px, expected half "
+             f"a pitch along its rows ({0.5 * e_col[0]:.2f}, {0.5 * e_col[1]:.2f}) px", dev,
+             f"{100 * tol:g} % of the pitch")
+        )
+    for text, value, limit in checks:
+        if value > tol:
+            raise CalibrationError(
+                f"the spots do not form a {grid} lattice: {text} (at most {limit}, "
+                f"max_shape_error = {tol:g}); is the grid type wrong (a {other} array)?"
+            )
+
+
+def micro_image_diameter(image, centres_px, pitch_px):
+    """Mean diameter (px) of the bright micro-images of a white (full-aperture) image.
+
+    Each is ``2 sqrt(A / pi)``, ``A`` the number of pixels within half a pitch of its centre
+    that are brighter than half its plateau (the median within 0.15 pitch of the centre,
+    at least 1.5 px); only micro-images wholly inside the image count.
+
+    Parameters
+    ----------
+    image : array_like, shape (R, C)
+        Background-subtracted white image.
+    centres_px : array_like, shape (N, 2)
+        Micro-image centres ``(row, col)``, px.
+    pitch_px : float
+        Micro-image pitch, px.
+
+    Raises
+    ------
+    CalibrationError
+        No micro-image lies wholly inside the image.
+    """
+    w = np.asarray(image, float)
+    h = int(math.ceil(pitch_px / 2)) + 1
+    rr, cc = np.mgrid[-h : h + 1, -h : h + 1]
+    core = max(0.15 * pitch_px, 1.5)
+    out = []
+    for r, c in np.asarray(centres_px, float):
+        r0, c0 = int(round(r)), int(round(c))
+        if r0 - h < 0 or c0 - h < 0 or r0 + h >= w.shape[0] or c0 + h >= w.shape[1]:
+            continue
+        patch = w[r0 - h : r0 + h + 1, c0 - h : c0 + h + 1]
+        d = np.hypot(rr + r0 - r, cc + c0 - c)
+        plateau = np.median(patch[d < core])
+        area = np.count_nonzero((patch > 0.5 * plateau) & (d < pitch_px / 2))
+        out.append(2.0 * math.sqrt(area / math.pi))
+    if not out:
+        raise CalibrationError("no complete micro-image to measure its diameter")
+    return float(np.mean(out))
+
+
+MAX_RMS_RESIDUAL_PITCH = 0.015
+MAX_MISSING_FRACTION = 0.05
+
+
+def check_lattice(lattice, *, what="the image", max_rms_residual_pitch=MAX_RMS_RESIDUAL_PITCH,
+                  max_missing_fraction=MAX_MISSING_FRACTION):
+    """Refuse a lattice that says its image is not a calibration image of this camera.
+
+    Parameters
+    ----------
+    lattice : Lattice
+    what : str
+        How the error names the image (e.g. ``"the focal-point image"``).
+    max_rms_residual_pitch : float or None
+        Largest rms lattice residual as a fraction of the pitch (default 1.5 %: 0.25 px at a
+        17 px pitch; focal-point and white images reach 0.001-0.01 of the pitch, a scene or
+        ruler image 0.02 and more). None skips the check.
+    max_missing_fraction : float or None
+        Largest fraction of the lattice positions inside the image that hold no spot
+        (default 5 %). None skips the check.
+
+    Returns
+    -------
+    dict
+        ``lattice.quality``.
+
+    Raises
+    ------
+    CalibrationError
+        Naming the figure, its value and the threshold.
+    """
+    q = lattice.quality
+    hint = ("is it a focal-point, alignment or white image of this camera, not a scene or a "
+            "ruler?")
+    if max_rms_residual_pitch is not None and q["rms_residual_pitch"] > max_rms_residual_pitch:
+        raise CalibrationError(
+            f"{what}: the spots fit a regular {q['grid']} lattice only to "
+            f"{q['rms_residual_px']:.3f} px rms, {100 * q['rms_residual_pitch']:.2f} % of its "
+            f"pitch {float(np.mean(q['pitch_px'])):.2f} px (at most "
+            f"{100 * max_rms_residual_pitch:g} %, max_rms_residual_pitch); {hint}"
+        )
+    if max_missing_fraction is not None and q["missing_fraction"] > max_missing_fraction:
+        shown = ", ".join(f"({i}, {j})" for i, j in lattice.missing_index[:6])
+        more = " ..." if lattice.n_missing > 6 else ""
+        raise CalibrationError(
+            f"{what}: {q['n_missing']} lattice positions inside the image hold no spot, "
+            f"{100 * q['missing_fraction']:.1f} % of them (at most "
+            f"{100 * max_missing_fraction:g} %, max_missing_fraction); grid indices "
+            f"{shown}{more}; {hint} (dark corners outside the lens's image circle: raise "
+            "max_missing_fraction)"
+        )
+    return q
 
 
 def _grid_index(mn, grid, flags):
@@ -1231,17 +1630,56 @@ def _design(index, grid):
     return np.column_stack(cols)
 
 
-def _offset_fit(index, pts, grid, fitted):
-    """Fit ``pts = origin + i e_row + j e_col (+ (i mod 2) shift)`` to the fitted spots.
+def _phase_design(x, harmonics):
+    """Columns ``sin(2 pi n x), cos(2 pi n x)``, ``n = 1 .. harmonics``, of coordinates x."""
+    cols = []
+    for k in range(1, harmonics + 1):
+        cols += [np.sin(2.0 * math.pi * k * x), np.cos(2.0 * math.pi * k * x)]
+    return np.column_stack(cols) if cols else np.zeros((x.shape[0], 0))
+
+
+def _phases_spread(x, harmonics):
+    """Whether coordinates ``x`` sample every sub-pixel phase (no harmonic bunches them)."""
+    return all(
+        abs(np.mean(np.exp(2j * math.pi * k * x))) <= 0.8 for k in range(1, harmonics + 1)
+    )
+
+
+def _offset_fit(index, pts, grid, fitted, harmonics=0):
+    """Fit ``pts = origin + i e_row + j e_col (+ (i mod 2) shift) (+ phase bias)``.
 
     Returns the coefficient rows (origin, e_row, e_col[, odd-row shift]), the residuals of every
-    spot and ``(X^T X)^-1`` for the standard errors.
+    spot (less its phase bias), ``(X^T X)^-1`` of each axis for the standard errors (the
+    lattice block, shape (2, k, k)) and the fitted phase bias of every spot (N, 2; zero
+    without harmonics, or on an axis whose phases bunch).
     """
     x = _design(index, grid)
-    coef, *_ = np.linalg.lstsq(x[fitted], pts[fitted], rcond=None)
-    res = pts - x @ coef
-    cov_scale = np.linalg.inv(x[fitted].T @ x[fitted])
-    return coef, res, cov_scale
+    k = x.shape[1]
+    coef = np.zeros((k, 2))
+    cov_scale = np.zeros((2, k, k))
+    bias = np.zeros(pts.shape)
+    n_fit = int(np.count_nonzero(fitted))
+    for a in (0, 1):
+        xa = x
+        if harmonics and n_fit >= 10 * (k + 2 * harmonics) \
+                and _phases_spread(pts[fitted, a], harmonics):
+            xa = np.column_stack([x, _phase_design(pts[:, a], harmonics)])
+            ca, *_ = np.linalg.lstsq(xa[fitted], pts[fitted, a], rcond=None)
+            inv = np.linalg.inv(xa[fitted].T @ xa[fitted])
+            r = pts[fitted, a] - xa[fitted] @ ca
+            s2 = float(r @ r) / max(n_fit - xa.shape[1], 1)
+            c = ca[k:]
+            # keep the phase terms only when they stand far out of their own noise (a lattice
+            # whose lenslets are irregularly placed would otherwise pass its scatter on)
+            chi2 = float(c @ np.linalg.solve(inv[k:, k:], c)) / s2 if s2 > 0 else np.inf
+            if not chi2 > _PHASE_CHI2:
+                xa = x
+        ca, *_ = np.linalg.lstsq(xa[fitted], pts[fitted, a], rcond=None)
+        coef[:, a] = ca[:k]
+        bias[:, a] = xa[:, k:] @ ca[k:]
+        cov_scale[a] = np.linalg.inv(xa[fitted].T @ xa[fitted])[:k, :k]
+    res = pts - x @ coef - bias
+    return coef, res, cov_scale, bias
 
 
 def _reject(index, res, flags, fitted, d0, outlier_threshold_px):

@@ -13,8 +13,10 @@ Optics, per ray (image space, z towards the sensor, metres):
 3. "physical" back side: glass -> air refraction at the lenslet surface, then an ideal thin
    lenslet; "thesis" back side: the ideal thin lenslet acts on the in-glass direction, which is
    kept down to the sensor (thesis Appendix B);
-4. propagation over f̄ to the sensor and a bilinear splat (the exact area overlap of a
-   one-pixel square footprint with the pixel grid, which keeps the spot's first moments).
+4. propagation over f̄ to the sensor and a splat: bilinear (the exact area overlap of a
+   one-pixel square footprint with the pixel grid, which keeps the spot's first moments;
+   the default) or "pixel" (the whole ray into the pixel it lands in, as a sensor integrates
+   over its pixels), with the image content shifted by a sub-pixel sensor offset.
 
 An ideal thin lens acts on ray slopes: ``m' = m - (h - c)/f`` for a ray meeting the lens at
 height h (lens centre c). This images every point perfectly (stigmatic), at any angle.
@@ -55,7 +57,10 @@ G_RPUPIL = 22     # pupil radius, m
 G_ZINT = 23       # z of the external interface (-l2), m
 G_NEXT = 24       # n1/n2 of the external interface (1: none)
 G_HASEXT = 25     # 1.0: an external interface is present
-G_SIZE = 26
+G_SPLAT = 26      # 0.0: bilinear splat, 1.0: whole ray into its pixel
+G_SHIFTR = 27     # sensor shift: the image content moves by this many pixels along rows
+G_SHIFTC = 28     # ... and along cols
+G_SIZE = 29
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _round(x):
@@ -183,11 +188,19 @@ def trace_image_ray(x0, y0, z0, mx, my, g):
 
 @njit(cache=True, error_model="numpy", fastmath=True)
 def splat(img, sx, sy, w, g):
-    """Add weight ``w`` at sensor position (sx, sy) metres, bilinearly (area of a pixel box)."""
+    """Add weight ``w`` at sensor position (sx, sy) metres: bilinearly (the area of a pixel
+    box around the point; ``g[G_SPLAT] = 0``) or wholly into the pixel that holds the point
+    (``g[G_SPLAT] = 1``), at pixel coordinates shifted by ``(g[G_SHIFTR], g[G_SHIFTC])``."""
     pix = g[G_PIX]
     nr, nc = img.shape
-    col = sx / pix + (g[G_NCOLS] - 1) * 0.5
-    row = sy / pix + (g[G_NROWS] - 1) * 0.5
+    col = sx / pix + (g[G_NCOLS] - 1) * 0.5 + g[G_SHIFTC]
+    row = sy / pix + (g[G_NROWS] - 1) * 0.5 + g[G_SHIFTR]
+    if g[G_SPLAT] > 0.5:
+        ri = int(math.floor(row + 0.5))
+        ci = int(math.floor(col + 0.5))
+        if ri >= 0 and ri < nr and ci >= 0 and ci < nc:
+            img[ri, ci] += w
+        return
     r0 = math.floor(row)
     c0 = math.floor(col)
     fr = row - r0

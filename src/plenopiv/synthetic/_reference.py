@@ -89,8 +89,14 @@ def snell(d, normal, n1, n2):
 def splat(shape, sx, sy, w, g):
     """NumPy twin of :func:`._kernels.splat` for many points: returns the image."""
     img = np.zeros(shape)
-    col = sx / g[K.G_PIX] + (g[K.G_NCOLS] - 1) / 2
-    row = sy / g[K.G_PIX] + (g[K.G_NROWS] - 1) / 2
+    col = sx / g[K.G_PIX] + (g[K.G_NCOLS] - 1) / 2 + g[K.G_SHIFTC]
+    row = sy / g[K.G_PIX] + (g[K.G_NROWS] - 1) / 2 + g[K.G_SHIFTR]
+    w = np.broadcast_to(np.asarray(w, float), np.shape(sx))
+    if g[K.G_SPLAT] > 0.5:
+        rr, cc = np.floor(row + 0.5).astype(int), np.floor(col + 0.5).astype(int)
+        ok = (rr >= 0) & (rr < shape[0]) & (cc >= 0) & (cc < shape[1])
+        np.add.at(img, (rr[ok], cc[ok]), w[ok])
+        return img
     r0, c0 = np.floor(row).astype(int), np.floor(col).astype(int)
     fr, fc = row - r0, col - c0
     for dr, dc, ww in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc),

@@ -24,7 +24,8 @@ from plenopiv.synthetic.tracer import (
 
 def focal_point_image(camera: CameraModel, *, f_number: float | None = None,
                       pupil_across: int = 15, cell_across: int = 2,
-                      progress: Progress = None) -> np.ndarray:
+                      progress: Progress = None, splat: str = "bilinear", psf_px: float = 0.0,
+                      sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
     """Focal-point calibration image: a white sheet seen through the stopped-down lens.
 
     Parameters
@@ -39,6 +40,16 @@ def focal_point_image(camera: CameraModel, *, f_number: float | None = None,
         Samples across each lenslet's cell.
     progress : callable, optional
         Called with the number of lenslets done after each batch.
+    splat : {"bilinear", "pixel"}
+        How a ray lands on the pixels: ``"bilinear"`` (default) shares it among the four
+        nearest pixel centres by area (a one-pixel box around the ray), ``"pixel"`` puts it
+        wholly into the pixel it hits (a sensor integrating over its pixels).
+    psf_px : float
+        Standard deviation of a Gaussian point-spread function, pixels (diffraction, optics),
+        applied before the pixels integrate (default 0: none).
+    sensor_shift_px : (2,) float
+        The sensor sits shifted so that the image content moves by ``(d_row, d_col)``
+        pixels (default none).
 
     Notes
     -----
@@ -53,17 +64,22 @@ def focal_point_image(camera: CameraModel, *, f_number: float | None = None,
     radius = camera.main_lens.focal_length / (f_number or camera.main_lens.f_number) / 2
     pupil = symmetric_disc_points(radius, pupil_across)
     return render_lenslet_bundles(camera, pupil_points=pupil, cell_across=cell_across,
-                                  collimated=False, f_number=f_number, progress=progress)
+                                  collimated=False, f_number=f_number, progress=progress,
+                                  splat=splat, psf_px=psf_px, sensor_shift_px=sensor_shift_px)
 
 
 def alignment_image(camera: CameraModel, *, cell_across: int = 8,
-                    progress: Progress = None) -> np.ndarray:
+                    progress: Progress = None, splat: str = "bilinear", psf_px: float = 0.0,
+                    sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
     """Alignment image: collimated light along the axis, main lens removed (thesis §2.5).
 
-    Each lenslet focuses its share a distance f_l behind it, under its own centre.
+    Each lenslet focuses its share a distance f_l behind it, under its own centre (an ideal
+    lenslet makes that a point: give ``psf_px`` for the diffraction spot of a real one).
+    ``splat``, ``psf_px``, ``sensor_shift_px``: as in :func:`focal_point_image`.
     """
     return render_lenslet_bundles(camera, pupil_points=None, cell_across=cell_across,
-                                  collimated=True, progress=progress)
+                                  collimated=True, progress=progress, splat=splat,
+                                  psf_px=psf_px, sensor_shift_px=sensor_shift_px)
 
 
 def field_of_view(camera: CameraModel, depth: float = 0.0) -> tuple[float, float]:
@@ -110,8 +126,11 @@ class Ruler:
 
 def ruler_image(camera: CameraModel, ruler: Ruler = Ruler(), *, rays_per_lenslet: int = 2000,
                 emitters_per_lenslet: int = 4, f_number: float | None = None, seed: int = 0,
-                progress: Progress = None) -> np.ndarray:
+                progress: Progress = None, splat: str = "bilinear", psf_px: float = 0.0,
+                sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
     """Image of a ruler (:class:`Ruler`) filling the field of view at ``ruler.depth``.
+
+    ``splat``, ``psf_px``, ``sensor_shift_px``: as in :func:`focal_point_image`.
 
     The ruler plane is tiled with small square emitting cells (``emitters_per_lenslet`` per
     lenslet footprint along each axis); each ray starts at a random point of its cell, so the
@@ -133,12 +152,14 @@ def ruler_image(camera: CameraModel, ruler: Ruler = Ruler(), *, rays_per_lenslet
     return render_sources(camera, src, weights, samples=samples, seed=seed,
                           half_size=(cell / 2, cell / 2),
                           ruler=(ruler.spacing, ruler.tick_width, ruler.tick_reflectance),
-                          f_number=f_number, progress=progress)
+                          f_number=f_number, progress=progress, splat=splat, psf_px=psf_px,
+                          sensor_shift_px=sensor_shift_px)
 
 
 def particle_image(camera: CameraModel, positions, intensities=None, *,
                    rays_per_particle: int = 4096, f_number: float | None = None, seed: int = 0,
-                   progress: Progress = None) -> np.ndarray:
+                   progress: Progress = None, splat: str = "bilinear", psf_px: float = 0.0,
+                   sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
     """Image of point particles.
 
     Parameters
@@ -155,6 +176,8 @@ def particle_image(camera: CameraModel, positions, intensities=None, *,
         Overrides the camera's f-number.
     seed : int
         Fixes the aperture jitter; the image does not depend on the thread count.
+    splat, psf_px, sensor_shift_px
+        Rendering choices, as in :func:`focal_point_image`.
 
     Notes
     -----
@@ -182,7 +205,8 @@ def particle_image(camera: CameraModel, positions, intensities=None, *,
         raise ConfigError("a particle lies within one focal length of the main lens "
                           f"(Z <= {(-camera.main_lens.focal_length - camera.focal_plane_z):.4g} m)")
     return render_sources(camera, src, w, samples=rays_per_particle, seed=seed,
-                          f_number=f_number, progress=progress)
+                          f_number=f_number, progress=progress, splat=splat, psf_px=psf_px,
+                          sensor_shift_px=sensor_shift_px)
 
 
 NOISE_MODELS = ("none", "poisson")

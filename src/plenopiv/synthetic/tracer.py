@@ -11,6 +11,7 @@ import math
 from collections.abc import Callable
 
 import numpy as np
+from scipy import ndimage
 
 from plenopiv.camera import CameraModel
 from plenopiv.errors import ConfigError
@@ -20,7 +21,25 @@ from plenopiv.synthetic import _kernels as K
 Progress = Callable[[int], None] | None
 
 
-def geometry_vector(camera: CameraModel, *, f_number: float | None = None) -> np.ndarray:
+SPLATS = ("bilinear", "pixel")
+
+
+def check_render_options(splat: str, psf_px: float, sensor_shift_px) -> tuple[float, float]:
+    """Validate the rendering choices; return the sensor shift as ``(d_row, d_col)`` px."""
+    if splat not in SPLATS:
+        raise ConfigError(f"splat = {splat!r}: expected one of {SPLATS}")
+    if not (math.isfinite(psf_px) and psf_px >= 0):
+        raise ConfigError(f"psf_px = {psf_px!r}: expected a finite number >= 0 (pixels)")
+    shift = np.asarray(sensor_shift_px, dtype=float)
+    if shift.shape != (2,) or not np.all(np.isfinite(shift)):
+        raise ConfigError(f"sensor_shift_px = {sensor_shift_px!r}: expected two finite numbers "
+                          "(d_row, d_col) in pixels")
+    return float(shift[0]), float(shift[1])
+
+
+def geometry_vector(camera: CameraModel, *, f_number: float | None = None,
+                    splat: str = "bilinear", sensor_shift_px=(0.0, 0.0),
+                    supersample: int = 1) -> np.ndarray:
     """Pack the camera into the float64 vector the kernels read (slots ``_kernels.G_*``).
 
     Parameters
@@ -29,7 +48,19 @@ def geometry_vector(camera: CameraModel, *, f_number: float | None = None) -> np
         Must give ``[main_lens] image_distance_mm``.
     f_number : float, optional
         Overrides the main lens f-number (the stop radius is f_m / (2 N)).
+    splat : {"bilinear", "pixel"}
+        How a ray's energy goes onto the pixels (see :mod:`._kernels`).
+    sensor_shift_px : (2,) float
+        The image content moves by ``(d_row, d_col)`` pixels (the sensor shifted the other
+        way under the optics).
+    supersample : int
+        Pixels per sensor pixel along each axis of the grid rendered onto (the finer grid's
+        pixel ``s r + (s - 1) / 2`` is centred on sensor pixel ``r``).
     """
+    d_row, d_col = check_render_options(splat, 0.0, sensor_shift_px)
+    s = int(supersample)
+    if s < 1:
+        raise ValueError(f"supersample = {supersample!r}: expected an integer >= 1")
     mla, lens, sen = camera.microlens_array, camera.main_lens, camera.sensor
     n_f = lens.f_number if f_number is None else float(f_number)
     if not n_f > 0:
@@ -51,9 +82,12 @@ def geometry_vector(camera: CameraModel, *, f_number: float | None = None) -> np
     g[K.G_OFFS], g[K.G_OFFT] = mla.offset
     g[K.G_COSG] = math.cos(mla.rotation)
     g[K.G_SING] = math.sin(mla.rotation)
-    g[K.G_PIX] = sen.pixel_pitch
-    g[K.G_NROWS] = sen.rows
-    g[K.G_NCOLS] = sen.cols
+    g[K.G_PIX] = sen.pixel_pitch / s
+    g[K.G_NROWS] = sen.rows * s
+    g[K.G_NCOLS] = sen.cols * s
+    g[K.G_SPLAT] = 1.0 if splat == "pixel" else 0.0
+    g[K.G_SHIFTR] = d_row * s
+    g[K.G_SHIFTC] = d_col * s
     g[K.G_FM] = lens.focal_length
     g[K.G_E] = lens.exit_pupil_offset
     g[K.G_RPUPIL] = lens.focal_length / n_f / 2.0
@@ -119,9 +153,57 @@ def cell_points(camera: CameraModel, across: int) -> np.ndarray:
 # ---- drivers -------------------------------------------------------------------------------
 
 
-def _accumulators(camera: CameraModel) -> np.ndarray:
-    """One float64 image per parallel chunk, so that threads never write the same pixel."""
-    return np.zeros((K.n_threads(),) + camera.sensor.shape, dtype=np.float64)
+def _accumulators(shape, *, limit_bytes: float | None = None) -> np.ndarray:
+    """One float64 image per parallel chunk, so that threads never write the same pixel.
+
+    ``limit_bytes`` caps the chunks' total memory (at least one chunk); None: one per thread.
+    """
+    n = K.n_threads()
+    if limit_bytes is not None:
+        n = max(1, min(n, int(limit_bytes // (8 * shape[0] * shape[1]))))
+    return np.zeros((n,) + tuple(shape), dtype=np.float64)
+
+
+# memory for the accumulators of a supersampled render (a fine grid is s² times the sensor)
+_SUPERSAMPLE_BYTES = 1.0e9
+# finer-grid pixels per sensor pixel for a "pixel" splat behind a PSF
+_PSF_SUPERSAMPLE = 4
+
+
+class _Render:
+    """The grid a render accumulates on, and how it becomes the sensor image.
+
+    ``splat="bilinear"``: the sensor grid; a PSF is a Gaussian filter of the result (the
+    bilinear splat samples the irradiance blurred by a one-pixel tent, and blurring before
+    or after that leaves every moment the same). ``splat="pixel"`` without a PSF: the sensor
+    grid, each ray into its pixel. ``splat="pixel"`` with a PSF of sigma ``psf_px``: the
+    optics blur comes before the pixels integrate, so the rays are splatted bilinearly on a
+    grid ``_PSF_SUPERSAMPLE`` times finer, blurred there (by sigma reduced by the fine
+    tent's own variance) and summed in blocks onto the sensor pixels.
+    """
+
+    def __init__(self, camera: CameraModel, f_number, splat, psf_px, sensor_shift_px):
+        shift = check_render_options(splat, float(psf_px), sensor_shift_px)
+        self.psf = float(psf_px)
+        self.shape = camera.sensor.shape
+        fine = splat == "pixel" and self.psf > 0
+        self.s = _PSF_SUPERSAMPLE if fine else 1
+        kernel_splat = "bilinear" if fine else splat
+        self.g = geometry_vector(camera, f_number=f_number, splat=kernel_splat,
+                                 sensor_shift_px=shift, supersample=self.s)
+        grid = (self.shape[0] * self.s, self.shape[1] * self.s)
+        self.out = _accumulators(grid, limit_bytes=_SUPERSAMPLE_BYTES if fine else None)
+
+    def image(self) -> np.ndarray:
+        img = _reduce(self.out)
+        s = self.s
+        if s > 1:
+            sigma = math.sqrt(max(self.psf ** 2 - 1.0 / (6.0 * s * s), 0.0)) * s
+            img = ndimage.gaussian_filter(img, sigma, mode="constant", truncate=5.0)
+            img = img.reshape(self.shape[0], s, self.shape[1], s).sum(axis=(1, 3))
+        elif self.psf > 0:
+            img = ndimage.gaussian_filter(img, self.psf, mode="constant", truncate=5.0)
+        return img
 
 
 def _reduce(out: np.ndarray) -> np.ndarray:
@@ -146,38 +228,41 @@ def chief_ray_weights(camera: CameraModel, centres: np.ndarray) -> np.ndarray:
 
 def render_lenslet_bundles(camera: CameraModel, *, pupil_points: np.ndarray | None,
                            cell_across: int, collimated: bool, f_number: float | None = None,
-                           progress: Progress = None, n_batches: int = 32) -> np.ndarray:
+                           progress: Progress = None, n_batches: int = 32,
+                           splat: str = "bilinear", psf_px: float = 0.0,
+                           sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
     """Render a uniform source seen through a stop (or collimated light), lenslet by lenslet.
 
-    Returns the irradiance image (float64, sensor shape).
+    ``splat``, ``psf_px`` and ``sensor_shift_px`` are the rendering choices of
+    :func:`plenopiv.synthetic.images.focal_point_image`. Returns the irradiance image
+    (float64, sensor shape).
     """
-    g = geometry_vector(camera, f_number=f_number)
+    r = _Render(camera, f_number, splat, psf_px, sensor_shift_px)
     centres = camera.microlens_array.centres()
     weights = np.ones(len(centres)) if collimated else chief_ray_weights(camera, centres)
     cells = cell_points(camera, cell_across)
     pupil = np.zeros((1, 2)) if pupil_points is None else np.ascontiguousarray(pupil_points)
-    out = _accumulators(camera)
     for a, b in _batches(len(centres), n_batches):
         K.render_lenslet_bundles(np.ascontiguousarray(centres[a:b]), weights[a:b], cells, pupil,
-                                 collimated, g, out)
+                                 collimated, r.g, r.out)
         if progress is not None:
             progress(b - a)
-    return _reduce(out)
+    return r.image()
 
 
 def render_sources(camera: CameraModel, sources: np.ndarray, weights: np.ndarray, *,
                    samples: int, seed: int, half_size=(0.0, 0.0), ruler=(0.0, 0.0, 1.0),
                    f_number: float | None = None, progress: Progress = None,
-                   n_batches: int = 32) -> np.ndarray:
+                   n_batches: int = 32, splat: str = "bilinear", psf_px: float = 0.0,
+                   sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
     """Render point (or small area) sources given in camera coordinates (N, 3), z < 0."""
-    g = geometry_vector(camera, f_number=f_number)
+    r = _Render(camera, f_number, splat, psf_px, sensor_shift_px)
     src = np.ascontiguousarray(sources, dtype=np.float64)
     w = np.ascontiguousarray(weights, dtype=np.float64)
     hs = np.asarray(half_size, dtype=np.float64)
     rl = np.asarray(ruler, dtype=np.float64)
-    out = _accumulators(camera)
     for a, b in _batches(len(src), n_batches):
-        K.render_sources(src[a:b], w[a:b], hs, int(samples), int(seed), a, rl, g, out)
+        K.render_sources(src[a:b], w[a:b], hs, int(samples), int(seed), a, rl, r.g, r.out)
         if progress is not None:
             progress(b - a)
-    return _reduce(out)
+    return r.image()

@@ -38,6 +38,7 @@ from scipy import ndimage as ndi
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.calibration.spots import Lattice, SpotFlag, detect_spots, fit_lattice
+from plenopiv.calibration.spots import micro_image_diameter as _micro_image_diameter
 from plenopiv.camera import camera_from_dict
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
@@ -301,27 +302,9 @@ class WhiteCalibration:
 
 
 def micro_image_diameter(white, spots_px, pitch_px: float) -> float:
-    """Measure the mean diameter (px) of the bright micro-images.
-
-    Each is 2 sqrt(A/π), A the area above half its plateau (the median within 8 px of its
-    centre) inside half a pitch; only micro-images wholly inside the image count.
-    """
-    w = np.asarray(white, float)
-    h = int(math.ceil(pitch_px / 2)) + 1
-    rr, cc = np.mgrid[-h:h + 1, -h:h + 1]
-    out = []
-    for r, c in np.asarray(spots_px, float):
-        r0, c0 = int(round(r)), int(round(c))
-        if r0 - h < 0 or c0 - h < 0 or r0 + h >= w.shape[0] or c0 + h >= w.shape[1]:
-            continue
-        patch = w[r0 - h:r0 + h + 1, c0 - h:c0 + h + 1]
-        d = np.hypot(rr + r0 - r, cc + c0 - c)
-        plateau = np.median(patch[d < 8])
-        area = np.count_nonzero((patch > 0.5 * plateau) & (d < pitch_px / 2))
-        out.append(2.0 * math.sqrt(area / math.pi))
-    if not out:
-        raise CalibrationError("no complete micro-image to measure its diameter")
-    return float(np.mean(out))
+    """Mean diameter (px) of the bright micro-images
+    (:func:`plenopiv.calibration.spots.micro_image_diameter`)."""
+    return _micro_image_diameter(white, spots_px, pitch_px)
 
 
 def calibrate_white(data: LettersData) -> WhiteCalibration:
@@ -362,7 +345,8 @@ def calibrate_white(data: LettersData) -> WhiteCalibration:
                       image_distance=s_pitch, method="white image",
                       rotation=lat.rotation_rad, rms_residual_px=lat.rms_residual_px,
                       extra={"pitch_px": pitch.tolist(), "k": k,
-                             "image_distance_nominal_m": opt["mla_z"]})
+                             "image_distance_nominal_m": opt["mla_z"],
+                             "micro_image_diameter_px": disc})
     return WhiteCalibration(calibration=cal, lattice=lat, pitch_px=pitch, scale=k,
                             image_distance=s_pitch, image_distance_nominal=opt["mla_z"],
                             disc_diameter_px=disc, pupil_diameter=disc * pp / (k - 1.0),
