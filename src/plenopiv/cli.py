@@ -248,10 +248,14 @@ def cmd_reconstruct(args) -> dict:
             bar.set_description(stage)
             bar.n = int(100 * fraction)
             bar.refresh()
+        from plenopiv.masks import image_mask
+
         cache = exp.output.weights_cache
         res = reconstruct_volume(cal, img, exp.volume, settings=exp.reconstruction,
                                  particles=exp.particles, progress=progress,
-                                 cache_dir=(exp.path(cache) if cache else None))
+                                 cache_dir=(exp.path(cache) if cache else None),
+                                 image_mask=image_mask(exp.mask, cal.camera.sensor.shape,
+                                                       exp.base_dir))
     res.save(out, config={**exp.to_dict(), "calibration": str(args.calibration),
                           "image": str(args.image)})
     summary = {"command": "reconstruct", "out": str(out), "shape": list(res.volume.shape),
@@ -284,21 +288,34 @@ def cmd_piv(args) -> dict:
         raise ConfigError(f"--dt {args.dt}: expected a positive time in seconds")
     t0 = time.perf_counter()
     va, vb = load_volume(args.volume_a), load_volume(args.volume_b)
-    cfg = PIVConfig() if args.config is None else _experiment(args.config).piv
+    mask = None
+    if args.config is None:
+        cfg = PIVConfig()
+    else:
+        from plenopiv.masks import volume_mask
+
+        exp = _experiment(args.config)
+        cfg = exp.piv
+        mask = volume_mask(exp.mask, va.grid, exp.base_dir)
     if args.windows:
         cfg = cfg.model_copy(update={"windows": [tuple(w) for w in args.windows]})
-    vec = correlate(va, vb, piv_settings(cfg), dt=args.dt)
+    if args.replacement:
+        cfg = cfg.model_copy(update={"replacement": args.replacement})
+    # without the calibration and images there is no round trip: correlation statistics only
+    vec = correlate(va, vb, piv_settings(cfg), dt=args.dt, mask=mask)
     files = vec.save(out, config={"piv": cfg.model_dump(), "volume_a": str(args.volume_a),
                                   "volume_b": str(args.volume_b), "dt_s": args.dt},
                      vtk=not args.no_vtk, extra_attrs={"complete": True})
     summary = {"command": "piv", "out": str(out), "shape": list(vec.u.shape),
                "valid_fraction": float(np.mean(vec.valid)), "n_replaced": vec.n_replaced,
                "quantity": "displacement" if args.dt is None else "velocity",
+               "uncertainty_method": vec.uncertainty_method,
                "files": [str(f) for f in files]}
     if not args.no_png:
         from plenopiv.plots import vector_slices
 
-        summary["png"] = str(vector_slices(vec, out.with_suffix(".png")))
+        title = f"{Path(args.volume_a).name} -> {Path(args.volume_b).name}"
+        summary["png"] = str(vector_slices(vec, out.with_suffix(".png"), title=title))
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     return summary
 
@@ -346,6 +363,10 @@ def cmd_validate(args) -> dict:
         from plenopiv.validation.field_quality import run
 
         out = run(args.out)
+    elif case == "uncertainty":
+        from plenopiv.validation.uncertainty_study import run
+
+        out = run(args.out, progress=lambda _msg: None)
     else:  # argparse restricts the choices
         raise ConfigError(f"validate {case!r}: unknown case")
     return {"command": f"validate {case}", "out": str(args.out), **out,
@@ -495,6 +516,9 @@ def build_parser() -> argparse.ArgumentParser:
     piv.add_argument("--config", help="experiment TOML whose [piv] table to use")
     piv.add_argument("--windows", type=int, nargs=3, action="append", metavar=("WZ", "WY", "WX"),
                      help="window per pass in voxels (repeat for several passes)")
+    piv.add_argument("--replacement", choices=("median", "mean", "none"), default=None,
+                     help="rejected vectors: replaced by the local median or mean, or left NaN "
+                          "(default: [piv] replacement of --config, else median)")
     piv.add_argument("--no-vtk", action="store_true", help="no .vti file for ParaView")
     piv.add_argument("--no-png", action="store_true", help="no PNG of vector slices")
     _add_common(piv)
@@ -511,11 +535,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     val = sub.add_parser("validate", help="validation studies (thesis figures, vortex flows)")
     val.add_argument("case", choices=("oseen", "hill", "vortex", "calibration", "depth",
-                                      "fields", "letters"),
+                                      "fields", "letters", "uncertainty"),
                      help="oseen/hill: whole chain on a vortex; vortex: both against flow "
                           "size and voxel; calibration: Figs 3.8, 3.9, 5.5; depth: Tables "
                           "5.1, 5.2; fields: particle-field quality; letters: light field on "
-                          "the real plenoptomos image")
+                          "the real plenoptomos image; uncertainty: coverage of the per-vector "
+                          "uncertainty on the vortex flows")
     val.add_argument("--out", required=True, help="output folder")
     val.add_argument("--camera", default="small_m1", help="camera for oseen/hill")
     val.add_argument("--particles-per-lenslet", type=float, default=0.15)

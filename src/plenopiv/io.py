@@ -219,7 +219,7 @@ def to_json(obj: Any) -> str:
 def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
              attrs: dict[str, Any] | None = None, units: dict[str, str] | None = None,
              config: dict | None = None, kind: str = "product",
-             compress: bool = True) -> Path:
+             compress: bool = True, finish=None) -> Path:
     """Write an HDF5 product atomically.
 
     Parameters
@@ -234,6 +234,9 @@ def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
         The resolved configuration, stored as JSON in the root attribute ``config``.
     compress : bool
         gzip the larger datasets (off for caches that must load fast).
+    finish : callable, optional
+        ``finish(h5py.File)``, called on the open temporary file after the datasets are
+        written (e.g. to attach dimension scales), so that the renamed file is complete.
     """
     p = Path(path)
     with atomic_path(p) as tmp:
@@ -252,4 +255,6 @@ def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
                 ds = fh.create_dataset(name, data=a, **kw)
                 if units and name in units:
                     ds.attrs["units"] = units[name]
+            if finish is not None:
+                finish(fh)
     return p
