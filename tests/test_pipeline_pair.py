@@ -34,11 +34,11 @@ def pair_products(tmp_path_factory):
                      output=OutputConfig(directory=str(out), weights_cache=""), base_dir=out)
     res = process_pair(cal, pair.image_a, pair.image_b, exp)
     paths = save_pair(res, out, "p", exp)
-    return res, paths, shift, grid
+    return res, paths, shift, grid, (cal, pair, exp)
 
 
 def test_uniform_shift_is_measured(pair_products):
-    res, _, shift, grid = pair_products
+    res, _, shift, grid, _ = pair_products
     vec = res.vectors
     ok = vec.valid
     assert ok.mean() > 0.5
@@ -52,7 +52,7 @@ def test_uniform_shift_is_measured(pair_products):
 def test_vectors_product_opens_in_xarray_and_paraview(pair_products):
     import xarray as xr   # a test dependency (pyproject [test]), with h5netcdf
 
-    _, paths, shift, _ = pair_products
+    _, paths, shift, _, _ = pair_products
     ds = xr.open_dataset(paths["vectors"], engine="h5netcdf", phony_dims="access")
     assert set(ds["u"].dims) == {"z", "y", "x"}
     assert ds["u"].attrs["units"] == "m s-1" and ds.attrs["quantity"] == "velocity"
@@ -66,7 +66,7 @@ def test_vectors_product_opens_in_xarray_and_paraview(pair_products):
 
 
 def test_piv_cli_on_volume_products(pair_products, tmp_path, capsys):
-    _, paths, shift, _ = pair_products
+    _, paths, shift, _, _ = pair_products
     out = tmp_path / "v.h5"
     code = main(["piv", paths["volume_A"], paths["volume_B"], "--out", str(out),
                  "--windows", "16", "16", "16", "--json", "--no-png"])
@@ -123,3 +123,99 @@ def test_plenopiv_run_batch_with_resume(tmp_path, capsys):
     assert err.startswith("error: 1 of 3 pairs failed: run_3 (")
     assert s["error"].startswith("1 of 3 pairs failed") and s["exit_status"] == 1
     assert sorted(s["skipped"]) == ["run_1", "run_2"] and s["failed"][0]["name"] == "run_3"
+
+def test_vectors_product_quality_and_uncertainty(pair_products):
+    """Per-vector uncertainty (units of u) and quality in the HDF5 (xarray) and the .vti."""
+    import xarray as xr
+
+    res, paths, _, _, _ = pair_products
+    with xr.open_dataset(paths["vectors"], engine="h5netcdf", phony_dims="access") as ds:
+        for name in ("u_uncertainty", "v_uncertainty", "w_uncertainty", "peak_ratio",
+                     "peak_height", "flag", "replaced", "valid"):
+            assert ds[name].dims == ("z", "y", "x"), name
+        for c in "uvw":
+            assert ds[f"{c}_uncertainty"].attrs["units"] == ds[c].attrs["units"] == "m s-1"
+            sig = ds[f"{c}_uncertainty"].values
+            assert np.all(np.isfinite(sig[ds["valid"].values == 1])) and np.all(sig >= 0)
+            # the product holds velocities: the uncertainty of the displacement over dt
+            np.testing.assert_allclose(sig, getattr(res.vectors, f"{c}_uncertainty") / 1e-3,
+                                       rtol=1e-5)
+        assert np.all(ds["peak_ratio"].values >= 1) and ds["peak_ratio"].attrs["units"] == "1"
+        np.testing.assert_array_equal(ds["peak_ratio"].values, ds["snr"].values)
+        assert np.all(ds["peak_height"].values <= 1.0)
+        assert ds.attrs["uncertainty_method"] == "response"
+        assert np.array_equal(ds["flag"].values == 0, ds["valid"].values == 1)
+    text = open(paths["vtk"], "rb").read()
+    for name in (b"velocity", b"u_uncertainty", b"w_uncertainty", b"peak_ratio",
+                 b"peak_height", b"flag", b"replaced", b"valid"):
+        assert b'Name="' + name + b'"' in text, name
+
+
+def test_volume_product_opens_in_xarray_with_coordinates(pair_products):
+    import xarray as xr
+
+    res, paths, _, grid, _ = pair_products
+    with xr.open_dataset(paths["volume_A"], engine="h5netcdf", phony_dims="access") as ds:
+        assert ds["volume"].dims == ("z", "y", "x")
+        for axis in "xyz":
+            assert axis in ds.coords and ds[axis].attrs["units"] == "m"
+        np.testing.assert_allclose(ds["x"].values, grid.x)
+        np.testing.assert_allclose(ds["z"].values, res.volume_a.z_corrected)
+        assert ds["volume"].attrs["units"] == "1" and "image counts" in ds["volume"].attrs[
+            "long_name"]
+        assert ds["z_effective"].dims == ("z",)
+        # selecting by coordinate works as a user expects
+        assert ds["volume"].sel(z=0.0, method="nearest").shape == (grid.shape[1], grid.shape[2])
+    with xr.open_dataset(paths["volume_A"], engine="h5netcdf", phony_dims="access",
+                         group="particles") as p:
+        assert p["intensity"].attrs["units"] == "1"
+        assert p["position_m"].attrs["units"] == "m"
+
+
+def test_calibration_grid_index_has_units(tmp_path):
+    import h5py
+
+    from plenopiv.camera import load_camera
+
+    path = Calibration.from_camera(load_camera("small_m1")).save(tmp_path / "cal.h5")
+    with h5py.File(path) as fh:
+        assert fh["/lenslets/grid_index"].attrs["units"] == "1"
+
+
+def test_masked_vectors_in_the_pair_pipeline(pair_products):
+    """A [mask] box over part of the volume: its vectors are NaN and flagged masked."""
+    from dataclasses import replace
+
+    from plenopiv.config import BoxMask, MaskConfig
+    from plenopiv.piv import FLAG_MASKED
+
+    _, _, shift, grid, (cal, pair, exp) = pair_products
+    b = grid.bounds * 1e3
+    box = BoxMask(x_mm=(0.0, b[0, 1]), y_mm=tuple(b[1]), z_mm=tuple(b[2]))
+    exp = replace(exp, mask=MaskConfig(box=[box]),
+                  piv=exp.piv.model_copy(update={"uncertainty": "correlation"}))
+    vec = process_pair(cal, pair.image_a, pair.image_b, exp).vectors
+    masked = vec.x[None, None, :] >= -grid.voxel[0] / 2 + np.zeros(vec.u.shape)
+    assert masked.any() and (~masked).any()
+    assert np.all((vec.flag[masked] & FLAG_MASKED) != 0)
+    assert np.all(np.isnan(vec.u[masked])) and not vec.valid[masked].any()
+    assert np.all(np.isnan(vec.u_uncertainty[masked]))
+    assert np.all(vec.flag[~masked] & FLAG_MASKED == 0)
+    assert vec.uncertainty_method == "correlation"
+
+
+def test_piv_cli_leaves_rejected_vectors_nan(pair_products, tmp_path, capsys):
+    import h5py
+
+    _, paths, _, _, _ = pair_products
+    out = tmp_path / "none.h5"
+    code = main(["piv", paths["volume_A"], paths["volume_B"], "--out", str(out),
+                 "--windows", "12", "12", "12", "--replacement", "none", "--json", "--no-png",
+                 "--no-vtk"])
+    s = json.loads(capsys.readouterr().out)
+    assert code == 0 and s["uncertainty_method"] == "correlation" and s["n_replaced"] == 0
+    with h5py.File(out) as fh:
+        valid = fh["valid"][()] == 1
+        assert np.all(np.isnan(fh["u"][()][~valid])) and np.all(np.isfinite(fh["u"][()][valid]))
+        assert np.all(fh["replaced"][()] == 0) and np.all(fh["flag"][()][~valid] > 0)
+        assert fh.attrs["uncertainty_method"] == "correlation"

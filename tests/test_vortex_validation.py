@@ -56,6 +56,28 @@ def test_hill_depth_target_and_no_bias(hill):
     assert np.all(np.abs(hill["bias_vox"]) <= 0.1)
 
 
+def test_uncertainty_covers_the_true_errors(oseen, hill):
+    """Per-vector uncertainty (correlation statistics + last correction + the chain's measured
+    response): most true errors within +-2 sigma in every component, where the correlation
+    statistics alone leave 31-62 % of the depth errors outside (docs/validation/uncertainty.md).
+    """
+    for e in (oseen, hill):
+        cov = np.asarray(e["coverage_2sigma"])
+        assert np.all(cov >= 0.8) and np.all(cov <= 1.0), cov
+        assert np.mean(cov) >= 0.9
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "measured on the CI camera: Oseen (half-footprint voxels) u, v, w = 94, 100, 85 %; Hill "
+    "(footprint voxels) 88, 99, 100 %. The v of Oseen (no motion along y) is over-covered, "
+    "the near-focus depth error of Oseen and the lateral error of the under-resolved Hill "
+    "vortex are under-covered; docs/validation/uncertainty.md has all ten cases"))
+def test_uncertainty_coverage_in_the_band_on_the_ci_camera(oseen, hill):
+    for e in (oseen, hill):
+        cov = np.asarray(e["coverage_2sigma"])
+        assert np.all((cov >= 0.90) & (cov <= 0.98)), cov
+
+
 @pytest.mark.xfail(strict=True, reason=(
     "measured 0.45 voxel in x: on the CI camera the sphere (radius 1.7 mm) spans about two "
     "12-voxel windows, and PIV of the exact particle volumes already errs by 0.28 voxel; "

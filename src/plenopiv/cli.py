@@ -453,12 +453,16 @@ def cmd_reconstruct(args) -> dict:
     check_grid(exp.volume)
     img = read_image(args.image)
     t0 = time.perf_counter()
+    from plenopiv.masks import image_mask
+
     stages = {"weights": 30, "mart": 60, "particles": 10}
     with _StageBar("reconstruct", stages, args.quiet or args.json) as progress:
         cache = exp.output.weights_cache
         res = reconstruct_volume(cal, img, exp.volume, settings=exp.reconstruction,
                                  particles=exp.particles, progress=progress,
-                                 cache_dir=(exp.path(cache) if cache else None))
+                                 cache_dir=(exp.path(cache) if cache else None),
+                                 image_mask=image_mask(exp.mask, cal.camera.sensor.shape,
+                                                       exp.base_dir))
     res.save(out, config={**exp.to_dict(), "calibration": str(args.calibration),
                           "image": str(args.image)})
     summary = {"command": "reconstruct", "out": str(out), "shape": list(res.volume.shape),
@@ -495,15 +499,24 @@ def cmd_piv(args) -> dict:
     inputs = _input_files(args.volume_a, args.volume_b, args.config)
     beside = (() if args.no_vtk else (".vti",)) + (() if args.no_png else (".png",))
     out = _check_out(args.out, (".h5",), inputs=inputs, beside=beside)
-    cfg = PIVConfig() if args.config is None else _experiment(args.config).piv
+    exp = None if args.config is None else _experiment(args.config)
+    cfg = PIVConfig() if exp is None else exp.piv
     if args.windows:
         cfg = cfg.model_copy(update={"windows": [tuple(w) for w in args.windows]})
+    if args.replacement:
+        cfg = cfg.model_copy(update={"replacement": args.replacement})
     settings = piv_settings(cfg)
     t0 = time.perf_counter()
     va, vb = load_volume(args.volume_a), load_volume(args.volume_b)
+    mask = None
+    if exp is not None:
+        from plenopiv.masks import volume_mask
+
+        mask = volume_mask(exp.mask, va.grid, exp.base_dir)
+    # without the calibration and images there is no round trip: correlation statistics only
     with _StageBar("piv", {"piv": 1}, args.quiet or args.json) as bar:
         bar("piv")
-        vec = correlate(va, vb, settings, dt=args.dt, progress=lambda info: bar(
+        vec = correlate(va, vb, settings, dt=args.dt, mask=mask, progress=lambda info: bar(
             f"piv pass {info['pass']}/{info['passes']}", info["pass"] / info["passes"]))
     files = vec.save(out, config={"piv": cfg.model_dump(), "volume_a": str(args.volume_a),
                                   "volume_b": str(args.volume_b), "dt_s": args.dt},
@@ -511,11 +524,13 @@ def cmd_piv(args) -> dict:
     summary = {"command": "piv", "out": str(out), "shape": list(vec.u.shape),
                "valid_fraction": float(np.mean(vec.valid)), "n_replaced": vec.n_replaced,
                "quantity": "displacement" if args.dt is None else "velocity",
+               "uncertainty_method": vec.uncertainty_method,
                "files": [str(f) for f in files]}
     if not args.no_png:
         from plenopiv.plots import vector_slices
 
-        summary["png"] = str(vector_slices(vec, out.with_suffix(".png")))
+        title = f"{Path(args.volume_a).name} -> {Path(args.volume_b).name}"
+        summary["png"] = str(vector_slices(vec, out.with_suffix(".png"), title=title))
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     return summary
 
@@ -758,6 +773,10 @@ def cmd_validate(args) -> dict:
         from plenopiv.validation.field_quality import run
 
         out = run(args.out)
+    elif case == "uncertainty":
+        from plenopiv.validation.uncertainty_study import run
+
+        out = run(args.out, progress=lambda _msg: None)
     else:  # argparse restricts the choices
         raise ConfigError(f"validate {case!r}: unknown case")
     return {"command": f"validate {case}", "out": str(args.out), **out,
@@ -997,6 +1016,9 @@ def build_parser() -> argparse.ArgumentParser:
     piv.add_argument("--config", help="experiment TOML whose [piv] table to use")
     piv.add_argument("--windows", type=int, nargs=3, action="append", metavar=("WZ", "WY", "WX"),
                      help="window per pass in voxels (repeat for several passes)")
+    piv.add_argument("--replacement", choices=("median", "mean", "none"), default=None,
+                     help="rejected vectors: replaced by the local median or mean, or left NaN "
+                          "(default: [piv] replacement of --config, else median)")
     piv.add_argument("--no-vtk", action="store_true", help="no .vti file for ParaView")
     piv.add_argument("--no-png", action="store_true", help="no PNG of vector slices")
     _add_common(piv)
@@ -1053,11 +1075,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     val = sub.add_parser("validate", help="validation studies (thesis figures, vortex flows)")
     val.add_argument("case", choices=("oseen", "hill", "vortex", "calibration", "depth",
-                                      "fields", "letters"),
+                                      "fields", "letters", "uncertainty"),
                      help="oseen/hill: whole chain on a vortex; vortex: both against flow "
                           "size and voxel; calibration: Figs 3.8, 3.9, 5.5; depth: Tables "
                           "5.1, 5.2; fields: particle-field quality; letters: light field on "
-                          "the real plenoptomos image")
+                          "the real plenoptomos image; uncertainty: coverage of the per-vector "
+                          "uncertainty on the vortex flows")
     val.add_argument("--out", required=True, help="output folder")
     val.add_argument("--data", metavar="DIR",
                      help="letters: the third-party data folder holding "

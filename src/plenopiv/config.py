@@ -111,13 +111,76 @@ class ParticleSettings(_Strict):
 
 
 class PIVConfig(_Strict):
-    """``[piv]``: cross-correlation (windows in voxels ``[z, y, x]`` per pass)."""
+    """``[piv]``: cross-correlation (windows in voxels ``[z, y, x]`` per pass).
+
+    replacement : what becomes of the vectors rejected by the normalised median test (or
+        with empty windows) after the last pass: "median" (default: the median of their
+        3x3x3 neighbours), "mean" (their mean) or "none" (left NaN; ``valid`` is false).
+    uncertainty : "response" (default: correlation statistics plus the chain's measured
+        response, from a round trip through the weights; two more reconstructions per
+        pair) | "correlation" (correlation statistics only, faster, under-estimates the
+        depth uncertainty near focus; see docs/validation/uncertainty.md).
+    """
 
     windows: list[tuple[int, int, int]] = Field([(24, 16, 16), (16, 12, 12)], min_length=1)
     overlap: float = Field(0.5, ge=0, lt=1)
     passes: int | None = Field(3, ge=1, le=100)
     deformation: bool = True
     median_threshold: float = Field(2.0, gt=0)
+    replacement: Literal["median", "mean", "none"] = "median"
+    uncertainty: Literal["response", "correlation"] = "response"
+
+
+class BoxMask(_Strict):
+    """One ``[[mask.box]]``: a box in volume coordinates (mm, those of ``[volume]``).
+
+    masked : "inside" (default: the box is a body in the flow) | "outside" (the flow is
+        inside the box; everything else is masked).
+    """
+
+    x_mm: tuple[float, float]
+    y_mm: tuple[float, float]
+    z_mm: tuple[float, float]
+    masked: Literal["inside", "outside"] = "inside"
+
+
+class CylinderMask(_Strict):
+    """One ``[[mask.cylinder]]``: a circular cylinder along a volume axis (mm).
+
+    axis : "x" | "y" | "z", the cylinder's axis.
+    centre_mm : position of the axis in the two other coordinates, in x, y, z order
+        (axis "y": ``[x, z]``; axis "x": ``[y, z]``; axis "z": ``[x, y]``).
+    radius_mm : radius (> 0).
+    length_mm : ``[lo, hi]`` extent along the axis (default: unbounded).
+    masked : "inside" (default: a cylinder in the flow) | "outside" (a pipe: the flow is
+        inside).
+    """
+
+    axis: Literal["x", "y", "z"]
+    centre_mm: tuple[float, float]
+    radius_mm: float = Field(gt=0, allow_inf_nan=False)
+    length_mm: tuple[float, float] | None = None
+    masked: Literal["inside", "outside"] = "inside"
+
+
+class MaskConfig(_Strict):
+    """``[mask]``: what to leave out.
+
+    image : a boolean image of the sensor's shape (TIFF, PNG, ``.npy`` or ``file.h5:/path``,
+        relative to the experiment file): non-zero pixels (reflections, a model in the view)
+        are left out of the reconstruction (their rows of the system are dropped; they are
+        not taken as dark).
+    volume : a boolean array of the ``[volume]`` grid's shape ``[nz, ny, nx]`` (``.npy`` or
+        ``file.h5:/path``): true voxels are outside the flow.
+    box, cylinder : geometric volume masks (``[[mask.box]]``, ``[[mask.cylinder]]``), added
+        to ``volume``. Masked voxels are zeroed before the PIV; a vector whose window centre
+        is masked is NaN, not valid and flagged (``/flag`` bit 4).
+    """
+
+    image: str | None = None
+    volume: str | None = None
+    box: list[BoxMask] = []
+    cylinder: list[CylinderMask] = []
 
     @field_validator("windows")
     @classmethod
@@ -217,6 +280,7 @@ class _ExperimentCfg(_Strict):
     batch: BatchConfig = BatchConfig()
     output: OutputConfig = OutputConfig()
     tracking: TrackingConfig = TrackingConfig()
+    mask: MaskConfig = MaskConfig()
 
 
 @dataclass(frozen=True)
@@ -234,6 +298,7 @@ class Experiment:
     base_dir: Path = Path(".")
     source: dict = field(default_factory=dict, compare=False, repr=False)
     tracking: TrackingConfig = TrackingConfig()
+    mask: MaskConfig = MaskConfig()
 
     def path(self, relative: str | None) -> Path | None:
         """Return a path of the config, resolved against the experiment file's folder."""
@@ -248,7 +313,8 @@ class Experiment:
                 "reconstruction": self.reconstruction.model_dump(),
                 "particles": self.particles.model_dump(), "piv": self.piv.model_dump(),
                 "images": self.images.model_dump(), "batch": self.batch.model_dump(),
-                "output": self.output.model_dump(), "tracking": self.tracking.model_dump()}
+                "output": self.output.model_dump(), "tracking": self.tracking.model_dump(),
+                "mask": self.mask.model_dump()}
 
 
 def experiment_from_dict(cfg: dict, *, base_dir: Path = Path("."),
@@ -266,7 +332,7 @@ def experiment_from_dict(cfg: dict, *, base_dir: Path = Path("."),
         camera = load_camera(cand if cand.exists() else c.camera)
     grid = volume_from_dict(c.volume, source=source)
     return Experiment(camera, grid, c.reconstruction, c.particles, c.piv, c.images, c.batch,
-                      c.output, base_dir, cfg, tracking=c.tracking)
+                      c.output, base_dir, cfg, tracking=c.tracking, mask=c.mask)
 
 
 def load_experiment(path: str | Path) -> Experiment:

@@ -81,12 +81,16 @@ class VolumeResult:
               "/particles/size_m": self.particle_size}
         units = {k: "m" for k in ("/x", "/y", "/z", "/z_effective", "/particles/position_m",
                                   "/particles/position_effective_m", "/particles/size_m")}
+        # the voxel values are light energies in image counts (W E = I, with W the fraction
+        # of a voxel's light reaching each pixel): dimensionless in SI
+        units.update({"/volume": "1", "/particles/intensity": "1"})
         attrs = {"n_particles": len(self.particle_position), "voxel_m": np.array(self.grid.voxel),
                  "depth_correction_scale": self.correction.scale,
                  "depth_correction_external": self.correction.external,
                  "depth_correction_internal": self.correction.internal,
-                 "volume_axes": "z, y, x", **(extra_attrs or {})}
-        return write_h5(path, ds, attrs=attrs, units=units, config=config, kind="volume")
+                 "volume_axes": "z, y, x", "Conventions": "CF-1.8", **(extra_attrs or {})}
+        return write_h5(path, ds, attrs=attrs, units=units, config=config, kind="volume",
+                        finalize=_cf_volume)
 
 
 def load_volume(path: str | Path) -> VolumeResult:
@@ -180,7 +184,7 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
                        settings: ReconstructionSettings = ReconstructionSettings(),
                        particles: ParticleSettings = ParticleSettings(),
                        weights: Weights | None = None, cache_dir: str | Path | None = None,
-                       progress: Progress = None) -> VolumeResult:
+                       progress: Progress = None, image_mask=None) -> VolumeResult:
     """Reconstruct one image into a volume and extract its particles.
 
     Parameters
@@ -196,6 +200,10 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         Weight cache folder (used when ``weights`` is not given).
     progress : callable, optional
         ``progress(stage, fraction)`` for long stages.
+    image_mask : (rows, cols) bool array, optional
+        Pixels to ignore (True): their rows of the system are dropped, so they count neither
+        as light nor as dark (a reflection, a model in the view). The dark threshold is taken
+        from the unmasked pixels. See :mod:`plenopiv.masks`.
     """
     from plenopiv.resources import check_grid
 
@@ -217,11 +225,23 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t["weights_s"] = time.perf_counter() - t0
     proj, row_scale = weights.normalised
     raw = weights.image_vector(img)
-    threshold = settings.pixel_threshold * float(img.max())
+    usable_rows = np.ones(raw.shape, dtype=bool)
+    peak_value = float(img.max())
+    if image_mask is not None:
+        m = np.asarray(image_mask, dtype=bool)
+        if m.shape != img.shape:
+            raise ReconstructionError(f"image mask has shape {m.shape}: expected the image's "
+                                      f"{img.shape} (rows, cols)")
+        usable_rows = ~weights.image_vector(m.astype(np.float32)).astype(bool)
+        if not (~m).any():
+            raise ReconstructionError("the image mask masks every pixel")
+        peak_value = float(img[~m].max())
+    threshold = settings.pixel_threshold * peak_value
     # rows that barely touch the volume (their beam mostly passes beside it) would claim the
     # light of particles outside the volume: leave them out
     nonempty = weights.row_max > 0
     touching = nonempty & (row_scale >= 0.25 * float(np.percentile(row_scale[nonempty], 95)))
+    touching &= usable_rows
     bright = (raw > threshold) & touching
     if not bright.any():
         raise ReconstructionError(f"no pixel seen by the volume is above the threshold "
@@ -238,7 +258,8 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     # sensor from it falls on dark pixels. (A hard "any dark pixel" rule would delete the
     # voxel holding a point particle: the voxel is wider than the particle, so some beams
     # through the voxel miss the particle and stay dark.)
-    seen = np.asarray(proj.column_sums())
+    seen = (np.asarray(proj.column_sums()) if image_mask is None
+            else np.asarray(proj.back(usable_rows.astype(np.float32))))
     dark_weight = np.asarray(proj.back(((raw <= threshold) & touching).astype(np.float32)))
     with np.errstate(invalid="ignore", divide="ignore"):
         keep = (seen > 0) & (dark_weight <= settings.dark_tolerance * seen)
@@ -325,7 +346,8 @@ def piv_settings(cfg) -> PIVSettings:
     try:
         return PIVSettings(windows=tuple(tuple(w) for w in cfg.windows), overlap=cfg.overlap,
                            passes=cfg.passes, deformation=cfg.deformation,
-                           median_threshold=cfg.median_threshold)
+                           median_threshold=cfg.median_threshold,
+                           replacement=cfg.replacement)
     except ValueError as exc:
         raise ConfigError(f"[piv] {exc}") from None
 
@@ -345,6 +367,18 @@ def check_dt(dt, what: str = "dt") -> float | None:
     return float(dt)
 
 
+#: Per-vector quality arrays of the vectors product: name -> (dtype, units, long name).
+QUALITY = {
+    "valid": (np.int8, "1", "1: valid vector; 0: rejected (see flag)"),
+    "flag": (np.uint8, "1", "why a vector was rejected, sum of 1: normalised median test, "
+             "2: empty window (no particles), 4: window centre in the volume mask; 0: valid"),
+    "replaced": (np.int8, "1", "1: rejected vector filled from its neighbours"),
+    "peak_ratio": (np.float32, "1", "correlation peak ratio, primary over secondary peak"),
+    "snr": (np.float32, "1", "correlation peak ratio (same as peak_ratio)"),
+    "peak_height": (np.float32, "1", "correlation peak height (correlation coefficient)"),
+}
+
+
 @dataclass(frozen=True)
 class VectorResult:
     """A 3-D vector field in physical coordinates.
@@ -354,12 +388,24 @@ class VectorResult:
     x, y, z : 1-D arrays
         Window centres, metres; z is the physical depth (depth corrections applied).
     u, v, w : (nz, ny, nx)
-        Displacement along x, y, z in metres (w corrected to physical depth).
+        Displacement along x, y, z in metres (w corrected to physical depth); NaN where a
+        rejected vector was not replaced or is masked.
     valid : (nz, ny, nx) bool
     snr : (nz, ny, nx)
-        Correlation peak ratio.
+        Correlation peak ratio (primary over secondary peak); also :attr:`peak_ratio`.
     dt : float or None
         Seconds between exposures; velocity = displacement / dt.
+    n_replaced : int
+    peak_height : (nz, ny, nx)
+        Correlation peak height (correlation coefficient).
+    flag : (nz, ny, nx) uint8
+        Rejection reasons (bits of :mod:`plenopiv.piv`: 1 median test, 2 empty, 4 masked).
+    replaced : (nz, ny, nx) bool
+        Rejected vectors filled from their neighbours.
+    u_uncertainty, v_uncertainty, w_uncertainty : (nz, ny, nx)
+        Standard uncertainty of u, v, w, metres (w's in physical depth).
+    uncertainty_method : str
+        ``"response"`` or ``"correlation"`` (see :mod:`plenopiv.uncertainty`).
     """
 
     x: np.ndarray
@@ -372,35 +418,78 @@ class VectorResult:
     snr: np.ndarray
     dt: float | None = None
     n_replaced: int = 0
+    peak_height: np.ndarray | None = None
+    flag: np.ndarray | None = None
+    replaced: np.ndarray | None = None
+    u_uncertainty: np.ndarray | None = None
+    v_uncertainty: np.ndarray | None = None
+    w_uncertainty: np.ndarray | None = None
+    uncertainty_method: str = "correlation"
 
     def __post_init__(self):
         object.__setattr__(self, "dt", check_dt(self.dt, "VectorResult dt"))
+        shape = np.shape(self.u)
+        valid = np.asarray(self.valid, bool)
+        defaults = {"peak_height": np.full(shape, np.nan),
+                    "flag": np.where(valid, 0, 1).astype(np.uint8),
+                    "replaced": ~valid & np.isfinite(np.asarray(self.u, float)),
+                    "u_uncertainty": np.full(shape, np.nan),
+                    "v_uncertainty": np.full(shape, np.nan),
+                    "w_uncertainty": np.full(shape, np.nan)}
+        for name, value in defaults.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
+
+    @property
+    def peak_ratio(self) -> np.ndarray:
+        """Correlation peak ratio (the same array as ``snr``)."""
+        return self.snr
 
     @classmethod
-    def from_field(cls, field, correction: DepthCorrection, dt=None) -> VectorResult:
+    def from_field(cls, field, correction: DepthCorrection, dt=None, *,
+                   uncertainty_method: str = "correlation") -> VectorResult:
         """Convert a :class:`plenopiv.piv.VectorField` of effective coordinates."""
+        scale = abs(correction.scale)
         return cls(np.asarray(field.x), np.asarray(field.y), correction.depth(field.z),
                    np.asarray(field.u), np.asarray(field.v), correction.depth(field.w),
-                   np.asarray(field.valid), np.asarray(field.snr), dt, int(field.n_replaced))
+                   np.asarray(field.valid), np.asarray(field.snr), dt, int(field.n_replaced),
+                   peak_height=np.asarray(field.correlation), flag=np.asarray(field.flag),
+                   replaced=np.asarray(field.replaced),
+                   u_uncertainty=np.asarray(field.u_uncertainty),
+                   v_uncertainty=np.asarray(field.v_uncertainty),
+                   w_uncertainty=np.asarray(field.w_uncertainty) * scale,
+                   uncertainty_method=uncertainty_method)
+
+    def _quality(self) -> dict:
+        return {"valid": self.valid, "flag": self.flag, "replaced": self.replaced,
+                "peak_ratio": self.snr, "snr": self.snr, "peak_height": self.peak_height}
 
     def save(self, path: str | Path, *, config: dict | None = None, vtk: bool = False,
              extra_attrs=None) -> list[Path]:
         """Write the vectors product (CF style HDF5), and a ``.vti`` for ParaView if asked.
 
         ``/u, /v, /w`` are displacements in metres, or velocities in m/s when ``dt`` is set
-        (their ``units`` attribute says which).
+        (their ``units`` attribute says which); ``/u_uncertainty`` etc. their standard
+        uncertainties in the same units; per-vector quality in ``/valid``, ``/flag``,
+        ``/replaced``, ``/peak_ratio`` (also ``/snr``) and ``/peak_height``.
         """
         scale, unit = (1.0, "m") if self.dt is None else (1.0 / self.dt, "m s-1")
         names = {"u": "x", "v": "y", "w": "z"}
-        ds = {"/x": self.x, "/y": self.y, "/z": self.z, "/valid": self.valid.astype(np.int8),
-              "/snr": self.snr}
-        units = {"/x": "m", "/y": "m", "/z": "m", "/valid": "1", "/snr": "1"}
+        ds = {"/x": self.x, "/y": self.y, "/z": self.z}
+        units = {"/x": "m", "/y": "m", "/z": "m"}
+        for name, (dtype, u, _) in QUALITY.items():
+            ds[f"/{name}"] = np.asarray(self._quality()[name]).astype(dtype)
+            units[f"/{name}"] = u
         for comp in "uvw":
             ds[f"/{comp}"] = (getattr(self, comp) * scale).astype(np.float32)
             units[f"/{comp}"] = unit
+            ds[f"/{comp}_uncertainty"] = (getattr(self, f"{comp}_uncertainty")
+                                          * scale).astype(np.float32)
+            units[f"/{comp}_uncertainty"] = unit
         attrs = {"dt_s": np.nan if self.dt is None else self.dt,
                  "quantity": "displacement" if self.dt is None else "velocity",
                  "n_replaced": self.n_replaced, "Conventions": "CF-1.8",
+                 "uncertainty_method": self.uncertainty_method,
                  **(extra_attrs or {})}
         # the .vti first, then the HDF5 file: its `complete` mark (extra_attrs) is the last
         # thing written, inside its temporary, so a failed write leaves nothing marked
@@ -410,7 +499,8 @@ class VectorResult:
         return [p] if vti is None else [p, vti]
 
     def save_vtk(self, stem: Path) -> Path:
-        """A ``.vti`` image data file (ParaView) with the vector field and validity."""
+        """A ``.vti`` image data file (ParaView): the vector field, its components'
+        uncertainties, and the per-vector quality (same names as in the HDF5 product)."""
         from pyevtk.hl import imageToVTK
 
         from plenopiv.io import atomic_path
@@ -418,14 +508,19 @@ class VectorResult:
         def spacing(a):
             return float(a[1] - a[0]) if len(a) > 1 else 1.0
 
+        def point(a):   # VTK point data is x-fastest: transpose [z, y, x] -> [x, y, z]
+            return np.ascontiguousarray(np.asarray(a, np.float64).transpose(2, 1, 0))
+
         origin = (float(self.x[0]), float(self.y[0]), float(self.z[0]))
         sp = (spacing(self.x), spacing(self.y), spacing(self.z))
         scale = 1.0 if self.dt is None else 1.0 / self.dt
-        # VTK point data is x-fastest: transpose [z, y, x] -> [x, y, z]
         data = {"displacement" if self.dt is None else "velocity": tuple(
-            np.ascontiguousarray((getattr(self, c) * scale).transpose(2, 1, 0), np.float64)
-            for c in "uvw"),
-            "valid": np.ascontiguousarray(self.valid.transpose(2, 1, 0), np.float64)}
+            point(getattr(self, c) * scale) for c in "uvw")}
+        for c in "uvw":
+            data[f"{c}_uncertainty"] = point(getattr(self, f"{c}_uncertainty") * scale)
+        for name, value in self._quality().items():
+            if name != "snr":
+                data[name] = point(np.asarray(value, np.float64))
         final = Path(str(stem) + ".vti")
         with atomic_path(final) as tmp:
             # pyevtk appends ".vti": it writes TMP.vti, which atomic_path removes on failure
@@ -434,27 +529,57 @@ class VectorResult:
         return final
 
 
-def _cf_dimensions(fh, names) -> None:
-    """Attach the 1-D coordinates as HDF5 dimension scales so that xarray/netCDF see them
-    (on the open file being written)."""
+def _cf_axes(fh) -> None:
+    """Make ``/x``, ``/y``, ``/z`` of an open HDF5 file dimension scales with CF attributes."""
     for axis in ("x", "y", "z"):
         fh[axis].make_scale(axis)
         fh[axis].attrs["axis"] = axis.upper()
         fh[axis].attrs["standard_name"] = {"x": "projection_x_coordinate",
                                            "y": "projection_y_coordinate",
                                            "z": "depth"}[axis]
-    for name in ("u", "v", "w", "valid", "snr"):
+
+
+def _cf_dimensions(fh, names) -> None:
+    """Attach the 1-D coordinates of an open vectors file as HDF5 dimension scales so that
+    xarray/netCDF see them."""
+    _cf_axes(fh)
+    for name in ("u", "v", "w", *(f"{c}_uncertainty" for c in "uvw"), *QUALITY):
         for dim, axis in enumerate(("z", "y", "x")):
             fh[name].dims[dim].attach_scale(fh[axis])
     for comp, axis in names.items():
         fh[comp].attrs["long_name"] = f"{fh.attrs['quantity']} along {axis}"
+        fh[f"{comp}_uncertainty"].attrs["long_name"] = (
+            f"standard uncertainty of the {fh.attrs['quantity']} along {axis}")
+    for name, (_, _, long_name) in QUALITY.items():
+        fh[name].attrs["long_name"] = long_name
+
+
+def _cf_volume(fh) -> None:
+    """Dimension scales and long names of an open volume product (xarray sees x, y, z)."""
+    _cf_axes(fh)
+    fh["z"].attrs["long_name"] = "depth Z from the nominal focal plane, corrected"
+    for dim, axis in enumerate(("z", "y", "x")):
+        fh["volume"].dims[dim].attach_scale(fh[axis])
+    fh["z_effective"].dims[0].attach_scale(fh["z"])
+    fh["z_effective"].attrs["long_name"] = "effective (air-equivalent) depth of each layer"
+    fh["volume"].attrs["long_name"] = ("reconstructed light energy per voxel, in image "
+                                       "counts")
+    fh["particles/intensity"].attrs["long_name"] = ("integrated light energy of each "
+                                                    "particle, in image counts")
 
 
 def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, dt=None,
-              workers=None, progress=None) -> VectorResult:
+              workers=None, progress=None, mask=None, response=None) -> VectorResult:
     """3-D PIV between two reconstructed volumes of the same grid (effective coordinates),
-    returned in physical coordinates."""
+    returned in physical coordinates.
+
+    ``mask``: volume mask (bool ``[z, y, x]``, True outside the flow). ``response``: a
+    callable ``response(field) -> Response`` (:func:`plenopiv.uncertainty.measure_response`)
+    whose result completes the uncertainties (:func:`plenopiv.uncertainty.combine`); None
+    keeps the correlation statistics alone.
+    """
     from plenopiv.piv import PIVSettings, correlate_volumes
+    from plenopiv.uncertainty import combine
 
     for name, r in (("result_a", result_a), ("result_b", result_b)):
         if not isinstance(r, VolumeResult):
@@ -472,8 +597,13 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
                                   f"(A: {text(result_a.grid)}; B: {text(result_b.grid)}): "
                                   "expected the same [volume] for both exposures")
     field = correlate_volumes(result_a.volume, result_b.volume, result_a.grid,
-                              settings=settings, workers=workers, progress=progress)
-    return VectorResult.from_field(field, result_a.correction, dt)
+                              settings=settings, workers=workers, progress=progress, mask=mask)
+    method = "correlation"
+    measured = None if response is None else response(field)
+    if measured is not None:
+        field = combine(field, measured)
+        method = "response"
+    return VectorResult.from_field(field, result_a.correction, dt, uncertainty_method=method)
 
 
 @dataclass(frozen=True)
@@ -498,17 +628,27 @@ def process_pair(calibration: Calibration, image_a, image_b, experiment, *,
         cache = experiment.output.weights_cache
         weights, _ = weights_for(calibration, experiment.volume, experiment.reconstruction,
                                  cache_dir=experiment.path(cache) if cache else None)
+    from plenopiv.masks import image_mask, volume_mask
+
+    grid = experiment.volume
+    img_mask = image_mask(experiment.mask, calibration.camera.sensor.shape, experiment.base_dir)
+    vol_mask = volume_mask(experiment.mask, grid, experiment.base_dir)
     kw = dict(settings=experiment.reconstruction, particles=experiment.particles,
-              weights=weights)
-    va = reconstruct_volume(calibration, image_a, experiment.volume, **kw,
+              weights=weights, image_mask=img_mask)
+    va = reconstruct_volume(calibration, image_a, grid, **kw,
                             progress=_volume_progress(progress, "A"))
-    vb = reconstruct_volume(calibration, image_b, experiment.volume, **kw,
+    vb = reconstruct_volume(calibration, image_b, grid, **kw,
                             progress=_volume_progress(progress, "B"))
     t1 = time.perf_counter()
+    settings = piv_settings(experiment.piv)
+    response = None
+    if experiment.piv.uncertainty == "response":
+        response = _response_of(calibration, weights, va, experiment, settings, workers,
+                                img_mask, vol_mask)
     if progress is not None:
         progress("piv", 0.0)
-    vec = correlate(va, vb, piv_settings(experiment.piv), dt=experiment.images.dt_s,
-                    workers=workers, progress=None if progress is None else (
+    vec = correlate(va, vb, settings, dt=experiment.images.dt_s, workers=workers,
+                    mask=vol_mask, response=response, progress=None if progress is None else (
                         lambda info: progress(f"piv pass {info['pass']}/{info['passes']}",
                                               info["pass"] / info["passes"])))
     t2 = time.perf_counter()
@@ -525,6 +665,51 @@ def _volume_progress(progress: Progress, tag: str) -> Progress:
         share = {"mart": 0.9 * fraction, "particles": 0.95}.get(stage, 0.0)
         progress(f"volume {tag}: {stage}", share)
     return report
+
+
+def _response_of(calibration, weights, volume_a: VolumeResult, experiment, settings, workers,
+                 img_mask, vol_mask):
+    """``response(field)`` for :func:`correlate`: the chain's measured response
+    (:func:`plenopiv.uncertainty.measure_response`) for this experiment, kept in the weights
+    cache (``[output] weights_cache``) under a key of everything it depends on."""
+    from plenopiv.piv import correlate_volumes
+    from plenopiv.uncertainty import cached_response, measure_response, response_key
+
+    grid = volume_a.grid
+    # the seeding of the real pair, rounded to a power of two so that pairs share a response
+    n_found = max(len(volume_a.particle_position), 1)
+    n_particles = int(2 ** round(np.log2(n_found)))
+
+    def reconstruct(image):
+        return reconstruct_volume(calibration, image, grid, settings=experiment.reconstruction,
+                                  particles=experiment.particles, weights=weights,
+                                  image_mask=img_mask).volume
+
+    def correlate_pair(a, b):
+        return correlate_volumes(a, b, grid, settings=settings, workers=workers, mask=vol_mask)
+
+    def response(field):
+        key = response_key(weights.key, grid.key(), experiment.reconstruction.model_dump(),
+                           experiment.piv.model_dump(), n_particles,
+                           None if img_mask is None else hashlib_of(img_mask),
+                           None if vol_mask is None else hashlib_of(vol_mask))
+        cache = experiment.output.weights_cache
+        path = experiment.path(cache) / f"response-{key[:24]}.json" if cache else None
+        resp, _ = cached_response(path, key, lambda: measure_response(
+            calibration, grid, volume_a.correction, reconstruct=reconstruct,
+            correlate=correlate_pair, n_particles=n_particles,
+            f_number=experiment.reconstruction.f_number))
+        return resp
+
+    return response
+
+
+def hashlib_of(array) -> str:
+    """A short hash of an array's bytes and shape (for cache keys)."""
+    import hashlib
+
+    a = np.ascontiguousarray(array)
+    return hashlib.sha256(a.tobytes() + str(a.shape).encode()).hexdigest()[:16]
 
 
 def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
@@ -544,8 +729,10 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
         va = result.volume_a
         paths["png_volume"] = str(volume_slices(va.volume, va.grid.x, va.grid.y, va.grid.z,
                                                 out / f"{name}_volume_A.png",
-                                                particles=va.particle_position_effective))
-        paths["png_vectors"] = str(vector_slices(result.vectors, out / f"{name}_vectors.png"))
+                                                particles=va.particle_position_effective,
+                                                title=f"pair {name}: volume A"))
+        paths["png_vectors"] = str(vector_slices(result.vectors, out / f"{name}_vectors.png",
+                                                 title=f"pair {name}: vectors"))
     files = result.vectors.save(out / f"{name}_vectors.h5", config=cfg, vtk=experiment.output.vtk,
                                 extra_attrs={"complete": True, **(extra_attrs or {})})
     paths["vectors"] = str(files[0])

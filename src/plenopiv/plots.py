@@ -112,68 +112,118 @@ def calibration_report(report, image, path) -> Path:
 
 
 def volume_slices(volume, x, y, z, path, *, particles=None, title="") -> Path:
-    """x-y slice at the focal plane (Z nearest 0) and x-z slice through the brightest row.
+    """x-y slice at the focal plane (Z nearest 0) and x-z slice through the brightest row,
+    each with a colour bar of the reconstructed intensity; the particles found within one
+    voxel of each slice are marked and named in a legend.
 
-    ``volume`` is ``[z, y, x]``; x, y, z are voxel-centre coordinates in metres.
+    ``volume`` is ``[z, y, x]``; x, y, z are voxel-centre coordinates in metres (the
+    volume's grid); ``particles`` (N, 3) are (x, y, z) in metres on the same grid.
     """
-    plt, fig = _figure(figsize=(12, 5))
+    plt, fig = _figure(figsize=(13, 5.5))
     v = np.asarray(volume, float)
-    iz = int(np.argmin(np.abs(np.asarray(z))))
+    x, y, z = (np.asarray(a, float) for a in (x, y, z))
+    iz = int(np.argmin(np.abs(z)))
     iy = int(np.argmax(v.sum(axis=(0, 2))))
     ext_xy = (x[0] * 1e3, x[-1] * 1e3, y[-1] * 1e3, y[0] * 1e3)
     ext_xz = (x[0] * 1e3, x[-1] * 1e3, z[-1] * 1e3, z[0] * 1e3)
+    vmax = float(np.percentile(v[v > 0], 99.9)) if (v > 0).any() else 1.0
+    p = np.asarray(particles, float).reshape(-1, 3) if particles is not None else np.zeros((0, 3))
+
+    def step(a):
+        return abs(a[1] - a[0]) if len(a) > 1 else np.inf
+
     ax = fig.add_subplot(1, 2, 1)
-    ax.imshow(v[iz], cmap="magma", extent=ext_xy, aspect="equal")
+    im = ax.imshow(v[iz], cmap="magma", extent=ext_xy, aspect="equal", vmin=0, vmax=vmax)
+    fig.colorbar(im, ax=ax, label="reconstructed intensity (image counts per voxel)")
+    near = np.abs(p[:, 2] - z[iz]) <= step(z)
+    if near.any():
+        ax.plot(p[near, 0] * 1e3, p[near, 1] * 1e3, "c+", ms=7,
+                label=f"particles within one voxel of Z = {z[iz] * 1e3:.2f} mm ({near.sum()})")
+        ax.legend(loc="upper right", fontsize=8)
     ax.set_title(f"x-y slice at Z = {z[iz] * 1e3:.2f} mm")
     ax.set_xlabel("X (mm)")
     ax.set_ylabel("Y (mm)")
     ax = fig.add_subplot(1, 2, 2)
-    ax.imshow(v[:, iy, :], cmap="magma", extent=ext_xz, aspect="auto")
-    if particles is not None and len(particles):
-        p = np.asarray(particles)
-        near = np.abs(p[:, 1] - y[iy]) < 2 * abs(y[1] - y[0]) if len(y) > 1 else slice(None)
-        ax.plot(p[near, 0] * 1e3, p[near, 2] * 1e3, "c+", ms=6)
-    ax.set_title(f"x-z slice at Y = {y[iy] * 1e3:.2f} mm")
+    im = ax.imshow(v[:, iy, :], cmap="magma", extent=ext_xz, aspect="auto", vmin=0, vmax=vmax)
+    fig.colorbar(im, ax=ax, label="reconstructed intensity (image counts per voxel)")
+    near = np.abs(p[:, 1] - y[iy]) <= step(y)
+    if near.any():
+        ax.plot(p[near, 0] * 1e3, p[near, 2] * 1e3, "c+", ms=7,
+                label=f"particles within one voxel of Y = {y[iy] * 1e3:.2f} mm ({near.sum()})")
+        ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(f"x-z slice at Y = {y[iy] * 1e3:.2f} mm (brightest row)")
     ax.set_xlabel("X (mm)")
     ax.set_ylabel("Z (mm), + away from camera")
     if title:
         fig.suptitle(title)
     return _save(plt, fig, path)
+
+
+def _nice(value: float) -> float:
+    """A round number (1, 2 or 5 times a power of ten) near ``value`` (> 0)."""
+    if not (np.isfinite(value) and value > 0):
+        return 1.0
+    e = np.floor(np.log10(value))
+    m = value / 10**e
+    return float((1 if m < 1.5 else 2 if m < 3.5 else 5 if m < 7.5 else 10) * 10**e)
 
 
 def vector_slices(vectors, path, *, title="") -> Path:
     """In-plane vectors on the x-y plane nearest Z = 0 and the x-z plane through the middle,
-    coloured by the out-of-plane component (metres or m/s as stored)."""
-    plt, fig = _figure(figsize=(13, 5.5))
+    coloured by the out-of-plane component, with an arrow scale.
+
+    ``vectors`` is a :class:`plenopiv.pipeline.VectorResult`: displacements in metres, shown
+    in mm, or velocities in m/s when it has ``dt``. Rejected vectors are drawn grey where
+    they were replaced and left out where they are NaN. ``title`` names the pair.
+    """
+    plt, fig = _figure(figsize=(14, 6))
     x, y, z = (np.asarray(a) * 1e3 for a in (vectors.x, vectors.y, vectors.z))
-    u, v, w = vectors.u, vectors.v, vectors.w
     ok = np.asarray(vectors.valid, bool)
     iz = int(np.argmin(np.abs(z)))
     iy = len(y) // 2
-    scale = 1e3 if vectors.dt is None else 1.0
-    unit = "mm" if vectors.dt is None else "m/s"
-    ax = fig.add_subplot(1, 2, 1)
-    X, Y = np.meshgrid(x, y, indexing="xy")
-    q = ax.quiver(X, Y, (u[iz] * scale) * ok[iz], (v[iz] * scale) * ok[iz], w[iz] * scale,
-                  cmap="coolwarm", angles="xy")
-    fig.colorbar(q, ax=ax, label=f"w ({unit})")
-    ax.set_title(f"x-y plane at Z = {z[iz]:.2f} mm")
-    ax.set_xlabel("X (mm)")
-    ax.set_ylabel("Y (mm)")
-    ax.invert_yaxis()
-    ax.set_aspect("equal")
-    ax = fig.add_subplot(1, 2, 2)
-    X, Z = np.meshgrid(x, z, indexing="xy")
-    q = ax.quiver(X, Z, (u[:, iy] * scale) * ok[:, iy], (w[:, iy] * scale) * ok[:, iy],
-                  v[:, iy] * scale, cmap="coolwarm", angles="xy")
-    fig.colorbar(q, ax=ax, label=f"v ({unit})")
-    ax.set_title(f"x-z plane at Y = {y[iy]:.2f} mm")
-    ax.set_xlabel("X (mm)")
-    ax.set_ylabel("Z (mm), + away from camera")
-    ax.invert_yaxis()
-    if title:
-        fig.suptitle(title)
+    if vectors.dt is None:
+        scale, unit, quantity = 1e3, "mm", "displacement"
+    else:
+        scale, unit, quantity = 1.0 / vectors.dt, "m/s", "velocity"
+    u, v, w = (np.asarray(c, float) * scale for c in (vectors.u, vectors.v, vectors.w))
+    finite = np.isfinite(u) & np.isfinite(v) & np.isfinite(w)
+    speed = np.sqrt(u**2 + v**2 + w**2)[finite & ok]
+    key = _nice(float(np.percentile(speed, 90))) if speed.size else 1.0
+    lim = float(np.nanmax(np.abs(np.where(ok, w, np.nan)))) if (ok & finite).any() else 1.0
+    panels = (
+        (1, "x-y", f"Z = {z[iz]:.2f} mm", x, y, (u[iz], v[iz]), w[iz], ok[iz], "w", "Y (mm)"),
+        (2, "x-z", f"Y = {y[iy]:.2f} mm", x, z, (u[:, iy], w[:, iy]), v[:, iy], ok[:, iy], "v",
+         "Z (mm), + away from camera"),
+    )
+    for pos, plane, where, ha, va, (pu, pv), colour, good, cname, ylabel in panels:
+        ax = fig.add_subplot(1, 2, pos)
+        H, V = np.meshgrid(ha, va, indexing="xy")
+        lim_c = lim if cname == "w" else (float(np.nanmax(np.abs(np.where(ok, v, np.nan))))
+                                          if (ok & finite).any() else 1.0)
+        lim_c = lim_c if lim_c > 0 else 1.0
+        q = ax.quiver(H[good], V[good], pu[good], pv[good], colour[good], cmap="coolwarm",
+                      angles="xy", scale_units="xy", scale=key / (0.8 * _spacing(ha)),
+                      clim=(-lim_c, lim_c))
+        bad = ~good & np.isfinite(pu) & np.isfinite(pv)
+        if bad.any():
+            ax.quiver(H[bad], V[bad], pu[bad], pv[bad], color="0.6", angles="xy",
+                      scale_units="xy", scale=key / (0.8 * _spacing(ha)))
+        ax.quiverkey(q, 0.7, 1.015, key, f"{key:g} {unit}", labelpos="E", coordinates="axes")
+        fig.colorbar(q, ax=ax, label=f"{cname}, out-of-plane {quantity} ({unit})")
+        ax.set_title(f"{plane} plane at {where}" + (" (grey: replaced)" if bad.any() else ""),
+                     loc="left", pad=16)
+        ax.set_xlabel("X (mm)")
+        ax.set_ylabel(ylabel)
+        ax.invert_yaxis()
+        if plane == "x-y":
+            ax.set_aspect("equal")
+    fig.suptitle((title + ": " if title else "") + f"{quantity} ({unit})")
     return _save(plt, fig, path)
+
+
+def _spacing(a) -> float:
+    a = np.asarray(a, float)
+    return float(abs(a[1] - a[0])) if a.size > 1 else 1.0
 
 
 def vector_comparison(x, y, z, measured, truth, valid, path, *, voxel, title="") -> Path:

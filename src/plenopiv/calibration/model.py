@@ -123,7 +123,9 @@ class Calibration:
                                "/lenslets/focal_spot_px": np.asarray(self.focal_spot_px, float),
                                "/lenslets/grid_index": np.asarray(self.grid_index, np.int32)},
                         attrs=attrs, units={"/lenslets/centre_px": "px",
-                                            "/lenslets/focal_spot_px": "px"},
+                                            "/lenslets/focal_spot_px": "px",
+                                            # lattice (row, column) index: a count
+                                            "/lenslets/grid_index": "1"},
                         config=cfg, kind="calibration")
 
     @classmethod

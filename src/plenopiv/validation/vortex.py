@@ -61,6 +61,8 @@ class VortexCase:
     lateral_oversampling : lateral voxels per lenslet footprint (1: the footprint grid of the
         thesis; 2 halves the voxel, which removes most of the peak locking of footprint
         voxels, see docs/validation/vortex.md)
+    uncertainty : ``[piv] uncertainty`` of the run: "response" (default; measures the chain's
+        response, three more test pairs) or "correlation" (faster)
     windows : interrogation windows per pass (z, y, x) in voxels of the footprint grid; the
         lateral edges are multiplied by ``lateral_oversampling``
     """
@@ -80,6 +82,7 @@ class VortexCase:
     windows: tuple = ((16, 16, 16), (12, 12, 12))
     lenslets: tuple[int, int] | None = None
     lateral_oversampling: int = 1
+    uncertainty: str = "response"
 
     def __post_init__(self):
         if self.flow not in FLOWS:
@@ -116,6 +119,17 @@ def _flow(case: VortexCase, box: SeedingBox):
     raise ValueError(f"flow = {case.flow!r}: expected one of {FLOWS}")
 
 
+def seeding_box(case: VortexCase, grid: VolumeGrid) -> SeedingBox:
+    """The box a case seeds: the grid's lateral extent (98 %) and the case's depth."""
+    return SeedingBox(tuple(grid.bounds[0] * 0.98), tuple(grid.bounds[1] * 0.98),
+                      (-case.depth, case.depth))
+
+
+def case_flow(case: VortexCase, grid: VolumeGrid):
+    """The flow of a case on its grid (as :func:`run_case` builds it)."""
+    return _flow(case, seeding_box(case, grid))
+
+
 def aligned_grid(camera: CameraModel, case: VortexCase) -> VolumeGrid:
     """A grid whose lateral voxels are the lenslet footprints on the focal plane (centred on
     them), in effective coordinates."""
@@ -144,6 +158,13 @@ def true_displacement(vectors, flow, dt) -> np.ndarray:
     pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
     d = advect(flow, pts, dt / 2) - advect(flow, pts, -dt / 2)
     return d.T.reshape((3,) + X.shape)
+
+
+def coverage(error, sigma) -> np.ndarray:
+    """Share of ``|error| <= 2 sigma`` per column (component); NaN sigma counts as a miss."""
+    e, s = np.asarray(error, float), np.asarray(sigma, float)
+    with np.errstate(invalid="ignore"):
+        return np.mean(np.abs(e) <= 2.0 * s, axis=0)
 
 
 def _rms_bias(err: np.ndarray) -> dict:
@@ -177,6 +198,11 @@ def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
     err = (meas[ok] - truth[ok]) / vox
     out = {**_rms_bias(err), "valid_fraction": float(np.mean(vectors.valid)),
            "true_max_displacement_vox": (np.abs(truth) / vox).max(axis=0).tolist()}
+    sigma = [getattr(vectors, f"{c}_uncertainty", None) for c in "uvw"]
+    if all(s is not None for s in sigma) and len(err):
+        sig = np.stack([np.asarray(s).ravel() for s in sigma], axis=1)[ok] / vox
+        out["coverage_2sigma"] = coverage(err, sig).tolist()
+        out["rms_sigma_vox"] = np.sqrt(np.nanmean(sig**2, axis=0)).tolist()
     z_abs = np.abs(Z.ravel()[ok])
     edges = np.linspace(0.0, z_abs.max() if len(z_abs) else 0.0, depth_bands + 1)
     edges[-1] = np.inf
@@ -229,8 +255,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
     report("simulate pair")
     t1 = time.perf_counter()
     grid = aligned_grid(cal.effective_camera, case)
-    box = SeedingBox(tuple(grid.bounds[0] * 0.98), tuple(grid.bounds[1] * 0.98),
-                     (-case.depth, case.depth))
+    box = seeding_box(case, grid)
     flow = _flow(case, box)
     n = particle_count(truth_cam, box, per_lenslet=case.particles_per_lenslet)
     n = int(n * (box.x[1] - box.x[0]) * (box.y[1] - box.y[0])
@@ -246,7 +271,8 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
 
     exp = Experiment(camera=cal.camera, volume=grid,
                      reconstruction=ReconstructionSettings(),
-                     piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5, passes=3),
+                     piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5, passes=3,
+                                   uncertainty=case.uncertainty),
                      images=ImagesConfig(dt_s=case.dt),
                      output=OutputConfig(directory=str(out), weights_cache=""),
                      base_dir=out)

@@ -60,6 +60,7 @@ def _case_row(label: str, case: VortexCase, summary: dict, seconds: float) -> di
             "rms_vox": e["rms_vox"], "bias_vox": e["bias_vox"], "n_vectors": e["n_vectors"],
             "valid_fraction": e["valid_fraction"], "by_depth": e["by_depth"],
             "true_max_displacement_vox": e["true_max_displacement_vox"],
+            "coverage_2sigma": e.get("coverage_2sigma"),
             "png": summary["products"].get("png_truth"), "seconds": round(seconds, 1)}
 
 
@@ -172,16 +173,19 @@ def _summary(r: dict) -> list[str]:
 def _case_table(rows: list[dict]) -> list[str]:
     lines = ["| flow | lenslets | grid (z, y, x) | voxel (mm) | particles | rms u, v, w (vox) | "
              "lateral rms (footprints) | bias u, v, w (vox) | valid | "
-             "rms u, v, w by \\|Z\\| band (vox) | target | figure |", "|" + "---|" * 12]
+             "rms u, v, w by \\|Z\\| band (vox) | within ±2σ u, v, w (%) | target | figure |",
+             "|" + "---|" * 13]
     for r in rows:
         bands = "; ".join(f"{b['abs_z_mm'][0]:.1f}-{b['abs_z_mm'][1]:.1f} mm: "
                           f"{_f(b['rms_vox'], 2)}" for b in r["by_depth"])
         fig = f"[png]({r['png']})" if r["png"] else ""
+        c = r.get("coverage_2sigma")
+        cov = ", ".join(f"{100 * x:.0f}" for x in c) if c else "–"
         lines.append(f"| {r['flow']} | {r['label']} | {r['grid_shape']} | "
                      f"{_f(r['voxel_mm'])} | {r['n_particles']} | {_f(r['rms_vox'])} | "
                      f"{_lateral_fp(r):.3f} | "
                      f"{_f(r['bias_vox'])} | {r['valid_fraction']:.2f} | {bands} | "
-                     f"{_verdict(r)} | {fig} |")
+                     f"{cov} | {_verdict(r)} | {fig} |")
     return lines
 
 

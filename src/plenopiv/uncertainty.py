@@ -1,0 +1,267 @@
+"""Per-vector standard uncertainty of a plenoptic PIV field: correlation statistics plus the
+measured response of the whole chain to known displacements.
+
+The correlation statistics of :func:`plenopiv.piv.correlate_volumes` (Wieneke 2015) see what
+makes the two reconstructed volumes differ: image noise, particles leaving a window,
+unresolved motion. They cannot see an error that both reconstructions share, and a plenoptic
+camera has one: a particle near the focal plane lights about one lenslet wherever it lies
+inside the lenslet's footprint and inside about one depth resolution cell, so its
+reconstruction does not follow it there, and the measured displacement is pulled towards
+zero (docs/validation/uncertainty.md: depth displacements near focus are measured at 0.0-0.5
+of their true value). Both exposures are reconstructed the same way, the deformed windows
+match, and the correlation statistics stay small: on the vortex validations only 22-61 % of
+the true depth errors lie within their ±2σ (38-72 % with the last correction added).
+
+This module measures that error of the chain instead (:func:`measure_response`, a type-B
+evaluation from a calibration of the measuring system). With the calibrated camera, the
+experiment's grid and every processing setting, it renders (ray tracing,
+:func:`plenopiv.synthetic.images.particle_image`) pairs of random particles moved by known
+uniform displacements ``s`` along the three axes at once, reconstructs and correlates them
+as it does the real pair, and tabulates for each layer of vectors (window-centre depth):
+
+- the gain ``g_k = mean(measured_k) / s_k`` per component ``k`` (averaged over the
+  layer's vectors and over the test displacements: 0.5, 1.25 and 1.75 lenslet footprints
+  laterally, 0.1, 0.25 and 0.5 depth resolution cells in depth, so that every fraction of
+  the resolution cell is probed);
+- the random error ``r_k``: the rms over the test displacements of the spread (standard
+  deviation) of the layer's vectors.
+
+:func:`combine` then gives each vector of the real field, per component, the standard
+uncertainty
+
+.. math:: \\sigma_k^2 = \\sigma_{CS,k}^2 + r_k^2
+          + \\Big(\\frac{|1 - g_k|}{\\max(g_k, g_{min})}\\, |d_k|\\Big)^2
+
+with :math:`\\sigma_{CS}` the uncertainty :func:`plenopiv.piv.correlate_volumes` gave the
+vector (correlation statistics and the last pass's correction), ``d_k`` its
+displacement and the last term the error of a displacement measured with gain ``g_k`` (its
+true value is ``d_k / g_k``); :math:`g_{min} = 0.1` bounds a vector the chain barely sees at
+nine times its own magnitude. The response depends on the camera, the grid, the seeding and
+the settings, not on the flow, so it is computed once per experiment and kept in the weights
+cache (a few more pairs' worth of work the first time).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from plenopiv.errors import PlenopivError
+
+__all__ = ["UNCERTAINTY_METHODS", "Response", "combine", "measure_response", "response_key"]
+
+UNCERTAINTY_METHODS = ("response", "correlation")
+"""Valid values of ``[piv] uncertainty``: correlation statistics with the chain's measured
+response (default), or correlation statistics alone."""
+
+MIN_GAIN = 0.1
+"""Smallest gain the systematic term divides by (dimensionless)."""
+
+LATERAL_SHIFTS = (0.5, 1.25, 1.75)
+"""Test displacements along x and y, lenslet footprints (different fractions of a footprint)."""
+
+DEPTH_SHIFTS = (0.1, 0.25, 0.5)
+"""Test displacements along z, depth resolution cells."""
+
+RESPONSE_VERSION = 2
+
+
+@dataclass(frozen=True)
+class Response:
+    """The chain's measured response per layer of vectors and test displacement.
+
+    Attributes
+    ----------
+    z : ndarray, shape (nz,)
+        Window-centre depth of each layer, metres (effective coordinates of the grid).
+    shifts : ndarray, shape (n, 3)
+        The test displacements ``(dx, dy, dz)``, metres (effective coordinates), growing.
+    gain : ndarray, shape (n, 3, nz)
+        Gain of ``u``, ``v``, ``w`` per test displacement and layer (1 = exact).
+    random : ndarray, shape (n, 3, nz)
+        Random error of ``u``, ``v``, ``w`` per test displacement and layer, metres.
+    n_particles : int
+        Particles per test pair.
+    """
+
+    z: np.ndarray
+    shifts: np.ndarray
+    gain: np.ndarray
+    random: np.ndarray
+    n_particles: int
+
+    def at(self, z) -> tuple[np.ndarray, np.ndarray]:
+        """Gain (mean over the test displacements) and random error (their rms), each
+        ``(3, len(z))``, at depths ``z`` (metres), linear between the layers."""
+        z = np.asarray(z, float)
+        gain = self.gain.mean(axis=0)
+        rnd = np.sqrt((self.random**2).mean(axis=0))
+        return (np.stack([np.interp(z, self.z, g) for g in gain]),
+                np.stack([np.interp(z, self.z, r) for r in rnd]))
+
+    def to_dict(self) -> dict:
+        """JSON-ready form (metres)."""
+        return {"version": RESPONSE_VERSION, "z_m": self.z.tolist(),
+                "shifts_m": self.shifts.tolist(), "gain": self.gain.tolist(),
+                "random_m": self.random.tolist(), "n_particles": self.n_particles}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Response:
+        """Inverse of :meth:`to_dict`."""
+        if d.get("version") != RESPONSE_VERSION:
+            raise ValueError(f"response version {d.get('version')!r}")
+        return cls(np.asarray(d["z_m"], float), np.asarray(d["shifts_m"], float),
+                   np.asarray(d["gain"], float), np.asarray(d["random_m"], float),
+                   int(d["n_particles"]))
+
+
+def response_shifts(camera, f_number=None) -> np.ndarray:
+    """The test displacements ``(n, 3)``, metres: ``LATERAL_SHIFTS`` lenslet footprints along
+    x and y with ``DEPTH_SHIFTS`` depth resolution cells along z, at once (``camera``: the
+    effective camera, :func:`plenopiv.pipeline.resolution_cell`)."""
+    from plenopiv.pipeline import resolution_cell
+
+    lateral, depth = resolution_cell(camera, f_number)
+    out = np.array([[a * lateral, a * lateral, b * depth]
+                    for a, b in zip(LATERAL_SHIFTS, DEPTH_SHIFTS, strict=True)])
+    return out
+
+
+def response_key(*parts) -> str:
+    """A stable hash of what a response depends on (any JSON-able parts)."""
+    h = hashlib.sha256()
+    h.update(json.dumps([RESPONSE_VERSION, *parts], sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
+def measure_response(calibration, grid, correction, *, reconstruct, correlate, n_particles: int,
+                     f_number=None, rays_per_particle: int = 1024, seed: int = 0) -> Response:
+    """Measure the chain's response to known uniform displacements (module notes).
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The calibration of the experiment (its camera, with the calibrated S_i, renders the
+        test images).
+    grid : VolumeGrid
+        The reconstruction grid (effective coordinates).
+    correction : DepthCorrection
+        From effective to physical depth (the particles are seeded in physical depth).
+    reconstruct : callable
+        ``reconstruct(image) -> volume``, the reconstruction of the real images.
+    correlate : callable
+        ``correlate(volume_a, volume_b) -> VectorField``, the correlation of the real volumes.
+    n_particles : int
+        Particles per test pair (the real pair's seeding).
+    f_number : float, optional
+        Aperture of the recording (default: the camera's).
+    rays_per_particle : int
+        Rays per particle of the ray tracer.
+    seed : int
+        Seed of the particle positions and the tracer.
+
+    Returns
+    -------
+    Response or None
+        None when no test pair gave a vector field (too few particles).
+    """
+    from plenopiv.synthetic.images import particle_image
+
+    rng = np.random.default_rng(seed)
+    camera = calibration.camera
+    shifts = response_shifts(calibration.effective_camera, f_number)
+    b = grid.bounds
+    lo = np.array([b[0, 0], b[1, 0], correction.depth(b[2, 0])])
+    hi = np.array([b[0, 1], b[1, 1], correction.depth(b[2, 1])])
+    gains, spreads = [], []
+    z = None
+    for i, s in enumerate(shifts):
+        pos = rng.uniform(lo, hi, size=(max(int(n_particles), 1), 3))
+        s_phys = s * np.array([1.0, 1.0, correction.scale])
+        ia = particle_image(camera, pos, rays_per_particle=rays_per_particle, f_number=f_number,
+                            seed=seed + 2 * i)
+        ib = particle_image(camera, pos + s_phys, rays_per_particle=rays_per_particle,
+                            f_number=f_number, seed=seed + 2 * i + 1)
+        try:
+            field = correlate(reconstruct(ia), reconstruct(ib))
+        except PlenopivError:   # too few particles for a field: this test pair says nothing
+            gains.append(None)
+            spreads.append(None)
+            continue
+        z = np.asarray(field.z)
+        comps = np.stack([field.u, field.v, field.w])
+        ok = np.asarray(field.valid) & np.all(np.isfinite(comps), axis=0)
+        g = np.full((3, z.size), np.nan)
+        r = np.full((3, z.size), np.nan)
+        for layer in range(z.size):
+            sel = ok[layer]
+            if sel.sum() < 2:
+                continue
+            for k in range(3):
+                m = comps[k, layer][sel]
+                g[k, layer] = m.mean() / s[k]
+                r[k, layer] = m.std()
+        gains.append(g)
+        spreads.append(r)
+    if all(g is None for g in gains):
+        return None
+    keep = [i for i, g in enumerate(gains) if g is not None]
+    gain = np.stack([gains[i] for i in keep])
+    random = np.stack([spreads[i] for i in keep])
+    for a, empty in ((gain, 1.0), (random, 0.0)):   # layers without vectors: nearest layers
+        for j in range(a.shape[0]):
+            for k in range(3):
+                bad = ~np.isfinite(a[j, k])
+                if bad.all():
+                    a[j, k] = empty
+                elif bad.any():
+                    a[j, k, bad] = np.interp(z[bad], z[~bad], a[j, k, ~bad])
+    return Response(z, shifts[keep], gain, random, int(n_particles))
+
+
+def cached_response(path: Path | None, key: str, compute) -> tuple[Response | None, bool]:
+    """The response stored at ``path`` under ``key``, else ``compute()`` (saved there unless
+    None). Returns ``(response, from_cache)``; ``path`` None disables the cache.
+    """
+    if path is not None and path.exists():
+        try:
+            d = json.loads(path.read_text())
+            if d.get("key") == key:
+                return Response.from_dict(d), True
+        except (OSError, ValueError, KeyError, TypeError):
+            pass   # unreadable or another version: measure again
+    resp = compute()
+    if path is not None and resp is not None:
+        from plenopiv.io import atomic_path
+
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps({"key": key, **resp.to_dict()}))
+    return resp, False
+
+
+def combine(field, response: Response | None):
+    """The field with its uncertainties completed by the chain's response (module notes).
+
+    ``field`` is a :class:`~plenopiv.piv.VectorField` (effective coordinates) whose
+    ``u_uncertainty`` etc. hold the correlation statistics; ``response`` None returns it as
+    is. Vectors without a displacement (NaN) keep NaN.
+    """
+    if response is None:
+        return field
+    disp = np.stack([field.u, field.v, field.w])
+    sigma_cs = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
+    gain, rnd = response.at(field.z)
+    gain = gain[:, :, None, None]
+    rnd = rnd[:, :, None, None]
+    g = np.maximum(gain, MIN_GAIN)
+    sigma_gain = np.abs(1.0 - g) / g * np.abs(disp)
+    total = np.sqrt(sigma_cs**2 + rnd**2 + sigma_gain**2)
+    parts = dict(field.uncertainty_parts or {})
+    parts["response_random"] = np.broadcast_to(rnd, total.shape).copy()
+    parts["response_gain"] = sigma_gain
+    return replace(field, u_uncertainty=total[0], v_uncertainty=total[1],
+                   w_uncertainty=total[2], uncertainty_parts=parts)

@@ -1,0 +1,269 @@
+"""Coverage of the per-vector uncertainty on the vortex validations: the share of true errors
+within ±2σ, per component, on both flows, two lateral voxels, two seedings, two camera
+patches and two seeds.
+
+Every case runs the whole chain (:func:`plenopiv.validation.vortex.run_case`: calibration
+images -> calibration -> pair -> volumes -> 3-D PIV with the default ``[piv] uncertainty =
+"response"``). The coverage is counted over the valid vectors at least half a window inside
+the volume, against the flow's displacement at the window centres, for three stages of the
+estimate, all from the same field:
+
+1. correlation statistics alone (Wieneke 2015, 3-D, with the covariance of neighbouring
+   voxels);
+2. plus the last pass's correction (what ``[piv] uncertainty = "correlation"`` gives);
+3. plus the chain's measured response (:mod:`plenopiv.uncertainty`), the product's default.
+
+``python pipelines/validate_uncertainty.py --out docs/validation`` writes
+``uncertainty.json``, ``uncertainty.md`` and ``uncertainty_coverage.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+
+from plenopiv.config import PIVConfig
+from plenopiv.io import atomic_path, open_product
+from plenopiv.pipeline import VectorResult
+from plenopiv.validation.vortex import (
+    VortexCase,
+    case_flow,
+    coverage,
+    run_case,
+    true_displacement,
+)
+
+#: (label, case keywords): both flows, two lateral voxels, two seedings, two patches, two seeds.
+CASES = (
+    ("Oseen, 41 x 61, footprint voxels", dict(flow="oseen")),
+    ("Hill, 41 x 61, footprint voxels", dict(flow="hill")),
+    ("Oseen, 41 x 61, half-footprint voxels", dict(flow="oseen", lateral_oversampling=2)),
+    ("Hill, 41 x 61, half-footprint voxels", dict(flow="hill", lateral_oversampling=2)),
+    ("Oseen, 41 x 61, half-footprint, 0.3 per lenslet",
+     dict(flow="oseen", lateral_oversampling=2, particles_per_lenslet=0.3)),
+    ("Hill, 41 x 61, half-footprint, 0.3 per lenslet",
+     dict(flow="hill", lateral_oversampling=2, particles_per_lenslet=0.3)),
+    ("Oseen, 61 x 91 patch, half-footprint",
+     dict(flow="oseen", camera="auburn_50mm", lenslets=(61, 91), lateral_oversampling=2)),
+    ("Hill, 61 x 91 patch, half-footprint",
+     dict(flow="hill", camera="auburn_50mm", lenslets=(61, 91), lateral_oversampling=2)),
+    ("Oseen, 41 x 61, footprint voxels, seed 2", dict(flow="oseen", seed=2)),
+    ("Hill, 41 x 61, half-footprint, seed 2",
+     dict(flow="hill", lateral_oversampling=2, seed=2)),
+)
+#: The issue's band for the share of true errors within ±2σ.
+TARGET = (0.90, 0.98)
+STAGES = ("correlation", "last_correction", "response")
+STAGE_LABELS = {"correlation": "correlation statistics",
+                "last_correction": "+ last correction",
+                "response": "+ chain response (default)"}
+
+
+def evaluate_case(label: str, case: VortexCase, work: Path) -> dict:
+    """Run one case; coverage per stage and component, and the errors in units of σ."""
+    from plenopiv.pipeline import load_volume, piv_settings
+    from plenopiv.piv import correlate_volumes
+
+    name = re.sub(r"[^0-9A-Za-z]+", "_", label).strip("_").lower()
+    t0 = time.perf_counter()
+    summary = run_case(case, work / name)
+    products = summary["products"]
+    va, vb = load_volume(products["volume_A"]), load_volume(products["volume_B"])
+    # the PIV of the saved volumes again, for the terms of its uncertainty
+    settings = piv_settings(PIVConfig(windows=list(case.windows_vox), overlap=0.5, passes=3))
+    field = correlate_volumes(va.volume, vb.volume, va.grid, settings=settings)
+    with open_product(products["vectors"], "vectors", ValueError) as fh:
+        dt = float(fh.attrs["dt_s"])
+        final = np.stack([fh[f"{c}_uncertainty"][()] * dt for c in "uvw"])
+        valid = fh["valid"][()].astype(bool)
+        method = str(fh.attrs["uncertainty_method"])
+    scale = np.array([1.0, 1.0, abs(va.correction.scale)])[:, None, None, None]
+    parts = field.uncertainty_parts
+    sigma = {"correlation": parts["correlation"] * scale,
+             "last_correction": np.hypot(parts["correlation"], parts["last_correction"]) * scale,
+             "response": final}
+    vec = VectorResult.from_field(field, va.correction)
+    grid = va.grid
+    flow = case_flow(case, grid)
+    truth = true_displacement(vec, flow, case.dt)
+    zz, yy, xx = np.meshgrid(vec.z, vec.y, vec.x, indexing="ij")
+    b = grid.bounds
+    wz, wy, wx = case.windows_vox[-1]
+    inner = ((np.abs(xx) <= b[0, 1] - 0.5 * wx * grid.voxel[0])
+             & (np.abs(yy) <= b[1, 1] - 0.5 * wy * grid.voxel[1])
+             & (np.abs(zz) <= b[2, 1] - 0.5 * wz * grid.voxel[2]))
+    ok = valid & inner & np.asarray(field.valid)
+    err = np.stack([vec.u, vec.v, vec.w])[:, ok] - truth[:, ok]        # metres, physical
+    vox = np.array([grid.voxel[0], grid.voxel[1], grid.voxel[2] * scale[2, 0, 0, 0]])[:, None]
+    row = {"label": label, "case": dict(case.__dict__), "uncertainty_method": method,
+           "n_vectors": int(ok.sum()),
+           "rms_error_vox": np.sqrt(((err / vox) ** 2).mean(axis=1)).tolist(),
+           "coverage": {}, "rms_sigma_vox": {}}
+    for stage, sg in sigma.items():
+        sv = sg[:, ok]
+        row["coverage"][stage] = coverage(err.T, sv.T).tolist()
+        row["rms_sigma_vox"][stage] = np.sqrt(np.nanmean((sv / vox) ** 2, axis=1)).tolist()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        row["normalised_error"] = (err / sigma["response"][:, ok]).tolist()
+    row["seconds"] = round(time.perf_counter() - t0, 1)
+    return row
+
+
+def run(out: str | Path, *, work: str | Path | None = None, cases=CASES, progress=print) -> dict:
+    """Run the cases; write ``uncertainty.json``, ``uncertainty.md`` and the figure to ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    work = Path(work) if work is not None else out / "uncertainty_cases"
+    t0 = time.perf_counter()
+    rows = []
+    for label, kw in cases:
+        row = evaluate_case(label, VortexCase(**kw), work)
+        rows.append(row)
+        progress(f"{label}: coverage u, v, w = "
+                 f"{np.round(row['coverage']['response'], 3).tolist()} "
+                 f"(correlation statistics alone {np.round(row['coverage']['correlation'], 3)})")
+    result = {"cases": [{k: v for k, v in r.items() if k != "normalised_error"} for r in rows],
+              "target": list(TARGET), "seconds": round(time.perf_counter() - t0, 1)}
+    with atomic_path(out / "uncertainty.json") as tmp:
+        tmp.write_text(json.dumps(result, indent=1, default=str))
+    figure(rows, out / "uncertainty_coverage.png")
+    with atomic_path(out / "uncertainty.md") as tmp:
+        tmp.write_text(markdown(result))
+    return {"json": str(out / "uncertainty.json"), "markdown": str(out / "uncertainty.md"),
+            "seconds": result["seconds"]}
+
+
+def figure(rows: list[dict], path: Path) -> Path:
+    """Coverage per case, component and stage against the band; and the pooled distribution
+    of error / σ per component."""
+    from plenopiv.plots import _figure, _save
+
+    plt, fig = _figure(figsize=(14, 9))
+    names = [r["label"] for r in rows]
+    for k, comp in enumerate("uvw"):
+        ax = fig.add_subplot(2, 3, k + 1)
+        y = np.arange(len(rows))
+        for j, (stage, marker) in enumerate(zip(STAGES, ("o", "s", "D"), strict=True)):
+            ax.plot([r["coverage"][stage][k] * 100 for r in rows], y + (j - 1) * 0.2, marker,
+                    ls="none", label=STAGE_LABELS[stage])
+        ax.axvspan(TARGET[0] * 100, TARGET[1] * 100, color="g", alpha=0.15,
+                   label="target 90-98 %")
+        ax.set_yticks(y)
+        ax.set_yticklabels(names if k == 0 else [""] * len(names), fontsize=7)
+        ax.invert_yaxis()
+        ax.set_xlim(0, 100)
+        ax.set_xlabel("share of |error| <= 2σ (%)")
+        ax.set_title(f"{comp}: coverage per case")
+        if k == 2:
+            ax.legend(fontsize=7, loc="lower left")
+    for k, comp in enumerate("uvw"):
+        ax = fig.add_subplot(2, 3, 4 + k)
+        e = np.concatenate([np.asarray(r["normalised_error"][k], float) for r in rows])
+        e = e[np.isfinite(e)]
+        ax.hist(np.clip(e, -6, 6), bins=np.linspace(-6, 6, 61), density=True, alpha=0.7,
+                label=f"{e.size} vectors, all cases")
+        t = np.linspace(-6, 6, 200)
+        ax.plot(t, np.exp(-t**2 / 2) / np.sqrt(2 * np.pi), "k-", lw=1, label="N(0, 1)")
+        ax.axvline(-2, color="r", ls="--")
+        ax.axvline(2, color="r", ls="--")
+        ax.set_xlabel(f"(measured - true {comp}) / σ (clipped at ±6)")
+        ax.set_title(f"{comp}: error in units of its uncertainty")
+        ax.legend(fontsize=7)
+    fig.suptitle("Per-vector uncertainty on the vortex validations")
+    return _save(plt, fig, path)
+
+
+def _f(v, n=2) -> str:
+    return ", ".join(f"{x * 100:.0f}" if n == 0 else f"{x:.{n}f}" for x in v)
+
+
+def markdown(r: dict) -> str:
+    """The study as Markdown."""
+    cases = r["cases"]
+    lines = [
+        "# Per-vector uncertainty: coverage on the vortex validations (synthetic)", "",
+        "Generated by `python pipelines/validate_uncertainty.py` "
+        "(`plenopiv.validation.uncertainty_study`); numbers in `uncertainty.json`, figure "
+        "`uncertainty_coverage.png`.", "",
+        "Coverage = share of the true errors within ±2σ (σ: the product's `u_uncertainty`, "
+        "`v_uncertainty`, `w_uncertainty`), over the valid vectors at least half a window "
+        "inside the volume, against the flow's displacement at the window centres. The "
+        f"target is {TARGET[0]:.0%}-{TARGET[1]:.0%} per component (a Gaussian error gives "
+        "95.4 %).", "",
+        "## Coverage per case (%, u, v, w)", "",
+        "| case | vectors | rms error u, v, w (vox) | correlation statistics | "
+        "+ last correction | + chain response (default) | in band |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for c in cases:
+        cov = c["coverage"]
+        band = all(TARGET[0] <= x <= TARGET[1] for x in cov["response"])
+        lines.append(f"| {c['label']} | {c['n_vectors']} | {_f(c['rms_error_vox'])} | "
+                     f"{_f(cov['correlation'], 0)} | {_f(cov['last_correction'], 0)} | "
+                     f"{_f(cov['response'], 0)} | {'yes' if band else 'no'} |")
+    allcov = np.array([c["coverage"]["response"] for c in cases])
+    raw = np.array([c["coverage"]["correlation"] for c in cases])
+    mid = np.array([c["coverage"]["last_correction"] for c in cases])
+    inband = (allcov >= TARGET[0]) & (allcov <= TARGET[1])
+    lines += ["", f"Mean over the cases (u, v, w): correlation statistics alone "
+              f"{_f(raw.mean(axis=0), 0)} %, with the last correction "
+              f"{_f(mid.mean(axis=0), 0)} %, final {_f(allcov.mean(axis=0), 0)} %; "
+              f"{int(inband.sum())} of {inband.size} case-components in the band, "
+              f"{int((allcov < TARGET[0]).sum())} below, {int((allcov > TARGET[1]).sum())} "
+              "above.", "", *METHOD, "", f"Study time: {r['seconds']:.0f} s.", ""]
+    return "\n".join(lines)
+
+
+METHOD = [
+    "## Method",
+    "",
+    "Per vector and component the standard uncertainty is the root sum of squares of three "
+    "terms (`plenopiv.piv.correlate_volumes`, `plenopiv.uncertainty`):",
+    "",
+    "1. **Correlation statistics** (Wieneke 2015, per axis in 3-D). After the last pass the "
+    "two deformed windows nearly coincide; along each axis the correlation values beside "
+    "the peak are sums of per-voxel products, c+(x) = a(x) b(x + s0 + e) and "
+    "c-(x) = a(x + e) b(x + s0), whose difference vanishes voxel by voxel where the windows "
+    "are equal. The standard deviation of the asymmetry C+ - C- is the spread of those "
+    "differences, with the covariance of neighbouring voxels counted by summing them over "
+    "blocks of 2h + 1 voxels (h = the particle images' correlation width per axis, from the "
+    "volume's autocorrelation); the uncertainty is the shift of the 3-point Gaussian fit for "
+    "neighbours (C+ + C-)/2 ± σ/2.",
+    "2. **The last correction**: the change the last pass made to the estimate. The passes "
+    "converge geometrically, each removing a fraction of the remaining error, so what the "
+    "iteration left is of the order of the last correction (window-border truncation of "
+    "depth-elongated particle images, flow structures the smoothed predictor does not "
+    "resolve). On noisy synthetic Gaussian-particle volumes, where the statistics alone "
+    "cover 50-85 % of the errors, the two terms together cover 85-98 % "
+    "(`tests/test_piv_quality.py`).",
+    "3. **The chain's response**, measured, not modelled: both reconstructions share the "
+    "plenoptic camera's errors — a particle near the focal plane lights about one lenslet "
+    "wherever it lies inside one footprint and one depth resolution cell, so the "
+    "reconstruction does not follow it and the deformed windows match although the "
+    "displacement is wrong (depth gain 0.0-0.5 near focus). Once per experiment the chain is "
+    "run on ray-traced pairs of random particles (the pair's seeding) moved by known "
+    "uniform displacements — 0.5, 1.25, 1.75 lenslet footprints laterally with 0.1, 0.25, "
+    "0.5 depth resolution cells in depth — with the calibrated camera, the grid and every "
+    "setting of the real pair. Per layer of vectors this gives the gain g (mean measured / "
+    "true) and the random error r; a vector d then gets r and the error of a displacement "
+    "measured with gain g, |1 - g| / max(g, 0.1) |d|. It is a type-B evaluation from a "
+    "calibration of the measuring system: the vortex flows are not used to build it.",
+    "",
+    "## What is not met",
+    "",
+    "- The response is measured with uniform displacements; a flow whose displacement "
+    "varies within a window near focus (Hill's vortex, about one window across on the "
+    "41 x 61 camera) has lateral errors the uniform test does not reproduce: u is "
+    "under-covered there.",
+    "- Near focus the true depth displacement of Oseen's vortex is 1-2 voxels where the "
+    "measured one is 0.3-0.6: the gain term scales the measured value, and where the chain "
+    "sees almost nothing the bound stays short.",
+    "- A component with no motion (v of the Oseen vortex, axis along y) gets the random "
+    "error measured with lateral motion: over-covered (100 %).",
+    "- `plenopiv piv` on two volume products has no calibration and images: it gives terms 1 "
+    "and 2 only (`uncertainty_method = \"correlation\"` in the product).",
+]
