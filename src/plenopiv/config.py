@@ -130,6 +130,17 @@ class PIVConfig(_Strict):
     replacement: Literal["median", "mean", "none"] = "median"
     uncertainty: Literal["response", "correlation"] = "response"
 
+    @field_validator("windows")
+    @classmethod
+    def _window_edges(cls, v):
+        from plenopiv.piv import MIN_WINDOW_VOX
+
+        for w in v:
+            if min(w) < MIN_WINDOW_VOX or max(w) > MAX_WINDOW_VOX:
+                raise ValueError(f"window {list(w)}: expected edges of {MIN_WINDOW_VOX} to "
+                                 f"{MAX_WINDOW_VOX} voxels [wz, wy, wx]")
+        return v
+
 
 class BoxMask(_Strict):
     """One ``[[mask.box]]``: a box in volume coordinates (mm, those of ``[volume]``).
@@ -181,17 +192,6 @@ class MaskConfig(_Strict):
     volume: str | None = None
     box: list[BoxMask] = []
     cylinder: list[CylinderMask] = []
-
-    @field_validator("windows")
-    @classmethod
-    def _window_edges(cls, v):
-        from plenopiv.piv import MIN_WINDOW_VOX
-
-        for w in v:
-            if min(w) < MIN_WINDOW_VOX or max(w) > MAX_WINDOW_VOX:
-                raise ValueError(f"window {list(w)}: expected edges of {MIN_WINDOW_VOX} to "
-                                 f"{MAX_WINDOW_VOX} voxels [wz, wy, wx]")
-        return v
 
 
 class ImagesConfig(_Strict):
