@@ -238,4 +238,4 @@ def test_cli_simulate_rendering_choices(tmp_path, capsys, kind):
     assert code == 0
     assert s["splat"] == "pixel" and s["psf_px"] == 0.6 and s["sensor_shift_px"] == [0.25, -0.4]
     code = main(["simulate", kind, "small_test", "--out", str(out), "--psf-px", "-1"])
-    assert code == 2 and "psf_px = -1.0: expected a finite number >= 0" in capsys.readouterr().err
+    assert code == 2 and "--psf-px -1.0: expected a finite number >= 0" in capsys.readouterr().err
