@@ -35,6 +35,8 @@ def _camera_from_args(args) -> CameraModel:
     cam = load_camera(args.camera)
     if getattr(args, "image_distance_mm", None) is not None:
         cam = cam.with_image_distance(args.image_distance_mm * 1e-3)
+    if getattr(args, "lenslets", None) is not None:
+        cam = cam.patch(*args.lenslets)
     return cam
 
 
@@ -579,6 +581,9 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--sensor-shift-px", type=float, nargs=2, default=(0.0, 0.0),
                            metavar=("DROW", "DCOL"),
                            help="shift the image content by a (sub-)pixel amount (default 0 0)")
+            p.add_argument("--lenslets", type=int, nargs=2, metavar=("ROWS", "COLS"),
+                           help="render the central ROWS x COLS lenslets of the camera, on a "
+                                "sensor cut to them (odd counts put a lenslet on the axis)")
         _add_image_options(p)
         _add_common(p)
         p.set_defaults(func=cmd_simulate)
