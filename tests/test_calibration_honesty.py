@@ -81,7 +81,8 @@ def test_hexagonal_image_forced_square_is_refused(patch):
 
 def test_scene_images_are_refused(patch):
     ruler = ruler_image(patch, Ruler(1e-3), rays_per_lenslet=300)
-    with pytest.raises(CalibrationError, match=r"(max_rms_residual_pitch|max_missing_fraction).*not a scene"):
+    with pytest.raises(CalibrationError,
+                       match=r"(max_rms_residual_pitch|max_missing_fraction).*not a scene"):
         calibrate(patch, ruler)
     box = SeedingBox.field_of_view(patch, (-5e-3, 5e-3))
     parts = particle_image(patch, random_particles(box, 400, np.random.default_rng(1)),
@@ -237,5 +238,9 @@ def test_cli_simulate_rendering_choices(tmp_path, capsys, kind):
     s = json.loads(capsys.readouterr().out)
     assert code == 0
     assert s["splat"] == "pixel" and s["psf_px"] == 0.6 and s["sensor_shift_px"] == [0.25, -0.4]
+    code = main(["simulate", kind, "small_test", "--out", str(out), "--lenslets", "20", "30",
+                 "--json", "--quiet"])
+    s = json.loads(capsys.readouterr().out)
+    assert code == 0 and "20 x 30-lenslet patch" in s["camera"] and s["shape"][0] < 700
     code = main(["simulate", kind, "small_test", "--out", str(out), "--psf-px", "-1"])
     assert code == 2 and "--psf-px -1.0: expected a finite number >= 0" in capsys.readouterr().err

@@ -53,7 +53,8 @@ def _id(choice):
 
 # ---- every rendering choice, even and odd lenslet counts ---------------------------------------
 
-CASES = [pytest.param(c, n, marks=() if c == FAST else pytest.mark.slow, id=f"{_id(c)}-{n[0]}x{n[1]}")
+CASES = [pytest.param(c, n, marks=() if c == FAST else pytest.mark.slow,
+                      id=f"{_id(c)}-{n[0]}x{n[1]}")
          for c in CHOICES for n in ((20, 30), (21, 31))]
 
 

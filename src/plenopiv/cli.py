@@ -93,6 +93,11 @@ def _camera_from_args(args) -> CameraModel:
     if getattr(args, "image_distance_mm", None) is not None:
         _number("--image-distance-mm", args.image_distance_mm, minimum=0, open_min=True)
         cam = cam.with_image_distance(args.image_distance_mm * 1e-3)
+    if getattr(args, "lenslets", None) is not None:
+        if min(args.lenslets) < 1:
+            raise ConfigError(f"--lenslets {args.lenslets[0]} {args.lenslets[1]}: expected two "
+                              "positive lenslet counts ROWS COLS")
+        cam = cam.patch(*args.lenslets)
     check_sensor(cam)
     return cam
 
@@ -1123,6 +1128,9 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--sensor-shift-px", type=float, nargs=2, default=(0.0, 0.0),
                            metavar=("DROW", "DCOL"),
                            help="shift the image content by a (sub-)pixel amount (default 0 0)")
+            p.add_argument("--lenslets", type=int, nargs=2, metavar=("ROWS", "COLS"),
+                           help="render the central ROWS x COLS lenslets of the camera, on a "
+                                "sensor cut to them (odd counts put a lenslet on the axis)")
         _add_image_options(p)
         _add_common(p)
         p.set_defaults(func=cmd_simulate)

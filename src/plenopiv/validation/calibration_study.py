@@ -1,6 +1,7 @@
-"""Synthetic calibration studies reproducing the thesis's Fig. 3.8, Fig. 3.9 / Table 5.3 and
-Fig. 5.5 with the project's ray tracer and calibration pipeline, on renders that do not
-share the tracer's defaults.
+"""Synthetic calibration studies: the thesis's Fig. 3.8, Fig. 3.9 / Table 5.3 and Fig. 5.5.
+
+They run the project's ray tracer and calibration pipeline on renders that do not share the
+tracer's defaults.
 
 The focal-point images are rendered the way an independent tracer (and a real camera) makes
 them (issue #10): a Gaussian PSF of sigma 0.5 px, each ray splatted by area onto the four
@@ -60,7 +61,7 @@ def _camera(base: CameraModel, si, plate=None, back_side="physical") -> CameraMo
 
 
 def _patch(base: CameraModel, si, rows=40, cols=60) -> CameraModel:
-    """The issue's camera: a rows x cols patch, no plate, perfectly placed."""
+    """Return the issue's camera: a rows x cols patch, no plate, perfectly placed."""
     mla = dataclasses.replace(base.microlens_array, substrate=None)
     return base.replace(microlens_array=mla).with_image_distance(si).patch(rows, cols,
                                                                            margin_px=12)
@@ -72,7 +73,7 @@ def _render(cam, **choice):
 
 
 def _nominal(cam: CameraModel) -> CameraModel:
-    """The camera file a user has: no MLA misplacement (calibrate fits it)."""
+    """Return the camera file a user has: no MLA misplacement (calibrate fits it)."""
     mla = dataclasses.replace(cam.microlens_array, offset=(0.0, 0.0), rotation=0.0)
     return cam.replace(microlens_array=mla)
 
@@ -87,8 +88,10 @@ def _fit(cam, img, estimator="new", **kw):
 
 
 def fig_3_8(base: CameraModel) -> list[dict]:
-    """S_i from 136 to 405 mm, no noise: fitted S_i, offset and rotation against the truth,
-    with the old and the new spot centres."""
+    """Fit S_i from 136 to 405 mm, no noise, with the old and the new spot centres.
+
+    Fitted S_i, offset and rotation against the truth.
+    """
     rows = []
     for si in IMAGE_DISTANCES:
         cam = _camera(base, si)
@@ -107,7 +110,7 @@ def fig_3_8(base: CameraModel) -> list[dict]:
 
 
 def rendering_choices(base: CameraModel) -> list[dict]:
-    """The issue's 40 x 60 camera at 136-405 mm under every rendering choice, noise-free."""
+    """Calibrate the issue's 40 x 60 camera at 136-405 mm under every rendering choice."""
     rows = []
     for choice in CHOICES:
         for si in (0.136, 0.2, 0.27, 0.405):
@@ -122,8 +125,10 @@ def rendering_choices(base: CameraModel) -> list[dict]:
 
 
 def photon_noise(base: CameraModel, *, seeds: int = 8) -> list[dict]:
-    """Poisson noise at 0.9 x 4095 counts on the issue's camera: the error over ``seeds``
-    realisations against the fit's own sigma."""
+    """Fit the issue's camera under Poisson noise at 0.9 x 4095 counts.
+
+    The error over ``seeds`` realisations against the fit's own sigma.
+    """
     rows = []
     for si in (0.145, 0.2, 0.27, 0.405):
         cam = _patch(base, si)
@@ -182,9 +187,11 @@ def table_5_3(base: CameraModel, *, seed: int = 0, repeats: int = 20) -> list[di
 
 
 def fig_5_5(base: CameraModel) -> list[dict]:
-    """Plates in front of the lenslets, both back sides: the plate model (the spots'
-    centroid over the f/16 stop), the thesis's chief-ray plate model and the original
-    (no-plate) model, all fitted to the same measured spots."""
+    """Fit plates in front of the lenslets, both back sides, with three models.
+
+    The plate model (the spots' centroid over the f/16 stop), the thesis's chief-ray plate
+    model and the original (no-plate) model, all fitted to the same measured spots.
+    """
     rows = []
     for plate in PLATES:
         for back_side in ("thesis", "physical"):
@@ -366,7 +373,7 @@ def _markdown(results: dict) -> str:
 
 
 def _notes(results: dict) -> list[str]:
-    """The findings, with their figures taken from the results."""
+    """Return the findings, with their figures taken from the results."""
     f38 = results["fig_3_8"]
     rc = results["rendering_choices"]
     pn = {r["true_mm"]: r for r in results["photon_noise"]}
