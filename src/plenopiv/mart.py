@@ -45,6 +45,7 @@ def reconstruct(
     initial="mlos",
     shape: tuple[int, int, int] | None = None,
     callback: Callable[[int, np.ndarray], None] | None = None,
+    ceiling=None,
 ) -> np.ndarray:
     r"""Reconstruct the voxel intensities E from one image by multiplicative iterations.
 
@@ -83,6 +84,11 @@ def reconstruct(
     callback : callable, optional
         Called as ``callback(iteration, volume)`` after each sweep (iteration counts from 1)
         with a read-only view of the current volume, e.g. to report progress or residuals.
+    ceiling : array_like of bool, n_pixels values, optional
+        ``method="smart"`` only: pixels whose intensity is an upper bound rather than a
+        measurement (dark pixels given the noise floor as intensity). Their ratio
+        ``I_i / sum_k w_ik E_k`` is capped at 1, so they only ever lower the voxels they see
+        (where the projection exceeds the floor), never raise them.
 
     Returns
     -------
@@ -156,6 +162,13 @@ def reconstruct(
         raise ValueError("method='block' needs blocks: one integer label per pixel")
     if method != "block" and blocks is not None:
         raise ValueError(f"blocks is used only by method='block'; got method={method!r}")
+    if ceiling is not None:
+        if method != "smart":
+            raise ValueError(f"ceiling is used only by method='smart'; got method={method!r}")
+        ceiling = np.asarray(ceiling, bool).reshape(-1)
+        if ceiling.size != projector.n_pixels:
+            raise ReconstructionError(f"ceiling has {ceiling.size} values; the projector "
+                                      f"expects n_pixels = {projector.n_pixels}")
     volume_shape = _check_shape(shape, projector.n_voxels)
     intensity = _check_image(image, projector.n_pixels, pixel_threshold)
     bright = intensity > pixel_threshold
@@ -183,7 +196,7 @@ def reconstruct(
                            np.float32(relaxation), log_ratio)
         else:
             _smart_iteration(projector, intensity, bright, volume, relaxation, column_norm,
-                             log_ratio)
+                             log_ratio, ceiling)
         if callback is not None:
             view = _shaped(volume, volume_shape).view()
             view.flags.writeable = False
@@ -288,13 +301,19 @@ def reconstruction_quality(volume, volume_true) -> float:
 # -- helpers ------------------------------------------------------------------------------
 
 
-def _smart_iteration(projector, intensity, bright, volume, relaxation, column_norm, log_ratio):
-    """One SMART iteration through the Projector protocol (forward, then back)."""
+def _smart_iteration(projector, intensity, bright, volume, relaxation, column_norm, log_ratio,
+                     ceiling=None):
+    """Run one SMART iteration through the Projector protocol (forward, then back).
+
+    Rows of ``ceiling`` only lower their voxels.
+    """
     projection = projector.forward(volume)
     log_ratio[:] = 0.0
     update = bright & (projection > 0.0)
     log_ratio[update] = np.clip(np.log(intensity[update] / projection[update]),
                                 -_k.LOG_RATIO_BOUND, _k.LOG_RATIO_BOUND)
+    if ceiling is not None:
+        np.minimum(log_ratio, 0.0, out=log_ratio, where=ceiling)
     correction = projector.back(log_ratio)
     volume *= np.exp(np.float32(relaxation) * correction / column_norm)
     np.minimum(volume, _k.VOXEL_MAX, out=volume)
