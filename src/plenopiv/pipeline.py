@@ -274,7 +274,7 @@ def _line_of_sight_guess(weights: Weights, calibration: Calibration, settings, r
     used = touching & (row_sums > 0)
     log_values = np.zeros(len(raw), np.float32)
     log_values[used] = np.log(np.maximum(raw[used], floor) / row_scale[used] / row_sums[used])
-    keep, guess = subcell_line_of_sight(
+    keep, guess, _ = subcell_line_of_sight(
         weights, lambda: _light_field_of(calibration, settings), touching & ~bright,
         log_values, used, tolerance=settings.dark_tolerance,
         footprint=footprint(calibration.effective_camera))

@@ -123,7 +123,7 @@ def _refined_projectors(weights, light_field_of, kx: int, ky: int) -> list:
 
 def subcell_line_of_sight(weights, light_field_of, dark_rows, log_values=None,
                           used_rows=None, *, tolerance: float,
-                          footprint: float) -> tuple[np.ndarray, np.ndarray | None]:
+                          footprint: float) -> tuple:
     """Return the soft line-of-sight mask and the MLOS first guess, judged on sub-voxel cells.
 
     Parameters
@@ -153,6 +153,8 @@ def subcell_line_of_sight(weights, light_field_of, dark_rows, log_values=None,
     guess : (n_voxels,) float32 or None
         The largest MLOS value of the voxel's cells, exp(Σ_used ŵ_ic ln v_i / Σ_used ŵ_ic);
         0 where no used row sees a cell.
+    dark_fraction : (nz, ny, nx) float32
+        The smallest dark fraction of the voxel's cells (inf where no row sees any).
     """
     kx, ky = subcell_factors(weights.grid, footprint)
     dark = np.asarray(dark_rows, np.float32)
@@ -176,4 +178,4 @@ def subcell_line_of_sight(weights, light_field_of, dark_rows, log_values=None,
                 cell = np.where(s_used > 0, np.exp(s_log / s_used), 0.0).astype(np.float32)
                 guess[z0:z1] = -pool_min(-cell, kx, ky)
     keep = best.reshape(-1) <= tolerance
-    return keep, None if guess is None else guess.reshape(-1)
+    return keep, None if guess is None else guess.reshape(-1), best
