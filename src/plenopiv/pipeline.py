@@ -228,8 +228,10 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     first = _line_of_sight_guess(weights, calibration, settings, raw, floor, touching, bright)
     if settings.method == "smart":
         # the dark pixels take part as ceilings: their light is at most the threshold, so
-        # they lower the voxels that would send more into them and never raise any
-        rows = touching
+        # they lower the voxels that would send more into them and never raise any; only
+        # those that see the first guess's support can change anything
+        reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
+        rows = bright | (touching & reach)
         vol = reconstruct((np.maximum(raw, floor) / row_scale).astype(np.float32)[rows],
                           proj.select_rows(rows), method="smart",
                           iterations=settings.iterations, relaxation=settings.relaxation_used,
