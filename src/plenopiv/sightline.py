@@ -37,7 +37,7 @@ __all__ = ["subcell_factors", "refined_grid", "pool_min", "subcell_line_of_sight
 CELLS_PER_FOOTPRINT = 2
 #: Refined voxels per depth slab (bounds the memory of one refined projection: with the
 #: lattice projector its buffer is slices × refined rows × sensor columns float32).
-SLAB_VOXELS = 40_000_000
+SLAB_VOXELS = 20_000_000
 
 _CACHE: dict = {}
 _LOCK = threading.Lock()
