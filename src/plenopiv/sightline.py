@@ -121,6 +121,27 @@ def _refined_projectors(weights, light_field_of, kx: int, ky: int) -> list:
     return out
 
 
+def _used_sums(proj, used: np.ndarray, z0: int) -> np.ndarray:
+    """Return ``proj.back(used)``, kept per slab and rows mask.
+
+    The rows that enter MLOS depend on the geometry only, so every image of a series reuses
+    it; the store is emptied with the refined projectors (a new weights object).
+    """
+    import hashlib
+
+    key = (z0, hashlib.blake2b(np.packbits(used > 0).tobytes(), digest_size=16).hexdigest())
+    with _LOCK:
+        store = _CACHE.setdefault("used", {})
+        hit = store.get(key)
+    if hit is None:
+        hit = np.asarray(proj.back(used))
+        with _LOCK:
+            if len(store) > 64:
+                store.clear()
+            store[key] = hit
+    return hit
+
+
 def subcell_line_of_sight(weights, light_field_of, dark_rows, log_values=None,
                           used_rows=None, *, tolerance: float,
                           footprint: float) -> tuple:
@@ -173,7 +194,7 @@ def subcell_line_of_sight(weights, light_field_of, dark_rows, log_values=None,
             frac = np.where(seen > 0, d / seen, np.inf).astype(np.float32)
             best[z0:z1] = pool_min(frac, kx, ky)
             if guess is not None:
-                s_used = np.asarray(proj.back(used)).reshape(shape)
+                s_used = _used_sums(proj, used, z0).reshape(shape)
                 s_log = np.asarray(proj.back(logv)).reshape(shape)
                 cell = np.where(s_used > 0, np.exp(s_log / s_used), 0.0).astype(np.float32)
                 guess[z0:z1] = -pool_min(-cell, kx, ky)
