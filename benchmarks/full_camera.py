@@ -7,6 +7,12 @@ volume is 287 × 193 × 200 voxels of one lenslet footprint (0.26 mm) each way. 
 weights would hold ~1.2·10¹⁰ non-zeros (~100 GB), so the pipeline's ``projector = "auto"``
 takes the matrix-free lattice projector.
 
+``--geometry rotated|hexagonal`` mounts a rotated square array (γ = 2 mrad, offset (3, -2) µm)
+or a hexagonal one (222 × 287 lenslets, γ = 1 mrad) in the same camera; the grid is moved off
+the footprints by ``--grid-offset-vox`` (default 0.37, 0.21 voxels) for every geometry. A
+geometry the reconstruction cannot take at this size stops at the weights stage (before
+rendering) with the library's error, recorded as ``refused``.
+
 Stages, each printed with its wall time and the process's peak resident memory during it:
 
 1. render the pair with the project's ray tracer (cached in ``benchmarks/_cache/``);
@@ -32,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import hashlib
 import json
 import math
@@ -45,6 +52,7 @@ import numpy as np
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera import load_camera
 from plenopiv.config import ParticleSettings, ReconstructionSettings
+from plenopiv.errors import ReconstructionError
 from plenopiv.io import atomic_path
 from plenopiv.mart import reconstruction_quality
 from plenopiv.pipeline import correlate, gaussian_truth_volume, reconstruct_volume
@@ -52,6 +60,7 @@ from plenopiv.piv import PIVSettings
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.validation import field_quality as fq
 from plenopiv.validation.vortex import VortexCase, _flow, aligned_grid, compare_with_truth
+from plenopiv.volume import VolumeGrid
 from plenopiv.weights import cached_weights
 
 CACHE = Path(__file__).parent / "_cache"
@@ -96,8 +105,18 @@ def stage(name: str, log: dict):
 # ---- the case ----------------------------------------------------------------------------------
 
 
+#: Lenslet arrays of ``--geometry``: the preset's (axis-aligned), a mounted square array
+#: (γ = 2 mrad, offset (3, -2) µm) and a hexagonal one (222 × 287 lenslets, γ = 1 mrad).
+GEOMETRIES = {"aligned": {},
+              "rotated": {"rotation": 2e-3, "offset": (3e-6, -2e-6)},
+              "hexagonal": {"grid": "hexagonal", "rows": 222, "cols": 287, "rotation": 1e-3}}
+
+
 def full_case(args) -> tuple:
     cam = load_camera("auburn_135mm")
+    geo = GEOMETRIES[args.geometry]
+    if geo:
+        cam = cam.replace(microlens_array=dataclasses.replace(cam.microlens_array, **geo))
     cal = Calibration.from_camera(cam)
     eff = cal.effective_camera
     b = eff.microlens_array.pitch * eff.object_distance / eff.image_distance
@@ -105,6 +124,9 @@ def full_case(args) -> tuple:
                       max_displacement=args.displacement_vox * b, lateral_fill=1.0,
                       voxel_depth_factor=1.0, dt=1e-3, seed=args.seed)
     grid = aligned_grid(eff, case)
+    # voxels not aligned with the footprints: the grid moved by a fraction of a voxel
+    shift = np.array([*args.grid_offset_vox, 0.0]) * np.array(grid.voxel)
+    grid = VolumeGrid(tuple(np.array(grid.origin) + shift), grid.voxel, grid.shape)
     box = SeedingBox(tuple(grid.bounds[0] * 0.95), tuple(grid.bounds[1] * 0.95),
                      (-0.8 * case.depth, 0.8 * case.depth))
     return cam, cal, case, grid, box, _flow(case, box)
@@ -127,6 +149,28 @@ def render_pair(cam, flow, case, box, n, rays):
     return pair.image_a, pair.image_b, pair.positions_a, pair.positions_b, False
 
 
+def q_breakdown(result, truth, positions, cal, grid, image, settings) -> dict:
+    """Where the full-size Q is lost: Q within the patch study's depth (±16 footprints) and
+    beyond, in the lateral interior, detection and ghost rates (matches inside the
+    resolution cell, interior only), and the share of lit pixels (image density)."""
+    eff = cal.effective_camera
+    b = fq.footprint(eff)
+    lat, dep = fq.resolution_cell(eff)
+    vol = result.volume
+    near = np.abs(grid.z) <= 16 * b
+    out = {"q_depth_within_16b": reconstruction_quality(vol[near], truth[near]),
+           "q_depth_beyond_16b": reconstruction_quality(vol[~near], truth[~near])}
+    region = fq.Region(grid, fq.interior_margin(eff, depth=float(np.abs(positions[:, 2]).max())))
+    sl = region.slices
+    out["q_interior"] = reconstruction_quality(vol[sl], truth[sl])
+    row = fq.score(result, positions, tolerance=(lat, lat, dep),
+                   sigmas={"cell": fq.cell_sigma(grid, eff)}, region=region)
+    out.update(detection=row["detection_rate"], ghosts=row["ghost_rate"],
+               resolution_cell_mm=[lat * 1e3, dep * 1e3])
+    out["lit_pixel_share"] = float(np.mean(image > settings.pixel_threshold * image.max()))
+    return out
+
+
 def patch_study(args, log: dict) -> dict:
     """Explicit weights against the lattice projector on a 41 × 61-lenslet patch."""
     cam = fq.study_camera(41, 61, preset="auburn_135mm")
@@ -143,7 +187,8 @@ def patch_study(args, log: dict) -> dict:
     img = fq.render(cam, pos, seed=args.seed)
     sigma = fq.cell_sigma(grid, cam)
     truth = gaussian_truth_volume(grid, pos, sigma_vox=sigma)
-    out = {"lenslets": [41, 61], "grid": list(grid.shape), "particles": n}
+    out = {"lenslets": [41, 61], "grid": list(grid.shape), "particles": n,
+           "lit_pixel_share": float(np.mean(img > 0.003 * img.max()))}
     smart = ReconstructionSettings(iterations=args.iterations)
     for kind in ("sparse", "lattice"):
         with stage(f"patch {kind} SMART", log):
@@ -200,6 +245,11 @@ def main(argv=None) -> dict:
     p.add_argument("--skip-patch", action="store_true")
     p.add_argument("--track", action="store_true",
                    help="also track the particles (ray bundles + PIV predictor): added time")
+    p.add_argument("--geometry", choices=sorted(GEOMETRIES), default="aligned",
+                   help="lenslet array: aligned (the preset), rotated (2 mrad, offset 3, -2 µm), "
+                        "hexagonal (222 x 287, 1 mrad)")
+    p.add_argument("--grid-offset-vox", type=float, nargs=2, default=(0.37, 0.21),
+                   help="lateral shift of the grid off the footprints, voxels (x, y)")
     p.add_argument("--json", action="store_true", help="end with one JSON line")
     args = p.parse_args(argv)
     log: dict = {}
@@ -207,17 +257,22 @@ def main(argv=None) -> dict:
     cam, cal, case, grid, box, flow = full_case(args)
     print(f"grid {grid.shape} (z, y, x), voxel {np.round(np.array(grid.voxel) * 1e3, 4)} mm; "
           f"{args.particles} particles", file=sys.stderr)
+    settings = ReconstructionSettings(iterations=args.iterations)
+    particles = ParticleSettings()
+    try:
+        with stage("weights (light field)", log):
+            w, _ = cached_weights(cal, grid, cache_dir=None, f_number=settings.f_number,
+                                  min_lit=settings.min_lit, projector=settings.projector,
+                                  max_weights_gb=settings.max_weights_gb)
+            _ = w.normalised
+    except ReconstructionError as exc:
+        result = {"geometry": args.geometry, "refused": str(exc), "stages": log}
+        print(json.dumps(result, default=_json_default))
+        return result
     with stage("render pair", log):
         ia, ib, pa, pb, cached = render_pair(cam, flow, case, box, args.particles, args.rays)
     log["render pair"]["cached"] = cached
 
-    settings = ReconstructionSettings(iterations=args.iterations)
-    particles = ParticleSettings()
-    with stage("weights (light field)", log):
-        w, _ = cached_weights(cal, grid, cache_dir=None, f_number=settings.f_number,
-                              min_lit=settings.min_lit, projector=settings.projector,
-                              max_weights_gb=settings.max_weights_gb)
-        _ = w.normalised
     print(f"projector: {'lattice (matrix-free)' if w.matrix_free else 'explicit'}",
           file=sys.stderr)
     vols = {}
@@ -226,8 +281,9 @@ def main(argv=None) -> dict:
             vols[name] = reconstruct_volume(cal, img, grid, settings=settings,
                                             particles=particles, weights=w)
     sigma = fq.cell_sigma(grid, cal.effective_camera)
-    q = reconstruction_quality(vols["A"].volume,
-                               gaussian_truth_volume(grid, pa, sigma_vox=sigma))
+    truth = gaussian_truth_volume(grid, pa, sigma_vox=sigma)
+    q = reconstruction_quality(vols["A"].volume, truth)
+    breakdown = q_breakdown(vols["A"], truth, pa, cal, grid, ia, settings)
     windows = ((32, 32, 32), (16, 16, 16))
     piv = PIVSettings(windows=windows, overlap=0.5, passes=3)
     with stage("PIV", log):
@@ -249,6 +305,8 @@ def main(argv=None) -> dict:
         "velocity_bias_vox": [round(v, 4) for v in err["bias_vox"]],
         "valid_fraction": err.get("valid_fraction"),
         "particles_found_a": len(vols["A"].particle_position),
+        "geometry": args.geometry, "grid_offset_vox": list(args.grid_offset_vox),
+        **breakdown,
         "stages": log,
     }
     if args.track:

@@ -25,7 +25,14 @@ from plenopiv.mart import reconstruction_quality
 from plenopiv.pipeline import reconstruct_volume
 from plenopiv.synthetic.images import particle_image
 from plenopiv.volume import VolumeGrid
-from plenopiv.weights import build_weights, cached_weights, choose_projector
+from plenopiv.weights import (
+    BYTES_PER_NONZERO,
+    build_weights,
+    cached_weights,
+    choose_projector,
+    estimate_matrix_free_gb,
+    estimate_nnz,
+)
 
 RTOL = 1e-5
 
@@ -107,8 +114,26 @@ def test_auto_takes_the_lattice_when_weights_do_not_fit(small_camera):
     lf = light_field(cal)
     grid = small_grid(lf)
     assert choose_projector(lf, grid, max_weights_gb=1e3) == "sparse"
-    w, cached = cached_weights(cal, grid, cache_dir=None, max_weights_gb=1e-3)
+    budget = 1.01 * estimate_matrix_free_gb(lf, grid)
+    assert BYTES_PER_NONZERO * estimate_nnz(lf, grid) / 1e9 > budget
+    w, cached = cached_weights(cal, grid, cache_dir=None, max_weights_gb=budget)
     assert w.matrix_free and not cached and w.nnz == 0
+
+
+def test_volumes_beyond_the_memory_limit_are_refused_before_allocating(small_camera):
+    """Explicit weights asked for, or the matrix-free estimate, beyond max_weights_gb: an
+    error naming the figure and what to change, before anything is built."""
+    lf = light_field(Calibration.from_camera(small_camera))
+    grid = small_grid(lf)
+    mf = estimate_matrix_free_gb(lf, grid)
+    # the estimate holds the two projection buffers at least
+    nz, ny, _ = grid.shape
+    assert mf * 1e9 >= 2 * 4 * nz * ny * len(np.unique(lf.pixel % lf.shape[1]))
+    with pytest.raises(ReconstructionError, match=r"explicit weights need ~.* GB.*projector"):
+        choose_projector(lf, grid, projector="sparse", max_weights_gb=1e-6)
+    with pytest.raises(ReconstructionError, match=r"matrix-free reconstruction .* needs ~"
+                                                  r".* GB.*fewer or larger voxels"):
+        choose_projector(lf, grid, projector="lattice", max_weights_gb=0.5 * mf)
 
 
 def test_reconstruction_agrees_with_explicit_path(small_camera):

@@ -415,3 +415,35 @@ def test_bad_options_are_refused(rng, kwargs, error, match):
 def test_not_a_projector_is_refused(rng):
     with pytest.raises(ReconstructionError, match="must implement plenopiv.projector.Projector"):
         reconstruct(np.ones(4), np.eye(4))
+
+
+def test_ceiling_rows_only_lower_their_voxels():
+    """A dark row given as a ceiling (its value an upper bound) leaves voxels whose projection
+    stays below it alone, and lowers those that send more light into it."""
+    w = SparseProjector.from_scipy(scipy.sparse.csr_matrix(np.array(
+        [[1.0, 1.0, 0.0], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]], np.float32)))
+    start = np.array([1.0, 1.0, 0.1], np.float32)
+    image = np.array([2.0, 5.0, 0.5], np.float32)          # row 2: ceiling 0.5 above 0.1
+    ceiling = np.array([False, False, True])
+    lifted = reconstruct(image, w, method="smart", iterations=1, initial=start)
+    capped = reconstruct(image, w, method="smart", iterations=1, initial=start, ceiling=ceiling)
+    assert lifted[2] > start[2]                              # a measurement pulls voxel 2 up
+    # as a ceiling, row 2 does nothing: the update is that of rows 0 and 1 alone
+    alone = start.copy()
+    proj = w.forward(alone)
+    ratio = np.log(image[:2] / proj[:2])
+    col = np.maximum(np.asarray(w.column_sums()), 1.0)
+    alone *= np.exp(np.array([ratio[0], ratio[0] + ratio[1], ratio[1]]) / col)   # μ = 1
+    np.testing.assert_allclose(capped, alone, rtol=1e-5)
+    # a ceiling below the projection lowers its voxel
+    low = reconstruct(np.array([2.0, 5.0, 0.01], np.float32), w, method="smart", iterations=1,
+                      initial=start, ceiling=ceiling)
+    assert low[2] < capped[2]
+
+
+def test_ceiling_is_for_smart_only():
+    w = SparseProjector.from_scipy(scipy.sparse.csr_matrix(np.eye(2, dtype=np.float32)))
+    with pytest.raises(ValueError, match="ceiling"):
+        reconstruct(np.ones(2, np.float32), w, method="mart", ceiling=[True, False])
+    with pytest.raises(ReconstructionError, match="ceiling has 3"):
+        reconstruct(np.ones(2, np.float32), w, method="smart", ceiling=[True, False, True])

@@ -54,16 +54,17 @@ class ReconstructionSettings(_Strict):
         at μ = 1 over-relaxes ~200-fold: Q 0.43 against 0.81 at μ = 0.03, 0.3 particles per
         lenslet).
     pixel_threshold : pixels at or below this fraction of the image's maximum are dark.
-    dark_tolerance : a voxel is emptied before MART when more than this fraction of its
-        weight falls on dark pixels (a soft line-of-sight mask; 0 is the hard MLOS rule).
+    dark_tolerance : a voxel is emptied before MART when, in every one of its lateral
+        sub-cells (≤ half a footprint), more than this fraction of the weight falls on dark
+        pixels (a soft line-of-sight mask, :mod:`plenopiv.sightline`; 0 is the hard rule).
     f_number : aperture of the recording (default: the camera's).
     min_lit : pixels whose aperture cell is less than this fraction inside the aperture are
         not used.
     projector : "auto" (explicit weights while they fit in max_weights_gb, else matrix-free)
         | "sparse" (explicit CSR weights, cached) | "lattice" (matrix-free, axis-aligned
         square lattices; method "smart" only). See :mod:`plenopiv.lattice`.
-    max_weights_gb : memory allowed for the explicit weights, GB (default: 40 % of the
-        machine's memory).
+    max_weights_gb : memory allowed for the explicit weights, and for a matrix-free
+        reconstruction, GB (default: 40 % of the machine's memory).
     """
 
     method: Literal["mart", "block", "smart"] = "smart"

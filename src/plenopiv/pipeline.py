@@ -26,8 +26,9 @@ from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.corrections import DepthCorrection
 from plenopiv.errors import CalibrationError, ConfigError, PIVError, ReconstructionError
 from plenopiv.io import check_image, write_h5
-from plenopiv.mart import mlos, reconstruct
+from plenopiv.mart import reconstruct
 from plenopiv.particles import find_particles
+from plenopiv.sightline import subcell_line_of_sight
 from plenopiv.volume import VolumeGrid
 from plenopiv.weights import Weights, cached_weights
 
@@ -254,24 +255,27 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
             progress("mart", iteration / max(settings.iterations, 1))
 
     t1 = time.perf_counter()
-    # Soft line-of-sight mask: a voxel is empty when most of the light that would reach the
-    # sensor from it falls on dark pixels. (A hard "any dark pixel" rule would delete the
-    # voxel holding a point particle: the voxel is wider than the particle, so some beams
-    # through the voxel miss the particle and stay dark.)
-    seen = (np.asarray(proj.column_sums()) if image_mask is None
-            else np.asarray(proj.back(usable_rows.astype(np.float32))))
-    dark_weight = np.asarray(proj.back(((raw <= threshold) & touching).astype(np.float32)))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        keep = (seen > 0) & (dark_weight <= settings.dark_tolerance * seen)
-    lit = proj.select_rows(bright)
-    first = np.where(keep, mlos(values[bright], lit), np.float32(0.0))
-    blocks = None
-    if settings.method == "block":
-        blocks = _perspective_blocks(weights, calibration, settings)[bright]
-    vol = reconstruct(values[bright], lit, method=settings.method,
-                      iterations=settings.iterations, relaxation=settings.relaxation_used,
-                      pixel_threshold=0.0, blocks=blocks, initial=first, shape=grid.shape,
-                      callback=report)
+    floor = max(threshold, 1e-6 * float(img.max()))
+    first = _line_of_sight_guess(weights, calibration, settings, raw, floor, touching, bright)
+    if settings.method == "smart":
+        # the dark pixels take part as ceilings: their light is at most the threshold, so
+        # they lower the voxels that would send more into them and never raise any; only
+        # those that see the first guess's support can change anything
+        reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
+        rows = bright | (touching & reach)
+        vol = reconstruct((np.maximum(raw, floor) / row_scale).astype(np.float32)[rows],
+                          proj.select_rows(rows), method="smart",
+                          iterations=settings.iterations, relaxation=settings.relaxation_used,
+                          pixel_threshold=0.0, initial=first, shape=grid.shape,
+                          callback=report, ceiling=~bright[rows])
+    else:
+        blocks = None
+        if settings.method == "block":
+            blocks = _perspective_blocks(weights, calibration, settings)[bright]
+        vol = reconstruct(values[bright], proj.select_rows(bright), method=settings.method,
+                          iterations=settings.iterations, relaxation=settings.relaxation_used,
+                          pixel_threshold=0.0, blocks=blocks, initial=first, shape=grid.shape,
+                          callback=report)
     t["mart_s"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
@@ -287,6 +291,37 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t["particles_s"] = time.perf_counter() - t2
     return VolumeResult(vol, grid, corr, eff, corr.points(eff) if len(eff) else eff,
                         found.intensity, found.size_world(grid.voxel), t)
+
+
+def _line_of_sight_guess(weights: Weights, calibration: Calibration, settings, raw, floor,
+                         touching, bright) -> np.ndarray:
+    """Return the first guess of MART: MLOS judged on sub-voxel cells (plenopiv.sightline).
+
+    A voxel is empty unless some lit pixel sees it and one of its sub-cells has at most
+    ``settings.dark_tolerance`` of its weight on dark pixels (the soft line-of-sight mask);
+    otherwise it takes the largest MLOS value of its sub-cells, the weighted geometric mean of
+    the normalised intensities I_i/R_i of the rows that see the cell, dark rows entering with
+    the noise floor ``floor`` (counts). Judged per voxel instead, a grid whose voxel edges cross
+    the lenslets would empty the voxels of in-focus particles.
+    """
+    proj, row_scale = weights.normalised
+    row_sums = np.asarray(proj.row_sums())
+    used = touching & (row_sums > 0)
+    log_values = np.zeros(len(raw), np.float32)
+    log_values[used] = np.log(np.maximum(raw[used], floor) / row_scale[used] / row_sums[used])
+    keep, guess, _ = subcell_line_of_sight(
+        weights, lambda: _light_field_of(calibration, settings), touching & ~bright,
+        log_values, used, tolerance=settings.dark_tolerance,
+        footprint=footprint(calibration.effective_camera))
+    seen_lit = np.asarray(proj.back(bright.astype(np.float32))) > 0
+    return np.where(keep & seen_lit, guess, np.float32(0.0))
+
+
+def _light_field_of(calibration: Calibration, settings):
+    """Return the light field of the weights ``weights_for`` builds with ``settings``."""
+    from plenopiv.lightfield import light_field
+
+    return light_field(calibration, f_number=settings.f_number, min_lit=settings.min_lit)
 
 
 def _perspective_blocks(weights: Weights, calibration: Calibration, settings) -> np.ndarray:

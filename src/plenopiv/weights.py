@@ -238,28 +238,63 @@ def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto
     (:data:`BYTES_PER_NONZERO` × :func:`estimate_nnz`) fits in ``max_weights_gb`` (default
     :func:`memory_budget_gb`), and takes the matrix-free lattice projector beyond that.
 
+    Both estimates are checked against the same budget before anything large is allocated.
+
     Raises
     ------
     ReconstructionError
-        The explicit weights would not fit and the lattice is not axis-aligned, or
-        ``"lattice"`` was asked for such a calibration.
+        The explicit weights would not fit and the lattice is not axis-aligned (or
+        ``"sparse"`` was asked for), or the matrix-free reconstruction's estimate
+        (:func:`estimate_matrix_free_gb`) exceeds the budget.
     """
     if projector not in PROJECTORS:
         raise ValueError(f"projector = {projector!r}: expected one of {PROJECTORS}")
-    if projector == "sparse":
-        return "sparse"
-    if projector == "auto":
-        budget = memory_budget_gb() if max_weights_gb is None else float(max_weights_gb)
+    budget = memory_budget_gb() if max_weights_gb is None else float(max_weights_gb)
+    if projector in ("auto", "sparse"):
         need = BYTES_PER_NONZERO * estimate_nnz(lf, grid, min_weight=min_weight) / 1e9
         if need <= budget:
             return "sparse"
+        if projector == "sparse":
+            raise ReconstructionError(
+                f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
+                "allowed ([reconstruction] max_weights_gb): set projector = \"auto\" (the "
+                "matrix-free projector), use fewer or larger voxels, or raise max_weights_gb")
         if separable_axes(lf) is None:
             raise ReconstructionError(
                 f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
                 "allowed ([reconstruction] max_weights_gb), and this calibration's lattice is "
                 "not axis-aligned, which the matrix-free projector needs: reduce the volume "
                 "(fewer or larger voxels) or raise max_weights_gb")
+    need = estimate_matrix_free_gb(lf, grid)
+    if need > budget:
+        raise ReconstructionError(
+            f"the matrix-free reconstruction of a {grid.shape[0]} × {grid.shape[1]} × "
+            f"{grid.shape[2]}-voxel volume needs ~{need:.3g} GB (projection buffers of depth "
+            "slices × voxel rows × sensor columns, volumes, rays), more than the "
+            f"{budget:.3g} GB allowed ([reconstruction] max_weights_gb): use fewer or larger "
+            "voxels, or raise max_weights_gb")
     return "lattice"
+
+
+def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
+    """Peak memory of a matrix-free SMART reconstruction of ``grid`` from ``lf``, GB.
+
+    Two projection buffers (depth slices × voxel rows × used sensor columns, float32), about
+    twelve float32 volumes (estimate, update, column sums, first guess, masks), the rays and
+    their per-call copies (~64 bytes each), and one depth slab of the sub-voxel line-of-sight
+    mask (:mod:`plenopiv.sightline`: its buffer and six refined float32 arrays).
+    """
+    from plenopiv.sightline import SLAB_VOXELS, subcell_factors
+
+    nz, ny, nx = grid.shape
+    cols = lf.pixel % lf.shape[1]
+    n_cols = int(cols.max() - cols.min() + 1) if len(cols) else 0
+    kx, ky = subcell_factors(grid, lf.footprint)
+    fine = min(SLAB_VOXELS, grid.n_voxels * kx * ky)
+    slab_nz = max(1, fine // max(ny * ky * nx * kx, 1))
+    total = (2 * 4 * nz * ny * n_cols + 12 * 4 * grid.n_voxels + 64 * lf.n_rays
+             + 4 * slab_nz * ny * ky * n_cols + 6 * 4 * fine)
+    return total / 1e9
 
 
 def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str | Path | None,

@@ -4,8 +4,11 @@ plenopiv's ray tracer renders the images, its reconstruction locates the particl
 
 Geometry (thesis §5.1): the 50 mm lens at M = -1 (S_i,eff = S_o,eff = 100 mm) on a
 41 × 41-lenslet patch of the Auburn sensor; one particle on the optical axis at
-Z = -10 … +10 mm (1 mm steps); a volume ±1.5625 mm wide with 0.125 mm voxels (one lenslet
-footprint), aligned with the footprints. Cases:
+Z = -10 … +10 mm (1 mm steps); a volume as a user types it: x, y = ±1.5 mm and z from the
+expected depths ± 2 mm rounded out to whole millimetres, with 0.125 mm voxels (one lenslet
+footprint). With 41 lenslets one sits on the axis, so the voxel edges run through the lenslet
+centres: every voxel straddles four lenslets (the grid the reconstruction must not depend
+on). Cases:
 
 ``none``
     no refractive interface;
@@ -62,8 +65,9 @@ DEPTHS = np.round(np.arange(-10, 11) * 1e-3, 12)
 WATER = ExternalInterface(1.33, 1.0, 0.04)
 #: The internal plate of §5.1: t = 6.3 mm, n = 1.46.
 PLATE = Substrate(6.3e-3, 1.46)
-#: Lateral half-width of the volume (12.5 footprints), voxel edge and depth margin, metres.
-HALF_XY, VOXEL, MARGIN = 1.5625e-3, 0.125e-3, 2.0e-3
+#: Lateral half-width of the volume (as typed: 12 footprints, edges through lenslet centres),
+#: voxel edge and depth margin, metres.
+HALF_XY, VOXEL, MARGIN = 1.5e-3, 0.125e-3, 2.0e-3
 #: Table 5.1 of the thesis: (slope, intercept mm, R²).
 THESIS_TABLE_5_1 = {"none": (0.9925, 0.3675, 0.9971),
                     "external_uncorrected": (0.7563, 0.2694, 0.9975),
@@ -285,14 +289,14 @@ def focus_region(camera: CameraModel, depth) -> np.ndarray:
 
 def study_grid(effective_depths, *, half_xy: float = HALF_XY, voxel: float = VOXEL,
                margin: float = MARGIN) -> VolumeGrid:
-    """Return a grid ±``half_xy`` wide covering ``effective_depths`` with ``margin`` to spare.
+    """Return the grid a user would type for ``effective_depths``.
 
-    Voxels are aligned with the lenslet footprints at M = -1; depth bounds fall on whole
-    voxels. All lengths in metres.
+    x, y = ±``half_xy``; z from the depths ± ``margin`` rounded out to whole millimetres;
+    ``voxel`` edges. Nothing aligns the voxels with the lenslet footprints. All lengths in metres.
     """
     z = np.asarray(effective_depths, dtype=float)
-    lo = np.floor((z.min() - margin) / voxel + 1e-9) * voxel
-    hi = np.ceil((z.max() + margin) / voxel - 1e-9) * voxel
+    lo = np.floor((z.min() - margin) * 1e3 + 1e-9) * 1e-3
+    hi = np.ceil((z.max() + margin) * 1e3 - 1e-9) * 1e-3
     return VolumeGrid.from_bounds((-half_xy, half_xy), (-half_xy, half_xy), (lo, hi),
                                   voxel=voxel)
 
@@ -302,35 +306,40 @@ def study_grid(effective_depths, *, half_xy: float = HALF_XY, voxel: float = VOX
 # --------------------------------------------------------------------------------------------
 
 
-def dark_fraction(weights, image, pixel_threshold: float, voxel_index: int) -> float:
-    """Fraction of one voxel's (row-normalised) weight that falls on dark pixels.
+def dark_fraction(weights, calibration, settings, image, voxel_index: int) -> float:
+    """Return the soft line-of-sight mask's dark fraction at one voxel (best-lit sub-cell).
 
-    The quantity that the soft line-of-sight mask of
-    :func:`plenopiv.pipeline.reconstruct_volume` compares with ``[reconstruction]
-    dark_tolerance``: Σ_dark w_ij/max_k w_ik over Σ_all w_ij/max_k w_ik, with "dark" meaning
-    at or below ``pixel_threshold`` × the image's maximum. A diagnostic: summed over every row
-    that sees the voxel (the pipeline may leave out rows that barely touch the volume).
+    The quantity that :func:`plenopiv.pipeline.reconstruct_volume` compares with
+    ``[reconstruction] dark_tolerance`` (:mod:`plenopiv.sightline`): over the voxel's lateral
+    sub-cells (≤ half a footprint), the smallest Σ_dark ŵ_ic / Σ_all ŵ_ic, with ŵ the weights
+    scaled to a row maximum of 1 and "dark" meaning at or below ``pixel_threshold`` × the
+    image's maximum on rows that touch the volume.
 
     Parameters
     ----------
     weights : Weights
+    calibration : Calibration
+    settings : ReconstructionSettings
     image : ndarray
         Full sensor image.
-    pixel_threshold : float
-        Fraction of the image's maximum.
     voxel_index : int
         Flat ``[z, y, x]`` index of the voxel.
     """
-    p = weights.projector
-    pos = np.flatnonzero(p.indices == voxel_index)
-    if len(pos) == 0:
-        return float("nan")
-    rows = np.searchsorted(p.indptr, pos, side="right") - 1
-    row_max = np.array([p.data[p.indptr[r]:p.indptr[r + 1]].max() for r in rows])
-    w = p.data[pos] / row_max
-    raw = weights.image_vector(image)[rows]
-    dark = raw <= pixel_threshold * float(np.max(image))
-    return float(w[dark].sum() / w.sum())
+    from plenopiv.lightfield import light_field
+    from plenopiv.pipeline import footprint
+    from plenopiv.sightline import subcell_line_of_sight
+
+    _, row_scale = weights.normalised
+    nonempty = weights.row_max > 0
+    touching = nonempty & (row_scale >= 0.25 * float(np.percentile(row_scale[nonempty], 95)))
+    raw = weights.image_vector(image)
+    dark = (raw <= settings.pixel_threshold * float(np.max(image))) & touching
+    _, _, best = subcell_line_of_sight(
+        weights, lambda: light_field(calibration, f_number=settings.f_number,
+                                     min_lit=settings.min_lit),
+        dark, tolerance=settings.dark_tolerance,
+        footprint=footprint(calibration.effective_camera))
+    return float(best.reshape(-1)[voxel_index])
 
 
 def measure_depths(case: DepthCase, depths=DEPTHS, *, rays_per_particle: int = 20000,
@@ -384,7 +393,7 @@ def measure_depths(case: DepthCase, depths=DEPTHS, *, rays_per_particle: int = 2
         k = int(np.clip(np.rint((expected[i] - grid.origin[2]) / grid.voxel[2]), 0,
                         grid.shape[0] - 1))
         if mask_diagnostic:
-            dark[i] = dark_fraction(weights, img, case.settings.pixel_threshold,
+            dark[i] = dark_fraction(weights, cal, case.settings, img,
                                     int(np.ravel_multi_index((k, iy, ix), grid.shape)))
         try:
             res = reconstruct_volume(cal, img, grid, settings=case.settings, particles=particles,
@@ -744,9 +753,12 @@ def _markdown(results: dict) -> str:
         "centroid.", "",
         f"Camera: 50 mm lens, f/{geo['f_number']:g}, S_i,eff = S_o,eff = "
         f"{geo['si_eff_mm']:.2f} mm (M = -1), {geo['lenslets']} × {geo['lenslets']} lenslets of "
-        "the Auburn MLA (125 µm, f̄ = 500 µm, 7.4 µm pixels). Volume ±1.5625 mm, 0.125 mm voxels "
-        "aligned with the lenslet footprints; each case's depth range covers its expected "
-        f"effective depths with {MARGIN * 1e3:g} mm to spare (table below). External interface: "
+        "the Auburn MLA (125 µm, f̄ = 500 µm, 7.4 µm pixels). Volume as a user types it: x, y = "
+        f"±{HALF_XY * 1e3:g} mm, 0.125 mm voxels whose edges run through the lenslet centres "
+        "(every voxel straddles four lenslets; nothing aligns the grid with the footprints); "
+        "each case's depth range covers its expected effective depths with "
+        f"{MARGIN * 1e3:g} mm to spare, rounded out to whole millimetres (table below). "
+        "External interface: "
         f"n1 = 1.33, l1 = 40 mm, l2 = {geo['l2_mm']:.2f} mm. Plate: t = 6.3 mm, n = 1.46, "
         f"l3 = {geo['l3_mm']:.2f} mm.", "", *_summary(results),
         "## Table 5.1: reconstructed against true depth", "",
@@ -792,8 +804,8 @@ def _markdown(results: dict) -> str:
               "Effective depth of the brightest particle, the paraxial expectation, the number of "
               "particles found (and the 2nd brightest's intensity relative to the 1st), the "
               "largest lateral offset (voxels) and the dark fraction of the soft mask at the "
-              f"expected voxel (the mask empties a voxel above `dark_tolerance` = "
-              f"{rec['dark_tolerance']:g}).", ""]
+              "expected voxel, that of its best-lit sub-cell (`plenopiv.sightline`; the mask "
+              f"empties a voxel above `dark_tolerance` = {rec['dark_tolerance']:g}).", ""]
     for name, m in results["measured"].items():
         c = results["cases"][name]
         lines += [f"### {c['label']}", "", f"{c['note']}" if c["note"] else "",

@@ -1,0 +1,202 @@
+"""The soft line-of-sight mask, judged on sub-voxel cells so that no grid can empty a particle.
+
+Before MART, a voxel is emptied when most of the light that would reach the sensor from it
+falls on dark pixels. Judged on the whole voxel this depends on where the voxel edges fall:
+an in-focus particle lights one lenslet's pixels, and a voxel one footprint wide whose edges
+run through lenslet centres covers a quarter of that lenslet and three quarters of dark ones,
+so every voxel around the particle is emptied and the particle vanishes.
+
+Here a voxel is judged by the best-lit of its sub-cells: the voxel is split laterally into
+``kx × ky`` cells no wider than half a lenslet footprint (``k = ceil(2 v/b)``), each cell's
+dark fraction is computed with the same beam model (a projector onto the refined grid), and
+the voxel is kept when at least one cell's dark fraction is at or below the tolerance. A
+lenslet footprint (width b) always holds a whole cell of width ≤ b/2, so the pixels of an
+in-focus particle keep at least the voxel that holds that cell, wherever the grid lies. Depth
+is not refined: across one voxel depth (≤ 1.5 footprints) a beam moves by less than a tenth of
+a footprint.
+
+The refined projector depends on the camera and grid only; it is built once per weights
+object and kept (the last one) in memory. For an axis-aligned lattice it is the matrix-free
+:class:`~plenopiv.lattice.LatticeProjector` (seconds to build, a few MB); otherwise explicit
+weights on the refined grid, built in depth slabs.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+
+from plenopiv.errors import ReconstructionError
+from plenopiv.volume import VolumeGrid
+
+__all__ = ["subcell_factors", "refined_grid", "pool_min", "subcell_line_of_sight"]
+
+#: Sub-cells per lenslet footprint along each lateral axis (at least): cells of ≤ b/2.
+CELLS_PER_FOOTPRINT = 2
+#: Refined voxels per depth slab (bounds the memory of one refined projection: with the
+#: lattice projector its buffer is slices × refined rows × sensor columns float32).
+SLAB_VOXELS = 20_000_000
+
+_CACHE: dict = {}
+_LOCK = threading.Lock()
+
+
+def subcell_factors(grid: VolumeGrid, footprint: float) -> tuple[int, int]:
+    """Sub-cells per voxel along x and y: ``ceil(CELLS_PER_FOOTPRINT · voxel / footprint)``.
+
+    Parameters
+    ----------
+    grid : VolumeGrid
+    footprint : float
+        Lenslet footprint on the focal plane, metres (effective).
+    """
+    if not footprint > 0:
+        raise ReconstructionError(f"lenslet footprint {footprint!r} m: expected > 0")
+    return tuple(max(1, math.ceil(CELLS_PER_FOOTPRINT * float(v) / footprint - 1e-9))
+                 for v in grid.voxel[:2])
+
+
+def refined_grid(grid: VolumeGrid, kx: int, ky: int) -> VolumeGrid:
+    """``grid`` with every voxel split into ``kx × ky`` lateral cells (same depths, same box)."""
+    vx, vy, vz = (float(v) for v in grid.voxel)
+    ox, oy, oz = (float(o) for o in grid.origin)
+    nz, ny, nx = grid.shape
+    return VolumeGrid((ox - vx / 2 + vx / (2 * kx), oy - vy / 2 + vy / (2 * ky), oz),
+                      (vx / kx, vy / ky, vz), (nz, ny * ky, nx * kx))
+
+
+def pool_min(cells: np.ndarray, kx: int, ky: int) -> np.ndarray:
+    """Return per voxel the smallest value of its ``kx × ky`` cells.
+
+    ``cells`` is ``(nz, ny·ky, nx·kx)``; the result ``(nz, ny, nx)``.
+    """
+    nz, fy, fx = cells.shape
+    return cells.reshape(nz, fy // ky, ky, fx // kx, kx).min(axis=(2, 4))
+
+
+def _slabs(grid: VolumeGrid, kx: int, ky: int) -> list[tuple[int, int]]:
+    nz, ny, nx = grid.shape
+    per = max(1, SLAB_VOXELS // max(ny * ky * nx * kx, 1))
+    return [(z0, min(z0 + per, nz)) for z0 in range(0, nz, per)]
+
+
+def _slab_grid(grid: VolumeGrid, z0: int, z1: int) -> VolumeGrid:
+    ox, oy, oz = grid.origin
+    return VolumeGrid((ox, oy, oz + z0 * grid.voxel[2]), grid.voxel,
+                      (z1 - z0, grid.shape[1], grid.shape[2]))
+
+
+def _refined_projectors(weights, light_field_of, kx: int, ky: int) -> list:
+    """Return one projector per depth slab of the refined grid.
+
+    Rows are scaled like ``weights.normalised`` (each by 1/max of its coarse weights); the
+    list is cached for the last weights object.
+    """
+    from plenopiv.lattice import LatticeProjector, separable_axes
+    from plenopiv.weights import build_weights
+
+    key = (weights.key or id(weights), kx, ky)
+    with _LOCK:
+        if _CACHE.get("key") == key:
+            return _CACHE["projectors"]
+    lf = light_field_of()
+    if len(lf.pixel) != len(weights.pixel) or not np.array_equal(lf.pixel, weights.pixel):
+        raise ReconstructionError("the light field's rays are not the weights' rows: build both "
+                                  "with the same f_number and min_lit")
+    _, row_scale = weights.normalised
+    inv = (1.0 / row_scale).astype(np.float32)
+    fine = refined_grid(weights.grid, kx, ky)
+    separable = separable_axes(lf) is not None
+    out = []
+    for z0, z1 in _slabs(weights.grid, kx, ky):
+        g = _slab_grid(fine, z0, z1)
+        p = (LatticeProjector.from_light_field(lf, g) if separable
+             else build_weights(lf, g).projector)
+        out.append(((z0, z1), p.scale_rows(inv)))
+    with _LOCK:
+        _CACHE.clear()
+        _CACHE.update(key=key, projectors=out)
+    return out
+
+
+def _used_sums(proj, used: np.ndarray, z0: int) -> np.ndarray:
+    """Return ``proj.back(used)``, kept per slab and rows mask.
+
+    The rows that enter MLOS depend on the geometry only, so every image of a series reuses
+    it; the store is emptied with the refined projectors (a new weights object).
+    """
+    import hashlib
+
+    key = (z0, hashlib.blake2b(np.packbits(used > 0).tobytes(), digest_size=16).hexdigest())
+    with _LOCK:
+        store = _CACHE.setdefault("used", {})
+        hit = store.get(key)
+    if hit is None:
+        hit = np.asarray(proj.back(used))
+        with _LOCK:
+            if len(store) > 64:
+                store.clear()
+            store[key] = hit
+    return hit
+
+
+def subcell_line_of_sight(weights, light_field_of, dark_rows, log_values=None,
+                          used_rows=None, *, tolerance: float,
+                          footprint: float) -> tuple:
+    """Return the soft line-of-sight mask and the MLOS first guess, judged on sub-voxel cells.
+
+    Parameters
+    ----------
+    weights : Weights
+        The coarse weights of the reconstruction.
+    light_field_of : callable
+        Returns the light field the weights were built from (same rows); called only when
+        the refined projector is not cached.
+    dark_rows : (n_pixels,) bool
+        Rows counted as dark.
+    log_values : (n_pixels,) float, optional
+        ln(I_i/R_i) per row for the MLOS guess (skipped when None).
+    used_rows : (n_pixels,) bool, optional
+        Rows that enter the MLOS guess (default all).
+    tolerance : float
+        Largest dark fraction of a kept cell (``[reconstruction] dark_tolerance``).
+    footprint : float
+        Lenslet footprint, metres (sets the cell size, :func:`subcell_factors`).
+
+    Returns
+    -------
+    keep : (n_voxels,) bool
+        Seen by some row, and some cell has a dark fraction Σ_dark ŵ_ic / Σ_all ŵ_ic
+        (ŵ: weights with each row scaled to a coarse maximum of 1, as MART uses them) of at
+        most ``tolerance``.
+    guess : (n_voxels,) float32 or None
+        The largest MLOS value of the voxel's cells, exp(Σ_used ŵ_ic ln v_i / Σ_used ŵ_ic);
+        0 where no used row sees a cell.
+    dark_fraction : (nz, ny, nx) float32
+        The smallest dark fraction of the voxel's cells (inf where no row sees any).
+    """
+    kx, ky = subcell_factors(weights.grid, footprint)
+    dark = np.asarray(dark_rows, np.float32)
+    if log_values is not None:
+        used = (np.ones(len(dark), np.float32) if used_rows is None
+                else np.asarray(used_rows, np.float32))
+        logv = np.where(used > 0, np.asarray(log_values, np.float32), np.float32(0.0))
+    nz, ny, nx = weights.grid.shape
+    best = np.empty((nz, ny, nx), np.float32)
+    guess = None if log_values is None else np.empty((nz, ny, nx), np.float32)
+    for (z0, z1), proj in _refined_projectors(weights, light_field_of, kx, ky):
+        shape = (z1 - z0, ny * ky, nx * kx)
+        seen = np.asarray(proj.column_sums()).reshape(shape)
+        d = np.asarray(proj.back(dark)).reshape(shape)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            frac = np.where(seen > 0, d / seen, np.inf).astype(np.float32)
+            best[z0:z1] = pool_min(frac, kx, ky)
+            if guess is not None:
+                s_used = _used_sums(proj, used, z0).reshape(shape)
+                s_log = np.asarray(proj.back(logv)).reshape(shape)
+                cell = np.where(s_used > 0, np.exp(s_log / s_used), 0.0).astype(np.float32)
+                guess[z0:z1] = -pool_min(-cell, kx, ky)
+    keep = best.reshape(-1) <= tolerance
+    return keep, None if guess is None else guess.reshape(-1), best

@@ -1,0 +1,139 @@
+"""The sub-voxel line-of-sight mask (plenopiv.sightline) and grid independence of a particle.
+
+The camera is the thesis §5.1 one (50 mm lens at M = -1, f/2.2, 125 µm lenslets, footprint
+b = 0.125 mm) cut to 15 or 16 lenslets: with an odd count a lenslet sits on the axis, with an
+even count lenslet edges do. A plenoptic 1.0 camera resolves a footprint laterally and
+ΔZ = b S_o N/f = 0.55 mm in depth near the focal plane (pipeline.resolution_cell), so:
+
+- an in-focus particle lights its own lenslet only: the reconstruction must put it inside
+  that lenslet's footprint (|x - x_lenslet| ≤ b/2) whatever the grid;
+- in depth it must land within one resolution cell of the truth.
+
+Grids: random sub-voxel offsets (fixed seed), voxels of 0.5, 1 and 1.5 footprints.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.pipeline import footprint, reconstruct_volume, resolution_cell
+from plenopiv.sightline import pool_min, refined_grid, subcell_factors, subcell_line_of_sight
+from plenopiv.synthetic.images import particle_image
+from plenopiv.validation.depth_study import thesis_camera
+from plenopiv.volume import VolumeGrid
+from plenopiv.weights import cached_weights
+
+
+def small_camera(lenslets):
+    return thesis_camera(lenslets=lenslets, sensor_px=int(math.ceil(lenslets * 125 / 7.4)) + 4)
+
+
+@pytest.fixture(scope="module")
+def odd():
+    cam = small_camera(15)
+    return cam, Calibration.from_camera(cam)
+
+
+def noisy_image(cam, position, seed):
+    img = particle_image(cam, [position], rays_per_particle=20000, seed=seed)
+    return np.random.default_rng(seed + 1).poisson(img * 50 / img.max()).astype(np.float32)
+
+
+# ---- helpers -----------------------------------------------------------------------------
+
+
+def test_subcell_factors_keep_cells_within_half_a_footprint():
+    b = 0.125e-3
+    for v, k in ((0.5 * b, 1), (b, 2), (1.25 * b, 3), (1.5 * b, 3), (2 * b, 4)):
+        g = VolumeGrid((0.0, 0.0, 0.0), (v, v, v), (2, 3, 4))
+        kx, ky = subcell_factors(g, b)
+        assert (kx, ky) == (k, k)
+        assert v / kx <= b / 2 + 1e-15
+
+
+def test_refined_grid_tiles_each_voxel():
+    g = VolumeGrid((1e-3, -2e-3, 5e-3), (1e-4, 2e-4, 3e-4), (3, 4, 5))
+    f = refined_grid(g, 3, 2)
+    assert f.shape == (3, 8, 15)
+    np.testing.assert_allclose(f.bounds, g.bounds, atol=1e-15)
+    np.testing.assert_allclose(f.x.reshape(5, 3).mean(axis=1), g.x, atol=1e-15)
+    np.testing.assert_allclose(f.y.reshape(4, 2).mean(axis=1), g.y, atol=1e-15)
+    np.testing.assert_array_equal(f.z, g.z)
+
+
+def test_pool_min_matches_a_loop():
+    rng = np.random.default_rng(0)
+    cells = rng.random((2, 6, 9)).astype(np.float32)
+    out = pool_min(cells, 3, 2)
+    ref = np.empty((2, 3, 3), np.float32)
+    for z in range(2):
+        for y in range(3):
+            for x in range(3):
+                ref[z, y, x] = cells[z, 2 * y:2 * y + 2, 3 * x:3 * x + 3].min()
+    np.testing.assert_array_equal(out, ref)
+
+
+# ---- the mask ----------------------------------------------------------------------------
+
+
+def test_in_focus_particle_keeps_its_voxels_when_voxel_edges_cross_its_lenslet(odd):
+    """Voxel edges through the lenslet centre: every voxel around an in-focus particle covers
+    a quarter of the lit lenslet, so ~3/4 of its weight is dark and the whole-voxel rule
+    (dark fraction ≤ 0.5) empties it; the best sub-cell lies inside the lit lenslet."""
+    cam, cal = odd
+    b = footprint(cal.effective_camera)
+    grid = VolumeGrid.from_bounds((-4 * b, 4 * b), (-4 * b, 4 * b), (-1e-3, 1e-3), voxel=b)
+    w, _ = cached_weights(cal, grid, cache_dir=None, projector="sparse")
+    img = noisy_image(cam, (0.0, 0.0, 0.0), 0)
+    proj, row_scale = w.normalised
+    raw = w.image_vector(img)
+    dark = raw <= 0.003 * img.max()
+    from plenopiv.lightfield import light_field
+
+    keep, _, best = subcell_line_of_sight(w, lambda: light_field(cal), dark, tolerance=0.5,
+                                          footprint=b)
+    k = int(np.argmin(np.abs(grid.z)))
+    around = [(k, 3, 3), (k, 3, 4), (k, 4, 3), (k, 4, 4)]
+    seen = np.asarray(proj.column_sums())
+    whole = np.asarray(proj.back(dark.astype(np.float32))) / np.where(seen > 0, seen, 1)
+    for idx in around:
+        flat = int(np.ravel_multi_index(idx, grid.shape))
+        assert whole[flat] > 0.5                     # the whole-voxel rule would empty it
+        assert best[idx] < 0.25 and keep[flat]       # its best-lit cell is inside the lenslet
+
+
+# ---- grid independence -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("lenslets,position", [
+    (15, (0.0, 0.0, 0.0)), (15, (0.0, 0.0, 0.4e-3)), (15, (0.0, 0.0, -0.8e-3)),
+    (16, (0.3 * 0.125e-3 + 62.5e-6, -0.2 * 0.125e-3 - 62.5e-6, 0.0)),
+    (16, (62.5e-6, 62.5e-6, 0.4e-3))])
+def test_particle_is_found_whatever_the_grid(lenslets, position):
+    cam = small_camera(lenslets)
+    cal = Calibration.from_camera(cam)
+    b = footprint(cal.effective_camera)
+    _, cell = resolution_cell(cal.effective_camera)
+    img = noisy_image(cam, position, 3)
+    pitch = cam.microlens_array.pitch * cal.effective_camera.object_distance / cam.image_distance
+    offset = 0.0 if lenslets % 2 else 0.5 * pitch           # lenslet centres on the focal plane
+    lens = np.round((np.array(position[:2]) - offset) / pitch) * pitch + offset
+    rng = np.random.default_rng(lenslets * 100 + int(position[2] * 1e4))
+    x0, y0, z0 = position
+    for size in (0.5, 1.0, 1.5):
+        v = size * b
+        sx, sy, sz = rng.uniform(-0.5, 0.5, 3) * v
+        grid = VolumeGrid.from_bounds((x0 - 5 * b + sx, x0 + 5 * b + sx),
+                                      (y0 - 5 * b + sy, y0 + 5 * b + sy),
+                                      (z0 - 2.5e-3 + sz, z0 + 2.5e-3 + sz), voxel=v)
+        w, _ = cached_weights(cal, grid, cache_dir=None, projector="lattice")
+        res = reconstruct_volume(cal, img, grid, weights=w)
+        assert len(res.particle_intensity) >= 1, (size, sx, sy, sz)
+        p = res.particle_position_effective[int(np.argmax(res.particle_intensity))]
+        if abs(z0) < 1e-9:                                   # in focus: inside its lenslet
+            assert np.abs(p[:2] - lens).max() <= b / 2, (size, p, lens)
+        assert abs(p[2] - z0) <= cell, (size, p[2], z0)
