@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, field_validator
 
 from plenopiv.camera import (
     CameraModel,
@@ -31,6 +31,9 @@ from plenopiv.camera import (
 )
 from plenopiv.errors import ConfigError
 from plenopiv.volume import VolumeGrid, volume_from_dict
+
+#: Largest lateral subdivision of the reconstruction grid (``lateral_subdivision``).
+MAX_SUBDIVISION = 4
 
 
 class _Strict(BaseModel):
@@ -59,6 +62,15 @@ class ReconstructionSettings(_Strict):
         square lattices; method "smart" only). See :mod:`plenopiv.lattice`.
     max_weights_gb : memory allowed for the explicit weights, GB (default: 40 % of the
         machine's memory).
+    lateral_subdivision : "auto" (default) | an int k >= 1. The reconstruction runs on voxels
+        k times finer in x and y than the [volume] grid and is then summed back onto it.
+        "auto" subdivides each lateral axis so that a working voxel is at most a third of a
+        lenslet footprint (k = 3 for voxels of one footprint, 2 for half-footprint voxels, at
+        most 4):
+        the depth of a particle is told by beams shifting sideways by a fraction of a
+        footprint, which voxels a footprint wide cannot represent, so with them a particle
+        is reconstructed 10-20 voxels long and moves in depth by a third of its true
+        displacement (docs/validation/vortex.md). Costs k² in weights and MART time.
     """
 
     method: Literal["mart", "block", "smart"] = "smart"
@@ -77,6 +89,15 @@ class ReconstructionSettings(_Strict):
     min_lit: float = Field(0.5, gt=0, le=1)
     projector: Literal["auto", "sparse", "lattice"] = "auto"
     max_weights_gb: float | None = Field(None, gt=0, allow_inf_nan=False)
+    lateral_subdivision: Literal["auto"] | StrictInt = Field("auto", union_mode="left_to_right")
+
+    @field_validator("lateral_subdivision")
+    @classmethod
+    def _subdivision(cls, v):
+        if v != "auto" and not (isinstance(v, int) and not isinstance(v, bool)
+                                and 1 <= v <= MAX_SUBDIVISION):
+            raise ValueError(f"expected \"auto\" or an int from 1 to {MAX_SUBDIVISION}")
+        return v
 
 
 class ParticleSettings(_Strict):
@@ -106,13 +127,20 @@ class ParticleSettings(_Strict):
 
 
 class PIVConfig(_Strict):
-    """``[piv]``: cross-correlation (windows in voxels ``[z, y, x]`` per pass)."""
+    """``[piv]``: cross-correlation (windows in voxels ``[z, y, x]`` per pass).
+
+    overlap_correction, broad_peaks : sub-voxel peak fit on the correlation divided by the
+        windows' overlap fraction, and by a 5-point least-squares Gaussian along axes where
+        the peak is broad (:class:`plenopiv.piv.PIVSettings`).
+    """
 
     windows: list[tuple[int, int, int]] = [(24, 16, 16), (16, 12, 12)]
     overlap: float = Field(0.5, ge=0, lt=1)
     passes: int | None = Field(3, ge=1)
     deformation: bool = True
     median_threshold: float = Field(2.0, gt=0)
+    overlap_correction: bool = True
+    broad_peaks: bool = True
 
 
 class ImagesConfig(_Strict):
