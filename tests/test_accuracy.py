@@ -28,6 +28,8 @@ def test_known_gain_offset_and_noise(rng):
     np.testing.assert_allclose(r["true_rms"], np.sqrt((true**2).reshape(3, -1).mean(axis=1)),
                                rtol=1e-12)
     assert r["correlation"][0] > 0.99
+    # the standard error of the slope: noise / (spread of t * sqrt(n)) for independent samples
+    np.testing.assert_allclose(r["gain_se"], 0.1 / (1.5 * np.sqrt(120)), rtol=0.25)
 
 
 def test_an_antisymmetric_flow_at_a_third_of_its_size_has_no_bias_but_gain_one_third():

@@ -71,6 +71,11 @@ class ReconstructionSettings(_Strict):
         footprint, which voxels a footprint wide cannot represent, so with them a particle
         is reconstructed 10-20 voxels long and moves in depth by a third of its true
         displacement (docs/validation/vortex.md). Costs k² in weights and MART time.
+    subdivision_kernel : how the working voxels return to the [volume] grid: "gaussian"
+        (default): each voxel takes the working volume weighted by a Gaussian of σ = half a
+        voxel about its centre, which keeps where a particle lies inside the voxel in the
+        ratio of neighbouring voxels (anti-aliasing; against the peak locking of voxels as
+        wide as a footprint) | "box": the sum of the voxel's own working voxels.
     """
 
     method: Literal["mart", "block", "smart"] = "smart"
@@ -90,6 +95,7 @@ class ReconstructionSettings(_Strict):
     projector: Literal["auto", "sparse", "lattice"] = "auto"
     max_weights_gb: float | None = Field(None, gt=0, allow_inf_nan=False)
     lateral_subdivision: Literal["auto"] | StrictInt = Field("auto", union_mode="left_to_right")
+    subdivision_kernel: Literal["gaussian", "box"] = "gaussian"
 
     @field_validator("lateral_subdivision")
     @classmethod

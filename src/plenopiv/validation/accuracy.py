@@ -38,10 +38,12 @@ def gain_bias_rms(measured, true, mask=None) -> dict:
     dict
         ``n`` (samples used); per component, lists of length C: ``gain``, the least-squares
         slope of measured on true (``cov(m, t) / var(t)``, NaN where the true values do not
-        vary); ``offset``, the intercept of that line; ``correlation``, Pearson's r (NaN
-        likewise); ``bias``, mean(m - t); ``rms``, sqrt(mean((m - t)²)); ``true_rms``,
-        sqrt(mean(t²)), the size of the flow for comparison. With no sample every figure is
-        NaN.
+        vary); ``gain_se``, its standard error for independent samples (residual rms about
+        the line over the spread of t and sqrt(n - 2); vectors of overlapping windows are
+        not independent, so read it as a lower bound); ``offset``, the intercept of that
+        line; ``correlation``, Pearson's r (NaN likewise); ``bias``, mean(m - t); ``rms``,
+        sqrt(mean((m - t)²)); ``true_rms``, sqrt(mean(t²)), the size of the flow for
+        comparison. With no sample every figure is NaN.
 
     Examples
     --------
@@ -68,8 +70,8 @@ def gain_bias_rms(measured, true, mask=None) -> dict:
     n = int(ok.sum())
     nan = [float("nan")] * c
     if n == 0:
-        return {"n": 0, "gain": nan, "offset": nan, "correlation": nan, "bias": nan,
-                "rms": nan, "true_rms": nan}
+        return {"n": 0, "gain": nan, "gain_se": nan, "offset": nan, "correlation": nan,
+                "bias": nan, "rms": nan, "true_rms": nan}
     err = m - t
     tm, mm = t.mean(axis=1), m.mean(axis=1)
     dt, dm = t - tm[:, None], m - mm[:, None]
@@ -83,6 +85,12 @@ def gain_bias_rms(measured, true, mask=None) -> dict:
         corr = np.where(varies & (var_m > 0), cov / np.sqrt(var_t * np.where(var_m > 0, var_m, 1)),
                         np.nan)
     offset = np.where(varies, mm - gain * tm, np.nan)
-    return {"n": n, "gain": gain.tolist(), "offset": offset.tolist(),
+    with np.errstate(invalid="ignore", divide="ignore"):
+        resid = dm - np.where(varies, gain, 0.0)[:, None] * dt
+        gain_se = np.where(varies & (n > 2), np.sqrt((resid ** 2).sum(axis=1) / max(n - 2, 1)
+                                                     / np.where(varies, var_t * n, 1.0)),
+                           np.nan)
+    return {"n": n, "gain": gain.tolist(), "gain_se": gain_se.tolist(),
+            "offset": offset.tolist(),
             "correlation": corr.tolist(), "bias": err.mean(axis=1).tolist(),
             "rms": np.sqrt((err ** 2).mean(axis=1)).tolist(), "true_rms": true_rms.tolist()}

@@ -172,7 +172,8 @@ def true_displacement(vectors, flow, dt) -> np.ndarray:
 def _band(meas: np.ndarray, truth: np.ndarray, vox: np.ndarray) -> dict:
     """Gain, bias and rms per component, in voxels, of (N, 3) measured and true metres."""
     g = gain_bias_rms((meas / vox).T, (truth / vox).T)
-    return {"n_vectors": g["n"], "gain": g["gain"], "correlation": g["correlation"],
+    return {"n_vectors": g["n"], "gain": g["gain"], "gain_se": g["gain_se"],
+            "correlation": g["correlation"],
             "bias_vox": g["bias"], "rms_vox": g["rms"], "true_rms_vox": g["true_rms"]}
 
 
