@@ -147,7 +147,7 @@ class PIVSettings:
         to converge. Assumes window contents that are not periodic (real particle volumes).
     broad_peaks : bool
         With the Gaussian estimator, fit a least-squares Gaussian to the five samples about
-        the peak along an axis where the peak is broad (3-point standard deviation of at
+        the peak along an axis where the peak is broad (fitted standard deviation of at
         least 1 voxel, window of at least 8 voxels): less noise than three samples of a
         peak several voxels wide, the depth axis of plenoptic volumes.
 
@@ -967,9 +967,10 @@ def correlate_volumes(
     With ``settings.overlap_correction`` (default) the samples about the peak are first
     divided by the overlap fraction of their lag, :math:`R(s) / \prod_i (1 - |s_i|/w_i)`
     (Westerweel 1997), which removes the bias of particle pairs lost across the window
-    border; with ``settings.broad_peaks`` (default) an axis along which the peak is at least
-    1 voxel wide (standard deviation of the 3-point Gaussian) is fitted by a weighted
-    least-squares Gaussian on the five samples ``s_0 - 2 .. s_0 + 2``.
+    border; with ``settings.broad_peaks`` (default) the five samples ``s_0 - 2 .. s_0 + 2``
+    along each axis are fitted by a weighted least-squares Gaussian, whose vertex (within
+    one voxel of ``s_0``) is taken where that Gaussian is at least 1 voxel wide (standard
+    deviation).
 
     The window spectra are computed one axis at a time, so that the 1-D transforms shared by
     overlapping windows are done once (x for every line segment of the volume, y for every
@@ -982,11 +983,11 @@ def correlate_volumes(
     along z for images of 2.5 voxels in 24-voxel windows, and 52 % along z for the
     resolution-cell particles of the 50 mm plenoptic geometry (sigma 1.9 voxels) in 12-voxel
     windows (measured on synthetic volumes; with the overlap correction the last measures
-    1 voxel as 1.01 in one pass). Window deformation removes the remaining bias: each pass measures
-    only what the predictor left, and the corrector tends to zero as the passes converge,
-    each pass reducing the remaining error by about that fraction. Particles much longer
-    than the window along an axis therefore need more passes. The discrete window offset
-    (``deformation=False``) keeps the bias on the sub-voxel remainder.
+    1 voxel as 1.01 in one pass). Window deformation removes the remaining bias: each pass
+    measures only what the predictor left, and the corrector tends to zero as the passes
+    converge, each pass reducing the remaining error by about that fraction. Particles much
+    longer than the window along an axis therefore need more passes. The discrete window
+    offset (``deformation=False``) keeps the bias on the sub-voxel remainder.
 
     *Multi-pass window deformation* (WIDIM, Scarano 2002). After each pass the field is
     validated (:func:`normalized_median_test`), outliers are replaced
