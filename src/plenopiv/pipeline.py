@@ -213,7 +213,9 @@ def merge_subdivided(volume, ky: int, kx: int, *, kernel: str = "gaussian") -> n
     between the two middle working voxels for an even k), scaled by ``ky kx`` so that the
     total is kept: a particle narrower than a voxel then spreads over its neighbours in the
     ratio of where it lies inside the voxel, which the box sum loses (the peak locking of
-    voxels a lenslet footprint wide: docs/validation/vortex.md).
+    voxels a lenslet footprint wide: docs/validation/vortex.md). The samples of a Gaussian
+    of half a voxel sum to 1 within ±1.4 % per axis (2 exp(-π²/2)), a ripple of a particle's
+    merged intensity with its position inside the voxel.
     """
     import scipy.ndimage
 
