@@ -19,7 +19,8 @@ Stages, each printed with its wall time and the process's peak resident memory d
 2. light field and lattice projector (shared by both exposures);
 3. reconstruct A and B (MLOS + ``--iterations`` SMART sweeps, particles); Q of A against
    Gaussian blobs of the camera's resolution cell at the true positions;
-4. 3-D PIV of the pair; RMS error per component against the flow, in voxels;
+4. 3-D PIV of the pair; gain (least-squares slope of measured on true), bias and RMS error
+   per component against the flow, in voxels, overall and in three bands of |Z|;
 5. the explicit-weight path on a 41 × 61-lenslet patch of the same camera at the same
    seeding density (cropped region): Q with explicit weights and with the lattice projector
    (both SMART), and the time and Q of plain row-action MART with explicit weights, which
@@ -31,7 +32,9 @@ the displacement error of the tracks.
 
 With ``--json`` the last line is one JSON object: ``reconstruct_seconds`` (per volume),
 ``reconstruct_peak_gb``, ``q``, ``pair_seconds`` (two volumes + PIV, the weights included),
-``velocity_rms_vox`` (u, v, w), and the patch figures.
+``velocity_gain``, ``velocity_bias_vox`` and ``velocity_rms_vox`` (u, v, w),
+``velocity_by_depth`` (the same per band of |Z|), and the patch figures. The reconstruction
+takes the library's default lateral subdivision (``--lateral-subdivision``).
 """
 
 from __future__ import annotations
@@ -55,7 +58,13 @@ from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.io import atomic_path
 from plenopiv.mart import reconstruction_quality
-from plenopiv.pipeline import correlate, gaussian_truth_volume, reconstruct_volume
+from plenopiv.pipeline import (
+    correlate,
+    gaussian_truth_volume,
+    lateral_subdivision,
+    reconstruct_volume,
+    weights_for,
+)
 from plenopiv.piv import PIVSettings
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.validation import field_quality as fq
@@ -242,6 +251,9 @@ def main(argv=None) -> dict:
     p.add_argument("--displacement-vox", type=float, default=3.0,
                    help="largest displacement, lateral voxels")
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--lateral-subdivision", default="auto",
+                   help="[reconstruction] lateral_subdivision: auto (the library default) or "
+                        "an int; 1 reconstructs on the footprint voxels themselves")
     p.add_argument("--skip-patch", action="store_true")
     p.add_argument("--track", action="store_true",
                    help="also track the particles (ray bundles + PIV predictor): added time")
@@ -257,13 +269,13 @@ def main(argv=None) -> dict:
     cam, cal, case, grid, box, flow = full_case(args)
     print(f"grid {grid.shape} (z, y, x), voxel {np.round(np.array(grid.voxel) * 1e3, 4)} mm; "
           f"{args.particles} particles", file=sys.stderr)
-    settings = ReconstructionSettings(iterations=args.iterations)
+    k = args.lateral_subdivision
+    settings = ReconstructionSettings(iterations=args.iterations,
+                                      lateral_subdivision=k if k == "auto" else int(k))
     particles = ParticleSettings()
     try:
         with stage("weights (light field)", log):
-            w, _ = cached_weights(cal, grid, cache_dir=None, f_number=settings.f_number,
-                                  min_lit=settings.min_lit, projector=settings.projector,
-                                  max_weights_gb=settings.max_weights_gb)
+            w, _ = weights_for(cal, grid, settings)
             _ = w.normalised
     except ReconstructionError as exc:
         result = {"geometry": args.geometry, "refused": str(exc), "stages": log}
@@ -273,8 +285,9 @@ def main(argv=None) -> dict:
         ia, ib, pa, pb, cached = render_pair(cam, flow, case, box, args.particles, args.rays)
     log["render pair"]["cached"] = cached
 
-    print(f"projector: {'lattice (matrix-free)' if w.matrix_free else 'explicit'}",
-          file=sys.stderr)
+    print(f"projector: {'lattice (matrix-free)' if w.matrix_free else 'explicit'}, working "
+          f"grid {w.grid.shape} (lateral subdivision "
+          f"{lateral_subdivision(cal, grid, settings)})", file=sys.stderr)
     vols = {}
     for name, img in (("A", ia), ("B", ib)):
         with stage(f"reconstruct {name}", log):
@@ -301,8 +314,14 @@ def main(argv=None) -> dict:
         "pair_seconds": round(log["weights (light field)"]["seconds"] + sum(rec_s)
                               + log["PIV"]["seconds"], 2),
         "piv_seconds": log["PIV"]["seconds"],
+        "lateral_subdivision": list(lateral_subdivision(cal, grid, settings)),
         "velocity_rms_vox": [round(v, 4) for v in err["rms_vox"]],
         "velocity_bias_vox": [round(v, 4) for v in err["bias_vox"]],
+        "velocity_gain": [round(v, 4) for v in err["gain"]],
+        "velocity_by_depth": [{"abs_z_mm": [round(v, 2) for v in b["abs_z_mm"]],
+                               **{k: [round(v, 4) for v in b[k]]
+                                  for k in ("gain", "bias_vox", "rms_vox")}}
+                              for b in err["by_depth"]],
         "valid_fraction": err.get("valid_fraction"),
         "particles_found_a": len(vols["A"].particle_position),
         "geometry": args.geometry, "grid_offset_vox": list(args.grid_offset_vox),

@@ -91,7 +91,11 @@ def test_plenopiv_run_batch_with_resume(tmp_path, capsys):
                      "--out", str(tmp_path / "pairs" / f"run_{i}.h5")]) == 0
     (tmp_path / "exp.toml").write_text(
         'camera = "small_m1"\n[volume]\nx_mm = [-1.0625, 1.0625]\ny_mm = [-1.0625, 1.0625]\n'
-        'z_mm = [-1.5, 1.5]\nvoxel_mm = 0.125\n[piv]\nwindows = [[12, 12, 12]]\npasses = 2\n'
+        'z_mm = [-1.5, 1.5]\nvoxel_mm = 0.125\n'
+        # explicit weights on the volume's own grid, so that the second run finds them cached
+        # (a subdivided grid takes the matrix-free projector, which is never cached)
+        '[reconstruction]\nlateral_subdivision = 1\n'
+        '[piv]\nwindows = [[12, 12, 12]]\npasses = 2\n'
         '[images]\npairs = "pairs/*.h5"\ncalibration = "cal.h5"\ndt_s = 1e-3\n'
         '[output]\ndirectory = "out"\npng = false\nvtk = false\n')
     capsys.readouterr()

@@ -22,6 +22,11 @@ find_peaks
     For a batch of circular correlation planes: the displacement (n, 3) of the highest peak
     refined by a 3-point fit per axis, the raw peak height, and the ratio of the primary
     peak to the highest other face-connected local maximum.
+refine_peaks
+    For the same planes: the displacement (n, 3) of the highest peak refined per axis on the
+    correlation divided by the windows' overlap fraction (the loss of particle pairs across
+    the window border, which pulls a fitted peak towards zero), with a least-squares Gaussian
+    on five samples along an axis where the peak is broad (see :func:`_refine_axis_numba`).
 deform_trilinear
     Sample a volume at ``x + factor * d(x)`` by trilinear interpolation (zero outside).
 deform_cubic
@@ -282,6 +287,158 @@ def _find_peaks_numpy(corr, gaussian):
     with np.errstate(divide="ignore", invalid="ignore"):
         snr = np.where((second > 0.0) & (best > 0.0), best / second, np.inf)
     return disp, best, snr
+
+
+# --------------------------------------------------------------------------------------------
+# refine_peaks
+# --------------------------------------------------------------------------------------------
+
+#: Smallest overlap fraction a correlation sample is divided by (a lag of 3/4 of the window).
+MIN_OVERLAP = 0.25
+
+#: A peak whose 3-point Gaussian width is at least this (voxels, one standard deviation) is
+#: broad: five samples along that axis are fitted instead of three.
+BROAD_SIGMA_VOX = 1.0
+
+#: Shortest window edge along an axis for the five-point fit (its samples must be distinct).
+MIN_BROAD_WINDOW = 8
+
+
+@numba.njit(cache=True, inline="always")
+def _fit5_log_numba(u):
+    """Least-squares parabola through ``ln u`` at -2..2 with weights ``u**2``.
+
+    Returns ``(vertex, sigma2)``: the offset of the maximum and the variance of the fitted
+    Gaussian, ``-1 / (2 c)`` with ``c`` the curvature (NaN, NaN where it is not concave). The
+    weights make it the maximum-likelihood fit for samples of equal absolute noise (the
+    variance of ``ln u`` is ``(noise / u)**2``).
+    """
+    s0 = s1 = s2 = s3 = s4 = 0.0
+    t0 = t1 = t2 = 0.0
+    for q in range(5):
+        x = q - 2.0
+        w = u[q] * u[q]
+        y = math.log(u[q])
+        s0 += w
+        s1 += w * x
+        s2 += w * x * x
+        s3 += w * x * x * x
+        s4 += w * x * x * x * x
+        t0 += w * y
+        t1 += w * x * y
+        t2 += w * x * x * y
+    det = s0 * (s2 * s4 - s3 * s3) - s1 * (s1 * s4 - s3 * s2) + s2 * (s1 * s3 - s2 * s2)
+    if det == 0.0:
+        return np.nan, np.nan
+    b = (s0 * (t1 * s4 - s3 * t2) - t0 * (s1 * s4 - s3 * s2) + s2 * (s1 * t2 - t1 * s2)) / det
+    c = (s0 * (s2 * t2 - t1 * s3) - s1 * (s1 * t2 - t1 * s2) + t0 * (s1 * s3 - s2 * s2)) / det
+    if not c < 0.0:
+        return np.nan, np.nan
+    return -b / (2.0 * c), -1.0 / (2.0 * c)
+
+
+@numba.njit(cache=True)
+def _refine_axis_numba(v, lag0, w, gaussian, overlap, broad):
+    """Sub-voxel offset from the integer peak ``lag0`` along one axis of window length ``w``.
+
+    ``v`` holds the correlation at the lags ``lag0 - 2 .. lag0 + 2`` (circularly sampled).
+    With ``overlap`` each sample is first divided by the overlap fraction ``1 - |lag|/w`` of
+    its lag (at least ``MIN_OVERLAP``): the particle pairs a window loses across its border
+    weight the correlation by that triangle, which pulls a fitted peak towards zero by about
+    ``2 sigma**2 / w`` voxels for particle images of standard deviation ``sigma``. With
+    ``broad`` and the Gaussian estimator, where the five samples are positive and the window
+    holds ``MIN_BROAD_WINDOW`` voxels, :func:`_fit5_log_numba` fits all five; its vertex is
+    taken, clipped to one voxel, when the fitted peak is broad (standard deviation at least
+    ``BROAD_SIGMA_VOX``). Otherwise the 3-point fit (:func:`_fit3_numba`) is used.
+    """
+    u = np.empty(5)
+    for q in range(5):
+        f = 1.0
+        if overlap:
+            f = max(1.0 - abs(lag0 + q - 2) / w, MIN_OVERLAP)
+        u[q] = v[q] / f
+    frac = _fit3_numba(u[1], u[2], u[3], gaussian)
+    if broad and gaussian and w >= MIN_BROAD_WINDOW:
+        positive = True
+        for q in range(5):
+            if not u[q] > 0.0:
+                positive = False
+        if positive:
+            f5, sigma2 = _fit5_log_numba(u)
+            if sigma2 >= BROAD_SIGMA_VOX * BROAD_SIGMA_VOX:
+                frac = f5
+    return min(1.0, max(-1.0, frac))
+
+
+@numba.njit(cache=True, parallel=True)
+def _refine_peaks_numba(corr, gaussian, overlap, broad):
+    n, wz, wy, wx = corr.shape
+    disp = np.empty((n, 3), dtype=np.float64)
+    for k in numba.prange(n):
+        c = corr[k]
+        best = -np.inf
+        bi = 0
+        bj = 0
+        bm = 0
+        for i in range(wz):
+            for j in range(wy):
+                for m in range(wx):
+                    if c[i, j, m] > best:
+                        best = c[i, j, m]
+                        bi = i
+                        bj = j
+                        bm = m
+        li = bi - wz if 2 * bi >= wz else bi
+        lj = bj - wy if 2 * bj >= wy else bj
+        lm = bm - wx if 2 * bm >= wx else bm
+        v = np.empty(5)
+        for q in range(5):
+            v[q] = c[(bi + q - 2) % wz, bj, bm]
+        disp[k, 0] = li + _refine_axis_numba(v, li, wz, gaussian, overlap, broad)
+        for q in range(5):
+            v[q] = c[bi, (bj + q - 2) % wy, bm]
+        disp[k, 1] = lj + _refine_axis_numba(v, lj, wy, gaussian, overlap, broad)
+        for q in range(5):
+            v[q] = c[bi, bj, (bm + q - 2) % wx]
+        disp[k, 2] = lm + _refine_axis_numba(v, lm, wx, gaussian, overlap, broad)
+    return disp
+
+
+def _refine_peaks_numpy(corr, gaussian, overlap, broad):
+    n, wz, wy, wx = corr.shape
+    best_idx = np.argmax(corr.reshape(n, -1), axis=1)
+    peak = np.unravel_index(best_idx, (wz, wy, wx))
+    k = np.arange(n)
+    disp = np.empty((n, 3))
+    for axis, w in enumerate((wz, wy, wx)):
+        b = peak[axis]
+        lag0 = np.where(2 * b >= w, b - w, b).astype(np.float64)
+        u = np.empty((5, n))
+        for q in range(5):
+            idx = list(peak)
+            idx[axis] = (b + q - 2) % w
+            f = np.maximum(1.0 - np.abs(lag0 + q - 2) / w, MIN_OVERLAP) if overlap else 1.0
+            u[q] = corr[k, idx[0], idx[1], idx[2]].astype(np.float64) / f
+        frac = _fit3_numpy(u[1], u[2], u[3], gaussian)
+        if broad and gaussian and w >= MIN_BROAD_WINDOW:
+            positive = np.all(u > 0.0, axis=0)
+            lu = np.log(np.where(positive, u, 1.0))
+            x = np.arange(-2.0, 3.0)[:, None]
+            wt = np.where(positive, u, 0.0) ** 2
+            s = [np.sum(wt * x**p, axis=0) for p in range(5)]
+            t = [np.sum(wt * x**p * lu, axis=0) for p in range(3)]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                det = (s[0] * (s[2] * s[4] - s[3] * s[3]) - s[1] * (s[1] * s[4] - s[3] * s[2])
+                       + s[2] * (s[1] * s[3] - s[2] * s[2]))
+                bb = (s[0] * (t[1] * s[4] - s[3] * t[2]) - t[0] * (s[1] * s[4] - s[3] * s[2])
+                      + s[2] * (s[1] * t[2] - t[1] * s[2])) / det
+                cc = (s[0] * (s[2] * t[2] - t[1] * s[3]) - s[1] * (s[1] * t[2] - t[1] * s[2])
+                      + t[0] * (s[1] * s[3] - s[2] * s[2])) / det
+                broad_peak = (cc < 0.0) & (-1.0 / (2.0 * cc) >= BROAD_SIGMA_VOX**2)
+                use = positive & (det != 0.0) & broad_peak
+                frac = np.where(use, -bb / (2.0 * cc), frac)
+        disp[:, axis] = lag0 + np.clip(frac, -1.0, 1.0)
+    return disp
 
 
 # --------------------------------------------------------------------------------------------
@@ -660,6 +817,7 @@ ENGINES = {
         extract_windows=_extract_windows_numba,
         cross_spectrum=_cross_spectrum_numba,
         find_peaks=_find_peaks_numba,
+        refine_peaks=_refine_peaks_numba,
         deform_trilinear=_deform_trilinear_numba,
         deform_cubic=_deform_cubic_numba,
         neighbour_median=_neighbour_median_numba,
@@ -669,6 +827,7 @@ ENGINES = {
         extract_windows=_extract_windows_numpy,
         cross_spectrum=_cross_spectrum_numpy,
         find_peaks=_find_peaks_numpy,
+        refine_peaks=_refine_peaks_numpy,
         deform_trilinear=_deform_trilinear_numpy,
         deform_cubic=_deform_cubic_numpy,
         neighbour_median=_neighbour_median_numpy,

@@ -750,7 +750,9 @@ def cmd_validate(args) -> dict:
         s = run_case(VortexCase(flow=case, camera=args.camera, seed=args.seed,
                                 particles_per_lenslet=args.particles_per_lenslet,
                                 lenslets=None if args.lenslets is None else tuple(args.lenslets),
-                                lateral_oversampling=args.lateral_oversampling), args.out)
+                                lateral_oversampling=args.lateral_oversampling,
+                                blur_px=args.blur_px,
+                                depth_centre=args.depth_centre_mm * 1e-3), args.out)
         out = {"errors": s["errors"], "n_particles": s["n_particles"],
                "grid_shape": s["grid_shape"], "voxel_mm": s["voxel_mm"],
                "timings_s": s["timings_s"], "products": s["products"]}
@@ -909,9 +911,11 @@ def cmd_demo(args) -> dict:
     return {"command": "demo", "out": str(args.out), "camera": s["case"]["camera"],
             "image_distance_mm": s["calibration"]["image_distance_mm"],
             "n_particles": s["n_particles"], "grid_shape": s["grid_shape"],
-            "valid_fraction": e["valid_fraction"], "rms_error_vox": e["rms_vox"],
-            "bias_vox": e["bias_vox"], "seconds": s["timings_s"]["total_s"],
-            "products": s["products"]}
+            "valid_fraction": e["valid_fraction"], "gain": e["gain"],
+            "rms_error_vox": e["rms_vox"], "bias_vox": e["bias_vox"],
+            "by_depth": [{k: b[k] for k in ("abs_z_mm", "n_vectors", "gain", "bias_vox",
+                                            "rms_vox")} for b in e["by_depth"]],
+            "seconds": s["timings_s"]["total_s"], "products": s["products"]}
 
 
 # ---- parser --------------------------------------------------------------------------------
@@ -1099,6 +1103,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="oseen/hill: run on the central ROWS x COLS lenslets of the camera")
     val.add_argument("--lateral-oversampling", type=int, default=1, metavar="K",
                      help="oseen/hill: lateral voxels per lenslet footprint (default 1)")
+    val.add_argument("--blur-px", type=float, default=0.0,
+                     help="oseen/hill: Gaussian point spread of the renders, pixels (default 0)")
+    val.add_argument("--depth-centre-mm", type=float, default=0.0,
+                     help="oseen/hill: Z of the volume's centre, mm (default 0: on the focal "
+                          "plane)")
     val.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     _add_common(val)
     val.set_defaults(func=cmd_validate)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,11 +27,13 @@ from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.corrections import DepthCorrection
 from plenopiv.errors import CalibrationError, ConfigError, PIVError, ReconstructionError
 from plenopiv.io import check_image, write_h5
+from plenopiv.lattice import LatticeProjector, separable_axes
+from plenopiv.lightfield import light_field
 from plenopiv.mart import reconstruct
 from plenopiv.particles import find_particles
 from plenopiv.sightline import subcell_line_of_sight
 from plenopiv.volume import VolumeGrid
-from plenopiv.weights import Weights, cached_weights
+from plenopiv.weights import Weights, cached_weights, check_grid_in_view, weights_key
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
     from plenopiv.piv import PIVSettings
@@ -162,13 +165,114 @@ def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration:
             "fit_spacing_vox": particles.fit_spacing_vox}
 
 
+#: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
+SUBDIVIDED_VOXEL_FOOTPRINTS = 1 / 3
+
+
+def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
+                        settings: ReconstructionSettings) -> tuple[int, int]:
+    """Subdivision ``(ky, kx)`` of the lateral voxels during the reconstruction.
+
+    ``settings.lateral_subdivision`` as given, or for ``"auto"`` the smallest k per axis for
+    which the working voxel is at most a third of a lenslet footprint (5 % slack, at most
+    :data:`plenopiv.config.MAX_SUBDIVISION`). Depth along a pixel's beam is told apart by
+    the beams of the other views shifting sideways by a fraction of a footprint; voxels a
+    footprint wide hold those shifts in one voxel, and the reconstructed particle is 2-3
+    times longer in depth than with half-footprint voxels. On the CI camera (Oseen, 0.3
+    particles per lenslet, footprint voxels) the w gain is 0.73 with k = 2, 0.89 with 3 and
+    0.89 with 4 (w rms 0.60, 0.48, 0.40 voxel; without subdivision see
+    docs/validation/vortex.md).
+    """
+    from plenopiv.config import MAX_SUBDIVISION
+
+    k = settings.lateral_subdivision
+    if k != "auto":
+        return int(k), int(k)
+    half = SUBDIVIDED_VOXEL_FOOTPRINTS * footprint(calibration.effective_camera)
+    return tuple(int(min(MAX_SUBDIVISION, max(1, math.ceil(d / half - 0.05))))
+                 for d in (grid.voxel[1], grid.voxel[0]))
+
+
+def subdivided_grid(grid: VolumeGrid, ky: int, kx: int) -> VolumeGrid:
+    """``grid`` with every voxel cut into ``ky × kx`` laterally (same box, same depth)."""
+    dx, dy, dz = grid.voxel
+    ox, oy, oz = grid.origin
+    nz, ny, nx = grid.shape
+    return VolumeGrid((ox - 0.5 * dx + 0.5 * dx / kx, oy - 0.5 * dy + 0.5 * dy / ky, oz),
+                      (dx / kx, dy / ky, dz), (nz, ny * ky, nx * kx))
+
+
+def reconstruction_grid(calibration: Calibration, grid: VolumeGrid,
+                        settings: ReconstructionSettings) -> VolumeGrid:
+    """The working grid of a reconstruction on ``grid``: laterally subdivided
+    (:func:`lateral_subdivision`)."""
+    return subdivided_grid(grid, *lateral_subdivision(calibration, grid, settings))
+
+
+def merge_subdivided(volume, ky: int, kx: int, *, kernel: str = "gaussian") -> np.ndarray:
+    """A volume of laterally subdivided voxels back on the grid it subdivides, float32.
+
+    ``volume`` is ``(nz, ny * ky, nx * kx)`` (:func:`subdivided_grid`). ``"box"`` sums each
+    voxel's ``ky × kx`` working voxels. ``"gaussian"`` weights the working volume by a
+    Gaussian of σ = half a voxel (``k/2`` working voxels) about each voxel's centre (linear
+    between the two middle working voxels for an even k), scaled by ``ky kx`` so that the
+    total is kept: a particle narrower than a voxel then spreads over its neighbours in the
+    ratio of where it lies inside the voxel, which the box sum loses (the peak locking of
+    voxels a lenslet footprint wide: docs/validation/vortex.md). The samples of a Gaussian
+    of half a voxel sum to 1 within ±1.4 % per axis (2 exp(-π²/2)), a ripple of a particle's
+    merged intensity with its position inside the voxel.
+    """
+    import scipy.ndimage
+
+    v = np.asarray(volume, dtype=np.float32)
+    nz, wy, wx = v.shape
+    if wy % ky or wx % kx:
+        raise ValueError(f"volume of shape {v.shape} is not subdivided by ({ky}, {kx})")
+    if kernel == "box":
+        return v.reshape(nz, wy // ky, ky, wx // kx, kx).sum(axis=(2, 4), dtype=np.float32)
+    if kernel != "gaussian":
+        raise ValueError(f"kernel = {kernel!r}: expected 'gaussian' or 'box'")
+    for axis, k in ((1, ky), (2, kx)):
+        if k == 1:
+            continue
+        f = scipy.ndimage.gaussian_filter1d(v, 0.5 * k, axis=axis, mode="constant")
+        take = [slice(None)] * 3
+        take[axis] = slice(k // 2, None, k)
+        sampled = f[tuple(take)]
+        if k % 2 == 0:             # the centre lies between two working voxels
+            take[axis] = slice(k // 2 - 1, None, k)
+            sampled = 0.5 * (sampled + f[tuple(take)])
+        v = (sampled * k).astype(np.float32)
+    return v
+
+
+def _subdivision_of(work: VolumeGrid, grid: VolumeGrid) -> tuple[int, int]:
+    """``(ky, kx)`` when ``work`` is ``grid`` subdivided laterally, else ReconstructionError."""
+    nz, ny, nx = grid.shape
+    wz, wy, wx = work.shape
+    if wz == nz and wy % ny == 0 and wx % nx == 0:
+        ky, kx = wy // ny, wx // nx
+        expect = subdivided_grid(grid, ky, kx)
+        scale = max(grid.voxel)
+        if (np.allclose(expect.origin, work.origin, rtol=0, atol=1e-9 * scale)
+                and np.allclose(expect.voxel, work.voxel, rtol=1e-9, atol=0)):
+            return ky, kx
+    raise ReconstructionError("the given weights were built for another volume grid (neither "
+                              "the volume's grid nor a lateral subdivision of it)")
+
+
 def weights_for(calibration: Calibration, grid: VolumeGrid, settings: ReconstructionSettings,
                 cache_dir: str | Path | None = None) -> tuple[Weights, bool]:
-    """The weights a reconstruction with ``settings`` uses: explicit (cached in ``cache_dir``)
-    or the matrix-free lattice projector, by ``settings.projector``; ``(weights, from_cache)``.
+    """The weights a reconstruction on ``grid`` with ``settings`` uses: explicit (cached in
+    ``cache_dir``) or the matrix-free lattice projector, by ``settings.projector``, on the
+    laterally subdivided working grid (:func:`reconstruction_grid`); ``(weights, from_cache)``.
 
-    Row-action and block MART walk explicit rows, so ``"auto"`` keeps them explicit. A grid
-    whose arrays cannot fit in memory is refused before anything is estimated.
+    Row-action and block MART walk explicit rows, so ``"auto"`` keeps them explicit; SMART
+    on a subdivided grid takes the matrix-free projector where the lattice allows. With
+    ``lateral_subdivision = "auto"``, weights that would not fit in memory on a lattice the
+    matrix-free projector cannot take (rotated or hexagonal) fall back to a coarser
+    subdivision, with a warning, instead of failing. A grid whose arrays cannot fit in memory
+    is refused before anything is estimated.
     """
     from plenopiv.resources import check_grid
 
@@ -176,9 +280,32 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
     projector = settings.projector
     if projector == "auto" and settings.method != "smart":
         projector = "sparse"
-    return cached_weights(calibration, grid, cache_dir=cache_dir, f_number=settings.f_number,
-                          min_lit=settings.min_lit, projector=projector,
-                          max_weights_gb=settings.max_weights_gb)
+    ky, kx = lateral_subdivision(calibration, grid, settings)
+    if projector == "auto" and (ky, kx) != (1, 1):
+        # a subdivided grid has k² times the explicit weights; the matrix-free projector is
+        # built in seconds and projects it about ten times faster (docs/validation/vortex.md)
+        lf = light_field(calibration, f_number=settings.f_number, min_lit=settings.min_lit)
+        if separable_axes(lf) is not None:
+            work = subdivided_grid(grid, ky, kx)
+            check_grid_in_view(lf, work)
+            key = weights_key(calibration, work, f_number=settings.f_number,
+                              min_lit=settings.min_lit, min_weight=1e-7)
+            return Weights(LatticeProjector.from_light_field(lf, work), lf.pixel, work,
+                           key), False
+    while True:
+        try:
+            return cached_weights(calibration, subdivided_grid(grid, ky, kx),
+                                  cache_dir=cache_dir, f_number=settings.f_number,
+                                  min_lit=settings.min_lit, projector=projector,
+                                  max_weights_gb=settings.max_weights_gb)
+        except ReconstructionError as exc:
+            if (settings.lateral_subdivision != "auto" or max(ky, kx) == 1
+                    or "max_weights_gb" not in str(exc)):
+                raise
+            warnings.warn(f"lateral_subdivision = \"auto\": the weights of a {ky} x {kx} "
+                          f"subdivision do not fit ({exc}); trying "
+                          f"{max(1, ky - 1)} x {max(1, kx - 1)}", stacklevel=2)
+            ky, kx = max(1, ky - 1), max(1, kx - 1)
 
 
 def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
@@ -196,7 +323,9 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     grid : VolumeGrid
         Effective (air-equivalent) reconstruction grid.
     weights : Weights, optional
-        Pre-built weights for this calibration and grid (e.g. shared by a pair).
+        Pre-built weights for this calibration (e.g. shared by a pair): from
+        :func:`weights_for`, on the working grid; weights built for ``grid`` itself
+        reconstruct on it without subdivision. Default: :func:`weights_for`.
     cache_dir : path, optional
         Weight cache folder (used when ``weights`` is not given).
     progress : callable, optional
@@ -217,8 +346,7 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         if progress is not None:
             progress("weights", 0.0)
         weights, _ = weights_for(calibration, grid, settings, cache_dir=cache_dir)
-    elif weights.grid != grid:
-        raise ReconstructionError("the given weights were built for another volume grid")
+    ky, kx = (1, 1) if weights.grid == grid else _subdivision_of(weights.grid, grid)
     if weights.matrix_free and settings.method != "smart":
         raise ReconstructionError(
             f"[reconstruction] method = {settings.method!r} walks the rows of explicit weights; "
@@ -266,7 +394,7 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         vol = reconstruct((np.maximum(raw, floor) / row_scale).astype(np.float32)[rows],
                           proj.select_rows(rows), method="smart",
                           iterations=settings.iterations, relaxation=settings.relaxation_used,
-                          pixel_threshold=0.0, initial=first, shape=grid.shape,
+                          pixel_threshold=0.0, initial=first, shape=weights.grid.shape,
                           callback=report, ceiling=~bright[rows])
     else:
         blocks = None
@@ -274,8 +402,10 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
             blocks = _perspective_blocks(weights, calibration, settings)[bright]
         vol = reconstruct(values[bright], proj.select_rows(bright), method=settings.method,
                           iterations=settings.iterations, relaxation=settings.relaxation_used,
-                          pixel_threshold=0.0, blocks=blocks, initial=first, shape=grid.shape,
-                          callback=report)
+                          pixel_threshold=0.0, blocks=blocks, initial=first,
+                          shape=weights.grid.shape, callback=report)
+    if ky > 1 or kx > 1:            # the working voxels back onto the volume's grid
+        vol = merge_subdivided(vol, ky, kx, kernel=settings.subdivision_kernel)
     t["mart_s"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
@@ -382,7 +512,9 @@ def piv_settings(cfg) -> PIVSettings:
         return PIVSettings(windows=tuple(tuple(w) for w in cfg.windows), overlap=cfg.overlap,
                            passes=cfg.passes, deformation=cfg.deformation,
                            median_threshold=cfg.median_threshold,
-                           replacement=cfg.replacement)
+                           replacement=cfg.replacement,
+                           overlap_correction=cfg.overlap_correction,
+                           broad_peaks=cfg.broad_peaks)
     except ValueError as exc:
         raise ConfigError(f"[piv] {exc}") from None
 

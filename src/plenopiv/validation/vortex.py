@@ -25,7 +25,7 @@ from plenopiv.config import (
     ReconstructionSettings,
 )
 from plenopiv.io import atomic_path
-from plenopiv.pipeline import footprint, process_pair, save_pair
+from plenopiv.pipeline import footprint, lateral_subdivision, process_pair, save_pair
 from plenopiv.plots import vector_comparison
 from plenopiv.synthetic.flows import HillVortex, LambOseen, Uniform, advect
 from plenopiv.synthetic.images import (
@@ -37,6 +37,7 @@ from plenopiv.synthetic.images import (
     ruler_image,
 )
 from plenopiv.synthetic.seeding import SeedingBox, particle_count, simulate_pair
+from plenopiv.validation.accuracy import gain_bias_rms
 from plenopiv.volume import VolumeGrid
 
 #: The flows a case can run.
@@ -50,7 +51,7 @@ class VortexCase:
     Attributes
     ----------
     flow : {"oseen", "hill", "uniform"} ("uniform": every particle moves by
-        ``max_displacement`` along x, for the sub-voxel response)
+        ``max_displacement`` along ``uniform_axis``, for the sub-voxel response)
     camera : preset name or path
     particles_per_lenslet : seeding density
     depth : half depth of the seeded and reconstructed volume, metres
@@ -65,6 +66,14 @@ class VortexCase:
         response, three more test pairs) or "correlation" (faster)
     windows : interrogation windows per pass (z, y, x) in voxels of the footprint grid; the
         lateral edges are multiplied by ``lateral_oversampling``
+    passes : PIV passes (the last window repeats)
+    overlap_correction, broad_peaks : the PIV peak fit (:class:`plenopiv.piv.PIVSettings`)
+    uniform_axis : "x", "y" or "z", the direction of the ``"uniform"`` flow
+    depth_centre : Z of the centre of the seeded and reconstructed volume, metres (0: centred
+        on the focal plane; > 0 places it beyond the focal plane, away from the camera)
+    blur_px : standard deviation of a Gaussian blur of every rendered image, pixels (the
+        optics' point spread function), before the noise
+    reconstruction : reconstruction settings (the library's defaults unless given)
     """
 
     flow: str = "oseen"
@@ -83,10 +92,19 @@ class VortexCase:
     lenslets: tuple[int, int] | None = None
     lateral_oversampling: int = 1
     uncertainty: str = "response"
+    passes: int = 3
+    overlap_correction: bool = True
+    broad_peaks: bool = True
+    uniform_axis: str = "x"
+    depth_centre: float = 0.0
+    blur_px: float = 0.0
+    reconstruction: ReconstructionSettings = ReconstructionSettings()
 
     def __post_init__(self):
         if self.flow not in FLOWS:
             raise ValueError(f"flow = {self.flow!r}: expected one of {FLOWS}")
+        if self.uniform_axis not in ("x", "y", "z"):
+            raise ValueError(f"uniform_axis = {self.uniform_axis!r}: expected 'x', 'y' or 'z'")
         k = self.lateral_oversampling
         if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
             raise ValueError(f"lateral_oversampling = {k!r}: expected an int >= 1")
@@ -107,22 +125,25 @@ def case_camera(case: VortexCase) -> CameraModel:
 def _flow(case: VortexCase, box: SeedingBox):
     half_y = 0.5 * (box.y[1] - box.y[0])
     vmax = case.max_displacement / case.dt
+    centre = (0.0, 0.0, case.depth_centre)
     if case.flow == "oseen":
         rc = 0.6 * min(half_y, case.depth)
         return LambOseen(circulation=vmax * 2 * np.pi * rc / 0.6382, core_radius=rc,
-                         axis=(0.0, 1.0, 0.0))
+                         centre=centre, axis=(0.0, 1.0, 0.0))
     if case.flow == "hill":
         return HillVortex(radius=0.8 * min(half_y, case.depth), speed=vmax / 1.5,
-                          axis=(1.0, 0.0, 0.0))
+                          centre=centre, axis=(1.0, 0.0, 0.0))
     if case.flow == "uniform":
-        return Uniform((vmax, 0.0, 0.0))
+        v = np.zeros(3)
+        v["xyz".index(case.uniform_axis)] = vmax
+        return Uniform(tuple(v))
     raise ValueError(f"flow = {case.flow!r}: expected one of {FLOWS}")
 
 
 def seeding_box(case: VortexCase, grid: VolumeGrid) -> SeedingBox:
     """The box a case seeds: the grid's lateral extent (98 %) and the case's depth."""
     return SeedingBox(tuple(grid.bounds[0] * 0.98), tuple(grid.bounds[1] * 0.98),
-                      (-case.depth, case.depth))
+                      (case.depth_centre - case.depth, case.depth_centre + case.depth))
 
 
 def case_flow(case: VortexCase, grid: VolumeGrid):
@@ -138,13 +159,15 @@ def aligned_grid(camera: CameraModel, case: VortexCase) -> VolumeGrid:
     nx = int(case.lateral_fill * hx / b)
     ny = int(case.lateral_fill * hy / b)
     dz = b * case.voxel_depth_factor
-    eff_depth = case.depth
+    eff_depth, eff_centre = case.depth, case.depth_centre
     if camera.external_interface is not None:
         eff_depth *= camera.external_interface.depth_ratio
+        eff_centre *= camera.external_interface.depth_ratio
     nz = int(np.ceil(eff_depth / dz))
+    zc = dz * round(eff_centre / dz)          # a voxel centre stays on the focal plane
     lat = b / case.lateral_oversampling
     return VolumeGrid.from_bounds(((-nx - 0.5) * b, (nx + 0.5) * b), ((-ny - 0.5) * b,
-                                  (ny + 0.5) * b), (-(nz + 0.5) * dz, (nz + 0.5) * dz),
+                                  (ny + 0.5) * b), (zc - (nz + 0.5) * dz, zc + (nz + 0.5) * dz),
                                   voxel=(lat, lat, dz))
 
 
@@ -167,20 +190,23 @@ def coverage(error, sigma) -> np.ndarray:
         return np.mean(np.abs(e) <= 2.0 * s, axis=0)
 
 
-def _rms_bias(err: np.ndarray) -> dict:
-    if not len(err):
-        return {"n_vectors": 0, "bias_vox": [np.nan] * 3, "rms_vox": [np.nan] * 3}
-    return {"n_vectors": int(len(err)), "bias_vox": err.mean(axis=0).tolist(),
-            "rms_vox": np.sqrt((err ** 2).mean(axis=0)).tolist()}
+def _band(meas: np.ndarray, truth: np.ndarray, vox: np.ndarray) -> dict:
+    """Gain, bias and rms per component, in voxels, of (N, 3) measured and true metres."""
+    g = gain_bias_rms((meas / vox).T, (truth / vox).T)
+    return {"n_vectors": g["n"], "gain": g["gain"], "gain_se": g["gain_se"],
+            "correlation": g["correlation"],
+            "bias_vox": g["bias"], "rms_vox": g["rms"], "true_rms_vox": g["true_rms"]}
 
 
 def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
                        depth_bands: int = 3, truth: np.ndarray | None = None) -> dict:
     """Error of the measured field against the flow's displacement at the window centres.
 
-    Returns bias and rms per component in voxels (lateral voxel for u, v; depth voxel for w),
-    over valid vectors at least half a window inside the volume; and the same in
-    ``depth_bands`` bands of |Z| (distance from the focal plane), the first one nearest focus.
+    Returns, per component in voxels (lateral voxel for u, v; depth voxel for w), the gain
+    (least-squares slope of measured on true, :func:`~plenopiv.validation.accuracy.gain_bias_rms`;
+    NaN for a component that does not vary, as in a uniform shift), the bias and the rms, over
+    valid vectors at least half a window inside the volume; and the same in ``depth_bands``
+    bands of |Z| (distance from the focal plane), the first one nearest focus.
     ``truth``: :func:`true_displacement` of these vectors when already computed.
     """
     Z, Y, X = np.meshgrid(vectors.z, vectors.y, vectors.x, indexing="ij")
@@ -190,26 +216,29 @@ def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
     meas = np.stack([vectors.u.ravel(), vectors.v.ravel(), vectors.w.ravel()], axis=1)
     b = grid.bounds
     wz, wy, wx = window_vox
-    inner = ((np.abs(X.ravel()) <= b[0, 1] - 0.5 * wx * grid.voxel[0])
-             & (np.abs(Y.ravel()) <= b[1, 1] - 0.5 * wy * grid.voxel[1])
-             & (np.abs(Z.ravel()) <= b[2, 1] - 0.5 * wz * grid.voxel[2]))
+    inner = np.ones(X.size, bool)
+    for c, (lo, hi), w, d in zip((X, Y, Z), b, (wx, wy, wz), grid.voxel, strict=True):
+        inner &= (c.ravel() >= lo + 0.5 * w * d) & (c.ravel() <= hi - 0.5 * w * d)
     ok = np.asarray(vectors.valid).ravel() & inner
     vox = np.array([grid.voxel[0], grid.voxel[1], grid.voxel[2]])
-    err = (meas[ok] - truth[ok]) / vox
-    out = {**_rms_bias(err), "valid_fraction": float(np.mean(vectors.valid)),
+    out = {**_band(meas[ok], truth[ok], vox), "valid_fraction": float(np.mean(vectors.valid)),
            "true_max_displacement_vox": (np.abs(truth) / vox).max(axis=0).tolist()}
     sigma = [getattr(vectors, f"{c}_uncertainty", None) for c in "uvw"]
-    if all(s is not None for s in sigma) and len(err):
+    if all(s is not None for s in sigma) and ok.any():
+        err = (meas[ok] - truth[ok]) / vox
         sig = np.stack([np.asarray(s).ravel() for s in sigma], axis=1)[ok] / vox
         out["coverage_2sigma"] = coverage(err, sig).tolist()
         out["rms_sigma_vox"] = np.sqrt(np.nanmean(sig**2, axis=0)).tolist()
     z_abs = np.abs(Z.ravel()[ok])
     edges = np.linspace(0.0, z_abs.max() if len(z_abs) else 0.0, depth_bands + 1)
     edges[-1] = np.inf
-    out["by_depth"] = [{"abs_z_mm": [float(lo * 1e3), float(min(hi, z_abs.max()) * 1e3)],
-                        **_rms_bias(err[(z_abs >= lo) & (z_abs < hi)])}
-                       for lo, hi in zip(edges[:-1], edges[1:], strict=True)] if len(
-                           z_abs) else []
+    out["by_depth"] = []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        sel = (z_abs >= lo) & (z_abs < hi)
+        out["by_depth"].append({"abs_z_mm": [float(lo * 1e3), float(min(hi, z_abs.max()) * 1e3)],
+                                **_band(meas[ok][sel], truth[ok][sel], vox)})
+    if not len(z_abs):
+        out["by_depth"] = []
     return out
 
 
@@ -227,14 +256,16 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
             progress(stage, fraction)
 
     # calibration images and calibration (or the exact model calibration)
+    blur = case.blur_px
     if case.calibrate:
         report("calibration images", 0.0)
-        fp = finish_image(focal_point_image(truth_cam, f_number=16), noise="poisson", rng=rng)
+        fp = finish_image(focal_point_image(truth_cam, f_number=16), noise="poisson", rng=rng,
+                          blur_px=blur)
         report("calibration images", 0.3)
-        al = finish_image(alignment_image(truth_cam), noise="poisson", rng=rng)
+        al = finish_image(alignment_image(truth_cam), noise="poisson", rng=rng, blur_px=blur)
         report("calibration images", 0.5)
         ru = finish_image(ruler_image(truth_cam, Ruler(1e-3), rays_per_lenslet=1000),
-                          noise="poisson", rng=rng)
+                          noise="poisson", rng=rng, blur_px=blur)
         report("calibrate")
         # the user's camera file does not know S_i
         user_cam = truth_cam.replace(main_lens=replace(truth_cam.main_lens,
@@ -263,16 +294,23 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
     pair = simulate_pair(truth_cam, flow, dt=case.dt, box=box, n_particles=n, rng=rng,
                          rays_per_particle=case.rays_per_particle)
     if case.noise:
-        ia = finish_image(pair.image_a, noise="poisson", rng=rng)
-        ib = finish_image(pair.image_b, noise="poisson", rng=rng)
+        ia = finish_image(pair.image_a, noise="poisson", rng=rng, blur_px=blur)
+        ib = finish_image(pair.image_b, noise="poisson", rng=rng, blur_px=blur)
+    elif blur > 0:
+        ia, ib = (finish_image(im, blur_px=blur, bit_depth=None) for im in
+                  (pair.image_a, pair.image_b))
     else:
         ia, ib = pair.image_a, pair.image_b
     timings["simulate_s"] = time.perf_counter() - t1
+    with atomic_path(out / "truth_particles.npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, positions_a=pair.positions_a, positions_b=pair.positions_b)
 
     exp = Experiment(camera=cal.camera, volume=grid,
-                     reconstruction=ReconstructionSettings(),
-                     piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5, passes=3,
-                                   uncertainty=case.uncertainty),
+                     reconstruction=case.reconstruction,
+                     piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5,
+                                   passes=case.passes, uncertainty=case.uncertainty,
+                                   overlap_correction=case.overlap_correction,
+                                   broad_peaks=case.broad_peaks),
                      images=ImagesConfig(dt_s=case.dt),
                      output=OutputConfig(directory=str(out), weights_cache=""),
                      base_dir=out)
@@ -281,6 +319,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
     timings.update(res.timings)
     report("products")
     paths = save_pair(res, out, "pair", exp, extra_attrs={"flow": case.flow})
+    paths["truth_particles"] = str(out / "truth_particles.npz")
     timings["total_s"] = time.perf_counter() - t0
     timings["pair_s"] = time.perf_counter() - t2
 
@@ -294,7 +333,9 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
         disp.x, disp.y, disp.z, measured, truth / vox, disp.valid, out / "pair_vs_truth.png",
         voxel=grid.voxel, title=f"{case.flow}: measured against true displacement"))
     found = len(res.volume_a.particle_position)
-    summary = {"case": case.__dict__, "n_particles": n, "n_found_a": found,
+    case_dict = {**case.__dict__, "reconstruction": case.reconstruction.model_dump()}
+    summary = {"case": case_dict, "n_particles": n, "n_found_a": found,
+               "lateral_subdivision": list(lateral_subdivision(cal, grid, case.reconstruction)),
                "calibration": cal_summary, "grid_shape": list(grid.shape),
                "voxel_mm": [v * 1e3 for v in grid.voxel], "errors": err,
                "timings_s": {k: round(v, 2) for k, v in timings.items()}, "products": paths}
