@@ -98,11 +98,16 @@ def _field_errors(rng, noise, shift=(0.4, -1.3, 2.2)):
 
 
 def test_uncertainty_covers_the_errors_on_noisy_particle_volumes(rng):
-    """Correlation statistics plus the last correction: 80-99 % of the true errors of
-    noisy synthetic particle volumes within +-2 sigma, per component (measured 85-98 %)."""
+    """Correlation statistics plus the last correction cover the true errors of noisy
+    synthetic particle volumes: at least 85 % within +-2 sigma per component, and not every
+    error (pooled over the components at most 99 %: a sigma inflated twice would cover all).
+
+    The vectors of one pair share its shift, so the coverage of a few pairs scatters by
+    several per cent (measured 93-99 % per component over seeds with 16 pairs); 16 pairs
+    keep that scatter inside the bounds."""
     errors, sigmas = [], []
     for noise in (0.02, 0.1):
-        for _ in range(2):
+        for _ in range(8):
             shape = (40, 40, 40)
             shift = rng.uniform(-2, 2, 3)
             a, b = volume_pair(rng, shape, lambda p, s=shift: p + s)
@@ -115,8 +120,9 @@ def test_uncertainty_covers_the_errors_on_noisy_particle_volumes(rng):
             sigmas.append(np.stack([f.w_uncertainty, f.v_uncertainty,
                                     f.u_uncertainty])[:, 1:-1, 1:-1, 1:-1].reshape(3, -1))
     e, s = np.concatenate(errors, axis=1), np.concatenate(sigmas, axis=1)
-    coverage = (np.abs(e) <= 2 * s).mean(axis=1)
-    assert np.all((coverage >= 0.8) & (coverage <= 0.99)), coverage
+    within = np.abs(e) <= 2 * s
+    assert np.all(within.mean(axis=1) >= 0.85), within.mean(axis=1)
+    assert within.mean() <= 0.99, within.mean()
 
 
 def test_uncertainty_follows_the_image_noise(rng):
