@@ -35,9 +35,9 @@ import numba
 import numpy as np
 import scipy.sparse
 
-from plenopiv import _mart_kernels as mk
-from plenopiv.mart import mlos
-from plenopiv.projector import SparseProjector
+from plenopiv.reconstruction._kernels import mart as mk
+from plenopiv.reconstruction.mart import mlos
+from plenopiv.reconstruction.projector import SparseProjector
 
 
 def plenoptic_like_matrix(lenslets, directions, nz, voxels_per_lenslet, max_slope, rng):

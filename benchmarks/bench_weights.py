@@ -17,9 +17,9 @@ import numpy as np
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera import load_camera
 from plenopiv.lightfield import light_field
-from plenopiv.mart import reconstruct
+from plenopiv.reconstruction.mart import reconstruct
+from plenopiv.reconstruction.weights import build_weights
 from plenopiv.validation.vortex import VortexCase, aligned_grid
-from plenopiv.weights import build_weights
 
 
 def best_of(fn, n=3):

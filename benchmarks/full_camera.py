@@ -57,7 +57,6 @@ from plenopiv.camera import load_camera
 from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.io import atomic_path
-from plenopiv.mart import reconstruction_quality
 from plenopiv.pipeline import (
     correlate,
     gaussian_truth_volume,
@@ -66,11 +65,12 @@ from plenopiv.pipeline import (
     weights_for,
 )
 from plenopiv.piv import PIVSettings
+from plenopiv.reconstruction.mart import reconstruction_quality
+from plenopiv.reconstruction.weights import cached_weights
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.validation import field_quality as fq
 from plenopiv.validation.vortex import VortexCase, _flow, aligned_grid, compare_with_truth
 from plenopiv.volume import VolumeGrid
-from plenopiv.weights import cached_weights
 
 CACHE = Path(__file__).parent / "_cache"
 

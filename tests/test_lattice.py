@@ -1,4 +1,4 @@
-"""The matrix-free lattice projector against the explicit weights (plenopiv.lattice).
+"""The matrix-free lattice projector against the explicit weights (plenopiv.reconstruction.lattice).
 
 With the same ray model (cell-centre rays for edge pixels, no weight dropped) the lattice
 projector is the explicit W computed in another order, so forward and back projections agree
@@ -15,17 +15,15 @@ import dataclasses
 import numpy as np
 import pytest
 
-from plenopiv import _lightfield_kernels as lk
 from plenopiv.calibration.model import Calibration
 from plenopiv.config import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
-from plenopiv.lattice import LatticeProjector, separable_axes
+from plenopiv.lightfield import _kernels as lk
 from plenopiv.lightfield import _lit_fraction, light_field
-from plenopiv.mart import reconstruction_quality
 from plenopiv.pipeline import reconstruct_volume
-from plenopiv.synthetic.images import particle_image
-from plenopiv.volume import VolumeGrid
-from plenopiv.weights import (
+from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
+from plenopiv.reconstruction.mart import reconstruction_quality
+from plenopiv.reconstruction.weights import (
     BYTES_PER_NONZERO,
     build_weights,
     cached_weights,
@@ -33,6 +31,8 @@ from plenopiv.weights import (
     estimate_matrix_free_gb,
     estimate_nnz,
 )
+from plenopiv.synthetic.images import particle_image
+from plenopiv.volume import VolumeGrid
 
 RTOL = 1e-5
 

@@ -5,16 +5,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plenopiv import _weights_kernels as WK
 from plenopiv.calibration.model import Calibration
 from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import ConfigError, ReconstructionError
 from plenopiv.lightfield import light_field
+from plenopiv.reconstruction._kernels import weights as WK
+from plenopiv.reconstruction.weights import (
+    _cdf_np,
+    build_weights,
+    cached_weights,
+    weights_reference,
+)
 from plenopiv.synthetic import _kernels as TK
 from plenopiv.synthetic.images import particle_image
 from plenopiv.synthetic.tracer import geometry_vector
 from plenopiv.volume import VolumeGrid
-from plenopiv.weights import _cdf_np, build_weights, cached_weights, weights_reference
 
 
 @pytest.fixture(scope="module")

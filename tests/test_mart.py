@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from plenopiv import ImageError, ReconstructionError
-from plenopiv import _mart_kernels as mk
-from plenopiv.mart import METHODS, mlos, reconstruct, reconstruction_quality
-from plenopiv.projector import SparseProjector
+from plenopiv.reconstruction._kernels import mart as mk
+from plenopiv.reconstruction.mart import METHODS, mlos, reconstruct, reconstruction_quality
+from plenopiv.reconstruction.projector import SparseProjector
 
 U32 = 2.0**-24
 
@@ -413,7 +413,7 @@ def test_bad_options_are_refused(rng, kwargs, error, match):
 
 
 def test_not_a_projector_is_refused(rng):
-    with pytest.raises(ReconstructionError, match="must implement plenopiv.projector.Projector"):
+    with pytest.raises(ReconstructionError, match="must implement plenopiv.reconstruction.projector.Projector"):
         reconstruct(np.ones(4), np.eye(4))
 
 

@@ -50,7 +50,7 @@ def test_uniform_shift_is_measured(pair_products):
 
 
 def test_vectors_product_opens_in_xarray_and_paraview(pair_products):
-    import xarray as xr   # a test dependency (pyproject [test]), with h5netcdf
+    import xarray as xr  # a test dependency (pyproject [test]), with h5netcdf
 
     _, paths, shift, _, _ = pair_products
     ds = xr.open_dataset(paths["vectors"], engine="h5netcdf", phony_dims="access")

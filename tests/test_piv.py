@@ -27,7 +27,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from plenopiv import PIVError
-from plenopiv._piv_kernels import ENGINES
 from plenopiv.piv import (
     _SPLINE_PAD,
     PIVSettings,
@@ -40,6 +39,7 @@ from plenopiv.piv import (
     normalized_median_test,
     replace_outliers,
 )
+from plenopiv.piv._kernels import ENGINES
 
 ENGINE_NAMES = tuple(ENGINES)
 

@@ -10,7 +10,6 @@ import pytest
 import scipy.fft
 
 from plenopiv import PIVError
-from plenopiv._piv_kernels import ENGINES
 from plenopiv.piv import (
     FLAG_EMPTY,
     FLAG_MASKED,
@@ -20,6 +19,7 @@ from plenopiv.piv import (
     correlate_volumes,
     particle_image_size,
 )
+from plenopiv.piv._kernels import ENGINES
 from test_piv import render, seed_particles, volume_pair
 
 ENGINE_NAMES = tuple(ENGINES)

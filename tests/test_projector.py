@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from plenopiv import ReconstructionError
-from plenopiv import _projector_kernels as pk
-from plenopiv.projector import Projector, RowAccessProjector, SparseProjector
+from plenopiv.reconstruction._kernels import projector as pk
+from plenopiv.reconstruction.projector import Projector, RowAccessProjector, SparseProjector
 
 #: float32 unit roundoff: a float64 sum rounded once to float32 is off by at most this, relative.
 U32 = 2.0**-24

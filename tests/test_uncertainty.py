@@ -1,4 +1,4 @@
-"""plenopiv.uncertainty: the chain's measured response and how it completes the correlation
+"""plenopiv.piv.uncertainty: the chain's measured response and how it completes the correlation
 statistics (the whole-chain coverage is in test_vortex_validation.py and
 docs/validation/uncertainty.md)."""
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from plenopiv.piv import VectorField
-from plenopiv.uncertainty import MIN_GAIN, Response, cached_response, combine, response_key
+from plenopiv.piv.uncertainty import MIN_GAIN, Response, cached_response, combine, response_key
 
 
 def _response(gain_w=0.5, random_w=2e-5):

@@ -58,13 +58,13 @@ class ReconstructionSettings(_Strict):
     pixel_threshold : pixels at or below this fraction of the image's maximum are dark.
     dark_tolerance : a voxel is emptied before MART when, in every one of its lateral
         sub-cells (≤ half a footprint), more than this fraction of the weight falls on dark
-        pixels (a soft line-of-sight mask, :mod:`plenopiv.sightline`; 0 is the hard rule).
+        pixels (a soft line-of-sight mask, :mod:`plenopiv.reconstruction.sightline`; 0 is the hard rule).
     f_number : aperture of the recording (default: the camera's).
     min_lit : pixels whose aperture cell is less than this fraction inside the aperture are
         not used.
     projector : "auto" (explicit weights while they fit in max_weights_gb, else matrix-free)
         | "sparse" (explicit CSR weights, cached) | "lattice" (matrix-free, axis-aligned
-        square lattices; method "smart" only). See :mod:`plenopiv.lattice`.
+        square lattices; method "smart" only). See :mod:`plenopiv.reconstruction.lattice`.
     max_weights_gb : memory allowed for the explicit weights, and for a matrix-free
         reconstruction, GB (default: 40 % of the machine's memory).
     lateral_subdivision : "auto" (default) | an int k >= 1. The reconstruction runs on voxels

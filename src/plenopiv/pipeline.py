@@ -27,13 +27,13 @@ from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.corrections import DepthCorrection
 from plenopiv.errors import CalibrationError, ConfigError, PIVError, ReconstructionError
 from plenopiv.io import check_image, write_h5
-from plenopiv.lattice import LatticeProjector, separable_axes
 from plenopiv.lightfield import light_field
-from plenopiv.mart import reconstruct
 from plenopiv.particles import find_particles
-from plenopiv.sightline import subcell_line_of_sight
+from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
+from plenopiv.reconstruction.mart import reconstruct
+from plenopiv.reconstruction.sightline import subcell_line_of_sight
+from plenopiv.reconstruction.weights import Weights, cached_weights, check_grid_in_view, weights_key
 from plenopiv.volume import VolumeGrid
-from plenopiv.weights import Weights, cached_weights, check_grid_in_view, weights_key
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
     from plenopiv.piv import PIVSettings
@@ -425,7 +425,7 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
 
 def _line_of_sight_guess(weights: Weights, calibration: Calibration, settings, raw, floor,
                          touching, bright) -> np.ndarray:
-    """Return the first guess of MART: MLOS judged on sub-voxel cells (plenopiv.sightline).
+    """Return the first guess of MART: MLOS judged on sub-voxel cells (plenopiv.reconstruction.sightline).
 
     A voxel is empty unless some lit pixel sees it and one of its sub-cells has at most
     ``settings.dark_tolerance`` of its weight on dark pixels (the soft line-of-sight mask);
@@ -468,7 +468,7 @@ def _perspective_blocks(weights: Weights, calibration: Calibration, settings) ->
 
 def reconstruction_quality(volume, volume_true) -> float:
     """Q = Σ E E* / sqrt(Σ E² Σ E*²) (DESIGN.md §5)."""
-    from plenopiv.mart import reconstruction_quality as q
+    from plenopiv.reconstruction.mart import reconstruction_quality as q
 
     return q(volume, volume_true)
 
@@ -572,7 +572,7 @@ class VectorResult:
     u_uncertainty, v_uncertainty, w_uncertainty : (nz, ny, nx)
         Standard uncertainty of u, v, w, metres (w's in physical depth).
     uncertainty_method : str
-        ``"response"`` or ``"correlation"`` (see :mod:`plenopiv.uncertainty`).
+        ``"response"`` or ``"correlation"`` (see :mod:`plenopiv.piv.uncertainty`).
     """
 
     x: np.ndarray
@@ -741,12 +741,12 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
     returned in physical coordinates.
 
     ``mask``: volume mask (bool ``[z, y, x]``, True outside the flow). ``response``: a
-    callable ``response(field) -> Response`` (:func:`plenopiv.uncertainty.measure_response`)
-    whose result completes the uncertainties (:func:`plenopiv.uncertainty.combine`); None
+    callable ``response(field) -> Response`` (:func:`plenopiv.piv.uncertainty.measure_response`)
+    whose result completes the uncertainties (:func:`plenopiv.piv.uncertainty.combine`); None
     keeps the correlation statistics alone.
     """
     from plenopiv.piv import PIVSettings, correlate_volumes
-    from plenopiv.uncertainty import combine
+    from plenopiv.piv.uncertainty import combine
 
     for name, r in (("result_a", result_a), ("result_b", result_b)):
         if not isinstance(r, VolumeResult):
@@ -837,10 +837,10 @@ def _volume_progress(progress: Progress, tag: str) -> Progress:
 def _response_of(calibration, weights, volume_a: VolumeResult, experiment, settings, workers,
                  img_mask, vol_mask):
     """``response(field)`` for :func:`correlate`: the chain's measured response
-    (:func:`plenopiv.uncertainty.measure_response`) for this experiment, kept in the weights
+    (:func:`plenopiv.piv.uncertainty.measure_response`) for this experiment, kept in the weights
     cache (``[output] weights_cache``) under a key of everything it depends on."""
     from plenopiv.piv import correlate_volumes
-    from plenopiv.uncertainty import cached_response, measure_response, response_key
+    from plenopiv.piv.uncertainty import cached_response, measure_response, response_key
 
     grid = volume_a.grid
     # the seeding of the real pair, rounded to a power of two so that pairs share a response

@@ -16,7 +16,7 @@ From a camera and a box this module computes, without reconstructing anything:
 The weight count is computed, not sampled from a full light field (which would take seconds and
 gigabytes for a 16 MP camera): the rays of one micro-image are traced once on a 3 × 3-lenslet
 patch and repeated at every lenslet, and a ray's beam crosses a depth slice as a box whose
-voxel count is separable in x and y (:mod:`plenopiv.weights`).
+voxel count is separable in x and y (:mod:`plenopiv.reconstruction.weights`).
 
 Times come from rates: ``measure_rates`` times the reconstruction's own kernels (weight
 build, forward and back projection, the lattice projector) and the PIV on small samples in this
@@ -55,7 +55,7 @@ WINDOW_DEPTH_CELLS = (3.6, 2.7)
 VALIDATED_PARTICLES_PER_LENSLET = 0.15
 
 #: Bytes of an explicit reconstruction per non-zero weight
-#: (:data:`plenopiv.weights.BYTES_PER_NONZERO`).
+#: (:data:`plenopiv.reconstruction.weights.BYTES_PER_NONZERO`).
 BYTES_PER_NONZERO = 20
 #: Bytes per ray while the light field is built (temporaries included; measured on the Auburn
 #: camera: 2.9 GB peak for 11.6 million rays).
@@ -376,18 +376,18 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
 
     Each is timed at two sample sizes (the shortest of a few calls), which separates the rate
     per unit of work from the fixed cost per call: the weights of a few hundred lenslets'
-    rays built on ``grid`` (the kernels of :mod:`plenopiv.weights`) and projected forward and
+    rays built on ``grid`` (the kernels of :mod:`plenopiv.reconstruction.weights`) and projected forward and
     back; the lattice projector on two patches of the camera, on the grid's slices; the PIV
     of two random particle volumes of two and three first windows a side. The first call on
     a machine also compiles the kernels (cached on disk), before any timing.
     """
     import numba
 
-    from plenopiv import _weights_kernels as K
     from plenopiv.calibration.model import Calibration
-    from plenopiv.lattice import LatticeProjector
     from plenopiv.lightfield import light_field
-    from plenopiv.projector import SparseProjector
+    from plenopiv.reconstruction._kernels import weights as K
+    from plenopiv.reconstruction.lattice import LatticeProjector
+    from plenopiv.reconstruction.projector import SparseProjector
 
     u, lit, lf = _ray_pattern(camera, f_number, min_lit)
     mla = camera.microlens_array
@@ -530,7 +530,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     the defaults). ``rates``: :func:`measure_rates` (this machine) or
     :data:`BENCHMARK_RATES` (default).
     """
-    from plenopiv.weights import memory_budget_gb
+    from plenopiv.reconstruction.weights import memory_budget_gb
 
     reconstruction = reconstruction or ReconstructionSettings()
     piv = piv or PIVConfig()

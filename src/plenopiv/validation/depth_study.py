@@ -51,9 +51,9 @@ from plenopiv.corrections import DepthCorrection
 from plenopiv.errors import ReconstructionError
 from plenopiv.io import atomic_path
 from plenopiv.pipeline import reconstruct_volume
+from plenopiv.reconstruction.weights import cached_weights
 from plenopiv.synthetic.images import particle_image
 from plenopiv.volume import VolumeGrid
-from plenopiv.weights import cached_weights
 
 #: Particle extraction of this study (fixed, so that its tables stay reproducible): the
 #: library's defaults when it was written.
@@ -310,7 +310,7 @@ def dark_fraction(weights, calibration, settings, image, voxel_index: int) -> fl
     """Return the soft line-of-sight mask's dark fraction at one voxel (best-lit sub-cell).
 
     The quantity that :func:`plenopiv.pipeline.reconstruct_volume` compares with
-    ``[reconstruction] dark_tolerance`` (:mod:`plenopiv.sightline`): over the voxel's lateral
+    ``[reconstruction] dark_tolerance`` (:mod:`plenopiv.reconstruction.sightline`): over the voxel's lateral
     sub-cells (≤ half a footprint), the smallest Σ_dark ŵ_ic / Σ_all ŵ_ic, with ŵ the weights
     scaled to a row maximum of 1 and "dark" meaning at or below ``pixel_threshold`` × the
     image's maximum on rows that touch the volume.
@@ -327,7 +327,7 @@ def dark_fraction(weights, calibration, settings, image, voxel_index: int) -> fl
     """
     from plenopiv.lightfield import light_field
     from plenopiv.pipeline import footprint
-    from plenopiv.sightline import subcell_line_of_sight
+    from plenopiv.reconstruction.sightline import subcell_line_of_sight
 
     _, row_scale = weights.normalised
     nonempty = weights.row_max > 0
@@ -804,7 +804,7 @@ def _markdown(results: dict) -> str:
               "Effective depth of the brightest particle, the paraxial expectation, the number of "
               "particles found (and the 2nd brightest's intensity relative to the 1st), the "
               "largest lateral offset (voxels) and the dark fraction of the soft mask at the "
-              "expected voxel, that of its best-lit sub-cell (`plenopiv.sightline`; the mask "
+              "expected voxel, that of its best-lit sub-cell (`plenopiv.reconstruction.sightline`; the mask "
               f"empties a voxel above `dark_tolerance` = {rec['dark_tolerance']:g}).", ""]
     for name, m in results["measured"].items():
         c = results["cases"][name]

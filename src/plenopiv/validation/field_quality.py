@@ -46,10 +46,10 @@ from plenopiv.pipeline import (
     reconstruct_volume,
     resolution_cell,
 )
+from plenopiv.reconstruction.weights import Weights, cached_weights
 from plenopiv.synthetic.images import finish_image, particle_image
 from plenopiv.synthetic.seeding import SeedingBox, random_particles
 from plenopiv.volume import VolumeGrid
-from plenopiv.weights import Weights, cached_weights
 
 #: Densities of the main table, particles per lenslet.
 DENSITIES = (0.05, 0.1, 0.2, 0.3)

@@ -243,13 +243,13 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
         no particle was found), ``bundle_sigma_m`` (N, 3), ``n_lenslets``; summaries
         ``rms_mm`` for centroid and bundle per axis, ``within_2sigma``.
     """
+    from plenopiv.reconstruction.weights import cached_weights
     from plenopiv.validation.depth_study import (
         STUDY_PARTICLES,
         VOXEL,
         study_grid,
         thesis_camera,
     )
-    from plenopiv.weights import cached_weights
 
     cam = thesis_camera() if camera is None else camera
     depths = np.asarray(depths, float)

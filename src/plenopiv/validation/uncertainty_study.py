@@ -11,7 +11,7 @@ estimate, all from the same field:
 1. correlation statistics alone (Wieneke 2015, 3-D, with the covariance of neighbouring
    voxels);
 2. plus the last pass's correction (what ``[piv] uncertainty = "correlation"`` gives);
-3. plus the chain's measured response (:mod:`plenopiv.uncertainty`), the product's default.
+3. plus the chain's measured response (:mod:`plenopiv.piv.uncertainty`), the product's default.
 
 ``python pipelines/validate_uncertainty.py --out docs/validation`` writes
 ``uncertainty.json``, ``uncertainty.md`` and ``uncertainty_coverage.png``.
@@ -222,7 +222,7 @@ METHOD = [
     "## Method",
     "",
     "Per vector and component the standard uncertainty is the root sum of squares of three "
-    "terms (`plenopiv.piv.correlate_volumes`, `plenopiv.uncertainty`):",
+    "terms (`plenopiv.piv.correlate_volumes`, `plenopiv.piv.uncertainty`):",
     "",
     "1. **Correlation statistics** (Wieneke 2015, per axis in 3-D). After the last pass the "
     "two deformed windows nearly coincide; along each axis the correlation values beside "

@@ -23,10 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plenopiv import _lightfield_kernels as _lk
 from plenopiv.calibration.model import Calibration
 from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import CalibrationError
+from plenopiv.lightfield import _kernels as _lk
 
 
 class LightFieldWarning(UserWarning):
@@ -153,7 +153,7 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
     edge_centroid : bool
         Trace a pixel cut by the aperture's edge through the centroid of its cell's lit part
         (default), or through the cell centre (the model of the matrix-free
-        :class:`~plenopiv.lattice.LatticeProjector`).
+        :class:`~plenopiv.reconstruction.lattice.LatticeProjector`).
 
     Warns
     -----

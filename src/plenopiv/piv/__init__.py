@@ -29,9 +29,9 @@ import numpy as np
 import scipy.fft
 import scipy.ndimage
 
-from plenopiv._piv_kernels import ENGINES
 from plenopiv.conventions import voxel_to_world
 from plenopiv.errors import PIVError
+from plenopiv.piv._kernels import ENGINES
 
 __all__ = [
     "FLAG_EMPTY",
@@ -1148,7 +1148,7 @@ def correlate_volumes(
     :math:`\pm 2\sigma` (the statistics alone: 50-85 %). A replaced vector gets the root sum
     of squares of its neighbours' median uncertainty and the spread of the neighbours
     (1.4826 times their median absolute residual). For plenoptic volumes
-    :mod:`plenopiv.uncertainty` adds the chain's measured response; see
+    :mod:`plenopiv.piv.uncertainty` adds the chain's measured response; see
     ``docs/validation/uncertainty.md`` for the coverage of true errors on the vortex flows.
 
     References

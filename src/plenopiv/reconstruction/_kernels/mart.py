@@ -1,7 +1,7 @@
-"""numba kernels behind :mod:`plenopiv.mart` (private; arrays and scalars only).
+"""numba kernels behind :mod:`plenopiv.reconstruction.mart` (private; arrays and scalars only).
 
 W (rows = pixels, columns = voxels) comes as CSR ``indptr, indices, data`` together with a
-row schedule (:class:`plenopiv.projector.RowSchedule`): groups of chunks of rows, no two
+row schedule (:class:`plenopiv.reconstruction.projector.RowSchedule`): groups of chunks of rows, no two
 chunks of a group sharing a voxel, so that they may update their voxels in parallel without
 a race. The volume
 (float32) is updated in place. Plain NumPy twins of both sweeps live in ``tests/test_mart.py``.

@@ -8,7 +8,7 @@ beam energy that passes through voxel j:
     I_i = sum_j w_ij E_j            (forward projection, I = W·E)
     r_j = sum_i w_ij I_i            (back projection, r = Wᵀ·I)
 
-:class:`Projector` is the protocol that :mod:`plenopiv.mart` needs for MLOS and SMART: any
+:class:`Projector` is the protocol that :mod:`plenopiv.reconstruction.mart` needs for MLOS and SMART: any
 object with these six members will do, a matrix-free projector that exploits the regular
 lenslet grid included. Row-action MART and the block-iterative variant also walk the rows of
 W; :class:`RowAccessProjector` adds that. :class:`SparseProjector` is the explicit
@@ -32,8 +32,8 @@ from typing import Protocol, runtime_checkable
 import numba
 import numpy as np
 
-from plenopiv import _projector_kernels as _k
 from plenopiv.errors import ReconstructionError
+from plenopiv.reconstruction._kernels import projector as _k
 
 __all__ = ["CachedSums", "Projector", "RowAccessProjector", "RowSchedule", "SparseProjector"]
 

@@ -1,7 +1,7 @@
 """Tomographic reconstruction of a particle volume from one plenoptic image: MLOS and MART.
 
 The recorded intensity of pixel i is modelled as the weighted sum of the voxel intensities
-its beam crosses, ``I_i = sum_j w_ij E_j`` (see :mod:`plenopiv.projector`). This module
+its beam crosses, ``I_i = sum_j w_ij E_j`` (see :mod:`plenopiv.reconstruction.projector`). This module
 inverts that relation with non-negative multiplicative iterations:
 
 - :func:`mlos` -- the multiplicative line-of-sight first guess;
@@ -21,9 +21,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from plenopiv import _mart_kernels as _k
 from plenopiv.errors import ImageError, ReconstructionError
-from plenopiv.projector import Projector, RowAccessProjector
+from plenopiv.reconstruction._kernels import mart as _k
+from plenopiv.reconstruction.projector import Projector, RowAccessProjector
 
 __all__ = ["METHODS", "INITIAL_GUESSES", "reconstruct", "mlos", "reconstruction_quality"]
 
@@ -63,8 +63,8 @@ def reconstruct(
         values in ``(row, col)`` C order.
     projector : Projector
         The weights W. ``method="mart"`` and ``"block"`` need row access
-        (:class:`~plenopiv.projector.RowAccessProjector`, e.g.
-        :class:`~plenopiv.projector.SparseProjector`); ``"smart"`` and the MLOS first guess
+        (:class:`~plenopiv.reconstruction.projector.RowAccessProjector`, e.g.
+        :class:`~plenopiv.reconstruction.projector.SparseProjector`); ``"smart"`` and the MLOS first guess
         use only ``forward``/``back``.
     method : {"mart", "block", "smart"}
         ``"mart"``: row action, one pixel at a time (Elsinga et al. 2006).
@@ -122,7 +122,7 @@ def reconstruct(
               \quad \text{for all } j \text{ with } w_{ij} > 0,
 
     with I_i = ``image``, w = the projector's weights, mu = ``relaxation``. The pixels are
-    visited in the order of :meth:`~plenopiv.projector.SparseProjector.row_schedule`: runs
+    visited in the order of :meth:`~plenopiv.reconstruction.projector.SparseProjector.row_schedule`: runs
     of 16 consecutive pixels ("chunks"), the chunks coloured so that no two of a colour share
     a voxel, colour after colour. The result is exactly that of the sequential sweep in this
     order, computed in parallel (chunks of a colour at once), and it does not depend on the
@@ -246,7 +246,7 @@ def mlos(image, projector: Projector, *, pixel_threshold: float = 0.0,
     the power ``1 / sum_i w_ij`` so that E keeps the units of intensity whatever the number
     of views. It is chosen over the minimum form (Putze & Maas 2008) because it needs only
     two back projections, ``Wᵀ·[dark]`` and ``Wᵀ·ln(I/R)``, so it works for any
-    :class:`~plenopiv.projector.Projector`, matrix-free ones included; the minimum needs the
+    :class:`~plenopiv.reconstruction.projector.Projector`, matrix-free ones included; the minimum needs the
     rows. Both zero the same voxels.
 
     References
@@ -407,7 +407,7 @@ def _check_image(image, n_pixels: int, pixel_threshold: float) -> np.ndarray:
 def _check_projector(projector, *, need_rows: bool, method: str) -> None:
     if not isinstance(projector, Projector):
         raise ReconstructionError(
-            f"projector must implement plenopiv.projector.Projector (n_pixels, n_voxels, "
+            f"projector must implement plenopiv.reconstruction.projector.Projector (n_pixels, n_voxels, "
             f"forward, back, row_sums, column_sums); got {type(projector).__name__}"
         )
     if need_rows and not isinstance(projector, RowAccessProjector):

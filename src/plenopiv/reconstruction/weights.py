@@ -34,13 +34,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from plenopiv import _weights_kernels as K
 from plenopiv.calibration.model import Calibration
 from plenopiv.errors import ReconstructionError
 from plenopiv.io import write_h5
-from plenopiv.lattice import LatticeProjector, separable_axes
 from plenopiv.lightfield import LightField, light_field
-from plenopiv.projector import Projector, SparseProjector
+from plenopiv.reconstruction._kernels import weights as K
+from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
+from plenopiv.reconstruction.projector import Projector, SparseProjector
 from plenopiv.volume import VolumeGrid
 
 WEIGHTS_VERSION = 3
@@ -54,7 +54,7 @@ class Weights:
     ----------
     projector : SparseProjector or LatticeProjector
         W (rows: lit pixels, columns: voxels): CSR float32 / int32, or computed on the fly
-        for an axis-aligned lattice (:mod:`plenopiv.lattice`).
+        for an axis-aligned lattice (:mod:`plenopiv.reconstruction.lattice`).
     pixel : (P,) int64
         Flat sensor pixel index of each row.
     grid : VolumeGrid
@@ -178,7 +178,7 @@ def weights_reference(lf: LightField, grid: VolumeGrid, rows) -> np.ndarray:
 
 
 def _cdf_np(x, centre, alpha, beta):
-    """NumPy twin of :func:`plenopiv._weights_kernels.box_sum_cdf` (by numerical convolution)."""
+    """NumPy twin of :func:`plenopiv.reconstruction._kernels.weights.box_sum_cdf` (by numerical convolution)."""
     lo, hi = sorted((alpha, beta))
     if lo <= 1e-9 * hi:
         return np.clip((x - centre) / hi + 0.5, 0, 1)
@@ -282,9 +282,9 @@ def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
     Two projection buffers (depth slices × voxel rows × used sensor columns, float32), about
     twelve float32 volumes (estimate, update, column sums, first guess, masks), the rays and
     their per-call copies (~64 bytes each), and one depth slab of the sub-voxel line-of-sight
-    mask (:mod:`plenopiv.sightline`: its buffer and six refined float32 arrays).
+    mask (:mod:`plenopiv.reconstruction.sightline`: its buffer and six refined float32 arrays).
     """
-    from plenopiv.sightline import SLAB_VOXELS, subcell_factors
+    from plenopiv.reconstruction.sightline import SLAB_VOXELS, subcell_factors
 
     nz, ny, nx = grid.shape
     cols = lf.pixel % lf.shape[1]

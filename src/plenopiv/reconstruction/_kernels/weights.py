@@ -1,4 +1,4 @@
-"""Numba kernels of the voxel-pixel weight builder (see :mod:`plenopiv.weights`).
+"""Numba kernels of the voxel-pixel weight builder (see :mod:`plenopiv.reconstruction.weights`).
 
 The beam of a pixel crosses depth Z as the set X = (1 - t) u' + t X_f' with t = (S_o + Z)/S_o,
 u' uniform on the aperture cell (width a) and X_f' uniform on the lenslet footprint (width b).

@@ -17,7 +17,7 @@ a footprint.
 
 The refined projector depends on the camera and grid only; it is built once per weights
 object and kept (the last one) in memory. For an axis-aligned lattice it is the matrix-free
-:class:`~plenopiv.lattice.LatticeProjector` (seconds to build, a few MB); otherwise explicit
+:class:`~plenopiv.reconstruction.lattice.LatticeProjector` (seconds to build, a few MB); otherwise explicit
 weights on the refined grid, built in depth slabs.
 """
 
@@ -94,8 +94,8 @@ def _refined_projectors(weights, light_field_of, kx: int, ky: int) -> list:
     Rows are scaled like ``weights.normalised`` (each by 1/max of its coarse weights); the
     list is cached for the last weights object.
     """
-    from plenopiv.lattice import LatticeProjector, separable_axes
-    from plenopiv.weights import build_weights
+    from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
+    from plenopiv.reconstruction.weights import build_weights
 
     key = (weights.key or id(weights), kx, ky)
     with _LOCK:

@@ -1,4 +1,4 @@
-"""numba kernels behind :mod:`plenopiv.projector` (private; arrays and scalars only).
+"""numba kernels behind :mod:`plenopiv.reconstruction.projector` (private; arrays and scalars only).
 
 The weight matrix W (rows = pixels, columns = voxels) is held in CSR form as
 ``indptr, indices, data``. The back projection Wᵀ·y scatters race-free into one accumulator

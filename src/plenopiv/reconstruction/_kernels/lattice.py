@@ -1,4 +1,4 @@
-"""Numba kernels of the lattice (matrix-free) projector (see :mod:`plenopiv.lattice`).
+"""Numba kernels of the lattice (matrix-free) projector (see :mod:`plenopiv.reconstruction.lattice`).
 
 With an axis-aligned square lenslet lattice, a pixel's beam centre at depth slice k is
 ``(1 - t_k) u + t_k X_f`` per axis, where the x part depends only on the pixel's sensor column
@@ -9,7 +9,7 @@ of a column profile (a few voxels along x) and a row profile (a few voxels along
 
 The forward projection contracts x first (``T[k, iy, col]``), then y, slice after slice,
 into the pixel rows; the back projection is the same in reverse. The profiles are tables of
-the voxel-integrated trapezoid of :mod:`plenopiv._weights_kernels` (exactly the explicit
+the voxel-integrated trapezoid of :mod:`plenopiv.reconstruction._kernels.weights` (exactly the explicit
 weights' per-axis factors), so nothing of size (pixels × voxels) is ever held.
 """
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from plenopiv._weights_kernels import _axis_range, box_sum_cdf
+from plenopiv.reconstruction._kernels.weights import _axis_range, box_sum_cdf
 
 
 @njit(parallel=True, cache=True)

@@ -1,0 +1,1 @@
+"""Numba kernels of the reconstruction: one module per family, each with its NumPy twin."""
