@@ -28,18 +28,15 @@ from hypothesis import strategies as st
 
 from plenopiv import PIVError
 from plenopiv.piv import (
-    _SPLINE_PAD,
     PIVSettings,
     VectorField,
-    _deform,
-    _regular_spectra,
-    _spline_coefficients,
-    _window_layout,
     correlate_volumes,
     normalized_median_test,
     replace_outliers,
 )
 from plenopiv.piv._kernels import ENGINES
+from plenopiv.piv.correlation import _regular_spectra
+from plenopiv.piv.windows import _SPLINE_PAD, _deform, _spline_coefficients, _window_layout
 
 ENGINE_NAMES = tuple(ENGINES)
 
