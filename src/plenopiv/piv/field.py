@@ -57,7 +57,7 @@ class VectorField:
         (4, window centre in the volume mask); 0 for a valid vector. Default: ``FLAG_OUTLIER``
         where not ``valid``.
     u_uncertainty, v_uncertainty, w_uncertainty : ndarray, shape (nz, ny, nx)
-        Standard uncertainty of ``u``, ``v``, ``w`` in metres (see :func:`correlate_volumes`,
+        Standard uncertainty of ``u``, ``v``, ``w`` in metres (see :mod:`plenopiv.piv.multipass`,
         *Uncertainty*); NaN where no vector is given. Default: NaN (not estimated).
     uncertainty_parts : dict
         The terms of the uncertainty, each ``(3, nz, ny, nx)`` metres in ``(u, v, w)`` order:
