@@ -30,7 +30,8 @@ from types import SimpleNamespace
 import numpy as np
 import scipy.fft
 
-from plenopiv.piv import PIVSettings, _window_layout, correlate_volumes
+from plenopiv.piv import PIVSettings, correlate_volumes
+from plenopiv.piv.windows import _window_layout
 
 
 def render(shape, positions, sigma, rng):

@@ -23,61 +23,6 @@ def blob(shape, centre, sigma, amplitude=1.0):
                                    for a in range(3)))
 
 
-# -- NumPy twins of the kernels --------------------------------------------------------------
-
-
-def refine_reference(volume, peaks, half_box, spacing, gaussian):
-    """Plain NumPy version of ``_particles_kernels.refine_peaks``."""
-    vol = volume.astype(np.float64)
-    n = peaks.shape[0]
-    position, size, intensity = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
-    for i, p in enumerate(peaks):
-        lo = np.maximum(p - half_box, 0)
-        hi = np.minimum(p + half_box + 1, vol.shape)
-        box = vol[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-        intensity[i] = box.sum()
-        if not gaussian:
-            offsets = [np.arange(lo[a], hi[a]) - p[a] for a in range(3)]
-            total = box.sum()
-            if total <= 0:
-                position[i], size[i] = p, np.nan
-                continue
-            for a in range(3):
-                profile = box.sum(axis=tuple(b for b in range(3) if b != a))
-                c = profile @ offsets[a] / total
-                position[i, a] = p[a] + c
-                size[i, a] = math.sqrt(max(profile @ offsets[a] ** 2 / total - c * c, 0.0))
-            continue
-        for a in range(3):
-            m = spacing[a]
-            if p[a] - m < 0 or p[a] + m > vol.shape[a] - 1:
-                position[i, a], size[i, a] = p[a], np.nan
-                continue
-            step = np.zeros(3, int)
-            step[a] = m
-            i0, im, ip = vol[tuple(p)], vol[tuple(p - step)], vol[tuple(p + step)]
-            if min(i0, im, ip) > 0 and np.log(im) - 2 * np.log(i0) + np.log(ip) < 0:
-                d = np.log(im) - 2 * np.log(i0) + np.log(ip)
-                position[i, a] = p[a] + m * (np.log(im) - np.log(ip)) / (2 * d)
-                size[i, a] = m * math.sqrt(-1 / d)
-            elif im + i0 + ip > 0:
-                c = (ip - im) / (im + i0 + ip)
-                position[i, a] = p[a] + m * c
-                size[i, a] = m * math.sqrt(max((im + ip) / (im + i0 + ip) - c * c, 0.0))
-            else:
-                position[i, a], size[i, a] = p[a], np.nan
-    return position, size, intensity
-
-
-def suppress_reference(peaks, separation):
-    """Greedy non-maximum suppression by brute force (peaks sorted brightest first)."""
-    kept = []
-    for p in peaks:
-        if all(np.sum(((p - q) / separation) ** 2) >= 1 for q in kept):
-            kept.append(p)
-    return np.array([any(np.array_equal(p, q) for q in kept) for p in peaks])
-
-
 @pytest.mark.parametrize("gaussian", [True, False])
 @pytest.mark.parametrize("spacing", [(1, 1, 1), (2, 1, 3)])
 def test_refine_kernel_matches_numpy_twin(rng, gaussian, spacing):
@@ -88,7 +33,8 @@ def test_refine_kernel_matches_numpy_twin(rng, gaussian, spacing):
     spacing = np.array(spacing, np.int64)
     position, size, intensity = (np.empty((40, 3)), np.empty((40, 3)), np.empty(40))
     pk.refine_peaks(volume, peaks, half_box, spacing, gaussian, position, size, intensity)
-    ref = refine_reference(volume, peaks, half_box, spacing, gaussian)
+    ref = (np.empty((40, 3)), np.empty((40, 3)), np.empty(40))
+    pk.refine_peaks_numpy(volume, peaks, half_box, spacing, gaussian, *ref)
     np.testing.assert_allclose(position, ref[0], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(size, ref[1], rtol=1e-12, atol=1e-12, equal_nan=True)
     np.testing.assert_allclose(intensity, ref[2], rtol=1e-12)
@@ -101,7 +47,8 @@ def test_suppress_kernel_matches_numpy_twin(rng, separation):
     peaks = np.stack(np.unravel_index(flat, shape), axis=1).astype(np.int64)
     sep = np.array(separation)
     keep = pk.suppress_close(peaks, np.array(shape, np.int64), sep)
-    np.testing.assert_array_equal(keep, suppress_reference(peaks, sep))
+    want = pk.suppress_close_numpy(peaks, np.array(shape, np.int64), sep)
+    np.testing.assert_array_equal(keep, want)
 
 
 # -- sub-voxel accuracy on Gaussian blobs ----------------------------------------------------

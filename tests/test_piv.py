@@ -28,18 +28,15 @@ from hypothesis import strategies as st
 
 from plenopiv import PIVError
 from plenopiv.piv import (
-    _SPLINE_PAD,
     PIVSettings,
     VectorField,
-    _deform,
-    _regular_spectra,
-    _spline_coefficients,
-    _window_layout,
     correlate_volumes,
     normalized_median_test,
     replace_outliers,
 )
 from plenopiv.piv._kernels import ENGINES
+from plenopiv.piv.correlation import _regular_spectra
+from plenopiv.piv.windows import _SPLINE_PAD, _deform, _spline_coefficients, _window_layout
 
 ENGINE_NAMES = tuple(ENGINES)
 
@@ -395,6 +392,45 @@ def test_settings_normalise_windows_and_passes():
 def test_bad_settings_name_parameter_value_and_expectation(kwargs, match):
     with pytest.raises(ValueError, match=match):
         PIVSettings(**kwargs)
+
+
+def test_every_setting_is_a_piv_key_with_the_one_default():
+    """The ``[piv]`` table offers every field of PIVSettings and converts to its defaults."""
+    from dataclasses import fields
+
+    from plenopiv.config import PIVConfig
+    from plenopiv.pipeline import piv_settings
+
+    names = {f.name for f in fields(PIVSettings)}
+    assert names <= set(PIVConfig.model_fields)
+    assert set(PIVConfig.model_fields) - names == {"uncertainty"}
+    assert piv_settings(PIVConfig()) == PIVSettings()
+
+
+def test_piv_keys_reach_the_settings():
+    from plenopiv.config import PIVConfig
+    from plenopiv.pipeline import piv_settings
+
+    given = {"windows": [(16, 12, 12)], "passes": 2, "overlap": 0.25, "deformation": False,
+             "deformation_order": 1, "median_threshold": 3.0, "median_epsilon_vox": 0.2,
+             "median_iterations": 3, "smooth_predictor": False, "subpixel": "parabolic",
+             "replacement": "mean", "overlap_correction": False, "broad_peaks": False}
+    s = piv_settings(PIVConfig(**given))
+    assert s == PIVSettings(**{**given, "windows": ((16, 12, 12),)})
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("deformation_order", 6), ("deformation_order", True), ("median_epsilon_vox", -0.1),
+     ("median_epsilon_vox", float("inf")), ("median_iterations", 0), ("subpixel", "centroid")],
+)
+def test_bad_piv_keys_are_refused_by_name(key, value):
+    from pydantic import ValidationError
+
+    from plenopiv.config import PIVConfig
+
+    with pytest.raises(ValidationError, match=key):
+        PIVConfig(**{key: value})
 
 
 @pytest.fixture

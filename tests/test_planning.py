@@ -56,7 +56,7 @@ def test_weight_count_matches_the_light_field(name):
 
 
 def test_vectors_per_pass_as_the_piv_lays_them_out():
-    from plenopiv.piv import _window_layout
+    from plenopiv.piv.windows import _window_layout
 
     assert planning.vectors_per_pass((18, 69, 108), [(8, 32, 32), (6, 24, 24)], 0.5, 3) == (
         (3, 3, 5), (5, 4, 8), (5, 4, 8))

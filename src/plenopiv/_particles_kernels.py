@@ -1,7 +1,8 @@
 """numba kernels behind :mod:`plenopiv.particles` (private; arrays and scalars only).
 
 Volumes are indexed ``[z, y, x]``; peaks are ``(N, 3)`` integer voxel indices in that order.
-Plain NumPy twins live in ``tests/test_particles.py``.
+Each kernel ``name`` has its plain-NumPy twin ``name_numpy`` here, with the same arguments and
+outputs; the tests compare the two.
 """
 
 from __future__ import annotations
@@ -159,3 +160,52 @@ def refine_peaks(volume, peaks, half_box, spacing, gaussian, position, size, int
                 else:
                     position[n, a] = idx
                     size[n, a] = np.nan
+
+
+def suppress_close_numpy(peaks, shape, separation):
+    """NumPy twin of :func:`suppress_close`, by brute force (``shape`` is not needed)."""
+    kept = []
+    for p in peaks:
+        if all(np.sum(((p - q) / separation) ** 2) >= 1 for q in kept):
+            kept.append(p)
+    return np.array([any(np.array_equal(p, q) for q in kept) for p in peaks], dtype=bool)
+
+
+def refine_peaks_numpy(volume, peaks, half_box, spacing, gaussian, position, size, intensity):
+    """NumPy twin of :func:`refine_peaks`: the same outputs, written into the same arrays."""
+    vol = volume.astype(np.float64)
+    for i, p in enumerate(peaks):
+        lo = np.maximum(p - half_box, 0)
+        hi = np.minimum(p + half_box + 1, vol.shape)
+        box = vol[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+        intensity[i] = box.sum()
+        if not gaussian:
+            offsets = [np.arange(lo[a], hi[a]) - p[a] for a in range(3)]
+            total = box.sum()
+            if total <= 0:
+                position[i], size[i] = p, np.nan
+                continue
+            for a in range(3):
+                profile = box.sum(axis=tuple(b for b in range(3) if b != a))
+                c = profile @ offsets[a] / total
+                position[i, a] = p[a] + c
+                size[i, a] = math.sqrt(max(profile @ offsets[a] ** 2 / total - c * c, 0.0))
+            continue
+        for a in range(3):
+            m = spacing[a]
+            if p[a] - m < 0 or p[a] + m > vol.shape[a] - 1:
+                position[i, a], size[i, a] = p[a], np.nan
+                continue
+            step = np.zeros(3, int)
+            step[a] = m
+            i0, im, ip = vol[tuple(p)], vol[tuple(p - step)], vol[tuple(p + step)]
+            if min(i0, im, ip) > 0 and np.log(im) - 2 * np.log(i0) + np.log(ip) < 0:
+                d = np.log(im) - 2 * np.log(i0) + np.log(ip)
+                position[i, a] = p[a] + m * (np.log(im) - np.log(ip)) / (2 * d)
+                size[i, a] = m * math.sqrt(-1 / d)
+            elif im + i0 + ip > 0:
+                c = (ip - im) / (im + i0 + ip)
+                position[i, a] = p[a] + m * c
+                size[i, a] = m * math.sqrt(max((im + ip) / (im + i0 + ip) - c * c, 0.0))
+            else:
+                position[i, a], size[i, a] = p[a], np.nan

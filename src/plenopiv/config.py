@@ -30,6 +30,13 @@ from plenopiv.camera import (
     read_toml,
 )
 from plenopiv.errors import ConfigError
+from plenopiv.piv.settings import (
+    DEFORMATION_ORDERS,
+    MIN_WINDOW_VOX,
+    REPLACEMENT_METHODS,
+    SUBPIXEL_METHODS,
+    PIVSettings,
+)
 from plenopiv.volume import VolumeGrid, volume_from_dict
 
 #: More MART sweeps than this is refused: 10 is the default, a few hundred already converge.
@@ -137,9 +144,22 @@ class ParticleSettings(_Strict):
     internal_correction: Literal["auto", "none", "plate"] = "auto"
 
 
+_PIV = PIVSettings()
+"""The PIV defaults, which live in :class:`plenopiv.piv.PIVSettings` alone."""
+
+
 class PIVConfig(_Strict):
     """``[piv]``: cross-correlation (windows in voxels ``[z, y, x]`` per pass).
 
+    Every field of :class:`plenopiv.piv.PIVSettings` (which holds the defaults and the
+    meaning of each) plus ``uncertainty``; :func:`plenopiv.pipeline.piv_settings` converts.
+
+    deformation_order : interpolation of the window deformation, 1 (trilinear) to 5
+        (B-spline; 3, cubic, is the default).
+    median_epsilon_vox : noise level of the normalised median test, voxels (>= 0).
+    median_iterations : detection rounds of the normalised median test (>= 1).
+    smooth_predictor : low-pass the predictor of each pass with a [1, 2, 1]/4 filter.
+    subpixel : sub-voxel peak estimator, "gaussian" (3-point Gaussian) | "parabolic".
     replacement : what becomes of the vectors rejected by the normalised median test (or
         with empty windows) after the last pass: "median" (default: the median of their
         3x3x3 neighbours), "mean" (their mean) or "none" (left NaN; ``valid`` is false).
@@ -152,21 +172,29 @@ class PIVConfig(_Strict):
         the peak is broad (:class:`plenopiv.piv.PIVSettings`).
     """
 
-    windows: list[tuple[int, int, int]] = Field([(24, 16, 16), (16, 12, 12)], min_length=1)
-    overlap: float = Field(0.5, ge=0, lt=1)
-    passes: int | None = Field(3, ge=1, le=100)
-    deformation: bool = True
-    median_threshold: float = Field(2.0, gt=0)
-    replacement: Literal["median", "mean", "none"] = "median"
+    windows: list[tuple[int, int, int]] = Field(list(_PIV.windows), min_length=1)
+    overlap: float = Field(_PIV.overlap, ge=0, lt=1)
+    passes: int | None = Field(_PIV.passes, ge=1, le=100)
+    deformation: bool = _PIV.deformation
+    deformation_order: StrictInt = Field(_PIV.deformation_order, ge=min(DEFORMATION_ORDERS),
+                                         le=max(DEFORMATION_ORDERS))
+    median_threshold: float = Field(_PIV.median_threshold, gt=0)
+    median_epsilon_vox: float = Field(_PIV.median_epsilon_vox, ge=0)
+    median_iterations: int = Field(_PIV.median_iterations, ge=1)
+    smooth_predictor: bool = _PIV.smooth_predictor
+    subpixel: Literal[*SUBPIXEL_METHODS] = _PIV.subpixel
+    replacement: Literal[*REPLACEMENT_METHODS] = _PIV.replacement
     uncertainty: Literal["response", "correlation"] = "response"
-    overlap_correction: bool = True
-    broad_peaks: bool = True
+    overlap_correction: bool = _PIV.overlap_correction
+    broad_peaks: bool = _PIV.broad_peaks
+
+    def settings(self) -> PIVSettings:
+        """The :class:`plenopiv.piv.PIVSettings` of this table (every key but ``uncertainty``)."""
+        return PIVSettings(**self.model_dump(exclude={"uncertainty"}))
 
     @field_validator("windows")
     @classmethod
     def _window_edges(cls, v):
-        from plenopiv.piv import MIN_WINDOW_VOX
-
         for w in v:
             if min(w) < MIN_WINDOW_VOX or max(w) > MAX_WINDOW_VOX:
                 raise ValueError(f"window {list(w)}: expected edges of {MIN_WINDOW_VOX} to "

@@ -23,8 +23,10 @@ __all__ = ["box_mask", "cylinder_mask", "image_mask", "read_mask", "volume_mask"
 
 
 def read_mask(spec: str | Path, *, name: str = "mask") -> np.ndarray:
-    """Read a boolean array from ``.npy``, ``file.h5:/dataset`` (or ``.h5`` holding ``/mask``),
-    or an image (TIFF, PNG); non-zero values are True.
+    """Read a boolean array from a file; non-zero values are True.
+
+    ``spec`` is a ``.npy`` file, ``file.h5:/dataset`` (or a ``.h5`` file holding ``/mask``) or
+    an image (TIFF, PNG).
 
     Raises
     ------
@@ -80,8 +82,10 @@ def image_mask(cfg, shape, base_dir: Path = Path(".")) -> np.ndarray | None:
 
 
 def box_mask(grid: VolumeGrid, x, y, z, *, inside: bool = True) -> np.ndarray:
-    """Voxels whose centre lies in the box ``x = (lo, hi)``, ``y``, ``z`` (metres, the grid's
-    coordinates); ``inside=False`` returns the complement. Bool ``[z, y, x]``."""
+    """Voxels whose centre lies in the box ``x = (lo, hi)``, ``y``, ``z``: bool ``[z, y, x]``.
+
+    The box is in metres, the grid's coordinates; ``inside=False`` returns the complement.
+    """
     zz, yy, xx = np.meshgrid(grid.z, grid.y, grid.x, indexing="ij")
     m = ((xx >= min(x)) & (xx <= max(x)) & (yy >= min(y)) & (yy <= max(y))
          & (zz >= min(z)) & (zz <= max(z)))
@@ -110,8 +114,10 @@ def cylinder_mask(grid: VolumeGrid, axis: str, centre, radius: float, length=Non
 
 
 def volume_mask(cfg, grid: VolumeGrid, base_dir: Path = Path(".")) -> np.ndarray | None:
-    """The ``[mask]`` volume mask on ``grid``: the ``volume`` array or'ed with every box and
-    cylinder (bool ``[z, y, x]``; None when nothing is masked)."""
+    """The ``[mask]`` volume mask on ``grid``: bool ``[z, y, x]``, None when nothing is masked.
+
+    It is the ``volume`` array or'ed with every box and cylinder.
+    """
     if cfg is None:
         return None
     out = np.zeros(grid.shape, dtype=bool)

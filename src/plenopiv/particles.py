@@ -1,4 +1,4 @@
-"""3-D particle extraction from a reconstructed volume: peaks, sub-voxel centroids, sizes.
+r"""3-D particle extraction from a reconstructed volume: peaks, sub-voxel centroids, sizes.
 
 A reconstructed particle is a blob of a few voxels, elongated along the depth axis Z
 because a plenoptic camera sees the volume through a narrow angular aperture (thesis §2.4).
@@ -7,6 +7,33 @@ that lie closer than a minimum separation, and refines each to sub-voxel precisi
 result, :class:`Particles`, holds positions as fractional voxel indices ``(z, y, x)`` (the
 volume is indexed ``[z, y, x]``) and converts them to world ``(x, y, z)`` metres through
 :func:`plenopiv.conventions.voxel_to_world`.
+
+Sub-voxel estimators
+--------------------
+3-point Gaussian (per axis, I0 the peak and I-, I+ the samples m voxels either side):
+
+.. math:: \delta = \frac{m(\ln I_- - \ln I_+)}{2(\ln I_- - 2\ln I_0 + \ln I_+)},
+          \qquad \sigma^2 = \frac{-m^2}{\ln I_- - 2\ln I_0 + \ln I_+}.
+
+For samples of a Gaussian ``A exp(-(x - x0)^2 / (2 s^2))`` at integer x the log is a
+parabola, so delta = x0 - x_peak and sigma = s exactly, whatever s and m
+(depth-elongated blobs included). With noise of standard deviation e relative to the
+peak, the offset's noise is about ``s**2 e / (sqrt(2) m)``: 9 times larger for
+``s = 3`` than for ``s = 1`` at ``m = 1``, hence ``fit_spacing_vox``. Where a sample
+is zero (MART zeroes voxels) the 3-point centroid is used on that axis.
+
+Intensity-weighted centroid over the box ``|k_a| <= h_a``:
+``c_a = sum I k_a / sum I`` and ``sigma_a^2 = sum I (k_a - c_a)^2 / sum I``. The box
+truncates the blob: for a sampled Gaussian of width s centred at offset delta the bias
+is ``|c - delta| <= sum_{|k| > h} |k - delta| g(k - delta) / sum_{|k| <= h} g(k - delta)``,
+which grows quickly once h < 2 s (e.g. in z for elongated blobs), and sigma is biased
+low. See ``tests/test_particles.py`` for the measured comparison.
+
+References
+----------
+M. Raffel, C. E. Willert, F. Scarano, C. J. Kähler, S. T. Wereley, J. Kompenhans,
+"Particle Image Velocimetry: A Practical Guide", 3rd ed., Springer (2018): the
+three-point Gaussian peak estimator, here applied per axis to a voxel volume.
 """
 
 from __future__ import annotations
@@ -141,35 +168,37 @@ def find_particles(
     -----
     Peaks are voxels equal to the maximum of their 3x3x3 neighbourhood and above
     ``threshold``; ties and close pairs are resolved by greedy non-maximum suppression in
-    order of decreasing peak value.
-
-    3-point Gaussian (per axis, I0 the peak and I-, I+ the samples m voxels either side):
-
-    .. math:: \delta = \frac{m(\ln I_- - \ln I_+)}{2(\ln I_- - 2\ln I_0 + \ln I_+)},
-              \qquad \sigma^2 = \frac{-m^2}{\ln I_- - 2\ln I_0 + \ln I_+}.
-
-    For samples of a Gaussian ``A exp(-(x - x0)^2 / (2 s^2))`` at integer x the log is a
-    parabola, so delta = x0 - x_peak and sigma = s exactly, whatever s and m
-    (depth-elongated blobs included). With noise of standard deviation e relative to the
-    peak, the offset's noise is about ``s**2 e / (sqrt(2) m)``: 9 times larger for
-    ``s = 3`` than for ``s = 1`` at ``m = 1``, hence ``fit_spacing_vox``. Where a sample
-    is zero (MART zeroes voxels) the 3-point centroid is used on that axis.
-
-    Intensity-weighted centroid over the box ``|k_a| <= h_a``:
-    ``c_a = sum I k_a / sum I`` and ``sigma_a^2 = sum I (k_a - c_a)^2 / sum I``. The box
-    truncates the blob: for a sampled Gaussian of width s centred at offset delta the bias
-    is ``|c - delta| <= sum_{|k| > h} |k - delta| g(k - delta) / sum_{|k| <= h} g(k - delta)``,
-    which grows quickly once h < 2 s (e.g. in z for elongated blobs), and sigma is biased
-    low. See ``tests/test_particles.py`` for the measured comparison.
-
-    References
-    ----------
-    .. [1] M. Raffel, C. E. Willert, F. Scarano, C. J. Kähler, S. T. Wereley, J. Kompenhans,
-       "Particle Image Velocimetry: A Practical Guide", 3rd ed., Springer (2018): the
-       three-point Gaussian peak estimator, here applied per axis to a voxel volume.
+    order of decreasing peak value. The two sub-voxel estimators, their exactness and
+    their bias are derived in :mod:`plenopiv.particles` (*Sub-voxel estimators*).
     """
     if method not in CENTROID_METHODS:
         raise ValueError(f"method must be one of {CENTROID_METHODS}; got {method!r}")
+    vol = _checked_volume(volume)
+    threshold = _checked_threshold(threshold)
+    separation = _triple(min_separation_vox, "min_separation_vox", float)
+    if np.any(separation <= 0):
+        raise ValueError(f"min_separation_vox must be > 0; got {min_separation_vox!r}")
+    half_box = _triple(box_vox, "box_vox", int)
+    if np.any(half_box < 1):
+        raise ValueError(f"box_vox half-widths must be integers >= 1; got {box_vox!r}")
+    spacing = _triple(fit_spacing_vox, "fit_spacing_vox", int)
+    if np.any(spacing < 1):
+        raise ValueError(f"fit_spacing_vox must be integers >= 1; got {fit_spacing_vox!r}")
+
+    peaks, values = _local_maxima(vol, threshold, exclude_border)
+    keep = _k.suppress_close(peaks, np.array(vol.shape, np.int64), separation)
+    peaks, values = np.ascontiguousarray(peaks[keep]), values[keep]
+    n = peaks.shape[0]
+    position = np.empty((n, 3), np.float64)
+    size = np.empty((n, 3), np.float64)
+    intensity = np.empty(n, np.float64)
+    _k.refine_peaks(vol, peaks, half_box, spacing, method == "gaussian", position, size,
+                    intensity)
+    return Particles(position, intensity, size, values, method)
+
+
+def _checked_volume(volume) -> np.ndarray:
+    """The volume as a C-contiguous float32 (if it is float32) or float64 array, checked."""
     vol = np.asarray(volume)
     if vol.ndim != 3 or not np.issubdtype(vol.dtype, np.number):
         raise ReconstructionError(
@@ -181,22 +210,26 @@ def find_particles(
         raise ReconstructionError(
             f"volume has {int(np.count_nonzero(~np.isfinite(vol)))} NaN or infinite voxels"
         )
+    return vol
+
+
+def _checked_threshold(threshold) -> float:
+    """The peak threshold as a finite float >= 0 (volume units)."""
     try:
         threshold = float(threshold)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"threshold must be a number (volume units); got {threshold!r}") from exc
     if not np.isfinite(threshold) or threshold < 0:
         raise ValueError(f"threshold must be finite and >= 0; got {threshold!r}")
-    separation = _triple(min_separation_vox, "min_separation_vox", float)
-    if np.any(separation <= 0):
-        raise ValueError(f"min_separation_vox must be > 0; got {min_separation_vox!r}")
-    half_box = _triple(box_vox, "box_vox", int)
-    if np.any(half_box < 1):
-        raise ValueError(f"box_vox half-widths must be integers >= 1; got {box_vox!r}")
-    spacing = _triple(fit_spacing_vox, "fit_spacing_vox", int)
-    if np.any(spacing < 1):
-        raise ValueError(f"fit_spacing_vox must be integers >= 1; got {fit_spacing_vox!r}")
+    return threshold
 
+
+def _local_maxima(vol, threshold, exclude_border):
+    """Voxels ``(N, 3)`` equal to their 3x3x3 maximum and above ``threshold``, brightest first.
+
+    Returns the peaks (int64 ``(z, y, x)`` indices) and their values (float64); ties stay in
+    raster order.
+    """
     local_max = scipy.ndimage.maximum_filter(vol, size=3, mode="constant", cval=-np.inf)
     candidate = (vol == local_max) & (vol > threshold)
     if exclude_border:
@@ -206,17 +239,7 @@ def find_particles(
     peaks = np.argwhere(candidate).astype(np.int64)
     values = vol[candidate].astype(np.float64)
     order = np.argsort(-values, kind="stable")  # brightest first; ties in raster order
-    peaks, values = peaks[order], values[order]
-    keep = _k.suppress_close(peaks, np.array(vol.shape, np.int64), separation)
-    peaks, values = np.ascontiguousarray(peaks[keep]), values[keep]
-
-    n = peaks.shape[0]
-    position = np.empty((n, 3), np.float64)
-    size = np.empty((n, 3), np.float64)
-    intensity = np.empty(n, np.float64)
-    _k.refine_peaks(vol, peaks, half_box, spacing, method == "gaussian", position, size,
-                    intensity)
-    return Particles(position, intensity, size, values, method)
+    return peaks[order], values[order]
 
 
 def _triple(value, name: str, kind) -> np.ndarray:

@@ -506,15 +506,8 @@ def gaussian_truth_volume(grid: VolumeGrid, positions, intensities=None, *,
 
 def piv_settings(cfg) -> PIVSettings:
     """PIV settings from a ``[piv]`` config table (:class:`plenopiv.config.PIVConfig`)."""
-    from plenopiv.piv import PIVSettings
-
     try:
-        return PIVSettings(windows=tuple(tuple(w) for w in cfg.windows), overlap=cfg.overlap,
-                           passes=cfg.passes, deformation=cfg.deformation,
-                           median_threshold=cfg.median_threshold,
-                           replacement=cfg.replacement,
-                           overlap_correction=cfg.overlap_correction,
-                           broad_peaks=cfg.broad_peaks)
+        return cfg.settings()
     except ValueError as exc:
         raise ConfigError(f"[piv] {exc}") from None
 

@@ -1,5 +1,7 @@
-"""Per-vector standard uncertainty of a plenoptic PIV field: correlation statistics plus the
-measured response of the whole chain to known displacements.
+r"""Per-vector standard uncertainty of a plenoptic PIV field: statistics plus the chain's response.
+
+The uncertainty is the correlation statistics plus the measured response of the whole chain to
+known displacements.
 
 The correlation statistics of :func:`plenopiv.piv.correlate_volumes` (Wieneke 2015) see what
 makes the two reconstructed volumes differ: image noise, particles leaving a window,
@@ -29,10 +31,10 @@ as it does the real pair, and tabulates for each layer of vectors (window-centre
 :func:`combine` then gives each vector of the real field, per component, the standard
 uncertainty
 
-.. math:: \\sigma_k^2 = \\sigma_{CS,k}^2 + r_k^2
-          + \\Big(\\frac{|1 - g_k|}{\\max(g_k, g_{min})}\\, |d_k|\\Big)^2
+.. math:: \sigma_k^2 = \sigma_{CS,k}^2 + r_k^2
+          + \Big(\frac{|1 - g_k|}{\max(g_k, g_{min})}\, |d_k|\Big)^2
 
-with :math:`\\sigma_{CS}` the uncertainty :func:`plenopiv.piv.correlate_volumes` gave the
+with :math:`\sigma_{CS}` the uncertainty :func:`plenopiv.piv.correlate_volumes` gave the
 vector (correlation statistics and the last pass's correction), ``d_k`` its
 displacement and the last term the error of a displacement measured with gain ``g_k`` (its
 true value is ``d_k / g_k``); :math:`g_{min} = 0.1` bounds a vector the chain barely sees at
@@ -95,8 +97,11 @@ class Response:
     n_particles: int
 
     def at(self, z) -> tuple[np.ndarray, np.ndarray]:
-        """Gain (mean over the test displacements) and random error (their rms), each
-        ``(3, len(z))``, at depths ``z`` (metres), linear between the layers."""
+        """Gain and random error, each ``(3, len(z))``, at depths ``z`` (metres).
+
+        The gain is the mean over the test displacements, the random error their rms; both
+        are linear between the layers.
+        """
         z = np.asarray(z, float)
         gain = self.gain.mean(axis=0)
         rnd = np.sqrt((self.random**2).mean(axis=0))
@@ -120,9 +125,12 @@ class Response:
 
 
 def response_shifts(camera, f_number=None) -> np.ndarray:
-    """The test displacements ``(n, 3)``, metres: ``LATERAL_SHIFTS`` lenslet footprints along
-    x and y with ``DEPTH_SHIFTS`` depth resolution cells along z, at once (``camera``: the
-    effective camera, :func:`plenopiv.pipeline.resolution_cell`)."""
+    """The test displacements ``(n, 3)``, metres.
+
+    ``LATERAL_SHIFTS`` lenslet footprints along x and y with ``DEPTH_SHIFTS`` depth resolution
+    cells along z, at once (``camera``: the effective camera,
+    :func:`plenopiv.pipeline.resolution_cell`).
+    """
     from plenopiv.pipeline import resolution_cell
 
     lateral, depth = resolution_cell(camera, f_number)
@@ -224,8 +232,10 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
 
 
 def cached_response(path: Path | None, key: str, compute) -> tuple[Response | None, bool]:
-    """The response stored at ``path`` under ``key``, else ``compute()`` (saved there unless
-    None). Returns ``(response, from_cache)``; ``path`` None disables the cache.
+    """The response stored at ``path`` under ``key``, else ``compute()`` (saved there).
+
+    ``compute()`` returning None is not saved. Returns ``(response, from_cache)``; ``path``
+    None disables the cache.
     """
     if path is not None and path.exists():
         try:
