@@ -247,41 +247,55 @@ def _flow_from_args(cam: CameraModel, args, box):
 
 
 def _simulate_particles(cam: CameraModel, args, rng) -> dict:
-    from plenopiv.products.hdf5 import write_h5
-    from plenopiv.products.images import write_image
-    from plenopiv.synthetic.images import particle_image
-    from plenopiv.synthetic.seeding import random_particles, simulate_pair
-
+    """``simulate particles`` or ``simulate pair``: seed the box, render, write; the summary."""
     box, n = _seeding(cam, args, rng)
     info = {"n_particles": n, "rays_per_particle": args.rays_per_particle,
             "box_mm": [[v * 1e3 for v in box.x], [v * 1e3 for v in box.y],
                        [v * 1e3 for v in box.z]]}
-    quiet = args.quiet or args.json
     config = {"camera": cam.to_dict(), "simulate": {k: v for k, v in vars(args).items()
                                                     if k not in ("func",)}}
-    if args.kind == "particles":
-        out = _check_out(args.out, (".tif", ".tiff", ".png", ".h5"),
-                         inputs=_input_files(args.camera))
-        pos = random_particles(box, n, rng)
-        bar, tick = _progress_bar(n, "render particles", quiet)
-        with bar:
-            irr = particle_image(cam, pos, rays_per_particle=args.rays_per_particle,
-                                 f_number=args.f_number, seed=args.seed, progress=tick,
-                                 **_render_options(args))
-        img = _finish(irr, args, rng)
-        if out.suffix.lower() == ".h5":
-            write_h5(out, {"/image": img, "/truth/position_m": pos},
-                     units={"/truth/position_m": "m"}, config=config, kind="synthetic particles")
-        else:
-            write_image(out, img, metadata={"camera": cam.to_dict(), **info})
-        return {**info, "out": str(out), **_image_summary(img)}
+    render = _render_particle_image if args.kind == "particles" else _render_pair
+    return {**info, **render(cam, args, rng, box, n, info, config)}
+
+
+def _render_particle_image(cam: CameraModel, args, rng, box, n: int, info: dict,
+                           config: dict) -> dict:
+    """Render ``n`` random particles in ``box`` into one image and write it (TIFF/PNG/HDF5)."""
+    from plenopiv.products.hdf5 import write_h5
+    from plenopiv.products.images import write_image
+    from plenopiv.synthetic.images import particle_image
+    from plenopiv.synthetic.seeding import random_particles
+
+    out = _check_out(args.out, (".tif", ".tiff", ".png", ".h5"),
+                     inputs=_input_files(args.camera))
+    pos = random_particles(box, n, rng)
+    bar, tick = _progress_bar(n, "render particles", args.quiet or args.json)
+    with bar:
+        irr = particle_image(cam, pos, rays_per_particle=args.rays_per_particle,
+                             f_number=args.f_number, seed=args.seed, progress=tick,
+                             **_render_options(args))
+    img = _finish(irr, args, rng)
+    if out.suffix.lower() == ".h5":
+        write_h5(out, {"/image": img, "/truth/position_m": pos},
+                 units={"/truth/position_m": "m"}, config=config, kind="synthetic particles")
+    else:
+        write_image(out, img, metadata={"camera": cam.to_dict(), **info})
+    return {"out": str(out), **_image_summary(img)}
+
+
+def _render_pair(cam: CameraModel, args, rng, box, n: int, info: dict, config: dict) -> dict:
+    """Render a pair moved by the flow; write the HDF5 file with its truth, and the TIFFs."""
+    from plenopiv.products.hdf5 import write_h5
+    from plenopiv.products.images import write_image
+    from plenopiv.synthetic.seeding import simulate_pair
+
     out = _check_out(args.out, (".h5",), inputs=_input_files(args.camera))
     if not args.no_tiff:
         for tag in "AB":
             check_output_path(out.with_name(f"{out.stem}_{tag}.tif"),
                               inputs=_input_files(args.camera), what=f"the {tag} TIFF beside --out")
     flow = _flow_from_args(cam, args, box)
-    bar, tick = _progress_bar(2 * n, "render pair", quiet)
+    bar, tick = _progress_bar(2 * n, "render pair", args.quiet or args.json)
     with bar:
         pair = simulate_pair(cam, flow, dt=args.dt, box=box, n_particles=n, rng=rng,
                              rays_per_particle=args.rays_per_particle, f_number=args.f_number,
@@ -302,6 +316,6 @@ def _simulate_particles(cam: CameraModel, args, rng) -> dict:
             p = out.with_name(f"{out.stem}_{tag}.tif")
             write_image(p, im, metadata={"camera": cam.to_dict(), "exposure": tag})
             tifs.append(str(p))
-    return {**info, "out": str(out), "tiff": tifs, "flow": args.flow, "dt_s": args.dt,
+    return {"out": str(out), "tiff": tifs, "flow": args.flow, "dt_s": args.dt,
             "max_displacement_mm": float(np.linalg.norm(disp, axis=1).max() * 1e3),
             **_image_summary(ia)}
