@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.batch import PairJob, mark_complete, run_batch
-from plenopiv.io import write_h5
+from plenopiv.products.hdf5 import write_h5
 
 SHAPE = (64, 64, 64)
 

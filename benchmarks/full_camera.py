@@ -56,7 +56,6 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera import load_camera
 from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.errors import ReconstructionError
-from plenopiv.io import atomic_path
 from plenopiv.pipeline import (
     correlate,
     gaussian_truth_volume,
@@ -65,6 +64,7 @@ from plenopiv.pipeline import (
     weights_for,
 )
 from plenopiv.piv import PIVSettings
+from plenopiv.products.files import atomic_path
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.weights import cached_weights
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair

@@ -27,8 +27,12 @@ from plenopiv.errors import (
     PlenopivWarning,
     ResourceError,
 )
-from plenopiv.io import check_image, check_output_path, saturation, to_json
-from plenopiv.pipeline import VectorResult, VolumeResult, correlate, experiment_calibration
+from plenopiv.pipeline import correlate, experiment_calibration
+from plenopiv.products.files import check_output_path
+from plenopiv.products.images import check_image, saturation
+from plenopiv.products.jsonio import to_json
+from plenopiv.products.vectors import VectorResult
+from plenopiv.products.volume import VolumeResult
 from plenopiv.volume import VolumeGrid, volume_from_dict
 
 
@@ -88,7 +92,7 @@ def test_complex_negative_background_and_noise_are_refused(rng):
 
 
 def test_read_image_refuses_complex(tmp_path, rng):
-    from plenopiv.io import read_image
+    from plenopiv.products.images import read_image
 
     with h5py.File(tmp_path / "c.h5", "w") as fh:
         fh["image"] = sparse_image(rng) * (1 + 1j)

@@ -29,7 +29,8 @@ from plenopiv.batch import (
     slurm_cluster_kwargs,
 )
 from plenopiv.errors import ConfigError
-from plenopiv.io import read_image, write_h5, write_image
+from plenopiv.products.hdf5 import write_h5
+from plenopiv.products.images import read_image, write_image
 
 OFFSET = 10  # counts added to the second exposure per pair index
 
@@ -452,7 +453,7 @@ def slow_mean_difference(job: PairJob) -> dict:
 def with_identity(jobs, settings="s1"):
     from dataclasses import replace
 
-    from plenopiv.io import file_identity
+    from plenopiv.products.files import file_identity
 
     return [replace(j, identity={"settings": settings, "image_a": file_identity(j.image_a),
                                  "image_b": file_identity(j.image_b)}) for j in jobs]
@@ -580,7 +581,7 @@ def test_a_full_disk_is_an_error_that_leaves_nothing_marked_complete(tmp_path, m
     import errno
 
     from plenopiv.errors import WriteError
-    from plenopiv.pipeline import VectorResult
+    from plenopiv.products.vectors import VectorResult
 
     n = (2, 3, 4)
     vec = VectorResult(np.arange(4.0), np.arange(3.0), np.arange(2.0), *(np.ones(n),) * 3,

@@ -19,8 +19,8 @@ from plenopiv.calibration.pipeline import calibrate
 from plenopiv.calibration.spots import check_lattice, detect_spots, fit_lattice
 from plenopiv.cli import main
 from plenopiv.errors import CalibrationError
-from plenopiv.io import write_image
 from plenopiv.lightfield import LightFieldWarning, light_field, refocus
+from plenopiv.products.images import write_image
 from plenopiv.synthetic.images import (
     Ruler,
     finish_image,

@@ -12,7 +12,7 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.calibration.pipeline import calibrate
 from plenopiv.cli import main
 from plenopiv.errors import CalibrationError, ImageError
-from plenopiv.io import write_image
+from plenopiv.products.images import write_image
 from plenopiv.synthetic.images import (
     Ruler,
     alignment_image,

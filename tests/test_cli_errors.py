@@ -25,7 +25,7 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera import load_camera
 from plenopiv.cli import main
 from plenopiv.corrections import DepthCorrection
-from plenopiv.pipeline import VolumeResult
+from plenopiv.products.volume import VolumeResult
 from plenopiv.volume import VolumeGrid
 
 REPO = Path(__file__).resolve().parents[1]
@@ -344,7 +344,7 @@ def test_bad_invocation_is_one_clear_error(case, inputs, capsys):
 
 
 def test_json_never_holds_bare_nan(tmp_path, capsys):
-    from plenopiv.io import to_json
+    from plenopiv.products.jsonio import to_json
 
     text = to_json({"a": float("nan"), "b": [np.inf, 1.0], "c": np.float32("-inf")})
     assert json.loads(text) == {"a": None, "b": [None, 1.0], "c": None}
@@ -354,7 +354,7 @@ def test_warnings_are_lines_and_json_entries(inputs, monkeypatch, capsys):
     """Saturation below the refusal limit is a warning with the fraction: a ``warning:`` line
     and, with --json, an entry of "warnings" in the summary."""
     import plenopiv.cli as cli
-    from plenopiv.io import check_image
+    from plenopiv.products.images import check_image
 
     rng = np.random.default_rng(3)
     img = particle_like(rng)

@@ -7,7 +7,9 @@ import pytest
 import tifffile
 
 from plenopiv.errors import ImageError
-from plenopiv.io import atomic_path, check_image, read_image, write_h5, write_image
+from plenopiv.products.files import atomic_path
+from plenopiv.products.hdf5 import write_h5
+from plenopiv.products.images import check_image, read_image, write_image
 
 
 def test_tiff_and_h5_round_trip_without_flips(tmp_path, rng):
@@ -71,7 +73,7 @@ def test_products_are_checked_for_kind_and_completeness(tmp_path):
 
     from plenopiv.calibration.model import Calibration
     from plenopiv.errors import CalibrationError, ReconstructionError
-    from plenopiv.pipeline import load_volume
+    from plenopiv.products.volume import load_volume
 
     with h5py.File(tmp_path / "v.h5", "w") as fh:
         fh.attrs["product"] = "volume"          # the attribute, none of the datasets

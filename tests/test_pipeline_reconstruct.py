@@ -111,7 +111,7 @@ def test_cli_reconstruct_product(tmp_path, capsys, small_camera):
     cal.save(tmp_path / "cal.h5")
     img = particle_image(small_camera, [(0.3e-3, -0.2e-3, 1e-3), (-0.5e-3, 0.4e-3, -2e-3)],
                          rays_per_particle=8000)
-    from plenopiv.io import write_image
+    from plenopiv.products.images import write_image
 
     write_image(tmp_path / "img.tif", (img / img.max() * 60000).astype(np.uint16))
     (tmp_path / "exp.toml").write_text('camera = "small_test"\n[volume]\nx_mm = [-1.5, 1.5]\n'

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from plenopiv import plots
-from plenopiv.pipeline import VectorResult
+from plenopiv.products.vectors import VectorResult
 
 
 @pytest.fixture

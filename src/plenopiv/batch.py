@@ -14,11 +14,12 @@ The completeness contract of ``process``
 ``process(job) -> dict`` is a picklable, top-level function (dask sends it by reference to
 worker processes, so it must be importable there). It
 
-1. reads ``job.image_a`` and ``job.image_b`` (e.g. with :func:`plenopiv.io.read_image`);
-2. writes ``job.output`` **atomically** (:func:`plenopiv.io.write_h5` or
-   :func:`plenopiv.io.atomic_path`), so that a half-written file never exists under the final
-   name: a killed run leaves at most a hidden ``.NAME.XXXX.part`` temporary, which the next
-   :func:`run_batch` deletes;
+1. reads ``job.image_a`` and ``job.image_b`` (e.g. with
+   :func:`plenopiv.products.images.read_image`);
+2. writes ``job.output`` **atomically** (:func:`plenopiv.products.hdf5.write_h5` or
+   :func:`plenopiv.products.files.atomic_path`), so that a half-written file never exists
+   under the final name: a killed run leaves at most a hidden ``.NAME.XXXX.part``
+   temporary, which the next :func:`run_batch` deletes;
 3. marks the product complete as its **last** write: ``mark_complete(job.output)`` after the
    file is written, or ``mark_complete(tmp)`` inside an ``atomic_path`` block, or
    ``write_h5(job.output, ..., attrs={"complete": True})`` when one atomic write holds
@@ -71,7 +72,8 @@ from pathlib import Path
 from typing import Any
 
 from plenopiv.errors import EXIT_INTERRUPTED, ConfigError, PlenopivError
-from plenopiv.io import atomic_path, finite_json, to_json
+from plenopiv.products.files import atomic_path
+from plenopiv.products.jsonio import finite_json, to_json
 
 __all__ = [
     "COMPLETE_ATTR",
@@ -382,7 +384,7 @@ def mark_complete(path: str | Path, identity: Mapping[str, str] | None = None) -
     (and ``identity``, the job's, when given).
 
     Call it as the last write of a product, after the file has been written and closed (or on
-    the temporary path inside an :func:`plenopiv.io.atomic_path` block). See the module
+    the temporary path inside an :func:`plenopiv.products.files.atomic_path` block). See the module
     docstring for the contract.
     """
     import h5py
@@ -452,7 +454,7 @@ def is_complete(path: str | Path) -> bool:
 def _remove_stale_parts(jobs: Sequence[PairJob]) -> list[Path]:
     """Delete the temporaries that a killed run left beside the jobs' products.
 
-    :func:`plenopiv.io.atomic_path` names them ``.{final name}.XXXXXXXX.part`` (and a
+    :func:`plenopiv.products.files.atomic_path` names them ``.{final name}.XXXXXXXX.part`` (and a
     writer that appends a suffix, ``.part.vti``). Caught: those of the product itself, of its
     side products (``.{stem}.png...``) and of every file named after the pair
     (``.{name}_volume_A.h5...``, ``.{name}_vectors.vti...``).

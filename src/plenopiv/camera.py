@@ -736,5 +736,9 @@ def load_camera(path_or_name: str | Path) -> CameraModel:
     if not p.exists() and p.suffix == "" and str(path_or_name) in preset_names():
         p = PRESET_DIR / f"{path_or_name}.toml"
     elif not p.exists():
+        if p.suffix == ".toml" and p.stem in preset_names():   # configs/cameras/NAME.toml
+            raise ConfigError(f"camera file {str(p)!r} not found: the preset {p.stem!r} ships "
+                              f"inside plenopiv; name it {p.stem!r} (plenopiv presets "
+                              f"{p.stem} --out FILE.toml writes a copy to edit)")
         raise ConfigError(f"camera file {str(p)!r} not found; presets: {', '.join(preset_names())}")
     return camera_from_dict(read_toml(p, "camera"), source=str(p))

@@ -33,7 +33,8 @@ def read_mask(spec: str | Path, *, name: str = "mask") -> np.ndarray:
     ConfigError
         When the file is missing, unreadable or not numeric.
     """
-    from plenopiv.io import read_image, split_dataset_spec
+    from plenopiv.products.files import split_dataset_spec
+    from plenopiv.products.images import read_image
 
     path, dataset = split_dataset_spec(spec)
     if not path.exists():

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.io import atomic_path
+from plenopiv.products.files import atomic_path
 
 
 def _figure(*args, **kw):
@@ -41,9 +41,20 @@ def calibration_report(report, image, path) -> Path:
         The focal-point image (for the lattice detail).
     """
     plt, fig = _figure(figsize=(13, 9.5))
-    cal, lat, fit = report.calibration, report.focal_lattice, report.focal_fit
+    _residual_map(fig, fig.add_subplot(2, 2, 1), report)
+    _residual_histogram(fig.add_subplot(2, 2, 2), report)
+    _lattice_detail(fig.add_subplot(2, 2, 3), report, image)
+    ax = fig.add_subplot(2, 2, 4)
+    ax.axis("off")
+    ax.text(0.0, 1.0, "\n".join(_calibration_lines(report)), va="top", family="monospace",
+            fontsize=9)
+    return _save(plt, fig, path)
+
+
+def _residual_map(fig, ax, report) -> None:
+    """Focal-spot residuals (pixels) over the sensor, coloured by their length."""
+    cal, fit = report.calibration, report.focal_fit
     pp = cal.camera.sensor.pixel_pitch
-    ax = fig.add_subplot(2, 2, 1)
     if fit is not None:
         spots = report.fit_spots_px
         res_px = np.hypot(*fit.residual.T) / pp
@@ -57,7 +68,11 @@ def calibration_report(report, image, path) -> Path:
     ax.set_ylabel("row (px)")
     ax.set_aspect("equal")
 
-    ax = fig.add_subplot(2, 2, 2)
+
+def _residual_histogram(ax, report) -> None:
+    """Histograms of the row and column residuals, pixels."""
+    cal, fit = report.calibration, report.focal_fit
+    pp = cal.camera.sensor.pixel_pitch
     if fit is not None:
         ax.hist(fit.residual[:, 1] / pp, bins=80, alpha=0.6, label="col")
         ax.hist(fit.residual[:, 0] / pp, bins=80, alpha=0.6, label="row")
@@ -65,7 +80,10 @@ def calibration_report(report, image, path) -> Path:
     ax.set_xlabel("residual (px)")
     ax.set_title(f"rms residual {cal.rms_residual_px:.4f} px")
 
-    ax = fig.add_subplot(2, 2, 3)
+
+def _lattice_detail(ax, report, image) -> None:
+    """The image's centre with the measured spots and the fitted lattice over it."""
+    lat = report.focal_lattice
     r0, c0 = (np.array(image.shape) // 2).astype(int)
     h = int(4 * np.mean(lat.pitch_px))
     crop = np.asarray(image, float)[r0 - h:r0 + h, c0 - h:c0 + h]
@@ -78,8 +96,10 @@ def calibration_report(report, image, path) -> Path:
     ax.set_title(f"{lat.grid} lattice, pitch {np.mean(lat.pitch_px):.4f} px, "
                  f"rotation {lat.rotation_rad * 1e3:.3f} mrad")
 
-    ax = fig.add_subplot(2, 2, 4)
-    ax.axis("off")
+
+def _calibration_lines(report) -> list[str]:
+    """The text panel: lenslets, both image distances with their uncertainties, lattices."""
+    cal = report.calibration
     s = report.summary()
     lines = [f"camera: {cal.camera.name}", f"lenslets: {cal.n_lenslets} "
              f"({report.n_missing} missing, filled)", f"lenslet centres from: "
@@ -107,14 +127,14 @@ def calibration_report(report, image, path) -> Path:
                      f"{q.get('spot_method', '?')}, phase bias {q['phase_bias_px']:.4f} px")
     for n in report.notes:
         lines += ["", "note: " + n[:110]]
-    ax.text(0.0, 1.0, "\n".join(lines), va="top", family="monospace", fontsize=9)
-    return _save(plt, fig, path)
+    return lines
 
 
 def volume_slices(volume, x, y, z, path, *, particles=None, title="") -> Path:
-    """x-y slice at the focal plane (Z nearest 0) and x-z slice through the brightest row,
-    each with a colour bar of the reconstructed intensity; the particles found within one
-    voxel of each slice are marked and named in a legend.
+    """Plot the x-y slice nearest Z = 0 and the x-z slice through the brightest row.
+
+    Each slice has a colour bar of the reconstructed intensity; the particles found within
+    one voxel of each slice are marked and named in a legend.
 
     ``volume`` is ``[z, y, x]``; x, y, z are voxel-centre coordinates in metres (the
     volume's grid); ``particles`` (N, 3) are (x, y, z) in metres on the same grid.
@@ -169,12 +189,12 @@ def _nice(value: float) -> float:
 
 
 def vector_slices(vectors, path, *, title="") -> Path:
-    """In-plane vectors on the x-y plane nearest Z = 0 and the x-z plane through the middle,
-    coloured by the out-of-plane component, with an arrow scale.
+    """Plot in-plane vectors on the x-y plane nearest Z = 0 and the x-z plane through the middle.
 
-    ``vectors`` is a :class:`plenopiv.pipeline.VectorResult`: displacements in metres, shown
-    in mm, or velocities in m/s when it has ``dt``. Rejected vectors are drawn grey where
-    they were replaced and left out where they are NaN. ``title`` names the pair.
+    The vectors are coloured by the out-of-plane component, with an arrow scale.
+    ``vectors`` is a :class:`~plenopiv.products.vectors.VectorResult`: displacements in
+    metres, shown in mm, or velocities in m/s when it has ``dt``. Rejected vectors are drawn
+    grey where they were replaced and left out where they are NaN. ``title`` names the pair.
     """
     plt, fig = _figure(figsize=(14, 6))
     x, y, z = (np.asarray(a) * 1e3 for a in (vectors.x, vectors.y, vectors.z))

@@ -26,7 +26,7 @@ from plenopiv import optics
 from plenopiv.camera import CameraModel, camera_from_dict
 from plenopiv.conventions import sensor_to_pixel
 from plenopiv.errors import CalibrationError
-from plenopiv.io import open_product, write_h5
+from plenopiv.products.hdf5 import open_product, write_h5
 
 
 @dataclass(frozen=True)

@@ -46,8 +46,8 @@ from plenopiv.calibration.spots import (
 from plenopiv.camera import CameraModel, apply_misplacement
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
-from plenopiv.io import check_image
 from plenopiv.lightfield import MICRO_IMAGE_TOLERANCE, micro_image_diameter_px
+from plenopiv.products.images import check_image
 
 METHODS = ("focal-point", "magnification", "both")
 # harmonics of the sub-pixel phase bias fitted with each lattice (fit_lattice)

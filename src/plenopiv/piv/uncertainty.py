@@ -246,7 +246,7 @@ def cached_response(path: Path | None, key: str, compute) -> tuple[Response | No
             pass   # unreadable or another version: measure again
     resp = compute()
     if path is not None and resp is not None:
-        from plenopiv.io import atomic_path
+        from plenopiv.products.files import atomic_path
 
         with atomic_path(path) as tmp:
             tmp.write_text(json.dumps({"key": key, **resp.to_dict()}))

@@ -36,8 +36,8 @@ import numpy as np
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.errors import ReconstructionError
-from plenopiv.io import write_h5
 from plenopiv.lightfield import LightField, light_field
+from plenopiv.products.hdf5 import write_h5
 from plenopiv.reconstruction._kernels import weights as K
 from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
 from plenopiv.reconstruction.projector import Projector, SparseProjector

@@ -130,8 +130,9 @@ def predict_positions(vectors, positions) -> np.ndarray:
 
     Parameters
     ----------
-    vectors : object with ``x, y, z, u, v, w`` (e.g. :class:`plenopiv.pipeline.VectorResult`)
-        Displacement field in metres on the same axes as ``positions``.
+    vectors : object with ``x, y, z, u, v, w``
+        Displacement field in metres on the same axes as ``positions`` (e.g. a
+        :class:`~plenopiv.products.vectors.VectorResult`).
     positions : (N, 3)
         Particle positions in exposure A, metres.
 

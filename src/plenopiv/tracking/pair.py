@@ -15,7 +15,9 @@ import numpy as np
 from plenopiv.calibration.model import Calibration
 from plenopiv.config import TrackingConfig
 from plenopiv.lightfield import LightField, light_field
-from plenopiv.pipeline import VectorResult, VolumeResult, resolution_cell
+from plenopiv.pipeline import resolution_cell
+from plenopiv.products.vectors import VectorResult
+from plenopiv.products.volume import VolumeResult
 from plenopiv.tracking.bundle import BundlePositions, BundleSettings, bundle_positions
 from plenopiv.tracking.matching import MatchSettings, match_particles, predict_positions
 

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.io import atomic_path, write_h5
+from plenopiv.products.files import atomic_path
+from plenopiv.products.hdf5 import write_h5
 from plenopiv.tracking.pair import TrackResult
 
 __all__ = ["TRACK_DATASETS", "write_tracks", "write_vtp"]
@@ -109,13 +110,13 @@ def write_vtp(path: str | Path, tracks: TrackResult) -> Path:
 
 
 def load_vectors(path: str | Path):
-    """Read a vectors product as a :class:`plenopiv.pipeline.VectorResult` of displacements.
+    """Read a vectors product as a :class:`plenopiv.products.vectors.VectorResult` of displacements.
 
     Velocity products (``dt_s`` set) are turned back into displacements (metres), ``dt`` kept.
     """
     from plenopiv.errors import ReconstructionError
-    from plenopiv.io import open_product
-    from plenopiv.pipeline import VectorResult
+    from plenopiv.products.hdf5 import open_product
+    from plenopiv.products.vectors import VectorResult
 
     with open_product(path, "vectors", ReconstructionError) as fh:
         dt = float(fh.attrs.get("dt_s", np.nan))

@@ -39,7 +39,7 @@ from plenopiv.calibration.image_distance import SpotModel, fit_focal_points
 from plenopiv.calibration.pipeline import calibrate
 from plenopiv.camera import CameraModel, Substrate, load_camera
 from plenopiv.conventions import pixel_to_sensor
-from plenopiv.io import atomic_path
+from plenopiv.products.files import atomic_path
 from plenopiv.synthetic.images import finish_image, focal_point_image
 
 IMAGE_DISTANCES = (0.136, 0.1688, 0.2025, 0.2363, 0.27, 0.3038, 0.3375, 0.3713, 0.405)

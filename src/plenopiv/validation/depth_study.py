@@ -49,8 +49,8 @@ from plenopiv.camera import CameraModel, ExternalInterface, Sensor, Substrate, l
 from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.corrections import DepthCorrection
 from plenopiv.errors import ReconstructionError
-from plenopiv.io import atomic_path
 from plenopiv.pipeline import reconstruct_volume
+from plenopiv.products.files import atomic_path
 from plenopiv.reconstruction.weights import cached_weights
 from plenopiv.synthetic.images import particle_image
 from plenopiv.volume import VolumeGrid

@@ -38,7 +38,6 @@ from plenopiv.camera import CameraModel, load_camera
 from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.conventions import world_to_voxel
 from plenopiv.errors import ReconstructionError
-from plenopiv.io import atomic_path
 from plenopiv.pipeline import (
     VolumeResult,
     footprint,
@@ -46,6 +45,7 @@ from plenopiv.pipeline import (
     reconstruct_volume,
     resolution_cell,
 )
+from plenopiv.products.files import atomic_path
 from plenopiv.reconstruction.weights import Weights, cached_weights
 from plenopiv.synthetic.images import finish_image, particle_image
 from plenopiv.synthetic.seeding import SeedingBox, random_particles

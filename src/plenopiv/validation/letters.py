@@ -42,8 +42,9 @@ from plenopiv.calibration.spots import micro_image_diameter as _micro_image_diam
 from plenopiv.camera import camera_from_dict
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
-from plenopiv.io import atomic_path, read_image
 from plenopiv.lightfield import LightField, light_field, perspective_view, refocus
+from plenopiv.products.files import atomic_path
+from plenopiv.products.images import read_image
 
 DATA_NAME = "plenoptomos_letters_ULF"
 FILES = {"raw": "letters_ULF_M1.png", "white": "letters_ULF_M1_white.png",

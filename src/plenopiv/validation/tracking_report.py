@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.io import atomic_path
+from plenopiv.products.files import atomic_path
 from plenopiv.validation.tracking_study import measure_case, measure_single_particles
 from plenopiv.validation.vortex import VortexCase
 

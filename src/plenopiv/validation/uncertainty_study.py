@@ -27,8 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.config import PIVConfig
-from plenopiv.io import atomic_path, open_product
-from plenopiv.pipeline import VectorResult
+from plenopiv.products.files import atomic_path
+from plenopiv.products.hdf5 import open_product
+from plenopiv.products.vectors import VectorResult
 from plenopiv.validation.vortex import (
     VortexCase,
     case_flow,
@@ -65,8 +66,9 @@ STAGE_LABELS = {"correlation": "correlation statistics",
 
 def evaluate_case(label: str, case: VortexCase, work: Path) -> dict:
     """Run one case; coverage per stage and component, and the errors in units of σ."""
-    from plenopiv.pipeline import load_volume, piv_settings
+    from plenopiv.pipeline import piv_settings
     from plenopiv.piv import correlate_volumes
+    from plenopiv.products.volume import load_volume
 
     name = re.sub(r"[^0-9A-Za-z]+", "_", label).strip("_").lower()
     t0 = time.perf_counter()

@@ -24,9 +24,9 @@ from plenopiv.config import (
     PIVConfig,
     ReconstructionSettings,
 )
-from plenopiv.io import atomic_path
 from plenopiv.pipeline import footprint, lateral_subdivision, process_pair, save_pair
 from plenopiv.plots import vector_comparison
+from plenopiv.products.files import atomic_path
 from plenopiv.synthetic.flows import HillVortex, LambOseen, Uniform, advect
 from plenopiv.synthetic.images import (
     Ruler,

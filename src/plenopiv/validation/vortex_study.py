@@ -39,8 +39,9 @@ import numpy as np
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.config import ReconstructionSettings
-from plenopiv.io import atomic_path
-from plenopiv.pipeline import footprint, gaussian_truth_volume, load_volume, resolution_cell
+from plenopiv.pipeline import footprint, gaussian_truth_volume, resolution_cell
+from plenopiv.products.files import atomic_path
+from plenopiv.products.volume import load_volume
 from plenopiv.synthetic.seeding import SeedingBox
 from plenopiv.validation.vortex import (
     VortexCase,

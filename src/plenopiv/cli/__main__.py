@@ -1,0 +1,7 @@
+"""``python -m plenopiv.cli``: the ``plenopiv`` command."""
+
+import sys
+
+from plenopiv.cli import main
+
+sys.exit(main())

@@ -1,0 +1,202 @@
+"""``plenopiv plan``: resolution, recommended voxels and windows, memory and time, before a run."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from plenopiv.cli._common import _add_common
+from plenopiv.cli._output import _fmt
+from plenopiv.cli._progress import _StageBar
+
+
+def add_parser(sub) -> None:
+    """Add ``plan`` to the subcommands ``sub``."""
+    plan = sub.add_parser(
+        "plan", help="resolution, recommended voxels and windows, memory and time of a "
+                     "reconstruction, before running it")
+    plan.add_argument("config", help="experiment TOML (camera + [volume]), or a camera TOML "
+                                     "or preset name with the box given by --x-mm ...")
+    for axis in ("x", "y", "z"):
+        plan.add_argument(f"--{axis}-mm", type=float, nargs=2, metavar=("LO", "HI"),
+                          help=f"box along {axis} (mm; replaces the experiment's; default for "
+                               "a camera: " + ("90 %% of the field of view)" if axis != "z"
+                                               else "±4 depth cells)"))
+    plan.add_argument("--voxel-mm", type=float, nargs="+", metavar="MM",
+                      help="voxel edge, one value or DX DY DZ (mm; default for a camera: the "
+                           "recommended voxel)")
+    plan.add_argument("--windows", type=int, nargs=3, action="append", metavar=("WZ", "WY", "WX"),
+                      help="PIV window per pass in voxels (repeat for several passes)")
+    plan.add_argument("--f-number", type=float, help="aperture of the recording (default: the "
+                                                     "camera's or [reconstruction] f_number)")
+    plan.add_argument("--image-distance-mm", type=float,
+                      help="effective S_i (mm) when the camera file does not give it")
+    plan.add_argument("--calibration", metavar="CAL.h5",
+                      help="take S_i from this calibration product")
+    plan.add_argument("--no-measure", action="store_true",
+                      help="estimate times from the benchmark figures instead of timing the "
+                           "kernels here (no numba compilation)")
+    _add_common(plan)
+    plan.set_defaults(func=cmd_plan)
+
+
+def _box_from_args(args, cam) -> dict | None:
+    """A ``[volume]`` table from --x-mm/--y-mm/--z-mm/--voxel-mm (None when none is given)."""
+    given = {k: getattr(args, k) for k in ("x_mm", "y_mm", "z_mm", "voxel_mm")}
+    if all(v is None for v in given.values()):
+        return None
+    return {k: (list(v) if k != "voxel_mm" or len(v) > 1 else v[0])
+            for k, v in given.items() if v is not None}
+
+
+def _config_table(path: Path) -> dict:
+    """The TOML table of ``plan``'s argument; {} for a camera named by a preset name.
+
+    A missing ``NAME.toml`` of a preset (the old ``configs/cameras/NAME.toml``) is left to
+    :func:`~plenopiv.camera.load_camera`, whose error names the preset to use.
+    """
+    from plenopiv.camera import preset_names, read_toml
+
+    if path.suffix.lower() != ".toml" or (not path.exists() and path.stem in preset_names()):
+        return {}
+    return read_toml(path, "config")
+
+
+def cmd_plan(args) -> dict:
+    """Resolution, recommended voxels and windows, size, memory and time of a reconstruction."""
+    from plenopiv import planning
+    from plenopiv.camera import load_camera
+    from plenopiv.config import PIVConfig, ReconstructionSettings, experiment_from_dict
+    from plenopiv.volume import volume_from_dict
+
+    path = Path(args.config)
+    table = _config_table(path)
+    is_experiment = "volume" in table or "camera" in table
+    box = _box_from_args(args, None)
+    if is_experiment:
+        cfg = dict(table)
+        if box is not None:
+            volume = dict(cfg.get("volume", {}))
+            if "voxel_mm" in box:
+                volume.pop("shape", None)
+            volume.update(box)
+            cfg["volume"] = volume
+        exp = experiment_from_dict(cfg, base_dir=path.parent, source=str(path))
+        camera, grid = exp.camera, exp.volume
+        recon, piv_cfg = exp.reconstruction, exp.piv
+        calibration = args.calibration or (exp.path(exp.images.calibration)
+                                           if exp.images.calibration else None)
+        if calibration is not None and not Path(calibration).exists():
+            calibration = args.calibration      # not made yet: the camera's S_i then
+    else:
+        camera = load_camera(args.config)
+        recon, piv_cfg = ReconstructionSettings(), PIVConfig()
+        calibration = args.calibration
+        grid = None
+    if args.f_number is not None:
+        recon = recon.model_copy(update={"f_number": args.f_number})
+    if args.windows:
+        piv_cfg = piv_cfg.model_copy(update={"windows": [tuple(w) for w in args.windows]})
+    if args.image_distance_mm is not None:
+        camera = camera.with_image_distance(args.image_distance_mm * 1e-3)
+    elif calibration is not None:
+        from plenopiv.calibration.model import Calibration
+
+        camera = camera.with_image_distance(Calibration.load(calibration).image_distance)
+    if grid is None:
+        cam = planning.camera_resolution(camera, recon.f_number)
+        fx, fy = (0.9 * v * 1e3 for v in cam.field_of_view)
+        dz = 4 * cam.depth_cell * 1e3
+        vox = [v * 1e3 for v in planning.recommended_voxel(cam)]
+        default = {"x_mm": [-fx, fx], "y_mm": [-fy, fy], "z_mm": [-dz, dz], "voxel_mm": vox}
+        grid = volume_from_dict({**default, **(box or {})}, source="plan options")
+        if args.windows is None:
+            piv_cfg = piv_cfg.model_copy(update={
+                "windows": list(planning.recommended_windows(cam, grid.voxel))})
+    t0 = time.perf_counter()
+    if args.no_measure:
+        rates = planning.BENCHMARK_RATES
+    else:
+        with _StageBar("plan", {"measure": 1}, args.quiet or args.json) as bar:
+            bar("measure rates on this machine")
+            rates = planning.measure_rates(camera, grid, f_number=recon.f_number,
+                                           min_lit=recon.min_lit, piv=piv_cfg)
+    result = planning.plan(camera, grid, reconstruction=recon, piv=piv_cfg, rates=rates)
+    return {"command": "plan", "config": str(args.config),
+            "kind": "experiment" if is_experiment else "camera", **result.to_dict(),
+            "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def print_summary(p: dict) -> None:
+    """``plenopiv plan`` for people."""
+    def mm(v):
+        return _fmt(float(v))
+
+    def box(b):
+        return f"[{mm(b[0])}, {mm(b[1])}]"
+
+    vol, rec, cell = p["volume"], p["recommended"], p["resolution_cell_mm"]
+    fov = p["field_of_view_mm"]
+    vx, vy, vz = vol["voxel_mm"]
+    nz, ny, nx = vol["shape"]
+    rows = [
+        ("camera", f"{p['camera']}, f/{_fmt(p['f_number'])}"),
+        ("resolution cell", f"{mm(cell['lateral'])} mm laterally (one lenslet footprint), "
+                            f"{mm(cell['depth'])} mm in depth"),
+        ("near-focus zone", f"|Z| < {mm(p['near_focus_mm'][1])} mm: a particle there lights "
+                            "one lenslet, so depth motion is under-measured"),
+        ("field of view", f"x ±{mm(fov['x'][1])} mm, y ±{mm(fov['y'][1])} mm at the focal "
+                          "plane"),
+        ("volume", f"x {box(vol['x_mm'])}, y {box(vol['y_mm'])}, z {box(vol['z_mm'])} mm; "
+                   f"voxel {mm(vx)} x {mm(vy)} x {mm(vz)} mm"),
+        ("", f"{nx} x {ny} x {nz} voxels (x, y, z) = {p['n_voxels']:,}"),
+        ("PIV windows", " then ".join(str(w) for w in p["windows_vox"])
+         + f" voxels (z, y, x), {p['passes']} passes, overlap {_fmt(p['overlap'])}"),
+    ]
+    last = p["windows_vox"][-1]
+    rows.append(("", f"last window {mm(last[2] * vx)} x {mm(last[1] * vy)} x "
+                     f"{mm(last[0] * vz)} mm (x, y, z): flow structures smaller than this "
+                     "are smoothed"))
+    vec = p["vectors_per_pass"]
+    rows.append(("", "vectors per pass (z, y, x): " + ", ".join(str(v) for v in vec)
+                 + ("" if p["windows_fit"] else "  <- the windows do not fit")))
+    rv = rec["voxel_mm"]
+    rows.append(("recommended", f"voxel {mm(rv[0])} x {mm(rv[1])} x {mm(rv[2])} mm "
+                                "(half a footprint; a quarter of the depth cell), windows "
+                                + " then ".join(str(w) for w in rec["windows_vox"])))
+    rows.append(("", f"{' x '.join(str(n) for n in rec['shape'][::-1])} voxels (x, y, z); "
+                     f"last pass {rec['vectors_last_pass']} vectors (z, y, x); seed about "
+                     f"{_fmt(rec['particles_per_lenslet'])} particles per lenslet (the "
+                     "validated density)"))
+    def count(n):
+        return f"{n / 1e9:.3g} billion" if n >= 1e9 else f"{n / 1e6:.3g} million"
+
+    sparse = p["projector"] == "sparse"
+    rows.append(("size", f"{count(p['n_rays'])} rays, {count(p['nnz'])} non-zero weights; "
+                         + ("explicit (sparse) weights" if sparse else
+                            "matrix-free lattice projector (the explicit weights would not "
+                            "fit)")))
+    mem = p["memory_gb"]
+    rows.append(("memory", (f"weights {_fmt(mem['weights'])} GB (a cache file of "
+                            f"{_fmt(mem['weights_cache_file'])} GB on disk), " if sparse else "")
+                 + f"peak {_fmt(mem['peak'])} GB of this machine's "
+                   f"{_fmt(p['available_memory_gb'])} GB"))
+    t = p["time_s"]
+    rows.append(("time", f"weights {_fmt(t['weights'])} s"
+                         + (" (once, then cached)" if sparse else "") + ", one volume "
+                         f"{_fmt(t['volume'])} s, PIV {_fmt(t['piv'])} s; a pair "
+                         f"{_fmt(t['pair'])} s ({_fmt(t['pair_cached_weights'])} s with cached "
+                         "weights)"))
+    rows.append(("", f"time model: {p['time_model']}"))
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"{k.ljust(width)}  {v}")
+    for title in ("warnings", "advice"):
+        if p[title]:
+            print(f"{title}:")
+            for line in p[title]:
+                print(f"  - {line}")
+    if p["advice"] or p["warnings"]:
+        print("recommended [volume] and [piv] for this box:")
+        for line in rec["toml"].splitlines():
+            print(f"  {line}" if line else "")

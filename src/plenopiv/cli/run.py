@@ -1,0 +1,156 @@
+"""``plenopiv run``: many image pairs end to end on dask (local processes, SLURM, a scheduler)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from plenopiv.cli._common import _add_common, _integer
+from plenopiv.errors import ConfigError
+from plenopiv.products.files import check_output_path
+
+
+def add_parser(sub) -> None:
+    """Add ``run`` to the subcommands ``sub``."""
+    run = sub.add_parser("run", help="many image pairs end to end (dask batch)")
+    run.add_argument("experiment", help="experiment TOML with [images], [batch], [output]")
+    run.add_argument("--resume", action=argparse.BooleanOptionalAction, default=True,
+                     help="skip pairs whose product is complete (default; --no-resume redoes all)")
+    run.add_argument("--cluster", help="local | slurm | tcp://scheduler:8786 (default [batch])")
+    run.add_argument("--workers", type=int, help="worker processes (default: [batch] or cores)")
+    _add_common(run)
+    run.set_defaults(func=cmd_run)
+
+
+def cmd_run(args) -> dict:
+    """Many pairs end to end on dask (local processes, SLURM, or a running scheduler)."""
+    from plenopiv.batch import (
+        BatchInterrupted,
+        batch_options,
+        check_batch_options,
+        discover_pairs,
+        run_batch,
+    )
+    from plenopiv.config import load_experiment
+    from plenopiv.errors import ComputationError
+    from plenopiv.pipeline import ExperimentPairProcess, experiment_calibration, weights_for
+    from plenopiv.resources import check_grid
+
+    _integer("--workers", args.workers, minimum=1, maximum=4096)
+    exp = load_experiment(args.experiment)
+    opts = batch_options(exp.batch.model_dump())
+    if args.cluster is not None:
+        opts["cluster"] = args.cluster
+    if args.workers is not None:
+        opts["n_workers"] = args.workers
+    check_batch_options(**opts)
+    im = exp.images
+    if im.calibration is None:
+        raise ConfigError(f"{args.experiment}: [images] calibration is not set: expected the "
+                          "calibration product (.h5) of plenopiv calibrate")
+    if (im.a is None or im.b is None) and im.pairs is None:
+        raise ConfigError(f"{args.experiment}: [images] needs a and b (glob patterns of the "
+                          "two exposures) or pairs (HDF5 files with /image_a and /image_b)")
+    out_dir = exp.path(exp.output.directory)
+    check_output_path(out_dir, what="[output] directory", folder=True)
+    if im.pairs is not None:
+        jobs = discover_pairs(im.pairs, out_dir=out_dir, root=exp.base_dir,
+                              output_name="{name}_vectors.h5")
+    else:
+        jobs = discover_pairs(im.a, im.b, out_dir=out_dir, root=exp.base_dir,
+                              output_name="{name}_vectors.h5", pair_by=im.pair_by)
+    cal_path = exp.path(im.calibration)
+    _check_products_spare_inputs(jobs, [args.experiment, cal_path])
+    cal = experiment_calibration(exp, cal_path)
+    check_grid(exp.volume)
+    jobs = _with_identities(jobs, exp, cal_path)
+    # build (or find) the weights once, before the workers start: they load them from disk
+    t0 = time.perf_counter()
+    cache = exp.output.weights_cache
+    _, hit = weights_for(cal, exp.volume, exp.reconstruction,
+                         cache_dir=exp.path(cache) if cache else None)
+    weights_s = time.perf_counter() - t0
+    process = ExperimentPairProcess(str(Path(args.experiment).resolve()), str(cal_path.resolve()),
+                                    str(out_dir))
+    head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit}
+    try:
+        summary = run_batch(jobs, process, resume=args.resume,
+                            progress=not (args.quiet or args.json), **opts)
+    except BatchInterrupted as exc:
+        exc.summary = {**head, **exc.summary}
+        raise
+    result = {**head, "weights_s": round(weights_s, 3) if not hit else 0.0,
+              **summary.to_dict()}
+    if summary.failed:
+        names = ", ".join(f"{n} ({e})" for n, e in summary.failed[:3])
+        more = "" if len(summary.failed) <= 3 else f" and {len(summary.failed) - 3} more"
+        err = ComputationError(f"{len(summary.failed)} of {summary.n_jobs} pairs failed: "
+                               f"{names}{more}; see {summary.summary_path}")
+        err.summary = result
+        raise err
+    return result
+
+
+def _check_products_spare_inputs(jobs, others) -> None:
+    """Refuse a batch in which a file a pair writes is one of the batch's inputs.
+
+    The files a pair writes (vectors, volumes, .vti, PNGs) may not be an image, the experiment
+    file or the calibration.
+    """
+    from plenopiv.products.files import split_dataset_spec
+
+    inputs = {split_dataset_spec(p)[0].resolve() for j in jobs for p in (j.image_a, j.image_b)}
+    inputs |= {Path(p).resolve() for p in others}
+    for j in jobs:
+        folder, name = j.output.parent, j.name
+        for f in (j.output, folder / f"{name}_volume_A.h5", folder / f"{name}_volume_B.h5",
+                  j.output.with_suffix(".vti"), folder / f"{name}_volume_A.png",
+                  folder / f"{name}_vectors.png"):
+            if f.resolve() in inputs:
+                raise ConfigError(f"pair {name!r} would write {str(f)!r}, which is one of the "
+                                  "batch's inputs; choose another [output] directory")
+
+
+def _with_identities(jobs, exp, cal_path):
+    """Give each job the identity of what makes its product.
+
+    The identity holds the experiment's settings, the calibration file and the two images
+    (content hashes); resume recomputes a product made from anything else.
+    """
+    from dataclasses import replace
+
+    from plenopiv.pipeline import settings_identity
+    from plenopiv.products.files import file_identity
+
+    common = {"settings": settings_identity(exp), "calibration": file_identity(cal_path)}
+    return [replace(j, identity={**common, "image_a": file_identity(j.image_a),
+                                 "image_b": file_identity(j.image_b)}) for j in jobs]
+
+
+def print_summary(s: dict) -> None:
+    """``plenopiv run``: one row per pair, then the totals."""
+    rows = [("pair", "status", "valid", "particles A", "time (s)")]
+    errors = []
+    for r in s.get("results", []):
+        res = r.get("result") or {}
+        valid = res.get("valid_fraction")
+        rows.append((r["name"], r["status"], "-" if valid is None else f"{valid:.0%}",
+                     str(res.get("n_particles_a", "-")),
+                     f"{r['seconds']:.1f}" if r["status"] == "done" else "-"))
+        if r["status"] == "failed":
+            errors.append(f"  {r['name']}: {r.get('error_type')}: {r.get('error')}")
+    width = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    for row in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(row, width, strict=True)).rstrip())
+    threads = s.get("threads_per_worker")
+    print(f"{s['n_jobs']} pairs: {s['n_done']} done, {s['n_skipped']} skipped, "
+          f"{s['n_failed']} failed in {s['seconds']:.1f} s ({s.get('cluster')} cluster, "
+          f"{s.get('n_workers') or '?'} workers x {threads or '?'} threads)")
+    if errors:
+        print("failed:")
+        print("\n".join(errors))
+    weights = ("from the cache" if s.get("weights_from_cache")
+               else f"built in {s.get('weights_s', 0.0):.1f} s")
+    print(f"weights: {weights}")
+    print(f"products: {s['out']}  (summary: {s.get('summary_path')})")

@@ -1,0 +1,321 @@
+"""``plenopiv simulate``: render synthetic plenoptic images (and pairs with their truth)."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from plenopiv import __version__
+from plenopiv.cli._common import (
+    _add_common,
+    _add_image_options,
+    _camera_from_args,
+    _check_out,
+    _input_files,
+    _integer,
+    _number,
+    _seed,
+)
+from plenopiv.cli._progress import _progress_bar
+from plenopiv.errors import ConfigError, ResourceError
+from plenopiv.products.files import check_output_path
+
+if TYPE_CHECKING:
+    from plenopiv.camera import CameraModel
+
+
+#: The kinds of ``simulate`` and their help, in the order ``--help`` lists them.
+KINDS = (("focal-point", "white sheet through the stopped-down lens"),
+         ("alignment", "collimated light, main lens removed"),
+         ("ruler", "a ruler with ticks on a plane at a given depth"),
+         ("particles", "random point particles"),
+         ("pair", "a particle image pair moved by a flow, with ground truth"))
+
+
+def add_parser(sub) -> None:
+    """Add ``simulate`` and its kinds (:data:`KINDS`) to the subcommands ``sub``."""
+    from plenopiv.camera import preset_names
+
+    sim = sub.add_parser("simulate", help="render synthetic plenoptic images by ray tracing")
+    simsub = sim.add_subparsers(dest="kind", required=True)
+    presets = ", ".join(preset_names())
+    for kind, helptext in KINDS:
+        p = simsub.add_parser(kind, help=helptext)
+        p.add_argument("camera", help=f"camera TOML file or preset name ({presets})")
+        p.add_argument("--out", required=True, help="output file (.tif, .png; .h5 for pairs)")
+        p.add_argument("--image-distance-mm", type=float, default=None,
+                       help="override [main_lens] image_distance_mm (effective S_i)")
+        p.add_argument("--f-number", type=float, default=None,
+                       help="stop for this image (default: the camera's f_number)")
+        if kind != "pair":
+            _add_render_options(p)
+        _add_image_options(p)
+        _add_common(p)
+        p.set_defaults(func=cmd_simulate)
+        if kind == "ruler":
+            _add_ruler_options(p)
+        if kind in ("particles", "pair"):
+            _add_seeding_options(p)
+        if kind == "pair":
+            _add_flow_options(p)
+
+
+def _add_render_options(p) -> None:
+    p.add_argument("--splat", choices=("bilinear", "pixel"), default="bilinear",
+                   help="a ray's energy shared by area among the 4 nearest pixel "
+                        "centres (default), or all into the pixel it hits")
+    p.add_argument("--psf-px", type=float, default=0.0,
+                   help="Gaussian point-spread sigma before the pixels integrate, "
+                        "pixels (default 0)")
+    p.add_argument("--sensor-shift-px", type=float, nargs=2, default=(0.0, 0.0),
+                   metavar=("DROW", "DCOL"),
+                   help="shift the image content by a (sub-)pixel amount (default 0 0)")
+    p.add_argument("--lenslets", type=int, nargs=2, metavar=("ROWS", "COLS"),
+                   help="render the central ROWS x COLS lenslets of the camera, on a "
+                        "sensor cut to them (odd counts put a lenslet on the axis)")
+
+
+def _add_ruler_options(p) -> None:
+    p.add_argument("--spacing-mm", type=float, default=1.0, help="tick spacing (mm)")
+    p.add_argument("--tick-width-mm", type=float, default=0.15, help="tick width (mm)")
+    p.add_argument("--depth-mm", type=float, default=0.0,
+                   help="ruler plane depth Z from the focal plane (mm, default 0)")
+    p.add_argument("--rays-per-lenslet", type=int, default=2000,
+                   help="rays per lenslet footprint (default 2000)")
+
+
+def _add_seeding_options(p) -> None:
+    dens = p.add_mutually_exclusive_group()
+    dens.add_argument("--particles-per-lenslet", type=float, default=0.1,
+                      help="seeding density per lenslet (default 0.1)")
+    dens.add_argument("--particles-per-mm3", type=float, default=None,
+                      help="seeding density per mm³ of the seeded box")
+    dens.add_argument("--n-particles", type=int, default=None, help="particle count")
+    p.add_argument("--depth-mm", type=float, nargs=2, default=(-5.0, 5.0),
+                   metavar=("ZMIN", "ZMAX"),
+                   help="seeded depth range Z (mm, default -5 5)")
+    p.add_argument("--fill", type=float, default=0.9,
+                   help="fraction of the lateral field of view seeded (default 0.9)")
+    p.add_argument("--rays-per-particle", type=int, default=2048,
+                   help="aperture samples per particle (default 2048)")
+
+
+def _add_flow_options(p) -> None:
+    p.add_argument("--flow", choices=("uniform", "oseen", "hill"), default="oseen",
+                   help="flow moving the particles (default oseen, axis along Y)")
+    p.add_argument("--dt", type=float, default=1e-3, help="time between exposures (s)")
+    p.add_argument("--max-displacement-mm", type=float, default=0.5,
+                   help="largest particle displacement of the flow (mm, default 0.5)")
+    p.add_argument("--no-tiff", action="store_true",
+                   help="write only the HDF5 file (no A/B TIFFs beside it)")
+
+
+def cmd_simulate(args) -> dict:
+    """Render a synthetic image (or a pair) and write it."""
+    from plenopiv.products.images import write_image
+    from plenopiv.synthetic import images as S
+
+    _check_simulate_args(args)
+    cam = _camera_from_args(args)
+    rng = np.random.default_rng(args.seed)
+    kind = args.kind
+    t0 = time.perf_counter()
+    summary: dict = {"command": f"simulate {kind}", "camera": cam.name,
+                     "image_distance_mm": cam.image_distance * 1e3}
+    if kind in ("focal-point", "alignment", "ruler"):
+        out = _check_out(args.out, (".tif", ".tiff", ".png"), inputs=_input_files(args.camera))
+        bar, tick = _progress_bar(cam.microlens_array.count if kind != "ruler" else 32,
+                                  f"render {kind}", args.quiet or args.json)
+        with bar:
+            render = _render_options(args)
+            summary.update(render)
+            if kind == "focal-point":
+                f_number = args.f_number or cam.main_lens.f_number
+                irr = S.focal_point_image(cam, f_number=f_number, progress=tick, **render)
+                summary["f_number"] = f_number
+            elif kind == "alignment":
+                irr = S.alignment_image(cam, progress=tick, **render)
+            else:
+                ruler = S.Ruler(spacing=args.spacing_mm * 1e-3,
+                                tick_width=args.tick_width_mm * 1e-3, depth=args.depth_mm * 1e-3)
+                bar.total = None
+                irr = S.ruler_image(cam, ruler, f_number=args.f_number, seed=args.seed,
+                                    rays_per_lenslet=args.rays_per_lenslet, **render)
+                summary.update(spacing_mm=args.spacing_mm, depth_mm=args.depth_mm)
+        img = _finish(irr, args, rng)
+        meta = {"plenopiv": __version__, "kind": kind, "camera": cam.to_dict(), **summary}
+        write_image(out, img, metadata=meta)
+    elif kind in ("particles", "pair"):
+        summary.update(_simulate_particles(cam, args, rng))
+        return {**summary, "seconds": round(time.perf_counter() - t0, 3)}
+    summary.update(out=str(out), **_image_summary(img),
+                   seconds=round(time.perf_counter() - t0, 3))
+    return summary
+
+
+def _check_simulate_args(args) -> None:
+    """The options of ``simulate``, before the camera is loaded or anything rendered."""
+    _seed(args.seed)
+    _number("--f-number", args.f_number, minimum=0, open_min=True)
+    _number("--blur-px", args.blur_px, minimum=0, maximum=100, unit="pixels")
+    _number("--psf-px", getattr(args, "psf_px", None), minimum=0, maximum=100, unit="pixels")
+    for shift in getattr(args, "sensor_shift_px", ()):
+        _number("--sensor-shift-px", shift, minimum=-1e6, maximum=1e6, unit="pixels")
+    _number("--full-well", args.full_well, minimum=0, open_min=True, unit="electrons")
+    _number("--read-noise", args.read_noise, minimum=0, unit="counts")
+    if args.kind == "ruler":
+        _number("--spacing-mm", args.spacing_mm, minimum=0, open_min=True, unit="mm")
+        _number("--tick-width-mm", args.tick_width_mm, minimum=0, open_min=True,
+                maximum=args.spacing_mm, open_max=True, unit="mm, less than --spacing-mm")
+        _number("--depth-mm", args.depth_mm, unit="mm")
+        _integer("--rays-per-lenslet", args.rays_per_lenslet, minimum=1, maximum=10 ** 6)
+    if args.kind in ("particles", "pair"):
+        _number("--particles-per-lenslet", args.particles_per_lenslet, minimum=0,
+                open_min=True, maximum=100)
+        _number("--particles-per-mm3", args.particles_per_mm3, minimum=0, open_min=True)
+        _integer("--n-particles", args.n_particles, minimum=1, maximum=10 ** 7)
+        lo = _number("--depth-mm ZMIN", args.depth_mm[0], unit="mm")
+        _number("--depth-mm ZMAX", args.depth_mm[1], minimum=lo, open_min=True,
+                unit="mm, more than ZMIN")
+        _number("--fill", args.fill, minimum=0, open_min=True, maximum=1)
+        _integer("--rays-per-particle", args.rays_per_particle, minimum=1, maximum=10 ** 6)
+    if args.kind == "pair":
+        _number("--dt", args.dt, minimum=0, open_min=True, unit="seconds")
+        _number("--max-displacement-mm", args.max_displacement_mm, minimum=0, open_min=True,
+                unit="mm")
+
+
+def _render_options(args) -> dict:
+    """Return the rendering choices of ``simulate`` (splat, PSF, sensor shift) as kwargs."""
+    return {"splat": args.splat, "psf_px": args.psf_px,
+            "sensor_shift_px": tuple(args.sensor_shift_px)}
+
+
+def _finish(irr, args, rng):
+    from plenopiv.synthetic.images import finish_image
+
+    bits = None if args.bit_depth == 0 else args.bit_depth
+    return finish_image(irr, blur_px=args.blur_px, noise=args.noise, bit_depth=bits,
+                        full_well=args.full_well, read_noise=args.read_noise, rng=rng)
+
+
+def _image_summary(img) -> dict:
+    return {"shape": list(img.shape), "dtype": str(img.dtype), "max": float(img.max()),
+            "mean": float(img.mean())}
+
+
+def _seeding(cam: CameraModel, args, rng):
+    from plenopiv.synthetic.seeding import SeedingBox, particle_count
+
+    depth = (args.depth_mm[0] * 1e-3, args.depth_mm[1] * 1e-3)
+    box = SeedingBox.field_of_view(cam, depth, fill=args.fill)
+    if args.n_particles is not None:
+        n = args.n_particles
+    elif args.particles_per_mm3 is not None:
+        n = particle_count(cam, box, per_mm3=args.particles_per_mm3)
+    else:
+        n = particle_count(cam, box, per_lenslet=args.particles_per_lenslet)
+    if n < 1:
+        raise ConfigError(f"the seeding gives {n} particles: expected at least 1")
+    if n > 10 ** 7:
+        raise ResourceError(f"the seeding gives {n} particles: expected at most 10^7 (lower "
+                            "the density)")
+    return box, n
+
+
+def _flow_from_args(cam: CameraModel, args, box):
+    from plenopiv.synthetic import flows
+
+    dt = args.dt
+    vmax = args.max_displacement_mm * 1e-3 / dt      # m/s at the fastest point
+    half_y = 0.5 * (box.y[1] - box.y[0])
+    if args.flow == "uniform":
+        return flows.Uniform((vmax, 0.0, 0.0))
+    if args.flow == "oseen":
+        rc = 0.4 * half_y
+        # the peak of v_θ is 0.638 Γ/(2π r_c) at r = 1.121 r_c
+        gamma = vmax * 2 * math.pi * rc / 0.6382
+        return flows.LambOseen(circulation=gamma, core_radius=rc, axis=(0.0, 1.0, 0.0),
+                               centre=(0.0, 0.0, 0.5 * (box.z[0] + box.z[1])))
+    if args.flow == "hill":
+        return flows.HillVortex(radius=0.6 * half_y, speed=vmax / 1.5,
+                                centre=(0.0, 0.0, 0.5 * (box.z[0] + box.z[1])))
+    raise ConfigError(f"--flow {args.flow!r}: expected one of uniform, oseen, hill")
+
+
+def _simulate_particles(cam: CameraModel, args, rng) -> dict:
+    """``simulate particles`` or ``simulate pair``: seed the box, render, write; the summary."""
+    box, n = _seeding(cam, args, rng)
+    info = {"n_particles": n, "rays_per_particle": args.rays_per_particle,
+            "box_mm": [[v * 1e3 for v in box.x], [v * 1e3 for v in box.y],
+                       [v * 1e3 for v in box.z]]}
+    config = {"camera": cam.to_dict(), "simulate": {k: v for k, v in vars(args).items()
+                                                    if k not in ("func",)}}
+    render = _render_particle_image if args.kind == "particles" else _render_pair
+    return {**info, **render(cam, args, rng, box, n, info, config)}
+
+
+def _render_particle_image(cam: CameraModel, args, rng, box, n: int, info: dict,
+                           config: dict) -> dict:
+    """Render ``n`` random particles in ``box`` into one image and write it (TIFF/PNG/HDF5)."""
+    from plenopiv.products.hdf5 import write_h5
+    from plenopiv.products.images import write_image
+    from plenopiv.synthetic.images import particle_image
+    from plenopiv.synthetic.seeding import random_particles
+
+    out = _check_out(args.out, (".tif", ".tiff", ".png", ".h5"),
+                     inputs=_input_files(args.camera))
+    pos = random_particles(box, n, rng)
+    bar, tick = _progress_bar(n, "render particles", args.quiet or args.json)
+    with bar:
+        irr = particle_image(cam, pos, rays_per_particle=args.rays_per_particle,
+                             f_number=args.f_number, seed=args.seed, progress=tick,
+                             **_render_options(args))
+    img = _finish(irr, args, rng)
+    if out.suffix.lower() == ".h5":
+        write_h5(out, {"/image": img, "/truth/position_m": pos},
+                 units={"/truth/position_m": "m"}, config=config, kind="synthetic particles")
+    else:
+        write_image(out, img, metadata={"camera": cam.to_dict(), **info})
+    return {"out": str(out), **_image_summary(img)}
+
+
+def _render_pair(cam: CameraModel, args, rng, box, n: int, info: dict, config: dict) -> dict:
+    """Render a pair moved by the flow; write the HDF5 file with its truth, and the TIFFs."""
+    from plenopiv.products.hdf5 import write_h5
+    from plenopiv.products.images import write_image
+    from plenopiv.synthetic.seeding import simulate_pair
+
+    out = _check_out(args.out, (".h5",), inputs=_input_files(args.camera))
+    if not args.no_tiff:
+        for tag in "AB":
+            check_output_path(out.with_name(f"{out.stem}_{tag}.tif"),
+                              inputs=_input_files(args.camera), what=f"the {tag} TIFF beside --out")
+    flow = _flow_from_args(cam, args, box)
+    bar, tick = _progress_bar(2 * n, "render pair", args.quiet or args.json)
+    with bar:
+        pair = simulate_pair(cam, flow, dt=args.dt, box=box, n_particles=n, rng=rng,
+                             rays_per_particle=args.rays_per_particle, f_number=args.f_number,
+                             progress=tick)
+    ia, ib = _finish(pair.image_a, args, rng), _finish(pair.image_b, args, rng)
+    disp = pair.displacement
+    config["flow"] = {"kind": args.flow, **{k: (list(v) if isinstance(v, tuple) else v)
+                                            for k, v in vars(flow).items()}}
+    write_h5(out, {"/image_a": ia, "/image_b": ib, "/truth/position_a_m": pair.positions_a,
+                   "/truth/position_b_m": pair.positions_b, "/truth/displacement_m": disp,
+                   "/truth/intensity": pair.intensities},
+             attrs={"dt_s": args.dt, "flow": args.flow},
+             units={"/truth/position_a_m": "m", "/truth/position_b_m": "m",
+                    "/truth/displacement_m": "m"}, config=config, kind="synthetic pair")
+    tifs = []
+    if not args.no_tiff:
+        for tag, im in (("A", ia), ("B", ib)):
+            p = out.with_name(f"{out.stem}_{tag}.tif")
+            write_image(p, im, metadata={"camera": cam.to_dict(), "exposure": tag})
+            tifs.append(str(p))
+    return {"out": str(out), "tiff": tifs, "flow": args.flow, "dt_s": args.dt,
+            "max_displacement_mm": float(np.linalg.norm(disp, axis=1).max() * 1e3),
+            **_image_summary(ia)}

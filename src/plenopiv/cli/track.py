@@ -1,0 +1,58 @@
+"""``plenopiv track``: particle tracks of one pair (ray bundles matched with the PIV predictor)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from plenopiv.cli._common import _add_common, _check_out
+
+
+def add_parser(sub) -> None:
+    """Add ``track`` to the subcommands ``sub``."""
+    trk = sub.add_parser("track", help="particle tracks of one pair (ray bundles + PIV predictor)")
+    trk.add_argument("calibration", help="calibration product (.h5) from plenopiv calibrate")
+    trk.add_argument("image_a", help="first exposure: TIFF, PNG or file.h5:/dataset")
+    trk.add_argument("image_b", help="second exposure")
+    trk.add_argument("--config", required=True, help="experiment TOML ([volume], [tracking], ...)")
+    trk.add_argument("--out", required=True,
+                     help="tracks product (.h5); .vtp and _binned.h5 beside it")
+    trk.add_argument("--volume-a", help="reuse this volume product of image A (.h5)")
+    trk.add_argument("--volume-b", help="reuse this volume product of image B (.h5)")
+    trk.add_argument("--vectors", help="reuse this vectors product of the pair (.h5)")
+    _add_common(trk)
+    trk.set_defaults(func=cmd_track)
+
+
+def cmd_track(args) -> dict:
+    """Particle tracks of one pair: ray-bundle positions matched with the PIV predictor."""
+    from plenopiv.config import load_experiment
+    from plenopiv.pipeline import experiment_calibration
+    from plenopiv.products.images import read_image
+    from plenopiv.products.volume import load_volume
+    from plenopiv.tracking.pair import track_images
+    from plenopiv.tracking.products import load_vectors, save_track_products
+
+    out = _check_out(args.out, (".h5",))
+    exp = load_experiment(args.config)
+    cal = experiment_calibration(exp, args.calibration)
+    ia, ib = read_image(args.image_a), read_image(args.image_b)
+    t0 = time.perf_counter()
+    va = load_volume(args.volume_a) if args.volume_a else None
+    vb = load_volume(args.volume_b) if args.volume_b else None
+    vec = load_vectors(args.vectors) if args.vectors else None
+    tracks, va, vb, vec, timings = track_images(cal, ia, ib, exp, volume_a=va, volume_b=vb,
+                                                vectors=vec)
+    cfg = {**exp.to_dict(), "calibration": str(args.calibration),
+           "image_a": str(args.image_a), "image_b": str(args.image_b)}
+    paths = save_track_products(tracks, vec, out, config=cfg, vtk=exp.output.vtk)
+    d = tracks.displacement
+    return {"command": "track", "out": str(out), "n_tracks": len(tracks),
+            "n_particles_a": len(va.particle_position), "n_particles_b": len(vb.particle_position),
+            "counts": tracks.counts, "dt_s": tracks.dt,
+            "median_uncertainty_m": (np.median(tracks.uncertainty, axis=0).tolist()
+                                     if len(tracks) else None),
+            "max_displacement_m": np.abs(d).max(axis=0).tolist() if len(d) else None,
+            "files": paths, "timings_s": {k: round(v, 3) for k, v in timings.items()},
+            "seconds": round(time.perf_counter() - t0, 3)}

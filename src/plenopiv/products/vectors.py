@@ -1,0 +1,213 @@
+"""The vectors product: a 3-D vector field with its quality and uncertainty, as HDF5 and VTK.
+
+``/u, /v, /w`` (z, y, x) in metres or m/s, their uncertainties, per-vector quality
+(:data:`QUALITY`) and CF dimension scales ``/x, /y, /z`` (DESIGN.md §7); a ``.vti`` beside
+it for ParaView.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from plenopiv.corrections import DepthCorrection
+from plenopiv.errors import ConfigError
+from plenopiv.products.files import atomic_path
+from plenopiv.products.hdf5 import cf_axes, write_h5
+
+
+def check_dt(dt, what: str = "dt") -> float | None:
+    """``dt`` (seconds between the exposures) as a float; None stays None (displacements).
+
+    Raises :class:`~plenopiv.errors.ConfigError` unless it is a finite number > 0.
+    """
+    if dt is None:
+        return None
+    if isinstance(dt, bool) or not isinstance(dt, (int, float, np.integer, np.floating)):
+        raise ConfigError(f"{what} = {dt!r}: expected a time in seconds (a number > 0) or None")
+    if not (math.isfinite(float(dt)) and dt > 0):
+        raise ConfigError(f"{what} = {float(dt)!r} s: expected a finite time > 0 between the "
+                          "two exposures")
+    return float(dt)
+
+
+#: Per-vector quality arrays of the vectors product: name -> (dtype, units, long name).
+QUALITY = {
+    "valid": (np.int8, "1", "1: valid vector; 0: rejected (see flag)"),
+    "flag": (np.uint8, "1", "why a vector was rejected, sum of 1: normalised median test, "
+             "2: empty window (no particles), 4: window centre in the volume mask; 0: valid"),
+    "replaced": (np.int8, "1", "1: rejected vector filled from its neighbours"),
+    "peak_ratio": (np.float32, "1", "correlation peak ratio, primary over secondary peak"),
+    "snr": (np.float32, "1", "correlation peak ratio (same as peak_ratio)"),
+    "peak_height": (np.float32, "1", "correlation peak height (correlation coefficient)"),
+}
+
+
+@dataclass(frozen=True)
+class VectorResult:
+    """A 3-D vector field in physical coordinates.
+
+    Attributes
+    ----------
+    x, y, z : 1-D arrays
+        Window centres, metres; z is the physical depth (depth corrections applied).
+    u, v, w : (nz, ny, nx)
+        Displacement along x, y, z in metres (w corrected to physical depth); NaN where a
+        rejected vector was not replaced or is masked.
+    valid : (nz, ny, nx) bool
+    snr : (nz, ny, nx)
+        Correlation peak ratio (primary over secondary peak); also :attr:`peak_ratio`.
+    dt : float or None
+        Seconds between exposures; velocity = displacement / dt.
+    n_replaced : int
+    peak_height : (nz, ny, nx)
+        Correlation peak height (correlation coefficient).
+    flag : (nz, ny, nx) uint8
+        Rejection reasons (bits of :mod:`plenopiv.piv`: 1 median test, 2 empty, 4 masked).
+    replaced : (nz, ny, nx) bool
+        Rejected vectors filled from their neighbours.
+    u_uncertainty, v_uncertainty, w_uncertainty : (nz, ny, nx)
+        Standard uncertainty of u, v, w, metres (w's in physical depth).
+    uncertainty_method : str
+        ``"response"`` or ``"correlation"`` (see :mod:`plenopiv.piv.uncertainty`).
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+    valid: np.ndarray
+    snr: np.ndarray
+    dt: float | None = None
+    n_replaced: int = 0
+    peak_height: np.ndarray | None = None
+    flag: np.ndarray | None = None
+    replaced: np.ndarray | None = None
+    u_uncertainty: np.ndarray | None = None
+    v_uncertainty: np.ndarray | None = None
+    w_uncertainty: np.ndarray | None = None
+    uncertainty_method: str = "correlation"
+
+    def __post_init__(self):
+        object.__setattr__(self, "dt", check_dt(self.dt, "VectorResult dt"))
+        shape = np.shape(self.u)
+        valid = np.asarray(self.valid, bool)
+        defaults = {"peak_height": np.full(shape, np.nan),
+                    "flag": np.where(valid, 0, 1).astype(np.uint8),
+                    "replaced": ~valid & np.isfinite(np.asarray(self.u, float)),
+                    "u_uncertainty": np.full(shape, np.nan),
+                    "v_uncertainty": np.full(shape, np.nan),
+                    "w_uncertainty": np.full(shape, np.nan)}
+        for name, value in defaults.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
+
+    @property
+    def peak_ratio(self) -> np.ndarray:
+        """Correlation peak ratio (the same array as ``snr``)."""
+        return self.snr
+
+    @classmethod
+    def from_field(cls, field, correction: DepthCorrection, dt=None, *,
+                   uncertainty_method: str = "correlation") -> VectorResult:
+        """Convert a :class:`plenopiv.piv.VectorField` of effective coordinates."""
+        scale = abs(correction.scale)
+        return cls(np.asarray(field.x), np.asarray(field.y), correction.depth(field.z),
+                   np.asarray(field.u), np.asarray(field.v), correction.depth(field.w),
+                   np.asarray(field.valid), np.asarray(field.snr), dt, int(field.n_replaced),
+                   peak_height=np.asarray(field.correlation), flag=np.asarray(field.flag),
+                   replaced=np.asarray(field.replaced),
+                   u_uncertainty=np.asarray(field.u_uncertainty),
+                   v_uncertainty=np.asarray(field.v_uncertainty),
+                   w_uncertainty=np.asarray(field.w_uncertainty) * scale,
+                   uncertainty_method=uncertainty_method)
+
+    def _quality(self) -> dict:
+        return {"valid": self.valid, "flag": self.flag, "replaced": self.replaced,
+                "peak_ratio": self.snr, "snr": self.snr, "peak_height": self.peak_height}
+
+    def save(self, path: str | Path, *, config: dict | None = None, vtk: bool = False,
+             extra_attrs=None) -> list[Path]:
+        """Write the vectors product (CF style HDF5), and a ``.vti`` for ParaView if asked.
+
+        ``/u, /v, /w`` are displacements in metres, or velocities in m/s when ``dt`` is set
+        (their ``units`` attribute says which); ``/u_uncertainty`` etc. their standard
+        uncertainties in the same units; per-vector quality in ``/valid``, ``/flag``,
+        ``/replaced``, ``/peak_ratio`` (also ``/snr``) and ``/peak_height``.
+        """
+        scale, unit = (1.0, "m") if self.dt is None else (1.0 / self.dt, "m s-1")
+        names = {"u": "x", "v": "y", "w": "z"}
+        ds = {"/x": self.x, "/y": self.y, "/z": self.z}
+        units = {"/x": "m", "/y": "m", "/z": "m"}
+        for name, (dtype, u, _) in QUALITY.items():
+            ds[f"/{name}"] = np.asarray(self._quality()[name]).astype(dtype)
+            units[f"/{name}"] = u
+        for comp in "uvw":
+            ds[f"/{comp}"] = (getattr(self, comp) * scale).astype(np.float32)
+            units[f"/{comp}"] = unit
+            ds[f"/{comp}_uncertainty"] = (getattr(self, f"{comp}_uncertainty")
+                                          * scale).astype(np.float32)
+            units[f"/{comp}_uncertainty"] = unit
+        attrs = {"dt_s": np.nan if self.dt is None else self.dt,
+                 "quantity": "displacement" if self.dt is None else "velocity",
+                 "n_replaced": self.n_replaced, "Conventions": "CF-1.8",
+                 "uncertainty_method": self.uncertainty_method,
+                 **(extra_attrs or {})}
+        # the .vti first, then the HDF5 file: its `complete` mark (extra_attrs) is the last
+        # thing written, inside its temporary, so a failed write leaves nothing marked
+        vti = self.save_vtk(Path(path).with_suffix("")) if vtk else None
+        p = write_h5(path, ds, attrs=attrs, units=units, config=config, kind="vectors",
+                     finalize=lambda fh: _cf_dimensions(fh, names))
+        return [p] if vti is None else [p, vti]
+
+    def save_vtk(self, stem: Path) -> Path:
+        """Write ``stem.vti`` (ParaView image data) atomically and return its path.
+
+        It holds the vector field, its components' uncertainties and the per-vector quality
+        (same names as in the HDF5 product).
+        """
+        from pyevtk.hl import imageToVTK
+        def spacing(a):
+            return float(a[1] - a[0]) if len(a) > 1 else 1.0
+
+        def point(a):   # VTK point data is x-fastest: transpose [z, y, x] -> [x, y, z]
+            return np.ascontiguousarray(np.asarray(a, np.float64).transpose(2, 1, 0))
+
+        origin = (float(self.x[0]), float(self.y[0]), float(self.z[0]))
+        sp = (spacing(self.x), spacing(self.y), spacing(self.z))
+        scale = 1.0 if self.dt is None else 1.0 / self.dt
+        data = {"displacement" if self.dt is None else "velocity": tuple(
+            point(getattr(self, c) * scale) for c in "uvw")}
+        for c in "uvw":
+            data[f"{c}_uncertainty"] = point(getattr(self, f"{c}_uncertainty") * scale)
+        for name, value in self._quality().items():
+            if name != "snr":
+                data[name] = point(np.asarray(value, np.float64))
+        final = Path(str(stem) + ".vti")
+        with atomic_path(final) as tmp:
+            # pyevtk appends ".vti": it writes TMP.vti, which atomic_path removes on failure
+            written = imageToVTK(str(tmp), origin=origin, spacing=sp, pointData=data)
+            Path(written).replace(tmp)
+        return final
+
+
+def _cf_dimensions(fh, names) -> None:
+    """Attach the 1-D coordinates of an open vectors file as HDF5 dimension scales.
+
+    xarray and netCDF readers then see ``x``, ``y``, ``z`` as the coordinates.
+    """
+    cf_axes(fh)
+    for name in ("u", "v", "w", *(f"{c}_uncertainty" for c in "uvw"), *QUALITY):
+        for dim, axis in enumerate(("z", "y", "x")):
+            fh[name].dims[dim].attach_scale(fh[axis])
+    for comp, axis in names.items():
+        fh[comp].attrs["long_name"] = f"{fh.attrs['quantity']} along {axis}"
+        fh[f"{comp}_uncertainty"].attrs["long_name"] = (
+            f"standard uncertainty of the {fh.attrs['quantity']} along {axis}")
+    for name, (_, _, long_name) in QUALITY.items():
+        fh[name].attrs["long_name"] = long_name
