@@ -51,15 +51,22 @@ def test_presets_refuses_bad_input_with_exit_2(argv, message, tmp_path, monkeypa
     ["simulate", "alignment", "configs/cameras/small_m1.toml", "--out", "a.tif"],
 ])
 def test_a_former_configs_cameras_path_names_the_preset(argv, tmp_path, monkeypatch, capsys):
-    """configs/cameras/ holds no copy any more: the old path is refused, naming the preset."""
+    """A preset's file named by a path that does not exist here (configs/cameras/ typed
+    outside the repository) is refused with an error that names the preset."""
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "the preset 'small_m1' ships inside plenopiv; name it 'small_m1'" in err
 
 
-def test_configs_cameras_holds_no_second_copy():
-    assert not list((REPO / "configs" / "cameras").glob("*.toml"))
+def test_configs_cameras_are_links_to_the_packaged_presets():
+    """One home: every configs/cameras/*.toml is a link to the preset inside the package."""
+    from plenopiv.camera import PRESET_DIR, preset_names
+
+    links = sorted((REPO / "configs" / "cameras").glob("*.toml"))
+    assert sorted(p.stem for p in links) == sorted(preset_names())
+    for p in links:
+        assert p.is_symlink() and p.resolve() == (PRESET_DIR / p.name).resolve()
 
 
 def test_every_configs_path_in_readme_exists():
