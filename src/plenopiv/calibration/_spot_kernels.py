@@ -22,6 +22,16 @@ import numpy as np
 
 
 @numba.njit(cache=True)
+def _window_bounds(cy, cx, reach, n_rows, n_cols):
+    """Rows ``r0..r1`` and columns ``c0..c1`` within ``reach`` px of ``(cy, cx)``, in the image."""
+    r0 = max(int(math.ceil(cy - reach)), 0)
+    r1 = min(int(math.floor(cy + reach)), n_rows - 1)
+    c0 = max(int(math.ceil(cx - reach)), 0)
+    c1 = min(int(math.floor(cx + reach)), n_cols - 1)
+    return r0, r1, c0, c1
+
+
+@numba.njit(cache=True)
 def _peak_3x3_mean(image, r0, r1, c0, c1, cy, cx, radius2):
     """Largest 3 x 3 mean among the pixels of the window (hot-pixel-robust peak height)."""
     n_rows, n_cols = image.shape
@@ -96,10 +106,7 @@ def centroid_refine_numba(image, start, radius, threshold, max_iter, tol):
         p = 0.0
         level = 0.0
         for it in range(max_iter):
-            r0 = max(int(math.ceil(cy - radius)), 0)
-            r1 = min(int(math.floor(cy + radius)), n_rows - 1)
-            c0 = max(int(math.ceil(cx - radius)), 0)
-            c1 = min(int(math.floor(cx + radius)), n_cols - 1)
+            r0, r1, c0, c1 = _window_bounds(cy, cx, radius, n_rows, n_cols)
             if r0 > r1 or c0 > c1:
                 ok = False
                 break
@@ -522,15 +529,16 @@ def _solve3(a, b):
 
 
 @numba.njit(cache=True)
-def _annulus_plane(image, cy, cx, r0, r1, c0, c1, bg_inner, bg_outer):
+def _annulus_plane(image, cy, cx, r0, r1, c0, c1, bg_inner, bg_outer, a, rhs):
     """Background plane ``b0 + br dr + bc dc`` fitted to the annulus about ``(cy, cx)``.
 
     The pixels of rows ``r0..r1`` and columns ``c0..c1`` with ``bg_inner < d <= bg_outer``
     (px) are fitted by least squares; with fewer than 6 (or a singular system) the level is
-    their mean and the slopes zero; with none, all three are zero.
+    their mean and the slopes zero; with none, all three are zero. ``a`` (3 x 3) and ``rhs``
+    (3) are work space, overwritten.
     """
-    a = np.zeros((3, 3))
-    rhs = np.zeros(3)
+    a[:, :] = 0.0
+    rhs[:] = 0.0
     npx = 0
     for r in range(r0, r1 + 1):
         dr = r - cy
@@ -631,20 +639,20 @@ def window_centroid_numba(image, start, radius, bg_inner, bg_outer, max_iter, to
     reach = max(radius + 0.5, bg_outer)
     use_bg = bg_outer > bg_inner
     for k in numba.prange(n):
+        a = np.zeros((3, 3))
+        rhs = np.zeros(3)
         cy = start[k, 0]
         cx = start[k, 1]
         ok = False
         for _it in range(max_iter):
-            r0 = max(int(math.ceil(cy - reach)), 0)
-            r1 = min(int(math.floor(cy + reach)), n_rows - 1)
-            c0 = max(int(math.ceil(cx - reach)), 0)
-            c1 = min(int(math.floor(cx + reach)), n_cols - 1)
+            r0, r1, c0, c1 = _window_bounds(cy, cx, reach, n_rows, n_cols)
             if r0 > r1 or c0 > c1:
                 ok = False
                 break
             b0, br, bc = 0.0, 0.0, 0.0
             if use_bg:
-                b0, br, bc = _annulus_plane(image, cy, cx, r0, r1, c0, c1, bg_inner, bg_outer)
+                b0, br, bc = _annulus_plane(image, cy, cx, r0, r1, c0, c1, bg_inner, bg_outer,
+                                            a, rhs)
             s0, sr, sc = _window_moments(image, cy, cx, r0, r1, c0, c1, radius, b0, br, bc)
             if not s0 > 0.0:
                 ok = False
