@@ -27,10 +27,11 @@ import argparse
 import dataclasses
 import os
 import resource
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
-from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 from scipy.special import erf
 
@@ -39,6 +40,10 @@ from plenopiv.calibration.pipeline import calibrate
 from plenopiv.calibration.spots import detect_spots, fit_lattice
 from plenopiv.camera import load_camera
 from plenopiv.synthetic.images import finish_image, focal_point_image
+
+# the single-spot renderer the estimator tests use (tests/independent_render.py)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import independent_render  # noqa: E402
 
 SHAPE = (3280, 4904)  # sensor rows, cols (px)
 LENSLETS = (193, 287)  # lattice rows, cols
@@ -51,26 +56,6 @@ DARK = 100.0
 
 
 # ---- 1. bias against the sub-pixel phase -------------------------------------------------------
-
-
-def disc_spot(centre, diameter, blur, splat, size=25, n=120):
-    """A uniform disc of ``n x n`` rays (clipped), bilinear or pixel-integrated (the PSF
-    before the pixels, by 4x supersampling), on a ``size`` x ``size`` image."""
-    u = (np.arange(n) - (n - 1) / 2) / n * diameter
-    y, x = np.meshgrid(u, u, indexing="ij")
-    keep = x * x + y * y <= (diameter / 2) ** 2
-    s = 1 if splat == "bilinear" else 4
-    r = (y[keep] + centre[0] + 0.5) * s - 0.5
-    c = (x[keep] + centre[1] + 0.5) * s - 0.5
-    img = np.zeros((size * s, size * s))
-    r0, c0 = np.floor(r).astype(int), np.floor(c).astype(int)
-    fr, fc = r - r0, c - c0
-    for dr, dc, w in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc),
-                      (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
-        np.add.at(img, (r0 + dr, c0 + dc), w)
-    if blur > 0:
-        img = ndi.gaussian_filter(img, blur * s, mode="constant", truncate=6.0)
-    return img.reshape(size, s, size, s).sum(axis=(1, 3))
 
 
 def estimators(img, start, diameter, blur):
@@ -100,7 +85,7 @@ def bias_table(rng):
                 noisy = {}
                 for phase in phases:
                     true = np.array([12.0 + phase, 12.0 + 0.37 * phase])
-                    img = disc_spot(true, diameter, blur, splat)
+                    img = independent_render.disc_spot(true, diameter, blur, splat)
                     got = estimators(img, true[None] + 0.2, diameter, blur)
                     for k, v in got.items():
                         worst[k] = max(worst.get(k, 0.0), float(np.abs(v - true).max()))

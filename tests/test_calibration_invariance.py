@@ -157,28 +157,6 @@ def test_poisson_noise_error_is_the_fits_own_sigma(small_camera):
 # ---- the estimator itself: no bias against the sub-pixel phase ---------------------------------
 
 
-def _disc_spot(centre, diameter, blur, splat, size=25, n=120):
-    """One spot: a uniform disc of rays, splatted bilinearly or box-integrated, Gaussian PSF
-    before the pixels (by 4x supersampling for the box)."""
-    from scipy import ndimage
-
-    u = (np.arange(n) - (n - 1) / 2) / n * diameter
-    y, x = np.meshgrid(u, u, indexing="ij")
-    keep = x * x + y * y <= (diameter / 2) ** 2
-    s = 1 if splat == "bilinear" else 4
-    r = (y[keep] + centre[0] + 0.5) * s - 0.5
-    c = (x[keep] + centre[1] + 0.5) * s - 0.5
-    img = np.zeros((size * s, size * s))
-    r0, c0 = np.floor(r).astype(int), np.floor(c).astype(int)
-    fr, fc = r - r0, c - c0
-    for dr, dc, w in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc),
-                      (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
-        np.add.at(img, (r0 + dr, c0 + dc), w)
-    if blur > 0:
-        img = ndimage.gaussian_filter(img, blur * s, mode="constant", truncate=6.0)
-    return img.reshape(size, s, size, s).sum(axis=(1, 3))
-
-
 @pytest.mark.parametrize("splat, blurs, limit", [("bilinear", (0.0, 0.5, 1.0), 3e-4),
                                                  ("pixel", (0.5, 1.0), 6e-4)])
 @pytest.mark.parametrize("diameter", [1.0, 2.5, 4.0])
@@ -188,7 +166,7 @@ def test_window_centroid_has_no_phase_bias(splat, blurs, limit, diameter):
         radius = 1.75 * (diameter / 2 + 2.5 * blur + 0.5) + 0.5
         for phase in np.linspace(0.0, 1.0, 9)[:-1]:
             true = np.array([12.0 + phase, 12.0 + 0.37 * phase])
-            img = _disc_spot(true, diameter, blur, splat)
+            img = independent_render.disc_spot(true, diameter, blur, splat)
             got, *_ = K.window_centroid_numba(img, true[None] + 0.2, radius, radius + 0.5,
                                               radius + 2.5, 50, 1e-9)
             worst_window = max(worst_window, float(np.abs(got[0] - true).max()))
@@ -201,7 +179,7 @@ def test_window_centroid_has_no_phase_bias(splat, blurs, limit, diameter):
 
 def test_window_centroid_ignores_a_background_plane(rng):
     true = np.array([12.31, 11.77])
-    spot = _disc_spot(true, 3.0, 0.5, "bilinear") * 1000.0
+    spot = independent_render.disc_spot(true, 3.0, 0.5, "bilinear") * 1000.0
     rr, cc = np.indices(spot.shape)
     img = spot + 50.0 + 3.0 * (rr - 12) - 2.0 * (cc - 12)
     got, flux, bg = K.window_centroid_numba(img, true[None] + 0.3, 4.5, 5.0, 7.0, 50, 1e-10)

@@ -122,3 +122,31 @@ def test_calibration_product_load_errors(tmp_path):
     (tmp_path / "bad.h5").write_bytes(b"not hdf5")
     with pytest.raises(CalibrationError, match="corrupt"):
         Calibration.load(tmp_path / "bad.h5")
+
+
+def test_calibration_keeps_si_in_its_camera_alone(tmp_path, small_camera):
+    import h5py
+
+    cal = Calibration.from_camera(small_camera.with_image_distance(0.21))
+    assert cal.image_distance == cal.camera.image_distance == 0.21
+    assert cal.effective_camera is cal.camera
+    # another description of the camera (its nominal S_i) takes the calibrated one
+    moved = cal.with_camera(small_camera)
+    assert small_camera.image_distance == 0.2 and moved.image_distance == 0.21
+    assert np.array_equal(moved.focal_spot_px, cal.focal_spot_px)
+    # the product's S_i is its image_distance_m attribute, read back to the bit, also from a
+    # file written before the camera attribute whose config camera gives no S_i
+    path = cal.save(tmp_path / "cal.h5")
+    assert Calibration.load(path).image_distance == 0.21
+    with h5py.File(path, "r+") as fh:
+        del fh.attrs["camera"]
+        cfg = json.loads(fh.attrs["config"])
+        del cfg["camera"]["main_lens"]["image_distance_mm"]
+        fh.attrs["config"] = json.dumps(cfg)
+    old = Calibration.load(path)
+    assert old.image_distance == 0.21 and old.camera.main_lens.focal_length == 0.135
+    with pytest.raises(CalibrationError, match="no image distance"):
+        Calibration(camera=small_camera.replace(
+            main_lens=dataclasses.replace(small_camera.main_lens, image_distance=None)),
+            centre_px=cal.centre_px, focal_spot_px=cal.focal_spot_px,
+            grid_index=cal.grid_index, method="model")

@@ -310,7 +310,8 @@ class ExternalInterface:
 
     def __post_init__(self):
         _require(self.refractive_index >= 1.0,
-                 f"[external_interface] refractive_index = {self.refractive_index:g}: expected >= 1")
+                 f"[external_interface] refractive_index = {self.refractive_index:g}: "
+                 "expected >= 1")
         _require(self.outside_index >= 1.0,
                  f"[external_interface] outside_index = {self.outside_index:g}: expected >= 1")
         _require(self.medium_depth >= 0,
@@ -541,8 +542,7 @@ _BRANCH_WORDS = {"float": "a number", "int": "an integer", "str": "a string",
 
 
 def _branch_text(part: str) -> str | None:
-    """What a pydantic union branch in an error location expects, or None if ``part`` is a
-    field name."""
+    """What a pydantic union branch in an error location expects; None for a field name."""
     if part in _BRANCH_WORDS:
         return _BRANCH_WORDS[part]
     if "[" in part:

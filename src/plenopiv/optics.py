@@ -1,5 +1,7 @@
-"""Geometric optics of the plenoptic camera: ray transfer matrices, thin-lens relations,
-effective (air-equivalent) distances, focal-spot relations and calibration uncertainties.
+"""Geometric optics of the plenoptic camera: matrices, thin lens, distances, focal spots.
+
+Ray transfer matrices, thin-lens relations, effective (air-equivalent) distances, focal-spot
+relations and calibration uncertainties.
 
 All lengths in metres, angles in radians. Equation numbers refer to the thesis
 "Determination of the Image Distance in a Plenoptic Camera" (DESIGN.md), with the misprint of
@@ -165,7 +167,7 @@ def image_distance_from_spot_scale(scale, sensor_distance, *, back_side="physica
 
 
 def chief_ray_tangent(rho, air_path, thickness, n, iterations=30):
-    """tan θ of the ray crossing ``rho`` over air ``air_path`` then ``thickness`` of index n.
+    """Tangent of the ray crossing ``rho`` over air ``air_path`` then ``thickness`` of index n.
 
     Solves rho = a tanθ + t tan(asin(sinθ/n)) by Newton's method, vectorised (metres).
     """

@@ -737,6 +737,4 @@ def experiment_calibration(experiment, calibration_path) -> Calibration:
             f"{_describe(cal.camera, cal.image_distance)} but the experiment's camera is "
             f"{_describe(cam, nominal)}: {'; '.join(diffs)}. Use this camera's calibration "
             "(plenopiv calibrate) or the experiment file of the calibrated camera")
-    from dataclasses import replace
-
-    return replace(cal, camera=cam.with_image_distance(cal.image_distance))
+    return cal.with_camera(cam)

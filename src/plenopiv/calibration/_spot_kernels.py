@@ -1,6 +1,6 @@
 """Numba kernels for sub-pixel spot centres, each with a plain-NumPy twin.
 
-The public wrapper :func:`plenopiv.calibration.spots.detect_spots` validates the image and
+The public wrapper :func:`plenopiv.calibration.spot_detection.detect_spots` validates the image and
 resolves every option; these kernels take only contiguous arrays and scalars. The twins
 (``*_numpy``) compute the same numbers with vectorised NumPy and exist so that the tests can
 check the kernels against an independent implementation.
@@ -19,6 +19,16 @@ import numpy as np
 # ----------------------------------------------------------------------------------------------
 # Iterative thresholded centroid in a circular window
 # ----------------------------------------------------------------------------------------------
+
+
+@numba.njit(cache=True)
+def _window_bounds(cy, cx, reach, n_rows, n_cols):
+    """Rows ``r0..r1`` and columns ``c0..c1`` within ``reach`` px of ``(cy, cx)``, in the image."""
+    r0 = max(int(math.ceil(cy - reach)), 0)
+    r1 = min(int(math.floor(cy + reach)), n_rows - 1)
+    c0 = max(int(math.ceil(cx - reach)), 0)
+    c1 = min(int(math.floor(cx + reach)), n_cols - 1)
+    return r0, r1, c0, c1
 
 
 @numba.njit(cache=True)
@@ -96,10 +106,7 @@ def centroid_refine_numba(image, start, radius, threshold, max_iter, tol):
         p = 0.0
         level = 0.0
         for it in range(max_iter):
-            r0 = max(int(math.ceil(cy - radius)), 0)
-            r1 = min(int(math.floor(cy + radius)), n_rows - 1)
-            c0 = max(int(math.ceil(cx - radius)), 0)
-            c1 = min(int(math.floor(cx + radius)), n_cols - 1)
+            r0, r1, c0, c1 = _window_bounds(cy, cx, radius, n_rows, n_cols)
             if r0 > r1 or c0 > c1:
                 ok = False
                 break
@@ -268,6 +275,92 @@ def _solve5(a, b):
 
 
 @numba.njit(cache=True)
+def _disc_pixels(image, rc, cc, h, radius2, pr, pc, pv):
+    """Gather the pixels within ``sqrt(radius2)`` of pixel ``(rc, cc)`` into ``pr, pc, pv``.
+
+    Returns their number and the smallest and largest value among them.
+    """
+    n_rows, n_cols = image.shape
+    npx = 0
+    vmin = np.inf
+    vmax = -np.inf
+    for r in range(max(rc - h, 0), min(rc + h, n_rows - 1) + 1):
+        for c in range(max(cc - h, 0), min(cc + h, n_cols - 1) + 1):
+            if (r - rc) * (r - rc) + (c - cc) * (c - cc) <= radius2:
+                pr[npx] = r
+                pc[npx] = c
+                v = image[r, c]
+                pv[npx] = v
+                vmin = min(vmin, v)
+                vmax = max(vmax, v)
+                npx += 1
+    return npx, vmin, vmax
+
+
+@numba.njit(cache=True)
+def _gauss_cost(p, pr, pc, pv, npx):
+    """Sum of squared residuals of the Gaussian ``p = (A, row0, col0, s, B)`` on the pixels."""
+    cost = 0.0
+    for i in range(npx):
+        dr = pr[i] - p[1]
+        dc = pc[i] - p[2]
+        res = p[0] * math.exp(-(dr * dr + dc * dc) / (2.0 * p[3] * p[3])) + p[4] - pv[i]
+        cost += res * res
+    return cost
+
+
+@numba.njit(cache=True)
+def _gauss_normal_equations(p, pr, pc, pv, npx, jac):
+    """``J^T J`` (5 x 5) and ``J^T r`` (5) of the Gaussian ``p`` on the pixels."""
+    jtj = np.zeros((5, 5))
+    jtr = np.zeros(5)
+    for i in range(npx):
+        dr = pr[i] - p[1]
+        dc = pc[i] - p[2]
+        s2 = p[3] * p[3]
+        d2 = dr * dr + dc * dc
+        e = math.exp(-d2 / (2.0 * s2))
+        res = p[0] * e + p[4] - pv[i]
+        jac[i, 0] = e
+        jac[i, 1] = p[0] * e * dr / s2
+        jac[i, 2] = p[0] * e * dc / s2
+        jac[i, 3] = p[0] * e * d2 / (s2 * p[3])
+        jac[i, 4] = 1.0
+        for a in range(5):
+            jtr[a] += jac[i, a] * res
+            for b in range(5):
+                jtj[a, b] += jac[i, a] * jac[i, b]
+    return jtj, jtr
+
+
+@numba.njit(cache=True)
+def _lm_step(p, cost, lam, jtj, jtr, pr, pc, pv, npx):
+    """One Levenberg-Marquardt step, the damping ``lam`` raised tenfold until the cost falls.
+
+    Returns the new parameters, cost and damping, whether a step was taken (at most 10
+    tries) and whether it moved the centre by less than 1e-6 px.
+    """
+    for _try in range(10):
+        a_mat = jtj.copy()
+        for a in range(5):
+            a_mat[a, a] += lam * jtj[a, a]
+        step = _solve5(a_mat, -jtr)
+        if not np.all(np.isfinite(step)):
+            lam *= 10.0
+            continue
+        q = p + step
+        if q[3] <= 0.0:
+            lam *= 10.0
+            continue
+        new_cost = _gauss_cost(q, pr, pc, pv, npx)
+        if new_cost <= cost:
+            converged = abs(step[1]) + abs(step[2]) < 1e-6
+            return q, new_cost, max(lam / 10.0, 1e-12), True, converged
+        lam *= 10.0
+    return p, cost, lam, False, False
+
+
+@numba.njit(cache=True)
 def gaussian_fit_numba(image, start, sigma0, radius, max_iter):
     """Levenberg-Marquardt fit of ``A exp(-|x - x0|^2 / (2 s^2)) + B`` to each spot (kernel).
 
@@ -294,9 +387,7 @@ def gaussian_fit_numba(image, start, sigma0, radius, max_iter):
         NaN where the fit failed (too few pixels, singular system, centre left the window).
     """
     n = start.shape[0]
-    n_rows, n_cols = image.shape
     out = np.full((n, 5), np.nan)
-    radius2 = radius * radius
     h = int(math.ceil(radius))
     npx_max = (2 * h + 1) * (2 * h + 1)
     pr = np.empty(npx_max)
@@ -306,76 +397,16 @@ def gaussian_fit_numba(image, start, sigma0, radius, max_iter):
     for k in range(n):
         rc = int(math.floor(start[k, 0] + 0.5))
         cc = int(math.floor(start[k, 1] + 0.5))
-        npx = 0
-        vmin = np.inf
-        vmax = -np.inf
-        for r in range(max(rc - h, 0), min(rc + h, n_rows - 1) + 1):
-            for c in range(max(cc - h, 0), min(cc + h, n_cols - 1) + 1):
-                if (r - rc) * (r - rc) + (c - cc) * (c - cc) <= radius2:
-                    pr[npx] = r
-                    pc[npx] = c
-                    v = image[r, c]
-                    pv[npx] = v
-                    vmin = min(vmin, v)
-                    vmax = max(vmax, v)
-                    npx += 1
+        npx, vmin, vmax = _disc_pixels(image, rc, cc, h, radius * radius, pr, pc, pv)
         if npx < 8:
             continue
         p = np.array([vmax - vmin, start[k, 0], start[k, 1], sigma0[k], vmin])
         lam = 1e-3
-        cost = 0.0
-        for i in range(npx):
-            dr = pr[i] - p[1]
-            dc = pc[i] - p[2]
-            res = p[0] * math.exp(-(dr * dr + dc * dc) / (2.0 * p[3] * p[3])) + p[4] - pv[i]
-            cost += res * res
-        converged = False
+        cost = _gauss_cost(p, pr, pc, pv, npx)
         for _ in range(max_iter):
-            jtj = np.zeros((5, 5))
-            jtr = np.zeros(5)
-            for i in range(npx):
-                dr = pr[i] - p[1]
-                dc = pc[i] - p[2]
-                s2 = p[3] * p[3]
-                d2 = dr * dr + dc * dc
-                e = math.exp(-d2 / (2.0 * s2))
-                res = p[0] * e + p[4] - pv[i]
-                jac[i, 0] = e
-                jac[i, 1] = p[0] * e * dr / s2
-                jac[i, 2] = p[0] * e * dc / s2
-                jac[i, 3] = p[0] * e * d2 / (s2 * p[3])
-                jac[i, 4] = 1.0
-                for a in range(5):
-                    jtr[a] += jac[i, a] * res
-                    for b in range(5):
-                        jtj[a, b] += jac[i, a] * jac[i, b]
-            improved = False
-            for _try in range(10):
-                a_mat = jtj.copy()
-                for a in range(5):
-                    a_mat[a, a] += lam * jtj[a, a]
-                step = _solve5(a_mat, -jtr)
-                if not np.all(np.isfinite(step)):
-                    lam *= 10.0
-                    continue
-                q = p + step
-                if q[3] <= 0.0:
-                    lam *= 10.0
-                    continue
-                new_cost = 0.0
-                for i in range(npx):
-                    dr = pr[i] - q[1]
-                    dc = pc[i] - q[2]
-                    res = q[0] * math.exp(-(dr * dr + dc * dc) / (2.0 * q[3] * q[3])) + q[4] - pv[i]
-                    new_cost += res * res
-                if new_cost <= cost:
-                    converged = abs(step[1]) + abs(step[2]) < 1e-6
-                    p = q
-                    cost = new_cost
-                    lam = max(lam / 10.0, 1e-12)
-                    improved = True
-                    break
-                lam *= 10.0
+            jtj, jtr = _gauss_normal_equations(p, pr, pc, pv, npx, jac)
+            p, cost, lam, improved, converged = _lm_step(p, cost, lam, jtj, jtr, pr, pc, pv,
+                                                         npx)
             if not improved or converged:
                 break
         if abs(p[1] - rc) <= radius and abs(p[2] - cc) <= radius and p[0] > 0.0:
@@ -497,6 +528,73 @@ def _solve3(a, b):
     return x
 
 
+@numba.njit(cache=True)
+def _annulus_plane(image, cy, cx, r0, r1, c0, c1, bg_inner, bg_outer, a, rhs):
+    """Background plane ``b0 + br dr + bc dc`` fitted to the annulus about ``(cy, cx)``.
+
+    The pixels of rows ``r0..r1`` and columns ``c0..c1`` with ``bg_inner < d <= bg_outer``
+    (px) are fitted by least squares; with fewer than 6 (or a singular system) the level is
+    their mean and the slopes zero; with none, all three are zero. ``a`` (3 x 3) and ``rhs``
+    (3) are work space, overwritten.
+    """
+    a[:, :] = 0.0
+    rhs[:] = 0.0
+    npx = 0
+    for r in range(r0, r1 + 1):
+        dr = r - cy
+        for c in range(c0, c1 + 1):
+            dc = c - cx
+            d2 = dr * dr + dc * dc
+            if d2 <= bg_inner * bg_inner or d2 > bg_outer * bg_outer:
+                continue
+            v = image[r, c]
+            a[0, 0] += 1.0
+            a[0, 1] += dr
+            a[0, 2] += dc
+            a[1, 1] += dr * dr
+            a[1, 2] += dr * dc
+            a[2, 2] += dc * dc
+            rhs[0] += v
+            rhs[1] += v * dr
+            rhs[2] += v * dc
+            npx += 1
+    a[1, 0] = a[0, 1]
+    a[2, 0] = a[0, 2]
+    a[2, 1] = a[1, 2]
+    if npx >= 6:
+        x = _solve3(a, rhs)
+        if np.isfinite(x[0]):
+            return x[0], x[1], x[2]
+    if npx > 0:
+        return rhs[0] / npx, 0.0, 0.0
+    return 0.0, 0.0, 0.0
+
+
+@numba.njit(cache=True)
+def _window_moments(image, cy, cx, r0, r1, c0, c1, radius, b0, br, bc):
+    """Zeroth and first moments ``(s0, s_row, s_col)`` of the soft-windowed light above the plane.
+
+    A pixel at distance ``d`` from ``(cy, cx)`` has the weight ``clip(radius + 0.5 - d, 0, 1)``.
+    """
+    s0 = 0.0
+    sr = 0.0
+    sc = 0.0
+    lim = radius + 0.5
+    for r in range(r0, r1 + 1):
+        dr = r - cy
+        for c in range(c0, c1 + 1):
+            dc = c - cx
+            d = math.sqrt(dr * dr + dc * dc)
+            if d >= lim:
+                continue
+            w = min(lim - d, 1.0)
+            v = w * (image[r, c] - (b0 + br * dr + bc * dc))
+            s0 += v
+            sr += v * dr
+            sc += v * dc
+    return s0, sr, sc
+
+
 @numba.njit(parallel=True, cache=True)
 def window_centroid_numba(image, start, radius, bg_inner, bg_outer, max_iter, tol):
     """First moment of each spot in a soft-edged circular window above a local plane (kernel).
@@ -547,69 +645,15 @@ def window_centroid_numba(image, start, radius, bg_inner, bg_outer, max_iter, to
         cx = start[k, 1]
         ok = False
         for _it in range(max_iter):
-            r0 = max(int(math.ceil(cy - reach)), 0)
-            r1 = min(int(math.floor(cy + reach)), n_rows - 1)
-            c0 = max(int(math.ceil(cx - reach)), 0)
-            c1 = min(int(math.floor(cx + reach)), n_cols - 1)
+            r0, r1, c0, c1 = _window_bounds(cy, cx, reach, n_rows, n_cols)
             if r0 > r1 or c0 > c1:
                 ok = False
                 break
-            b0 = 0.0
-            br = 0.0
-            bc = 0.0
+            b0, br, bc = 0.0, 0.0, 0.0
             if use_bg:
-                for i in range(3):
-                    rhs[i] = 0.0
-                    for j in range(3):
-                        a[i, j] = 0.0
-                npx = 0
-                for r in range(r0, r1 + 1):
-                    dr = r - cy
-                    for c in range(c0, c1 + 1):
-                        dc = c - cx
-                        d2 = dr * dr + dc * dc
-                        if d2 <= bg_inner * bg_inner or d2 > bg_outer * bg_outer:
-                            continue
-                        v = image[r, c]
-                        a[0, 0] += 1.0
-                        a[0, 1] += dr
-                        a[0, 2] += dc
-                        a[1, 1] += dr * dr
-                        a[1, 2] += dr * dc
-                        a[2, 2] += dc * dc
-                        rhs[0] += v
-                        rhs[1] += v * dr
-                        rhs[2] += v * dc
-                        npx += 1
-                a[1, 0] = a[0, 1]
-                a[2, 0] = a[0, 2]
-                a[2, 1] = a[1, 2]
-                if npx >= 6:
-                    x = _solve3(a, rhs)
-                    if np.isfinite(x[0]):
-                        b0 = x[0]
-                        br = x[1]
-                        bc = x[2]
-                    elif npx > 0:
-                        b0 = rhs[0] / npx
-                elif npx > 0:
-                    b0 = rhs[0] / npx
-            s0 = 0.0
-            sr = 0.0
-            sc = 0.0
-            lim = radius + 0.5
-            for r in range(r0, r1 + 1):
-                dr = r - cy
-                for c in range(c0, c1 + 1):
-                    dc = c - cx
-                    d = math.sqrt(dr * dr + dc * dc)
-                    if d >= lim:
-                        continue
-                    w = min(lim - d, 1.0)
-                    v = w * (image[r, c] - (b0 + br * dr + bc * dc))
-                    s0 += v
-                    sr += v * dr
-                    sc += v * dc
+                b0, br, bc = _annulus_plane(image, cy, cx, r0, r1, c0, c1, bg_inner, bg_outer,
+                                            a, rhs)
+            s0, sr, sc = _window_moments(image, cy, cx, r0, r1, c0, c1, radius, b0, br, bc)
             if not s0 > 0.0:
                 ok = False
                 break

@@ -7,6 +7,11 @@ of DESIGN.md §7 (``/lenslets/centre_px``, ``/lenslets/focal_spot_px``,
 ``/lenslets/grid_index``; attributes ``image_distance_m``, ``method``, ``offset_m``,
 ``rotation_rad``, ``rms_residual_px``).
 
+S_i,eff is kept in one place, the main lens of the calibration's camera
+(:attr:`Calibration.camera`); :attr:`Calibration.image_distance` reads it from there, and
+:meth:`Calibration.with_camera` carries it over to another description of the camera. On
+reading, the product's ``image_distance_m`` attribute gives it.
+
 The product records the camera it was made for: the root attribute ``camera`` (the camera's
 config as JSON: sensor, lattice, main lens with the calibrated S_i) and ``camera_summary``
 (one line: lens focal length, S_i, lattice, sensor). Using it with another camera is an error
@@ -16,6 +21,7 @@ attributes existed are read from the camera in their ``config`` attribute.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,7 +42,8 @@ class Calibration:
     Attributes
     ----------
     camera : CameraModel
-        The camera description (its ``image_distance`` is replaced by the calibrated one).
+        The camera, its main lens's ``image_distance`` the calibrated effective image distance
+        S_i,eff, m: the one place the calibration keeps it.
     centre_px : (N, 2) float
         Lenslet centres (row, col), pixels: where collimated light focuses.
     focal_spot_px : (N, 2) float
@@ -44,17 +51,22 @@ class Calibration:
         through the lenslet centre lands (u = v = 0).
     grid_index : (N, 2) int
         Lattice index (row, col) of each lenslet.
-    image_distance : float
-        Effective image distance S_i,eff, metres.
     method : str
         "focal-point", "magnification", "both" or "model" (from the camera description).
+    offset : tuple of float
+        Fitted lenslet-array offset (x, y), m.
+    rotation : float
+        Fitted lenslet-array rotation, rad.
+    rms_residual_px : float
+        Rms residual of the focal-point fit, px.
+    extra : dict
+        Further figures of the calibration (JSON-ready).
     """
 
     camera: CameraModel
     centre_px: np.ndarray
     focal_spot_px: np.ndarray
     grid_index: np.ndarray
-    image_distance: float
     method: str
     offset: tuple[float, float] = (0.0, 0.0)
     rotation: float = 0.0
@@ -68,6 +80,9 @@ class Calibration:
             if a.shape != (n, 2):
                 raise CalibrationError(f"calibration {name} has shape {a.shape}: expected "
                                        f"({n}, 2)")
+        if self.camera.main_lens.image_distance is None:
+            raise CalibrationError("the calibration's camera has no image distance: expected "
+                                   "the calibrated S_i in its main lens")
         if not self.image_distance > self.camera.main_lens.focal_length:
             raise CalibrationError(f"calibrated S_i = {self.image_distance * 1e3:.4g} mm: "
                                    "expected more than the main-lens focal length")
@@ -78,9 +93,25 @@ class Calibration:
         return len(self.centre_px)
 
     @property
+    def image_distance(self) -> float:
+        """Calibrated effective image distance S_i,eff, m (held by :attr:`camera`)."""
+        return self.camera.main_lens.image_distance
+
+    @property
     def effective_camera(self) -> CameraModel:
-        """The camera with the calibrated image distance."""
-        return self.camera.with_image_distance(self.image_distance)
+        """The camera with the calibrated image distance: :attr:`camera` itself."""
+        return self.camera
+
+    def with_camera(self, camera: CameraModel) -> Calibration:
+        """The same calibration for another description of its camera, with the calibrated S_i.
+
+        Parameters
+        ----------
+        camera : CameraModel
+            E.g. the experiment's camera (its interfaces and back-side model); its own
+            ``image_distance`` is replaced by :attr:`image_distance`.
+        """
+        return dataclasses.replace(self, camera=camera.with_image_distance(self.image_distance))
 
     @classmethod
     def from_camera(cls, camera: CameraModel) -> Calibration:
@@ -99,22 +130,22 @@ class Calibration:
         shape, pp = camera.sensor.shape, camera.sensor.pixel_pitch
         return cls(camera=camera, centre_px=sensor_to_pixel(centres, shape, pp),
                    focal_spot_px=sensor_to_pixel(spots, shape, pp),
-                   grid_index=mla.grid_index(), image_distance=camera.image_distance,
-                   method="model", offset=mla.offset, rotation=mla.rotation)
+                   grid_index=mla.grid_index(), method="model", offset=mla.offset,
+                   rotation=mla.rotation)
 
     # ---- HDF5 product ------------------------------------------------------------------------
     def save(self, path: str | Path, *, config: dict | None = None) -> Path:
         """Write the calibration product (HDF5, atomic)."""
         cfg = {"camera": self.camera.to_dict(), **(config or {})}
-        made_for = self.effective_camera
-        mla = made_for.microlens_array
-        attrs = {"camera": made_for.to_json(),
+        cam = self.camera
+        mla = cam.microlens_array
+        attrs = {"camera": cam.to_json(),
                  "camera_summary": (
-                     f"{made_for.name}: main lens f = "
-                     f"{made_for.main_lens.focal_length * 1e3:g} mm, S_i = "
+                     f"{cam.name}: main lens f = "
+                     f"{cam.main_lens.focal_length * 1e3:g} mm, S_i = "
                      f"{self.image_distance * 1e3:.6g} mm, {mla.rows} x {mla.cols} {mla.grid} "
-                     f"lenslets of {mla.pitch * 1e6:g} um, sensor {made_for.sensor.rows} x "
-                     f"{made_for.sensor.cols} px of {made_for.sensor.pixel_pitch * 1e6:g} um"),
+                     f"lenslets of {mla.pitch * 1e6:g} um, sensor {cam.sensor.rows} x "
+                     f"{cam.sensor.cols} px of {cam.sensor.pixel_pitch * 1e6:g} um"),
                  "image_distance_m": self.image_distance, "method": self.method,
                  "offset_m": np.asarray(self.offset, float), "rotation_rad": self.rotation,
                  "rms_residual_px": self.rms_residual_px, "n_lenslets": self.n_lenslets,
@@ -138,11 +169,13 @@ class Calibration:
             else:             # written before the camera attribute: the config's camera
                 camera = camera_from_dict(json.loads(a["config"])["camera"],
                                           source=f"{path}:config")
+            # the product's S_i is its image_distance_m attribute (the camera's copy went
+            # through mm, and older files' config may not hold it)
+            camera = camera.with_image_distance(float(a["image_distance_m"]))
             return cls(camera=camera,
                        centre_px=fh["/lenslets/centre_px"][()],
                        focal_spot_px=fh["/lenslets/focal_spot_px"][()],
                        grid_index=fh["/lenslets/grid_index"][()].astype(int),
-                       image_distance=float(a["image_distance_m"]),
                        method=str(a["method"]), offset=tuple(a["offset_m"]),
                        rotation=float(a["rotation_rad"]),
                        rms_residual_px=float(a["rms_residual_px"]),

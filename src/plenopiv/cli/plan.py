@@ -102,7 +102,7 @@ def cmd_plan(args) -> dict:
     elif calibration is not None:
         from plenopiv.calibration.model import Calibration
 
-        camera = camera.with_image_distance(Calibration.load(calibration).image_distance)
+        camera = Calibration.load(calibration).with_camera(camera).camera
     if grid is None:
         cam = planning.camera_resolution(camera, recon.f_number)
         fx, fy = (0.9 * v * 1e3 for v in cam.field_of_view)

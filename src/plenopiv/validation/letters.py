@@ -342,8 +342,8 @@ def calibrate_white(data: LettersData) -> WhiteCalibration:
     camera = camera_from_dict(cfg, source="plenoptomos letters .ini + white image")
     complete = (lat.flags & SpotFlag.EDGE) == 0
     disc = micro_image_diameter(white, focal[complete], float(np.mean(pitch)))
-    cal = Calibration(camera=camera, centre_px=centres, focal_spot_px=focal, grid_index=index,
-                      image_distance=s_pitch, method="white image",
+    cal = Calibration(camera=camera.with_image_distance(s_pitch), centre_px=centres,
+                      focal_spot_px=focal, grid_index=index, method="white image",
                       rotation=lat.rotation_rad, rms_residual_px=lat.rms_residual_px,
                       extra={"pitch_px": pitch.tolist(), "k": k,
                              "image_distance_nominal_m": opt["mla_z"],

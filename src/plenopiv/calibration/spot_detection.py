@@ -1,0 +1,638 @@
+"""Calibration step 1a: one sub-pixel spot centre per lenslet (:func:`detect_spots`).
+
+Steps
+-----
+Validate; estimate the pitch if needed; subtract the background; smooth with a Gaussian of
+standard deviation ``pitch / 6`` and take local maxima at least half a pitch apart as
+candidates, each at least ``detection_threshold`` of the spots around it (so the dim lenslets
+of a vignetted corner are found) and clearly above the noise; refine each candidate with the
+iterative thresholded centroid (the window is re-centred on the estimate until it moves by
+less than 1e-4 px, so a point-symmetric spot carries no window bias); reject candidates
+smaller than ``min_area_px`` (hot pixels) and merge candidates closer than a quarter pitch;
+measure the spot size from all clean spots stacked; refine with the window centroid or the
+Gaussian fit; flag partial (``EDGE``), dim and saturated spots.
+
+Why the window centroid for small spots
+---------------------------------------
+Subtracting a threshold from every pixel and dropping the pixels below it makes the
+centroid of a pixel-sampled spot depend on where the spot sits on the pixel grid: for 1-5 px
+spots this bias reaches 0.01-0.02 px, and as a focal-point image's spots step through every
+sub-pixel phase across the array (a non-integer pitch) it becomes a spurious spot-lattice
+scale, which the focal-point method reads as an S_i error of up to a millimetre at 405 mm
+(docs/validation/calibration_study.md). The first moment of all the spot's light has no
+such bias when the pixel response reproduces linear functions (a bilinear splat, or any
+optics blur of about half a pixel or more on a pixel-integrating sensor): measured on 1-5 px
+discs with 0-1 px Gaussian blur at ten sub-pixel phases, it stays within 0.0004 px where the
+thresholded centroid is off by 0.005-0.026 px and a Gaussian fit by up to 0.04 px, and under
+photon noise it is the most precise of the three (within 2-7 % of the Cramer-Rao bound;
+``benchmarks/bench_spots.py`` prints the table). Sharper spots on a pixel-integrating sensor
+alias (0.005-0.05 px for every estimator); ``fit_lattice`` removes most of that with its
+phase terms. Its window is soft-edged (a pixel counts by about the fraction of it inside the
+circle), so the window's own moment follows the estimate smoothly, and a plane fitted to the
+annulus just outside it removes any background level and slope, which would otherwise pull
+the estimate.
+
+Measured accuracy
+-----------------
+Measured on the PlenoptiCam reference images with exact centres (``b``, ``c``, ``d``:
+720 x 720 px, pitches 66.7, 13.1 and 7.7 px, about 10 % multiplicative pixel noise), rms
+error per axis (row, col) of the spots at least one pitch inside the border:
+
+========  ================  ================  ================  ======================
+method    b (hexagonal)     c (hexagonal)     d (square)        white image, lattice
+                                                                rms residual
+========  ================  ================  ================  ======================
+centroid  0.040, 0.041 px   0.067, 0.058 px   0.049, 0.048 px   0.085 px
+gaussian  0.047, 0.048 px   0.068, 0.064 px   0.074, 0.074 px   0.265 px
+========  ================  ================  ================  ======================
+
+(These micro-images fill their pitch: ``"auto"`` takes the centroid on all four.)
+Both keep the mean bias below 0.01 px. The centroid is as good or better on all of these,
+makes no assumption about the spot profile (a white-image disc is not a Gaussian, hence
+the Gaussian's large residual there) and is about twice as fast, so it is the default.
+On truly Gaussian spots in additive noise (the synthetic tests) the Gaussian fit is about
+15 % more precise; choose it for such focal-point images.
+The per-spot error is set by the pixel noise: a least-squares fit of the exact mean spot
+profile (an oracle no detector has) reaches 0.035, 0.06 and 0.10 px rms on ``b``, ``c``,
+``d``. The lattice fit (:func:`~plenopiv.calibration.lattice_fit.fit_lattice`) averages
+thousands of spots; its predicted centres are within 0.01 px rms of the truth on all three.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
+from scipy.special import ndtri
+
+from plenopiv.calibration import _spot_kernels as _k
+from plenopiv.calibration.spot_types import (
+    BACKGROUNDS,
+    GRIDS,
+    METHODS,
+    SpotFlag,
+    SpotSet,
+    _check_choice,
+    _check_fraction,
+    _edge_mask,
+)
+from plenopiv.errors import ImageError
+
+# The iteration limits of the sub-pixel estimators; all converge in a few passes.
+_CENTROID_MAX_ITER = 20
+_CENTROID_TOL_PX = 1e-4
+_GAUSS_MAX_ITER = 50
+_WINDOW_MAX_ITER = 50
+_WINDOW_TOL_PX = 1e-7
+# The window method: window radius = _WINDOW_SCALE times the radius holding 99 % of a spot's
+# light plus 0.5 px (5.8 standard deviations of a Gaussian spot: its truncated tail moves the
+# first moment by < 1e-5 px at any phase), less where the annulus would reach the
+# neighbours, never less than that radius plus _WINDOW_MARGIN_PX; the background annulus is
+# _ANNULUS_PX wide, just outside the window.
+_ENERGY_FRACTION = 0.99
+_WINDOW_SCALE = 1.75
+_WINDOW_MARGIN_PX = 1.0
+_ANNULUS_PX = 2.0
+# ----------------------------------------------------------------------------------------------
+
+# Candidate spots: the local reference is taken over cells of this many pitches, and a spot
+# must stand this many standard deviations of the smoothed image's noise above the gaps
+_REFERENCE_CELL = 4.0
+_NOISE_FLOOR = 8.0
+
+
+# ----------------------------------------------------------------------------------------------
+# Image checks
+# ----------------------------------------------------------------------------------------------
+
+
+def _validate_image(image, max_saturated_fraction):
+    """Check a calibration image; return it as an ndarray and its saturation level (or None)."""
+    a = np.asarray(image)
+    if a.ndim != 2:
+        hint = (
+            " (a colour image? convert it to grey first)"
+            if a.ndim == 3 and a.shape[-1] in (3, 4)
+            else ""
+        )
+        raise ImageError(f"image must be 2-D (rows, cols); got an array of shape {a.shape}{hint}")
+    if a.dtype == bool or not (
+        np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)
+    ):
+        raise ImageError(
+            f"image dtype {a.dtype} is not supported; expected an integer or floating-point image"
+        )
+    if min(a.shape) < 8:
+        raise ImageError(f"image of shape {a.shape} is too small; expected at least 8 x 8 pixels")
+    if np.issubdtype(a.dtype, np.floating):
+        bad = ~np.isfinite(a)
+        n_bad = int(np.count_nonzero(bad))
+        if n_bad:
+            r, c = np.unravel_index(int(np.argmax(bad)), a.shape)
+            raise ImageError(
+                f"image has {n_bad} non-finite pixels (NaN or inf); the first at (row {r}, "
+                f"col {c}); expected finite values (replace dead pixels, e.g. by the median of "
+                "their neighbours)"
+            )
+    lo, hi = a.min(), a.max()
+    if hi <= 0:
+        raise ImageError(f"image is all dark (maximum {hi}); expected bright lenslet spots")
+    if lo == hi:
+        raise ImageError(
+            f"image is constant (every pixel = {hi}); expected bright spots on a darker background"
+        )
+    sat_level = None
+    if np.issubdtype(a.dtype, np.integer):
+        sat_level = np.iinfo(a.dtype).max
+        n_sat = int(np.count_nonzero(a == sat_level))
+        frac = n_sat / a.size
+        if frac > max_saturated_fraction:
+            raise ImageError(
+                f"{100 * frac:.1f} % of the pixels ({n_sat}) are saturated at {sat_level} (the "
+                f"{a.dtype} maximum); expected at most {100 * max_saturated_fraction:g} % "
+                "(max_saturated_fraction); reduce the exposure"
+            )
+        if n_sat == 0:
+            sat_level = None
+    return a, sat_level
+
+
+# ----------------------------------------------------------------------------------------------
+# Pitch from the image autocorrelation
+# ----------------------------------------------------------------------------------------------
+
+_PITCH_CROP_PX = 1024
+
+
+def estimate_pitch(image):
+    """Lenslet pitch (nearest-neighbour spacing) of a periodic spot image, px.
+
+    Parameters
+    ----------
+    image : array_like, shape (R, C)
+        Calibration image (any real dtype, finite).
+
+    Returns
+    -------
+    float
+        Distance from the origin to the nearest strong peak of the image autocorrelation, px
+        (the lenslet pitch on a square and on a hexagonal grid).
+
+    Raises
+    ------
+    ImageError
+        When the autocorrelation shows no periodic pattern.
+
+    Notes
+    -----
+    The central crop (at most 1024 x 1024 px) is high-pass filtered (its box mean over 1/8 of
+    the crop removed, which takes out vignetting), zero-padded and correlated with itself
+    through the FFT. Its local maxima other than the origin are the lattice
+    vectors; the nearest one whose height is at least half the highest one is the pitch,
+    refined to sub-pixel by a parabola through its neighbours in each axis. The result only
+    sizes the search windows; the lattice fit measures the pitch exactly.
+    """
+    a = np.asarray(image, dtype=np.float64)
+    n_rows, n_cols = a.shape
+    h = min(n_rows, _PITCH_CROP_PX)
+    w = min(n_cols, _PITCH_CROP_PX)
+    r0 = (n_rows - h) // 2
+    c0 = (n_cols - w) // 2
+    crop = a[r0 : r0 + h, c0 : c0 + w]
+    crop = crop - ndi.uniform_filter(crop, max(min(h, w) // 8, 3), mode="reflect")
+    crop = crop - crop.mean()
+    spec = np.fft.rfft2(crop, s=(2 * h, 2 * w))
+    ac = np.fft.irfft2(spec * np.conj(spec), s=(2 * h, 2 * w))
+    ac = np.fft.fftshift(ac)
+    # lags up to a third of the crop: at least three periods must fit for a trustworthy peak
+    lr, lc = h // 3, w // 3
+    ac = ac[h - lr : h + lr + 1, w - lc : w + lc + 1]
+    if ac[lr, lc] <= 0:
+        raise ImageError(
+            "image has no contrast after removing its smooth background; expected a spot pattern"
+        )
+    ac = ac / ac[lr, lc]
+    peaks = (ac == ndi.maximum_filter(ac, size=5, mode="constant", cval=np.inf)) & (ac > 0.0)
+    pr, pc = np.nonzero(peaks)
+    dr = pr - lr
+    dc = pc - lc
+    dist = np.hypot(dr, dc)
+    off_centre = dist > 2.0
+    pr, pc, dr, dc, dist = (
+        pr[off_centre],
+        pc[off_centre],
+        dr[off_centre],
+        dc[off_centre],
+        dist[off_centre],
+    )
+    if dist.size == 0:
+        raise ImageError(
+            "no periodic lenslet pattern found in the image autocorrelation (no peak besides the "
+            "origin within a third of the image); pass expected_pitch_px"
+        )
+    height = ac[pr, pc]
+    strong = height >= 0.5 * height.max()
+    k = np.flatnonzero(strong)[np.argmin(dist[strong])]
+    r, c = pr[k], pc[k]
+    sub = []
+    for axis_vals in (
+        (ac[r - 1, c], ac[r, c], ac[r + 1, c]),
+        (ac[r, c - 1], ac[r, c], ac[r, c + 1]),
+    ):
+        m1, m0, p1 = axis_vals
+        den = m1 - 2.0 * m0 + p1
+        sub.append(0.5 * (m1 - p1) / den if den < 0 else 0.0)
+    pitch = float(np.hypot(dr[k] + sub[0], dc[k] + sub[1]))
+    if pitch < 3.0:
+        raise ImageError(
+            f"estimated lenslet pitch {pitch:.2f} px is below 3 px; pass expected_pitch_px"
+        )
+    return pitch
+
+
+# ----------------------------------------------------------------------------------------------
+# Spot detection
+# ----------------------------------------------------------------------------------------------
+
+
+def _local_background(work, pitch):
+    """Smooth background: the minimum over a 1.25-pitch box, then its box mean (px units)."""
+    size = int(math.ceil(1.25 * pitch)) | 1
+    return ndi.uniform_filter(
+        ndi.minimum_filter(work, size=size, mode="nearest"), size=size, mode="nearest"
+    )
+
+
+def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
+                 detection_threshold=0.15, method="auto", window_radius_px=None,
+                 moment_radius_px=None, background="local", min_area_px=1.5, dim_fraction=0.5,
+                 max_saturated_fraction=0.02):
+    """Find one sub-pixel spot centre per lenslet in a calibration image.
+
+    Parameters
+    ----------
+    image : array_like, shape (R, C)
+        Focal-point, alignment or white image, integer or floating point, ``image[row, col]``.
+    expected_pitch_px : float, optional
+        Lenslet pitch (nearest-neighbour distance), px; default :func:`estimate_pitch`.
+    grid : {"square", "hexagonal"} or None
+        Grid type if known; recorded for :func:`~plenopiv.calibration.lattice_fit.fit_lattice`.
+    threshold : float, 0 <= threshold < 1
+        Centroid threshold: inside each window, pixels count with weight
+        ``max(I - threshold * P, 0)``, ``P`` the spot's peak height above background.
+    detection_threshold : float, 0 < detection_threshold < 1
+        A local maximum of the smoothed image is a candidate when it reaches this fraction of
+        the bright spots around it (the 90th percentile of the maxima within about 4 x 4 to
+        12 x 12 pitches), stands 8 noise standard deviations above the gaps between spots,
+        and reaches a tenth of this fraction of the image's typical spot (95th percentile).
+    method : {"auto", "window", "centroid", "gaussian"}
+        Sub-pixel estimator (module docstring). ``"window"``: the first moment in a
+        soft-edged window above a plane fitted to an annulus, no threshold. ``"centroid"``:
+        the iterative thresholded centroid. ``"gaussian"``: a least-squares circular
+        Gaussian plus offset. ``"auto"``: ``"window"`` when the window and its annulus fit
+        between neighbours (``2 r99 + 4 <= pitch`` and ``r99 <= 0.35 pitch``, r99 the radius
+        holding 99 % of a spot's light), else ``"centroid"`` (white images).
+    window_radius_px : float, optional
+        Radius of the thresholded centroid's window, which also decides ``EDGE``, px;
+        default half the pitch.
+    moment_radius_px : float, optional
+        ``"window"`` method only: radius of its window, px; default measured from the spots.
+    background : {"local", "none"}
+        ``"local"``: subtract a smooth background (box minimum over 1.25 pitch, box mean, less
+        the noise bias of that minimum); heights count from the gaps between spots.
+        ``"none"``: use the image as is.
+    min_area_px : float
+        Candidates whose light sits in less than this effective area (px) are rejected as hot
+        pixels (a single bright pixel has area 1).
+    dim_fraction : float, 0 < dim_fraction <= 1
+        A spot fainter than this fraction of the median of its eight nearest neighbours is
+        flagged ``DIM``.
+    max_saturated_fraction : float, 0 <= max_saturated_fraction <= 1
+        Largest allowed fraction of pixels at the integer dtype's maximum.
+
+    Returns
+    -------
+    SpotSet
+        Centres ``(row, col)`` px with intensity, effective area and flags.
+
+    Raises
+    ------
+    ImageError
+        The image is not 2-D, not real, holds NaN/inf, is all dark, constant, saturated, or has
+        no periodic spot pattern.
+    ValueError
+        An option is outside its valid set.
+
+    Notes
+    -----
+    The steps, the choice of estimator and their measured accuracy are in the docstring of
+    :mod:`plenopiv.calibration.spot_detection`.
+    """
+    opts = _checked_options(method, background, grid, threshold, detection_threshold,
+                            min_area_px, dim_fraction, max_saturated_fraction)
+    raw, sat_level = _validate_image(image, opts["max_saturated_fraction"])
+    work = raw.astype(np.float32)
+    pitch, radius = _pitch_and_radius(work, expected_pitch_px, window_radius_px)
+    if background == "local":
+        work = work - _local_background(work, pitch)
+    cand, work = _candidates(work, pitch, background, opts["detection_threshold"])
+    centres, intensity, area, rejected = _first_centroids(work, cand, radius, pitch, opts)
+    interior = ~_edge_mask(centres, radius, work.shape)
+    spot_r, spot_rms = _spot_size(work, centres[interior], pitch)
+    if method == "auto":
+        method = "window" if _window_fits(spot_r, pitch) else "centroid"
+    centres, flags, moment_r, annulus = _refine(work, centres, area, method, pitch, radius,
+                                                spot_r, moment_radius_px)
+    order = np.lexsort((centres[:, 1], centres[:, 0]))
+    centres, intensity, area, flags = centres[order], intensity[order], area[order], flags[order]
+    flags |= _image_flags(raw, sat_level, centres, intensity, flags, radius, opts)
+    return SpotSet(
+        centres_px=centres, intensity=intensity, area_px=area, flags=flags,
+        image_shape=work.shape, pitch_px=pitch, window_radius_px=radius, method=method,
+        grid=grid, rejected_px=rejected, spot_radius_px=spot_r, spot_rms_radius_px=spot_rms,
+        moment_radius_px=moment_r, annulus_px=annulus,
+    )
+
+
+def _checked_options(method, background, grid, threshold, detection_threshold, min_area_px,
+                     dim_fraction, max_saturated_fraction):
+    """Check the options of :func:`detect_spots`; return the numeric ones as floats (a dict)."""
+    _check_choice("method", method, METHODS)
+    _check_choice("background", background, BACKGROUNDS)
+    if grid is not None:
+        _check_choice("grid", grid, GRIDS)
+    threshold = float(threshold)
+    if not (0.0 <= threshold < 1.0):
+        raise ValueError(f"threshold must satisfy 0 <= threshold < 1; got {threshold!r}")
+    detection_threshold = float(detection_threshold)
+    if not (0.0 < detection_threshold < 1.0):
+        raise ValueError(
+            "detection_threshold must satisfy 0 < detection_threshold < 1; "
+            f"got {detection_threshold!r}"
+        )
+    dim_fraction = _check_fraction("dim_fraction", dim_fraction)
+    max_saturated_fraction = _check_fraction(
+        "max_saturated_fraction", max_saturated_fraction, low_open=False
+    )
+    min_area_px = float(min_area_px)
+    if not (np.isfinite(min_area_px) and min_area_px >= 0.0):
+        raise ValueError(f"min_area_px must be a finite number >= 0; got {min_area_px!r}")
+    return {"threshold": threshold, "detection_threshold": detection_threshold,
+            "min_area_px": min_area_px, "dim_fraction": dim_fraction,
+            "max_saturated_fraction": max_saturated_fraction}
+
+
+def _pitch_and_radius(work, expected_pitch_px, window_radius_px):
+    """The lenslet pitch (given or estimated) and the centroid window radius, px; checked."""
+    if expected_pitch_px is None:
+        pitch = estimate_pitch(work)
+    else:
+        pitch = float(expected_pitch_px)
+        if not (np.isfinite(pitch) and pitch >= 3.0):
+            raise ValueError(
+                f"expected_pitch_px must be a finite number >= 3 px; got {expected_pitch_px!r}"
+            )
+    if min(work.shape) < 2 * pitch:
+        raise ImageError(
+            f"image of shape {work.shape} holds less than two lenslets of pitch {pitch:.1f} px "
+            "in one direction; expected a lattice of at least 4 x 4"
+        )
+    radius = 0.5 * pitch if window_radius_px is None else float(window_radius_px)
+    if not (np.isfinite(radius) and 1.0 <= radius <= pitch):
+        raise ValueError(
+            "window_radius_px must satisfy 1 <= window_radius_px <= pitch "
+            f"({pitch:.2f} px); got {radius!r}"
+        )
+    return pitch, radius
+
+
+def _candidates(work, pitch, background, detection_threshold):
+    """Candidate spot positions ``(row, col)`` px, and the image less its noise pedestal.
+
+    Local maxima of the smoothed image at least half a pitch apart. With a local
+    background, candidate heights are measured from the typical level of the smoothed
+    image's local minima (the gaps between spots), so noise bumps on that pedestal do not
+    pass as spots; of the pedestal, the expected noise bias of the box minimum (the expected
+    minimum of ``n_box`` normal samples, Blom's approximation, times the pixel noise seen in
+    the gaps) is removed from the image; the rest may be light (overlapping spots).
+    A candidate is kept when it reaches ``detection_threshold`` of the bright spots around it
+    (:func:`_local_reference`, so the dim lenslets of a vignetted corner are found), stands
+    ``_NOISE_FLOOR`` noise standard deviations of the smoothed image out, and reaches a
+    tenth of ``detection_threshold`` of the image's typical spot (95th percentile).
+    """
+    smooth = ndi.gaussian_filter(work, max(pitch / 6.0, 0.7), mode="constant")
+    size = 2 * int(pitch // 2) + 1
+    is_max = smooth == ndi.maximum_filter(smooth, size=size, mode="nearest")
+    cand = np.argwhere(is_max)
+    height = smooth[is_max]
+    noise = 0.0
+    if background == "local":
+        is_min = smooth == ndi.minimum_filter(smooth, size=size, mode="nearest")
+        gap_level = float(np.median(smooth[is_min]))
+        height = height - gap_level
+        resid = work[is_min] - smooth[is_min]
+        noise = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+        n_box = (int(math.ceil(1.25 * pitch)) | 1) ** 2
+        bias = -noise * float(ndtri((1.0 - 0.375) / (n_box + 0.25)))
+        work = work - np.float32(min(max(gap_level, 0.0), bias))
+    positive = height > 0
+    if not np.any(positive):
+        raise ImageError(
+            "no spot found: the background-subtracted image has no local maximum above its "
+            "background"
+        )
+    cand, height = cand[positive], height[positive]
+    sigma_smooth = noise / (2.0 * math.sqrt(math.pi) * max(pitch / 6.0, 0.7))
+    ref = _local_reference(cand, height, work.shape, pitch)
+    strong = (
+        (height >= detection_threshold * ref)
+        & (height >= _NOISE_FLOOR * sigma_smooth)
+        & (height >= 0.1 * detection_threshold * np.percentile(height, 95))
+    )
+    return cand[strong].astype(np.float64), work
+
+
+def _first_centroids(work, cand, radius, pitch, opts):
+    """Thresholded centroids of the candidates, hot pixels rejected and duplicates merged.
+
+    Returns the centres ``(row, col)`` px, their intensity and effective area (px), and the
+    centres rejected as hot pixels (area below ``min_area_px``). Two candidates that
+    converge within a quarter pitch (a flat-topped disc) keep the brighter.
+    """
+    centres, intensity, area, _peak = _k.centroid_refine_numba(
+        work, np.ascontiguousarray(cand), radius, opts["threshold"], _CENTROID_MAX_ITER,
+        _CENTROID_TOL_PX
+    )
+    ok = np.all(np.isfinite(centres), axis=1)
+    centres, intensity, area = centres[ok], intensity[ok], area[ok]
+    hot = area < opts["min_area_px"]
+    rejected = centres[hot]
+    centres, intensity, area = centres[~hot], intensity[~hot], area[~hot]
+    if centres.shape[0] > 1:
+        order = np.argsort(-intensity, kind="stable")
+        centres, intensity, area = centres[order], intensity[order], area[order]
+        pairs = cKDTree(centres).query_pairs(0.25 * pitch, output_type="ndarray")
+        drop = np.zeros(centres.shape[0], dtype=bool)
+        for a_, b_ in pairs[np.argsort(pairs[:, 0], kind="stable")]:
+            if not drop[a_]:
+                drop[b_] = True
+        centres, intensity, area = centres[~drop], intensity[~drop], area[~drop]
+    return centres, intensity, area, rejected
+
+
+def _refine(work, centres, area, method, pitch, radius, spot_r, moment_radius_px):
+    """Refine the centres with the chosen estimator; ``FIT_FAILED`` where it fails.
+
+    Returns the centres ``(row, col)`` px, the flags, and the window radius and background
+    annulus ``(inner, outer)`` of the ``"window"`` method, px (NaN for the others).
+    """
+    centres = centres.copy()
+    flags = np.zeros(centres.shape[0], dtype=np.uint8)
+    moment_r, annulus = float("nan"), (float("nan"), float("nan"))
+    if method == "window" and centres.shape[0]:
+        moment_r, annulus = _window_geometry(spot_r, pitch, moment_radius_px)
+        a_in, a_out = (0.0, 0.0) if not np.isfinite(annulus[0]) else annulus
+        refined, _flux, _bg = _k.window_centroid_numba(
+            work, np.ascontiguousarray(centres), moment_r, a_in, a_out, _WINDOW_MAX_ITER,
+            _WINDOW_TOL_PX
+        )
+        good = np.all(np.isfinite(refined), axis=1)
+        good[good] = np.hypot(*(refined[good] - centres[good]).T) < 0.25 * pitch
+        centres[good] = refined[good]
+        flags[~good] |= np.uint8(SpotFlag.FIT_FAILED)
+    if method == "gaussian" and centres.shape[0]:
+        sigma0 = np.clip(np.sqrt(area / 4.0), 0.5, radius / 2.0)
+        params = _k.gaussian_fit_numba(
+            work, np.ascontiguousarray(centres), sigma0, radius, _GAUSS_MAX_ITER
+        )
+        good = np.all(np.isfinite(params), axis=1)
+        centres[good] = params[good, 1:3]
+        flags[~good] |= np.uint8(SpotFlag.FIT_FAILED)
+    return centres, flags, moment_r, annulus
+
+
+def _image_flags(raw, sat_level, centres, intensity, flags, radius, opts):
+    """``EDGE``, ``SATURATED`` and ``DIM`` flags of the sorted spots (uint8, shape (N,))."""
+    new = np.zeros(centres.shape[0], dtype=np.uint8)
+    new[_edge_mask(centres, radius, raw.shape)] |= np.uint8(SpotFlag.EDGE)
+    if sat_level is not None and centres.shape[0]:
+        sat_px = np.argwhere(raw == sat_level)
+        near = cKDTree(sat_px).query_ball_point(centres, radius, return_length=True)
+        new[np.asarray(near) > 0] |= np.uint8(SpotFlag.SATURATED)
+    new[_dim_mask(centres, intensity, flags | new, opts["dim_fraction"])] |= np.uint8(SpotFlag.DIM)
+    return new
+
+
+def _local_reference(cand, height, shape, pitch):
+    """Typical height of the bright spots around each candidate.
+
+    Candidates are binned into cells of ``_REFERENCE_CELL`` pitches; a cell's level is the
+    90th percentile of its candidates' heights, and a candidate's reference the highest level
+    among its cell and the eight around it (so a dim lenslet is not its own reference).
+    """
+    cell = _REFERENCE_CELL * pitch
+    n_r = max(int(math.ceil(shape[0] / cell)), 1)
+    n_c = max(int(math.ceil(shape[1] / cell)), 1)
+    ir = np.minimum((cand[:, 0] / cell).astype(np.int64), n_r - 1)
+    ic = np.minimum((cand[:, 1] / cell).astype(np.int64), n_c - 1)
+    key = ir * n_c + ic
+    order = np.argsort(key, kind="stable")
+    k_sorted, h_sorted = key[order], height[order]
+    level = np.zeros(n_r * n_c)
+    starts = np.flatnonzero(np.r_[True, k_sorted[1:] != k_sorted[:-1]])
+    for a, b in zip(starts, np.r_[starts[1:], k_sorted.size], strict=True):
+        level[k_sorted[a]] = np.percentile(h_sorted[a:b], 90)
+    level = ndi.maximum_filter(level.reshape(n_r, n_c), size=3, mode="nearest")
+    return level[ir, ic]
+
+
+def _spot_size(work, centres, pitch):
+    """Radius holding 99 % of a spot's light and its rms radius, px, from the stacked spots.
+
+    The light of every given spot within half a pitch is summed in rings of 0.1 px about its
+    centre. The darkest ring beyond 0.3 pitch is taken as the remaining background per pixel
+    and removed; the radii follow from the cumulative sum. NaN when there are no spots or no
+    light.
+    """
+    if centres.shape[0] == 0:
+        return float("nan"), float("nan")
+    r_max = 0.5 * pitch
+    bin_px = 0.1
+    energy, count = _k.radial_energy_numba(
+        work, np.ascontiguousarray(centres, dtype=np.float64), r_max, bin_px
+    )
+    r = (np.arange(energy.size) + 0.5) * bin_px
+    have = count > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_px = np.where(have, energy / np.where(have, count, 1.0), np.nan)
+    outer = have & (r >= 0.3 * pitch)
+    pedestal = float(np.nanmin(per_px[outer])) if np.any(outer) else 0.0
+    e = np.where(have, energy - pedestal * count, 0.0)
+    total = e.sum()
+    if not total > 0:
+        return float("nan"), float("nan")
+    cum = np.cumsum(e)
+    k = int(np.argmax(cum >= _ENERGY_FRACTION * total))
+    r99 = min((k + 1) * bin_px, r_max)
+    rms = math.sqrt(max(float(np.sum(e * r * r) / total), 0.0))
+    return float(r99), float(rms)
+
+
+def _window_fits(spot_r, pitch):
+    """Whether spots of 99 % radius ``spot_r`` leave room for the window method (``"auto"``).
+
+    The window (``spot_r + 1``) and its 2 px annulus must fit between neighbours
+    (``2 spot_r + 4 <= pitch``), and the spot must be clearly smaller than its cell
+    (``spot_r <= 0.35 pitch``); micro-images that fill the cell (white images, whose 99 %
+    radius is near half the pitch) keep the thresholded centroid.
+    """
+    return bool(np.isfinite(spot_r) and 2.0 * spot_r + 4.0 <= pitch and spot_r <= 0.35 * pitch)
+
+
+def _window_geometry(spot_r, pitch, moment_radius_px):
+    """Window radius and background annulus ``(inner, outer)`` of the window method, px.
+
+    The window reaches 1.75 times the spot's 99 % radius (+ 0.5 px), where room allows, and at
+    least that radius plus 1 px; the annulus lies just outside it,
+    ``_ANNULUS_PX`` wide, and must stay clear of the neighbours' light (their 99 % radius
+    one pitch away); ``(nan, nan)`` when less than a pixel of it fits (then the image's
+    local background stands alone).
+    """
+    if not np.isfinite(spot_r):
+        spot_r = 0.25 * pitch
+    if moment_radius_px is None:
+        rad = max(min(_WINDOW_SCALE * spot_r + 0.5, pitch - spot_r - 0.5 - _ANNULUS_PX - 0.5),
+                  spot_r + _WINDOW_MARGIN_PX)
+    else:
+        rad = float(moment_radius_px)
+        if not (np.isfinite(rad) and 1.0 <= rad <= pitch):
+            raise ValueError(
+                f"moment_radius_px must satisfy 1 <= moment_radius_px <= pitch ({pitch:.2f} px); "
+                f"got {moment_radius_px!r}"
+            )
+    rad = float(min(max(rad, 1.5), 0.5 * pitch)) if moment_radius_px is None else rad
+    inner = rad + 0.5
+    outer = min(inner + _ANNULUS_PX, pitch - spot_r - 0.5)
+    if outer - inner < 1.0:
+        return rad, (float("nan"), float("nan"))
+    return rad, (float(inner), float(outer))
+
+
+
+
+
+def _dim_mask(centres, intensity, flags, dim_fraction, k=8):
+    """Spots fainter than ``dim_fraction`` of the median of their ``k`` nearest complete spots."""
+    ref = (flags & SpotFlag.EDGE) == 0
+    if np.count_nonzero(ref) < 2:
+        return np.zeros(centres.shape[0], dtype=bool)
+    kk = min(k + 1, int(np.count_nonzero(ref)))
+    _, idx = cKDTree(centres[ref]).query(centres, k=kk)
+    neigh = intensity[ref][idx]
+    # a spot is among its own neighbours when it is a reference spot; leave it out
+    self_hit = np.flatnonzero(ref)[idx] == np.arange(centres.shape[0])[:, None]
+    neigh = np.where(self_hit, np.nan, neigh)
+    med = np.nanmedian(neigh, axis=1)
+    return intensity < dim_fraction * med
