@@ -1,6 +1,7 @@
 """Voxel-pixel weights from the effective image distance: sparse, built in parallel, cached.
 
-Row i of the weight matrix W is the ray of lit pixel i of a :class:`~plenopiv.lightfield.LightField`;
+Row i of the weight matrix W is the ray of lit pixel i of a
+:class:`~plenopiv.lightfield.LightField`;
 column j is voxel j of a :class:`~plenopiv.volume.VolumeGrid` (flat ``[z, y, x]`` order).
 ``W[i, j]`` is the fraction of the light of a particle spread uniformly over voxel j that
 reaches pixel i, in the simulator's units (a particle of energy 1 gives an image summing to 1),
@@ -76,6 +77,7 @@ class Weights:
     def normalised(self) -> tuple[Projector, np.ndarray]:
         """W with every row scaled to a maximum of 1, and each row's scale (computed once).
 
+        The scaled projector is a row view of W (the CSR is shared, the scale kept per row).
         MART raises a voxel's factor to the power μ w_ij; with the physical weights (fractions
         of a particle's light, ~1e-3) the updates would be tiny. Scaling row i and pixel i by
         the same c_i = 1/max_j w_ij leaves the system I = W E and its solution unchanged.
@@ -178,7 +180,10 @@ def weights_reference(lf: LightField, grid: VolumeGrid, rows) -> np.ndarray:
 
 
 def _cdf_np(x, centre, alpha, beta):
-    """NumPy twin of :func:`plenopiv.reconstruction._kernels.weights.box_sum_cdf` (by numerical convolution)."""
+    """NumPy twin of :func:`plenopiv.reconstruction._kernels.weights.box_sum_cdf`.
+
+    By numerical convolution.
+    """
     lo, hi = sorted((alpha, beta))
     if lo <= 1e-9 * hi:
         return np.clip((x - centre) / hi + 0.5, 0, 1)
@@ -207,9 +212,12 @@ def weights_key(calibration: Calibration, grid: VolumeGrid, *, f_number: float |
     return h.hexdigest()
 
 
-#: Bytes per explicit non-zero in a reconstruction: W (8), its row-normalised copy (4) and the
-#: copy restricted to the bright rows (8 × their share; counted in full).
-BYTES_PER_NONZERO = 20
+#: Bytes per explicit non-zero in a reconstruction: W's CSR (8: int32 voxel index, float32
+#: weight), held once (its row-normalised and row-selected projectors are views of it), and
+#: 2 for the row views, schedules, images and volumes (the traced peak of a whole SMART
+#: reconstruction is 8.7-9.3 bytes per non-zero in benchmarks/bench_weights.py --reconstruct;
+#: method "block" adds 4 for its block column sums).
+BYTES_PER_NONZERO = 10
 PROJECTORS = ("auto", "sparse", "lattice")
 
 
@@ -300,14 +308,18 @@ def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
 def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str | Path | None,
                    f_number: float | None = None, min_lit: float = 0.5,
                    min_weight: float = 1e-7, projector: str = "auto",
-                   max_weights_gb: float | None = None) -> tuple[Weights, bool]:
-    """Load the weights from ``cache_dir`` when built before for the same geometry, else build
-    (and save) them. Returns ``(weights, from_cache)``.
+                   max_weights_gb: float | None = None, load: bool = True
+                   ) -> tuple[Weights | None, bool]:
+    """Load the weights from ``cache_dir``, or build (and save) them: ``(weights, from_cache)``.
+
+    Loaded when built before for the same geometry.
 
     The file name carries the key, and the key stored inside is checked again, so weights of
     another camera, calibration or grid are never reused; a corrupt cache file is rebuilt.
     ``projector`` (see :func:`choose_projector`) may pick the matrix-free lattice projector
-    instead, which is built in seconds and never cached.
+    instead, which is built in seconds and never cached. ``load=False`` only fills the
+    cache: a cached file is checked, not read; the lattice projector is not built; None
+    comes back in place of the weights.
     """
     key = weights_key(calibration, grid, f_number=f_number, min_lit=min_lit,
                       min_weight=min_weight)
@@ -315,6 +327,8 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
     if projector != "lattice" and path is not None and path.exists():
         try:
             with h5py.File(path, "r") as fh:
+                if fh.attrs.get("key") == key and not load:
+                    return None, True
                 if fh.attrs.get("key") == key:
                     proj = SparseProjector(fh["/indptr"][()], fh["/indices"][()],
                                            fh["/data"][()], n_voxels=grid.n_voxels, check=False)
@@ -326,6 +340,8 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
                             min_weight=min_weight)
     if kind == "lattice":
         check_grid_in_view(lf, grid)
+        if not load:
+            return None, False
         return Weights(LatticeProjector.from_light_field(lf, grid), lf.pixel, grid, key), False
     w = build_weights(lf, grid, min_weight=min_weight, key=key)
     if path is not None:
@@ -333,4 +349,4 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
         write_h5(path, {"/indptr": p.indptr, "/indices": p.indices, "/data": p.data,
                         "/pixel": w.pixel}, attrs={"key": key, "grid": grid.key()},
                  kind="weights cache", compress=False)
-    return w, False
+    return (w if load else None), False

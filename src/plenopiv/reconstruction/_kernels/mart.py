@@ -1,7 +1,10 @@
 """numba kernels behind :mod:`plenopiv.reconstruction.mart` (private; arrays and scalars only).
 
-W (rows = pixels, columns = voxels) comes as CSR ``indptr, indices, data`` together with a
-row schedule (:class:`plenopiv.reconstruction.projector.RowSchedule`): groups of chunks of rows, no two
+W (rows = pixels, columns = voxels) comes as CSR ``indptr, indices, data`` read through a
+row view ``row_index, row_scale`` (see :mod:`plenopiv.reconstruction._kernels.projector`:
+view row i is CSR row ``row_index[i]`` times ``row_scale[i]``), together with a
+row schedule (:class:`plenopiv.reconstruction.projector.RowSchedule`): groups of chunks of rows, no
+two
 chunks of a group sharing a voxel, so that they may update their voxels in parallel without
 a race. The volume
 (float32) is updated in place. Plain NumPy twins of both sweeps live in ``tests/test_mart.py``.
@@ -14,6 +17,8 @@ import math
 import numba
 import numpy as np
 
+from plenopiv.reconstruction._kernels.projector import csr_row, row_factor
+
 #: Bound on |log(I_i / sum_j w_ij E_j)| in one update: a pixel that sees its voxels only
 #: through tiny projections (an inconsistent system, e.g. after masking) cannot blow a voxel
 #: up to infinity; consistent updates are far inside it (e^12 ≈ 1.6e5).
@@ -23,8 +28,8 @@ VOXEL_MAX = np.float32(1e30)
 
 
 @numba.njit(parallel=True, cache=True)
-def mart_sweep(indptr, indices, data, rows, chunk_ptr, group_ptr, intensity, bright, volume,
-               relaxation):
+def mart_sweep(indptr, indices, data, row_index, row_scale, rows, chunk_ptr, group_ptr,
+               intensity, bright, volume, relaxation):
     """One row-action MART sweep (Elsinga et al. 2006) over the rows in schedule order.
 
     For each bright pixel i: ``s = sum_j w_ij E_j``; if ``s > 0``,
@@ -39,23 +44,25 @@ def mart_sweep(indptr, indices, data, rows, chunk_ptr, group_ptr, intensity, bri
                 i = rows[k]
                 if not bright[i]:
                     continue
+                r = csr_row(row_index, i)
+                f = row_factor(row_scale, i)
                 s = 0.0
-                for p in range(indptr[i], indptr[i + 1]):
-                    s += data[p] * volume[indices[p]]
+                for p in range(indptr[r], indptr[r + 1]):
+                    s += (data[p] * f) * volume[indices[p]]
                 if s <= 0.0:
                     continue
                 lr = min(max(math.log(intensity[i] / s), -LOG_RATIO_BOUND), LOG_RATIO_BOUND)
                 gain = np.float32(relaxation * lr)
                 if gain == 0.0:
                     continue
-                for p in range(indptr[i], indptr[i + 1]):
+                for p in range(indptr[r], indptr[r + 1]):
                     j = indices[p]
-                    volume[j] = min(volume[j] * math.exp(gain * data[p]), VOXEL_MAX)
+                    volume[j] = min(volume[j] * math.exp(gain * (data[p] * f)), VOXEL_MAX)
 
 
 @numba.njit(parallel=True, cache=True)
-def block_sweep(indptr, indices, data, block_column_sums, rows, chunk_ptr, group_ptr,
-                block_group_ptr, intensity, bright, volume, relaxation, log_ratio):
+def block_sweep(indptr, indices, data, row_index, row_scale, block_column_sums, rows, chunk_ptr,
+                group_ptr, block_group_ptr, intensity, bright, volume, relaxation, log_ratio):
     """One block-iterative multiplicative sweep: the pixels of a block act simultaneously.
 
     For each block B in order: first, in parallel over its pixels,
@@ -74,9 +81,11 @@ def block_sweep(indptr, indices, data, block_column_sums, rows, chunk_ptr, group
             i = rows[k]
             lr = 0.0
             if bright[i]:
+                r = csr_row(row_index, i)
+                f = row_factor(row_scale, i)
                 s = 0.0
-                for p in range(indptr[i], indptr[i + 1]):
-                    s += data[p] * volume[indices[p]]
+                for p in range(indptr[r], indptr[r + 1]):
+                    s += (data[p] * f) * volume[indices[p]]
                 if s > 0.0:
                     lr = min(max(math.log(intensity[i] / s), -LOG_RATIO_BOUND),
                              LOG_RATIO_BOUND)
@@ -88,10 +97,12 @@ def block_sweep(indptr, indices, data, block_column_sums, rows, chunk_ptr, group
                     gain = np.float32(relaxation * log_ratio[i])
                     if gain == 0.0:
                         continue
-                    for p in range(indptr[i], indptr[i + 1]):
+                    r = csr_row(row_index, i)
+                    f = row_factor(row_scale, i)
+                    for p in range(indptr[r], indptr[r + 1]):
                         j = indices[p]
                         e = volume[j]
                         if e > 0.0:
                             volume[j] = min(e * math.exp(
-                                gain * data[p] / max(np.float32(1.0), block_column_sums[p])),
-                                VOXEL_MAX)
+                                gain * (data[p] * f)
+                                / max(np.float32(1.0), block_column_sums[p])), VOXEL_MAX)

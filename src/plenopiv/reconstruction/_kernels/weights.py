@@ -21,8 +21,10 @@ def _r2(y):
 
 @njit(cache=True)
 def box_sum_cdf(x, centre, alpha, beta):
-    """CDF at x of the sum of two independent uniforms of widths alpha, beta (any order)
-    centred (jointly) at ``centre``."""
+    """CDF at x of the sum of two independent uniforms of widths alpha, beta (any order).
+
+    The sum is centred at ``centre``.
+    """
     lo, hi = (alpha, beta) if alpha <= beta else (beta, alpha)
     if lo <= 1e-9 * hi:                     # one box is a point: a plain uniform
         v = (x - centre) / hi + 0.5
