@@ -6,18 +6,16 @@ from two small tables instead, using the structure of the lattice: where the lat
 columns run along the sensor's, a pixel's beam is, on every depth slice, the product of a
 profile along x that depends only on the pixel's sensor column and a profile along y that
 depends only on its sensor row (see :mod:`plenopiv.reconstruction._kernels.lattice`). A projection
-is then
-two thin contractions per slice; its memory is one (slices × voxel rows × sensor columns)
+is then two thin contractions per slice; its memory is one (slices × voxel rows × sensor columns)
 float32 buffer plus tables of a few MB.
 
-It implements the :class:`~plenopiv.reconstruction.projector.Projector` protocol (``forward``,
-``back``,
-``row_sums``, ``column_sums``), which is all that MLOS and SMART need; row-action MART and the
-block variant walk explicit rows and stay with
+It implements the :class:`~plenopiv.reconstruction.projector.Projector` protocol
+(``forward``, ``back``, ``row_sums``, ``column_sums``), which is all that MLOS and SMART
+need; row-action MART and the block variant walk explicit rows and stay with
 :class:`~plenopiv.reconstruction.projector.SparseProjector`.
 
-Differences from the explicit weights (:func:`plenopiv.reconstruction.weights.build_weights`), both
-small:
+Differences from the explicit weights
+(:func:`plenopiv.reconstruction.weights.build_weights`), both small:
 
 - a pixel cut by the aperture's edge is traced through its cell centre, not through the
   centroid of the cell's lit part (its weight still carries the lit fraction); set

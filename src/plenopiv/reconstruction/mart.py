@@ -2,8 +2,7 @@ r"""Tomographic reconstruction of a particle volume from one plenoptic image: ML
 
 The recorded intensity of pixel i is modelled as the weighted sum of the voxel intensities
 its beam crosses, ``I_i = sum_j w_ij E_j`` (see :mod:`plenopiv.reconstruction.projector`). This
-module
-inverts that relation with non-negative multiplicative iterations:
+module inverts that relation with non-negative multiplicative iterations:
 
 - :func:`mlos` -- the multiplicative line-of-sight first guess;
 - :func:`reconstruct` -- MART (row action), block-iterative MART, or SMART;
@@ -24,8 +23,7 @@ tomographic PIV by Elsinga et al. 2006, their Eq. 2). For each pixel i in turn,
 
 with I_i = ``image``, w = the projector's weights, mu = ``relaxation``. The pixels are
 visited in the order of :meth:`~plenopiv.reconstruction.projector.SparseProjector.row_schedule`:
-runs
-of 16 consecutive pixels ("chunks"), the chunks coloured so that no two of a colour share
+runs of 16 consecutive pixels ("chunks"), the chunks coloured so that no two of a colour share
 a voxel, colour after colour. The result is exactly that of the sequential sweep in this
 order, computed in parallel (chunks of a colour at once), and it does not depend on the
 number of threads. Any order is a valid MART; this one keeps neighbouring pixels

@@ -9,8 +9,7 @@ beam energy that passes through voxel j:
     r_j = sum_i w_ij I_i            (back projection, r = Wᵀ·I)
 
 :class:`Projector` is the protocol that :mod:`plenopiv.reconstruction.mart` needs for MLOS and
-SMART: any
-object with these six members will do, a matrix-free projector that exploits the regular
+SMART: any object with these six members will do, a matrix-free projector that exploits the regular
 lenslet grid included. Row-action MART and the block-iterative variant also walk the rows of
 W; :class:`RowAccessProjector` adds that. :class:`SparseProjector` is the explicit
 implementation, W held in CSR form (rows = pixels, columns = voxels).
@@ -575,7 +574,7 @@ class SparseProjector(CachedSums):
 
     def _colour(self, block_ptr, block_rows, labels, chunk_rows, *, with_sums):
         """Colour the chunks of each block and order them by (block, colour, chunk)."""
-        max_degree = int(np.bincount(self._indices).max()) if self.nnz else 1
+        max_degree = _max_column_count(self._indices, self.n_voxels) if self.nnz else 1
         words = max(1, -(-max_degree // 64))
         while True:
             colour, n_colours, sums = _k.colour_chunks(
@@ -612,6 +611,18 @@ class SparseProjector(CachedSums):
 
 _EMPTY_INDEX = np.zeros(0, np.int64)
 _EMPTY_SCALE = np.zeros(0, np.float32)
+
+
+def _max_column_count(indices: np.ndarray, n_voxels: int, chunk: int = 1 << 22) -> int:
+    """Largest number of non-zeros of one voxel (column) of the CSR.
+
+    Counted in chunks, so that no int64 copy of all the indices is made (8 bytes per
+    non-zero, as much as the CSR itself).
+    """
+    counts = np.zeros(n_voxels, np.int64)
+    for start in range(0, indices.shape[0], chunk):
+        counts += np.bincount(indices[start:start + chunk], minlength=n_voxels)
+    return int(counts.max())
 
 
 def _row_entries(indptr: np.ndarray, rows: np.ndarray, view_indptr: np.ndarray) -> np.ndarray:

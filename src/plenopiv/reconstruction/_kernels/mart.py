@@ -3,11 +3,10 @@
 W (rows = pixels, columns = voxels) comes as CSR ``indptr, indices, data`` read through a
 row view ``row_index, row_scale`` (see :mod:`plenopiv.reconstruction._kernels.projector`:
 view row i is CSR row ``row_index[i]`` times ``row_scale[i]``), together with a
-row schedule (:class:`plenopiv.reconstruction.projector.RowSchedule`): groups of chunks of rows, no
-two
-chunks of a group sharing a voxel, so that they may update their voxels in parallel without
-a race. The volume
-(float32) is updated in place. Plain NumPy twins of both sweeps live in ``tests/test_mart.py``.
+row schedule (:class:`plenopiv.reconstruction.projector.RowSchedule`): groups of chunks of
+rows, no two chunks of a group sharing a voxel, so that they may update their voxels in
+parallel without a race. The volume (float32) is updated in place. Plain NumPy twins of both
+sweeps live in ``tests/test_mart.py``.
 """
 
 from __future__ import annotations
