@@ -10,10 +10,10 @@ from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import ConfigError, ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction._kernels import weights as WK
+from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.weights import (
     _cdf_np,
     build_weights,
-    cached_weights,
     weights_reference,
 )
 from plenopiv.synthetic import _kernels as TK

@@ -20,7 +20,8 @@ from plenopiv.config import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
-from plenopiv.reconstruction.weights import Weights, cached_weights, check_grid_in_view, weights_key
+from plenopiv.reconstruction.select import cached_weights, weights_key
+from plenopiv.reconstruction.weights import Weights, check_grid_in_view
 from plenopiv.volume import VolumeGrid
 
 __all__ = ["SUBDIVIDED_VOXEL_FOOTPRINTS", "footprint", "lateral_subdivision", "merge_subdivided",
