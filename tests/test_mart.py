@@ -37,37 +37,7 @@ def consistent_problem(rng, n_pixels=80, n_voxels=60, density=0.1):
     return m, W, truth, W.forward(truth)
 
 
-# -- NumPy twins of the kernels --------------------------------------------------------------
-
-
-def mart_sweep_reference(m, order, intensity, bright, volume, relaxation):
-    """Row-action MART in float64, rows in ``order`` (Elsinga et al. 2006, Eq. 2)."""
-    e = volume.astype(np.float64)
-    for i in order:
-        if not bright[i]:
-            continue
-        cols = m.indices[m.indptr[i]:m.indptr[i + 1]]
-        w = m.data[m.indptr[i]:m.indptr[i + 1]].astype(np.float64)
-        s = w @ e[cols]
-        if s > 0:
-            e[cols] *= (intensity[i] / s) ** (relaxation * w)
-    return e
-
-
-def block_sweep_reference(m, labels, intensity, bright, volume, relaxation):
-    """Block-iterative multiplicative sweep in float64 (see mart.reconstruct, Notes)."""
-    e = volume.astype(np.float64)
-    m64 = m.astype(np.float64)
-    for label in np.unique(labels):
-        rows = np.flatnonzero(labels == label)
-        sub = m64[rows]
-        proj = sub @ e
-        log_ratio = np.zeros(rows.shape[0])
-        ok = bright[rows] & (proj > 0)
-        log_ratio[ok] = np.log(intensity[rows][ok] / proj[ok])
-        column_sum = np.asarray(sub.sum(axis=0)).ravel()
-        e *= np.exp(relaxation * (sub.T @ log_ratio) / np.maximum(1.0, column_sum))
-    return e
+# -- the kernels against their NumPy twins (plenopiv.reconstruction._kernels.mart) -----------
 
 
 def sweep_rtol(m):
@@ -89,7 +59,10 @@ def test_mart_kernel_matches_numpy_twin(rng, chunk_rows, relaxation):
     bright = rng.uniform(size=image.shape) > 0.2  # some dark pixels are skipped
     volume = rng.uniform(0.5, 1.5, W.n_voxels).astype(np.float32)
     schedule = W.row_schedule(chunk_rows=chunk_rows)
-    expected = mart_sweep_reference(m, schedule.rows, image, bright, volume, relaxation)
+    expected = volume.copy()
+    mk.mart_sweep_numpy(W.indptr, W.indices, W.data, W.row_index, W.row_scale, schedule.rows,
+                        schedule.chunk_ptr, schedule.group_ptr, image, bright, expected,
+                        relaxation)
     mk.mart_sweep(W.indptr, W.indices, W.data, W.row_index, W.row_scale,
                   schedule.rows, schedule.chunk_ptr, schedule.group_ptr, image, bright,
                   volume, np.float32(relaxation))
@@ -104,7 +77,11 @@ def test_block_kernel_matches_numpy_twin(rng, chunk_rows):
     volume = rng.uniform(0.5, 1.5, W.n_voxels).astype(np.float32)
     schedule = W.block_schedule(labels, chunk_rows=chunk_rows)
     assert schedule.block_column_sums.max() > 1  # the max(1, .) normalisation is exercised
-    expected = block_sweep_reference(m, labels, image, bright, volume, 0.8)
+    expected = volume.copy()
+    mk.block_sweep_numpy(W.indptr, W.indices, W.data, W.row_index, W.row_scale, None,
+                         schedule.rows, schedule.chunk_ptr, schedule.group_ptr,
+                         schedule.block_group_ptr, image, bright, expected, 0.8,
+                         np.zeros(W.n_pixels))
     log_ratio = np.zeros(W.n_pixels)
     mk.block_sweep(W.indptr, W.indices, W.data, W.row_index, W.row_scale,
                    schedule.block_column_sums, schedule.rows,
@@ -119,11 +96,11 @@ def test_one_pixel_blocks_are_mart_and_one_block_is_smart(rng):
     m, W, truth, image = consistent_problem(rng)
     kw = dict(iterations=3, relaxation=1.0, initial="ones")
     by_pixel = reconstruct(image, W, method="block", blocks=np.arange(W.n_pixels), **kw)
-    volume = np.ones(W.n_voxels, np.float32)
-    expected = volume.astype(np.float64)
+    expected = np.ones(W.n_voxels, np.float32)
+    in_order = (np.arange(W.n_pixels), np.array([0, W.n_pixels]), np.array([0, 1]))
     for _ in range(3):
-        expected = mart_sweep_reference(m, np.arange(W.n_pixels), image,
-                                        np.ones(W.n_pixels, bool), expected, 1.0)
+        mk.mart_sweep_numpy(W.indptr, W.indices, W.data, W.row_index, W.row_scale, *in_order,
+                            image, np.ones(W.n_pixels, bool), expected, 1.0)
     np.testing.assert_allclose(by_pixel, expected, rtol=3 * sweep_rtol(m))
     one_block = reconstruct(image, W, method="block", blocks=np.zeros(W.n_pixels, int), **kw)
     smart = reconstruct(image, W, method="smart", **kw)
