@@ -165,26 +165,12 @@ def weights_reference(lf: LightField, grid: VolumeGrid, rows) -> np.ndarray:
             t = (lf.object_distance + z) / lf.object_distance
             al, be = abs(1 - t) * lf.cell, t * lf.footprint
             m = (1 - t) * lf.u[i] + t * xf[i]
-            fx = np.diff(_cdf_np(xe, m[0], al, be))
-            fy = np.diff(_cdf_np(ye, m[1], al, be))
+            fx = np.diff(K.box_sum_cdf_numpy(xe, m[0], al, be))
+            fy = np.diff(K.box_sum_cdf_numpy(ye, m[1], al, be))
             w = lf.lit[i] * (lf.cell * be) ** 2 / (area * grid.voxel[0] * grid.voxel[1])
             out[r, iz * ny * nx:(iz + 1) * ny * nx] = (w * fy[:, None] * fx[None, :]).ravel()
     return out
 
-
-def _cdf_np(x, centre, alpha, beta):
-    """NumPy twin of :func:`plenopiv.reconstruction._kernels.weights.box_sum_cdf`.
-
-    By numerical convolution.
-    """
-    lo, hi = sorted((alpha, beta))
-    if lo <= 1e-9 * hi:
-        return np.clip((x - centre) / hi + 0.5, 0, 1)
-    # the density is a trapezoid; integrate it with a fine trapezoid rule
-    grid = np.linspace(centre - (lo + hi) / 2, centre + (lo + hi) / 2, 20001)
-    dens = np.clip(np.minimum(grid - grid[0], grid[-1] - grid) / lo, 0, 1) / hi
-    cum = np.concatenate([[0], np.cumsum((dens[1:] + dens[:-1]) / 2 * np.diff(grid))])
-    return np.interp(x, grid, cum, left=0.0, right=1.0)
 
 
 #: Names that moved to :mod:`plenopiv.reconstruction.select` (projector choice, memory
