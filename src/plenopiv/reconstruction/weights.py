@@ -90,8 +90,11 @@ class Weights:
         return isinstance(self.projector, LatticeProjector)
 
     def image_vector(self, image) -> np.ndarray:
-        """The rows' pixel values of a full sensor image, float32 (P,)."""
-        return np.asarray(image, np.float32).reshape(-1)[self.pixel]
+        """The rows' pixel values of a full sensor image, float32 (P,).
+
+        The rows are gathered first and then converted: no float32 copy of the whole image.
+        """
+        return np.asarray(image).reshape(-1)[self.pixel].astype(np.float32, copy=False)
 
     def forward_image(self, volume, shape) -> np.ndarray:
         """Project a volume ``[z, y, x]`` into a full sensor image of ``shape``."""
