@@ -51,9 +51,11 @@ def weights_key(calibration: Calibration, grid: VolumeGrid, *, f_number: float |
 
 #: Bytes per explicit non-zero in a reconstruction: W's CSR (8: int32 voxel index, float32
 #: weight), held once (its row-normalised and row-selected projectors are views of it), and
-#: 2 for the row views, schedules, images and volumes (the traced peak of a whole SMART
-#: reconstruction is 10.0 bytes per non-zero in benchmarks/bench_weights.py --reconstruct;
-#: method "block" adds 4 for its block column sums).
+#: 2 for the row views, schedules, images and volumes. The traced peak of a whole
+#: reconstruction (benchmarks/bench_weights.py --reconstruct, 23 million non-zeros, 50 per
+#: row) is 10.0 bytes per non-zero with SMART and 10.9 with row-action MART (22.3 and 24.9
+#: while scaled and selected copies of W were made); method "block" adds 4 for its block
+#: column sums.
 BYTES_PER_NONZERO = 10
 PROJECTORS = ("auto", "sparse", "lattice")
 
