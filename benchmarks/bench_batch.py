@@ -22,6 +22,11 @@ The ratio of the compute throughputs (2 workers / 1 worker) is the parallel effi
 cores: 2.0 is perfect; the goal is at least 1.8. Other work on the machine lowers it: the
 1-minute load average before each run is printed (``load``); trust figures taken with load
 well below 1. Nothing is asserted; figures are printed.
+
+``--pipeline N`` instead runs N simulated pairs of the small camera through ``plenopiv run``'s
+per-pair work (:class:`plenopiv.pipeline.ExperimentPairProcess`) on one worker and prints each
+pair's time: the first pair of a worker loads the experiment, the calibration and builds its
+projector (and compiles the kernels), the later ones reuse them.
 """
 
 from __future__ import annotations

@@ -2,6 +2,11 @@
 pass next to scipy's CSR ``W @ x`` + ``W.T @ y`` on the same matrix in the same run.
 
     python benchmarks/bench_weights.py [--camera small_m1] [--depth-mm 3] [--json]
+    python benchmarks/bench_weights.py --reconstruct smart mart --depth-mm 1
+
+``--reconstruct`` instead prints the bytes held per explicit non-zero during whole
+reconstructions (``pipeline.reconstruct_volume``; traced peak, and after loading the weights)
+and their CPU time.
 
 Prints figures; not a test.
 """
