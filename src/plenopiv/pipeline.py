@@ -47,6 +47,8 @@ if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
     from plenopiv.piv import PIVSettings
 
 Progress = Callable[[str, float], None] | None
+_DEFAULT_RECONSTRUCTION = ReconstructionSettings()
+_DEFAULT_PARTICLES = ParticleSettings()
 
 
 @dataclass(frozen=True)
@@ -169,8 +171,8 @@ def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration:
 
 
 def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
-                       settings: ReconstructionSettings = ReconstructionSettings(),
-                       particles: ParticleSettings = ParticleSettings(),
+                       settings: ReconstructionSettings = _DEFAULT_RECONSTRUCTION,
+                       particles: ParticleSettings = _DEFAULT_PARTICLES,
                        weights: Weights | None = None, cache_dir: str | Path | None = None,
                        progress: Progress = None, image_mask=None) -> VolumeResult:
     """Reconstruct one image into a volume and extract its particles.
@@ -234,8 +236,9 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
 
 def _particles_of(vol: np.ndarray, grid: VolumeGrid, calibration: Calibration,
                   particles: ParticleSettings) -> tuple:
-    """``(correction, effective positions, positions, intensities, sizes)`` of a volume's
-    particles (:func:`plenopiv.particles.find_particles`, then the depth corrections).
+    """``(correction, effective positions, positions, intensities, sizes)`` of the particles.
+
+    Found by :func:`plenopiv.particles.find_particles`, then depth-corrected.
     """
     if float(vol.max()) <= 0:
         raise ReconstructionError("the reconstructed volume is empty: no particle light in "
@@ -525,8 +528,9 @@ def _cf_volume(fh) -> None:
 
 def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, dt=None,
               workers=None, progress=None, mask=None, response=None) -> VectorResult:
-    """3-D PIV between two reconstructed volumes of the same grid (effective coordinates),
-    returned in physical coordinates.
+    """3-D PIV between two reconstructed volumes of the same grid, in physical coordinates.
+
+    The volumes are on the effective (air-equivalent) grid.
 
     ``mask``: volume mask (bool ``[z, y, x]``, True outside the flow). ``response``: a
     callable ``response(field) -> Response`` (:func:`plenopiv.piv.uncertainty.measure_response`)
@@ -648,8 +652,10 @@ def _piv_progress(progress: Progress):
 def process_pair(calibration: Calibration, image_a, image_b, experiment, *,
                  weights: Weights | None = None, progress: Progress = None,
                  workers=None) -> PairResult:
-    """Images A and B -> two volumes (weights built once) -> particles -> corrections ->
-    vectors, with the experiment's settings (:class:`plenopiv.config.Experiment`).
+    """Images A and B -> two volumes -> particles -> corrections -> vectors.
+
+    With the experiment's settings (:class:`plenopiv.config.Experiment`), the weights built
+    once for both volumes.
 
     One pair; many pairs of one experiment share a :class:`PairProcessor`.
     """
@@ -658,8 +664,9 @@ def process_pair(calibration: Calibration, image_a, image_b, experiment, *,
 
 
 def _volume_progress(progress: Progress, tag: str) -> Progress:
-    """The progress of one volume of a pair, reported as ``"volume A: mart"`` etc., its
-    fraction over the whole volume (MART about 90 % of it).
+    """The progress of one volume of a pair, reported as ``"volume A: mart"`` etc.
+
+    Its fraction is over the whole volume (MART about 90 % of it).
     """
     if progress is None:
         return None
@@ -672,8 +679,9 @@ def _volume_progress(progress: Progress, tag: str) -> Progress:
 
 def _response_of(calibration, weights, volume_a: VolumeResult, experiment, settings, workers,
                  img_mask, vol_mask):
-    """``response(field)`` for :func:`correlate`: the chain's measured response
-    (:func:`plenopiv.piv.uncertainty.measure_response`) for this experiment, kept in the weights
+    """``response(field)`` for :func:`correlate`: the chain's measured response.
+
+    :func:`plenopiv.piv.uncertainty.measure_response` for this experiment, kept in the weights
     cache (``[output] weights_cache``) under a key of everything it depends on.
     """
     from plenopiv.piv import correlate_volumes
@@ -799,7 +807,7 @@ def _file_identity(path: str | Path) -> tuple:
 
 def worker_processor(experiment_path: str | Path, calibration_path: str | Path
                      ) -> PairProcessor:
-    """This process's :class:`PairProcessor` of an experiment file and a calibration product.
+    """The :class:`PairProcessor` of this process for an experiment file and a calibration.
 
     Made on first use (the experiment and the calibration loaded, the projector built or read
     from the weights cache on the first pair) and kept for the later pairs of the process;
@@ -836,8 +844,9 @@ def prepare_weights(experiment, calibration: Calibration) -> tuple[bool, float]:
 
 
 def _camera_differences(made_for: CameraModel, used: CameraModel) -> list[str]:
-    """What differs between the camera a calibration was made for and the one it is used
-    with: sensor, lattice, main-lens focal length (S_i is the calibration's to give).
+    """What differs between the camera a calibration was made for and the one it is used with.
+
+    Sensor, lattice, main-lens focal length (S_i is the calibration's to give).
     """
     def close(a, b):
         return math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-12)
@@ -878,9 +887,10 @@ def _describe(camera: CameraModel, image_distance: float | None) -> str:
 
 
 def product_settings(experiment) -> dict:
-    """The settings of an experiment that shape a pair's products: the camera, the grid, the
-    reconstruction, particle, PIV and tracking tables, dt and the side products (vtk, png).
-    Not the image patterns, the batch, the folders or the weight cache.
+    """The settings of an experiment that shape a pair's products.
+
+    The camera, the grid, the reconstruction, particle, PIV and tracking tables, dt and the
+    side products (vtk, png). Not the image patterns, the batch, the folders or the weight cache.
     """
     d = experiment.to_dict()
     return {"camera": d["camera"], "volume": d["volume"],
@@ -890,8 +900,9 @@ def product_settings(experiment) -> dict:
 
 
 def settings_identity(experiment) -> str:
-    """SHA-256 of :func:`product_settings` (canonical JSON): equal when, and only when, the
-    products would be made with the same settings.
+    """SHA-256 of :func:`product_settings` (canonical JSON).
+
+    Equal when, and only when, the products would be made with the same settings.
     """
     import hashlib
 
@@ -901,8 +912,10 @@ def settings_identity(experiment) -> str:
 
 
 def experiment_calibration(experiment, calibration_path) -> Calibration:
-    """The calibration to use with an experiment: S_i and the lenslets from the calibration
-    product, the interfaces and back-side model from the experiment's camera.
+    """The calibration to use with an experiment.
+
+    S_i and the lenslets come from the calibration product, the interfaces and back-side
+    model from the experiment's camera.
 
     The calibration product records the camera it was made for; used with another camera
     (sensor, lattice or main-lens focal length differ, or the experiment's nominal S_i is
