@@ -147,8 +147,8 @@ def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
 def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str | Path | None,
                    f_number: float | None = None, min_lit: float = 0.5,
                    min_weight: float = 1e-7, projector: str = "auto",
-                   max_weights_gb: float | None = None, load: bool = True
-                   ) -> tuple[Weights | None, bool]:
+                   max_weights_gb: float | None = None, load: bool = True,
+                   lf: LightField | None = None) -> tuple[Weights | None, bool]:
     """Load the weights from ``cache_dir``, or build (and save) them: ``(weights, from_cache)``.
 
     Loaded when built before for the same geometry.
@@ -159,6 +159,8 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
     instead, which is built in seconds and never cached. ``load=False`` only fills the
     cache: a cached file is checked, not read; the lattice projector is not built; None
     comes back in place of the weights.
+    ``lf``, the light field of ``calibration`` with ``f_number`` and ``min_lit``, saves
+    computing it again where the caller has it.
     """
     key = weights_key(calibration, grid, f_number=f_number, min_lit=min_lit,
                       min_weight=min_weight)
@@ -174,7 +176,8 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
                     return Weights(proj, fh["/pixel"][()], grid, key), True
         except (OSError, KeyError, ValueError):
             pass   # unreadable or from another geometry: rebuild below
-    lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
+    if lf is None:
+        lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
     kind = choose_projector(lf, grid, projector=projector, max_weights_gb=max_weights_gb,
                             min_weight=min_weight)
     if kind == "lattice":

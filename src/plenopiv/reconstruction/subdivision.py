@@ -153,6 +153,7 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
     if projector == "auto" and settings.method != "smart":
         projector = "sparse"
     ky, kx = lateral_subdivision(calibration, grid, settings)
+    lf = None
     if projector == "auto" and (ky, kx) != (1, 1):
         # a subdivided grid has k² times the explicit weights; the matrix-free projector is
         # built in seconds and projects it about ten times faster (docs/validation/vortex.md)
@@ -171,7 +172,7 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
             return cached_weights(calibration, subdivided_grid(grid, ky, kx),
                                   cache_dir=cache_dir, f_number=settings.f_number,
                                   min_lit=settings.min_lit, projector=projector,
-                                  max_weights_gb=settings.max_weights_gb, load=load)
+                                  max_weights_gb=settings.max_weights_gb, load=load, lf=lf)
         except ReconstructionError as exc:
             if (settings.lateral_subdivision != "auto" or max(ky, kx) == 1
                     or "max_weights_gb" not in str(exc)):
@@ -180,3 +181,6 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
                           f"subdivision do not fit ({exc}); trying "
                           f"{max(1, ky - 1)} x {max(1, kx - 1)}", stacklevel=2)
             ky, kx = max(1, ky - 1), max(1, kx - 1)
+            if lf is None:      # the next attempts share one light field
+                lf = light_field(calibration, f_number=settings.f_number,
+                                 min_lit=settings.min_lit)
