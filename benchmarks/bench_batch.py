@@ -22,6 +22,11 @@ The ratio of the compute throughputs (2 workers / 1 worker) is the parallel effi
 cores: 2.0 is perfect; the goal is at least 1.8. Other work on the machine lowers it: the
 1-minute load average before each run is printed (``load``); trust figures taken with load
 well below 1. Nothing is asserted; figures are printed.
+
+``--pipeline N`` instead runs N simulated pairs of the small camera through ``plenopiv run``'s
+per-pair work (:class:`plenopiv.pipeline.ExperimentPairProcess`) on one worker and prints each
+pair's time: the first pair of a worker loads the experiment, the calibration and builds its
+projector (and compiles the kernels), the later ones reuse them.
 """
 
 from __future__ import annotations
@@ -96,6 +101,45 @@ def run(n_workers: int, n_jobs: int, repeats: int, folder: Path) -> dict:
             "pids": len({r.pid for r in s.results})}
 
 
+def pipeline_pairs(n_pairs: int, folder: Path) -> list[dict]:
+    """Per-pair times of ``plenopiv run``'s work on real pairs, in the order they ran.
+
+    ``n_pairs`` simulated pairs of the small camera (30 particles, 3 mm deep), the default
+    reconstruction (SMART on a laterally subdivided grid: the matrix-free projector, never
+    cached on disk), no weights cache; one worker, one thread. Each row: the pair's wall time
+    in the process and its reconstruction time (``reconstruct_s``, projector included).
+    """
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.camera import load_camera
+    from plenopiv.cli import main as cli
+    from plenopiv.pipeline import ExperimentPairProcess
+
+    Calibration.from_camera(load_camera("small_m1")).save(folder / "cal.h5")
+    (folder / "pairs").mkdir()
+    for i in range(n_pairs):
+        cli(["simulate", "pair", "small_m1", "--n-particles", "30", "--rays-per-particle",
+             "256", "--depth-mm", "-1.5", "1.5", "--fill", "0.4", "--seed", str(i + 1),
+             "--no-tiff", "--quiet", "--out", str(folder / "pairs" / f"run_{i + 1}.h5")])
+    (folder / "exp.toml").write_text(
+        'camera = "small_m1"\n[volume]\nx_mm = [-1.0625, 1.0625]\ny_mm = [-1.0625, 1.0625]\n'
+        'z_mm = [-1.5, 1.5]\nvoxel_mm = 0.125\n[piv]\nwindows = [[12, 12, 12]]\npasses = 2\n'
+        '[images]\npairs = "pairs/*.h5"\ncalibration = "cal.h5"\ndt_s = 1e-3\n'
+        '[output]\ndirectory = "out"\npng = false\nvtk = false\n')
+    jobs = [PairJob(f"run_{i + 1}", f"{folder}/pairs/run_{i + 1}.h5:/image_a",
+                    f"{folder}/pairs/run_{i + 1}.h5:/image_b",
+                    folder / "out" / f"run_{i + 1}_vectors.h5") for i in range(n_pairs)]
+    (folder / "out").mkdir()
+    process = ExperimentPairProcess(str(folder / "exp.toml"), str(folder / "cal.h5"),
+                                    str(folder / "out"))
+    s = run_batch(jobs, process, n_workers=1, threads_per_worker=1, resume=False,
+                  progress=False)
+    if s.failed:
+        raise SystemExit(f"pairs failed: {s.failed}")
+    done = sorted(s.results, key=lambda r: r.start)
+    return [{"pair": r.name, "seconds": r.seconds,
+             "reconstruct_s": r.result.get("reconstruct_s")} for r in done]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=8, help="jobs per batch (default 8)")
@@ -103,7 +147,21 @@ def main():
                     help="work per job, seconds of one core (default 1.0)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2],
                     help="worker counts to compare (default 1 2)")
+    ap.add_argument("--pipeline", type=int, metavar="N_PAIRS",
+                    help="instead: per-pair times of N_PAIRS real pairs through plenopiv "
+                         "run's per-pair work on one worker (first pair and later ones)")
     args = ap.parse_args()
+    if args.pipeline:
+        with tempfile.TemporaryDirectory(prefix="bench_batch_") as tmp:
+            rows = pipeline_pairs(args.pipeline, Path(tmp))
+        for r in rows:
+            print(f"{r['pair']:>8} {r['seconds']:7.2f} s in the pair, reconstruct "
+                  f"{r['reconstruct_s']:6.2f} s")
+        later = [r["seconds"] for r in rows[1:]]
+        if later:
+            print(f"first pair {rows[0]['seconds']:.2f} s; later pairs "
+                  f"{np.mean(later):.2f} s on average (load {os.getloadavg()[0]:.1f})")
+        return
 
     repeats, per = calibrate(args.seconds)
     print(f"cores: {len(os.sched_getaffinity(0))}; job = {repeats} × fftn+ifftn of "

@@ -136,8 +136,9 @@ def time_passes(W, image, first_guess, rows_schedule, blocks, repeat):
 
     def mart_pass():
         vol[:] = start
-        mk.mart_sweep(W.indptr, W.indices, W.data, rows_schedule.rows,
-                      rows_schedule.chunk_ptr, rows_schedule.group_ptr, image, bright, vol, mu)
+        mk.mart_sweep(W.indptr, W.indices, W.data, W.row_index, W.row_scale,
+                      rows_schedule.rows, rows_schedule.chunk_ptr, rows_schedule.group_ptr,
+                      image, bright, vol, mu)
 
     def mart_sequential():
         vol[:] = start
@@ -145,7 +146,8 @@ def time_passes(W, image, first_guess, rows_schedule, blocks, repeat):
 
     def block_pass():
         vol[:] = start
-        mk.block_sweep(W.indptr, W.indices, W.data, blocks.block_column_sums, blocks.rows,
+        mk.block_sweep(W.indptr, W.indices, W.data, W.row_index, W.row_scale,
+                       blocks.block_column_sums, blocks.rows,
                        blocks.chunk_ptr, blocks.group_ptr, blocks.block_group_ptr, image,
                        bright, vol, mu, log_ratio)
 

@@ -2,6 +2,11 @@
 pass next to scipy's CSR ``W @ x`` + ``W.T @ y`` on the same matrix in the same run.
 
     python benchmarks/bench_weights.py [--camera small_m1] [--depth-mm 3] [--json]
+    python benchmarks/bench_weights.py --reconstruct smart mart --depth-mm 1
+
+``--reconstruct`` instead prints the bytes held per explicit non-zero during whole
+reconstructions (``pipeline.reconstruct_volume``; traced peak, and after loading the weights)
+and their CPU time.
 
 Prints figures; not a test.
 """
@@ -31,12 +36,74 @@ def best_of(fn, n=3):
     return min(times)
 
 
+def reconstruction_footprint(camera: str, depth_mm: float, method: str, repeats: int = 2
+                             ) -> dict:
+    """Bytes held per explicit non-zero while a volume is reconstructed, and its CPU time.
+
+    The weights are built once into a temporary cache; then, under ``tracemalloc``, they are
+    loaded from it and one image is reconstructed (:func:`plenopiv.pipeline.reconstruct_volume`,
+    ``method``, no lateral subdivision, explicit weights). The traced peak is everything held
+    by NumPy at once: W, any scaled or row-selected copies of it, volumes and images
+    (arrays allocated inside numba kernels are not traced: the colouring of MART's row
+    schedule, a few bytes per voxel). The CPU time is the best of ``repeats`` reconstructions
+    with the weights already loaded.
+    """
+    import tempfile
+    import tracemalloc
+
+    from plenopiv.config import ReconstructionSettings
+    from plenopiv.pipeline import reconstruct_volume, weights_for
+
+    cam = load_camera(camera)
+    cal = Calibration.from_camera(cam)
+    grid = aligned_grid(cam, VortexCase(depth=depth_mm * 1e-3, lateral_fill=0.85))
+    settings = ReconstructionSettings(method=method, lateral_subdivision=1,
+                                      projector="sparse", iterations=10)
+    rng = np.random.default_rng(1)
+    with tempfile.TemporaryDirectory(prefix="bench_weights_") as cache:
+        w, _ = weights_for(cal, grid, settings, cache_dir=cache)
+        truth = (rng.random(grid.n_voxels) < 0.002).astype(np.float32)
+        image = w.forward_image(truth, cam.sensor.shape).astype(np.float64)
+        image += 0.01 * float(image.max()) * rng.random(image.shape)
+        nnz = w.nnz
+        reconstruct_volume(cal, image, grid, settings=settings, weights=w)   # compile
+        times = []
+        for _ in range(repeats):
+            t = time.process_time()
+            reconstruct_volume(cal, image, grid, settings=settings, weights=w)
+            times.append(time.process_time() - t)
+        del w
+        tracemalloc.start()
+        w, hit = weights_for(cal, grid, settings, cache_dir=cache)
+        assert hit
+        loaded = tracemalloc.get_traced_memory()[0]
+        reconstruct_volume(cal, image, grid, settings=settings, weights=w)
+        held_after = tracemalloc.get_traced_memory()[0]
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return {"method": method, "grid_shape": list(grid.shape), "nnz": nnz,
+            "bytes_per_nnz_loaded": loaded / nnz, "bytes_per_nnz_peak": peak / nnz,
+            "bytes_per_nnz_held_after": held_after / nnz,
+            "reconstruct_cpu_s": min(times)}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--camera", default="small_m1")
     ap.add_argument("--depth-mm", type=float, default=3.0)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--reconstruct", nargs="*", metavar="METHOD",
+                    help="instead: bytes held per non-zero and CPU time of whole "
+                         "reconstructions (pipeline.reconstruct_volume) with these methods "
+                         "(default smart mart)")
     a = ap.parse_args(argv)
+    if a.reconstruct is not None:
+        for method in a.reconstruct or ["smart", "mart"]:
+            r = reconstruction_footprint(a.camera, a.depth_mm, method)
+            print(json.dumps(r) if a.json else
+                  "  ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                            for k, v in r.items()), flush=True)
+        return
     cam = load_camera(a.camera)
     cal = Calibration.from_camera(cam)
     grid = aligned_grid(cam, VortexCase(depth=a.depth_mm * 1e-3, lateral_fill=0.85))
@@ -59,12 +126,15 @@ def main(argv=None):
     truth = (rng.random(p.n_voxels) < 0.002).astype(np.float32)
     img = ((m @ truth) / scale).astype(np.float32)
     blocks = (np.arange(p.n_pixels) % 64).astype(np.int64)
-    reconstruct(img, norm, method="block", iterations=1, blocks=blocks)  # compile, schedules
-    reconstruct(img, norm, method="mart", iterations=1)
-    t_block = best_of(lambda: reconstruct(img, norm, method="block", iterations=1,
+    reconstruct(img, norm, method="block", iterations=1, relaxation=1.0,
+                blocks=blocks)  # compile, schedules
+    reconstruct(img, norm, method="mart", iterations=1, relaxation=1.0)
+    t_block = best_of(lambda: reconstruct(img, norm, method="block", iterations=1, relaxation=1.0,
                                           blocks=blocks), 2)
-    t_mart = best_of(lambda: reconstruct(img, norm, method="mart", iterations=1), 2)
-    t_first = best_of(lambda: reconstruct(img, norm, method="mart", iterations=0), 2)
+    t_mart = best_of(lambda: reconstruct(img, norm, method="mart", iterations=1,
+                                         relaxation=1.0), 2)
+    t_first = best_of(lambda: reconstruct(img, norm, method="mart", iterations=0,
+                                           relaxation=1.0), 2)
     mnnz = p.nnz / 1e6
     res.update({"scipy_forward_back_ms_per_mnnz": t_scipy * 1e3 / mnnz,
                 "block_pass_ms_per_mnnz": (t_block - t_first) * 1e3 / mnnz,

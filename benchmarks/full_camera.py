@@ -66,7 +66,7 @@ from plenopiv.pipeline import (
 from plenopiv.piv import PIVSettings
 from plenopiv.products.files import atomic_path
 from plenopiv.reconstruction.mart import reconstruction_quality
-from plenopiv.reconstruction.weights import cached_weights
+from plenopiv.reconstruction.select import cached_weights
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.validation import field_quality as fq
 from plenopiv.validation.vortex import VortexCase, _flow, aligned_grid, compare_with_truth

@@ -33,7 +33,7 @@ import numpy as np
 from plenopiv.calibration.model import Calibration
 from plenopiv.config import ReconstructionSettings
 from plenopiv.pipeline import reconstruct_volume, resolution_cell
-from plenopiv.reconstruction.weights import cached_weights
+from plenopiv.reconstruction.select import cached_weights
 from plenopiv.validation import field_quality as fq
 from plenopiv.volume import VolumeGrid
 

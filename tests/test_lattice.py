@@ -23,14 +23,14 @@ from plenopiv.lightfield import _lit_fraction, light_field
 from plenopiv.pipeline import reconstruct_volume
 from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
 from plenopiv.reconstruction.mart import reconstruction_quality
-from plenopiv.reconstruction.weights import (
+from plenopiv.reconstruction.select import (
     BYTES_PER_NONZERO,
-    build_weights,
     cached_weights,
     choose_projector,
     estimate_matrix_free_gb,
     estimate_nnz,
 )
+from plenopiv.reconstruction.weights import build_weights
 from plenopiv.synthetic.images import particle_image
 from plenopiv.volume import VolumeGrid
 

@@ -10,10 +10,9 @@ from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import ConfigError, ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction._kernels import weights as WK
+from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.weights import (
-    _cdf_np,
     build_weights,
-    cached_weights,
     weights_reference,
 )
 from plenopiv.synthetic import _kernels as TK
@@ -80,7 +79,7 @@ def test_light_field_geometry(lf, small_camera):
 def test_box_sum_cdf_kernel_matches_numerical_convolution(alpha, beta):
     x = np.linspace(-1.2, 1.4, 41)
     got = np.array([WK.box_sum_cdf(v, 0.1, alpha, beta) for v in x])
-    assert np.allclose(got, _cdf_np(x, 0.1, alpha, beta), atol=2e-6)
+    assert np.allclose(got, WK.box_sum_cdf_numpy(x, 0.1, alpha, beta), atol=2e-6)
 
 
 def test_weight_kernel_matches_numpy_twin(lf):

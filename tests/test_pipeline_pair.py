@@ -223,3 +223,24 @@ def test_piv_cli_leaves_rejected_vectors_nan(pair_products, tmp_path, capsys):
         assert np.all(np.isnan(fh["u"][()][~valid])) and np.all(np.isfinite(fh["u"][()][valid]))
         assert np.all(fh["replaced"][()] == 0) and np.all(fh["flag"][()][~valid] > 0)
         assert fh.attrs["uncertainty_method"] == "correlation"
+
+
+def test_a_worker_keeps_one_processor_and_its_projector(tmp_path, monkeypatch):
+    """`plenopiv run`'s per-pair work: the experiment, calibration and projector are made with
+    a worker's first pair and reused; a changed experiment file makes a new processor."""
+    from plenopiv import pipeline
+    from plenopiv.camera import load_camera
+
+    Calibration.from_camera(load_camera("small_m1")).save(tmp_path / "cal.h5")
+    exp = tmp_path / "exp.toml"
+    exp.write_text('camera = "small_m1"\n[volume]\nx_mm = [-1.0625, 1.0625]\n'
+                   'y_mm = [-1.0625, 1.0625]\nz_mm = [-1.5, 1.5]\nvoxel_mm = 0.125\n')
+    built = []
+    monkeypatch.setattr(pipeline, "weights_for",
+                        lambda *a, **k: (built.append(a) or object(), False))
+    first = pipeline.worker_processor(exp, tmp_path / "cal.h5")
+    assert pipeline.worker_processor(exp, tmp_path / "cal.h5") is first
+    assert first.weights() is first.weights() and len(built) == 1
+    exp.write_text(exp.read_text() + "\n[piv]\npasses = 2\n")
+    second = pipeline.worker_processor(exp, tmp_path / "cal.h5")
+    assert second is not first and second.experiment.piv.passes == 2

@@ -16,7 +16,7 @@ from plenopiv.cli import main
 from plenopiv.config import PIVConfig
 from plenopiv.lightfield import light_field
 from plenopiv.pipeline import footprint
-from plenopiv.reconstruction.weights import estimate_nnz
+from plenopiv.reconstruction.select import estimate_nnz
 from plenopiv.volume import VolumeGrid, volume_from_dict
 
 MM = 1e-3

@@ -12,6 +12,10 @@ from plenopiv import ReconstructionError
 from plenopiv.reconstruction._kernels import projector as pk
 from plenopiv.reconstruction.projector import Projector, RowAccessProjector, SparseProjector
 
+#: The identity row view of the kernels: pixel i is CSR row i, scale 1.
+NO_ROWS = np.zeros(0, np.int64)
+NO_SCALE = np.zeros(0, np.float32)
+
 #: float32 unit roundoff: a float64 sum rounded once to float32 is off by at most this, relative.
 U32 = 2.0**-24
 
@@ -60,7 +64,7 @@ def test_back_scatter_kernel_any_chunking(rng, n_chunks):
     bounds = np.linspace(0, 23, n_chunks + 1).astype(np.int64)
     acc = np.empty((n_chunks, 31))
     out = np.empty(31, np.float32)
-    pk.back_scatter(m.indptr, m.indices, m.data, y, bounds, acc, out)
+    pk.back_scatter(m.indptr, m.indices, m.data, NO_ROWS, NO_SCALE, y, bounds, acc, out)
     m64 = m.astype(np.float64)
     assert np.all(np.abs(out - m64.T @ y) <= sum_bound(m64.T, y))
 
@@ -106,7 +110,8 @@ def test_duplicates_are_summed_like_scipy(transpose):
 
 def test_transpose_kernel_matches_scipy(rng):
     m = random_csr(rng, 30, 20, 0.2)
-    t_indptr, t_indices, t_data = pk.transpose_csr(m.indptr, m.indices, m.data, 20)
+    t_indptr, t_indices, t_data = pk.transpose_csr(m.indptr, m.indices, m.data, NO_ROWS,
+                                                   NO_SCALE, m.shape[0], 20)
     csc = m.tocsc()
     csc.sort_indices()
     np.testing.assert_array_equal(t_indptr, csc.indptr)
@@ -221,3 +226,35 @@ def test_block_schedule_refuses_bad_labels(rng):
         W.block_schedule(np.zeros(6))
     with pytest.raises(ValueError, match="chunk_rows must be an integer >= 1"):
         W.block_schedule(np.zeros(6, int), chunk_rows=0)
+
+
+@pytest.mark.parametrize("transpose", [False, True])
+def test_row_views_share_the_csr_and_act_like_their_copy(rng, transpose):
+    """scale_rows and select_rows are views of one CSR: they project, back-project, schedule
+    and sweep exactly like an explicit copy of the scaled, selected rows."""
+    from plenopiv.reconstruction._kernels import mart as mk
+
+    m = random_csr(rng, 60, 40, 0.15)
+    W = SparseProjector.from_scipy(m, transpose=transpose)
+    factors = rng.uniform(0.5, 4.0, 60).astype(np.float32)
+    keep = rng.uniform(size=60) > 0.3
+    view = W.scale_rows(factors).select_rows(keep)
+    assert view.data is W.data and view.indices is W.indices and view.n_pixels == keep.sum()
+    scaled = m.copy()
+    scaled.data = (m.data * np.repeat(factors, np.diff(m.indptr))).astype(np.float32)
+    copy = SparseProjector.from_scipy(scaled[np.flatnonzero(keep)], transpose=transpose)
+    np.testing.assert_array_equal(view.to_scipy().toarray(), copy.to_scipy().toarray())
+    x = rng.uniform(size=40).astype(np.float32)
+    y = rng.uniform(size=int(keep.sum())).astype(np.float32)
+    np.testing.assert_array_equal(view.forward(x), copy.forward(x))
+    np.testing.assert_array_equal(view.back(y), copy.back(y))
+    np.testing.assert_array_equal(view.row_max(), copy.row_max())
+    a, b = view.row_schedule(chunk_rows=3), copy.row_schedule(chunk_rows=3)
+    np.testing.assert_array_equal(a.rows, b.rows)
+    volumes = [np.full(40, 1.0, np.float32) for _ in range(2)]
+    bright = np.ones(view.n_pixels, bool)
+    for P, vol in zip((view, copy), volumes, strict=True):
+        s = P.row_schedule(chunk_rows=3)
+        mk.mart_sweep(P.indptr, P.indices, P.data, P.row_index, P.row_scale, s.rows,
+                      s.chunk_ptr, s.group_ptr, y + 0.5, bright, vol, np.float32(0.7))
+    np.testing.assert_array_equal(volumes[0], volumes[1])

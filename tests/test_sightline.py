@@ -1,4 +1,4 @@
-"""The sub-voxel line-of-sight mask (plenopiv.reconstruction.sightline) and grid independence of a particle.
+"""The sub-voxel line-of-sight mask (reconstruction.sightline) and grid independence of a particle.
 
 The camera is the thesis §5.1 one (50 mm lens at M = -1, f/2.2, 125 µm lenslets, footprint
 b = 0.125 mm) cut to 15 or 16 lenslets: with an odd count a lenslet sits on the axis, with an
@@ -21,13 +21,13 @@ import pytest
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.pipeline import footprint, reconstruct_volume, resolution_cell
+from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.sightline import (
     pool_min,
     refined_grid,
     subcell_factors,
     subcell_line_of_sight,
 )
-from plenopiv.reconstruction.weights import cached_weights
 from plenopiv.synthetic.images import particle_image
 from plenopiv.validation.depth_study import thesis_camera
 from plenopiv.volume import VolumeGrid

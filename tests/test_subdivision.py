@@ -10,13 +10,13 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera import load_camera
 from plenopiv.config import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
-from plenopiv.pipeline import (
-    _subdivision_of,
+from plenopiv.pipeline import reconstruct_volume
+from plenopiv.reconstruction.subdivision import (
     footprint,
     lateral_subdivision,
     merge_subdivided,
-    reconstruct_volume,
     subdivided_grid,
+    subdivision_of,
     weights_for,
 )
 from plenopiv.synthetic.images import particle_image
@@ -47,11 +47,11 @@ def test_subdivided_grid_covers_the_same_box(cal):
     fine = subdivided_grid(grid, 3, 2)
     np.testing.assert_allclose(fine.bounds, grid.bounds, rtol=0, atol=1e-12)
     assert fine.shape == (grid.shape[0], grid.shape[1] * 3, grid.shape[2] * 2)
-    assert _subdivision_of(fine, grid) == (3, 2)
+    assert subdivision_of(fine, grid) == (3, 2)
     with pytest.raises(ReconstructionError, match="another volume grid"):
-        _subdivision_of(subdivided_grid(grid_of(cal, 1.0, half=7), 3, 3), grid)
+        subdivision_of(subdivided_grid(grid_of(cal, 1.0, half=7), 3, 3), grid)
     # a finer grid of the same box is a subdivision too
-    assert _subdivision_of(subdivided_grid(grid_of(cal, 0.5), 2, 2), grid) == (4, 4)
+    assert subdivision_of(subdivided_grid(grid_of(cal, 0.5), 2, 2), grid) == (4, 4)
 
 
 def test_box_merge_sums_and_gaussian_merge_keeps_total_and_position():

@@ -12,8 +12,8 @@ The stages are the library's stage functions; this module chooses defaults, keep
 from __future__ import annotations
 
 import math
+import threading
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,21 +31,28 @@ from plenopiv.particles import find_particles
 from plenopiv.products.images import check_image
 from plenopiv.products.vectors import VectorResult, check_dt
 from plenopiv.products.volume import VolumeResult
-from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
-from plenopiv.reconstruction.mart import reconstruct
-from plenopiv.reconstruction.sightline import subcell_line_of_sight
-from plenopiv.reconstruction.weights import Weights, cached_weights, check_grid_in_view, weights_key
+from plenopiv.reconstruction.solve import solve_volume
+from plenopiv.reconstruction.subdivision import (  # noqa: F401 - the pipeline's names too
+    SUBDIVIDED_VOXEL_FOOTPRINTS,
+    footprint,
+    lateral_subdivision,
+    merge_subdivided,
+    reconstruction_grid,
+    subdivided_grid,
+    subdivision_of,
+    weights_for,
+)
+from plenopiv.reconstruction.weights import Weights
 from plenopiv.volume import VolumeGrid
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
     from plenopiv.piv import PIVSettings
 
 Progress = Callable[[str, float], None] | None
+_DEFAULT_RECONSTRUCTION = ReconstructionSettings()
+_DEFAULT_PARTICLES = ParticleSettings()
 
 
-def footprint(camera: CameraModel) -> float:
-    """Lenslet footprint on the nominal focal plane, p_m S_o/S_i, metres."""
-    return camera.microlens_array.pitch * camera.object_distance / camera.image_distance
 
 
 def resolution_cell(camera: CameraModel, f_number: float | None = None) -> tuple[float, float]:
@@ -92,152 +99,9 @@ def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration:
             "fit_spacing_vox": particles.fit_spacing_vox}
 
 
-#: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
-SUBDIVIDED_VOXEL_FOOTPRINTS = 1 / 3
-
-
-def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
-                        settings: ReconstructionSettings) -> tuple[int, int]:
-    """Subdivision ``(ky, kx)`` of the lateral voxels during the reconstruction.
-
-    ``settings.lateral_subdivision`` as given, or for ``"auto"`` the smallest k per axis for
-    which the working voxel is at most a third of a lenslet footprint (5 % slack, at most
-    :data:`plenopiv.config.MAX_SUBDIVISION`). Depth along a pixel's beam is told apart by
-    the beams of the other views shifting sideways by a fraction of a footprint; voxels a
-    footprint wide hold those shifts in one voxel, and the reconstructed particle is 2-3
-    times longer in depth than with half-footprint voxels. On the CI camera (Oseen, 0.3
-    particles per lenslet, footprint voxels) the w gain is 0.73 with k = 2, 0.89 with 3 and
-    0.89 with 4 (w rms 0.60, 0.48, 0.40 voxel; without subdivision see
-    docs/validation/vortex.md).
-    """
-    from plenopiv.config import MAX_SUBDIVISION
-
-    k = settings.lateral_subdivision
-    if k != "auto":
-        return int(k), int(k)
-    half = SUBDIVIDED_VOXEL_FOOTPRINTS * footprint(calibration.effective_camera)
-    return tuple(int(min(MAX_SUBDIVISION, max(1, math.ceil(d / half - 0.05))))
-                 for d in (grid.voxel[1], grid.voxel[0]))
-
-
-def subdivided_grid(grid: VolumeGrid, ky: int, kx: int) -> VolumeGrid:
-    """``grid`` with every voxel cut into ``ky × kx`` laterally (same box, same depth)."""
-    dx, dy, dz = grid.voxel
-    ox, oy, oz = grid.origin
-    nz, ny, nx = grid.shape
-    return VolumeGrid((ox - 0.5 * dx + 0.5 * dx / kx, oy - 0.5 * dy + 0.5 * dy / ky, oz),
-                      (dx / kx, dy / ky, dz), (nz, ny * ky, nx * kx))
-
-
-def reconstruction_grid(calibration: Calibration, grid: VolumeGrid,
-                        settings: ReconstructionSettings) -> VolumeGrid:
-    """The working grid of a reconstruction on ``grid``: laterally subdivided
-    (:func:`lateral_subdivision`)."""
-    return subdivided_grid(grid, *lateral_subdivision(calibration, grid, settings))
-
-
-def merge_subdivided(volume, ky: int, kx: int, *, kernel: str = "gaussian") -> np.ndarray:
-    """A volume of laterally subdivided voxels back on the grid it subdivides, float32.
-
-    ``volume`` is ``(nz, ny * ky, nx * kx)`` (:func:`subdivided_grid`). ``"box"`` sums each
-    voxel's ``ky × kx`` working voxels. ``"gaussian"`` weights the working volume by a
-    Gaussian of σ = half a voxel (``k/2`` working voxels) about each voxel's centre (linear
-    between the two middle working voxels for an even k), scaled by ``ky kx`` so that the
-    total is kept: a particle narrower than a voxel then spreads over its neighbours in the
-    ratio of where it lies inside the voxel, which the box sum loses (the peak locking of
-    voxels a lenslet footprint wide: docs/validation/vortex.md). The samples of a Gaussian
-    of half a voxel sum to 1 within ±1.4 % per axis (2 exp(-π²/2)), a ripple of a particle's
-    merged intensity with its position inside the voxel.
-    """
-    import scipy.ndimage
-
-    v = np.asarray(volume, dtype=np.float32)
-    nz, wy, wx = v.shape
-    if wy % ky or wx % kx:
-        raise ValueError(f"volume of shape {v.shape} is not subdivided by ({ky}, {kx})")
-    if kernel == "box":
-        return v.reshape(nz, wy // ky, ky, wx // kx, kx).sum(axis=(2, 4), dtype=np.float32)
-    if kernel != "gaussian":
-        raise ValueError(f"kernel = {kernel!r}: expected 'gaussian' or 'box'")
-    for axis, k in ((1, ky), (2, kx)):
-        if k == 1:
-            continue
-        f = scipy.ndimage.gaussian_filter1d(v, 0.5 * k, axis=axis, mode="constant")
-        take = [slice(None)] * 3
-        take[axis] = slice(k // 2, None, k)
-        sampled = f[tuple(take)]
-        if k % 2 == 0:             # the centre lies between two working voxels
-            take[axis] = slice(k // 2 - 1, None, k)
-            sampled = 0.5 * (sampled + f[tuple(take)])
-        v = (sampled * k).astype(np.float32)
-    return v
-
-
-def _subdivision_of(work: VolumeGrid, grid: VolumeGrid) -> tuple[int, int]:
-    """``(ky, kx)`` when ``work`` is ``grid`` subdivided laterally, else ReconstructionError."""
-    nz, ny, nx = grid.shape
-    wz, wy, wx = work.shape
-    if wz == nz and wy % ny == 0 and wx % nx == 0:
-        ky, kx = wy // ny, wx // nx
-        expect = subdivided_grid(grid, ky, kx)
-        scale = max(grid.voxel)
-        if (np.allclose(expect.origin, work.origin, rtol=0, atol=1e-9 * scale)
-                and np.allclose(expect.voxel, work.voxel, rtol=1e-9, atol=0)):
-            return ky, kx
-    raise ReconstructionError("the given weights were built for another volume grid (neither "
-                              "the volume's grid nor a lateral subdivision of it)")
-
-
-def weights_for(calibration: Calibration, grid: VolumeGrid, settings: ReconstructionSettings,
-                cache_dir: str | Path | None = None) -> tuple[Weights, bool]:
-    """The weights a reconstruction on ``grid`` with ``settings`` uses: explicit (cached in
-    ``cache_dir``) or the matrix-free lattice projector, by ``settings.projector``, on the
-    laterally subdivided working grid (:func:`reconstruction_grid`); ``(weights, from_cache)``.
-
-    Row-action and block MART walk explicit rows, so ``"auto"`` keeps them explicit; SMART
-    on a subdivided grid takes the matrix-free projector where the lattice allows. With
-    ``lateral_subdivision = "auto"``, weights that would not fit in memory on a lattice the
-    matrix-free projector cannot take (rotated or hexagonal) fall back to a coarser
-    subdivision, with a warning, instead of failing. A grid whose arrays cannot fit in memory
-    is refused before anything is estimated.
-    """
-    from plenopiv.resources import check_grid
-
-    check_grid(grid)
-    projector = settings.projector
-    if projector == "auto" and settings.method != "smart":
-        projector = "sparse"
-    ky, kx = lateral_subdivision(calibration, grid, settings)
-    if projector == "auto" and (ky, kx) != (1, 1):
-        # a subdivided grid has k² times the explicit weights; the matrix-free projector is
-        # built in seconds and projects it about ten times faster (docs/validation/vortex.md)
-        lf = light_field(calibration, f_number=settings.f_number, min_lit=settings.min_lit)
-        if separable_axes(lf) is not None:
-            work = subdivided_grid(grid, ky, kx)
-            check_grid_in_view(lf, work)
-            key = weights_key(calibration, work, f_number=settings.f_number,
-                              min_lit=settings.min_lit, min_weight=1e-7)
-            return Weights(LatticeProjector.from_light_field(lf, work), lf.pixel, work,
-                           key), False
-    while True:
-        try:
-            return cached_weights(calibration, subdivided_grid(grid, ky, kx),
-                                  cache_dir=cache_dir, f_number=settings.f_number,
-                                  min_lit=settings.min_lit, projector=projector,
-                                  max_weights_gb=settings.max_weights_gb)
-        except ReconstructionError as exc:
-            if (settings.lateral_subdivision != "auto" or max(ky, kx) == 1
-                    or "max_weights_gb" not in str(exc)):
-                raise
-            warnings.warn(f"lateral_subdivision = \"auto\": the weights of a {ky} x {kx} "
-                          f"subdivision do not fit ({exc}); trying "
-                          f"{max(1, ky - 1)} x {max(1, kx - 1)}", stacklevel=2)
-            ky, kx = max(1, ky - 1), max(1, kx - 1)
-
-
 def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
-                       settings: ReconstructionSettings = ReconstructionSettings(),
-                       particles: ParticleSettings = ParticleSettings(),
+                       settings: ReconstructionSettings = _DEFAULT_RECONSTRUCTION,
+                       particles: ParticleSettings = _DEFAULT_PARTICLES,
                        weights: Weights | None = None, cache_dir: str | Path | None = None,
                        progress: Progress = None, image_mask=None) -> VolumeResult:
     """Reconstruct one image into a volume and extract its particles.
@@ -273,124 +137,51 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         if progress is not None:
             progress("weights", 0.0)
         weights, _ = weights_for(calibration, grid, settings, cache_dir=cache_dir)
-    ky, kx = (1, 1) if weights.grid == grid else _subdivision_of(weights.grid, grid)
+    ky, kx = (1, 1) if weights.grid == grid else subdivision_of(weights.grid, grid)
     if weights.matrix_free and settings.method != "smart":
         raise ReconstructionError(
             f"[reconstruction] method = {settings.method!r} walks the rows of explicit weights; "
             "the matrix-free lattice projector supports method = \"smart\" only")
     t["weights_s"] = time.perf_counter() - t0
-    proj, row_scale = weights.normalised
-    raw = weights.image_vector(img)
-    usable_rows = np.ones(raw.shape, dtype=bool)
-    peak_value = float(img.max())
-    if image_mask is not None:
-        m = np.asarray(image_mask, dtype=bool)
-        if m.shape != img.shape:
-            raise ReconstructionError(f"image mask has shape {m.shape}: expected the image's "
-                                      f"{img.shape} (rows, cols)")
-        usable_rows = ~weights.image_vector(m.astype(np.float32)).astype(bool)
-        if not (~m).any():
-            raise ReconstructionError("the image mask masks every pixel")
-        peak_value = float(img[~m].max())
-    threshold = settings.pixel_threshold * peak_value
-    # rows that barely touch the volume (their beam mostly passes beside it) would claim the
-    # light of particles outside the volume: leave them out
-    nonempty = weights.row_max > 0
-    touching = nonempty & (row_scale >= 0.25 * float(np.percentile(row_scale[nonempty], 95)))
-    touching &= usable_rows
-    bright = (raw > threshold) & touching
-    if not bright.any():
-        raise ReconstructionError(f"no pixel seen by the volume is above the threshold "
-                                  f"{threshold:g} ([reconstruction] pixel_threshold = "
-                                  f"{settings.pixel_threshold}): is the volume in view?")
-    values = (raw / row_scale).astype(np.float32)
 
     def report(iteration, _volume):
         if progress is not None:
             progress("mart", iteration / max(settings.iterations, 1))
 
     t1 = time.perf_counter()
-    floor = max(threshold, 1e-6 * float(img.max()))
-    first = _line_of_sight_guess(weights, calibration, settings, raw, floor, touching, bright)
-    if settings.method == "smart":
-        # the dark pixels take part as ceilings: their light is at most the threshold, so
-        # they lower the voxels that would send more into them and never raise any; only
-        # those that see the first guess's support can change anything
-        reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
-        rows = bright | (touching & reach)
-        vol = reconstruct((np.maximum(raw, floor) / row_scale).astype(np.float32)[rows],
-                          proj.select_rows(rows), method="smart",
-                          iterations=settings.iterations, relaxation=settings.relaxation_used,
-                          pixel_threshold=0.0, initial=first, shape=weights.grid.shape,
-                          callback=report, ceiling=~bright[rows])
-    else:
-        blocks = None
-        if settings.method == "block":
-            blocks = _perspective_blocks(weights, calibration, settings)[bright]
-        vol = reconstruct(values[bright], proj.select_rows(bright), method=settings.method,
-                          iterations=settings.iterations, relaxation=settings.relaxation_used,
-                          pixel_threshold=0.0, blocks=blocks, initial=first,
-                          shape=weights.grid.shape, callback=report)
+    vol = solve_volume(weights, img, settings, image_mask=image_mask, callback=report,
+                       light_field_of=lambda: _light_field_of(calibration, settings),
+                       footprint=footprint(calibration.effective_camera))
     if ky > 1 or kx > 1:            # the working voxels back onto the volume's grid
         vol = merge_subdivided(vol, ky, kx, kernel=settings.subdivision_kernel)
     t["mart_s"] = time.perf_counter() - t1
-
     t2 = time.perf_counter()
     if progress is not None:
         progress("particles", 0.0)
-    vmax = float(vol.max())
-    if vmax <= 0:
+    result = _particles_of(vol, grid, calibration, particles)
+    t["particles_s"] = time.perf_counter() - t2
+    return VolumeResult(vol, grid, *result, t)
+
+
+def _particles_of(vol: np.ndarray, grid: VolumeGrid, calibration: Calibration,
+                  particles: ParticleSettings) -> tuple:
+    """``(correction, effective positions, positions, intensities, sizes)`` of the particles.
+
+    Found by :func:`plenopiv.particles.find_particles`, then depth-corrected.
+    """
+    if float(vol.max()) <= 0:
         raise ReconstructionError("the reconstructed volume is empty: no particle light in "
                                   "the volume (check [volume] and the image)")
     found = find_particles(vol, **particle_options(particles, grid, calibration, vol))
     eff = found.position_world(grid.origin, grid.voxel)
     corr = DepthCorrection.for_camera(calibration.camera, internal=particles.internal_correction)
-    t["particles_s"] = time.perf_counter() - t2
-    return VolumeResult(vol, grid, corr, eff, corr.points(eff) if len(eff) else eff,
-                        found.intensity, found.size_world(grid.voxel), t)
-
-
-def _line_of_sight_guess(weights: Weights, calibration: Calibration, settings, raw, floor,
-                         touching, bright) -> np.ndarray:
-    """Return the first guess of MART: MLOS judged on sub-voxel cells (plenopiv.reconstruction.sightline).
-
-    A voxel is empty unless some lit pixel sees it and one of its sub-cells has at most
-    ``settings.dark_tolerance`` of its weight on dark pixels (the soft line-of-sight mask);
-    otherwise it takes the largest MLOS value of its sub-cells, the weighted geometric mean of
-    the normalised intensities I_i/R_i of the rows that see the cell, dark rows entering with
-    the noise floor ``floor`` (counts). Judged per voxel instead, a grid whose voxel edges cross
-    the lenslets would empty the voxels of in-focus particles.
-    """
-    proj, row_scale = weights.normalised
-    row_sums = np.asarray(proj.row_sums())
-    used = touching & (row_sums > 0)
-    log_values = np.zeros(len(raw), np.float32)
-    log_values[used] = np.log(np.maximum(raw[used], floor) / row_scale[used] / row_sums[used])
-    keep, guess, _ = subcell_line_of_sight(
-        weights, lambda: _light_field_of(calibration, settings), touching & ~bright,
-        log_values, used, tolerance=settings.dark_tolerance,
-        footprint=footprint(calibration.effective_camera))
-    seen_lit = np.asarray(proj.back(bright.astype(np.float32))) > 0
-    return np.where(keep & seen_lit, guess, np.float32(0.0))
+    return (corr, eff, corr.points(eff) if len(eff) else eff, found.intensity,
+            found.size_world(grid.voxel))
 
 
 def _light_field_of(calibration: Calibration, settings):
     """Return the light field of the weights ``weights_for`` builds with ``settings``."""
-    from plenopiv.lightfield import light_field
-
     return light_field(calibration, f_number=settings.f_number, min_lit=settings.min_lit)
-
-
-def _perspective_blocks(weights: Weights, calibration: Calibration, settings) -> np.ndarray:
-    """Block label of each weight row: its perspective view (aperture cell), so that a block
-    holds one pixel per lenslet and its pixels share few voxels."""
-    from plenopiv.lightfield import light_field
-
-    lf = light_field(calibration, f_number=settings.f_number, min_lit=settings.min_lit)
-    idx = np.searchsorted(lf.pixel, weights.pixel)       # lf.pixel is sorted
-    cell = np.rint(lf.u[idx] / lf.cell)
-    _, labels = np.unique(cell, axis=0, return_inverse=True)
-    return labels.ravel().astype(np.int64)
 
 
 def reconstruction_quality(volume, volume_true) -> float:
@@ -441,8 +232,9 @@ def piv_settings(cfg) -> PIVSettings:
 
 def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, dt=None,
               workers=None, progress=None, mask=None, response=None) -> VectorResult:
-    """3-D PIV between two reconstructed volumes of the same grid (effective coordinates),
-    returned in physical coordinates.
+    """3-D PIV between two reconstructed volumes of the same grid, in physical coordinates.
+
+    The volumes are on the effective (air-equivalent) grid.
 
     ``mask``: volume mask (bool ``[z, y, x]``, True outside the flow). ``response``: a
     callable ``response(field) -> Response`` (:func:`plenopiv.piv.uncertainty.measure_response`)
@@ -487,48 +279,99 @@ class PairResult:
     timings: dict
 
 
+class PairProcessor:
+    """The per-pair work of one experiment and calibration, its projector built or loaded once.
+
+    ``processor(image_a, image_b)`` reconstructs both exposures, finds their particles,
+    corrects the depths and correlates them, with the experiment's settings
+    (:class:`plenopiv.config.Experiment`). The weights (explicit, from the weights cache, or
+    the matrix-free projector) and the image and volume masks are made on first use and kept
+    for every later pair.
+    """
+
+    def __init__(self, experiment, calibration: Calibration, *,
+                 weights: Weights | None = None):
+        self.experiment = experiment
+        self.calibration = calibration
+        self._weights = weights
+        self._masks = None
+
+    def weights(self, progress: Progress = None) -> Weights:
+        """The projector of every pair (built, or loaded from the weights cache, once)."""
+        if self._weights is None:
+            if progress is not None:
+                progress("weights", 0.0)
+            exp = self.experiment
+            cache = exp.output.weights_cache
+            self._weights, _ = weights_for(self.calibration, exp.volume, exp.reconstruction,
+                                           cache_dir=exp.path(cache) if cache else None)
+        return self._weights
+
+    def masks(self) -> tuple:
+        """``(image_mask, volume_mask)`` of the experiment's ``[mask]`` (each may be None)."""
+        if self._masks is None:
+            from plenopiv.masks import image_mask, volume_mask
+
+            exp = self.experiment
+            self._masks = (image_mask(exp.mask, self.calibration.camera.sensor.shape,
+                                      exp.base_dir),
+                           volume_mask(exp.mask, exp.volume, exp.base_dir))
+        return self._masks
+
+    def __call__(self, image_a, image_b, *, progress: Progress = None,
+                 workers=None) -> PairResult:
+        """Images A and B -> two volumes -> particles -> corrections -> vectors."""
+        t0 = time.perf_counter()
+        exp, calibration = self.experiment, self.calibration
+        weights = self.weights(progress)
+        img_mask, vol_mask = self.masks()
+        kw = dict(settings=exp.reconstruction, particles=exp.particles, weights=weights,
+                  image_mask=img_mask)
+        va = reconstruct_volume(calibration, image_a, exp.volume, **kw,
+                                progress=_volume_progress(progress, "A"))
+        vb = reconstruct_volume(calibration, image_b, exp.volume, **kw,
+                                progress=_volume_progress(progress, "B"))
+        t1 = time.perf_counter()
+        settings = piv_settings(exp.piv)
+        response = None
+        if exp.piv.uncertainty == "response":
+            response = _response_of(calibration, weights, va, exp, settings, workers,
+                                    img_mask, vol_mask)
+        if progress is not None:
+            progress("piv", 0.0)
+        vec = correlate(va, vb, settings, dt=exp.images.dt_s, workers=workers,
+                        mask=vol_mask, response=response, progress=_piv_progress(progress))
+        t2 = time.perf_counter()
+        return PairResult(va, vb, vec, {"reconstruct_s": t1 - t0, "piv_s": t2 - t1})
+
+
+def _piv_progress(progress: Progress):
+    """``progress`` of the PIV passes as ``"piv pass i/n"``, or None."""
+    if progress is None:
+        return None
+    return lambda info: progress(f"piv pass {info['pass']}/{info['passes']}",
+                                 info["pass"] / info["passes"])
+
+
 def process_pair(calibration: Calibration, image_a, image_b, experiment, *,
                  weights: Weights | None = None, progress: Progress = None,
                  workers=None) -> PairResult:
-    """Images A and B -> two volumes (weights built once) -> particles -> corrections ->
-    vectors, with the experiment's settings (:class:`plenopiv.config.Experiment`)."""
-    t0 = time.perf_counter()
-    if weights is None:
-        if progress is not None:
-            progress("weights", 0.0)
-        cache = experiment.output.weights_cache
-        weights, _ = weights_for(calibration, experiment.volume, experiment.reconstruction,
-                                 cache_dir=experiment.path(cache) if cache else None)
-    from plenopiv.masks import image_mask, volume_mask
+    """Images A and B -> two volumes -> particles -> corrections -> vectors.
 
-    grid = experiment.volume
-    img_mask = image_mask(experiment.mask, calibration.camera.sensor.shape, experiment.base_dir)
-    vol_mask = volume_mask(experiment.mask, grid, experiment.base_dir)
-    kw = dict(settings=experiment.reconstruction, particles=experiment.particles,
-              weights=weights, image_mask=img_mask)
-    va = reconstruct_volume(calibration, image_a, grid, **kw,
-                            progress=_volume_progress(progress, "A"))
-    vb = reconstruct_volume(calibration, image_b, grid, **kw,
-                            progress=_volume_progress(progress, "B"))
-    t1 = time.perf_counter()
-    settings = piv_settings(experiment.piv)
-    response = None
-    if experiment.piv.uncertainty == "response":
-        response = _response_of(calibration, weights, va, experiment, settings, workers,
-                                img_mask, vol_mask)
-    if progress is not None:
-        progress("piv", 0.0)
-    vec = correlate(va, vb, settings, dt=experiment.images.dt_s, workers=workers,
-                    mask=vol_mask, response=response, progress=None if progress is None else (
-                        lambda info: progress(f"piv pass {info['pass']}/{info['passes']}",
-                                              info["pass"] / info["passes"])))
-    t2 = time.perf_counter()
-    return PairResult(va, vb, vec, {"reconstruct_s": t1 - t0, "piv_s": t2 - t1})
+    With the experiment's settings (:class:`plenopiv.config.Experiment`), the weights built
+    once for both volumes.
+
+    One pair; many pairs of one experiment share a :class:`PairProcessor`.
+    """
+    return PairProcessor(experiment, calibration, weights=weights)(
+        image_a, image_b, progress=progress, workers=workers)
 
 
 def _volume_progress(progress: Progress, tag: str) -> Progress:
-    """The progress of one volume of a pair, reported as ``"volume A: mart"`` etc., its
-    fraction over the whole volume (MART about 90 % of it)."""
+    """The progress of one volume of a pair, reported as ``"volume A: mart"`` etc.
+
+    Its fraction is over the whole volume (MART about 90 % of it).
+    """
     if progress is None:
         return None
 
@@ -540,9 +383,11 @@ def _volume_progress(progress: Progress, tag: str) -> Progress:
 
 def _response_of(calibration, weights, volume_a: VolumeResult, experiment, settings, workers,
                  img_mask, vol_mask):
-    """``response(field)`` for :func:`correlate`: the chain's measured response
-    (:func:`plenopiv.piv.uncertainty.measure_response`) for this experiment, kept in the weights
-    cache (``[output] weights_cache``) under a key of everything it depends on."""
+    """``response(field)`` for :func:`correlate`: the chain's measured response.
+
+    :func:`plenopiv.piv.uncertainty.measure_response` for this experiment, kept in the weights
+    cache (``[output] weights_cache``) under a key of everything it depends on.
+    """
     from plenopiv.piv import correlate_volumes
     from plenopiv.piv.uncertainty import cached_response, measure_response, response_key
 
@@ -616,9 +461,11 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
 class ExperimentPairProcess:
     """The per-pair work of ``plenopiv run``: picklable, so dask workers can run it.
 
-    Each call loads the experiment and the calibration (small files), reads the pair's images,
-    processes it with the weights from the on-disk cache (built once, before the batch) and
-    writes the products; the vectors file is written last, marked complete.
+    A worker keeps one :class:`PairProcessor` per experiment and calibration file (keyed by
+    their paths, sizes and modification times, :func:`worker_processor`): its first pair
+    loads the experiment and the calibration and builds or loads the projector, its later
+    pairs reuse them. Each call reads the pair's images, processes them and writes the
+    products; the vectors file is written last, marked complete.
     """
 
     experiment_path: str
@@ -629,13 +476,12 @@ class ExperimentPairProcess:
         """Process one :class:`plenopiv.batch.PairJob`; returns a small summary."""
         import json
 
-        from plenopiv.config import load_experiment
         from plenopiv.products.images import read_image
 
-        exp = load_experiment(self.experiment_path)
-        cal = experiment_calibration(exp, self.calibration_path)
+        processor = worker_processor(self.experiment_path, self.calibration_path)
+        exp, cal = processor.experiment, processor.calibration
         ia, ib = read_image(job.image_a), read_image(job.image_b)
-        res = process_pair(cal, ia, ib, exp)
+        res = processor(ia, ib)
         extra = {"image_a": str(job.image_a), "image_b": str(job.image_b)}
         if getattr(job, "identity", None) is not None:
             extra["identity"] = json.dumps(dict(job.identity), sort_keys=True)
@@ -651,9 +497,61 @@ class ExperimentPairProcess:
                 **{k: round(v, 3) for k, v in res.timings.items()}, **tracked}
 
 
+#: The :class:`PairProcessor` this process keeps, with its key (:func:`worker_processor`).
+_WORKER_PROCESSOR: dict = {}
+_WORKER_LOCK = threading.Lock()
+
+
+def _file_identity(path: str | Path) -> tuple:
+    """``(resolved path, size, modification time in ns)`` of a file."""
+    p = Path(path).resolve()
+    st = p.stat()
+    return (str(p), st.st_size, st.st_mtime_ns)
+
+
+def worker_processor(experiment_path: str | Path, calibration_path: str | Path
+                     ) -> PairProcessor:
+    """The :class:`PairProcessor` of this process for an experiment file and a calibration.
+
+    Made on first use (the experiment and the calibration loaded, the projector built or read
+    from the weights cache on the first pair) and kept for the later pairs of the process;
+    a changed file (size or modification time) or another experiment replaces it. One is kept
+    at a time, so a worker holds one projector.
+    """
+    key = (_file_identity(experiment_path), _file_identity(calibration_path))
+    with _WORKER_LOCK:
+        if _WORKER_PROCESSOR.get("key") != key:
+            from plenopiv.config import load_experiment
+
+            _WORKER_PROCESSOR.clear()
+            exp = load_experiment(experiment_path)
+            cal = experiment_calibration(exp, calibration_path)
+            _WORKER_PROCESSOR.update(key=key, processor=PairProcessor(exp, cal))
+        return _WORKER_PROCESSOR["processor"]
+
+
+def prepare_weights(experiment, calibration: Calibration) -> tuple[bool, float]:
+    """Put the experiment's explicit weights into its weights cache before a batch starts.
+
+    Returns ``(found in the cache, seconds spent)``. Without ``[output] weights_cache``, or
+    where the reconstruction takes the matrix-free projector (never cached), nothing is
+    built here: each worker makes its projector once, for all its pairs
+    (:func:`worker_processor`).
+    """
+    cache = experiment.output.weights_cache
+    if not cache:
+        return False, 0.0
+    t0 = time.perf_counter()
+    _, hit = weights_for(calibration, experiment.volume, experiment.reconstruction,
+                         cache_dir=experiment.path(cache), load=False)
+    return hit, time.perf_counter() - t0
+
+
 def _camera_differences(made_for: CameraModel, used: CameraModel) -> list[str]:
-    """What differs between the camera a calibration was made for and the one it is used
-    with: sensor, lattice, main-lens focal length (S_i is the calibration's to give)."""
+    """What differs between the camera a calibration was made for and the one it is used with.
+
+    Sensor, lattice, main-lens focal length (S_i is the calibration's to give).
+    """
     def close(a, b):
         return math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-12)
 
@@ -693,9 +591,11 @@ def _describe(camera: CameraModel, image_distance: float | None) -> str:
 
 
 def product_settings(experiment) -> dict:
-    """The settings of an experiment that shape a pair's products: the camera, the grid, the
-    reconstruction, particle, PIV and tracking tables, dt and the side products (vtk, png).
-    Not the image patterns, the batch, the folders or the weight cache."""
+    """The settings of an experiment that shape a pair's products.
+
+    The camera, the grid, the reconstruction, particle, PIV and tracking tables, dt and the
+    side products (vtk, png). Not the image patterns, the batch, the folders or the weight cache.
+    """
     d = experiment.to_dict()
     return {"camera": d["camera"], "volume": d["volume"],
             "reconstruction": d["reconstruction"], "particles": d["particles"],
@@ -704,8 +604,10 @@ def product_settings(experiment) -> dict:
 
 
 def settings_identity(experiment) -> str:
-    """SHA-256 of :func:`product_settings` (canonical JSON): equal when, and only when, the
-    products would be made with the same settings."""
+    """SHA-256 of :func:`product_settings` (canonical JSON).
+
+    Equal when, and only when, the products would be made with the same settings.
+    """
     import hashlib
 
     from plenopiv.products.jsonio import to_json
@@ -714,8 +616,10 @@ def settings_identity(experiment) -> str:
 
 
 def experiment_calibration(experiment, calibration_path) -> Calibration:
-    """The calibration to use with an experiment: S_i and the lenslets from the calibration
-    product, the interfaces and back-side model from the experiment's camera.
+    """The calibration to use with an experiment.
+
+    S_i and the lenslets come from the calibration product, the interfaces and back-side
+    model from the experiment's camera.
 
     The calibration product records the camera it was made for; used with another camera
     (sensor, lattice or main-lens focal length differ, or the experiment's nominal S_i is

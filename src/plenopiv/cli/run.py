@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 from plenopiv.cli._common import _add_common, _integer
@@ -34,7 +33,7 @@ def cmd_run(args) -> dict:
     )
     from plenopiv.config import load_experiment
     from plenopiv.errors import ComputationError
-    from plenopiv.pipeline import ExperimentPairProcess, experiment_calibration, weights_for
+    from plenopiv.pipeline import ExperimentPairProcess, experiment_calibration, prepare_weights
     from plenopiv.resources import check_grid
 
     _integer("--workers", args.workers, minimum=1, maximum=4096)
@@ -65,12 +64,9 @@ def cmd_run(args) -> dict:
     cal = experiment_calibration(exp, cal_path)
     check_grid(exp.volume)
     jobs = _with_identities(jobs, exp, cal_path)
-    # build (or find) the weights once, before the workers start: they load them from disk
-    t0 = time.perf_counter()
-    cache = exp.output.weights_cache
-    _, hit = weights_for(cal, exp.volume, exp.reconstruction,
-                         cache_dir=exp.path(cache) if cache else None)
-    weights_s = time.perf_counter() - t0
+    # explicit weights go into the weights cache once, before the workers start; each worker
+    # then makes its projector once, for all its pairs
+    hit, weights_s = prepare_weights(exp, cal)
     process = ExperimentPairProcess(str(Path(args.experiment).resolve()), str(cal_path.resolve()),
                                     str(out_dir))
     head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit}

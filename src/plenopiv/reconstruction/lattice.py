@@ -5,15 +5,17 @@ non-zeros (~100 GB in CSR). :class:`LatticeProjector` computes the same weights 
 from two small tables instead, using the structure of the lattice: where the lattice rows and
 columns run along the sensor's, a pixel's beam is, on every depth slice, the product of a
 profile along x that depends only on the pixel's sensor column and a profile along y that
-depends only on its sensor row (see :mod:`plenopiv.reconstruction._kernels.lattice`). A projection is then
-two thin contractions per slice; its memory is one (slices × voxel rows × sensor columns)
+depends only on its sensor row (see :mod:`plenopiv.reconstruction._kernels.lattice`). A projection
+is then two thin contractions per slice; its memory is one (slices × voxel rows × sensor columns)
 float32 buffer plus tables of a few MB.
 
-It implements the :class:`~plenopiv.reconstruction.projector.Projector` protocol (``forward``, ``back``,
-``row_sums``, ``column_sums``), which is all that MLOS and SMART need; row-action MART and the
-block variant walk explicit rows and stay with :class:`~plenopiv.reconstruction.projector.SparseProjector`.
+It implements the :class:`~plenopiv.reconstruction.projector.Projector` protocol
+(``forward``, ``back``, ``row_sums``, ``column_sums``), which is all that MLOS and SMART
+need; row-action MART and the block variant walk explicit rows and stay with
+:class:`~plenopiv.reconstruction.projector.SparseProjector`.
 
-Differences from the explicit weights (:func:`plenopiv.reconstruction.weights.build_weights`), both small:
+Differences from the explicit weights
+(:func:`plenopiv.reconstruction.weights.build_weights`), both small:
 
 - a pixel cut by the aperture's edge is traced through its cell centre, not through the
   centroid of the cell's lit part (its weight still carries the lit fraction); set
@@ -87,9 +89,11 @@ def _line_mean(line, values, use, n):
 
 
 def _fill_edge_lines(u_line, x_line, cell, footprint, reach=4):
-    """Give lines with rays but no fully lit ray the aperture coordinate of their cell
-    centre: that of the nearest line of the same lenslet, minus the offset times a cell
-    (u = -(pixel - spot) · cell)."""
+    """Give lines with rays but no fully lit ray the aperture coordinate of their cell centre.
+
+    The coordinate is that of the nearest line of the same lenslet, minus the offset times a cell
+    (u = -(pixel - spot) · cell).
+    """
     missing = np.flatnonzero(np.isnan(u_line) & np.isfinite(x_line))
     n = len(u_line)
     for d in range(1, reach + 1):
@@ -107,8 +111,11 @@ def _fill_edge_lines(u_line, x_line, cell, footprint, reach=4):
 
 
 def _transpose_rows(ys, yc, yw, ny) -> dict:
-    """The row profiles by voxel row: for voxel row iy on slice k, the sensor rows that reach
-    it and their weights are ``t_row``/``t_w[t_ptr[iy * nz + k]:t_ptr[iy * nz + k + 1]]``."""
+    """The row profiles by voxel row.
+
+    For voxel row iy on slice k, the sensor rows that reach it and their weights are
+    ``t_row``/``t_w[t_ptr[iy * nz + k]:t_ptr[iy * nz + k + 1]]``.
+    """
     nz, nrow, kmax = yw.shape
     k, r, j = np.nonzero(np.arange(kmax)[None, None, :] < yc[:, :, None])
     key = (ys[k, r].astype(np.int64) + j) * nz + k

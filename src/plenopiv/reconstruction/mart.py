@@ -1,8 +1,8 @@
-"""Tomographic reconstruction of a particle volume from one plenoptic image: MLOS and MART.
+r"""Tomographic reconstruction of a particle volume from one plenoptic image: MLOS and MART.
 
 The recorded intensity of pixel i is modelled as the weighted sum of the voxel intensities
-its beam crosses, ``I_i = sum_j w_ij E_j`` (see :mod:`plenopiv.reconstruction.projector`). This module
-inverts that relation with non-negative multiplicative iterations:
+its beam crosses, ``I_i = sum_j w_ij E_j`` (see :mod:`plenopiv.reconstruction.projector`). This
+module inverts that relation with non-negative multiplicative iterations:
 
 - :func:`mlos` -- the multiplicative line-of-sight first guess;
 - :func:`reconstruct` -- MART (row action), block-iterative MART, or SMART;
@@ -12,6 +12,51 @@ Volumes are flat ``(n_voxels,)`` float32 arrays in ``[z, y, x]`` C order unless 
 ``(nz, ny, nx)`` is given; images are ``(n_pixels,)`` or any shape of that size, in
 ``(row, col)`` C order. Intensities are in the image's units (counts); the volume comes out in
 counts per unit weight.
+
+The methods of :func:`reconstruct`
+-----------------------------------
+MART (multiplicative algebraic reconstruction technique; Herman & Lent 1976, applied to
+tomographic PIV by Elsinga et al. 2006, their Eq. 2). For each pixel i in turn,
+
+.. math:: E_j \leftarrow E_j \left(\frac{I_i}{\sum_k w_{ik} E_k}\right)^{\mu w_{ij}}
+          \quad \text{for all } j \text{ with } w_{ij} > 0,
+
+with I_i = ``image``, w = the projector's weights, mu = ``relaxation``. The pixels are
+visited in the order of :meth:`~plenopiv.reconstruction.projector.SparseProjector.row_schedule`:
+runs of 16 consecutive pixels ("chunks"), the chunks coloured so that no two of a colour share
+a voxel, colour after colour. The result is exactly that of the sequential sweep in this
+order, computed in parallel (chunks of a colour at once), and it does not depend on the
+number of threads. Any order is a valid MART; this one keeps neighbouring pixels
+together.
+
+Block-iterative multiplicative sweeps (``"block"``) update the pixels of a block
+simultaneously (a block-iterative SMART in the sense of Byrne 1996). For each block B:
+
+.. math:: E_j \leftarrow E_j \exp\left(\mu\,
+          \frac{\sum_{i \in B} w_{ij} \ln\left(I_i / \sum_k w_{ik} E_k\right)}
+               {\max\left(1, \sum_{i \in B} w_{ij}\right)}\right).
+
+Where a block puts a total weight of at most 1 on a voxel this is the product of the
+MART factors of its pixels, so a block of one pixel is MART exactly; where it puts more,
+the factor is the weighted geometric mean of the pixels' ratios (raised to mu), which
+cannot overshoot. ``"smart"`` is the same with one block of all pixels (simultaneous
+MART, Byrne 1993), computed through ``forward`` and ``back`` only.
+
+All three multiply by positive factors, so E stays >= 0 and a zero voxel stays zero. A
+dark pixel (I_i = 0) would multiply its voxels by ``0 ** (mu w_ij) = 0`` on the first
+sweep; this is done once, up front, and dark pixels are skipped afterwards. A pixel whose
+projection is zero leaves its voxels alone.
+
+References
+----------
+.. [1] G. E. Elsinga, F. Scarano, B. Wieneke, B. W. van Oudheusden, "Tomographic particle
+   image velocimetry", Exp. Fluids 41, 933-947 (2006), doi:10.1007/s00348-006-0212-z.
+.. [2] G. T. Herman, A. Lent, "Iterative reconstruction algorithms", Comput. Biol. Med.
+   6, 273-294 (1976).
+.. [3] C. L. Byrne, "Iterative image reconstruction algorithms based on cross-entropy
+   minimization", IEEE Trans. Image Process. 2, 96-103 (1993).
+.. [4] C. L. Byrne, "Block-iterative methods for image reconstruction from projections",
+   IEEE Trans. Image Process. 5, 792-794 (1996).
 """
 
 from __future__ import annotations
@@ -44,9 +89,9 @@ def reconstruct(
     image,
     projector: Projector,
     *,
-    method: str = "mart",
-    iterations: int = 5,
-    relaxation: float = 1.0,
+    method: str,
+    iterations: int,
+    relaxation: float,
     pixel_threshold: float = 0.0,
     blocks=None,
     initial="mlos",
@@ -56,6 +101,10 @@ def reconstruct(
 ) -> np.ndarray:
     r"""Reconstruct the voxel intensities E from one image by multiplicative iterations.
 
+    ``method``, ``iterations`` and ``relaxation`` have no defaults here: they are the
+    ``[reconstruction]`` settings (:class:`plenopiv.config.ReconstructionSettings`, whose
+    defaults are SMART, 10 sweeps, μ = 2), given by the caller.
+
     Parameters
     ----------
     image : array_like, n_pixels values
@@ -64,7 +113,8 @@ def reconstruct(
     projector : Projector
         The weights W. ``method="mart"`` and ``"block"`` need row access
         (:class:`~plenopiv.reconstruction.projector.RowAccessProjector`, e.g.
-        :class:`~plenopiv.reconstruction.projector.SparseProjector`); ``"smart"`` and the MLOS first guess
+        :class:`~plenopiv.reconstruction.projector.SparseProjector`); ``"smart"`` and the MLOS
+        first guess
         use only ``forward``/``back``.
     method : {"mart", "block", "smart"}
         ``"mart"``: row action, one pixel at a time (Elsinga et al. 2006).
@@ -115,96 +165,20 @@ def reconstruct(
 
     Notes
     -----
-    MART (multiplicative algebraic reconstruction technique; Herman & Lent 1976, applied to
-    tomographic PIV by Elsinga et al. 2006, their Eq. 2). For each pixel i in turn,
-
-    .. math:: E_j \leftarrow E_j \left(\frac{I_i}{\sum_k w_{ik} E_k}\right)^{\mu w_{ij}}
-              \quad \text{for all } j \text{ with } w_{ij} > 0,
-
-    with I_i = ``image``, w = the projector's weights, mu = ``relaxation``. The pixels are
-    visited in the order of :meth:`~plenopiv.reconstruction.projector.SparseProjector.row_schedule`: runs
-    of 16 consecutive pixels ("chunks"), the chunks coloured so that no two of a colour share
-    a voxel, colour after colour. The result is exactly that of the sequential sweep in this
-    order, computed in parallel (chunks of a colour at once), and it does not depend on the
-    number of threads. Any order is a valid MART; this one keeps neighbouring pixels
-    together.
-
-    Block-iterative multiplicative sweeps (``"block"``) update the pixels of a block
-    simultaneously (a block-iterative SMART in the sense of Byrne 1996). For each block B:
-
-    .. math:: E_j \leftarrow E_j \exp\left(\mu\,
-              \frac{\sum_{i \in B} w_{ij} \ln\left(I_i / \sum_k w_{ik} E_k\right)}
-                   {\max\left(1, \sum_{i \in B} w_{ij}\right)}\right).
-
-    Where a block puts a total weight of at most 1 on a voxel this is the product of the
-    MART factors of its pixels, so a block of one pixel is MART exactly; where it puts more,
-    the factor is the weighted geometric mean of the pixels' ratios (raised to mu), which
-    cannot overshoot. ``"smart"`` is the same with one block of all pixels (simultaneous
-    MART, Byrne 1993), computed through ``forward`` and ``back`` only.
-
-    All three multiply by positive factors, so E stays >= 0 and a zero voxel stays zero. A
-    dark pixel (I_i = 0) would multiply its voxels by ``0 ** (mu w_ij) = 0`` on the first
-    sweep; this is done once, up front, and dark pixels are skipped afterwards. A pixel whose
-    projection is zero leaves its voxels alone.
-
-    References
-    ----------
-    .. [1] G. E. Elsinga, F. Scarano, B. Wieneke, B. W. van Oudheusden, "Tomographic particle
-       image velocimetry", Exp. Fluids 41, 933-947 (2006), doi:10.1007/s00348-006-0212-z.
-    .. [2] G. T. Herman, A. Lent, "Iterative reconstruction algorithms", Comput. Biol. Med.
-       6, 273-294 (1976).
-    .. [3] C. L. Byrne, "Iterative image reconstruction algorithms based on cross-entropy
-       minimization", IEEE Trans. Image Process. 2, 96-103 (1993).
-    .. [4] C. L. Byrne, "Block-iterative methods for image reconstruction from projections",
-       IEEE Trans. Image Process. 5, 792-794 (1996).
+    The three methods, their update rules, the order of the MART sweep and the treatment of
+    dark pixels are described in the module docstring (:mod:`plenopiv.reconstruction.mart`).
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
-    iterations = _check_int(iterations, "iterations", minimum=0)
-    relaxation = _check_float(relaxation, "relaxation", positive=True)
-    pixel_threshold = _check_float(pixel_threshold, "pixel_threshold", positive=False)
-    if callback is not None and not callable(callback):
-        raise ValueError(f"callback must be callable or None; got {type(callback).__name__}")
-    _check_projector(projector, need_rows=method in ("mart", "block"), method=method)
-    if method == "block" and blocks is None:
-        raise ValueError("method='block' needs blocks: one integer label per pixel")
-    if method != "block" and blocks is not None:
-        raise ValueError(f"blocks is used only by method='block'; got method={method!r}")
-    if ceiling is not None:
-        if method != "smart":
-            raise ValueError(f"ceiling is used only by method='smart'; got method={method!r}")
-        ceiling = np.asarray(ceiling, bool).reshape(-1)
-        if ceiling.size != projector.n_pixels:
-            raise ReconstructionError(f"ceiling has {ceiling.size} values; the projector "
-                                      f"expects n_pixels = {projector.n_pixels}")
+    iterations, relaxation, pixel_threshold, ceiling = _checked_options(
+        projector, method, iterations, relaxation, pixel_threshold, blocks, callback, ceiling)
     volume_shape = _check_shape(shape, projector.n_voxels)
     intensity = _check_image(image, projector.n_pixels, pixel_threshold)
     bright = intensity > pixel_threshold
     schedule = projector.block_schedule(blocks) if method == "block" else None
 
     volume = _first_guess(initial, intensity, bright, projector)
-
-    if method == "smart":
-        column_norm = np.maximum(np.asarray(projector.column_sums(), np.float32), 1.0)
-        log_ratio = np.zeros(projector.n_pixels, np.float32)
-    elif method == "mart":
-        rows = projector.row_schedule()
-    else:
-        log_ratio = np.zeros(projector.n_pixels, np.float64)
-
+    sweep = _sweep_of(method, projector, intensity, bright, relaxation, schedule, ceiling)
     for iteration in range(1, iterations + 1):
-        if method == "mart":
-            _k.mart_sweep(projector.indptr, projector.indices, projector.data, rows.rows,
-                          rows.chunk_ptr, rows.group_ptr, intensity, bright, volume,
-                          np.float32(relaxation))
-        elif method == "block":
-            _k.block_sweep(projector.indptr, projector.indices, projector.data,
-                           schedule.block_column_sums, schedule.rows, schedule.chunk_ptr,
-                           schedule.group_ptr, schedule.block_group_ptr, intensity, bright, volume,
-                           np.float32(relaxation), log_ratio)
-        else:
-            _smart_iteration(projector, intensity, bright, volume, relaxation, column_norm,
-                             log_ratio, ceiling)
+        sweep(volume)
         if callback is not None:
             view = _shaped(volume, volume_shape).view()
             view.flags.writeable = False
@@ -246,7 +220,8 @@ def mlos(image, projector: Projector, *, pixel_threshold: float = 0.0,
     the power ``1 / sum_i w_ij`` so that E keeps the units of intensity whatever the number
     of views. It is chosen over the minimum form (Putze & Maas 2008) because it needs only
     two back projections, ``Wᵀ·[dark]`` and ``Wᵀ·ln(I/R)``, so it works for any
-    :class:`~plenopiv.reconstruction.projector.Projector`, matrix-free ones included; the minimum needs the
+    :class:`~plenopiv.reconstruction.projector.Projector`, matrix-free ones included; the minimum
+    needs the
     rows. Both zero the same voxels.
 
     References
@@ -309,6 +284,55 @@ def reconstruction_quality(volume, volume_true) -> float:
 # -- helpers ------------------------------------------------------------------------------
 
 
+def _checked_options(projector, method, iterations, relaxation, pixel_threshold, blocks,
+                     callback, ceiling) -> tuple:
+    """``(iterations, relaxation, pixel_threshold, ceiling)`` of :func:`reconstruct`, checked.
+
+    Raises ValueError for an option outside its valid set, ReconstructionError for one that
+    does not match the projector.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    iterations = _check_int(iterations, "iterations", minimum=0)
+    relaxation = _check_float(relaxation, "relaxation", positive=True)
+    pixel_threshold = _check_float(pixel_threshold, "pixel_threshold", positive=False)
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback must be callable or None; got {type(callback).__name__}")
+    _check_projector(projector, need_rows=method in ("mart", "block"), method=method)
+    if method == "block" and blocks is None:
+        raise ValueError("method='block' needs blocks: one integer label per pixel")
+    if method != "block" and blocks is not None:
+        raise ValueError(f"blocks is used only by method='block'; got method={method!r}")
+    if ceiling is not None:
+        if method != "smart":
+            raise ValueError(f"ceiling is used only by method='smart'; got method={method!r}")
+        ceiling = np.asarray(ceiling, bool).reshape(-1)
+        if ceiling.size != projector.n_pixels:
+            raise ReconstructionError(f"ceiling has {ceiling.size} values; the projector "
+                                      f"expects n_pixels = {projector.n_pixels}")
+    return iterations, relaxation, pixel_threshold, ceiling
+
+
+def _sweep_of(method, projector, intensity, bright, relaxation, schedule, ceiling):
+    """``sweep(volume)``: one iteration of ``method``, updating the float32 volume in place."""
+    mu = np.float32(relaxation)
+    if method == "smart":
+        column_norm = np.maximum(np.asarray(projector.column_sums(), np.float32), 1.0)
+        log_ratio = np.zeros(projector.n_pixels, np.float32)
+        return lambda volume: _smart_iteration(projector, intensity, bright, volume, relaxation,
+                                               column_norm, log_ratio, ceiling)
+    csr = (projector.indptr, projector.indices, projector.data, projector.row_index,
+           projector.row_scale)
+    if method == "mart":
+        rows = projector.row_schedule()
+        return lambda volume: _k.mart_sweep(*csr, rows.rows, rows.chunk_ptr, rows.group_ptr,
+                                            intensity, bright, volume, mu)
+    log_ratio = np.zeros(projector.n_pixels, np.float64)
+    return lambda volume: _k.block_sweep(
+        *csr, schedule.block_column_sums, schedule.rows, schedule.chunk_ptr,
+        schedule.group_ptr, schedule.block_group_ptr, intensity, bright, volume, mu, log_ratio)
+
+
 def _smart_iteration(projector, intensity, bright, volume, relaxation, column_norm, log_ratio,
                      ceiling=None):
     """Run one SMART iteration through the Projector protocol (forward, then back).
@@ -343,7 +367,12 @@ def _mlos(intensity, bright, projector) -> np.ndarray:
 
 
 def _seen_by_dark(bright, projector) -> np.ndarray:
-    """Boolean per voxel: some dark pixel has a positive weight on it."""
+    """Boolean per voxel: some dark pixel has a positive weight on it.
+
+    No back projection when every pixel is bright (nothing is dark).
+    """
+    if bright.all():
+        return np.zeros(projector.n_voxels, bool)
     return np.asarray(projector.back((~bright).astype(np.float32))) > 0
 
 
@@ -374,7 +403,10 @@ def _first_guess(initial, intensity, bright, projector) -> np.ndarray:
 
 
 def _check_image(image, n_pixels: int, pixel_threshold: float) -> np.ndarray:
-    """Flat contiguous float32 copy of a valid image, or an error naming what is wrong."""
+    """Flat contiguous float32 image, or an error naming what is wrong.
+
+    A copy unless it is one already; the reconstruction only reads it.
+    """
     a = np.asarray(image)
     if a.size != n_pixels:
         raise ReconstructionError(
@@ -383,7 +415,7 @@ def _check_image(image, n_pixels: int, pixel_threshold: float) -> np.ndarray:
         )
     if not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
         raise ImageError(f"image must hold real numbers; got dtype {a.dtype}")
-    a = np.array(a.reshape(-1), dtype=np.float32)
+    a = np.ascontiguousarray(a.reshape(-1), dtype=np.float32)
     bad = ~np.isfinite(a)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
@@ -407,7 +439,8 @@ def _check_image(image, n_pixels: int, pixel_threshold: float) -> np.ndarray:
 def _check_projector(projector, *, need_rows: bool, method: str) -> None:
     if not isinstance(projector, Projector):
         raise ReconstructionError(
-            f"projector must implement plenopiv.reconstruction.projector.Projector (n_pixels, n_voxels, "
+            f"projector must implement plenopiv.reconstruction.projector.Projector "
+            f"(n_pixels, n_voxels, "
             f"forward, back, row_sums, column_sums); got {type(projector).__name__}"
         )
     if need_rows and not isinstance(projector, RowAccessProjector):

@@ -8,14 +8,17 @@ beam energy that passes through voxel j:
     I_i = sum_j w_ij E_j            (forward projection, I = W·E)
     r_j = sum_i w_ij I_i            (back projection, r = Wᵀ·I)
 
-:class:`Projector` is the protocol that :mod:`plenopiv.reconstruction.mart` needs for MLOS and SMART: any
-object with these six members will do, a matrix-free projector that exploits the regular
+:class:`Projector` is the protocol that :mod:`plenopiv.reconstruction.mart` needs for MLOS and
+SMART: any object with these six members will do, a matrix-free projector that exploits the regular
 lenslet grid included. Row-action MART and the block-iterative variant also walk the rows of
 W; :class:`RowAccessProjector` adds that. :class:`SparseProjector` is the explicit
 implementation, W held in CSR form (rows = pixels, columns = voxels).
 
 Memory of :class:`SparseProjector` (``nnz`` non-zeros): the CSR arrays take 8 bytes per
-non-zero (int32 voxel index + float32 weight) plus 4 or 8 bytes per row pointer. No
+non-zero (int32 voxel index + float32 weight) plus 4 or 8 bytes per row pointer. Its
+row-scaled and row-selected projectors (:meth:`SparseProjector.scale_rows`,
+:meth:`SparseProjector.select_rows`) are views that share the CSR and add 12 bytes per row
+(the CSR row of each of their pixels, int64, and its scale, float32), so W is held once. No
 transposed copy of W is made: the back projection scatters into one accumulator per thread
 (``n_threads * n_voxels * 8`` bytes of scratch), and the parallel MART updates follow a
 :class:`RowSchedule` (8 bytes per pixel; for blocks also 4 bytes per non-zero, the block
@@ -93,6 +96,16 @@ class RowAccessProjector(Projector, Protocol):
         """CSR weights, float32, shape (nnz,)."""
         ...
 
+    @property
+    def row_index(self) -> np.ndarray:
+        """CSR row of each pixel, int64 (empty: pixel i is CSR row i)."""
+        ...
+
+    @property
+    def row_scale(self) -> np.ndarray:
+        """Scale of each pixel's CSR row, float32 (empty: 1)."""
+        ...
+
     def row_schedule(self, *, chunk_rows: int = 16) -> RowSchedule:
         """All rows in voxel-disjoint groups of chunks (see :class:`RowSchedule`)."""
         ...
@@ -152,8 +165,10 @@ class RowSchedule:
 
 
 class CachedSums:
-    """``row_sums`` and ``column_sums`` of a projector from its ``forward`` and ``back``,
-    each computed on first use (a projector is immutable; its row views are new objects)."""
+    """``row_sums`` and ``column_sums`` of a projector from its ``forward`` and ``back``.
+
+    Each is computed on first use (a projector is immutable; its row views are new objects).
+    """
 
     @functools.cached_property
     def _row_sums(self) -> np.ndarray:
@@ -266,6 +281,8 @@ class SparseProjector(CachedSums):
         self._indices = np.ascontiguousarray(indices, dtype=np.int32)
         self._data = np.ascontiguousarray(data, dtype=np.float32)
         self._n_voxels = n_voxels
+        self._row_index: np.ndarray | None = None   # None: row i is CSR row i
+        self._row_scale: np.ndarray | None = None   # None: every row scaled by 1
         self._transpose = bool(transpose)
         self._transposed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._scratch: np.ndarray | None = None
@@ -283,9 +300,21 @@ class SparseProjector(CachedSums):
                    transpose=transpose)
 
     def to_scipy(self):
-        """Return W as a ``scipy.sparse.csr_array`` sharing this projector's arrays."""
+        """Return W as a ``scipy.sparse.csr_array``.
+
+        It shares this projector's arrays, except for a row view (scaled or selected rows),
+        whose rows are copied out.
+        """
         import scipy.sparse
 
+        if self.is_view:
+            counts = np.diff(self._indptr)[self._rows()]
+            indptr = np.zeros(self.n_pixels + 1, np.int64)
+            np.cumsum(counts, out=indptr[1:])
+            take = _row_entries(self._indptr, self._rows(), indptr)
+            data = self._data[take] * np.repeat(self._scales(), counts)
+            return scipy.sparse.csr_array((data.astype(np.float32), self._indices[take], indptr),
+                                          shape=(self.n_pixels, self.n_voxels))
         return scipy.sparse.csr_array(
             (self._data, self._indices, self._indptr), shape=(self.n_pixels, self.n_voxels)
         )
@@ -294,6 +323,8 @@ class SparseProjector(CachedSums):
     @property
     def n_pixels(self) -> int:
         """Number of pixels (rows of W)."""
+        if self._row_index is not None:
+            return int(self._row_index.shape[0])
         return int(self._indptr.shape[0] - 1)
 
     @property
@@ -303,8 +334,35 @@ class SparseProjector(CachedSums):
 
     @property
     def nnz(self) -> int:
-        """Number of stored weights."""
+        """Number of stored weights (of the whole CSR, which a row view shares)."""
         return int(self._indices.shape[0])
+
+    @property
+    def is_view(self) -> bool:
+        """True for a row view (scaled or selected rows of a CSR held elsewhere)."""
+        return self._row_index is not None or self._row_scale is not None
+
+    @property
+    def row_index(self) -> np.ndarray:
+        """CSR row of each pixel, int64; empty when pixel i is CSR row i."""
+        return _EMPTY_INDEX if self._row_index is None else self._row_index
+
+    @property
+    def row_scale(self) -> np.ndarray:
+        """Factor of each pixel's CSR row, float32; empty when every factor is 1."""
+        return _EMPTY_SCALE if self._row_scale is None else self._row_scale
+
+    def _rows(self) -> np.ndarray:
+        """CSR row of each pixel, int64 (materialised for the identity)."""
+        if self._row_index is None:
+            return np.arange(self.n_pixels, dtype=np.int64)
+        return self._row_index
+
+    def _scales(self) -> np.ndarray:
+        """Factor of each pixel's row, float32 (materialised ones for no scaling)."""
+        if self._row_scale is None:
+            return np.ones(self.n_pixels, np.float32)
+        return self._row_scale
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -328,8 +386,12 @@ class SparseProjector(CachedSums):
 
     @property
     def nbytes(self) -> int:
-        """Memory of W in bytes: CSR arrays plus any transposed copy (not scratch, schedules)."""
-        arrays = (self._indptr, self._indices, self._data) + (self._transposed or ())
+        """Memory of W in bytes: CSR arrays, row view, any transposed copy.
+
+        Not the scratch or the schedules; a view counts the CSR it shares.
+        """
+        arrays = ((self._indptr, self._indices, self._data, self.row_index, self.row_scale)
+                  + (self._transposed or ()))
         return int(sum(a.nbytes for a in arrays))
 
     def forward(self, volume, *, out=None) -> np.ndarray:
@@ -350,7 +412,8 @@ class SparseProjector(CachedSums):
         x = _as_vector(volume, self.n_voxels, "volume", "n_voxels")
         if out is None:
             out = np.empty(self.n_pixels, np.float32)
-        _k.forward_csr(self._indptr, self._indices, self._data, x, out)
+        _k.forward_csr(self._indptr, self._indices, self._data, self.row_index, self.row_scale,
+                       x, out)
         return out
 
     def back(self, image, *, out=None) -> np.ndarray:
@@ -374,44 +437,76 @@ class SparseProjector(CachedSums):
         if self._transpose:
             if self._transposed is None:
                 self._transposed = _k.transpose_csr(self._indptr, self._indices, self._data,
-                                                    self.n_voxels)
+                                                    self.row_index, self.row_scale,
+                                                    self.n_pixels, self.n_voxels)
             _k.back_gather(*self._transposed, y, out)
             return out
         n_chunks = max(1, numba.get_num_threads())
         if self._scratch is None or self._scratch.shape[0] != n_chunks:
             self._scratch = np.empty((n_chunks, self.n_voxels), np.float64)
-            targets = np.linspace(0, self.nnz, n_chunks + 1).round().astype(np.int64)
-            self._bounds = np.searchsorted(self._indptr, targets).astype(np.int64)
+            ends = self._view_indptr()
+            targets = np.linspace(0, ends[-1], n_chunks + 1).round().astype(np.int64)
+            self._bounds = np.searchsorted(ends, targets).astype(np.int64)
             self._bounds[0], self._bounds[-1] = 0, self.n_pixels
-        _k.back_scatter(self._indptr, self._indices, self._data, y, self._bounds,
-                        self._scratch, out)
+        _k.back_scatter(self._indptr, self._indices, self._data, self.row_index,
+                        self.row_scale, y, self._bounds, self._scratch, out)
         return out
+
+    def _view_indptr(self) -> np.ndarray:
+        """Cumulative non-zeros of the pixels (int64, n_pixels + 1): the view's row pointers."""
+        if self._row_index is None:
+            return self._indptr.astype(np.int64, copy=False)
+        ends = np.zeros(self.n_pixels + 1, np.int64)
+        np.cumsum(np.diff(self._indptr)[self._row_index], out=ends[1:])
+        return ends
 
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per pixel (float32, shape (n_pixels,); 0 for an empty row)."""
         counts = np.diff(self._indptr)
-        out = np.zeros(self.n_pixels, np.float32)
+        out = np.zeros(counts.shape[0], np.float32)
         nonempty = counts > 0
         if nonempty.any():
             out[nonempty] = np.maximum.reduceat(self._data, self._indptr[:-1][nonempty])
+        if self._row_index is not None:
+            out = out[self._row_index]
+        if self._row_scale is not None:
+            out = (out * self._row_scale).astype(np.float32)
         return out
 
+    def _view(self, row_index: np.ndarray | None, row_scale: np.ndarray | None
+              ) -> SparseProjector:
+        """A projector of rows ``row_index`` of this CSR scaled by ``row_scale`` (no copy)."""
+        view = SparseProjector(self._indptr, self._indices, self._data, n_voxels=self.n_voxels,
+                               check=False, transpose=self._transpose)
+        view._row_index = row_index
+        view._row_scale = row_scale
+        return view
+
     def scale_rows(self, factors) -> SparseProjector:
-        """W with row i multiplied by ``factors[i]`` (a new projector; indices shared)."""
-        f = np.asarray(factors, np.float32)
-        data = (self._data * np.repeat(f, np.diff(self._indptr))).astype(np.float32)
-        return SparseProjector(self._indptr, self._indices, data, n_voxels=self.n_voxels,
-                               check=False)
+        """W with row i multiplied by ``factors[i]``: a row view sharing this CSR.
+
+        The factors are kept per row (float32, 4 bytes per row) and applied by the kernels as
+        each weight is read, so W is not copied.
+        """
+        f = np.asarray(factors, np.float32).reshape(-1)
+        if f.shape[0] != self.n_pixels:
+            raise ReconstructionError(f"scale_rows: {f.shape[0]} factors for "
+                                      f"{self.n_pixels} rows")
+        scale = f if self._row_scale is None else (self._row_scale * f).astype(np.float32)
+        return self._view(self._row_index, np.ascontiguousarray(scale))
 
     def select_rows(self, mask) -> SparseProjector:
-        """The projector of the rows where ``mask`` (bool, n_pixels) is true (a copy)."""
-        rows = np.asarray(mask, bool)
-        counts = np.diff(self._indptr)[rows]
-        indptr = np.zeros(len(counts) + 1, np.int64)
-        np.cumsum(counts, out=indptr[1:])
-        take = np.repeat(rows, np.diff(self._indptr))
-        return SparseProjector(indptr, self._indices[take], self._data[take],
-                               n_voxels=self.n_voxels, check=False)
+        """The projector of the rows where ``mask`` (bool, n_pixels) is true: a row view.
+
+        It shares this CSR and holds the selected rows' CSR indices (int64) and factors.
+        """
+        keep = np.asarray(mask, bool).reshape(-1)
+        if keep.shape[0] != self.n_pixels:
+            raise ReconstructionError(f"select_rows: a mask of {keep.shape[0]} values for "
+                                      f"{self.n_pixels} rows")
+        rows = np.flatnonzero(keep) if self._row_index is None else self._row_index[keep]
+        scale = None if self._row_scale is None else self._row_scale[keep]
+        return self._view(np.ascontiguousarray(rows, dtype=np.int64), scale)
 
     # -- row schedules -------------------------------------------------------------------
     def row_schedule(self, *, chunk_rows: int = 16) -> RowSchedule:
@@ -479,12 +574,12 @@ class SparseProjector(CachedSums):
 
     def _colour(self, block_ptr, block_rows, labels, chunk_rows, *, with_sums):
         """Colour the chunks of each block and order them by (block, colour, chunk)."""
-        max_degree = int(np.bincount(self._indices).max()) if self.nnz else 1
+        max_degree = _max_column_count(self._indices, self.n_voxels) if self.nnz else 1
         words = max(1, -(-max_degree // 64))
         while True:
             colour, n_colours, sums = _k.colour_chunks(
-                self._indptr, self._indices, self._data, block_ptr, block_rows, chunk_rows,
-                self.n_voxels, words, with_sums)
+                self._indptr, self._indices, self._data, self.row_index, self.row_scale,
+                block_ptr, block_rows, chunk_rows, self.n_voxels, words, with_sums)
             if n_colours.shape[0] == 0 or n_colours[0] >= 0:
                 break
             words *= 2
@@ -512,6 +607,29 @@ class SparseProjector(CachedSums):
         np.cumsum(np.bincount(chunk_group, minlength=n_groups), out=group_ptr[1:])
         return RowSchedule(block_rows[position], chunk_ptr, group_ptr, block_group_ptr, labels,
                            sums if with_sums else None)
+
+
+_EMPTY_INDEX = np.zeros(0, np.int64)
+_EMPTY_SCALE = np.zeros(0, np.float32)
+
+
+def _max_column_count(indices: np.ndarray, n_voxels: int, chunk: int = 1 << 22) -> int:
+    """Largest number of non-zeros of one voxel (column) of the CSR.
+
+    Counted in chunks, so that no int64 copy of all the indices is made (8 bytes per
+    non-zero, as much as the CSR itself).
+    """
+    counts = np.zeros(n_voxels, np.int64)
+    for start in range(0, indices.shape[0], chunk):
+        counts += np.bincount(indices[start:start + chunk], minlength=n_voxels)
+    return int(counts.max())
+
+
+def _row_entries(indptr: np.ndarray, rows: np.ndarray, view_indptr: np.ndarray) -> np.ndarray:
+    """CSR entry positions of ``rows`` in order (int64, one per non-zero of the view)."""
+    counts = np.diff(view_indptr)
+    starts = np.repeat(indptr[:-1][rows].astype(np.int64) - view_indptr[:-1], counts)
+    return starts + np.arange(view_indptr[-1], dtype=np.int64)
 
 
 def _positive_int(value, name: str) -> int:

@@ -17,8 +17,8 @@ a footprint.
 
 The refined projector depends on the camera and grid only; it is built once per weights
 object and kept (the last one) in memory. For an axis-aligned lattice it is the matrix-free
-:class:`~plenopiv.reconstruction.lattice.LatticeProjector` (seconds to build, a few MB); otherwise explicit
-weights on the refined grid, built in depth slabs.
+:class:`~plenopiv.reconstruction.lattice.LatticeProjector` (seconds to build, a few MB); otherwise
+explicit weights on the refined grid, built in depth slabs.
 """
 
 from __future__ import annotations

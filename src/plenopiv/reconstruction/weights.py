@@ -1,6 +1,7 @@
 """Voxel-pixel weights from the effective image distance: sparse, built in parallel, cached.
 
-Row i of the weight matrix W is the ray of lit pixel i of a :class:`~plenopiv.lightfield.LightField`;
+Row i of the weight matrix W is the ray of lit pixel i of a
+:class:`~plenopiv.lightfield.LightField`;
 column j is voxel j of a :class:`~plenopiv.volume.VolumeGrid` (flat ``[z, y, x]`` order).
 ``W[i, j]`` is the fraction of the light of a particle spread uniformly over voxel j that
 reaches pixel i, in the simulator's units (a particle of energy 1 gives an image summing to 1),
@@ -24,22 +25,15 @@ the voxel's centre depth. Everything is in effective (air-equivalent) coordinate
 from __future__ import annotations
 
 import functools
-import hashlib
-import json
 import math
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
-import h5py
 import numpy as np
 
-from plenopiv.calibration.model import Calibration
 from plenopiv.errors import ReconstructionError
-from plenopiv.lightfield import LightField, light_field
-from plenopiv.products.hdf5 import write_h5
+from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import weights as K
-from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
+from plenopiv.reconstruction.lattice import LatticeProjector
 from plenopiv.reconstruction.projector import Projector, SparseProjector
 from plenopiv.volume import VolumeGrid
 
@@ -76,6 +70,7 @@ class Weights:
     def normalised(self) -> tuple[Projector, np.ndarray]:
         """W with every row scaled to a maximum of 1, and each row's scale (computed once).
 
+        The scaled projector is a row view of W (the CSR is shared, the scale kept per row).
         MART raises a voxel's factor to the power μ w_ij; with the physical weights (fractions
         of a particle's light, ~1e-3) the updates would be tiny. Scaling row i and pixel i by
         the same c_i = 1/max_j w_ij leaves the system I = W E and its solution unchanged.
@@ -95,8 +90,11 @@ class Weights:
         return isinstance(self.projector, LatticeProjector)
 
     def image_vector(self, image) -> np.ndarray:
-        """The rows' pixel values of a full sensor image, float32 (P,)."""
-        return np.asarray(image, np.float32).reshape(-1)[self.pixel]
+        """The rows' pixel values of a full sensor image, float32 (P,).
+
+        The rows are gathered first and then converted: no float32 copy of the whole image.
+        """
+        return np.asarray(image).reshape(-1)[self.pixel].astype(np.float32, copy=False)
 
     def forward_image(self, volume, shape) -> np.ndarray:
         """Project a volume ``[z, y, x]`` into a full sensor image of ``shape``."""
@@ -170,167 +168,24 @@ def weights_reference(lf: LightField, grid: VolumeGrid, rows) -> np.ndarray:
             t = (lf.object_distance + z) / lf.object_distance
             al, be = abs(1 - t) * lf.cell, t * lf.footprint
             m = (1 - t) * lf.u[i] + t * xf[i]
-            fx = np.diff(_cdf_np(xe, m[0], al, be))
-            fy = np.diff(_cdf_np(ye, m[1], al, be))
+            fx = np.diff(K.box_sum_cdf_numpy(xe, m[0], al, be))
+            fy = np.diff(K.box_sum_cdf_numpy(ye, m[1], al, be))
             w = lf.lit[i] * (lf.cell * be) ** 2 / (area * grid.voxel[0] * grid.voxel[1])
             out[r, iz * ny * nx:(iz + 1) * ny * nx] = (w * fy[:, None] * fx[None, :]).ravel()
     return out
 
 
-def _cdf_np(x, centre, alpha, beta):
-    """NumPy twin of :func:`plenopiv.reconstruction._kernels.weights.box_sum_cdf` (by numerical convolution)."""
-    lo, hi = sorted((alpha, beta))
-    if lo <= 1e-9 * hi:
-        return np.clip((x - centre) / hi + 0.5, 0, 1)
-    # the density is a trapezoid; integrate it with a fine trapezoid rule
-    grid = np.linspace(centre - (lo + hi) / 2, centre + (lo + hi) / 2, 20001)
-    dens = np.clip(np.minimum(grid - grid[0], grid[-1] - grid) / lo, 0, 1) / hi
-    cum = np.concatenate([[0], np.cumsum((dens[1:] + dens[:-1]) / 2 * np.diff(grid))])
-    return np.interp(x, grid, cum, left=0.0, right=1.0)
+
+#: Names that moved to :mod:`plenopiv.reconstruction.select` (projector choice, memory
+#: estimates, the weights cache), still importable from here.
+_MOVED_TO_SELECT = ("BYTES_PER_NONZERO", "PROJECTORS", "cached_weights", "choose_projector",
+                    "estimate_matrix_free_gb", "estimate_nnz", "memory_budget_gb", "weights_key")
 
 
-# --------------------------------------------------------------------------------------------
-# cache
-# --------------------------------------------------------------------------------------------
+def __getattr__(name: str):
+    """The names of :data:`_MOVED_TO_SELECT`, from :mod:`plenopiv.reconstruction.select`."""
+    if name in _MOVED_TO_SELECT:
+        from plenopiv.reconstruction import select
 
-
-def weights_key(calibration: Calibration, grid: VolumeGrid, *, f_number: float | None,
-                min_lit: float, min_weight: float) -> str:
-    """SHA-256 of everything the weights depend on."""
-    h = hashlib.sha256()
-    h.update(json.dumps({"v": WEIGHTS_VERSION, "camera": calibration.camera.to_dict(),
-                         "si": round(calibration.image_distance, 15), "grid": grid.key(),
-                         "f_number": f_number, "min_lit": min_lit, "min_weight": min_weight},
-                        sort_keys=True).encode())
-    for arr in (calibration.centre_px, calibration.focal_spot_px, calibration.grid_index):
-        h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
-    return h.hexdigest()
-
-
-#: Bytes per explicit non-zero in a reconstruction: W (8), its row-normalised copy (4) and the
-#: copy restricted to the bright rows (8 × their share; counted in full).
-BYTES_PER_NONZERO = 20
-PROJECTORS = ("auto", "sparse", "lattice")
-
-
-def estimate_nnz(lf: LightField, grid: VolumeGrid, *, min_weight: float = 1e-7,
-                 sample: int = 101) -> int:
-    """Non-zeros of the explicit W, counted on every ``sample``-th ray and scaled up."""
-    check_grid_in_view(lf, grid)
-    counts = K.count_nnz(*_kernel_args(lf, grid, min_weight, sample))
-    return int(counts.sum() * lf.n_rays / max(len(counts), 1))
-
-
-def memory_budget_gb() -> float:
-    """Default memory for explicit weights: 40 % of this machine's physical memory (GB)."""
-    try:
-        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        total = 8e9
-    return 0.4 * total / 1e9
-
-
-def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto",
-                     max_weights_gb: float | None = None, min_weight: float = 1e-7) -> str:
-    """``"sparse"`` or ``"lattice"`` for a reconstruction of ``grid`` from ``lf``.
-
-    ``"auto"`` keeps the explicit weights while their estimated memory
-    (:data:`BYTES_PER_NONZERO` × :func:`estimate_nnz`) fits in ``max_weights_gb`` (default
-    :func:`memory_budget_gb`), and takes the matrix-free lattice projector beyond that.
-
-    Both estimates are checked against the same budget before anything large is allocated.
-
-    Raises
-    ------
-    ReconstructionError
-        The explicit weights would not fit and the lattice is not axis-aligned (or
-        ``"sparse"`` was asked for), or the matrix-free reconstruction's estimate
-        (:func:`estimate_matrix_free_gb`) exceeds the budget.
-    """
-    if projector not in PROJECTORS:
-        raise ValueError(f"projector = {projector!r}: expected one of {PROJECTORS}")
-    budget = memory_budget_gb() if max_weights_gb is None else float(max_weights_gb)
-    if projector in ("auto", "sparse"):
-        need = BYTES_PER_NONZERO * estimate_nnz(lf, grid, min_weight=min_weight) / 1e9
-        if need <= budget:
-            return "sparse"
-        if projector == "sparse":
-            raise ReconstructionError(
-                f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
-                "allowed ([reconstruction] max_weights_gb): set projector = \"auto\" (the "
-                "matrix-free projector), use fewer or larger voxels, or raise max_weights_gb")
-        if separable_axes(lf) is None:
-            raise ReconstructionError(
-                f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
-                "allowed ([reconstruction] max_weights_gb), and this calibration's lattice is "
-                "not axis-aligned, which the matrix-free projector needs: reduce the volume "
-                "(fewer or larger voxels) or raise max_weights_gb")
-    need = estimate_matrix_free_gb(lf, grid)
-    if need > budget:
-        raise ReconstructionError(
-            f"the matrix-free reconstruction of a {grid.shape[0]} × {grid.shape[1]} × "
-            f"{grid.shape[2]}-voxel volume needs ~{need:.3g} GB (projection buffers of depth "
-            "slices × voxel rows × sensor columns, volumes, rays), more than the "
-            f"{budget:.3g} GB allowed ([reconstruction] max_weights_gb): use fewer or larger "
-            "voxels, or raise max_weights_gb")
-    return "lattice"
-
-
-def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
-    """Peak memory of a matrix-free SMART reconstruction of ``grid`` from ``lf``, GB.
-
-    Two projection buffers (depth slices × voxel rows × used sensor columns, float32), about
-    twelve float32 volumes (estimate, update, column sums, first guess, masks), the rays and
-    their per-call copies (~64 bytes each), and one depth slab of the sub-voxel line-of-sight
-    mask (:mod:`plenopiv.reconstruction.sightline`: its buffer and six refined float32 arrays).
-    """
-    from plenopiv.reconstruction.sightline import SLAB_VOXELS, subcell_factors
-
-    nz, ny, nx = grid.shape
-    cols = lf.pixel % lf.shape[1]
-    n_cols = int(cols.max() - cols.min() + 1) if len(cols) else 0
-    kx, ky = subcell_factors(grid, lf.footprint)
-    fine = min(SLAB_VOXELS, grid.n_voxels * kx * ky)
-    slab_nz = max(1, fine // max(ny * ky * nx * kx, 1))
-    total = (2 * 4 * nz * ny * n_cols + 12 * 4 * grid.n_voxels + 64 * lf.n_rays
-             + 4 * slab_nz * ny * ky * n_cols + 6 * 4 * fine)
-    return total / 1e9
-
-
-def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str | Path | None,
-                   f_number: float | None = None, min_lit: float = 0.5,
-                   min_weight: float = 1e-7, projector: str = "auto",
-                   max_weights_gb: float | None = None) -> tuple[Weights, bool]:
-    """Load the weights from ``cache_dir`` when built before for the same geometry, else build
-    (and save) them. Returns ``(weights, from_cache)``.
-
-    The file name carries the key, and the key stored inside is checked again, so weights of
-    another camera, calibration or grid are never reused; a corrupt cache file is rebuilt.
-    ``projector`` (see :func:`choose_projector`) may pick the matrix-free lattice projector
-    instead, which is built in seconds and never cached.
-    """
-    key = weights_key(calibration, grid, f_number=f_number, min_lit=min_lit,
-                      min_weight=min_weight)
-    path = None if cache_dir is None else Path(cache_dir) / f"weights-{key[:24]}.h5"
-    if projector != "lattice" and path is not None and path.exists():
-        try:
-            with h5py.File(path, "r") as fh:
-                if fh.attrs.get("key") == key:
-                    proj = SparseProjector(fh["/indptr"][()], fh["/indices"][()],
-                                           fh["/data"][()], n_voxels=grid.n_voxels, check=False)
-                    return Weights(proj, fh["/pixel"][()], grid, key), True
-        except (OSError, KeyError, ValueError):
-            pass   # unreadable or from another geometry: rebuild below
-    lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
-    kind = choose_projector(lf, grid, projector=projector, max_weights_gb=max_weights_gb,
-                            min_weight=min_weight)
-    if kind == "lattice":
-        check_grid_in_view(lf, grid)
-        return Weights(LatticeProjector.from_light_field(lf, grid), lf.pixel, grid, key), False
-    w = build_weights(lf, grid, min_weight=min_weight, key=key)
-    if path is not None:
-        p = w.projector
-        write_h5(path, {"/indptr": p.indptr, "/indices": p.indices, "/data": p.data,
-                        "/pixel": w.pixel}, attrs={"key": key, "grid": grid.key()},
-                 kind="weights cache", compress=False)
-    return w, False
+        return getattr(select, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,4 +1,4 @@
-"""Numba kernels of the lattice (matrix-free) projector (see :mod:`plenopiv.reconstruction.lattice`).
+"""Numba kernels of the lattice (matrix-free) projector of :mod:`plenopiv.reconstruction.lattice`.
 
 With an axis-aligned square lenslet lattice, a pixel's beam centre at depth slice k is
 ``(1 - t_k) u + t_k X_f`` per axis, where the x part depends only on the pixel's sensor column
@@ -9,8 +9,8 @@ of a column profile (a few voxels along x) and a row profile (a few voxels along
 
 The forward projection contracts x first (``T[k, iy, col]``), then y, slice after slice,
 into the pixel rows; the back projection is the same in reverse. The profiles are tables of
-the voxel-integrated trapezoid of :mod:`plenopiv.reconstruction._kernels.weights` (exactly the explicit
-weights' per-axis factors), so nothing of size (pixels × voxels) is ever held.
+the voxel-integrated trapezoid of :mod:`plenopiv.reconstruction._kernels.weights` (exactly the
+explicit weights' per-axis factors), so nothing of size (pixels × voxels) is ever held.
 """
 
 from __future__ import annotations
@@ -82,8 +82,11 @@ def contract_x(volume, xs, xc, xw, out):
 
 @njit(parallel=True, cache=True)
 def contract_y(tmp, ys, yc, yw, row_ptr, ray_col, ray_scale, block, out):
-    """Forward, second half: sum the slices' row profiles into each pixel row, and read the
-    rays of the row (``row_ptr``: rays of sensor row r are ``row_ptr[r]:row_ptr[r + 1]``)."""
+    """Forward, second half: sum the slices' row profiles into each pixel row.
+
+    Then read the rays of the row (``row_ptr``: rays of sensor row r are
+    ``row_ptr[r]:row_ptr[r + 1]``).
+    """
     nz, _, ncol = tmp.shape
     nrow = ys.shape[1]
     nblocks = (nrow + block - 1) // block
@@ -161,8 +164,10 @@ def spread_x(tmp, xs, xc, xw, out):
 
 @njit(parallel=True, cache=True)
 def row_max(ray_row, ray_col, ray_scale, col_max, row_max_, out):
-    """Largest weight of every ray: ``scale · max_k col_max[col, k] · row_max_[row, k]``
-    (the profiles' largest values per line and slice, slices contiguous)."""
+    """Largest weight of every ray: ``scale · max_k col_max[col, k] · row_max_[row, k]``.
+
+    (The profiles' largest values per line and slice, slices contiguous).
+    """
     nz = col_max.shape[1]
     for i in prange(ray_row.shape[0]):
         a = col_max[ray_col[i]]

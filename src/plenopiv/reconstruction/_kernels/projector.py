@@ -1,10 +1,13 @@
 """numba kernels behind :mod:`plenopiv.reconstruction.projector` (private; arrays and scalars only).
 
 The weight matrix W (rows = pixels, columns = voxels) is held in CSR form as
-``indptr, indices, data``. The back projection Wᵀ·y scatters race-free into one accumulator
-per chunk of rows, or gathers from an optional transposed copy. The MART updates (in
-``_mart_kernels``) follow a *row schedule*: chunks of consecutive rows, coloured here by
-:func:`colour_chunks` so that the chunks of one colour share no voxel.
+``indptr, indices, data``, read through a *row view*: row k of the view is CSR row
+``row_index[k]`` scaled by ``row_scale[k]`` (an empty ``row_index`` means row k is CSR row k,
+an empty ``row_scale`` means scale 1), so that row-normalised and row-selected projectors
+share the one CSR. The back projection Wᵀ·y scatters race-free into one accumulator per chunk
+of rows, or gathers from an optional transposed copy. The MART updates (in
+:mod:`plenopiv.reconstruction._kernels.mart`) follow a *row schedule*: chunks of consecutive
+rows, coloured here by :func:`colour_chunks` so that the chunks of one colour share no voxel.
 Every kernel here has a plain NumPy / scipy.sparse twin in ``tests/test_projector.py``.
 """
 
@@ -14,22 +17,39 @@ import numba
 import numpy as np
 
 
+@numba.njit(inline="always")
+def csr_row(row_index, k):
+    """CSR row of view row ``k`` (``k`` itself for an empty ``row_index``)."""
+    if row_index.shape[0] > 0:
+        return np.int64(row_index[k])
+    return np.int64(k)
+
+
+@numba.njit(inline="always")
+def row_factor(row_scale, k):
+    """Scale of view row ``k`` (float32; 1 for an empty ``row_scale``)."""
+    if row_scale.shape[0] > 0:
+        return np.float32(row_scale[k])
+    return np.float32(1.0)
+
+
 @numba.njit(parallel=True, cache=True)
-def forward_csr(indptr, indices, data, volume, out):
-    """``out[i] = sum_p data[p] * volume[indices[p]]`` over row i (W·E), in float64."""
-    n_rows = indptr.shape[0] - 1
-    for i in numba.prange(n_rows):
+def forward_csr(indptr, indices, data, row_index, row_scale, volume, out):
+    """``out[k] = sum_p w_p * volume[indices[p]]`` over view row k (W·E), in float64."""
+    for k in numba.prange(out.shape[0]):
+        i = csr_row(row_index, k)
+        f = row_factor(row_scale, k)
         acc = 0.0
         for p in range(indptr[i], indptr[i + 1]):
-            acc += np.float64(data[p]) * volume[indices[p]]
-        out[i] = acc
+            acc += np.float64(data[p] * f) * volume[indices[p]]
+        out[k] = acc
 
 
 @numba.njit(parallel=True, cache=True)
-def back_scatter(indptr, indices, data, image, row_bounds, acc, out):
+def back_scatter(indptr, indices, data, row_index, row_scale, image, row_bounds, acc, out):
     """``out = Wᵀ·image`` by a race-free parallel scatter, no transposed copy.
 
-    Chunk c of rows (``row_bounds[c]:row_bounds[c + 1]``) scatters into its own float64
+    Chunk c of view rows (``row_bounds[c]:row_bounds[c + 1]``) scatters into its own float64
     accumulator ``acc[c]`` (length n_voxels); the accumulators are then summed voxel by voxel
     and rounded once into ``out`` (float32). Rows whose image value is zero are skipped.
     """
@@ -37,12 +57,14 @@ def back_scatter(indptr, indices, data, image, row_bounds, acc, out):
     for c in numba.prange(n_chunks):
         a = acc[c]
         a[:] = 0.0
-        for i in range(row_bounds[c], row_bounds[c + 1]):
-            v = np.float64(image[i])
+        for k in range(row_bounds[c], row_bounds[c + 1]):
+            v = np.float64(image[k])
             if v == 0.0:
                 continue
+            i = csr_row(row_index, k)
+            f = row_factor(row_scale, k)
             for p in range(indptr[i], indptr[i + 1]):
-                a[indices[p]] += data[p] * v
+                a[indices[p]] += np.float64(data[p] * f) * v
     for j in numba.prange(out.shape[0]):
         s = 0.0
         for c in range(n_chunks):
@@ -51,26 +73,30 @@ def back_scatter(indptr, indices, data, image, row_bounds, acc, out):
 
 
 @numba.njit(cache=True)
-def transpose_csr(indptr, indices, data, n_voxels):
-    """CSR of Wᵀ (the CSC of W) by a counting sort: ``(t_indptr, t_indices, t_data)``.
+def transpose_csr(indptr, indices, data, row_index, row_scale, n_rows, n_voxels):
+    """CSR of the view's Wᵀ (its CSC) by a counting sort: ``(t_indptr, t_indices, t_data)``.
 
-    ``t_indices`` are pixel indices (int32), ascending within each voxel's run.
+    ``t_indices`` are view row indices (int32), ascending within each voxel's run; ``n_rows``
+    is the number of view rows.
     """
-    n_rows = indptr.shape[0] - 1
-    nnz = indices.shape[0]
     t_indptr = np.zeros(n_voxels + 1, np.int64)
-    for p in range(nnz):
-        t_indptr[indices[p] + 1] += 1
+    for k in range(n_rows):
+        i = csr_row(row_index, k)
+        for p in range(indptr[i], indptr[i + 1]):
+            t_indptr[indices[p] + 1] += 1
     for j in range(n_voxels):
         t_indptr[j + 1] += t_indptr[j]
+    nnz = t_indptr[n_voxels]
     fill = t_indptr[:-1].copy()
     t_indices = np.empty(nnz, np.int32)
     t_data = np.empty(nnz, np.float32)
-    for i in range(n_rows):
+    for k in range(n_rows):
+        i = csr_row(row_index, k)
+        f = row_factor(row_scale, k)
         for p in range(indptr[i], indptr[i + 1]):
             q = fill[indices[p]]
-            t_indices[q] = i
-            t_data[q] = data[p]
+            t_indices[q] = k
+            t_data[q] = data[p] * f
             fill[indices[p]] = q + 1
     return t_indptr, t_indices, t_data
 
@@ -86,11 +112,11 @@ def back_gather(t_indptr, t_indices, t_data, image, out):
 
 
 @numba.njit(cache=True)
-def colour_chunks(indptr, indices, data, block_ptr, block_rows, chunk_rows, n_voxels, words,
-                  with_sums):
+def colour_chunks(indptr, indices, data, row_index, row_scale, block_ptr, block_rows,
+                  chunk_rows, n_voxels, words, with_sums):
     """First-fit colouring of chunks of rows: chunks that share a voxel differ in colour.
 
-    The rows of block b, ``block_rows[block_ptr[b]:block_ptr[b + 1]]``, are cut into chunks
+    The view rows of block b, ``block_rows[block_ptr[b]:block_ptr[b + 1]]``, are cut into chunks
     of ``chunk_rows`` consecutive rows (the last may be shorter), coloured in that order.
     Each voxel keeps a bit mask of the colours of the block's chunks that touch it
     (``words`` 64-bit words, so at most ``64 * words`` colours per block); a chunk takes the
@@ -105,7 +131,8 @@ def colour_chunks(indptr, indices, data, block_ptr, block_rows, chunk_rows, n_vo
         Colours used by each block; all -1 when ``64 * words`` were not enough (call again
         with more words).
     block_column_sums : float32 (nnz,), or (0,) unless ``with_sums``
-        For CSR entry p of a row in block B: ``sum_{i in B} w_{i, indices[p]}``.
+        For CSR entry p of a row in block B: ``sum_{i in B} w_{i, indices[p]}`` (scaled
+        weights; entries of CSR rows outside the view stay 0).
     """
     n_blocks = block_ptr.shape[0] - 1
     n_chunks = 0
@@ -127,13 +154,14 @@ def colour_chunks(indptr, indices, data, block_ptr, block_rows, chunk_rows, n_vo
             k1 = min(k0 + chunk_rows, r1)
             used[:] = 0
             for k in range(k0, k1):
-                i = block_rows[k]
+                i = csr_row(row_index, block_rows[k])
+                f = row_factor(row_scale, block_rows[k])
                 for p in range(indptr[i], indptr[i + 1]):
                     j = indices[p]
                     for w in range(words):
                         used[w] |= masks[j, w]
                     if with_sums:
-                        acc[j] += data[p]
+                        acc[j] += data[p] * f
             c = -1
             for w in range(words):
                 u = used[w]
@@ -153,16 +181,16 @@ def colour_chunks(indptr, indices, data, block_ptr, block_rows, chunk_rows, n_vo
             w = c // 64
             mask = one << np.uint64(c % 64)
             for k in range(k0, k1):
-                i = block_rows[k]
+                i = csr_row(row_index, block_rows[k])
                 for p in range(indptr[i], indptr[i + 1]):
                     masks[indices[p], w] |= mask
         for k in range(r0, r1):
-            i = block_rows[k]
+            i = csr_row(row_index, block_rows[k])
             for p in range(indptr[i], indptr[i + 1]):
                 if with_sums:
                     block_column_sums[p] = acc[indices[p]]
         for k in range(r0, r1):
-            i = block_rows[k]
+            i = csr_row(row_index, block_rows[k])
             for p in range(indptr[i], indptr[i + 1]):
                 j = indices[p]
                 masks[j, :] = 0

@@ -21,8 +21,10 @@ def _r2(y):
 
 @njit(cache=True)
 def box_sum_cdf(x, centre, alpha, beta):
-    """CDF at x of the sum of two independent uniforms of widths alpha, beta (any order)
-    centred (jointly) at ``centre``."""
+    """CDF at x of the sum of two independent uniforms of widths alpha, beta (any order).
+
+    The sum is centred at ``centre``.
+    """
     lo, hi = (alpha, beta) if alpha <= beta else (beta, alpha)
     if lo <= 1e-9 * hi:                     # one box is a point: a plain uniform
         v = (x - centre) / hi + 0.5
@@ -32,6 +34,18 @@ def box_sum_cdf(x, centre, alpha, beta):
     p3 = centre + 0.5 * (hi - lo)
     p4 = centre + 0.5 * (lo + hi)
     return (_r2(x - p1) - _r2(x - p2) - _r2(x - p3) + _r2(x - p4)) / (2.0 * lo * hi)
+
+
+def box_sum_cdf_numpy(x, centre, alpha, beta):
+    """Plain-NumPy twin of :func:`box_sum_cdf` (by numerical convolution); ``x`` may be an array."""
+    lo, hi = sorted((alpha, beta))
+    if lo <= 1e-9 * hi:
+        return np.clip((x - centre) / hi + 0.5, 0, 1)
+    # the density is a trapezoid; integrate it with a fine trapezoid rule
+    grid = np.linspace(centre - (lo + hi) / 2, centre + (lo + hi) / 2, 20001)
+    dens = np.clip(np.minimum(grid - grid[0], grid[-1] - grid) / lo, 0, 1) / hi
+    cum = np.concatenate([[0], np.cumsum((dens[1:] + dens[:-1]) / 2 * np.diff(grid))])
+    return np.interp(x, grid, cum, left=0.0, right=1.0)
 
 
 @njit(cache=True)

@@ -1,0 +1,194 @@
+"""Which projector a reconstruction uses, what it costs, and the on-disk weights cache.
+
+:func:`choose_projector` keeps the explicit weights (:mod:`plenopiv.reconstruction.weights`)
+while their estimated memory fits the budget and takes the matrix-free lattice projector
+(:mod:`plenopiv.reconstruction.lattice`) beyond it; :func:`cached_weights` loads explicit
+weights built before for the same geometry (:func:`weights_key`) or builds and saves them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.errors import ReconstructionError
+from plenopiv.lightfield import LightField, light_field
+from plenopiv.products.hdf5 import write_h5
+from plenopiv.reconstruction._kernels import weights as K
+from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
+from plenopiv.reconstruction.projector import SparseProjector
+from plenopiv.reconstruction.weights import (
+    WEIGHTS_VERSION,
+    Weights,
+    _kernel_args,
+    build_weights,
+    check_grid_in_view,
+)
+from plenopiv.volume import VolumeGrid
+
+__all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "cached_weights", "choose_projector",
+           "estimate_matrix_free_gb", "estimate_nnz", "memory_budget_gb", "weights_key"]
+
+
+def weights_key(calibration: Calibration, grid: VolumeGrid, *, f_number: float | None,
+                min_lit: float, min_weight: float) -> str:
+    """SHA-256 of everything the weights depend on."""
+    h = hashlib.sha256()
+    h.update(json.dumps({"v": WEIGHTS_VERSION, "camera": calibration.camera.to_dict(),
+                         "si": round(calibration.image_distance, 15), "grid": grid.key(),
+                         "f_number": f_number, "min_lit": min_lit, "min_weight": min_weight},
+                        sort_keys=True).encode())
+    for arr in (calibration.centre_px, calibration.focal_spot_px, calibration.grid_index):
+        h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
+    return h.hexdigest()
+
+
+#: Bytes per explicit non-zero in a reconstruction: W's CSR (8: int32 voxel index, float32
+#: weight), held once (its row-normalised and row-selected projectors are views of it), and
+#: 2 for the row views, schedules, images and volumes. The traced peak of a whole
+#: reconstruction (benchmarks/bench_weights.py --reconstruct, 23 million non-zeros, 50 per
+#: row) is 10.0 bytes per non-zero with SMART and 10.9 with row-action MART (22.3 and 24.9
+#: while scaled and selected copies of W were made); method "block" adds 4 for its block
+#: column sums.
+BYTES_PER_NONZERO = 10
+PROJECTORS = ("auto", "sparse", "lattice")
+
+
+def estimate_nnz(lf: LightField, grid: VolumeGrid, *, min_weight: float = 1e-7,
+                 sample: int = 101) -> int:
+    """Non-zeros of the explicit W, counted on every ``sample``-th ray and scaled up."""
+    check_grid_in_view(lf, grid)
+    counts = K.count_nnz(*_kernel_args(lf, grid, min_weight, sample))
+    return int(counts.sum() * lf.n_rays / max(len(counts), 1))
+
+
+def memory_budget_gb() -> float:
+    """Default memory for explicit weights: 40 % of this machine's physical memory (GB)."""
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        total = 8e9
+    return 0.4 * total / 1e9
+
+
+def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto",
+                     max_weights_gb: float | None = None, min_weight: float = 1e-7) -> str:
+    """``"sparse"`` or ``"lattice"`` for a reconstruction of ``grid`` from ``lf``.
+
+    ``"auto"`` keeps the explicit weights while their estimated memory
+    (:data:`BYTES_PER_NONZERO` × :func:`estimate_nnz`) fits in ``max_weights_gb`` (default
+    :func:`memory_budget_gb`), and takes the matrix-free lattice projector beyond that.
+
+    Both estimates are checked against the same budget before anything large is allocated.
+
+    Raises
+    ------
+    ReconstructionError
+        The explicit weights would not fit and the lattice is not axis-aligned (or
+        ``"sparse"`` was asked for), or the matrix-free reconstruction's estimate
+        (:func:`estimate_matrix_free_gb`) exceeds the budget.
+    """
+    if projector not in PROJECTORS:
+        raise ValueError(f"projector = {projector!r}: expected one of {PROJECTORS}")
+    budget = memory_budget_gb() if max_weights_gb is None else float(max_weights_gb)
+    if projector in ("auto", "sparse"):
+        need = BYTES_PER_NONZERO * estimate_nnz(lf, grid, min_weight=min_weight) / 1e9
+        if need <= budget:
+            return "sparse"
+        if projector == "sparse":
+            raise ReconstructionError(
+                f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
+                "allowed ([reconstruction] max_weights_gb): set projector = \"auto\" (the "
+                "matrix-free projector), use fewer or larger voxels, or raise max_weights_gb")
+        if separable_axes(lf) is None:
+            raise ReconstructionError(
+                f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
+                "allowed ([reconstruction] max_weights_gb), and this calibration's lattice is "
+                "not axis-aligned, which the matrix-free projector needs: reduce the volume "
+                "(fewer or larger voxels) or raise max_weights_gb")
+    need = estimate_matrix_free_gb(lf, grid)
+    if need > budget:
+        raise ReconstructionError(
+            f"the matrix-free reconstruction of a {grid.shape[0]} × {grid.shape[1]} × "
+            f"{grid.shape[2]}-voxel volume needs ~{need:.3g} GB (projection buffers of depth "
+            "slices × voxel rows × sensor columns, volumes, rays), more than the "
+            f"{budget:.3g} GB allowed ([reconstruction] max_weights_gb): use fewer or larger "
+            "voxels, or raise max_weights_gb")
+    return "lattice"
+
+
+def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
+    """Peak memory of a matrix-free SMART reconstruction of ``grid`` from ``lf``, GB.
+
+    Two projection buffers (depth slices × voxel rows × used sensor columns, float32), about
+    twelve float32 volumes (estimate, update, column sums, first guess, masks), the rays and
+    their per-call copies (~64 bytes each), and one depth slab of the sub-voxel line-of-sight
+    mask (:mod:`plenopiv.reconstruction.sightline`: its buffer and six refined float32 arrays).
+    """
+    from plenopiv.reconstruction.sightline import SLAB_VOXELS, subcell_factors
+
+    nz, ny, nx = grid.shape
+    cols = lf.pixel % lf.shape[1]
+    n_cols = int(cols.max() - cols.min() + 1) if len(cols) else 0
+    kx, ky = subcell_factors(grid, lf.footprint)
+    fine = min(SLAB_VOXELS, grid.n_voxels * kx * ky)
+    slab_nz = max(1, fine // max(ny * ky * nx * kx, 1))
+    total = (2 * 4 * nz * ny * n_cols + 12 * 4 * grid.n_voxels + 64 * lf.n_rays
+             + 4 * slab_nz * ny * ky * n_cols + 6 * 4 * fine)
+    return total / 1e9
+
+
+def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str | Path | None,
+                   f_number: float | None = None, min_lit: float = 0.5,
+                   min_weight: float = 1e-7, projector: str = "auto",
+                   max_weights_gb: float | None = None, load: bool = True,
+                   lf: LightField | None = None) -> tuple[Weights | None, bool]:
+    """Load the weights from ``cache_dir``, or build (and save) them: ``(weights, from_cache)``.
+
+    Loaded when built before for the same geometry.
+
+    The file name carries the key, and the key stored inside is checked again, so weights of
+    another camera, calibration or grid are never reused; a corrupt cache file is rebuilt.
+    ``projector`` (see :func:`choose_projector`) may pick the matrix-free lattice projector
+    instead, which is built in seconds and never cached. ``load=False`` only fills the
+    cache: a cached file is checked, not read; the lattice projector is not built; None
+    comes back in place of the weights.
+    ``lf``, the light field of ``calibration`` with ``f_number`` and ``min_lit``, saves
+    computing it again where the caller has it.
+    """
+    key = weights_key(calibration, grid, f_number=f_number, min_lit=min_lit,
+                      min_weight=min_weight)
+    path = None if cache_dir is None else Path(cache_dir) / f"weights-{key[:24]}.h5"
+    if projector != "lattice" and path is not None and path.exists():
+        try:
+            with h5py.File(path, "r") as fh:
+                if fh.attrs.get("key") == key and not load:
+                    return None, True
+                if fh.attrs.get("key") == key:
+                    proj = SparseProjector(fh["/indptr"][()], fh["/indices"][()],
+                                           fh["/data"][()], n_voxels=grid.n_voxels, check=False)
+                    return Weights(proj, fh["/pixel"][()], grid, key), True
+        except (OSError, KeyError, ValueError):
+            pass   # unreadable or from another geometry: rebuild below
+    if lf is None:
+        lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
+    kind = choose_projector(lf, grid, projector=projector, max_weights_gb=max_weights_gb,
+                            min_weight=min_weight)
+    if kind == "lattice":
+        check_grid_in_view(lf, grid)
+        if not load:
+            return None, False
+        return Weights(LatticeProjector.from_light_field(lf, grid), lf.pixel, grid, key), False
+    w = build_weights(lf, grid, min_weight=min_weight, key=key)
+    if path is not None:
+        p = w.projector
+        write_h5(path, {"/indptr": p.indptr, "/indices": p.indices, "/data": p.data,
+                        "/pixel": w.pixel}, attrs={"key": key, "grid": grid.key()},
+                 kind="weights cache", compress=False)
+    return (w if load else None), False

@@ -1,0 +1,147 @@
+"""One image -> one volume on the weights' grid: row scaling, bright rows, line of sight, MART.
+
+The physics between a recorded image and :func:`plenopiv.reconstruction.mart.reconstruct`:
+
+1. the rows of W are scaled to a maximum weight of 1 (:attr:`Weights.normalised`, a view of
+   W), and the pixel values with them;
+2. rows that barely touch the volume (their beam mostly passes beside it) and masked pixels
+   are left out; pixels above the dark threshold are the bright rows;
+3. the first guess is the multiplicative line of sight judged on sub-voxel cells
+   (:mod:`plenopiv.reconstruction.sightline`);
+4. SMART keeps the dark pixels that see the first guess's support as ceilings; row-action
+   and block MART take the bright rows alone.
+
+The projectors handed to MART are row views of the one W (no copy of its non-zeros).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from plenopiv.errors import ReconstructionError
+from plenopiv.reconstruction.mart import reconstruct
+from plenopiv.reconstruction.sightline import subcell_line_of_sight
+
+__all__ = ["solve_volume", "touching_rows", "line_of_sight_guess", "perspective_blocks"]
+
+#: A row touches the volume when its largest weight is at least this fraction of the 95th
+#: percentile of the rows' largest weights.
+TOUCHING_FRACTION = 0.25
+
+
+def touching_rows(weights) -> np.ndarray:
+    """Rows whose beam crosses the volume rather than passing mostly beside it (bool).
+
+    Such rows would claim the light of particles outside the volume.
+    """
+    row_scale = weights.normalised[1]
+    nonempty = weights.row_max > 0
+    return nonempty & (row_scale >= TOUCHING_FRACTION
+                       * float(np.percentile(row_scale[nonempty], 95)))
+
+
+def _unmasked_rows(weights, image: np.ndarray, image_mask) -> tuple[np.ndarray, float]:
+    """Rows of unmasked pixels (bool) and the brightest unmasked pixel value (counts)."""
+    if image_mask is None:
+        return np.ones(len(weights.pixel), bool), float(image.max())
+    m = np.asarray(image_mask, dtype=bool)
+    if m.shape != image.shape:
+        raise ReconstructionError(f"image mask has shape {m.shape}: expected the image's "
+                                  f"{image.shape} (rows, cols)")
+    if not (~m).any():
+        raise ReconstructionError("the image mask masks every pixel")
+    return ~m.reshape(-1)[weights.pixel], float(image[~m].max())
+
+
+def solve_volume(weights, image: np.ndarray, settings, *, light_field_of: Callable,
+                 footprint: float, image_mask=None,
+                 callback: Callable | None = None) -> np.ndarray:
+    """The MART volume of one sensor image on ``weights.grid`` (float32, ``[z, y, x]``).
+
+    Parameters
+    ----------
+    weights : Weights
+        W of the reconstruction (explicit or matrix-free; see
+        :mod:`plenopiv.reconstruction.weights`).
+    image : (rows, cols) ndarray
+        The checked sensor image, counts.
+    settings : ReconstructionSettings
+        ``method``, ``iterations``, relaxation, ``pixel_threshold`` (fraction of the brightest
+        unmasked pixel), ``dark_tolerance``.
+    light_field_of : callable
+        Returns the light field ``weights`` was built from (for the sub-cell line of sight
+        and the perspective blocks; called only when needed).
+    footprint : float
+        Lenslet footprint on the focal plane, metres.
+    image_mask : (rows, cols) bool, optional
+        Pixels to ignore (True): their rows count neither as light nor as dark.
+    callback : callable, optional
+        ``callback(iteration, volume)`` after each MART sweep.
+    """
+    proj, row_scale = weights.normalised
+    raw = weights.image_vector(image)
+    usable, peak_value = _unmasked_rows(weights, image, image_mask)
+    threshold = settings.pixel_threshold * peak_value
+    touching = touching_rows(weights) & usable
+    bright = (raw > threshold) & touching
+    if not bright.any():
+        raise ReconstructionError(f"no pixel seen by the volume is above the threshold "
+                                  f"{threshold:g} ([reconstruction] pixel_threshold = "
+                                  f"{settings.pixel_threshold}): is the volume in view?")
+    floor = max(threshold, 1e-6 * float(image.max()))
+    first = line_of_sight_guess(weights, raw, floor, touching, bright, light_field_of,
+                                tolerance=settings.dark_tolerance, footprint=footprint)
+    common = dict(iterations=settings.iterations, relaxation=settings.relaxation_used,
+                  pixel_threshold=0.0, initial=first, shape=weights.grid.shape,
+                  callback=callback)
+    if settings.method == "smart":
+        # the dark pixels take part as ceilings: their light is at most the threshold, so
+        # they lower the voxels that would send more into them and never raise any; only
+        # those that see the first guess's support can change anything
+        reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
+        rows = bright | (touching & reach)
+        values = np.maximum(raw[rows], np.float32(floor)) / row_scale[rows]
+        return reconstruct(values, proj.select_rows(rows), method="smart",
+                           ceiling=~bright[rows], **common)
+    blocks = None
+    if settings.method == "block":
+        blocks = perspective_blocks(weights, light_field_of())[bright]
+    return reconstruct(raw[bright] / row_scale[bright], proj.select_rows(bright),
+                       method=settings.method, blocks=blocks, **common)
+
+
+def line_of_sight_guess(weights, raw, floor: float, touching, bright, light_field_of, *,
+                        tolerance: float, footprint: float) -> np.ndarray:
+    """Return the first guess of MART: MLOS judged on sub-voxel cells.
+
+    A voxel is empty unless some lit pixel sees it and one of its sub-cells has at most
+    ``tolerance`` of its weight on dark pixels (the soft line-of-sight mask,
+    :mod:`plenopiv.reconstruction.sightline`); otherwise it takes the largest MLOS value of
+    its sub-cells, the weighted geometric mean of the normalised intensities I_i/R_i of the
+    rows that see the cell, dark rows entering with the noise floor ``floor`` (counts).
+    Judged per voxel instead, a grid whose voxel edges cross the lenslets would empty the
+    voxels of in-focus particles.
+    """
+    proj, row_scale = weights.normalised
+    row_sums = np.asarray(proj.row_sums())
+    used = touching & (row_sums > 0)
+    log_values = np.zeros(len(raw), np.float32)
+    log_values[used] = np.log(np.maximum(raw[used], floor) / row_scale[used] / row_sums[used])
+    keep, guess, _ = subcell_line_of_sight(weights, light_field_of, touching & ~bright,
+                                           log_values, used, tolerance=tolerance,
+                                           footprint=footprint)
+    seen_lit = np.asarray(proj.back(bright.astype(np.float32))) > 0
+    return np.where(keep & seen_lit, guess, np.float32(0.0))
+
+
+def perspective_blocks(weights, lf) -> np.ndarray:
+    """Block label of each weight row: its perspective view (aperture cell) in ``lf``.
+
+    A block holds one pixel per lenslet, and its pixels share few voxels.
+    """
+    idx = np.searchsorted(lf.pixel, weights.pixel)       # lf.pixel is sorted
+    cell = np.rint(lf.u[idx] / lf.cell)
+    _, labels = np.unique(cell, axis=0, return_inverse=True)
+    return labels.ravel().astype(np.int64)
