@@ -291,7 +291,8 @@ def vectors_per_pass(shape, windows, overlap: float, passes: int):
 
 def _ray_pattern(camera: CameraModel, f_number, min_lit):
     """Aperture positions ``u`` (R, 2) and ``lit`` (R,) of the rays of the lenslet on the
-    axis, with the light field's cell, footprint, aperture radius and S_o."""
+    axis, with the light field's cell, footprint, aperture radius and S_o.
+    """
     from plenopiv.calibration.model import Calibration
     from plenopiv.lightfield import light_field
 
@@ -306,7 +307,8 @@ def _ray_pattern(camera: CameraModel, f_number, min_lit):
 
 def _axis_counts(u, pos, t, al, be, origin, vox, n):
     """Voxels (summed over lenslet positions ``pos``) that each pattern ray's beam overlaps
-    along one axis on every slice: (R, nz)."""
+    along one axis on every slice: (R, nz).
+    """
     half = 0.5 * (al + be)
     out = np.zeros((len(u), len(t)), np.float64)
     for k in range(len(t)):
@@ -363,7 +365,8 @@ def _best(fn, budget_s: float, min_reps: int = 2, max_reps: int = 10) -> float:
 
 def _slope(x1: float, t1: float, x2: float, t2: float) -> tuple[float, float]:
     """``(rate, fixed)`` with t = fixed + rate x through two timings; the rate is kept at
-    least a quarter of t2/x2 (timing noise on a busy machine)."""
+    least a quarter of t2/x2 (timing noise on a busy machine).
+    """
     rate = (t2 - t1) / (x2 - x1) if x2 > x1 else t2 / x2
     rate = max(rate, 0.25 * t2 / x2)
     return rate, max(t2 - rate * x2, 0.0)
@@ -477,7 +480,8 @@ def _window_voxels(shape, windows, overlap, passes) -> float:
 def _measure_piv(cfg: PIVConfig, grid: VolumeGrid, budget_s: float) -> tuple[float, float]:
     """``(seconds per window voxel, seconds per call)`` of this plan's PIV: correlations of
     two random particle volumes of two and three first windows a side (the grid where
-    smaller), after a small run that compiles the kernels."""
+    smaller), after a small run that compiles the kernels.
+    """
     from plenopiv.pipeline import piv_settings
     from plenopiv.piv import correlate_volumes
 

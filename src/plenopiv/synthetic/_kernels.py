@@ -69,8 +69,9 @@ def _round(x):
 
 @njit(cache=True, error_model="numpy", fastmath=True)
 def radial_solve(rho, air, thick, n):
-    """tan θ of a ray that crosses a lateral distance ``rho`` over an air path ``air`` followed
-    by a path ``thick`` in a medium of relative index ``n`` (Snell: sin θ = n sin θ_medium)."""
+    """Tan θ of a ray that crosses a lateral distance ``rho`` over an air path ``air`` followed
+    by a path ``thick`` in a medium of relative index ``n`` (Snell: sin θ = n sin θ_medium).
+    """
     if thick == 0.0 or rho == 0.0:
         return rho / air
     m = rho / (air + thick / n)
@@ -190,7 +191,8 @@ def trace_image_ray(x0, y0, z0, mx, my, g):
 def splat(img, sx, sy, w, g):
     """Add weight ``w`` at sensor position (sx, sy) metres: bilinearly (the area of a pixel
     box around the point; ``g[G_SPLAT] = 0``) or wholly into the pixel that holds the point
-    (``g[G_SPLAT] = 1``), at pixel coordinates shifted by ``(g[G_SHIFTR], g[G_SHIFTC])``."""
+    (``g[G_SPLAT] = 1``), at pixel coordinates shifted by ``(g[G_SHIFTR], g[G_SHIFTC])``.
+    """
     pix = g[G_PIX]
     nr, nc = img.shape
     col = sx / pix + (g[G_NCOLS] - 1) * 0.5 + g[G_SHIFTC]
@@ -257,7 +259,8 @@ def concentric_disc(a, b):
 @njit(cache=True, error_model="numpy", fastmath=True)
 def object_ray_to_lens(px, py, pz, lx, ly, g):
     """Air slopes (mx, my) at the lens plane of the ray from the source (px, py, pz), pz < 0,
-    to the lens-plane point (lx, ly, 0), refracted exactly at the external interface."""
+    to the lens-plane point (lx, ly, 0), refracted exactly at the external interface.
+    """
     rx, ry = lx - px, ly - py
     if g[G_HASEXT] > 0.5 and pz < g[G_ZINT]:
         rho = math.sqrt(rx * rx + ry * ry)

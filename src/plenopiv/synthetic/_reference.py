@@ -28,7 +28,8 @@ def radial_solve(rho, air, thick, n):
 
 def lenslet_at(x, y, g):
     """NumPy twin of :func:`._kernels.lenslet_at`: nearest centre of a padded lattice, by
-    brute force; a point whose nearest centre is a virtual (padding) lenslet hits none."""
+    brute force; a point whose nearest centre is a virtual (padding) lenslet hits none.
+    """
     x, y = np.atleast_1d(x).astype(float), np.atleast_1d(y).astype(float)
     rows, cols = int(g[K.G_ROWS]), int(g[K.G_COLS])
     p, rs = g[K.G_PITCH], g[K.G_ROWSP]

@@ -139,7 +139,8 @@ def run(out: str | Path, *, work: str | Path | None = None, cases=CASES, progres
 
 def figure(rows: list[dict], path: Path) -> Path:
     """Coverage per case, component and stage against the band; and the pooled distribution
-    of error / σ per component."""
+    of error / σ per component.
+    """
     from plenopiv.plots import _figure, _save
 
     plt, fig = _figure(figsize=(14, 9))

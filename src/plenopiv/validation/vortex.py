@@ -153,7 +153,8 @@ def case_flow(case: VortexCase, grid: VolumeGrid):
 
 def aligned_grid(camera: CameraModel, case: VortexCase) -> VolumeGrid:
     """A grid whose lateral voxels are the lenslet footprints on the focal plane (centred on
-    them), in effective coordinates."""
+    them), in effective coordinates.
+    """
     b = footprint(camera)
     hx, hy = field_of_view(camera, 0.0)
     nx = int(case.lateral_fill * hx / b)

@@ -143,7 +143,8 @@ def _repiv(label: str, case: VortexCase, run_dir: str, *, exact: bool = False,
            sharpen: str | None = None, **piv) -> dict:
     """PIV again on the volumes a case wrote (or on its exact particle volumes, or on the
     volumes sharpened by ``SHARPEN[sharpen]``), with other PIV settings; scored like a
-    case."""
+    case.
+    """
     from plenopiv.piv import PIVSettings, correlate_volumes
 
     t0 = time.perf_counter()
@@ -182,7 +183,8 @@ def _repiv(label: str, case: VortexCase, run_dir: str, *, exact: bool = False,
 
 def causes(work: Path, *, seed: int = 1, progress=print) -> list[dict]:
     """Each candidate cause of a flattened w on its own (CI camera, Oseen and a 1-voxel
-    depth shift, 0.3 particles per lenslet, footprint voxels, exact calibration)."""
+    depth shift, 0.3 particles per lenslet, footprint voxels, exact calibration).
+    """
     rows = []
     base = dict(particles_per_lenslet=0.3, blur_px=BLUR_PX, calibrate=False, seed=seed)
     b = footprint(case_camera(VortexCase()))
@@ -239,7 +241,8 @@ def causes(work: Path, *, seed: int = 1, progress=print) -> list[dict]:
 
 def flows(work: Path, figures: Path | None, *, seed: int = 1, progress=print) -> list[dict]:
     """Oseen and Hill on the 61 x 91 patch: densities x voxels, previous defaults, a volume
-    beyond the focal plane, the issue's rendering."""
+    beyond the focal plane, the issue's rendering.
+    """
     rows = []
     base = dict(blur_px=BLUR_PX, seed=seed, **PATCH)
     for flow in ("oseen", "hill"):
@@ -272,7 +275,8 @@ def flows(work: Path, figures: Path | None, *, seed: int = 1, progress=print) ->
 
 def depth_shifts(work: Path, *, seed: int = 1, shifts=DEPTH_SHIFTS, progress=print) -> list:
     """Uniform shifts along z (depth voxels), CI camera, 0.3 ppl, footprint and half-footprint
-    voxels."""
+    voxels.
+    """
     rows = []
     b = footprint(case_camera(VortexCase()))
     for k in (1, 2):
