@@ -22,7 +22,15 @@ from plenopiv.validation.depth_study import (
     focus_crossing_depth,
     linear_fit,
 )
-from plenopiv.validation.report import fmt, pyplot, savefig
+from plenopiv.validation.report import (
+    fmt,
+    pyplot,
+    savefig,
+    section,
+    table,
+    table_header,
+    table_row,
+)
 
 #: Colour and marker of each case in the figures.
 STYLE = {"none": ("tab:blue", "o"), "external": ("tab:red", "s"),
@@ -249,6 +257,50 @@ def _summary(results: dict) -> list[str]:
     return out + [""]
 
 
+TABLE_5_1_COLUMNS = ("case", "correction", "fit range", "slope", "intercept (mm)", "R²",
+                     "rms residual (mm)", "thesis slope", "thesis intercept (mm)", "thesis R²")
+TABLE_5_2_COLUMNS = ("case", "split at (mm)", "behind: slope", "intercept (mm)", "R²",
+                     "in front: slope", "intercept (mm)", "R²", "jump at split (mm)",
+                     "expected jump, paraxial (mm)", "step in residual (mm)")
+PER_DEPTH_COLUMNS = ("Z (mm)", "effective (mm)", "expected (mm)", "error (mm)", "particles",
+                     "2nd/1st", "lateral (vox)", "dark fraction")
+
+
+def _table_5_1_cells(r: dict) -> list[str]:
+    """Cells of one Table 5.1 row: our fit and the thesis's."""
+    t = r["thesis"] or {}
+    return [r["label"], r["correction"], r["fit_range"], fmt(r["slope"], ".4f"),
+            fmt(r["intercept_mm"], ".4f"), fmt(r["r2"], ".5f"), fmt(r["rms_residual_mm"], ".3f"),
+            fmt(t.get("slope"), ".4f"), fmt(t.get("intercept_mm"), ".4f"),
+            fmt(t.get("r2"), ".4f")]
+
+
+def _table_5_2_cells(r: dict) -> list[str]:
+    """Cells of one Table 5.2 row: the fits either side of the split and the jump."""
+    b, f = r["behind"], r["in_front"]
+    return [r["label"], f"{r['split_mm']:.2f} ({r['split']})", fmt(b["slope"], ".4f"),
+            fmt(b["intercept_mm"], ".4f"), fmt(b["r2"], ".5f"), fmt(f["slope"], ".4f"),
+            fmt(f["intercept_mm"], ".4f"), fmt(f["r2"], ".5f"), fmt(r["jump_mm"], "+.3f"),
+            fmt(r["expected_jump_mm"], "+.3f"), fmt(r["residual_step_mm"], "+.3f")]
+
+
+def _per_depth_lines(c: dict, m: dict) -> list[str]:
+    """One case's section of per-depth measurements: grid, table, errors."""
+    lines = [f"### {c['label']}", "", f"{c['note']}" if c["note"] else "",
+             f"Grid z = {m['grid']['z_mm'][0]:.3f} … {m['grid']['z_mm'][1]:.3f} mm, shape "
+             f"{m['grid']['shape']}; {m['seconds']:.0f} s.", "", *table_header(PER_DEPTH_COLUMNS)]
+    for i, z in enumerate(m["depth_m"]):
+        e, p = m["effective_m"][i], m["expected_effective_m"][i]
+        lines.append(table_row([f"{z * 1e3:+.0f}", fmt(e * 1e3, "+.3f"), f"{p * 1e3:+.3f}",
+                                fmt((e - p) * 1e3, "+.3f"), m["n_particles"][i],
+                                f"{m['second_intensity'][i]:.2f}",
+                                fmt(m["lateral_vox"][i], ".2f"),
+                                fmt(m["dark_fraction"][i], ".3f")]))
+    for err in m["errors"]:
+        lines.append(f"\n- {err}")
+    return lines + [""]
+
+
 def markdown(results: dict) -> str:
     """The study's Markdown report: summary, Tables 5.1 and 5.2, per-depth rows, figures."""
     geo = results["geometry"]
@@ -274,17 +326,8 @@ def markdown(results: dict) -> str:
         "External interface: "
         f"n1 = 1.33, l1 = 40 mm, l2 = {geo['l2_mm']:.2f} mm. Plate: t = 6.3 mm, n = 1.46, "
         f"l3 = {geo['l3_mm']:.2f} mm.", "", *_summary(results),
-        "## Table 5.1: reconstructed against true depth", "",
-        "| case | correction | fit range | slope | intercept (mm) | R² | rms residual (mm) | "
-        "thesis slope | thesis intercept (mm) | thesis R² |",
-        "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in results["table_5_1"]:
-        t = r["thesis"] or {}
-        lines.append(
-            f"| {r['label']} | {r['correction']} | {r['fit_range']} | {fmt(r['slope'], '.4f')} | "
-            f"{fmt(r['intercept_mm'], '.4f')} | {fmt(r['r2'], '.5f')} | "
-            f"{fmt(r['rms_residual_mm'], '.3f')} | {fmt(t.get('slope'), '.4f')} | "
-            f"{fmt(t.get('intercept_mm'), '.4f')} | {fmt(t.get('r2'), '.4f')} |")
+        *section("Table 5.1: reconstructed against true depth"),
+        *table(TABLE_5_1_COLUMNS, map(_table_5_1_cells, results["table_5_1"]))]
     lines += ["", "## Table 5.2: plate, 0-10 mm, uncorrected; fits either side of the focus "
               "crossing", "",
               "The image of depth Z converges at S_i(Z) = 1/(1/f - 1/(S_o,eff + Z)); it reaches "
@@ -297,22 +340,11 @@ def markdown(results: dict) -> str:
               f"{geo['si_eff_mm'] - 6.3:.2f} mm (a plate whose front face lies t, not t/n, before "
               "the effective lenslet plane) to within "
               f"{abs(geo['si_at_7mm_mm'] - geo['si_eff_mm'] + 6.3):.2f} mm.", "",
-              "| case | split at (mm) | behind: slope | intercept (mm) | R² | in front: slope | "
-              "intercept (mm) | R² | jump at split (mm) | expected jump, paraxial (mm) | "
-              "step in residual (mm) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in results["table_5_2"]:
-        b, f = r["behind"], r["in_front"]
-        lines.append(
-            f"| {r['label']} | {r['split_mm']:.2f} ({r['split']}) | {fmt(b['slope'], '.4f')} | "
-            f"{fmt(b['intercept_mm'], '.4f')} | {fmt(b['r2'], '.5f')} | "
-            f"{fmt(f['slope'], '.4f')} | {fmt(f['intercept_mm'], '.4f')} | "
-            f"{fmt(f['r2'], '.5f')} | {fmt(r['jump_mm'], '+.3f')} | "
-            f"{fmt(r['expected_jump_mm'], '+.3f')} | {fmt(r['residual_step_mm'], '+.3f')} |")
+              *table(TABLE_5_2_COLUMNS, map(_table_5_2_cells, results["table_5_2"]))]
     t = THESIS_TABLE_5_2
-    lines += [f"| thesis (ALFA) | ≈ 7 | {t['behind'][0]} | {t['behind'][1]} | {t['behind'][2]} | "
-              f"{t['in_front'][0]} | {t['in_front'][1]} | {t['in_front'][2]} | "
-              f"{(t['in_front'][0] - t['behind'][0]) * 7 + t['in_front'][1] - t['behind'][1]:+.3f}"
-              " | | |", ""]
+    jump = (t["in_front"][0] - t["behind"][0]) * 7 + t["in_front"][1] - t["behind"][1]
+    lines += [table_row(["thesis (ALFA)", "≈ 7", *t["behind"], *t["in_front"], f"{jump:+.3f}"])
+              + " | |", ""]
     lines += ["## Per-depth measurements", "",
               "Effective depth of the brightest particle, the paraxial expectation, the number of "
               "particles found (and the 2nd brightest's intensity relative to the 1st), the "
@@ -321,20 +353,6 @@ def markdown(results: dict) -> str:
               "(`plenopiv.reconstruction.sightline`; the mask "
               f"empties a voxel above `dark_tolerance` = {rec['dark_tolerance']:g}).", ""]
     for name, m in results["measured"].items():
-        c = results["cases"][name]
-        lines += [f"### {c['label']}", "", f"{c['note']}" if c["note"] else "",
-                  f"Grid z = {m['grid']['z_mm'][0]:.3f} … {m['grid']['z_mm'][1]:.3f} mm, shape "
-                  f"{m['grid']['shape']}; {m['seconds']:.0f} s.", "",
-                  "| Z (mm) | effective (mm) | expected (mm) | error (mm) | particles | 2nd/1st "
-                  "| lateral (vox) | dark fraction |", "|---|---|---|---|---|---|---|---|"]
-        for i, z in enumerate(m["depth_m"]):
-            e, p = m["effective_m"][i], m["expected_effective_m"][i]
-            lines.append(f"| {z * 1e3:+.0f} | {fmt(e * 1e3, '+.3f')} | {p * 1e3:+.3f} | "
-                         f"{fmt((e - p) * 1e3, '+.3f')} | {m['n_particles'][i]} | "
-                         f"{m['second_intensity'][i]:.2f} | {fmt(m['lateral_vox'][i], '.2f')} | "
-                         f"{fmt(m['dark_fraction'][i], '.3f')} |")
-        for err in m["errors"]:
-            lines.append(f"\n- {err}")
-        lines.append("")
+        lines += _per_depth_lines(results["cases"][name], m)
     lines += ["## Figures", ""] + [f"- `{Path(p).name}`" for p in results["figures"]]
     return "\n".join(lines) + "\n"

@@ -97,8 +97,3 @@ def table(columns: Sequence[str], rows: Iterable[Iterable[Any]]) -> list[str]:
 def section(title: str, level: int = 2) -> list[str]:
     """A Markdown heading followed by a blank line."""
     return ["#" * level + " " + title, ""]
-
-
-def bullets(items: Iterable[str]) -> list[str]:
-    """Markdown list items, one per line."""
-    return [f"- {item}" for item in items]
