@@ -18,7 +18,6 @@ import numpy as np
 
 from plenopiv.camera import load_camera
 from plenopiv.synthetic import _kernels as K
-from plenopiv.synthetic import _reference as R
 from plenopiv.synthetic.images import focal_point_image, particle_image
 from plenopiv.synthetic.tracer import geometry_vector
 
@@ -59,7 +58,7 @@ def main(argv=None):
     K.trace_image_rays(*(a[:10] for a in rays), g)                   # compile / load cache
     _, t_nb = timed(K.trace_image_rays, *rays, g)
     small = tuple(a[:1000] for a in rays)      # the brute-force twin needs N × lenslets memory
-    _, t_np = timed(R.trace_image_rays, *small, g)
+    _, t_np = timed(K.trace_image_rays_numpy, *small, g)
     res["trace_mrays_per_s"] = 2e6 / t_nb / 1e6
     res["trace_numpy_mrays_per_s"] = 1e3 / t_np / 1e6
     res["trace_speedup_vs_numpy"] = res["trace_mrays_per_s"] / res["trace_numpy_mrays_per_s"]

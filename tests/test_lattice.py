@@ -18,8 +18,7 @@ import pytest
 from plenopiv.calibration.model import Calibration
 from plenopiv.config import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
-from plenopiv.lightfield import _kernels as lk
-from plenopiv.lightfield import _lit_fraction, light_field
+from plenopiv.lightfield import light_field
 from plenopiv.pipeline import reconstruct_volume
 from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
 from plenopiv.reconstruction.mart import reconstruction_quality
@@ -87,13 +86,6 @@ def test_adjoint_and_row_views(pair, rng):
     f = rng.uniform(0.5, 2.0, lf.n_rays)
     np.testing.assert_allclose(lattice.scale_rows(f).forward(e), lattice.forward(e) * f,
                                rtol=1e-5)
-
-
-def test_lit_fraction_kernel_matches_numpy(rng):
-    ux, uy = rng.uniform(-1, 1, (2, 5000))
-    for got, want in zip(lk.lit_fraction(ux, uy, 0.1, 0.8, 8), _lit_fraction(ux, uy, 0.1, 0.8),
-                         strict=True):
-        np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
 
 
 def test_rotated_lattice_is_refused(small_camera):

@@ -8,6 +8,7 @@ import pytest
 from plenopiv.calibration.model import Calibration
 from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import ConfigError, ReconstructionError
+from plenopiv.lightfield import _kernels as LK
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction._kernels import weights as WK
 from plenopiv.reconstruction.select import cached_weights
@@ -24,6 +25,13 @@ from plenopiv.volume import VolumeGrid
 @pytest.fixture(scope="module")
 def lf(small_camera):
     return light_field(Calibration.from_camera(small_camera))
+
+
+def test_lit_fraction_kernel_matches_numpy(rng):
+    ux, uy = rng.uniform(-1, 1, (2, 5000))
+    for got, want in zip(LK.lit_fraction(ux, uy, 0.1, 0.8, 8),
+                         LK.lit_fraction_numpy(ux, uy, 0.1, 0.8, 8), strict=True):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
 
 
 def grid_around_axis(lf, fraction, half_lenslets=6.5, depth=6.25e-3, dz=0.25e-3):

@@ -290,8 +290,10 @@ def vectors_per_pass(shape, windows, overlap: float, passes: int):
 
 
 def _ray_pattern(camera: CameraModel, f_number, min_lit):
-    """Aperture positions ``u`` (R, 2) and ``lit`` (R,) of the rays of the lenslet on the
-    axis, with the light field's cell, footprint, aperture radius and S_o."""
+    """Aperture positions ``u`` (R, 2) and ``lit`` (R,) of the rays of the lenslet on the axis.
+
+    Returned with the light field's cell, footprint, aperture radius and S_o.
+    """
     from plenopiv.calibration.model import Calibration
     from plenopiv.lightfield import light_field
 
@@ -305,8 +307,10 @@ def _ray_pattern(camera: CameraModel, f_number, min_lit):
 
 
 def _axis_counts(u, pos, t, al, be, origin, vox, n):
-    """Voxels (summed over lenslet positions ``pos``) that each pattern ray's beam overlaps
-    along one axis on every slice: (R, nz)."""
+    """Voxels that each pattern ray's beam overlaps along one axis on every slice: (R, nz).
+
+    Summed over the lenslet positions ``pos``.
+    """
     half = 0.5 * (al + be)
     out = np.zeros((len(u), len(t)), np.float64)
     for k in range(len(t)):
@@ -319,8 +323,9 @@ def _axis_counts(u, pos, t, al, be, origin, vox, n):
 
 def estimate_size(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
                   min_lit: float = 0.5) -> tuple[int, int]:
-    """``(n_rays, nnz)``: rays of the camera and non-zero weights of the explicit W for
-    ``grid``, from the ray pattern of one micro-image repeated at every lenslet.
+    """``(n_rays, nnz)``: rays of the camera and non-zero weights of the explicit W for ``grid``.
+
+    From the ray pattern of one micro-image repeated at every lenslet.
 
     Separable per axis: a square lattice's lenslets are a product of columns and rows; a
     hexagonal one is two such products (even and odd rows).
@@ -362,8 +367,10 @@ def _best(fn, budget_s: float, min_reps: int = 2, max_reps: int = 10) -> float:
 
 
 def _slope(x1: float, t1: float, x2: float, t2: float) -> tuple[float, float]:
-    """``(rate, fixed)`` with t = fixed + rate x through two timings; the rate is kept at
-    least a quarter of t2/x2 (timing noise on a busy machine)."""
+    """``(rate, fixed)`` with t = fixed + rate x through two timings.
+
+    The rate is kept at least a quarter of t2/x2 (timing noise on a busy machine).
+    """
     rate = (t2 - t1) / (x2 - x1) if x2 > x1 else t2 / x2
     rate = max(rate, 0.25 * t2 / x2)
     return rate, max(t2 - rate * x2, 0.0)
@@ -376,10 +383,10 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
 
     Each is timed at two sample sizes (the shortest of a few calls), which separates the rate
     per unit of work from the fixed cost per call: the weights of a few hundred lenslets'
-    rays built on ``grid`` (the kernels of :mod:`plenopiv.reconstruction.weights`) and projected forward and
-    back; the lattice projector on two patches of the camera, on the grid's slices; the PIV
-    of two random particle volumes of two and three first windows a side. The first call on
-    a machine also compiles the kernels (cached on disk), before any timing.
+    rays built on ``grid`` (the kernels of :mod:`plenopiv.reconstruction.weights`) and projected
+    forward and back; the lattice projector on two patches of the camera, on the grid's
+    slices; the PIV of two random particle volumes of two and three first windows a side. The
+    first call on a machine also compiles the kernels (cached on disk), before any timing.
     """
     import numba
 
@@ -475,9 +482,11 @@ def _window_voxels(shape, windows, overlap, passes) -> float:
 
 
 def _measure_piv(cfg: PIVConfig, grid: VolumeGrid, budget_s: float) -> tuple[float, float]:
-    """``(seconds per window voxel, seconds per call)`` of this plan's PIV: correlations of
-    two random particle volumes of two and three first windows a side (the grid where
-    smaller), after a small run that compiles the kernels."""
+    """``(seconds per window voxel, seconds per call)`` of this plan's PIV.
+
+    Correlations of two random particle volumes of two and three first windows a side (the
+    grid where smaller), after a small run that compiles the kernels.
+    """
     from plenopiv.pipeline import piv_settings
     from plenopiv.piv import correlate_volumes
 
@@ -612,16 +621,9 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
                 available_memory=total_mem, warnings=tuple(warnings), advice=tuple(advice))
 
 
-def _advise(cam: Camera, grid: VolumeGrid, windows, vectors, overlap, rec_grid, rec_win,
-            memory, total_mem, projector, camera) -> tuple[list[str], list[str]]:
-    """Warnings (the run would fail or mislead) and concrete advice (what to change)."""
+def _window_warnings(grid: VolumeGrid, windows, vectors) -> list[str]:
+    """Warnings when a pass's windows exceed the volume or the last pass gives < 3 vectors."""
     warnings: list[str] = []
-    advice: list[str] = []
-    b = grid.bounds * 1e3
-    fp, cell = cam.footprint * 1e3, cam.depth_cell * 1e3
-    vx, vy, vz = (v * 1e3 for v in grid.voxel)
-
-    # windows against the box
     for k in range(len(vectors)):
         w = windows[min(k, len(windows) - 1)]
         short = [(ax, wk, nk) for ax, wk, nk in zip("zyx", w, grid.shape, strict=True) if wk > nk]
@@ -645,8 +647,12 @@ def _advise(cam: Camera, grid: VolumeGrid, windows, vectors, overlap, rec_grid, 
                             f"(z, y, x): fewer than 3 along {', '.join(thin)}, so the median "
                             "test has few neighbours there; enlarge the box or shrink the "
                             "windows along it")
+    return warnings
 
-    # the box against the field of view
+
+def _field_of_view_warnings(cam: Camera, grid: VolumeGrid) -> list[str]:
+    """A warning when the box reaches laterally beyond the field of view at the focal plane."""
+    b = grid.bounds * 1e3
     fx, fy = (v * 1e3 for v in cam.field_of_view)
     out = []
     if b[0, 0] < -fx * 1.001 or b[0, 1] > fx * 1.001:
@@ -656,10 +662,16 @@ def _advise(cam: Camera, grid: VolumeGrid, windows, vectors, overlap, rec_grid, 
         out.append(f"y_mm = [{_mm(b[1, 0])}, {_mm(b[1, 1])}] reaches beyond "
                    f"±{fy:.3g} mm")
     if out:
-        warnings.append(f"the box leaves the field of view at the focal plane: {'; '.join(out)}"
-                        ": voxels outside are seen by few pixels and hold noise")
+        return [f"the box leaves the field of view at the focal plane: {'; '.join(out)}"
+                ": voxels outside are seen by few pixels and hold noise"]
+    return []
 
-    # voxels
+
+def _voxel_advice(cam: Camera, grid: VolumeGrid, rec_grid: VolumeGrid) -> list[str]:
+    """Advice when the voxel is far from half a footprint laterally or a quarter depth cell."""
+    advice: list[str] = []
+    fp, cell = cam.footprint * 1e3, cam.depth_cell * 1e3
+    vx, vy, vz = (v * 1e3 for v in grid.voxel)
     if vx > 0.75 * fp or vy > 0.75 * fp:
         advice.append(f"lateral voxel {vx:.3g} mm is {vx / fp:.2g} footprint ({fp:.3g} mm): "
                       "displacements lock to whole footprints (bias -0.10 footprint at a "
@@ -678,10 +690,16 @@ def _advise(cam: Camera, grid: VolumeGrid, windows, vectors, overlap, rec_grid, 
     elif elong < 2:
         advice.append(f"depth voxel {vz:.3g} mm is {1 / elong:.2g} depth cells: particles are "
                       f"under two voxels long in depth; use {rec_grid.voxel[2] * 1e3:.3g} mm")
+    return advice
 
-    # windows against the recommended ones (physical sizes: voxels may differ)
+
+def _window_advice(cam: Camera, grid: VolumeGrid, windows, rec_grid: VolumeGrid,
+                   rec_win) -> list[str]:
+    """Advice when the first or last windows differ much from the recommended physical size."""
+    advice: list[str] = []
+    # physical sizes: the voxels may differ
     rv = np.array(rec_grid.voxel[::-1]) * 1e3                       # z, y, x in mm
-    own = np.array([vz, vy, vx])
+    own = np.array(grid.voxel[::-1]) * 1e3
     for k, (w, r) in enumerate(zip((windows[0], windows[-1]), rec_win, strict=True)):
         mine, theirs = np.array(w) * own, np.array(r) * rv
         ratio = mine / theirs
@@ -701,11 +719,19 @@ def _advise(cam: Camera, grid: VolumeGrid, windows, vectors, overlap, rec_grid, 
                       f"cells): the recommended windows are cut to give {MIN_VECTORS_LAST_PASS} "
                       "vectors along every axis (finer, noisier vectors); a larger box keeps "
                       "the validated size")
+    return advice
+
+
+def _advise(cam: Camera, grid: VolumeGrid, windows, vectors, overlap, rec_grid, rec_win,
+            memory, total_mem, projector, camera) -> tuple[list[str], list[str]]:
+    """Warnings (the run would fail or mislead) and concrete advice (what to change)."""
+    warnings = _window_warnings(grid, windows, vectors) + _field_of_view_warnings(cam, grid)
+    advice = _voxel_advice(cam, grid, rec_grid) + _window_advice(cam, grid, windows, rec_grid,
+                                                                 rec_win)
     if advice:
         advice.append("recommended [piv] windows for the recommended voxel: "
                       + " then ".join(str(list(w)) for w in rec_win))
-
-    # depth of the box
+    b = grid.bounds * 1e3
     nf = cam.near_focus * 1e3
     if b[2, 0] >= -nf and b[2, 1] <= nf:
         advice.append(f"the whole box lies in the near-focus zone |Z| < {nf:.3g} mm, where a "

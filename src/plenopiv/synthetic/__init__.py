@@ -1,1 +1,1 @@
-"""Ray-traced plenoptic image simulator (the project's ALFA): calibration and particle images, flows."""
+"""Ray-traced plenoptic image simulator (the project's ALFA): calibration and particle images."""

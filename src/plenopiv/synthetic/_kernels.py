@@ -1,8 +1,9 @@
 """Numba kernels of the ray tracer. Arrays and scalars only; see :mod:`.tracer` for the API.
 
 The camera enters as one float64 vector ``g`` whose slots are named by the ``G_*`` constants
-below (built by :func:`plenopiv.synthetic.tracer.geometry_vector`). Every kernel has a
-plain-NumPy twin in :mod:`._reference` that the tests run against it.
+below (built by :func:`plenopiv.synthetic.tracer.geometry_vector`). The kernels the tests check
+have a plain-NumPy twin here, ``<kernel>_numpy`` (same arguments, same outputs, written for
+clarity and vectorised over rays), that the tests run against them.
 
 Optics, per ray (image space, z towards the sensor, metres):
 
@@ -69,8 +70,11 @@ def _round(x):
 
 @njit(cache=True, error_model="numpy", fastmath=True)
 def radial_solve(rho, air, thick, n):
-    """tan θ of a ray that crosses a lateral distance ``rho`` over an air path ``air`` followed
-    by a path ``thick`` in a medium of relative index ``n`` (Snell: sin θ = n sin θ_medium)."""
+    """Tan θ of a ray that crosses a lateral distance ``rho`` over an air path and a medium.
+
+    The air path is ``air`` long, followed by a path ``thick`` in a medium of relative index
+    ``n`` (Snell: sin θ = n sin θ_medium).
+    """
     if thick == 0.0 or rho == 0.0:
         return rho / air
     m = rho / (air + thick / n)
@@ -188,9 +192,12 @@ def trace_image_ray(x0, y0, z0, mx, my, g):
 
 @njit(cache=True, error_model="numpy", fastmath=True)
 def splat(img, sx, sy, w, g):
-    """Add weight ``w`` at sensor position (sx, sy) metres: bilinearly (the area of a pixel
-    box around the point; ``g[G_SPLAT] = 0``) or wholly into the pixel that holds the point
-    (``g[G_SPLAT] = 1``), at pixel coordinates shifted by ``(g[G_SHIFTR], g[G_SHIFTC])``."""
+    """Add weight ``w`` at sensor position (sx, sy) metres into ``img``.
+
+    Bilinearly (the area of a pixel box around the point; ``g[G_SPLAT] = 0``) or wholly into
+    the pixel that holds the point (``g[G_SPLAT] = 1``), at pixel coordinates shifted by
+    ``(g[G_SHIFTR], g[G_SHIFTC])``.
+    """
     pix = g[G_PIX]
     nr, nc = img.shape
     col = sx / pix + (g[G_NCOLS] - 1) * 0.5 + g[G_SHIFTC]
@@ -256,8 +263,11 @@ def concentric_disc(a, b):
 
 @njit(cache=True, error_model="numpy", fastmath=True)
 def object_ray_to_lens(px, py, pz, lx, ly, g):
-    """Air slopes (mx, my) at the lens plane of the ray from the source (px, py, pz), pz < 0,
-    to the lens-plane point (lx, ly, 0), refracted exactly at the external interface."""
+    """Air slopes (mx, my) at the lens plane of the ray from a source to a lens-plane point.
+
+    The ray runs from the source (px, py, pz), pz < 0, to the lens-plane point (lx, ly, 0),
+    refracted exactly at the external interface.
+    """
     rx, ry = lx - px, ly - py
     if g[G_HASEXT] > 0.5 and pz < g[G_ZINT]:
         rho = math.sqrt(rx * rx + ry * ry)
@@ -435,3 +445,125 @@ def object_rays_to_lens(sources, lens_points, g):
 def n_threads() -> int:
     """Threads numba uses for the parallel kernels."""
     return numba.get_num_threads()
+
+
+# ---- plain-NumPy twins of the kernels -------------------------------------------------------
+
+
+def radial_solve_numpy(rho, air, thick, n):
+    """NumPy twin of :func:`radial_solve` (vectorised over ``rho``)."""
+    rho = np.asarray(rho, dtype=float)
+    if thick == 0.0:
+        return rho / air
+    m = rho / (air + thick / n)
+    for _ in range(40):
+        s = m / np.sqrt(1 + m * m)
+        sg = s / n
+        cg = np.sqrt(1 - sg * sg)
+        f = air * m + thick * sg / cg - rho
+        d = air + thick / n * (1 + m * m) ** -1.5 / cg ** 3
+        m = m - f / d
+    return m
+
+
+def lenslet_at_numpy(x, y, g):
+    """NumPy twin of :func:`lenslet_at`: nearest centre of a padded lattice, by brute force.
+
+    A point whose nearest centre is a virtual (padding) lenslet hits none.
+    """
+    x, y = np.atleast_1d(x).astype(float), np.atleast_1d(y).astype(float)
+    rows, cols = int(g[G_ROWS]), int(g[G_COLS])
+    p, rs = g[G_PITCH], g[G_ROWSP]
+    r, c = np.meshgrid(np.arange(-2, rows + 2), np.arange(-2, cols + 2), indexing="ij")
+    r, c = r.ravel(), c.ravel()
+    shift = (0.5 * (r % 2) - g[G_HEXSHIFT]) if g[G_HEX] > 0.5 else 0.0
+    su = (c - (cols - 1) / 2 + shift) * p + g[G_OFFS]
+    sv = (r - (rows - 1) / 2) * rs + g[G_OFFT]
+    cs, sn = g[G_COSG], g[G_SING]
+    cx, cy = cs * su - sn * sv, sn * su + cs * sv
+    d2 = (x[:, None] - cx[None]) ** 2 + (y[:, None] - cy[None]) ** 2
+    j = np.argmin(d2, axis=1)
+    real = (r[j] >= 0) & (r[j] < rows) & (c[j] >= 0) & (c[j] < cols)
+    k = np.where(real, r[j] * cols + c[j], -1)
+    return k, cx[j], cy[j]
+
+
+def _through_lenslet_directions_numpy(hx, hy, d, cx, cy, g):
+    """NumPy twin of :func:`through_lenslet`; ``d`` is (N, 3) unit directions."""
+    n = g[G_N]
+    if g[G_THESIS] < 0.5 and g[G_T] > 0:
+        a = n * d[:, :2]
+        az = np.sqrt(1 - (a ** 2).sum(axis=1))
+        m = a / az[:, None]
+    else:
+        m = d[:, :2] / d[:, 2:3]
+    m = m - np.stack([hx - cx, hy - cy], axis=1) / g[G_FL]
+    return np.stack([hx, hy], axis=1) + g[G_FBAR] * m
+
+
+def trace_image_rays_numpy(x0, y0, z0, mx, my, g):
+    """NumPy twin of :func:`trace_image_rays`, built from 3-D vector Snell."""
+    o = np.stack([x0, y0, z0], axis=1).astype(float)
+    d = np.stack([mx, my, np.ones_like(mx)], axis=1).astype(float)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t, n = g[G_T], g[G_N]
+    z_front = g[G_L3] if t > 0 else g[G_ZMLA]
+    h = o + d * ((z_front - o[:, 2]) / d[:, 2])[:, None]
+    if t > 0:
+        d = _snell_numpy(d, np.array([0.0, 0.0, 1.0]), 1.0, n)
+        h = h + d * (t / d[:, 2])[:, None]
+    k, cx, cy = lenslet_at_numpy(h[:, 0], h[:, 1], g)
+    s = _through_lenslet_directions_numpy(h[:, 0], h[:, 1], d, cx, cy, g)
+    return k, s[:, 0], s[:, 1]
+
+
+def _snell_numpy(d, normal, n1, n2):
+    """Vector Snell refraction of unit directions ``d`` (N, 3) at a plane with unit ``normal``.
+
+    ``t = (n1/n2) d + ((n1/n2) cos i - cos t) normal`` with ``cos i = d·normal``.
+    """
+    r = n1 / n2
+    cos_i = d @ normal
+    cos_t = np.sqrt(1 - r * r * (1 - cos_i ** 2))
+    return r * d + (cos_t - r * cos_i)[:, None] * normal[None, :]
+
+
+def splat_numpy(img, sx, sy, w, g):
+    """NumPy twin of :func:`splat`, vectorised over points: adds them into ``img`` in place."""
+    shape = img.shape
+    sx, sy = np.atleast_1d(np.asarray(sx, float)), np.atleast_1d(np.asarray(sy, float))
+    col = sx / g[G_PIX] + (g[G_NCOLS] - 1) / 2 + g[G_SHIFTC]
+    row = sy / g[G_PIX] + (g[G_NROWS] - 1) / 2 + g[G_SHIFTR]
+    w = np.broadcast_to(np.asarray(w, float), np.shape(sx))
+    if g[G_SPLAT] > 0.5:
+        rr, cc = np.floor(row + 0.5).astype(int), np.floor(col + 0.5).astype(int)
+        ok = (rr >= 0) & (rr < shape[0]) & (cc >= 0) & (cc < shape[1])
+        np.add.at(img, (rr[ok], cc[ok]), w[ok])
+        return img
+    r0, c0 = np.floor(row).astype(int), np.floor(col).astype(int)
+    fr, fc = row - r0, col - c0
+    for dr, dc, ww in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc),
+                       (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
+        rr, cc = r0 + dr, c0 + dc
+        ok = (rr >= 0) & (rr < shape[0]) & (cc >= 0) & (cc < shape[1])
+        np.add.at(img, (rr[ok], cc[ok]), (w * ww)[ok])
+    return img
+
+
+def object_rays_to_lens_numpy(sources, lens_points, g):
+    """NumPy twin of :func:`object_rays_to_lens` (exact Snell at the interface)."""
+    p = np.asarray(sources, float)
+    lpt = np.asarray(lens_points, float)
+    r = lpt - p[:, :2]
+    z = -p[:, 2]
+    m = r / z[:, None]
+    if g[G_HASEXT] > 0.5:
+        behind = p[:, 2] < g[G_ZINT]
+        rho = np.hypot(r[:, 0], r[:, 1])
+        mm = np.array([radial_solve_numpy(rh, -g[G_ZINT], g[G_ZINT] - pz, g[G_NEXT])
+                       for rh, pz in zip(rho, p[:, 2], strict=True)])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mr = np.where(rho[:, None] > 0, mm[:, None] * r / np.where(rho > 0, rho, 1)[:, None],
+                          0.0)
+        m = np.where(behind[:, None], mr, m)
+    return m

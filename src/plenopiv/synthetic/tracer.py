@@ -1,5 +1,6 @@
-"""Ray-tracing drivers: the camera as a geometry vector, sampling sets, and the loops that
-feed the numba kernels in batches (so that long renders can report progress).
+"""Ray-tracing drivers: the camera as a geometry vector, sampling sets, batched kernel loops.
+
+The loops feed the numba kernels in batches, so that long renders can report progress.
 
 Rendered images are irradiance in arbitrary units (float64, sensor shape, ``image[row, col]``);
 :func:`plenopiv.synthetic.images.finish_image` adds blur, noise and quantisation.

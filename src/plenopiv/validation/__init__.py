@@ -1,1 +1,1 @@
-"""Validation studies that reproduce the thesis's figures and tables with the project's simulator."""
+"""Validation studies: the thesis's figures and tables reproduced with the project's simulator."""

@@ -29,7 +29,6 @@ Studies
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -39,8 +38,8 @@ from plenopiv.calibration.image_distance import SpotModel, fit_focal_points
 from plenopiv.calibration.pipeline import calibrate
 from plenopiv.camera import CameraModel, Substrate, load_camera
 from plenopiv.conventions import pixel_to_sensor
-from plenopiv.products.files import atomic_path
 from plenopiv.synthetic.images import finish_image, focal_point_image
+from plenopiv.validation.report import pyplot, savefig, write_json, write_text
 
 IMAGE_DISTANCES = (0.136, 0.1688, 0.2025, 0.2363, 0.27, 0.3038, 0.3375, 0.3713, 0.405)
 OFFSET, ROTATION = (2.0e-6, -1.5e-6), 3e-4
@@ -218,10 +217,7 @@ def fig_5_5(base: CameraModel) -> list[dict]:
 
 
 def _plot(results: dict, out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     paths = []
     r = results["fig_3_8"]
@@ -242,7 +238,7 @@ def _plot(results: dict, out: Path) -> list[Path]:
     fig.suptitle("Fig 3.8: synthetic focal-point calibration, 135 mm lens, f/16, no noise "
                  "(PSF 0.5 px, area splat)")
     paths.append(out / "fig_3_8_focal_point_synthetic.png")
-    _savefig(fig, paths[-1])
+    savefig(fig, paths[-1])
 
     r = results["table_5_3"]
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.2))
@@ -270,7 +266,7 @@ def _plot(results: dict, out: Path) -> list[Path]:
     ax[1].legend(fontsize=8)
     fig.suptitle("Fig 3.9 / Table 5.3")
     paths.append(out / "fig_3_9_noise.png")
-    _savefig(fig, paths[-1])
+    savefig(fig, paths[-1])
 
     r = results["fig_5_5"]
     fig, ax = plt.subplots(2, 2, figsize=(11, 8), sharex=True)
@@ -295,16 +291,8 @@ def _plot(results: dict, out: Path) -> list[Path]:
             a.legend(fontsize=7)
     fig.suptitle("Fig 5.5: a plate in front of the lenslets")
     paths.append(out / "fig_5_5_plate.png")
-    _savefig(fig, paths[-1])
+    savefig(fig, paths[-1])
     return paths
-
-
-def _savefig(fig, path):
-    import matplotlib.pyplot as plt
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
 
 
 def _markdown(results: dict) -> str:
@@ -449,10 +437,8 @@ def run(out: str | Path, *, camera: str = "auburn_135mm", repeats: int = 20,
                "photon_noise": photon_noise(base, seeds=seeds),
                "table_5_3": table_5_3(base, repeats=repeats), "fig_5_5": fig_5_5(base)}
     results["seconds"] = time.perf_counter() - t0
-    with atomic_path(out / "calibration_study.json") as tmp:
-        tmp.write_text(json.dumps(results, indent=1))
-    with atomic_path(out / "calibration_study.md") as tmp:
-        tmp.write_text(_markdown(results))
+    write_json(out / "calibration_study.json", results)
+    write_text(out / "calibration_study.md", _markdown(results))
     figures = _plot(results, out)
     return {"out": str(out), "figures": [str(p) for p in figures],
             "max_abs_error_no_noise_mm": max(abs(r["error_mm"]) for r in results["fig_3_8"]),

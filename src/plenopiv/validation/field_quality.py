@@ -24,10 +24,9 @@ through the whole depth range.
 
 from __future__ import annotations
 
-import json
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -45,10 +44,10 @@ from plenopiv.pipeline import (
     reconstruct_volume,
     resolution_cell,
 )
-from plenopiv.products.files import atomic_path
 from plenopiv.reconstruction.weights import Weights, cached_weights
 from plenopiv.synthetic.images import finish_image, particle_image
 from plenopiv.synthetic.seeding import SeedingBox, random_particles
+from plenopiv.validation.report import write_json, write_text
 from plenopiv.volume import VolumeGrid
 
 #: Densities of the main table, particles per lenslet.
@@ -67,9 +66,11 @@ RAYS_PER_PARTICLE = 4096
 
 
 def _study_settings(**kw) -> ReconstructionSettings:
-    """Reconstruction settings as this study ran them: 5 sweeps and relaxation 1 unless a
-    case says otherwise (the library's defaults at the time; they are now 10 sweeps with
-    relaxation 2 for SMART, the "relaxation (smart)" row of the study)."""
+    """Reconstruction settings as this study ran them: 5 sweeps and relaxation 1 by default.
+
+    A case may say otherwise. These were the library's defaults at the time; they are now 10
+    sweeps with relaxation 2 for SMART, the "relaxation (smart)" row of the study.
+    """
     kw.setdefault("iterations", 5)
     kw.setdefault("relaxation", 1.0)
     return ReconstructionSettings(**kw)
@@ -81,9 +82,11 @@ def _study_settings(**kw) -> ReconstructionSettings:
 
 
 def study_camera(rows: int = 61, cols: int = 91, *, preset: str = "auburn_50mm") -> CameraModel:
-    """Return a ``rows`` × ``cols``-lenslet patch of a preset camera, without substrate
-    (:meth:`CameraModel.patch`): for ``auburn_50mm``, M = -1, f/2.2, the micro-images 114 µm
-    across in the 125 µm pitch."""
+    """Return a ``rows`` × ``cols``-lenslet patch of a preset camera, without substrate.
+
+    :meth:`CameraModel.patch`; for ``auburn_50mm``: M = -1, f/2.2, the micro-images 114 µm
+    across in the 125 µm pitch.
+    """
     return load_camera(preset).patch(rows, cols, substrate=False)
 
 
@@ -489,6 +492,153 @@ REMEDIES = (
 RECOMMENDED = dict(method="smart", iterations=20)
 
 
+@dataclass(frozen=True)
+class StudySetup:
+    """The camera, grid and scoring rules every reconstruction of the study shares."""
+
+    camera: CameraModel
+    calibration: Calibration
+    grid: VolumeGrid
+    weights: Weights
+    particles: ParticleSettings
+    #: Matching semi-axes (x, y, z), metres: the resolution cell.
+    tolerance: tuple
+    region: Region
+
+    def score(self, image, positions, settings: ReconstructionSettings, sigmas: dict):
+        """:func:`reconstruct_and_score` of one image with this setup: ``(row, volume)``."""
+        return reconstruct_and_score(self.calibration, image, self.weights, positions,
+                                     settings=settings, particles=self.particles,
+                                     tolerance=self.tolerance, sigmas=sigmas,
+                                     region=self.region)
+
+
+def study_setup(rows: int, cols: int) -> StudySetup:
+    """Camera patch of ``rows`` × ``cols`` lenslets, exact calibration, grid and weights."""
+    cam = study_camera(rows, cols)
+    cal = Calibration.from_camera(cam)
+    grid = study_grid(cam)
+    lat, dep = resolution_cell(cam)
+    return StudySetup(cam, cal, grid, study_weights(cal, grid), particle_settings(grid, cam),
+                      (lat, lat, dep), Region(grid, interior_margin(cam)))
+
+
+def isolated_study(setup: StudySetup, rng: np.random.Generator, *, seed: int):
+    """Reconstruct two fields of isolated particles with each of :data:`ISOLATED_CASES`.
+
+    Returns ``(isolated, volumes, positions)``: per case the matched blob
+    (:func:`matched_sigma`) and particle count (or ``"error"``), the reconstructed volumes
+    per case, and the true positions of the two fields.
+    """
+    cam, grid = setup.camera, setup.grid
+    iso_pos = [isolated_field(grid, cam, rng) for _ in range(2)]
+    iso_img = [render(cam, p, seed=seed + k) for k, p in enumerate(iso_pos)]
+    isolated, iso_vol = {}, {}
+    for name, kw in ISOLATED_CASES.items():
+        s = _study_settings(**kw)
+        try:
+            vols = [reconstruct_volume(setup.calibration, img, grid, settings=s,
+                                       particles=setup.particles,
+                                       weights=setup.weights).volume for img in iso_img]
+        except ReconstructionError as exc:
+            isolated[name] = {"error": str(exc)}
+            continue
+        isolated[name] = {**matched_sigma(vols, grid, iso_pos, region=setup.region),
+                          "n_particles": int(sum(len(p) for p in iso_pos))}
+        iso_vol[name] = vols
+    return isolated, iso_vol, iso_pos
+
+
+def truth_sigmas(setup: StudySetup, isolated: dict) -> dict:
+    """Truth blob σ (z, y, x voxels) per name: the cell blob and the matched isolated blobs."""
+    sigmas = {"cell": cell_sigma(setup.grid, setup.camera)}
+    for key, name in (("matched", "smart, 20 it"), ("MLOS", "MLOS (0 it)")):
+        if "sigma_vox" in isolated.get(name, {}):
+            sigmas[key] = tuple(isolated[name]["sigma_vox"])
+    return sigmas
+
+
+def _kept_at_max_density(s: ReconstructionSettings) -> bool:
+    """Whether the volume of a main-table case at the highest density goes into the figures."""
+    return (s.iterations == 0 or (s.method == "mart" and s.iterations == 5)
+            or s == _study_settings())
+
+
+def density_study(setup: StudySetup, fields: dict, sigmas: dict):
+    """Every density × (MLOS, :data:`METHODS` × :data:`ITERATIONS`), library defaults otherwise.
+
+    Returns ``(rows, kept)``: the scored rows and, at the highest density, the volumes of
+    MLOS, MART 5 it and the study's default, by label.
+    """
+    dmax = max(fields)
+    main, kept = [], {}
+    for d, (pos, img) in fields.items():
+        cases = [_study_settings(iterations=0)]
+        cases += [_study_settings(method=m, iterations=n) for m in METHODS
+                  for n in ITERATIONS]
+        for s in cases:
+            row, vol = setup.score(img, pos, s, sigmas)
+            main.append(_row("main", d, s, row))
+            if d == dmax and _kept_at_max_density(s):
+                kept[settings_label(s)] = vol
+    return main, kept
+
+
+def remedy_study(setup: StudySetup, fields: dict, sigmas: dict, rng: np.random.Generator, *,
+                 seed: int, kept: dict) -> list[dict]:
+    """:data:`REMEDIES` and photon noise at the highest density, the recommendation at all.
+
+    Adds the recommended reconstruction's volume at the highest density to ``kept``.
+    """
+    dmax = max(fields)
+    rem = []
+    pos, img = fields[dmax]
+    for group, kw in REMEDIES:
+        s = _study_settings(**kw)
+        row, vol = setup.score(img, pos, s, sigmas)
+        rem.append(_row(group, dmax, s, row))
+        if kw == RECOMMENDED:
+            kept[settings_label(s)] = vol
+    noisy = render(setup.camera, pos, seed=seed + 200, noise=True, rng=rng)
+    for s in (_study_settings(), _study_settings(**RECOMMENDED)):
+        row, _ = setup.score(noisy, pos, s, sigmas)
+        rem.append(_row("photon noise (20,000 e- full well, 16 bit)", dmax, s, row))
+    for d, (p2, i2) in fields.items():
+        if d == dmax:
+            continue
+        s = _study_settings(**RECOMMENDED)
+        row, _ = setup.score(i2, p2, s, sigmas)
+        rem.append(_row("recommended", d, s, row))
+    return rem
+
+
+def sigma_scans(setup: StudySetup, isolated: dict, iso_vol: dict, kept: dict, positions,
+                density: float) -> dict:
+    """Q against the truth blob's size: isolated MLOS and SMART-20, and the kept volumes."""
+    scans = {}
+    for name in iso_vol:
+        if name in ("MLOS (0 it)", "smart, 20 it"):
+            scans[f"isolated, {name}"] = isolated[name]["scan"]
+    for name, vol in kept.items():
+        if vol is not None:
+            scans[f"{density:g} ppl, {name}"] = matched_sigma(vol, setup.grid, positions,
+                                                              region=setup.region)["scan"]
+    return scans
+
+
+def headline(results: dict) -> dict:
+    """Q of the study's default and of the best reconstruction at the highest density."""
+    dmax = max(r["density_ppl"] for r in results["main"])
+    at_max = [r for r in results["main"] + results["remedies"] if "q" in r
+              and r["density_ppl"] == dmax and "noise" not in r["case"]]
+    best = max(at_max, key=lambda r: r["q"]["matched"]) if at_max else None
+    default = next((r for r in at_max if r["case"] == "main"
+                    and r["settings"] == _study_settings().model_dump()), None)
+    return {"q_default_at_max_density": None if default is None else default["q"]["matched"],
+            "q_best_at_max_density": None if best is None else best["q"]["matched"],
+            "best": None if best is None else best["label"]}
+
+
 def run(out: str | Path, *, rows: int = 61, cols: int = 91, densities=DENSITIES,
         seed: int = 20261122, remedies: bool = True, voxel_study: bool = True) -> dict:
     """Run the study and write ``field_quality.json``, ``field_quality.md`` and PNG figures.
@@ -521,135 +671,71 @@ def run(out: str | Path, *, rows: int = 61, cols: int = 91, densities=DENSITIES,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    cam = study_camera(rows, cols)
-    cal = Calibration.from_camera(cam)
-    grid = study_grid(cam)
-    lat, dep = resolution_cell(cam)
-    tolerance = (lat, lat, dep)
-    region = Region(grid, interior_margin(cam))
-    psettings = particle_settings(grid, cam)
-    weights = study_weights(cal, grid)
+    setup = study_setup(rows, cols)
+    cam, grid = setup.camera, setup.grid
     lap("weights_s")
 
     # 1. isolated particles: the blob a reconstruction makes of a single point particle
-    iso_pos = [isolated_field(grid, cam, rng) for _ in range(2)]
-    iso_img = [render(cam, p, seed=seed + k) for k, p in enumerate(iso_pos)]
-    isolated, iso_vol = {}, {}
-    for name, kw in ISOLATED_CASES.items():
-        s = _study_settings(**kw)
-        try:
-            vols = [reconstruct_volume(cal, img, grid, settings=s, particles=psettings,
-                                       weights=weights).volume for img in iso_img]
-        except ReconstructionError as exc:
-            isolated[name] = {"error": str(exc)}
-            continue
-        isolated[name] = {**matched_sigma(vols, grid, iso_pos, region=region),
-                          "n_particles": int(sum(len(p) for p in iso_pos))}
-        iso_vol[name] = vols
+    isolated, iso_vol, iso_pos = isolated_study(setup, rng, seed=seed)
     lap("isolated_s")
-
-    sigmas = {"cell": cell_sigma(grid, cam)}
-    for key, name in (("matched", "smart, 20 it"), ("MLOS", "MLOS (0 it)")):
-        if "sigma_vox" in isolated.get(name, {}):
-            sigmas[key] = tuple(isolated[name]["sigma_vox"])
+    sigmas = truth_sigmas(setup, isolated)
     for name, vols in iso_vol.items():
-        isolated[name]["q_at"] = {k: field_q(vols, grid, iso_pos, sg, region)
+        isolated[name]["q_at"] = {k: field_q(vols, grid, iso_pos, sg, setup.region)
                                   for k, sg in sigmas.items()}
 
-    # 2. densities × methods × iterations, library defaults otherwise
+    # 2. densities × methods × iterations; 3. remedies, the recommendation at every density
     fields = {}
     for k, d in enumerate(densities):
         pos = seed_field(grid, cam, d, rng)
         fields[d] = (pos, render(cam, pos, seed=seed + 100 + k))
     dmax = max(densities)
-    main, kept = [], {}
-    for d in densities:
-        pos, img = fields[d]
-        cases = [_study_settings(iterations=0)]
-        cases += [_study_settings(method=m, iterations=n) for m in METHODS
-                  for n in ITERATIONS]
-        for s in cases:
-            row, vol = reconstruct_and_score(cal, img, weights, pos, settings=s,
-                                             particles=psettings, tolerance=tolerance,
-                                             sigmas=sigmas, region=region)
-            main.append(_row("main", d, s, row))
-            if d == dmax and (s.iterations == 0 or (s.method == "mart" and s.iterations == 5)
-                              or s == _study_settings()):
-                kept[settings_label(s)] = vol
+    main, kept = density_study(setup, fields, sigmas)
     lap("main_s")
-
-    # 3. remedies at the highest density; the recommendation at every density
-    rem = []
-    if remedies:
-        pos, img = fields[dmax]
-        for group, kw in REMEDIES:
-            s = _study_settings(**kw)
-            row, vol = reconstruct_and_score(cal, img, weights, pos, settings=s,
-                                             particles=psettings, tolerance=tolerance,
-                                             sigmas=sigmas, region=region)
-            rem.append(_row(group, dmax, s, row))
-            if kw == RECOMMENDED:
-                kept[settings_label(s)] = vol
-        noisy = render(cam, pos, seed=seed + 200, noise=True, rng=rng)
-        for s in (_study_settings(), _study_settings(**RECOMMENDED)):
-            row, _ = reconstruct_and_score(cal, noisy, weights, pos, settings=s,
-                                           particles=psettings, tolerance=tolerance,
-                                           sigmas=sigmas, region=region)
-            rem.append(_row("photon noise (20,000 e- full well, 16 bit)", dmax, s, row))
-        for d in densities:
-            if d == dmax:
-                continue
-            p2, i2 = fields[d]
-            s = _study_settings(**RECOMMENDED)
-            row, _ = reconstruct_and_score(cal, i2, weights, p2, settings=s,
-                                           particles=psettings, tolerance=tolerance,
-                                           sigmas=sigmas, region=region)
-            rem.append(_row("recommended", d, s, row))
+    rem = remedy_study(setup, fields, sigmas, rng, seed=seed, kept=kept) if remedies else []
     lap("remedies_s")
-    del weights
+    setup = replace(setup, weights=None)
 
     # 4. voxel size, on a smaller patch
     vox = voxel_size_study(rng, seed=seed + 300, density=dmax) if voxel_study else []
     lap("voxel_size_s")
 
-    # Q against the truth blob size, for the figure
     pos = fields[dmax][0]
-    sigma_scan = {}
-    for name in iso_vol:
-        if name in ("MLOS (0 it)", "smart, 20 it"):
-            sigma_scan[f"isolated, {name}"] = isolated[name]["scan"]
-    for name, vol in kept.items():
-        if vol is not None:
-            sigma_scan[f"{dmax:g} ppl, {name}"] = matched_sigma(vol, grid, pos,
-                                                                region=region)["scan"]
+    sigma_scan = sigma_scans(setup, isolated, iso_vol, kept, pos, dmax)
     lap("figures_s")
     timings["total_s"] = time.perf_counter() - t_start
 
+    lat, dep = setup.tolerance[0], setup.tolerance[2]
     results = {
         "camera": cam.to_dict(), "grid": grid.to_dict(), "voxel_m": list(grid.voxel),
         "footprint_m": footprint(cam), "resolution_cell_m": [lat, dep],
-        "match_tolerance_m": list(tolerance), "evaluation_margin_m": region.margin,
+        "match_tolerance_m": list(setup.tolerance), "evaluation_margin_m": setup.region.margin,
         "particle_depth_m": PARTICLE_DEPTH, "rays_per_particle": RAYS_PER_PARTICLE,
-        "particle_settings": psettings.model_dump(),
+        "particle_settings": setup.particles.model_dump(),
         "default_reconstruction": _study_settings().model_dump(),
         "library_defaults": ReconstructionSettings().model_dump(),
         "truth_sigma_vox": sigmas, "seed": seed, "isolated": isolated, "main": main,
         "remedies": rem, "voxel_size": vox, "sigma_scan": sigma_scan, "timings_s": timings}
-    with atomic_path(out / "field_quality.json") as tmp:
-        tmp.write_text(json.dumps(results, indent=1, default=_json_default))
-    with atomic_path(out / "field_quality.md") as tmp:
-        tmp.write_text(_markdown(results))
-    figures = _plot(results, kept, grid, pos, sigmas, out)
-    at_max = [r for r in main + rem if "q" in r and r["density_ppl"] == dmax
-              and "noise" not in r["case"]]
-    best = max(at_max, key=lambda r: r["q"]["matched"]) if at_max else None
-    default = next((r for r in at_max if r["case"] == "main"
-                    and r["settings"] == _study_settings().model_dump()), None)
+    # the renderer imports this module's constants, hence imported here
+    from plenopiv.validation import field_quality_report as report
+
+    write_json(out / "field_quality.json", results)
+    write_text(out / "field_quality.md", report.markdown(results))
+    figures = report.figures(results, slice_panels(kept, grid, pos, sigmas), grid, pos, out)
     return {"out": str(out), "figures": [str(p) for p in figures],
-            "truth_sigma_vox": sigmas,
-            "q_default_at_max_density": None if default is None else default["q"]["matched"],
-            "q_best_at_max_density": None if best is None else best["q"]["matched"],
-            "best": None if best is None else best["label"], "total_s": timings["total_s"]}
+            "truth_sigma_vox": sigmas, **headline(results), "total_s": timings["total_s"]}
+
+
+def slice_panels(volumes: dict, grid: VolumeGrid, positions, sigmas: dict) -> list[tuple]:
+    """The x-z slab figure's panels: ``(name, volume)``, the truth blobs first.
+
+    The truth is :func:`~plenopiv.pipeline.gaussian_truth_volume` of ``positions`` with the
+    matched blob (the cell blob where no matched one was found); the reconstructions follow in
+    the order of ``volumes``, failed ones (None) left out.
+    """
+    truth = gaussian_truth_volume(grid, positions, sigma_vox=sigmas.get("matched",
+                                                                        sigmas["cell"]))
+    return [("truth (matched blobs)", truth)] + [(k, v) for k, v in volumes.items()
+                                                 if v is not None]
 
 
 def voxel_size_study(rng: np.random.Generator, *, seed: int, density: float = 0.3,
@@ -691,299 +777,3 @@ def voxel_size_study(rng: np.random.Generator, *, seed: int, density: float = 0.
                             voxel_mm=[v * 1e3 for v in grid.voxel], nnz=weights.nnz))
         del weights
     return out
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o).__name__)
-
-
-# --------------------------------------------------------------------------------------------
-# Report
-# --------------------------------------------------------------------------------------------
-
-_COLUMNS = ("| ppl | reconstruction | Q cell | Q matched | Q MLOS-blob | detection | ghosts "
-            "(near) | bias x, y, z (µm) | rms x, y, z (µm) | elongation | focal-slab E² "
-            "(truth) | masked |")
-
-
-def _fmt_row(r: dict, extra: str = "") -> str:
-    head = f"| {r['density_ppl']:g} | {r['label']}{extra} |"
-    if "error" in r:
-        return head + f" failed: {r['error'][:80]} |" + " |" * 10
-    q = r["q"]
-    b = [v * 1e6 for v in r["bias_m"]]
-    s = [v * 1e6 for v in r["rms_m"]]
-
-    def qq(k):
-        return f"{q[k]:.3f}" if k in q else "–"
-
-    return (head + f" {qq('cell')} | {qq('matched')} | {qq('MLOS')} | "
-            f"{r['detection_rate']:.2f} | {r['ghost_rate']:.2f} ({r['ghost_near_rate']:.2f}) | "
-            f"{b[0]:+.0f}, {b[1]:+.0f}, {b[2]:+.0f} | {s[0]:.0f}, {s[1]:.0f}, {s[2]:.0f} | "
-            f"{r['elongation']:.1f} | {r['focal_share']:.2f} ({r['focal_share_truth']:.2f}) | "
-            f"{r['masked_rate']:.3f} |")
-
-
-def _table(rows, extra=lambda r: "") -> list[str]:
-    return [_COLUMNS, "|" + "---|" * 12] + [_fmt_row(r, extra(r)) for r in rows]
-
-
-def _markdown(r: dict) -> str:
-    v = [x * 1e3 for x in r["voxel_m"]]
-    vz, vx = r["voxel_m"][2] * 1e3, r["voxel_m"][0] * 1e3
-    sig = r["truth_sigma_vox"]
-    d = r["default_reconstruction"]
-    blobs = "; ".join(f"**{k}** σ = ({s[0]:.2f}, {s[1]:.2f}, {s[2]:.2f}) voxels = "
-                      f"{s[0] * vz:.3f} mm in z, {s[1] * vx:.3f} mm in x, y"
-                      for k, s in sig.items())
-    lines = [
-        "# Reconstruction quality of particle fields (synthetic)", "",
-        "Generated by `python pipelines/validate_fields.py` "
-        "(`plenopiv.validation.field_quality`); numbers in `field_quality.json`.", "",
-        "## Setup", "",
-        f"- Camera: {r['camera']['name']}: S_i = S_o = 100 mm (M = -1), f/"
-        f"{r['camera']['main_lens']['f_number']:g} (micro-images 114 µm in the 125 µm pitch), "
-        f"lenslet footprint {r['footprint_m'] * 1e3:.3f} mm on the focal plane.",
-        f"- Grid: shape {r['grid']['shape']} [z, y, x], voxels {v[0]:.3f} × {v[1]:.3f} × "
-        f"{v[2]:.3f} mm (x, y, z): one lenslet footprint laterally, aligned with the "
-        f"footprints; Z in ±{r['grid']['z_mm'][1]:.1f} mm. The depth voxel is about half the "
-        "depth resolution cell.",
-        f"- Particles: uniform over the field of view and |Z| ≤ "
-        f"{r['particle_depth_m'] * 1e3:g} mm, equally bright, {r['rays_per_particle']} rays "
-        "each, no noise unless stated; density in particles per lenslet (ppl, per footprint "
-        "area over the whole depth).",
-        f"- Resolution cell: lateral {r['resolution_cell_m'][0] * 1e3:.3f} mm (a footprint), "
-        f"depth {r['resolution_cell_m'][1] * 1e3:.2f} mm (footprint × S_o/D: the depth step "
-        "that moves the two extreme views by one footprint against each other). A detection "
-        "matches a true particle inside the ellipsoid with these semi-axes (one-to-one, "
-        "closest first).",
-        f"- Rates and Q count only the region {r['evaluation_margin_m'] * 1e3:.2f} mm inside "
-        "the lateral edges (the blur radius of a particle at the deepest Z: nearer the edge "
-        "some views of a particle miss the lenslet array).",
-        f"- Reconstruction: `reconstruct_volume` with the library's defaults unless stated "
-        f"(method {d['method']}, {d['iterations']} iterations, relaxation {d['relaxation']:g}, "
-        f"pixel_threshold {d['pixel_threshold']:g}, dark_tolerance {d['dark_tolerance']:g}).",
-        f"- Particle extraction: {r['particle_settings']}.",
-        f"- Truth blobs for Q (`gaussian_truth_volume`): {blobs}. *cell*: full width at half "
-        "maximum = the resolution cell (the sharpest particle the optics resolve); *matched*: "
-        "the blob that maximises Q against SMART-20 reconstructions of isolated particles; "
-        "*MLOS-blob*: the same for the MLOS first guess (long in depth).",
-        "- Columns: ghosts (near) = ghost rate, and in brackets the part of it within two "
-        "matching tolerances of a true particle (a second peak of a real particle rather than "
-        "a free ghost); elongation = median σ_z/σ_xy of the detected particles; focal-slab E² "
-        "= share of Σ E² within |Z| < 1 mm (in brackets: of the cell truth); masked = true "
-        "particles without any light inside their matching ellipsoid (removed by the soft "
-        "line-of-sight mask, which the iterations cannot undo).", "",
-        "## Isolated particles (no two share a micro-image)", "",
-        "| reconstruction | n | best σ (z, y, x voxels) | Q at best σ | "
-        + " | ".join(f"Q {k}" for k in sig) + " |", "|---|---|---|---|" + "---|" * len(sig)]
-    for k, x in r["isolated"].items():
-        if "error" in x:
-            lines.append(f"| {k} | failed: {x['error'][:60]} | | |" + " |" * len(sig))
-        else:
-            qa = " | ".join(f"{x['q_at'][kk]:.3f}" for kk in sig)
-            lines.append(f"| {k} | {x['n_particles']} | {tuple(x['sigma_vox'])} | "
-                         f"{x['q']:.3f} | {qa} |")
-    lines[lines.index("## Setup"):lines.index("## Setup")] = [*_summary(r), ""]
-    lines += ["", "## Densities × methods × iterations", "", *_table(r["main"])]
-    if r["remedies"]:
-        lines += ["", f"## Remedies at {max(x['density_ppl'] for x in r['main']):g} ppl, and the "
-                  "recommendation at every density", "",
-                  *_table(r["remedies"], lambda x: f" [{x['case']}]")]
-    if r["voxel_size"]:
-        lines += ["", f"## Voxel size ({r['voxel_size'][0]['camera']}-lenslet patch, same optics, "
-                  f"{r['voxel_size'][0]['density_ppl']:g} ppl)", "",
-                  "Q cell uses the cell blob of each grid (the same physical size); *best* is Q "
-                  "against the blob that fits that reconstruction best.", "",
-                  "| voxel x × z (mm) | weights (M) | reconstruction | Q cell | Q best (σ_z, "
-                  "σ_xy mm) | detection | ghosts (near) | masked | rms x, y, z (µm) | "
-                  "time (s) |", "|---|---|---|---|---|---|---|---|---|---|"]
-        for x in r["voxel_size"]:
-            if "error" in x:
-                lines.append(f"| {x['voxel_mm'][0]:.4g} × {x['voxel_mm'][2]:.4g} | | "
-                             f"{x['label']} | failed | | | | | | |")
-                continue
-            s = [e * 1e6 for e in x["rms_m"]]
-            bs = x.get("best_sigma_mm", [math.nan, math.nan])
-            lines.append(f"| {x['voxel_mm'][0]:.4g} × {x['voxel_mm'][2]:.4g} | "
-                         f"{x['nnz'] / 1e6:.0f} | {x['label']} | {x['q']['cell']:.3f} | "
-                         f"{x['q'].get('best', math.nan):.3f} ({bs[0]:.3f}, {bs[1]:.3f}) | "
-                         f"{x['detection_rate']:.2f} | {x['ghost_rate']:.2f} "
-                         f"({x['ghost_near_rate']:.2f}) | {x['masked_rate']:.3f} | "
-                         f"{s[0]:.0f}, {s[1]:.0f}, {s[2]:.0f} | "
-                         f"{x['time_s']:.0f} |")
-    t = r["timings_s"]
-    lines += ["", "Timings (s, wall clock): " + ", ".join(f"{k} {v:.0f}" for k, v in t.items()),
-              ""]
-    return "\n".join(lines)
-
-
-def _same_settings(a: dict, b: dict) -> bool:
-    """Whether two dumped ReconstructionSettings reconstruct alike (relaxation resolved to the
-    method's default; keys missing from an older dump take their defaults)."""
-    sa, sb = ReconstructionSettings(**a), ReconstructionSettings(**b)
-    return (sa.model_copy(update={"relaxation": sa.relaxation_used})
-            == sb.model_copy(update={"relaxation": sb.relaxation_used}))
-
-
-def _summary(r: dict) -> list[str]:
-    """Headline numbers, computed from the results."""
-    dmax = max(x["density_ppl"] for x in r["main"])
-    rows = [x for x in r["main"] + r["remedies"] if "q" in x]
-    default = r["default_reconstruction"]
-    at = [x for x in rows if x["density_ppl"] == dmax and "noise" not in x["case"]]
-    out = ["## Summary", ""]
-    library = r.get("library_defaults")
-    for name, want in (("Library defaults", library), ("Study baseline", default)):
-        d = next((x for x in at if _same_settings(x["settings"], want)), None)
-        if d is None:
-            continue
-        verdict = "meets" if d["q"]["matched"] >= 0.75 else "misses"
-        out.append(f"- {name} ({d['label']}) at {dmax:g} ppl: Q = {d['q']['matched']:.3f} "
-                   f"(matched truth; cell {d['q']['cell']:.3f}), {verdict} the goal Q ≥ 0.75; "
-                   f"detection {d['detection_rate']:.2f}, ghosts {d['ghost_rate']:.2f}.")
-        if want == default:
-            break
-    if at:
-        b = max(at, key=lambda x: x["q"]["matched"])
-        out.append(f"- Best at {dmax:g} ppl: {b['label']} ({b['case']}): Q = "
-                   f"{b['q']['matched']:.3f} (cell {b['q']['cell']:.3f}), detection "
-                   f"{b['detection_rate']:.2f}, ghosts {b['ghost_rate']:.2f}.")
-    mart = [x for x in r["main"] if "q" in x and x["settings"]["method"] == "mart"
-            and x["settings"]["iterations"] == 5 and x["settings"]["relaxation"] == 1.0]
-    iso = r["isolated"].get("mart, 5 it (relaxation 1)", {})
-    if mart:
-        qs = [x["q"]["matched"] for x in mart]
-        out.append(f"- Row-action MART at relaxation 1 (5 it): Q = {min(qs):.2f}-{max(qs):.2f} "
-                   "at every density" + (f", and {iso['q_at']['matched']:.2f} for isolated "
-                                         "particles" if "q_at" in iso else "")
-                   + ": the step, not the density, limits it (see the relaxation rows).")
-    mlos = [x for x in r["main"] if "q" in x and x["settings"]["iterations"] == 0]
-    if len(mlos) > 1:
-        out.append("- MLOS first guess: Q (cell) " + " → ".join(
-            f"{x['q']['cell']:.2f}" for x in mlos) + ", ghost rate " + " → ".join(
-            f"{x['ghost_rate']:.2f}" for x in mlos) + " over " + ", ".join(
-            f"{x['density_ppl']:g}" for x in mlos) + " ppl.")
-    return out
-
-
-def _plot(results: dict, volumes: dict, grid: VolumeGrid, positions, sigmas, out: Path):
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    paths = []
-    keys = (("q", "Q (matched truth blob)"), ("detection_rate", "detection rate"),
-            ("ghost_rate", "ghost rate"))
-
-    def value(r, key):
-        return r["q"].get("matched", math.nan) if key == "q" else r[key]
-
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4.4))
-    main = [r for r in results["main"] if "q" in r]
-    colours = {"mart": "C0", "block": "C1", "smart": "C2"}
-    for m in METHODS:
-        for n in ITERATIONS:
-            rr = [r for r in main if r["settings"]["method"] == m
-                  and r["settings"]["iterations"] == n]
-            for a, (key, _) in zip(ax, keys, strict=True):
-                a.plot([r["density_ppl"] for r in rr], [value(r, key) for r in rr],
-                       "o-" if n == ITERATIONS[0] else "s--", color=colours[m],
-                       label=f"{m}, {n} it")
-    mlos = [r for r in main if r["settings"]["iterations"] == 0]
-    rec = sorted((r for r in results["remedies"] if "q" in r and r["case"] in (
-        "recommended", "more iterations (smart)") and r["label"] == "smart, 20 it"),
-        key=lambda r: r["density_ppl"])
-    for a, (key, name) in zip(ax, keys, strict=True):
-        a.plot([r["density_ppl"] for r in mlos], [value(r, key) for r in mlos], "k:",
-               label="MLOS (0 it)")
-        if rec:
-            a.plot([r["density_ppl"] for r in rec], [value(r, key) for r in rec], "r*-", lw=2,
-                   ms=9, label="smart, 20 it")
-        a.set_xlabel("particles per lenslet")
-        a.set_ylabel(name)
-        a.grid(alpha=0.3)
-    ax[0].axhline(0.75, color="grey", lw=0.8)
-    ax[0].set_ylim(0, 1)
-    ax[1].set_ylim(0, 1.02)
-    ax[2].set_ylim(0, max(0.6, ax[2].get_ylim()[1]))
-    ax[0].legend(fontsize=7, ncol=2)
-    cam = results["camera"]["microlens_array"]
-    fig.suptitle(f"Particle fields, {cam['rows']} × {cam['cols']} lenslets, 50 mm lens at "
-                 "M = -1, f/2.2: quality against seeding density")
-    fig.tight_layout()
-    paths.append(out / "field_quality_density.png")
-    _savefig(fig, paths[-1])
-
-    # x-z slabs through the highest-density volume: truth and reconstructions
-    truth = gaussian_truth_volume(grid, positions, sigma_vox=sigmas.get("matched",
-                                                                        sigmas["cell"]))
-    panels = [("truth (matched blobs)", truth)] + [(k, v) for k, v in volumes.items()
-                                                   if v is not None]
-    ny, nx = grid.shape[1], grid.shape[2]
-    yc = ny // 2
-    slab = slice(yc - 1, yc + 2)
-    xs = slice(nx // 2 - 24, nx // 2 + 24) if nx > 48 else slice(None)
-    x = grid.x[xs] * 1e3
-    vy = world_to_voxel(positions, grid.origin, grid.voxel)
-    near = (np.abs(vy[:, 1] - yc) <= 1.5) & (positions[:, 0] * 1e3 >= x[0] - 0.06) & \
-        (positions[:, 0] * 1e3 <= x[-1] + 0.06)
-    fig, axs = plt.subplots(1, len(panels), figsize=(2.6 * len(panels) + 0.5, 6.4),
-                            sharey=True)
-    ext = [x[0] - vx_half(grid), x[-1] + vx_half(grid), grid.bounds[2, 1] * 1e3,
-           grid.bounds[2, 0] * 1e3]
-    for a, (name, vol) in zip(np.atleast_1d(axs), panels, strict=True):
-        img = np.asarray(vol)[:, slab, xs].max(axis=1)
-        top = np.percentile(img[img > 0], 99.5) if np.any(img > 0) else 1.0
-        a.imshow(img, extent=ext, aspect="auto", cmap="magma", vmin=0, vmax=top,
-                 interpolation="nearest")
-        a.plot(positions[near, 0] * 1e3, positions[near, 2] * 1e3, "+", color="cyan", ms=7,
-               mew=1.0)
-        a.set_title(name, fontsize=9)
-        a.set_xlabel("X (mm)")
-    np.atleast_1d(axs)[0].set_ylabel("Z (mm), + away from the camera")
-    fig.suptitle(f"{max(r['density_ppl'] for r in results['main']):g} ppl: x-z slab of 3 "
-                 "voxels in y (maximum), cyan + = true particles in the slab", fontsize=10)
-    fig.tight_layout()
-    paths.append(out / "field_quality_slices.png")
-    _savefig(fig, paths[-1])
-
-    # Q against the size of the truth blob
-    scans = results.get("sigma_scan", {})
-    if scans:
-        fig, ax = plt.subplots(1, len(scans), figsize=(3.6 * len(scans), 3.6), sharey=True)
-        vz = grid.voxel[2] * 1e3
-        for a, (name, scan) in zip(np.atleast_1d(ax), scans.items(), strict=True):
-            arr = np.asarray(scan, float)
-            for sxy in np.unique(arr[:, 1]):
-                m = arr[:, 1] == sxy
-                a.plot(arr[m, 0] * vz, arr[m, 2], "o-", ms=3,
-                       label=f"σ_xy {sxy * grid.voxel[0] * 1e3:.3f} mm")
-            a.set_title(name, fontsize=9)
-            a.set_xlabel("truth σ_z (mm)")
-            a.grid(alpha=0.3)
-        np.atleast_1d(ax)[0].set_ylabel("Q")
-        np.atleast_1d(ax)[0].legend(fontsize=7)
-        fig.suptitle("Q against the size of the Gaussian truth blob", fontsize=10)
-        fig.tight_layout()
-        paths.append(out / "field_quality_truth_sigma.png")
-        _savefig(fig, paths[-1])
-    return paths
-
-
-def vx_half(grid: VolumeGrid) -> float:
-    """Half a lateral voxel, mm (for image extents)."""
-    return grid.voxel[0] * 1e3 / 2
-
-
-def _savefig(fig, path):
-    import matplotlib.pyplot as plt
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)

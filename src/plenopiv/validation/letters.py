@@ -27,8 +27,6 @@ I/O (PNG figures, JSON and Markdown summary).
 
 from __future__ import annotations
 
-import configparser
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,12 +41,18 @@ from plenopiv.camera import camera_from_dict
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
 from plenopiv.lightfield import LightField, light_field, perspective_view, refocus
-from plenopiv.products.files import atomic_path
-from plenopiv.products.images import read_image
-
-DATA_NAME = "plenoptomos_letters_ULF"
-FILES = {"raw": "letters_ULF_M1.png", "white": "letters_ULF_M1_white.png",
-         "dark": "letters_ULF_M1_dark.png", "ini": "letters_ULF_M1.ini"}
+from plenopiv.validation.letters_data import (  # noqa: F401  (re-exported: the study's data)
+    DATA_NAME,
+    DATA_SOURCE,
+    FILES,
+    LettersData,
+    data_candidates,
+    default_data_dir,
+    find_data_dir,
+    load_letters,
+    read_optics,
+)
+from plenopiv.validation.report import write_json, write_text
 
 #: Lattice rows and columns (of this calibration's grid index) holding the two "ab" words,
 #: clear of the page edges at columns ~7 and ~21, which lie at other depths.
@@ -59,149 +63,6 @@ SOURCE_ALPHA = 0.95
 
 #: Default α sweep (plenopiv's α).
 ALPHAS = tuple(np.round(np.arange(0.85, 1.10 + 1e-9, 0.005), 4))
-
-
-#: Where the data set comes from (for messages).
-DATA_SOURCE = ("https://github.com/cicwi/plenoptomos, folder examples/data (letters_ULF_M1*.png "
-               "and letters_ULF_M1.ini)")
-
-
-def data_candidates() -> list[Path]:
-    """Third-party data folders looked in, in order: ``$PLENOPIV_DATA``, ``../shared/data``
-    beside the current folder, and ``../shared/data`` beside the source tree (a clone
-    installed in editable mode)."""
-    import os
-
-    out = []
-    if os.environ.get("PLENOPIV_DATA"):
-        out.append(Path(os.environ["PLENOPIV_DATA"]))
-    out.append(Path.cwd().parent / "shared" / "data")
-    out.append(Path(__file__).resolve().parents[3].parent / "shared" / "data")
-    seen, unique = set(), []
-    for p in out:
-        key = str(p.resolve()) if p.exists() else str(p)
-        if key not in seen:
-            seen.add(key)
-            unique.append(p)
-    return unique
-
-
-def _letters_in(folder: Path) -> Path:
-    """``folder`` itself when it holds the images, else its ``plenoptomos_letters_ULF``."""
-    return folder if (folder / FILES["raw"]).is_file() else folder / DATA_NAME
-
-
-def find_data_dir(data: str | Path | None = None) -> Path:
-    """The letters folder: under ``data`` (the third-party data folder, or the letters folder
-    itself), else under the first of :func:`data_candidates` that holds it.
-
-    Raises
-    ------
-    FileNotFoundError
-        Naming the folders tried and where the data come from.
-    """
-    tried = [Path(data)] if data is not None else data_candidates()
-    for folder in tried:
-        d = _letters_in(folder)
-        if all((d / f).is_file() for f in FILES.values()):
-            return d
-    names = ", ".join(str(_letters_in(f)) for f in tried)
-    raise FileNotFoundError(f"the letters data set is not in {names}: get it from "
-                            f"{DATA_SOURCE} into DIR/{DATA_NAME}/ and pass --data DIR (or set "
-                            "PLENOPIV_DATA=DIR)")
-
-
-def default_data_dir() -> Path:
-    """The letters folder found by :func:`find_data_dir`, or where the repository expects it
-    (``../shared/data/plenoptomos_letters_ULF`` beside the source tree) when absent."""
-    try:
-        return find_data_dir()
-    except FileNotFoundError:
-        return Path(__file__).resolve().parents[3].parent / "shared" / "data" / DATA_NAME
-
-
-# --------------------------------------------------------------------------------------------
-# Data and optics
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class LettersData:
-    """The three images (float64 counts, ``[row, col]``) and the optics from the .ini.
-
-    Attributes
-    ----------
-    raw, white, dark : ndarray
-        Raw lenslet image, white image, dark frame.
-    optics : dict
-        From :func:`read_optics`, SI units.
-    """
-
-    raw: np.ndarray
-    white: np.ndarray
-    dark: np.ndarray
-    optics: dict
-
-
-def read_optics(path: str | Path) -> dict:
-    """Read the source's .ini (lengths in mm) into SI values.
-
-    Returns
-    -------
-    dict
-        ``pixel_pitch`` (m), ``sensor_declared`` (cols, rows) px, ``mla_pitch`` (m),
-        ``lenslet_focal_length`` (m), ``mla_z`` and ``sensor_z`` (m, from the main lens),
-        ``sensor_distance`` = sensor_z - mla_z (m), ``main_focal_length`` (m) and
-        ``aperture_diameter`` (m).
-
-    Notes
-    -----
-    ``[main_lens] aperture = 6.6`` is read as the stop diameter in mm (f/30.3). The source's
-    own code reads its ``aperture`` keys as f-numbers, which is right for the lenslets
-    (18.6 mm / 0.3 mm = f/62) but cannot be for the main lens: at f/6.6 the micro-images would
-    be six pitches wide. :func:`calibrate_white` measures the micro-images to check.
-    """
-    cfg = configparser.ConfigParser()
-    p = Path(path)
-    if not cfg.read(p):
-        raise FileNotFoundError(f"optics file {str(p)!r} not found or unreadable")
-    mm = 1e-3
-    try:
-        mla_z = float(cfg["micro_lenses_array"]["z"]) * mm
-        sensor_z = float(cfg["sensor"]["z"]) * mm
-        return {
-            "pixel_pitch": float(cfg["sensor"]["pixel_size_x"]) * mm,
-            "sensor_declared": (int(cfg["sensor"]["size_x"]), int(cfg["sensor"]["size_y"])),
-            "mla_pitch": float(cfg["micro_lens"]["physical_size_s"]) * mm,
-            "lenslet_focal_length": float(cfg["micro_lens"]["f2"]) * mm,
-            "mla_z": mla_z,
-            "sensor_z": sensor_z,
-            "sensor_distance": sensor_z - mla_z,
-            "main_focal_length": float(cfg["main_lens"]["f1"]) * mm,
-            "aperture_diameter": float(cfg["main_lens"]["aperture"]) * mm,
-        }
-    except (KeyError, ValueError) as exc:
-        raise ValueError(f"optics file {str(p)!r}: missing or bad entry ({exc})") from None
-
-
-def load_letters(data_dir: str | Path | None = None) -> LettersData:
-    """Read the letters data set from ``data_dir`` (default :func:`default_data_dir`).
-
-    Raises
-    ------
-    FileNotFoundError
-        Naming the folder and the missing files.
-    """
-    d = Path(data_dir) if data_dir is not None else default_data_dir()
-    missing = [f for f in FILES.values() if not (d / f).is_file()]
-    if missing:
-        raise FileNotFoundError(f"third-party data folder {str(d)!r} lacks {', '.join(missing)}; "
-                                "the letters study needs the project's shared/data folder")
-    imgs = {k: read_image(d / FILES[k]).astype(np.float64) for k in ("raw", "white", "dark")}
-    shapes = {v.shape for v in imgs.values()}
-    if len(shapes) != 1:
-        raise ValueError(f"the raw, white and dark images differ in shape: {sorted(shapes)}")
-    return LettersData(optics=read_optics(d / FILES["ini"]), **imgs)
 
 
 def flat_field(raw, white, dark, *, min_white: float = 0.25) -> np.ndarray:
@@ -303,8 +164,10 @@ class WhiteCalibration:
 
 
 def micro_image_diameter(white, spots_px, pitch_px: float) -> float:
-    """Mean diameter (px) of the bright micro-images
-    (:func:`plenopiv.calibration.spots.micro_image_diameter`)."""
+    """Mean diameter (px) of the bright micro-images.
+
+    :func:`plenopiv.calibration.spots.micro_image_diameter` of the white image.
+    """
     return _micro_image_diameter(white, spots_px, pitch_px)
 
 
@@ -693,7 +556,8 @@ def analyse(data: LettersData, *, alphas=ALPHAS, with_splat: bool = True) -> dic
     geo = alpha_geometry(wcal, data.optics)
     peak = sweep["peak"]["gradient"]
     return {"wcal": wcal, "lf": lf, "image": img, "views": views, "view_u": view_u,
-            "parallax": par, "sweep": sweep, "splat": splat, "geometry": geo, "peak": peak}
+            "parallax": par, "sweep": sweep, "splat": splat, "geometry": geo, "peak": peak,
+            "lattice_pitch": _lattice_pitch(lf, gi)}
 
 
 def summary(res: dict, optics: dict) -> dict:
@@ -767,176 +631,18 @@ def summary(res: dict, optics: dict) -> dict:
     return out
 
 
-def _savefig(fig, path):
-    import matplotlib.pyplot as plt
+def refocused_planes(res: dict) -> list[tuple[str, np.ndarray]]:
+    """Fourier refocus of the flat-fielded image at five α: ``(title, image)`` pairs.
 
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-
-
-def _plot(res: dict, summ: dict, out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
-
-    paths = []
-    geo = res["geometry"]
-    views = res["views"]
-    valid = np.concatenate([v[np.isfinite(v)] for v in views.values()])
-    lo, hi = np.percentile(valid, [1, 99])
-    fig, axes = plt.subplots(3, 3, figsize=(12.5, 9.6), gridspec_kw={"hspace": 0.35,
-                                                                      "wspace": 0.3})
-    layout = {"top": (0, 1), "left": (1, 0), "centre": (1, 1), "right": (1, 2),
-              "bottom": (2, 1)}
-    for ax in axes.ravel():
-        ax.axis("off")
-    for name, (i, j) in layout.items():
-        ax = axes[i, j]
-        ax.imshow(views[name], cmap="gray", vmin=lo, vmax=hi, interpolation="nearest")
-        u = summ["views"]["u_mm"][name]
-        ax.set_title(f"{name}: u = ({u[0]:+.2f}, {u[1]:+.2f}) mm")
-        ax.axis("on")
-        ax.set_xticks([])
-        ax.set_yticks([])
-    r = LETTERS_ROI
-    axes[1, 1].add_patch(Rectangle((r[1].start - 0.5, r[0].start - 0.5), r[1].stop - r[1].start,
-                                   r[0].stop - r[0].start, fill=False, ec="tab:red", lw=1))
-    raw = np.asarray(res["image"])
-    crop = np.nan_to_num(raw[130:350, 420:800], nan=0.0)
-    axes[0, 0].imshow(crop, cmap="gray", vmin=0, vmax=np.nanpercentile(raw, 99))
-    axes[0, 0].set_title("flat-fielded raw, rows 130-350, cols 420-800\n(upper 'ab'; NaN: black)",
-                         fontsize=9)
-    axes[0, 0].axis("on")
-    axes[0, 0].set_xticks([])
-    axes[0, 0].set_yticks([])
-    ax = axes[0, 2]
-    ax.axis("on")
-    par = res["parallax"]
-    ax.plot(par.u * 1e3, par.shift_x, "o", label="x: column shift, views (u, 0)")
-    ax.plot(par.u * 1e3, par.shift_y, "s", label="y: row shift, views (0, u)")
-    pitch = _lattice_pitch(res["lf"], res["wcal"].calibration.grid_index)
-    for slope, p, st in zip(par.slope, pitch[::-1], ("C0-", "C1-"), strict=True):
-        ax.plot(par.u * 1e3, slope * par.u / p, st, lw=0.8)
-    ax.set_xlabel("aperture position u (mm)")
-    ax.set_ylabel("shift vs centre view (lenslets)")
-    ax.set_title(f"parallax of the letters: α = {par.alpha_mean:.4f}")
-    ax.legend(fontsize=7)
-    fig.suptitle("plenoptomos letters: perspective views (20 × 26 lenslets; red: letters ROI)")
-    paths.append(out / "letters_views.png")
-    _savefig(fig, paths[-1])
-
-    sweep = res["sweep"]
-    a = np.asarray(sweep["alpha"])
-    fig, ax = plt.subplots(figsize=(8.5, 4.8))
-    g = np.asarray(sweep["gradient"])
-    lap = np.asarray(sweep["laplacian"])
-    ax.plot(a, g / g.max(), "-", color="C0", label="gradient energy, letters (Fourier refocus)")
-    ax.plot(a, lap / lap.max(), "--", color="C0", lw=1,
-            label="variance of Laplacian, letters (Fourier)")
-    ga = np.asarray(sweep["gradient_all"])
-    ax.plot(a, ga / ga.max(), ":", color="C2", label="gradient energy, whole view (Fourier)")
-    if res["splat"] is not None:
-        sg = np.asarray(res["splat"]["gradient"])
-        ax.plot(a, sg / sg.max(), "-", color="C3", lw=1,
-                label="gradient energy, letters (splat refocus)")
-    peak = res["peak"]
+    α = 0.95, 1 (nominal), the focus-sweep peak, the source's 0.95 in plenopiv's α, and 1.08.
+    """
+    peak, geo = res["peak"], res["geometry"]
     src_in = plenopiv_alpha(SOURCE_ALPHA, **geo)
-    ax.axvline(peak, color="C0", lw=0.8)
-    ax.axvline(par.alpha_mean, color="C1", lw=0.8, ls="--")
-    ax.axvline(src_in, color="k", lw=0.8, ls=":")
-    ax.axvline(1.0, color="0.6", lw=0.5)
-    ymin = ax.get_ylim()[0]
-    ax.text(peak, ymin, f" peak {peak:.4f}\n (source α {source_alpha(peak, **geo):.3f})",
-            color="C0", fontsize=8, va="bottom")
-    ax.text(par.alpha_mean, 0.55, f" parallax\n {par.alpha_mean:.4f}", color="C1", fontsize=8)
-    ax.text(src_in, 0.4, f" source's α = {SOURCE_ALPHA}\n = {src_in:.4f} here", fontsize=8)
-    ax.set_xlabel("plenopiv α (synthetic lenslet plane at α S_i; > 1: in front)")
-    ax.set_ylabel("sharpness / its maximum")
-    sec = ax.secondary_xaxis("top", functions=(lambda x: source_alpha(x, **geo),
-                                               lambda x: plenopiv_alpha(x, **geo)))
-    sec.set_xlabel("source's α (plenoptomos, object space, cone)")
-    ax.legend(fontsize=7, loc="lower left")
-    paths.append(out / "letters_focus_curve.png")
-    _savefig(fig, paths[-1])
-
     lf, gi = res["lf"], res["wcal"].calibration.grid_index
     show = [(0.95, "α = 0.95"), (1.0, "α = 1 (nominal)"), (peak, f"peak α = {peak:.4f}"),
             (src_in, f"source's 0.95 (α = {src_in:.4f})"), (1.08, "α = 1.08")]
-    imgs = [refocus(res["image"], lf, al, method="fourier", grid_index=gi) for al, _ in show]
-    fin = np.concatenate([i[np.isfinite(i)] for i in imgs])
-    lo, hi = np.percentile(fin, [1, 99])
-    fig, axes = plt.subplots(1, len(show), figsize=(3.2 * len(show), 3.0))
-    for ax, im, (_, title) in zip(axes, imgs, show, strict=True):
-        ax.imshow(im, cmap="gray", vmin=lo, vmax=hi, interpolation="nearest")
-        ax.set_title(title, fontsize=9)
-        ax.set_xticks([])
-        ax.set_yticks([])
-    fig.suptitle("Fourier shift-and-add refocus (plenopiv α)")
-    paths.append(out / "letters_refocused.png")
-    _savefig(fig, paths[-1])
-    return paths
-
-
-def _markdown(s: dict) -> str:
-    c, f, p = s["calibration"], s["focus"], s["parallax"]
-    lines = [
-        "# Light field on the plenoptomos letters image (real plenoptic 1.0 camera)", "",
-        "Generated by `python pipelines/validate_letters.py` (`plenopiv.validation.letters`). "
-        "Data: `shared/data/plenoptomos_letters_ULF` (cicwi/plenoptomos, GPL-3.0; not in this "
-        "repository).", "",
-        "## Calibration from the white image", "",
-        f"- grid {c['grid']}, {c['n_spots']} micro-images ({c['n_complete']} complete), "
-        f"lattice {c['lattice_shape'][0]} × {c['lattice_shape'][1]}",
-        f"- pitch {c['pitch_px'][0]:.4f} × {c['pitch_px'][1]:.4f} px "
-        f"(± {c['pitch_std_px'][0]:.4f}), rotation {c['rotation_rad'] * 1e3:.2f} mrad, "
-        f"rms residual {c['rms_residual_px']:.3f} px",
-        f"- k = pitch · p_p / p_m = {c['k']:.5f} → S = f̄/(k − 1) = "
-        f"{c['image_distance_from_pitch_mm']:.1f} mm (used); nominal lens-to-MLA "
-        f"{c['image_distance_nominal_mm']:.0f} mm would give a pitch of "
-        f"{c['pitch_px_if_nominal']:.3f} px",
-        f"- micro-image diameter {c['micro_image_diameter_px']:.1f} px; a 6.6 mm stop seen from "
-        f"S would make {c['micro_image_diameter_px_if_6p6mm_stop']:.1f} px: the effective pupil "
-        f"is {c['pupil_diameter_from_micro_images_mm']:.2f} mm. The light field uses "
-        f"f/{c['f_number_used']:.1f} (6.6 mm), i.e. the well-lit inner pixels.", "",
-        "## Views and parallax", "",
-        f"- views {s['light_field']['views_shape'][0]} × {s['light_field']['views_shape'][1]} "
-        f"lenslets; letters ROI rows {s['views']['roi'][0]}, cols {s['views']['roi'][1]}",
-        "- NCC with the central view: " + ", ".join(
-            f"{k} {v:.3f}" for k, v in s["views"]["ncc_with_centre"].items()),
-        f"- parallax slope ds/du = {p['slope'][0]:.4f} (x), {p['slope'][1]:.4f} (y) → "
-        f"α = {p['alpha'][0]:.4f}, {p['alpha'][1]:.4f} (source's α {p['alpha_source']:.4f})", "",
-        "## Focus sweep (Fourier shift-and-add refocus, letters ROI)", "",
-        f"- peak α (gradient energy) = {f['peak']['gradient']:.4f} → source's α "
-        f"{f['peak_alpha_source']['gradient']:.4f}; Laplacian {f['peak']['laplacian']:.4f}; "
-        f"whole view {f['peak']['gradient_all']:.4f}",
-        f"- with the nominal S = 400 mm the same plane is α = {f['peak_alpha_if_nominal_S']:.4f}",
-        f"- the source's α = {f['source_alpha']} is α = {f['source_alpha_in_plenopiv']:.4f} here",
-        f"- peak plane: α S_i = {f['peak_plane']['refocus_image_distance_mm']:.1f} mm, object "
-        f"distance {f['peak_plane']['object_distance_mm']:.1f} mm, Z = "
-        f"{f['peak_plane']['depth_mm']:.1f} mm (thin lens, f = 200 mm, S_i from the pitch)", "",
-        "| α (plenopiv) | source's α | gradient energy | variance of Laplacian |"
-        + (" splat gradient energy |" if "focus_splat" in s else ""),
-        "|---|---|---|---|" + ("---|" if "focus_splat" in s else ""),
-    ]
-    for i, a in enumerate(f["alpha"]):
-        row = (f"| {a:.3f} | {f['alpha_source'][i]:.4f} | {f['gradient'][i]:.5g} | "
-               f"{f['laplacian'][i]:.5g} |")
-        if "focus_splat" in s:
-            row += f" {s['focus_splat']['gradient'][i]:.5g} |"
-        lines.append(row)
-    if "focus_splat" in s:
-        sp = s["focus_splat"]
-        top = sp["alpha"][int(np.argmax(sp["gradient"]))]
-        lines += ["", f"The splat refocus (bilinear onto a fixed grid) has its maximum at "
-                  f"α = {top:.3f}, on a kink: at α = 1 all rays of a lenslet land on one point, "
-                  "so its resampling changes character there and pulls the peak onto α = 1 "
-                  "whatever the depth (see `plenopiv.lightfield.refocus`; the ray-traced "
-                  "particle test in `tests/test_lightfield_letters.py` shows the Fourier "
-                  "refocus returning a known plane to 0.001 in α)."]
-    return "\n".join(lines) + "\n"
+    return [(title, refocus(res["image"], lf, al, method="fourier", grid_index=gi))
+            for al, title in show]
 
 
 def run(out_dir: str | Path, *, data_dir: str | Path | None = None, alphas=ALPHAS) -> dict:
@@ -949,11 +655,12 @@ def run(out_dir: str | Path, *, data_dir: str | Path | None = None, alphas=ALPHA
     data = load_letters(data_dir)
     res = analyse(data, alphas=alphas)
     summ = summary(res, data.optics)
-    with atomic_path(out / "letters.json") as tmp:
-        tmp.write_text(json.dumps(summ, indent=1))
-    with atomic_path(out / "letters.md") as tmp:
-        tmp.write_text(_markdown(summ))
-    figures = _plot(res, summ, out)
+    # the renderer imports this module's constants and α conversions, hence imported here
+    from plenopiv.validation import letters_report as report
+
+    write_json(out / "letters.json", summ)
+    write_text(out / "letters.md", report.markdown(summ))
+    figures = report.figures(res, summ, refocused_planes(res), out)
     return {"out": str(out), "figures": [str(p) for p in figures],
             "pitch_px": summ["calibration"]["pitch_px"],
             "image_distance_from_pitch_mm": summ["calibration"]["image_distance_from_pitch_mm"],

@@ -7,13 +7,12 @@ Runs :mod:`plenopiv.validation.tracking_study` and writes its numbers (I/O only)
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-from plenopiv.products.files import atomic_path
+from plenopiv.validation.report import write_json, write_text
 from plenopiv.validation.tracking_study import measure_case, measure_single_particles
 from plenopiv.validation.vortex import VortexCase
 
@@ -45,21 +44,11 @@ def run(out: str | Path, *, densities=DENSITIES, seeds=(1,), extra_seeds=(2, 3),
     progress(f"single particles: rms mm {single['rms_mm']}")
     result = {"cases": rows, "single": _jsonable(single), "target": TARGET,
               "seconds": round(time.perf_counter() - t0, 1)}
-    with atomic_path(out / "tracking.json") as tmp:
-        tmp.write_text(json.dumps(result, indent=1, default=_json_default))
+    write_json(out / "tracking.json", result, default=str)
     figs = _figures(result, out)
-    with atomic_path(out / "tracking.md") as tmp:
-        tmp.write_text(markdown(result, [f.name for f in figs]))
+    write_text(out / "tracking.md", markdown(result, [f.name for f in figs]))
     return {"json": str(out / "tracking.json"), "markdown": str(out / "tracking.md"),
             "figures": [str(f) for f in figs], "seconds": result["seconds"]}
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    return str(o)
 
 
 def _jsonable(d: dict) -> dict:

@@ -1,6 +1,7 @@
-"""Coverage of the per-vector uncertainty on the vortex validations: the share of true errors
-within ±2σ, per component, on both flows, two lateral voxels, two seedings, two camera
-patches and two seeds.
+"""Coverage of the per-vector uncertainty on the vortex validations.
+
+The share of true errors within ±2σ, per component, on both flows, two lateral voxels, two
+seedings, two camera patches and two seeds.
 
 Every case runs the whole chain (:func:`plenopiv.validation.vortex.run_case`: calibration
 images -> calibration -> pair -> volumes -> 3-D PIV with the default ``[piv] uncertainty =
@@ -19,7 +20,6 @@ estimate, all from the same field:
 
 from __future__ import annotations
 
-import json
 import re
 import time
 from pathlib import Path
@@ -27,9 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.config import PIVConfig
-from plenopiv.products.files import atomic_path
 from plenopiv.products.hdf5 import open_product
 from plenopiv.products.vectors import VectorResult
+from plenopiv.validation.report import pyplot, savefig, write_json, write_text
 from plenopiv.validation.vortex import (
     VortexCase,
     case_flow,
@@ -130,21 +130,20 @@ def run(out: str | Path, *, work: str | Path | None = None, cases=CASES, progres
                  f"(correlation statistics alone {np.round(row['coverage']['correlation'], 3)})")
     result = {"cases": [{k: v for k, v in r.items() if k != "normalised_error"} for r in rows],
               "target": list(TARGET), "seconds": round(time.perf_counter() - t0, 1)}
-    with atomic_path(out / "uncertainty.json") as tmp:
-        tmp.write_text(json.dumps(result, indent=1, default=str))
+    write_json(out / "uncertainty.json", result, default=str)
     figure(rows, out / "uncertainty_coverage.png")
-    with atomic_path(out / "uncertainty.md") as tmp:
-        tmp.write_text(markdown(result))
+    write_text(out / "uncertainty.md", markdown(result))
     return {"json": str(out / "uncertainty.json"), "markdown": str(out / "uncertainty.md"),
             "seconds": result["seconds"]}
 
 
 def figure(rows: list[dict], path: Path) -> Path:
-    """Coverage per case, component and stage against the band; and the pooled distribution
-    of error / σ per component."""
-    from plenopiv.plots import _figure, _save
+    """Coverage per case, component and stage against the band; pooled error / σ histograms.
 
-    plt, fig = _figure(figsize=(14, 9))
+    The pooled distribution of error / σ is drawn per component.
+    """
+    plt = pyplot()
+    fig = plt.figure(figsize=(14, 9), layout="constrained")
     names = [r["label"] for r in rows]
     for k, comp in enumerate("uvw"):
         ax = fig.add_subplot(2, 3, k + 1)
@@ -176,7 +175,7 @@ def figure(rows: list[dict], path: Path) -> Path:
         ax.set_title(f"{comp}: error in units of its uncertainty")
         ax.legend(fontsize=7)
     fig.suptitle("Per-vector uncertainty on the vortex validations")
-    return _save(plt, fig, path)
+    return savefig(fig, path)
 
 
 def _f(v, n=2) -> str:

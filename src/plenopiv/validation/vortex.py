@@ -1,5 +1,6 @@
-"""Whole-chain validation on synthetic vortex flows: simulate -> calibrate -> reconstruct ->
-correlate -> compare with the known displacement field.
+"""Whole-chain validation on synthetic vortex flows, against the known displacement field.
+
+The chain: simulate -> calibrate -> reconstruct -> correlate -> compare with the truth.
 
 :func:`run_case` drives one case (Lamb-Oseen vortex with its axis along y, so that particles
 move in depth; or Hill's spherical vortex); ``plenopiv demo`` and ``plenopiv validate
@@ -152,8 +153,10 @@ def case_flow(case: VortexCase, grid: VolumeGrid):
 
 
 def aligned_grid(camera: CameraModel, case: VortexCase) -> VolumeGrid:
-    """A grid whose lateral voxels are the lenslet footprints on the focal plane (centred on
-    them), in effective coordinates."""
+    """A grid whose lateral voxels are the lenslet footprints on the focal plane.
+
+    The voxels are centred on the footprints, in effective coordinates.
+    """
     b = footprint(camera)
     hx, hy = field_of_view(camera, 0.0)
     nx = int(case.lateral_fill * hx / b)

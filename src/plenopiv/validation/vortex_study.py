@@ -28,7 +28,6 @@ overall and in three bands of |Z| (distance from the focal plane). Four series:
 
 from __future__ import annotations
 
-import json
 import re
 import shutil
 import time
@@ -40,9 +39,9 @@ import numpy as np
 from plenopiv.calibration.model import Calibration
 from plenopiv.config import ReconstructionSettings
 from plenopiv.pipeline import footprint, gaussian_truth_volume, resolution_cell
-from plenopiv.products.files import atomic_path
 from plenopiv.products.volume import load_volume
 from plenopiv.synthetic.seeding import SeedingBox
+from plenopiv.validation.report import write_json, write_text
 from plenopiv.validation.vortex import (
     VortexCase,
     _flow,
@@ -142,9 +141,11 @@ SHARPEN = {"squared": lambda v: v * v,
 
 def _repiv(label: str, case: VortexCase, run_dir: str, *, exact: bool = False,
            sharpen: str | None = None, **piv) -> dict:
-    """PIV again on the volumes a case wrote (or on its exact particle volumes, or on the
-    volumes sharpened by ``SHARPEN[sharpen]``), with other PIV settings; scored like a
-    case."""
+    """PIV again on the volumes a case wrote, with other PIV settings; scored like a case.
+
+    Optionally on its exact particle volumes, or on the volumes sharpened by
+    ``SHARPEN[sharpen]``.
+    """
     from plenopiv.piv import PIVSettings, correlate_volumes
 
     t0 = time.perf_counter()
@@ -182,8 +183,11 @@ def _repiv(label: str, case: VortexCase, run_dir: str, *, exact: bool = False,
 
 
 def causes(work: Path, *, seed: int = 1, progress=print) -> list[dict]:
-    """Each candidate cause of a flattened w on its own (CI camera, Oseen and a 1-voxel
-    depth shift, 0.3 particles per lenslet, footprint voxels, exact calibration)."""
+    """Each candidate cause of a flattened w on its own.
+
+    CI camera, Oseen and a 1-voxel depth shift, 0.3 particles per lenslet, footprint voxels,
+    exact calibration.
+    """
     rows = []
     base = dict(particles_per_lenslet=0.3, blur_px=BLUR_PX, calibrate=False, seed=seed)
     b = footprint(case_camera(VortexCase()))
@@ -239,8 +243,11 @@ def causes(work: Path, *, seed: int = 1, progress=print) -> list[dict]:
 
 
 def flows(work: Path, figures: Path | None, *, seed: int = 1, progress=print) -> list[dict]:
-    """Oseen and Hill on the 61 x 91 patch: densities x voxels, previous defaults, a volume
-    beyond the focal plane, the issue's rendering."""
+    """Oseen and Hill on the 61 x 91 patch.
+
+    Densities x voxels, previous defaults, a volume beyond the focal plane, the issue's
+    rendering.
+    """
     rows = []
     base = dict(blur_px=BLUR_PX, seed=seed, **PATCH)
     for flow in ("oseen", "hill"):
@@ -272,8 +279,10 @@ def flows(work: Path, figures: Path | None, *, seed: int = 1, progress=print) ->
 
 
 def depth_shifts(work: Path, *, seed: int = 1, shifts=DEPTH_SHIFTS, progress=print) -> list:
-    """Uniform shifts along z (depth voxels), CI camera, 0.3 ppl, footprint and half-footprint
-    voxels."""
+    """Uniform shifts along z (depth voxels): CI camera, 0.3 ppl, two lateral voxels.
+
+    The lateral voxels are a footprint and half a footprint.
+    """
     rows = []
     b = footprint(case_camera(VortexCase()))
     for k in (1, 2):
@@ -331,10 +340,8 @@ def run(out: str | Path, *, work: str | Path | None = None, seed: int = 1,
     if "lateral_shifts" in series:
         result["lateral_shifts"] = lateral_shifts(work, seed=seed, progress=progress)
     result["seconds"] = round(time.perf_counter() - t0, 1)
-    with atomic_path(out / "vortex.json") as tmp:
-        tmp.write_text(json.dumps(result, indent=1, default=str))
-    with atomic_path(out / "vortex.md") as tmp:
-        tmp.write_text(markdown(result))
+    write_json(out / "vortex.json", result, default=str)
+    write_text(out / "vortex.md", markdown(result))
     return {"json": str(out / "vortex.json"), "markdown": str(out / "vortex.md"),
             "seconds": result["seconds"]}
 

@@ -1,0 +1,261 @@
+"""The light field: every lit pixel of a calibrated camera as a ray (s, t, u, v).
+
+For a pixel at sensor position x under the lenslet with centre d and focal spot x_c
+(DESIGN.md §4, thesis Eqs. 4.1/4.5 with the sign the thesis drops)::
+
+    u = -(x - x_c) · S_i,eff / f̄          (aperture-plane position, metres)
+    s = d                                 (lenslet centre on the lenslet plane)
+
+and its conjugate on the nominal focal plane is X_f = s/M = -s S_o,eff/S_i,eff. In object space
+(effective coordinates) the ray passes through (u, 0) at the lens and X_f at S_o,eff, so at
+depth Z it is at X(Z) = u + (X_f - u)(S_o,eff + Z)/S_o,eff.
+
+A pixel is a beam: its aperture cell is p_p S_i,eff/f̄ wide, its lenslet footprint on the focal
+plane p_m S_o,eff/S_i,eff. Pixels whose cell lies mostly outside the aperture disc (f_m/N) never
+receive light and are left out.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.conventions import pixel_to_sensor
+from plenopiv.errors import CalibrationError
+from plenopiv.lightfield import _kernels as _lk
+
+
+class LightFieldWarning(UserWarning):
+    """The light field's model does not match its calibration (micro-image size, rays)."""
+
+
+# modelled and measured micro-image diameters may differ by this factor before a warning
+MICRO_IMAGE_TOLERANCE = 1.25
+# fewer rays per lenslet than this on average: the light field is nearly empty
+MIN_RAYS_PER_LENSLET = 4.0
+
+
+def micro_image_diameter_px(camera, image_distance: float, f_number: float) -> float:
+    """Modelled micro-image diameter, px: the aperture ``f_m / N`` seen from the lenslets.
+
+    ``f_m / N * f̄ / S_i`` on the sensor (divided by the plate's index with the "thesis" back
+    side, whose rays keep their in-glass angle). :func:`light_field` takes each lenslet's
+    pixels within this disc (plus a pixel).
+    """
+    d = camera.main_lens.focal_length / f_number
+    mla = camera.microlens_array
+    if mla.back_side == "thesis" and mla.substrate is not None:
+        d /= mla.substrate.refractive_index
+    return d * camera.microlens_array.sensor_distance / image_distance / camera.sensor.pixel_pitch
+
+
+@dataclass(frozen=True)
+class LightField:
+    """The rays of the lit pixels of one camera calibration.
+
+    Attributes
+    ----------
+    pixel : (P,) int64
+        Flat pixel index ``row * n_cols + col``.
+    lenslet : (P,) int32
+        Index of the pixel's lenslet in the calibration.
+    s : (P, 2) float64
+        Lenslet centre (x, y) on the lenslet plane, metres.
+    u : (P, 2) float64
+        Aperture-plane position (x, y) of the pixel's ray, metres.
+    lit : (P,) float64
+        Fraction of the pixel's aperture cell inside the aperture disc.
+    image_distance, object_distance : float
+        Effective S_i and S_o, metres.
+    aperture_radius : float
+        Main-lens aperture radius f_m/(2N), metres.
+    cell : float
+        Aperture-cell width p_p S_i/f̄, metres.
+    footprint : float
+        Lenslet footprint on the nominal focal plane p_m S_o/S_i, metres.
+    shape : tuple
+        Sensor shape (rows, cols).
+    """
+
+    pixel: np.ndarray
+    lenslet: np.ndarray
+    s: np.ndarray
+    u: np.ndarray
+    lit: np.ndarray
+    image_distance: float
+    object_distance: float
+    aperture_radius: float
+    cell: float
+    footprint: float
+    shape: tuple[int, int]
+
+    @property
+    def n_rays(self) -> int:
+        """Number of lit pixels (rays)."""
+        return len(self.pixel)
+
+    @property
+    def magnification(self) -> float:
+        """M = -S_i,eff/S_o,eff."""
+        return -self.image_distance / self.object_distance
+
+    @property
+    def focal_plane_position(self) -> np.ndarray:
+        """X_f = s/M, the ray's point on the nominal focal plane (P, 2), metres."""
+        return self.s / self.magnification
+
+    def position_at_depth(self, depth) -> np.ndarray:
+        """Ray positions (P, 2) at effective depth Z (metres) from the nominal focal plane."""
+        t = (self.object_distance + depth) / self.object_distance
+        return self.u + (self.focal_plane_position - self.u) * t
+
+    @property
+    def alpha_range(self) -> tuple[float, float]:
+        """The refocus parameters α this light field supports, ``(α_min, α_max)``.
+
+        Refocusing moves a ray through aperture point u by ``u (1/α - 1)`` on the lenslet
+        plane; α is supported while the rays from the aperture's edge move by at most half
+        the smaller extent of the lenslet array, ``R |1/α - 1| <= W / 2`` (beyond it most
+        views miss most of the array and the refocused image is empty). ``α_max`` is
+        infinite when ``W / 2 >= R``.
+        """
+        if self.n_rays == 0:
+            return (1.0, 1.0)
+        w = float(np.min(np.ptp(self.s, axis=0))) + self.footprint * self.image_distance \
+            / self.object_distance
+        q = 0.5 * w / self.aperture_radius
+        return (1.0 / (1.0 + q), math.inf if q >= 1.0 else 1.0 / (1.0 - q))
+
+    def values(self, image) -> np.ndarray:
+        """The image's value for every ray (P,)."""
+        img = np.asarray(image)
+        if img.shape != tuple(self.shape):
+            raise CalibrationError(f"image is {img.shape}, the calibration's sensor is "
+                                   f"{tuple(self.shape)}")
+        return img.reshape(-1)[self.pixel]
+
+
+def light_field(calibration: Calibration, *, f_number: float | None = None,
+                min_lit: float = 0.5, edge_centroid: bool = True) -> LightField:
+    """Map every lit pixel of the calibrated camera to its ray.
+
+    Parameters
+    ----------
+    calibration : Calibration
+    f_number : float, optional
+        Aperture of the recording (default: the camera's f-number).
+    min_lit : float
+        Keep pixels whose aperture cell is at least this fraction inside the aperture.
+    edge_centroid : bool
+        Trace a pixel cut by the aperture's edge through the centroid of its cell's lit part
+        (default), or through the cell centre (the model of the matrix-free
+        :class:`~plenopiv.reconstruction.lattice.LatticeProjector`).
+
+    Warns
+    -----
+    LightFieldWarning
+        When the f-number makes the modelled micro-images more than 1.25 times larger or
+        smaller than the white image of the calibration shows
+        (``calibration.extra["micro_image_diameter_px"]``), when they are larger than the
+        micro-image pitch, or when fewer than 4 rays per lenslet remain: the views and
+        refocused images would be mostly blank or NaN. Each message names ``f_number``.
+    """
+    cam = calibration.camera
+    si = calibration.image_distance
+    so = 1.0 / (1.0 / cam.main_lens.focal_length - 1.0 / si)
+    fbar = cam.microlens_array.sensor_distance
+    pp = cam.sensor.pixel_pitch
+    n_f = cam.main_lens.f_number if f_number is None else f_number
+    radius = cam.main_lens.focal_length / n_f / 2
+    if cam.microlens_array.back_side == "thesis" and cam.microlens_array.substrate is not None:
+        # rays keep their in-glass angle behind the lenslets: the micro-images, and so the
+        # aperture as the pixels see it through u = -(x - x_c) S_i/f̄, are n times smaller
+        # (the depth scale this leaves is the internal correction, thesis Eq. 5.1)
+        radius /= cam.microlens_array.substrate.refractive_index
+    cell = pp * si / fbar
+    shape = cam.sensor.shape
+
+    spots = np.asarray(calibration.focal_spot_px, float)
+    centres_m = pixel_to_sensor(calibration.centre_px, shape, pp)
+    # pixels of each micro-image: within the aperture image radius (R f̄/S_i) and within half
+    # a micro-image pitch of its own spot (so that no pixel belongs to two lenslets)
+    r_img_px = radius * fbar / si / pp
+    pitch_px = cam.pitch_px * (1 + fbar / si)
+    _check_micro_images(calibration, n_f, 2.0 * r_img_px, pitch_px)
+    r_max = min(r_img_px + 1.0, 0.5 * pitch_px)
+    half = int(math.ceil(r_max)) + 1
+    off = np.arange(-half, half + 1)
+    dr, dc = np.meshgrid(off, off, indexing="ij")
+    dr, dc = dr.ravel(), dc.ravel()
+    base = np.rint(spots).astype(int)
+    rows = base[:, 0, None] + dr[None, :]
+    cols = base[:, 1, None] + dc[None, :]
+    rel_r = rows - spots[:, 0, None]
+    rel_c = cols - spots[:, 1, None]
+    inside = ((rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
+              & (rel_r ** 2 + rel_c ** 2 <= r_max ** 2))
+    # aperture position of each pixel (x along cols, y along rows)
+    ux = -rel_c * pp * si / fbar
+    uy = -rel_r * pp * si / fbar
+    lit, dux, duy = _lit_inside(ux, uy, inside, cell, radius)
+    # a pixel cut by the aperture's edge sees only the lit part of its cell: its ray goes
+    # through the centroid of that part, not through the cell centre
+    if edge_centroid:
+        ux, uy = ux + dux, uy + duy
+    keep = inside & (lit >= min_lit)
+    k_idx, _ = np.nonzero(keep)
+    pix = (rows[keep].astype(np.int64) * shape[1] + cols[keep])
+    order = np.argsort(pix, kind="stable")
+    pix = pix[order]
+    if len(pix) and np.any(np.diff(pix) == 0):
+        raise CalibrationError("two lenslets claim the same pixel: the focal spots are closer "
+                               "than the aperture image; check the f-number and calibration")
+    n_lenslets = max(len(spots), 1)
+    if len(pix) < MIN_RAYS_PER_LENSLET * n_lenslets:
+        warnings.warn(
+            f"the light field keeps {len(pix)} rays for {n_lenslets} lenslets "
+            f"({len(pix) / n_lenslets:.2g} per lenslet, fewer than {MIN_RAYS_PER_LENSLET:g}): "
+            f"with f_number = {n_f:g} the modelled micro-images are {2 * r_img_px:.2f} px "
+            "across; views and refocused images will be mostly blank or NaN (check f_number)",
+            LightFieldWarning, stacklevel=2)
+    return LightField(
+        pixel=pix, lenslet=k_idx[order].astype(np.int32), s=centres_m[k_idx[order]],
+        u=np.stack([ux[keep], uy[keep]], axis=1)[order], lit=lit[keep][order],
+        image_distance=si, object_distance=so, aperture_radius=radius, cell=cell,
+        footprint=cam.microlens_array.pitch * so / si, shape=shape)
+
+
+def _check_micro_images(calibration: Calibration, n_f: float, model_px: float,
+                        pitch_px: float) -> None:
+    """Warn when the modelled micro-image size contradicts the calibration (see light_field)."""
+    measured = calibration.extra.get("micro_image_diameter_px")
+    if measured is not None and np.isfinite(measured) and measured > 0:
+        ratio = model_px / float(measured)
+        if not 1.0 / MICRO_IMAGE_TOLERANCE <= ratio <= MICRO_IMAGE_TOLERANCE:
+            implied = n_f * ratio
+            warnings.warn(
+                f"f_number = {n_f:g} makes the micro-images {model_px:.1f} px across, but the "
+                f"white image of the calibration shows {float(measured):.1f} px (as from "
+                f"f_number = {implied:.3g}); the light field takes each lenslet's pixels "
+                f"within the modelled size, so it {'misses' if ratio < 1 else 'adds dark'} "
+                "pixels: set [main_lens] f_number (or f_number=) to the recording's aperture",
+                LightFieldWarning, stacklevel=3)
+            return
+    if model_px > MICRO_IMAGE_TOLERANCE * pitch_px:
+        warnings.warn(
+            f"f_number = {n_f:g} makes the micro-images {model_px:.1f} px across, more than "
+            f"their pitch {pitch_px:.1f} px: they would overlap, and each lenslet keeps only "
+            "the pixels within half a pitch (check f_number)", LightFieldWarning, stacklevel=3)
+
+
+def _lit_inside(ux, uy, inside, cell, radius):
+    """:func:`~plenopiv.lightfield._kernels.lit_fraction` of the pixels ``inside``, 0 elsewhere."""
+    out = [np.zeros(ux.shape) for _ in range(3)]
+    for full, part in zip(out, _lk.lit_fraction(ux[inside], uy[inside], cell, radius, 8),
+                          strict=True):
+        full[inside] = part
+    return out
