@@ -42,6 +42,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
 import sys
 import threading
 import time
@@ -90,16 +91,20 @@ def stage(name: str, log: dict):
     th = threading.Thread(target=sample, daemon=True)
     th.start()
     t0 = time.perf_counter()
+    c0 = time.process_time()
     try:
         yield
     finally:
         seconds = time.perf_counter() - t0
+        cpu = time.process_time() - c0
         done.set()
         th.join()
         peak[0] = max(peak[0], _rss_gb())
-        log[name] = {"seconds": round(seconds, 2), "peak_gb": round(peak[0], 2)}
-        print(f"{name:<28s} {seconds:8.1f} s   peak {peak[0]:6.2f} GB", file=sys.stderr,
-              flush=True)
+        load = os.getloadavg()[0]
+        log[name] = {"seconds": round(seconds, 2), "cpu_seconds": round(cpu, 2),
+                     "peak_gb": round(peak[0], 2), "load": round(load, 1)}
+        print(f"{name:<28s} {seconds:8.1f} s  cpu {cpu:8.1f} s   peak {peak[0]:6.2f} GB   "
+              f"load {load:.1f}", file=sys.stderr, flush=True)
 
 
 # ---- the case ----------------------------------------------------------------------------------
@@ -273,8 +278,8 @@ def main(argv=None) -> dict:
         ia, ib, pa, pb, cached = render_pair(cam, flow, case, box, args.particles, args.rays)
     log["render pair"]["cached"] = cached
 
-    print(f"projector: {'lattice (matrix-free)' if w.matrix_free else 'explicit'}",
-          file=sys.stderr)
+    print(f"projector: {type(w.projector).__name__}"
+          f"{' (matrix-free)' if w.matrix_free else ''}", file=sys.stderr)
     vols = {}
     for name, img in (("A", ia), ("B", ib)):
         with stage(f"reconstruct {name}", log):
@@ -293,7 +298,9 @@ def main(argv=None) -> dict:
     result = {
         "camera": "auburn_135mm", "grid_shape": list(grid.shape),
         "particles": args.particles, "iterations": args.iterations,
-        "projector": "lattice" if w.matrix_free else "sparse",
+        "projector": type(w.projector).__name__,
+        "reconstruct_cpu_seconds": round(float(np.mean(
+            [log[f"reconstruct {n}"]["cpu_seconds"] for n in "AB"])), 2),
         "weights_seconds": log["weights (light field)"]["seconds"],
         "reconstruct_seconds": round(float(np.mean(rec_s)), 2),
         "reconstruct_peak_gb": max(log[f"reconstruct {n}"]["peak_gb"] for n in "AB"),

@@ -22,16 +22,50 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from plenopiv._weights_kernels import _axis_range, box_sum_cdf
+from plenopiv._weights_kernels import _axis_range
+
+
+@njit(cache=True, inline="always")
+def _cdf(y, shape):
+    """Return :func:`plenopiv._weights_kernels.box_sum_cdf` at ``y`` = x - centre.
+
+    ``shape``: the slice's constants (p1, p2, p3, p4, 1 / (2 lo hi), uniform, 1 / hi) from
+    :func:`cdf_shapes`, so that no division or sorting is left per evaluation.
+    """
+    if shape[5] > 0.0:                      # one box is a point: a plain uniform
+        v = y * shape[6] + 0.5
+        return 0.0 if v < 0.0 else (1.0 if v > 1.0 else v)
+    a = max(y - shape[0], 0.0)
+    b = max(y - shape[1], 0.0)
+    c = max(y - shape[2], 0.0)
+    d = max(y - shape[3], 0.0)
+    return (a * a - b * b - c * c + d * d) * shape[4]
+
+
+def cdf_shapes(al, be):
+    """Return the per-slice constants of :func:`_cdf`, shape (slices, 7).
+
+    For box widths ``al``, ``be`` (metres, arrays): the trapezoid's corners relative to its
+    centre, 1 / (2 lo hi), whether one box is a point (lo <= 1e-9 hi, as in
+    ``box_sum_cdf``) and 1 / hi.
+    """
+    lo = np.minimum(al, be)
+    hi = np.maximum(al, be)
+    uniform = lo <= 1e-9 * hi
+    safe = np.where(uniform, 1.0, lo)
+    return np.ascontiguousarray(np.stack(
+        [-0.5 * (lo + hi), -0.5 * (hi - lo), 0.5 * (hi - lo), 0.5 * (lo + hi),
+         1.0 / (2.0 * safe * hi), uniform.astype(np.float64), 1.0 / hi], axis=1))
 
 
 @njit(cache=True)
-def _profiles(u_line, n_line, xf, tk, al, be, half, origin, vox, n_vox, start, count, w):
+def _profiles(u_line, n_line, xf, tk, shape, half, origin, vox, n_vox, start, count, w):
     """Voxel overlaps of the lines' beams on one slice, along one axis.
 
     ``u_line[:n_line]``: the lines' aperture coordinates (metres); ``xf``: the lenslet's
-    focal-plane coordinate (metres). Writes ``start``, ``count``, ``w[:, :count]`` per line;
-    returns the first and one past the last voxel any line reaches (``lo >= hi`` if none).
+    focal-plane coordinate (metres); ``shape``: the slice's :func:`cdf_shapes` row. Writes
+    ``start``, ``count``, ``w[:, :count]`` per line; returns the first and one past the last
+    voxel any line reaches (``lo >= hi`` if none).
     """
     lo = n_vox
     hi = 0
@@ -52,10 +86,10 @@ def _profiles(u_line, n_line, xf, tk, al, be, half, origin, vox, n_vox, start, c
             lo = i0
         if i0 + c > hi:
             hi = i0 + c
-        edge = origin + (i0 - 0.5) * vox
-        prev = box_sum_cdf(edge, m, al, be)
+        y = origin + (i0 - 0.5) * vox - m
+        prev = _cdf(y, shape)
         for j in range(c):
-            cur = box_sum_cdf(edge + (j + 1) * vox, m, al, be)
+            cur = _cdf(y + (j + 1) * vox, shape)
             v = cur - prev
             w[p, j] = v if v > 0.0 else 0.0
             prev = cur
@@ -63,7 +97,7 @@ def _profiles(u_line, n_line, xf, tk, al, be, half, origin, vox, n_vox, start, c
 
 
 @njit(parallel=True, cache=True)
-def forward(volume, t, al, be, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_col, n_row,
+def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_col, n_row,
             xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
     """``out[ray_pos[i]] = scale_i · sum_k f_k sum_iy wy sum_ix wx volume[k, iy, ix]``.
 
@@ -89,11 +123,11 @@ def forward(volume, t, al, be, half, slice_factor, ox, oy, vx, vy, u_col, u_row,
         local = np.zeros((nr, nc), np.float64)
         tmp = np.empty((ny, nc), np.float64)
         for k in range(nz):
-            x_lo, x_hi = _profiles(u_col[lens], nc, xf_x[lens], t[k], al[k], be[k], half[k],
+            x_lo, x_hi = _profiles(u_col[lens], nc, xf_x[lens], t[k], shape[k], half[k],
                                    ox, vx, nx, xs, xc, xw)
             if x_lo >= x_hi:
                 continue
-            y_lo, y_hi = _profiles(u_row[lens], nr, xf_y[lens], t[k], al[k], be[k], half[k],
+            y_lo, y_hi = _profiles(u_row[lens], nr, xf_y[lens], t[k], shape[k], half[k],
                                    oy, vy, ny, ys, yc, yw)
             if y_lo >= y_hi:
                 continue
@@ -122,7 +156,7 @@ def forward(volume, t, al, be, half, slice_factor, ox, oy, vx, vy, u_col, u_row,
 
 
 @njit(parallel=True, cache=True)
-def back(image, t, al, be, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_col, n_row,
+def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_col, n_row,
          xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
     """Back projection, the adjoint of :func:`forward`.
 
@@ -155,11 +189,11 @@ def back(image, t, al, be, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_c
                 continue
             nc = n_col[lens]
             nr = n_row[lens]
-            x_lo, x_hi = _profiles(u_col[lens], nc, xf_x[lens], t[k], al[k], be[k], half[k],
+            x_lo, x_hi = _profiles(u_col[lens], nc, xf_x[lens], t[k], shape[k], half[k],
                                    ox, vx, nx, xs, xc, xw)
             if x_lo >= x_hi:
                 continue
-            y_lo, y_hi = _profiles(u_row[lens], nr, xf_y[lens], t[k], al[k], be[k], half[k],
+            y_lo, y_hi = _profiles(u_row[lens], nr, xf_y[lens], t[k], shape[k], half[k],
                                    oy, vy, ny, ys, yc, yw)
             if y_lo >= y_hi:
                 continue
@@ -189,7 +223,7 @@ def back(image, t, al, be, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_c
 
 
 @njit(parallel=True, cache=True)
-def row_max(t, al, be, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, n_col, n_row,
+def row_max(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, n_col, n_row,
             xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
     """Largest weight of every ray: ``scale · max_k f_k · max_ix wx · max_iy wy``."""
     nz = t.shape[0]
@@ -210,9 +244,9 @@ def row_max(t, al, be, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row,
         my = np.empty(bmax, np.float64)
         best = np.zeros((nr, nc), np.float64)
         for k in range(nz):
-            _profiles(u_col[lens], nc, xf_x[lens], t[k], al[k], be[k], half[k], ox, vx, nx,
+            _profiles(u_col[lens], nc, xf_x[lens], t[k], shape[k], half[k], ox, vx, nx,
                       xs, xc, xw)
-            _profiles(u_row[lens], nr, xf_y[lens], t[k], al[k], be[k], half[k], oy, vy, ny,
+            _profiles(u_row[lens], nr, xf_y[lens], t[k], shape[k], half[k], oy, vy, ny,
                       ys, yc, yw)
             for c in range(nc):
                 m = 0.0

@@ -108,7 +108,7 @@ def _slice_tables(lf: LightField, grid: VolumeGrid) -> dict:
     area = math.pi * lf.aperture_radius ** 2
     vx, vy = float(grid.voxel[0]), float(grid.voxel[1])
     kmax = int(math.ceil(float((al + be).max()) / min(vx, vy))) + 2
-    return {"t": t, "al": al, "be": be, "half": 0.5 * (al + be),
+    return {"t": t, "al": al, "be": be, "half": 0.5 * (al + be), "shape": _k.cdf_shapes(al, be),
             "factor": (lf.cell * be) ** 2 / (area * vx * vy), "kmax": kmax}
 
 
@@ -182,7 +182,7 @@ class LensletProjector(CachedSums):
     def _args(self) -> tuple:
         s, le, r = self._slices, self._lens, self._rays
         g = self.grid
-        return ((s["t"], s["al"], s["be"], s["half"], s["factor"], float(g.origin[0]),
+        return ((s["t"], s["shape"], s["half"], s["factor"], float(g.origin[0]),
                  float(g.origin[1]), float(g.voxel[0]), float(g.voxel[1])),
                 (le["u_col"], le["u_row"], le["n_col"], le["n_row"], le["xf_x"], le["xf_y"],
                  self._ray_ptr, r["ray_r"], r["ray_c"], r["ray_scale"], r["ray_pos"],
@@ -218,8 +218,6 @@ def lenslet_weights_reference(proj: LensletProjector) -> np.ndarray:
 
     The plain-NumPy twin of the kernels, from the same per-lenslet tables.
     """
-    from plenopiv.weights import _cdf_np
-
     g = proj.grid
     nz, ny, nx = g.shape
     xe = g.origin[0] + (np.arange(nx + 1) - 0.5) * g.voxel[0]
@@ -232,11 +230,24 @@ def lenslet_weights_reference(proj: LensletProjector) -> np.ndarray:
             tk = s["t"][k]
             mx = (1 - tk) * le["u_col"][lens, lc] + tk * le["xf_x"][lens]
             my = (1 - tk) * le["u_row"][lens, lr] + tk * le["xf_y"][lens]
-            fx = np.diff(_cdf_np(xe, mx, s["al"][k], s["be"][k]))
-            fy = np.diff(_cdf_np(ye, my, s["al"][k], s["be"][k]))
+            fx = np.diff(_box_sum_cdf_np(xe - mx, s["al"][k], s["be"][k]))
+            fy = np.diff(_box_sum_cdf_np(ye - my, s["al"][k], s["be"][k]))
             block = r["ray_scale"][i] * s["factor"][k] * fy[:, None] * fx[None, :]
             w[r["ray_pos"][i], k * ny * nx:(k + 1) * ny * nx] = block.ravel()
     return w
+
+
+def _box_sum_cdf_np(y, alpha, beta):
+    """Return the CDF at offsets ``y`` (metres) from the centre of a sum of two uniforms.
+
+    Widths ``alpha`` and ``beta`` (metres): the trapezoid's piecewise-quadratic closed form.
+    """
+    lo, hi = min(alpha, beta), max(alpha, beta)
+    if lo <= 1e-9 * hi:
+        return np.clip(y / hi + 0.5, 0.0, 1.0)
+    corners = (-0.5 * (lo + hi), -0.5 * (hi - lo), 0.5 * (hi - lo), 0.5 * (lo + hi))
+    r2 = [np.maximum(y - p, 0.0) ** 2 for p in corners]
+    return (r2[0] - r2[1] - r2[2] + r2[3]) / (2.0 * lo * hi)
 
 
 def matrix_free_projector(lf: LightField, grid: VolumeGrid):

@@ -17,8 +17,9 @@ a footprint.
 
 The refined projector depends on the camera and grid only; it is built once per weights
 object and kept (the last one) in memory. For an axis-aligned lattice it is the matrix-free
-:class:`~plenopiv.lattice.LatticeProjector` (seconds to build, a few MB); otherwise explicit
-weights on the refined grid, built in depth slabs.
+:class:`~plenopiv.lattice.LatticeProjector` (seconds to build, a few MB); for any other
+lattice, the per-lenslet :class:`~plenopiv.real_lattice.LensletProjector` when the weights
+are matrix-free, else explicit weights on the refined grid, built in depth slabs.
 """
 
 from __future__ import annotations
@@ -95,6 +96,7 @@ def _refined_projectors(weights, light_field_of, kx: int, ky: int) -> list:
     list is cached for the last weights object.
     """
     from plenopiv.lattice import LatticeProjector, separable_axes
+    from plenopiv.real_lattice import LensletProjector
     from plenopiv.weights import build_weights
 
     key = (weights.key or id(weights), kx, ky)
@@ -112,8 +114,12 @@ def _refined_projectors(weights, light_field_of, kx: int, ky: int) -> list:
     out = []
     for z0, z1 in _slabs(weights.grid, kx, ky):
         g = _slab_grid(fine, z0, z1)
-        p = (LatticeProjector.from_light_field(lf, g) if separable
-             else build_weights(lf, g).projector)
+        if separable:
+            p = LatticeProjector.from_light_field(lf, g)
+        elif weights.matrix_free:
+            p = LensletProjector.from_light_field(lf, g)
+        else:
+            p = build_weights(lf, g).projector
         out.append(((z0, z1), p.scale_rows(inv)))
     with _LOCK:
         _CACHE.clear()

@@ -41,6 +41,7 @@ from plenopiv.io import write_h5
 from plenopiv.lattice import LatticeProjector, separable_axes
 from plenopiv.lightfield import LightField, light_field
 from plenopiv.projector import Projector, SparseProjector
+from plenopiv.real_lattice import LensletProjector, estimate_lenslet_gb, matrix_free_projector
 from plenopiv.volume import VolumeGrid
 
 WEIGHTS_VERSION = 3
@@ -52,9 +53,10 @@ class Weights:
 
     Attributes
     ----------
-    projector : SparseProjector or LatticeProjector
+    projector : SparseProjector, LatticeProjector or LensletProjector
         W (rows: lit pixels, columns: voxels): CSR float32 / int32, or computed on the fly
-        for an axis-aligned lattice (:mod:`plenopiv.lattice`).
+        for an axis-aligned lattice (:mod:`plenopiv.lattice`) or any other
+        (:mod:`plenopiv.real_lattice`).
     pixel : (P,) int64
         Flat sensor pixel index of each row.
     grid : VolumeGrid
@@ -62,7 +64,7 @@ class Weights:
         Hash of what the weights depend on (camera, calibration, grid, options).
     """
 
-    projector: SparseProjector | LatticeProjector
+    projector: SparseProjector | LatticeProjector | LensletProjector
     pixel: np.ndarray
     grid: VolumeGrid
     key: str
@@ -91,8 +93,8 @@ class Weights:
 
     @property
     def matrix_free(self) -> bool:
-        """True for the lattice projector (no stored weights)."""
-        return isinstance(self.projector, LatticeProjector)
+        """True for the matrix-free projectors (no stored weights)."""
+        return isinstance(self.projector, (LatticeProjector, LensletProjector))
 
     def image_vector(self, image) -> np.ndarray:
         """The rows' pixel values of a full sensor image, float32 (P,)."""
@@ -236,16 +238,19 @@ def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto
 
     ``"auto"`` keeps the explicit weights while their estimated memory
     (:data:`BYTES_PER_NONZERO` × :func:`estimate_nnz`) fits in ``max_weights_gb`` (default
-    :func:`memory_budget_gb`), and takes the matrix-free lattice projector beyond that.
+    :func:`memory_budget_gb`), and takes a matrix-free projector beyond that
+    (:func:`plenopiv.real_lattice.matrix_free_projector`: the separable lattice projector for
+    an axis-aligned square lattice, the per-lenslet one for any other).
 
     Both estimates are checked against the same budget before anything large is allocated.
 
     Raises
     ------
     ReconstructionError
-        The explicit weights would not fit and the lattice is not axis-aligned (or
-        ``"sparse"`` was asked for), or the matrix-free reconstruction's estimate
-        (:func:`estimate_matrix_free_gb`) exceeds the budget.
+        The explicit weights would not fit and ``"sparse"`` was asked for, or the
+        matrix-free reconstruction's estimate (:func:`estimate_matrix_free_gb`, or
+        :func:`plenopiv.real_lattice.estimate_lenslet_gb` for a lattice that is not
+        axis-aligned) exceeds the budget.
     """
     if projector not in PROJECTORS:
         raise ValueError(f"projector = {projector!r}: expected one of {PROJECTORS}")
@@ -259,18 +264,14 @@ def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto
                 f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
                 "allowed ([reconstruction] max_weights_gb): set projector = \"auto\" (the "
                 "matrix-free projector), use fewer or larger voxels, or raise max_weights_gb")
-        if separable_axes(lf) is None:
-            raise ReconstructionError(
-                f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
-                "allowed ([reconstruction] max_weights_gb), and this calibration's lattice is "
-                "not axis-aligned, which the matrix-free projector needs: reduce the volume "
-                "(fewer or larger voxels) or raise max_weights_gb")
-    need = estimate_matrix_free_gb(lf, grid)
+    separable = separable_axes(lf) is not None
+    need = estimate_matrix_free_gb(lf, grid) if separable else estimate_lenslet_gb(lf, grid)
     if need > budget:
         raise ReconstructionError(
             f"the matrix-free reconstruction of a {grid.shape[0]} × {grid.shape[1]} × "
-            f"{grid.shape[2]}-voxel volume needs ~{need:.3g} GB (projection buffers of depth "
-            "slices × voxel rows × sensor columns, volumes, rays), more than the "
+            f"{grid.shape[2]}-voxel volume needs ~{need:.3g} GB ("
+            + ("projection buffers of depth slices × voxel rows × sensor columns, "
+               if separable else "") + "volumes, rays), more than the "
             f"{budget:.3g} GB allowed ([reconstruction] max_weights_gb): use fewer or larger "
             "voxels, or raise max_weights_gb")
     return "lattice"
@@ -326,7 +327,7 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
                             min_weight=min_weight)
     if kind == "lattice":
         check_grid_in_view(lf, grid)
-        return Weights(LatticeProjector.from_light_field(lf, grid), lf.pixel, grid, key), False
+        return Weights(matrix_free_projector(lf, grid), lf.pixel, grid, key), False
     w = build_weights(lf, grid, min_weight=min_weight, key=key)
     if path is not None:
         p = w.projector
