@@ -19,10 +19,10 @@ two threads write one voxel), per lenslet, the same two contractions in reverse.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit, prange
-
-from plenopiv._weights_kernels import _axis_range
 
 
 @njit(cache=True, inline="always")
@@ -58,7 +58,7 @@ def cdf_shapes(al, be):
          1.0 / (2.0 * safe * hi), uniform.astype(np.float64), 1.0 / hi], axis=1))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _profiles(u_line, n_line, xf, tk, shape, half, origin, vox, n_vox, start, count, w):
     """Voxel overlaps of the lines' beams on one slice, along one axis.
 
@@ -70,9 +70,15 @@ def _profiles(u_line, n_line, xf, tk, shape, half, origin, vox, n_vox, start, co
     lo = n_vox
     hi = 0
     kmax = w.shape[1]
+    inv_vox = 1.0 / vox
     for p in range(n_line):
         m = (1.0 - tk) * u_line[p] + tk * xf
-        i0, i1 = _axis_range(m, half, origin, vox, n_vox)
+        i0 = int(math.floor((m - half - origin) * inv_vox + 0.5))
+        i1 = int(math.floor((m + half - origin) * inv_vox + 0.5))
+        if i0 < 0:
+            i0 = 0
+        if i1 > n_vox - 1:
+            i1 = n_vox - 1
         c = i1 - i0 + 1
         if c <= 0:
             count[p] = 0
@@ -96,15 +102,42 @@ def _profiles(u_line, n_line, xf, tk, shape, half, origin, vox, n_vox, start, co
     return lo, hi
 
 
+@njit(cache=True, inline="always")
+def _span(u_line, n_line, xf, tk, half, origin, vox, n_vox):
+    """Return the first and one past the last voxel any of the lines' beams reaches.
+
+    The beam centre is linear in u, so the end lines bound it; ``lo >= hi`` if none.
+    """
+    m0 = (1.0 - tk) * u_line[0] + tk * xf
+    m1 = (1.0 - tk) * u_line[n_line - 1] + tk * xf
+    a = min(m0, m1)
+    b = max(m0, m1)
+    lo = int(math.floor((a - half - origin) / vox + 0.5))
+    hi = int(math.floor((b + half - origin) / vox + 0.5)) + 1
+    return max(lo, 0), min(hi, n_vox)
+
+
+@njit(cache=True, inline="always")
+def _patch_is_empty(vk, y_lo, y_hi, x_lo, x_hi):
+    """Return True when ``vk[y_lo:y_hi, x_lo:x_hi]`` holds only zeros."""
+    for iy in range(y_lo, y_hi):
+        row = vk[iy]
+        for ix in range(x_lo, x_hi):
+            if row[ix] != 0.0:
+                return False
+    return True
+
+
 @njit(parallel=True, cache=True)
-def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_col, n_row,
+def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, window,
             xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
     """``out[ray_pos[i]] = scale_i · sum_k f_k sum_iy wy sum_ix wx volume[k, iy, ix]``.
 
-    Parallel over lenslets (each writes only its own rays). ``u_col[L, :n_col[L]]`` and
-    ``u_row[L, :n_row[L]]``: aperture coordinates of lenslet L's micro-image columns and rows
-    (metres); ``ray_ptr``: lenslet L's rays are ``ray_ptr[L]:ray_ptr[L + 1]``, at local
-    (``ray_r``, ``ray_c``). Returns ``out``.
+    Parallel over lenslets (each writes only its own rays). ``u_col[L]`` and ``u_row[L]``:
+    aperture coordinates of lenslet L's micro-image columns and rows (metres);
+    ``window[L]``: the rows ``[0]:[1]`` and columns ``[2]:[3]`` that hold its rays;
+    ``ray_ptr``: lenslet L's rays are ``ray_ptr[L]:ray_ptr[L + 1]``, at local (``ray_r``,
+    ``ray_c``). Returns ``out``.
     """
     nz, ny, nx = volume.shape
     n_lens = xf_x.shape[0]
@@ -112,23 +145,31 @@ def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, 
     for lens in prange(n_lens):
         if ray_ptr[lens + 1] == ray_ptr[lens]:
             continue
-        nc = n_col[lens]
-        nr = n_row[lens]
+        r0, r1, c0, c1 = window[lens, 0], window[lens, 1], window[lens, 2], window[lens, 3]
+        nr, nc = r1 - r0, c1 - c0
+        ucol = u_col[lens, c0:c1]
+        urow = u_row[lens, r0:r1]
         xs = np.empty(bmax, np.int64)
         xc = np.empty(bmax, np.int64)
-        xw = np.empty((bmax, kmax), np.float64)
+        xw = np.empty((bmax, kmax), np.float32)
         ys = np.empty(bmax, np.int64)
         yc = np.empty(bmax, np.int64)
-        yw = np.empty((bmax, kmax), np.float64)
-        local = np.zeros((nr, nc), np.float64)
-        tmp = np.empty((ny, nc), np.float64)
+        yw = np.empty((bmax, kmax), np.float32)
+        local = np.zeros((nr, nc), np.float32)
+        tmp = np.empty((ny, nc), np.float32)
         for k in range(nz):
-            x_lo, x_hi = _profiles(u_col[lens], nc, xf_x[lens], t[k], shape[k], half[k],
-                                   ox, vx, nx, xs, xc, xw)
+            # a patch of zeros (most of a sparse volume) adds nothing: skip its profiles
+            x_lo, x_hi = _span(ucol, nc, xf_x[lens], t[k], half[k], ox, vx, nx)
+            y_lo, y_hi = _span(urow, nr, xf_y[lens], t[k], half[k], oy, vy, ny)
+            if x_lo >= x_hi or y_lo >= y_hi or _patch_is_empty(volume[k], y_lo, y_hi, x_lo,
+                                                                x_hi):
+                continue
+            x_lo, x_hi = _profiles(ucol, nc, xf_x[lens], t[k], shape[k], half[k], ox, vx, nx,
+                                   xs, xc, xw)
             if x_lo >= x_hi:
                 continue
-            y_lo, y_hi = _profiles(u_row[lens], nr, xf_y[lens], t[k], shape[k], half[k],
-                                   oy, vy, ny, ys, yc, yw)
+            y_lo, y_hi = _profiles(urow, nr, xf_y[lens], t[k], shape[k], half[k], oy, vy, ny,
+                                   ys, yc, yw)
             if y_lo >= y_hi:
                 continue
             vk = volume[k]
@@ -136,12 +177,12 @@ def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, 
                 src = vk[iy]
                 dst = tmp[iy]
                 for c in range(nc):
-                    acc = 0.0
+                    acc = np.float32(0.0)
                     s = xs[c]
                     for j in range(xc[c]):
                         acc += xw[c, j] * src[s + j]
                     dst[c] = acc
-            f = slice_factor[k]
+            f = np.float32(slice_factor[k])
             for r in range(nr):
                 s = ys[r]
                 a = local[r]
@@ -151,26 +192,36 @@ def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, 
                     for c in range(nc):
                         a[c] += wgt * src[c]
         for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
-            out[ray_pos[i]] = np.float32(local[ray_r[i], ray_c[i]] * ray_scale[i])
+            out[ray_pos[i]] = local[ray_r[i] - r0, ray_c[i] - c0] * ray_scale[i]
     return out
 
 
 @njit(parallel=True, cache=True)
-def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_col, n_row,
+def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, window,
          xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
     """Back projection, the adjoint of :func:`forward`.
 
     ``out[k, iy, ix] = sum_i scale_i f_k wy wx image[ray_pos[i]]``; parallel over slices,
-    so each thread writes only its own slice.
+    so each thread writes only its own slice. Each lenslet works on the window of its rays
+    whose value is not zero (``window`` is not used: the arguments are forward's).
     """
     nz, ny, nx = out.shape
     n_lens = xf_x.shape[0]
     bmax = u_col.shape[1]
-    # the rays' values gathered into each lenslet's local image, once
+    # the rays' values gathered into each lenslet's local image, once, and the window of
+    # the non-zero ones (rows [0]:[1], columns [2]:[3]; empty when all are zero)
     local = np.zeros((n_lens, bmax, bmax), np.float32)
+    box = np.zeros((n_lens, 4), np.int64)
     for lens in prange(n_lens):
+        r0, r1, c0, c1 = bmax, 0, bmax, 0
         for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
-            local[lens, ray_r[i], ray_c[i]] = image[ray_pos[i]] * ray_scale[i]
+            v = image[ray_pos[i]] * ray_scale[i]
+            if v == 0.0:
+                continue
+            r, c = ray_r[i], ray_c[i]
+            local[lens, r, c] = v
+            r0, r1, c0, c1 = min(r0, r), max(r1, r + 1), min(c0, c), max(c1, c + 1)
+        box[lens, 0], box[lens, 1], box[lens, 2], box[lens, 3] = r0, r1, c0, c1
     for k in prange(nz):
         ok = out[k]
         for iy in range(ny):
@@ -178,23 +229,23 @@ def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_co
                 ok[iy, ix] = 0.0
         xs = np.empty(bmax, np.int64)
         xc = np.empty(bmax, np.int64)
-        xw = np.empty((bmax, kmax), np.float64)
+        xw = np.empty((bmax, kmax), np.float32)
         ys = np.empty(bmax, np.int64)
         yc = np.empty(bmax, np.int64)
-        yw = np.empty((bmax, kmax), np.float64)
-        tmp = np.zeros((ny, bmax), np.float64)
-        f = slice_factor[k]
+        yw = np.empty((bmax, kmax), np.float32)
+        tmp = np.zeros((ny, bmax), np.float32)
+        f = np.float32(slice_factor[k])
         for lens in range(n_lens):
-            if ray_ptr[lens + 1] == ray_ptr[lens]:
+            r0, r1, c0, c1 = box[lens, 0], box[lens, 1], box[lens, 2], box[lens, 3]
+            if r1 <= r0:
                 continue
-            nc = n_col[lens]
-            nr = n_row[lens]
-            x_lo, x_hi = _profiles(u_col[lens], nc, xf_x[lens], t[k], shape[k], half[k],
-                                   ox, vx, nx, xs, xc, xw)
+            nr, nc = r1 - r0, c1 - c0
+            x_lo, x_hi = _profiles(u_col[lens, c0:c1], nc, xf_x[lens], t[k], shape[k],
+                                   half[k], ox, vx, nx, xs, xc, xw)
             if x_lo >= x_hi:
                 continue
-            y_lo, y_hi = _profiles(u_row[lens], nr, xf_y[lens], t[k], shape[k], half[k],
-                                   oy, vy, ny, ys, yc, yw)
+            y_lo, y_hi = _profiles(u_row[lens, r0:r1], nr, xf_y[lens], t[k], shape[k],
+                                   half[k], oy, vy, ny, ys, yc, yw)
             if y_lo >= y_hi:
                 continue
             img = local[lens]
@@ -203,7 +254,7 @@ def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_co
                     tmp[iy, c] = 0.0
             for r in range(nr):
                 s = ys[r]
-                src = img[r]
+                src = img[r0 + r, c0:c1]
                 for j in range(yc[r]):
                     wgt = f * yw[r, j]
                     dst = tmp[s + j]
@@ -218,12 +269,12 @@ def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, n_co
                         continue
                     s = xs[c]
                     for j in range(xc[c]):
-                        dst[s + j] += np.float32(xw[c, j] * v)
+                        dst[s + j] += xw[c, j] * v
     return out
 
 
 @njit(parallel=True, cache=True)
-def row_max(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, n_col, n_row,
+def row_max(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, window,
             xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
     """Largest weight of every ray: ``scale · max_k f_k · max_ix wx · max_iy wy``."""
     nz = t.shape[0]
@@ -232,21 +283,21 @@ def row_max(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, 
     for lens in prange(n_lens):
         if ray_ptr[lens + 1] == ray_ptr[lens]:
             continue
-        nc = n_col[lens]
-        nr = n_row[lens]
+        r0, r1, c0, c1 = window[lens, 0], window[lens, 1], window[lens, 2], window[lens, 3]
+        nr, nc = r1 - r0, c1 - c0
         xs = np.empty(bmax, np.int64)
         xc = np.empty(bmax, np.int64)
-        xw = np.empty((bmax, kmax), np.float64)
+        xw = np.empty((bmax, kmax), np.float32)
         ys = np.empty(bmax, np.int64)
         yc = np.empty(bmax, np.int64)
-        yw = np.empty((bmax, kmax), np.float64)
+        yw = np.empty((bmax, kmax), np.float32)
         mx = np.empty(bmax, np.float64)
         my = np.empty(bmax, np.float64)
         best = np.zeros((nr, nc), np.float64)
         for k in range(nz):
-            _profiles(u_col[lens], nc, xf_x[lens], t[k], shape[k], half[k], ox, vx, nx,
+            _profiles(u_col[lens, c0:c1], nc, xf_x[lens], t[k], shape[k], half[k], ox, vx, nx,
                       xs, xc, xw)
-            _profiles(u_row[lens], nr, xf_y[lens], t[k], shape[k], half[k], oy, vy, ny,
+            _profiles(u_row[lens, r0:r1], nr, xf_y[lens], t[k], shape[k], half[k], oy, vy, ny,
                       ys, yc, yw)
             for c in range(nc):
                 m = 0.0
@@ -259,9 +310,9 @@ def row_max(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, 
                     m = max(m, yw[r, j])
                 my[r] = m * slice_factor[k]
             for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
-                v = mx[ray_c[i]] * my[ray_r[i]]
-                if v > best[ray_r[i], ray_c[i]]:
-                    best[ray_r[i], ray_c[i]] = v
+                v = mx[ray_c[i] - c0] * my[ray_r[i] - r0]
+                if v > best[ray_r[i] - r0, ray_c[i] - c0]:
+                    best[ray_r[i] - r0, ray_c[i] - c0] = v
         for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
-            out[ray_pos[i]] = np.float32(best[ray_r[i], ray_c[i]] * ray_scale[i])
+            out[ray_pos[i]] = np.float32(best[ray_r[i] - r0, ray_c[i] - c0] * ray_scale[i])
     return out

@@ -112,6 +112,23 @@ def _slice_tables(lf: LightField, grid: VolumeGrid) -> dict:
             "factor": (lf.cell * be) ** 2 / (area * vx * vy), "kmax": kmax}
 
 
+def _ray_windows(ray_ptr, ray_r, ray_c) -> np.ndarray:
+    """Return the rows ``[0]:[1]`` and columns ``[2]:[3]`` (local) of each lenslet's rays.
+
+    A view of a few rays (the bright ones) then computes only their lines' profiles.
+    """
+    n_lens = len(ray_ptr) - 1
+    window = np.zeros((n_lens, 4), np.int64)
+    full = np.flatnonzero(np.diff(ray_ptr) > 0)
+    if len(full):
+        starts = ray_ptr[full]
+        window[full, 0] = np.minimum.reduceat(ray_r, starts)
+        window[full, 1] = np.maximum.reduceat(ray_r, starts) + 1
+        window[full, 2] = np.minimum.reduceat(ray_c, starts)
+        window[full, 3] = np.maximum.reduceat(ray_c, starts) + 1
+    return window
+
+
 class LensletProjector(CachedSums):
     """W for any lenslet lattice, never stored: see the module docstring.
 
@@ -126,6 +143,7 @@ class LensletProjector(CachedSums):
         self.grid = grid
         n_lens = len(lenses["xf_x"])
         self._ray_ptr = np.searchsorted(rays["ray_lens"], np.arange(n_lens + 1)).astype(np.int64)
+        self._window = _ray_windows(self._ray_ptr, rays["ray_r"], rays["ray_c"])
 
     @classmethod
     def from_light_field(cls, lf: LightField, grid: VolumeGrid) -> LensletProjector:
@@ -176,7 +194,8 @@ class LensletProjector(CachedSums):
     @property
     def nbytes(self) -> int:
         """Memory of the tables and rays in bytes (not the per-call buffers)."""
-        arrays = list(self._lens.values()) + list(self._rays.values()) + [self._ray_ptr]
+        arrays = (list(self._lens.values()) + list(self._rays.values())
+                  + [self._ray_ptr, self._window])
         return int(sum(a.nbytes for a in arrays if isinstance(a, np.ndarray)))
 
     def _args(self) -> tuple:
@@ -184,7 +203,7 @@ class LensletProjector(CachedSums):
         g = self.grid
         return ((s["t"], s["shape"], s["half"], s["factor"], float(g.origin[0]),
                  float(g.origin[1]), float(g.voxel[0]), float(g.voxel[1])),
-                (le["u_col"], le["u_row"], le["n_col"], le["n_row"], le["xf_x"], le["xf_y"],
+                (le["u_col"], le["u_row"], self._window, le["xf_x"], le["xf_y"],
                  self._ray_ptr, r["ray_r"], r["ray_c"], r["ray_scale"], r["ray_pos"],
                  s["kmax"]))
 
