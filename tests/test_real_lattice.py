@@ -193,7 +193,7 @@ def test_profiles_stop_at_the_grid(small_camera):
     w = np.zeros((1, 4))
     shape = rk.cdf_shapes(np.array([0.02]), np.array([0.1]))[0]
     lo, hi = rk._profiles(np.array([0.0]), 1, 10.0, 1.0, shape, 0.06, 0.0, 0.1, 8,
-                          start, count, w)
+                          start, count, w, np.zeros((6, 1)))
     assert count[0] == 0 and lo >= hi
 
 
