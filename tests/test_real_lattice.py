@@ -121,6 +121,18 @@ def test_adjoint_and_row_views(case, rng):
     assert np.abs(b1 - b0).max() <= RTOL * np.abs(b0).max()
 
 
+def test_on_grid_equals_a_projector_built_for_that_grid(case, rng):
+    """The refined line-of-sight slabs reuse the rays' tables on another grid."""
+    _, lf, grid, _, lens = case
+    other = small_grid(lf, nx=13, ny=11, nz=5, lateral=0.5, depth=1.0, shift=(0.1, -0.3))
+    want = LensletProjector.from_light_field(lf, other)
+    got = lens.on_grid(other)
+    e = rng.random(other.n_voxels).astype(np.float32)
+    np.testing.assert_array_equal(got.forward(e), want.forward(e))
+    i = rng.random(lf.n_rays).astype(np.float32)
+    np.testing.assert_array_equal(got.back(i), want.back(i))
+
+
 def test_kernels_equal_their_numpy_twin(small_camera, rng):
     """The numba kernels against the dense W of the plain-NumPy twin, on a 3 × 4 patch."""
     cal = Calibration.from_camera(camera_of(small_camera, "hexagonal", (3, 4)))

@@ -95,21 +95,28 @@ def _lenslet_tables(lf: LightField) -> dict:
             "ray_pos": order.astype(np.int64)}
 
 
-def _slice_tables(lf: LightField, grid: VolumeGrid) -> dict:
+def _optics(lf: LightField) -> dict:
+    """Return the light field's scalars that the slice tables need (metres)."""
+    return {"object_distance": lf.object_distance, "cell": lf.cell,
+            "footprint": lf.footprint, "aperture_radius": lf.aperture_radius}
+
+
+def _slice_tables(lf: dict, grid: VolumeGrid) -> dict:
     """Per-slice beam parameters of ``grid``'s depth slices.
 
     t = (S_o + Z)/S_o, the box widths α = |1 - t| a and β = t b (metres), half the profile's
     support and the weight factor (a β)² / (A Δx Δy).
     """
-    so = lf.object_distance
+    so = lf["object_distance"]
     t = np.ascontiguousarray((so + np.asarray(grid.z, float)) / so)
-    al = np.abs(1.0 - t) * lf.cell
-    be = t * lf.footprint
-    area = math.pi * lf.aperture_radius ** 2
+    al = np.abs(1.0 - t) * lf["cell"]
+    be = t * lf["footprint"]
+    area = math.pi * lf["aperture_radius"] ** 2
     vx, vy = float(grid.voxel[0]), float(grid.voxel[1])
     kmax = int(math.ceil(float((al + be).max()) / min(vx, vy))) + 2
     return {"t": t, "al": al, "be": be, "half": 0.5 * (al + be), "shape": _k.cdf_shapes(al, be),
-            "factor": (lf.cell * be) ** 2 / (area * vx * vy), "kmax": kmax}
+            "factor": (lf["cell"] * be) ** 2 / (area * vx * vy), "kmax": kmax,
+            "optics": lf}
 
 
 def _ray_windows(ray_ptr, ray_r, ray_c) -> np.ndarray:
@@ -158,7 +165,12 @@ class LensletProjector(CachedSums):
         tables = _lenslet_tables(lf)
         ray_keys = ("ray_lens", "ray_r", "ray_c", "ray_scale", "ray_pos")
         rays = {k: tables.pop(k) for k in ray_keys}
-        return cls(tables, rays, _slice_tables(lf, grid), grid)
+        return cls(tables, rays, _slice_tables(_optics(lf), grid), grid)
+
+    def on_grid(self, grid: VolumeGrid) -> LensletProjector:
+        """Return the projector of the same rays (and row scales) onto another grid."""
+        return LensletProjector(self._lens, self._rays,
+                                _slice_tables(self._slices["optics"], grid), grid)
 
     # -- views -----------------------------------------------------------------------------
     def select_rows(self, mask) -> LensletProjector:

@@ -103,23 +103,27 @@ def _refined_projectors(weights, light_field_of, kx: int, ky: int) -> list:
     with _LOCK:
         if _CACHE.get("key") == key:
             return _CACHE["projectors"]
+    _, row_scale = weights.normalised
+    inv = (1.0 / row_scale).astype(np.float32)
+    fine = refined_grid(weights.grid, kx, ky)
+    if isinstance(weights.projector, LensletProjector):
+        # the same rays on the refined slabs: no light field, no tables to build again
+        out = [((z0, z1), weights.projector.on_grid(_slab_grid(fine, z0, z1)).scale_rows(inv))
+               for z0, z1 in _slabs(weights.grid, kx, ky)]
+        with _LOCK:
+            _CACHE.clear()
+            _CACHE.update(key=key, projectors=out)
+        return out
     lf = light_field_of()
     if len(lf.pixel) != len(weights.pixel) or not np.array_equal(lf.pixel, weights.pixel):
         raise ReconstructionError("the light field's rays are not the weights' rows: build both "
                                   "with the same f_number and min_lit")
-    _, row_scale = weights.normalised
-    inv = (1.0 / row_scale).astype(np.float32)
-    fine = refined_grid(weights.grid, kx, ky)
     separable = separable_axes(lf) is not None
     out = []
     for z0, z1 in _slabs(weights.grid, kx, ky):
         g = _slab_grid(fine, z0, z1)
-        if separable:
-            p = LatticeProjector.from_light_field(lf, g)
-        elif weights.matrix_free:
-            p = LensletProjector.from_light_field(lf, g)
-        else:
-            p = build_weights(lf, g).projector
+        p = (LatticeProjector.from_light_field(lf, g) if separable
+             else build_weights(lf, g).projector)
         out.append(((z0, z1), p.scale_rows(inv)))
     with _LOCK:
         _CACHE.clear()
