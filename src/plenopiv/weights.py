@@ -1,7 +1,8 @@
 """Voxel-pixel weights from the effective image distance: sparse, built in parallel, cached.
 
-Row i of the weight matrix W is the ray of lit pixel i of a :class:`~plenopiv.lightfield.LightField`;
-column j is voxel j of a :class:`~plenopiv.volume.VolumeGrid` (flat ``[z, y, x]`` order).
+Row i of the weight matrix W is the ray of lit pixel i of a
+:class:`~plenopiv.lightfield.LightField`; column j is voxel j of a
+:class:`~plenopiv.volume.VolumeGrid` (flat ``[z, y, x]`` order).
 ``W[i, j]`` is the fraction of the light of a particle spread uniformly over voxel j that
 reaches pixel i, in the simulator's units (a particle of energy 1 gives an image summing to 1),
 so that I = W E for a volume E of particle energies.
@@ -97,7 +98,7 @@ class Weights:
         return isinstance(self.projector, (LatticeProjector, LensletProjector))
 
     def image_vector(self, image) -> np.ndarray:
-        """The rows' pixel values of a full sensor image, float32 (P,)."""
+        """Return the rows' pixel values of a full sensor image, float32 (P,)."""
         return np.asarray(image, np.float32).reshape(-1)[self.pixel]
 
     def forward_image(self, volume, shape) -> np.ndarray:
@@ -302,8 +303,10 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
                    f_number: float | None = None, min_lit: float = 0.5,
                    min_weight: float = 1e-7, projector: str = "auto",
                    max_weights_gb: float | None = None) -> tuple[Weights, bool]:
-    """Load the weights from ``cache_dir`` when built before for the same geometry, else build
-    (and save) them. Returns ``(weights, from_cache)``.
+    """Load the weights from ``cache_dir``, or build (and save) them.
+
+    They are loaded when built before for the same geometry; returns
+    ``(weights, from_cache)``.
 
     The file name carries the key, and the key stored inside is checked again, so weights of
     another camera, calibration or grid are never reused; a corrupt cache file is rebuilt.
