@@ -287,11 +287,12 @@ def matrix_free_projector(lf: LightField, grid: VolumeGrid):
     The separable :class:`~plenopiv.lattice.LatticeProjector` for an axis-aligned square
     lattice, else :class:`LensletProjector`.
     """
-    from plenopiv.lattice import LatticeProjector, separable_axes
+    from plenopiv.lattice import LatticeProjector
 
-    if separable_axes(lf) is not None:
+    try:
         return LatticeProjector.from_light_field(lf, grid)
-    return LensletProjector.from_light_field(lf, grid)
+    except ReconstructionError:         # not separable: rotated, hexagonal or irregular
+        return LensletProjector.from_light_field(lf, grid)
 
 
 def estimate_lenslet_gb(lf: LightField, grid: VolumeGrid) -> float:
