@@ -210,7 +210,7 @@ def _size(mm) -> str:
 
 
 def _mm(mm: float) -> str:
-    """A length in mm, short: 3 decimals at most, no trailing zeros."""
+    """Return a length in mm, short: 3 decimals at most, no trailing zeros."""
     s = f"{mm:.3f}".rstrip("0").rstrip(".")
     return "0" if s in ("-0", "") else s
 
@@ -290,8 +290,11 @@ def vectors_per_pass(shape, windows, overlap: float, passes: int):
 
 
 def _ray_pattern(camera: CameraModel, f_number, min_lit):
-    """Aperture positions ``u`` (R, 2) and ``lit`` (R,) of the rays of the lenslet on the
-    axis, with the light field's cell, footprint, aperture radius and S_o."""
+    """Return the rays of the lenslet on the axis.
+
+    Aperture positions ``u`` (R, 2) and ``lit`` (R,), with the light field's cell,
+    footprint, aperture radius and S_o.
+    """
     from plenopiv.calibration.model import Calibration
     from plenopiv.lightfield import light_field
 
@@ -305,8 +308,10 @@ def _ray_pattern(camera: CameraModel, f_number, min_lit):
 
 
 def _axis_counts(u, pos, t, al, be, origin, vox, n):
-    """Voxels (summed over lenslet positions ``pos``) that each pattern ray's beam overlaps
-    along one axis on every slice: (R, nz)."""
+    """Return the voxels each pattern ray's beam overlaps along one axis, (R, nz).
+
+    Summed over lenslet positions ``pos``, on every slice.
+    """
     half = 0.5 * (al + be)
     out = np.zeros((len(u), len(t)), np.float64)
     for k in range(len(t)):
@@ -319,8 +324,9 @@ def _axis_counts(u, pos, t, al, be, origin, vox, n):
 
 def estimate_size(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
                   min_lit: float = 0.5) -> tuple[int, int]:
-    """``(n_rays, nnz)``: rays of the camera and non-zero weights of the explicit W for
-    ``grid``, from the ray pattern of one micro-image repeated at every lenslet.
+    """Return ``(n_rays, nnz)``: the camera's rays and the explicit W's non-zero weights.
+
+    For ``grid``, from the ray pattern of one micro-image repeated at every lenslet.
 
     Separable per axis: a square lattice's lenslets are a product of columns and rows; a
     hexagonal one is two such products (even and odd rows).
@@ -362,8 +368,10 @@ def _best(fn, budget_s: float, min_reps: int = 2, max_reps: int = 10) -> float:
 
 
 def _slope(x1: float, t1: float, x2: float, t2: float) -> tuple[float, float]:
-    """``(rate, fixed)`` with t = fixed + rate x through two timings; the rate is kept at
-    least a quarter of t2/x2 (timing noise on a busy machine)."""
+    """Return ``(rate, fixed)`` with t = fixed + rate x through two timings.
+
+    The rate is kept at least a quarter of t2/x2 (timing noise on a busy machine).
+    """
     rate = (t2 - t1) / (x2 - x1) if x2 > x1 else t2 / x2
     rate = max(rate, 0.25 * t2 / x2)
     return rate, max(t2 - rate * x2, 0.0)
@@ -475,9 +483,11 @@ def _window_voxels(shape, windows, overlap, passes) -> float:
 
 
 def _measure_piv(cfg: PIVConfig, grid: VolumeGrid, budget_s: float) -> tuple[float, float]:
-    """``(seconds per window voxel, seconds per call)`` of this plan's PIV: correlations of
-    two random particle volumes of two and three first windows a side (the grid where
-    smaller), after a small run that compiles the kernels."""
+    """Return ``(seconds per window voxel, seconds per call)`` of this plan's PIV.
+
+    Correlations of two random particle volumes of two and three first windows a side (the
+    grid where smaller), after a small run that compiles the kernels.
+    """
     from plenopiv.pipeline import piv_settings
     from plenopiv.piv import correlate_volumes
 
@@ -520,6 +530,12 @@ def _snap_grid(grid: VolumeGrid, voxel) -> VolumeGrid:
     return VolumeGrid.from_bounds(b[0], b[1], b[2], voxel=np.asarray(voxel, float))
 
 
+#: CPU time of a reconstruction with the per-lenslet projector (rotated or hexagonal arrays)
+#: over one with the separable lattice projector: 5.2 (rotated) and 5.7 (hexagonal) on a
+#: 49 × 72-lenslet patch of the Auburn camera (docs/validation/real_arrays.md).
+LENSLET_COST_RATIO = 5.5
+
+
 def plan(camera: CameraModel, grid: VolumeGrid, *,
          reconstruction: ReconstructionSettings | None = None, piv: PIVConfig | None = None,
          rates: Rates | None = None, memory_total: float | None = None) -> Plan:
@@ -559,7 +575,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     square = (camera.microlens_array.grid == "square"
               and camera.microlens_array.rotation == 0.0)
     if projector == "auto":
-        if reconstruction.method != "smart" or BYTES_PER_NONZERO * nnz <= budget or not square:
+        if reconstruction.method != "smart" or BYTES_PER_NONZERO * nnz <= budget:
             projector = "sparse"
         else:
             projector = "lattice"
@@ -572,10 +588,12 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
         recon = BASE_BYTES + w_bytes + vol_bytes + 8 * n_rays
     else:
         nz, ny, _ = grid.shape
-        buf = 4.0 * nz * ny * camera.sensor.cols                  # the per-call buffer
+        # the lattice projector's per-call buffer; the per-lenslet one (any other lattice,
+        # plenopiv.real_lattice) has none but holds ~120 bytes per ray in its views
+        buf = 4.0 * nz * ny * camera.sensor.cols if square else 0.0
         w_bytes = 0.0
         build = BASE_BYTES + lf_bytes
-        recon = BASE_BYTES + 16 * n_rays + buf + vol_bytes
+        recon = BASE_BYTES + (16 if square else 120) * n_rays + buf + vol_bytes
     piv_bytes = BASE_BYTES + BYTES_PER_VOXEL_PIV * n_vox
     cache_file = 8.0 * nnz + 16.0 * n_rays if projector == "sparse" else 0.0
     memory = {"weights": w_bytes, "weights_build_peak": build, "reconstruct_peak": recon,
@@ -590,8 +608,8 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
         t_volume = (rates.sweep_s_per_nnz * nnz + rates.sweep_s_per_call) * sweeps
     else:
         t_weights = 2e-7 * n_rays                # light field and tables
-        t_volume = (rates.lattice_s_per_ray_slice * n_rays * grid.shape[0]
-                    + rates.lattice_s_per_call) * sweeps
+        ray_slice = rates.lattice_s_per_ray_slice * (1.0 if square else LENSLET_COST_RATIO)
+        t_volume = (ray_slice * n_rays * grid.shape[0] + rates.lattice_s_per_call) * sweeps
     t_volume += 5e-8 * n_vox                     # particle detection
     t_piv = rates.piv_s_per_call + rates.piv_s_per_window_voxel * _window_voxels(
         grid.shape, windows, piv.overlap, passes)
