@@ -9,9 +9,12 @@ takes the matrix-free lattice projector.
 
 ``--geometry rotated|hexagonal`` mounts a rotated square array (γ = 2 mrad, offset (3, -2) µm)
 or a hexagonal one (222 × 287 lenslets, γ = 1 mrad) in the same camera; the grid is moved off
-the footprints by ``--grid-offset-vox`` (default 0.37, 0.21 voxels) for every geometry. A
-geometry the reconstruction cannot take at this size stops at the weights stage (before
-rendering) with the library's error, recorded as ``refused``.
+the footprints by ``--grid-offset-vox`` (default 0.37, 0.21 voxels) for every geometry. They
+take the per-lenslet matrix-free projector (:mod:`plenopiv.reconstruction.real_lattice`); a geometry the
+reconstruction cannot take stops at the weights stage (before rendering) with the library's
+error, recorded as ``refused``. ``--lenslets ROWS COLS`` measures a central patch of the
+sensor at the same seeding density and depth (docs/validation/real_arrays.md scales it).
+Every stage prints its wall and CPU time and the load average.
 
 Stages, each printed with its wall time and the process's peak resident memory during it:
 
@@ -45,6 +48,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
 import sys
 import threading
 import time
@@ -99,16 +103,20 @@ def stage(name: str, log: dict):
     th = threading.Thread(target=sample, daemon=True)
     th.start()
     t0 = time.perf_counter()
+    c0 = time.process_time()
     try:
         yield
     finally:
         seconds = time.perf_counter() - t0
+        cpu = time.process_time() - c0
         done.set()
         th.join()
         peak[0] = max(peak[0], _rss_gb())
-        log[name] = {"seconds": round(seconds, 2), "peak_gb": round(peak[0], 2)}
-        print(f"{name:<28s} {seconds:8.1f} s   peak {peak[0]:6.2f} GB", file=sys.stderr,
-              flush=True)
+        load = os.getloadavg()[0]
+        log[name] = {"seconds": round(seconds, 2), "cpu_seconds": round(cpu, 2),
+                     "peak_gb": round(peak[0], 2), "load": round(load, 1)}
+        print(f"{name:<28s} {seconds:8.1f} s  cpu {cpu:8.1f} s   peak {peak[0]:6.2f} GB   "
+              f"load {load:.1f}", file=sys.stderr, flush=True)
 
 
 # ---- the case ----------------------------------------------------------------------------------
@@ -126,6 +134,10 @@ def full_case(args) -> tuple:
     geo = GEOMETRIES[args.geometry]
     if geo:
         cam = cam.replace(microlens_array=dataclasses.replace(cam.microlens_array, **geo))
+    if args.lenslets:
+        rows, cols = args.lenslets
+        rows = int(round(rows * cam.microlens_array.rows / 193))   # hexagonal: 222 rows
+        cam = cam.patch(rows, cols, margin_px=12)
     cal = Calibration.from_camera(cam)
     eff = cal.effective_camera
     b = eff.microlens_array.pitch * eff.object_distance / eff.image_distance
@@ -262,8 +274,15 @@ def main(argv=None) -> dict:
                         "hexagonal (222 x 287, 1 mrad)")
     p.add_argument("--grid-offset-vox", type=float, nargs=2, default=(0.37, 0.21),
                    help="lateral shift of the grid off the footprints, voxels (x, y)")
+    p.add_argument("--lenslets", type=int, nargs=2, default=None, metavar=("ROWS", "COLS"),
+                   help="a central patch of ROWS x COLS lenslets (of the square array's 193 x "
+                        "287; hexagonal rows scaled to its 222) at the same seeding density and "
+                        "depth, for a measurement that scales to the full sensor")
     p.add_argument("--json", action="store_true", help="end with one JSON line")
     args = p.parse_args(argv)
+    if args.lenslets:
+        args.particles = int(round(args.particles * args.lenslets[0] * args.lenslets[1]
+                                   / (193 * 287)))
     log: dict = {}
 
     cam, cal, case, grid, box, flow = full_case(args)
@@ -285,9 +304,9 @@ def main(argv=None) -> dict:
         ia, ib, pa, pb, cached = render_pair(cam, flow, case, box, args.particles, args.rays)
     log["render pair"]["cached"] = cached
 
-    print(f"projector: {'lattice (matrix-free)' if w.matrix_free else 'explicit'}, working "
-          f"grid {w.grid.shape} (lateral subdivision "
-          f"{lateral_subdivision(cal, grid, settings)})", file=sys.stderr)
+    print(f"projector: {type(w.projector).__name__}"
+          f"{' (matrix-free)' if w.matrix_free else ''}, working grid {w.grid.shape} "
+          f"(lateral subdivision {lateral_subdivision(cal, grid, settings)})", file=sys.stderr)
     vols = {}
     for name, img in (("A", ia), ("B", ib)):
         with stage(f"reconstruct {name}", log):
@@ -306,7 +325,9 @@ def main(argv=None) -> dict:
     result = {
         "camera": "auburn_135mm", "grid_shape": list(grid.shape),
         "particles": args.particles, "iterations": args.iterations,
-        "projector": "lattice" if w.matrix_free else "sparse",
+        "projector": type(w.projector).__name__,
+        "reconstruct_cpu_seconds": round(float(np.mean(
+            [log[f"reconstruct {n}"]["cpu_seconds"] for n in "AB"])), 2),
         "weights_seconds": log["weights (light field)"]["seconds"],
         "reconstruct_seconds": round(float(np.mean(rec_s)), 2),
         "reconstruct_peak_gb": max(log[f"reconstruct {n}"]["peak_gb"] for n in "AB"),
@@ -325,6 +346,7 @@ def main(argv=None) -> dict:
         "valid_fraction": err.get("valid_fraction"),
         "particles_found_a": len(vols["A"].particle_position),
         "geometry": args.geometry, "grid_offset_vox": list(args.grid_offset_vox),
+        "lenslets": args.lenslets, "rays": int(w.pixel.shape[0]),
         **breakdown,
         "stages": log,
     }

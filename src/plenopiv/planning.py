@@ -210,7 +210,7 @@ def _size(mm) -> str:
 
 
 def _mm(mm: float) -> str:
-    """A length in mm, short: 3 decimals at most, no trailing zeros."""
+    """Return a length in mm, short: 3 decimals at most, no trailing zeros."""
     s = f"{mm:.3f}".rstrip("0").rstrip(".")
     return "0" if s in ("-0", "") else s
 
@@ -529,6 +529,12 @@ def _snap_grid(grid: VolumeGrid, voxel) -> VolumeGrid:
     return VolumeGrid.from_bounds(b[0], b[1], b[2], voxel=np.asarray(voxel, float))
 
 
+#: CPU time of a reconstruction with the per-lenslet projector (rotated or hexagonal arrays)
+#: over one with the separable lattice projector: 5.2 (rotated) and 5.7 (hexagonal) on a
+#: 49 × 72-lenslet patch of the Auburn camera (docs/validation/real_arrays.md).
+LENSLET_COST_RATIO = 5.5
+
+
 def plan(camera: CameraModel, grid: VolumeGrid, *,
          reconstruction: ReconstructionSettings | None = None, piv: PIVConfig | None = None,
          rates: Rates | None = None, memory_total: float | None = None) -> Plan:
@@ -568,7 +574,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     square = (camera.microlens_array.grid == "square"
               and camera.microlens_array.rotation == 0.0)
     if projector == "auto":
-        if reconstruction.method != "smart" or BYTES_PER_NONZERO * nnz <= budget or not square:
+        if reconstruction.method != "smart" or BYTES_PER_NONZERO * nnz <= budget:
             projector = "sparse"
         else:
             projector = "lattice"
@@ -581,10 +587,12 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
         recon = BASE_BYTES + w_bytes + vol_bytes + 8 * n_rays
     else:
         nz, ny, _ = grid.shape
-        buf = 4.0 * nz * ny * camera.sensor.cols                  # the per-call buffer
+        # the lattice projector's per-call buffer; the per-lenslet one (any other lattice,
+        # plenopiv.reconstruction.real_lattice) has none but holds ~120 bytes per ray in its views
+        buf = 4.0 * nz * ny * camera.sensor.cols if square else 0.0
         w_bytes = 0.0
         build = BASE_BYTES + lf_bytes
-        recon = BASE_BYTES + 16 * n_rays + buf + vol_bytes
+        recon = BASE_BYTES + (16 if square else 120) * n_rays + buf + vol_bytes
     piv_bytes = BASE_BYTES + BYTES_PER_VOXEL_PIV * n_vox
     cache_file = 8.0 * nnz + 16.0 * n_rays if projector == "sparse" else 0.0
     memory = {"weights": w_bytes, "weights_build_peak": build, "reconstruct_peak": recon,
@@ -599,8 +607,8 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
         t_volume = (rates.sweep_s_per_nnz * nnz + rates.sweep_s_per_call) * sweeps
     else:
         t_weights = 2e-7 * n_rays                # light field and tables
-        t_volume = (rates.lattice_s_per_ray_slice * n_rays * grid.shape[0]
-                    + rates.lattice_s_per_call) * sweeps
+        ray_slice = rates.lattice_s_per_ray_slice * (1.0 if square else LENSLET_COST_RATIO)
+        t_volume = (ray_slice * n_rays * grid.shape[0] + rates.lattice_s_per_call) * sweeps
     t_volume += 5e-8 * n_vox                     # particle detection
     t_piv = rates.piv_s_per_call + rates.piv_s_per_window_voxel * _window_voxels(
         grid.shape, windows, piv.overlap, passes)

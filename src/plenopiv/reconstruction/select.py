@@ -21,8 +21,9 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField, light_field
 from plenopiv.products.hdf5 import write_h5
 from plenopiv.reconstruction._kernels import weights as K
-from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
+from plenopiv.reconstruction.lattice import separable_axes
 from plenopiv.reconstruction.projector import SparseProjector
+from plenopiv.reconstruction.real_lattice import estimate_lenslet_gb, matrix_free_projector
 from plenopiv.reconstruction.weights import (
     WEIGHTS_VERSION,
     Weights,
@@ -83,16 +84,19 @@ def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto
 
     ``"auto"`` keeps the explicit weights while their estimated memory
     (:data:`BYTES_PER_NONZERO` × :func:`estimate_nnz`) fits in ``max_weights_gb`` (default
-    :func:`memory_budget_gb`), and takes the matrix-free lattice projector beyond that.
+    :func:`memory_budget_gb`), and takes a matrix-free projector beyond that
+    (:func:`plenopiv.reconstruction.real_lattice.matrix_free_projector`: the separable lattice
+    projector for an axis-aligned square lattice, the per-lenslet one for any other).
 
     Both estimates are checked against the same budget before anything large is allocated.
 
     Raises
     ------
     ReconstructionError
-        The explicit weights would not fit and the lattice is not axis-aligned (or
-        ``"sparse"`` was asked for), or the matrix-free reconstruction's estimate
-        (:func:`estimate_matrix_free_gb`) exceeds the budget.
+        The explicit weights would not fit and ``"sparse"`` was asked for, or the
+        matrix-free reconstruction's estimate (:func:`estimate_matrix_free_gb`, or
+        :func:`plenopiv.reconstruction.real_lattice.estimate_lenslet_gb` for a lattice that is
+        not axis-aligned) exceeds the budget.
     """
     if projector not in PROJECTORS:
         raise ValueError(f"projector = {projector!r}: expected one of {PROJECTORS}")
@@ -106,18 +110,14 @@ def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto
                 f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
                 "allowed ([reconstruction] max_weights_gb): set projector = \"auto\" (the "
                 "matrix-free projector), use fewer or larger voxels, or raise max_weights_gb")
-        if separable_axes(lf) is None:
-            raise ReconstructionError(
-                f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
-                "allowed ([reconstruction] max_weights_gb), and this calibration's lattice is "
-                "not axis-aligned, which the matrix-free projector needs: reduce the volume "
-                "(fewer or larger voxels) or raise max_weights_gb")
-    need = estimate_matrix_free_gb(lf, grid)
+    separable = separable_axes(lf) is not None
+    need = estimate_matrix_free_gb(lf, grid) if separable else estimate_lenslet_gb(lf, grid)
     if need > budget:
         raise ReconstructionError(
             f"the matrix-free reconstruction of a {grid.shape[0]} × {grid.shape[1]} × "
-            f"{grid.shape[2]}-voxel volume needs ~{need:.3g} GB (projection buffers of depth "
-            "slices × voxel rows × sensor columns, volumes, rays), more than the "
+            f"{grid.shape[2]}-voxel volume needs ~{need:.3g} GB ("
+            + ("projection buffers of depth slices × voxel rows × sensor columns, "
+               if separable else "") + "volumes, rays), more than the "
             f"{budget:.3g} GB allowed ([reconstruction] max_weights_gb): use fewer or larger "
             "voxels, or raise max_weights_gb")
     return "lattice"
@@ -184,7 +184,7 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
         check_grid_in_view(lf, grid)
         if not load:
             return None, False
-        return Weights(LatticeProjector.from_light_field(lf, grid), lf.pixel, grid, key), False
+        return Weights(matrix_free_projector(lf, grid), lf.pixel, grid, key), False
     w = build_weights(lf, grid, min_weight=min_weight, key=key)
     if path is not None:
         p = w.projector

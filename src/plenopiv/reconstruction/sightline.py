@@ -17,8 +17,10 @@ a footprint.
 
 The refined projector depends on the camera and grid only; it is built once per weights
 object and kept (the last one) in memory. For an axis-aligned lattice it is the matrix-free
-:class:`~plenopiv.reconstruction.lattice.LatticeProjector` (seconds to build, a few MB); otherwise
-explicit weights on the refined grid, built in depth slabs.
+:class:`~plenopiv.reconstruction.lattice.LatticeProjector` (seconds to build, a few MB); for
+any other lattice, the per-lenslet
+:class:`~plenopiv.reconstruction.real_lattice.LensletProjector` when the weights are
+matrix-free, else explicit weights on the refined grid, built in depth slabs.
 """
 
 from __future__ import annotations
@@ -95,19 +97,28 @@ def _refined_projectors(weights, light_field_of, kx: int, ky: int) -> list:
     list is cached for the last weights object.
     """
     from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
+    from plenopiv.reconstruction.real_lattice import LensletProjector
     from plenopiv.reconstruction.weights import build_weights
 
     key = (weights.key or id(weights), kx, ky)
     with _LOCK:
         if _CACHE.get("key") == key:
             return _CACHE["projectors"]
+    _, row_scale = weights.normalised
+    inv = (1.0 / row_scale).astype(np.float32)
+    fine = refined_grid(weights.grid, kx, ky)
+    if isinstance(weights.projector, LensletProjector):
+        # the same rays on the refined slabs: no light field, no tables to build again
+        out = [((z0, z1), weights.projector.on_grid(_slab_grid(fine, z0, z1)).scale_rows(inv))
+               for z0, z1 in _slabs(weights.grid, kx, ky)]
+        with _LOCK:
+            _CACHE.clear()
+            _CACHE.update(key=key, projectors=out)
+        return out
     lf = light_field_of()
     if len(lf.pixel) != len(weights.pixel) or not np.array_equal(lf.pixel, weights.pixel):
         raise ReconstructionError("the light field's rays are not the weights' rows: build both "
                                   "with the same f_number and min_lit")
-    _, row_scale = weights.normalised
-    inv = (1.0 / row_scale).astype(np.float32)
-    fine = refined_grid(weights.grid, kx, ky)
     separable = separable_axes(lf) is not None
     out = []
     for z0, z1 in _slabs(weights.grid, kx, ky):

@@ -35,6 +35,7 @@ from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import weights as K
 from plenopiv.reconstruction.lattice import LatticeProjector
 from plenopiv.reconstruction.projector import Projector, SparseProjector
+from plenopiv.reconstruction.real_lattice import LensletProjector
 from plenopiv.volume import VolumeGrid
 
 WEIGHTS_VERSION = 3
@@ -46,7 +47,7 @@ class Weights:
 
     Attributes
     ----------
-    projector : SparseProjector or LatticeProjector
+    projector : SparseProjector, LatticeProjector or LensletProjector
         W (rows: lit pixels, columns: voxels): CSR float32 / int32, or computed on the fly
         for an axis-aligned lattice (:mod:`plenopiv.reconstruction.lattice`).
     pixel : (P,) int64
@@ -56,7 +57,7 @@ class Weights:
         Hash of what the weights depend on (camera, calibration, grid, options).
     """
 
-    projector: SparseProjector | LatticeProjector
+    projector: SparseProjector | LatticeProjector | LensletProjector
     pixel: np.ndarray
     grid: VolumeGrid
     key: str
@@ -87,7 +88,7 @@ class Weights:
     @property
     def matrix_free(self) -> bool:
         """True for the lattice projector (no stored weights)."""
-        return isinstance(self.projector, LatticeProjector)
+        return isinstance(self.projector, (LatticeProjector, LensletProjector))
 
     def image_vector(self, image) -> np.ndarray:
         """The rows' pixel values of a full sensor image, float32 (P,).
