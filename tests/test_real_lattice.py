@@ -15,9 +15,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-from plenopiv.lattice import separable_axes
-from plenopiv.mart import reconstruction_quality
-from plenopiv.weights import build_weights, cached_weights, choose_projector
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.cli import main
@@ -26,12 +23,15 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.pipeline import reconstruct_volume
 from plenopiv.reconstruction._kernels import real_lattice as rk
+from plenopiv.reconstruction.lattice import separable_axes
+from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.real_lattice import (
     LensletProjector,
     estimate_lenslet_gb,
     lenslet_weights_reference,
     matrix_free_projector,
 )
+from plenopiv.reconstruction.weights import build_weights, cached_weights, choose_projector
 from plenopiv.synthetic.images import particle_image
 from plenopiv.volume import VolumeGrid
 

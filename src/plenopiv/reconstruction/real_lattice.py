@@ -1,6 +1,6 @@
 """A matrix-free projector for any lenslet lattice: rotated, hexagonal, jittered.
 
-:class:`~plenopiv.lattice.LatticeProjector` needs every ray's x to depend on its sensor
+:class:`~plenopiv.reconstruction.lattice.LatticeProjector` needs every ray's x to depend on its sensor
 column alone, which only an axis-aligned square lattice gives. A real array is rotated by a
 few mrad, may be hexagonal, and its calibrated centres scatter. One thing holds for all of
 them: under one lenslet the rays share X_f, and a pixel's aperture position
@@ -11,11 +11,11 @@ column and its y by its row. So within each lenslet the weights are separable, a
 lines' aperture coordinates and its X_f. Per-lens centres and focal spots of the
 calibration (jitter, distortion) enter as they are, with no lattice fit.
 
-It implements the :class:`~plenopiv.projector.Projector` protocol and what the pipeline
+It implements the :class:`~plenopiv.reconstruction.projector.Projector` protocol and what the pipeline
 uses besides (``row_max``, ``select_rows``, ``scale_rows``); like the lattice projector it
 serves MLOS and SMART, not the row-action MART variants.
 
-Against the explicit weights (:func:`plenopiv.weights.build_weights`) it differs as the
+Against the explicit weights (:func:`plenopiv.reconstruction.weights.build_weights`) it differs as the
 lattice projector does: a pixel cut by the aperture's edge is traced through its cell centre,
 not through the centroid of the cell's lit part (its weight keeps the lit fraction), and no
 weight is dropped below ``min_weight``. With ``edge_centroid=False`` in
@@ -284,10 +284,10 @@ def _box_sum_cdf_np(y, alpha, beta):
 def matrix_free_projector(lf: LightField, grid: VolumeGrid):
     """Return the fastest matrix-free projector that takes ``lf``'s lattice.
 
-    The separable :class:`~plenopiv.lattice.LatticeProjector` for an axis-aligned square
+    The separable :class:`~plenopiv.reconstruction.lattice.LatticeProjector` for an axis-aligned square
     lattice, else :class:`LensletProjector`.
     """
-    from plenopiv.lattice import LatticeProjector
+    from plenopiv.reconstruction.lattice import LatticeProjector
 
     try:
         return LatticeProjector.from_light_field(lf, grid)
@@ -302,9 +302,9 @@ def estimate_lenslet_gb(lf: LightField, grid: VolumeGrid) -> float:
     rays with their views' copies (~120 bytes each: positions, local indices, scales of the
     projector, its normalised and selected views), the per-lenslet tables, the back
     projection's local images (float32, one box² per lenslet), and one depth slab of the
-    sub-voxel line-of-sight mask (:mod:`plenopiv.sightline`: six refined float32 arrays).
+    sub-voxel line-of-sight mask (:mod:`plenopiv.reconstruction.sightline`: six refined float32 arrays).
     """
-    from plenopiv.sightline import SLAB_VOXELS, subcell_factors
+    from plenopiv.reconstruction.sightline import SLAB_VOXELS, subcell_factors
 
     n_lens = len(np.unique(lf.lenslet)) if lf.n_rays else 0
     box = int(math.ceil(2.0 * math.sqrt(lf.n_rays / max(n_lens, 1) / math.pi))) + 3

@@ -8,7 +8,7 @@ lenslet's weights are therefore an outer product:
     W[(r, c), (k, iy, ix)] = scale(r, c) · f_k · wy[k, r, iy] · wx[k, c, ix]
 
 with the per-axis voxel overlaps of the trapezoid beam profile
-(:func:`plenopiv._weights_kernels.box_sum_cdf`, the explicit weights' own factors) and
+(:func:`plenopiv.reconstruction._kernels.weights.box_sum_cdf`, the explicit weights' own factors) and
 ``f_k = (a β_k)² / (A Δx Δy)``. The profiles are computed on the fly, per lenslet, slice and
 micro-image line, into small per-thread buffers; nothing of size (pixels × voxels) is stored.
 
@@ -27,7 +27,7 @@ from numba import njit, prange
 
 @njit(cache=True, inline="always")
 def _cdf(y, shape):
-    """Return :func:`plenopiv._weights_kernels.box_sum_cdf` at ``y`` = x - centre.
+    """Return :func:`plenopiv.reconstruction._kernels.weights.box_sum_cdf` at ``y`` = x - centre.
 
     ``shape``: the slice's constants (p1, p2, p3, p4, 1 / (2 lo hi), uniform, 1 / hi) from
     :func:`cdf_shapes`, so that no division or sorting is left per evaluation.
