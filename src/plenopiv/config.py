@@ -261,6 +261,8 @@ class TrackingConfig(_Strict):
         widths of it (1.5).
     bundle_iterations : ray selections and solves per particle, the first around the volume
         centroid (4).
+    forward_refine : move each bundle position to the one whose predicted pixel values fit
+        the image best (:mod:`plenopiv.tracking.forward`) (true).
     """
 
     enabled: bool = False
@@ -269,6 +271,7 @@ class TrackingConfig(_Strict):
     median_epsilon_cells: float = Field(0.1, gt=0, allow_inf_nan=False)
     bundle_radius: float = Field(1.5, gt=0, allow_inf_nan=False)
     bundle_iterations: int = Field(4, ge=1)
+    forward_refine: bool = True
 
 
 class _ExperimentCfg(_Strict):
