@@ -203,6 +203,23 @@ def test_refined_position_of_an_isolated_particle(thesis_light_field, depth):
     assert abs(err[2]) < 1.5 * b
 
 
+def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng):
+    """Several particles with crossing beams, started off the truth: both engines agree."""
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    truth = np.column_stack([rng.uniform(-4, 4, (5, 2)) * b, rng.uniform(-3e-3, 3e-3, 5)])
+    img = particle_image(cam, truth, rays_per_particle=4000, seed=6)
+    start = truth + rng.normal(0, 0.1, (5, 3)) * [b, b, 2 * b]
+    cell = resolution_cell(cal.effective_camera)[1]
+    res = {e: refine_positions(lf, img, start, depth_cell=cell, engine=e)
+           for e in ("numba", "numpy")}
+    np.testing.assert_allclose(res["numba"][0], res["numpy"][0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(res["numba"][1], res["numpy"][1], rtol=1e-12)
+    assert np.abs(res["numba"][0] - start).max() > 0        # the search moved something
+    with pytest.raises(ValueError, match="engine"):
+        refine_positions(lf, img, start, depth_cell=cell, engine="cuda")
+
+
 def test_refinement_of_a_dark_image_keeps_the_start(thesis_light_field):
     _, _, lf = thesis_light_field
     start = np.array([[0.0, 0.0, 1e-3], [1e-4, 0.0, -2e-3]])

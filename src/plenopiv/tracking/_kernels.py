@@ -230,3 +230,48 @@ def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin,
                     lat = s[e, 0] * s[0, c] + s[e, 1] * s[1, c]
                     vv = v[e] * v[c] / var_t if var_t > 1e-12 else 0.0
                     meat_q[p, e, c] += var_q * (lat + vv)
+
+
+@numba.njit(cache=True)
+def _overlap(m, wa, wb):
+    """Overlap length of intervals of widths ``wa`` (centred 0) and ``wb`` (centred m)."""
+    lo = max(-0.5 * wa, m - 0.5 * wb)
+    hi = min(0.5 * wa, m + 0.5 * wb)
+    return max(hi - lo, 0.0)
+
+
+@numba.njit(cache=True, parallel=True)
+def best_offsets(ptr, u, xf, v, amp, pos, offsets, so, cell, footprint, excess, choice):
+    """Set ``choice[p]`` to the offset (row of ``offsets`` (K, 3)) of least misfit.
+
+    Pixels ``ptr[p]:ptr[p + 1]`` of ``u``, ``xf`` (P, 2), ``v`` (P,) belong to particle p;
+    the misfit is that of :func:`plenopiv.tracking.forward.refine_positions` with the
+    amplitude ``amp[p]``; offset ``K // 2`` (zero) is tried first and kept on ties.
+    """
+    n_off = offsets.shape[0]
+    centre = n_off // 2
+    for p in numba.prange(pos.shape[0]):
+        best = np.inf
+        a = amp[p]
+        cap = excess * a
+        for j in range(n_off):
+            k = centre if j == 0 else (j - 1 if j <= centre else j)
+            x = pos[p, 0] + offsets[k, 0]
+            y = pos[p, 1] + offsets[k, 1]
+            z = pos[p, 2] + offsets[k, 2]
+            t = (so + z) / so
+            wa = max(cell * abs(1.0 - t), 1e-9 * cell)
+            wb = footprint * abs(t)
+            cost = 0.0
+            for i in range(ptr[p], ptr[p + 1]):
+                ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - x, wa, wb)
+                oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - y, wa, wb)
+                r = v[i] - a * (ox * oy / (wa * wa))
+                if r > 0.0:
+                    r = min(r, cap)
+                cost += r * r
+            if cost < best:
+                best = cost
+                choice[p, 0] = offsets[k, 0]
+                choice[p, 1] = offsets[k, 1]
+                choice[p, 2] = offsets[k, 2]

@@ -46,7 +46,10 @@ from scipy.spatial import cKDTree
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 
-__all__ = ["ForwardSettings", "beam_fraction", "refine_positions"]
+__all__ = ["ENGINES", "ForwardSettings", "beam_fraction", "refine_positions"]
+
+#: Implementations of :func:`refine_positions`.
+ENGINES = ("numba", "numpy")
 
 
 @dataclass(frozen=True)
@@ -145,8 +148,8 @@ def beam_fraction(u, focal_point, point, *, object_distance: float, cell: float,
 
 
 def refine_positions(lf: LightField, image, start, *, depth_cell: float,
-                     settings: ForwardSettings = ForwardSettings()) -> tuple[np.ndarray,
-                                                                               np.ndarray]:
+                     settings: ForwardSettings = ForwardSettings(),
+                     engine: str = "numba") -> tuple[np.ndarray, np.ndarray]:
     r"""Refine particle positions to those whose predicted pixel values fit the image best.
 
     Parameters
@@ -159,6 +162,8 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     depth_cell : float
         Depth resolution cell, metres (scales ``settings.depth_range``).
     settings : ForwardSettings
+    engine : {"numba", "numpy"}
+        The compiled search (default) or its plain NumPy twin (same estimator).
 
     Returns
     -------
@@ -182,6 +187,8 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     default, 14 µm at a 0.55 mm cell), the last lateral step ``lateral_range / 2^rounds``
     footprints (1/32).
     """
+    if engine not in ENGINES:
+        raise ValueError(f"engine = {engine!r}: expected one of {ENGINES}")
     img = np.asarray(image)
     if img.shape != tuple(lf.shape):
         raise ReconstructionError(f"image is {img.shape}; the light field's sensor is "
@@ -200,27 +207,29 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     pos = start.copy()
     dz = settings.depth_range * depth_cell
     dl = settings.lateral_range * lf.footprint
-    for axes, offsets in _schedule(dz, dl, settings.depth_steps, settings.rounds):
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(pid, minlength=n))]).astype(np.int64)
+    search = _best_offset_numba if engine == "numba" else _best_offset
+    for offsets in _schedule(dz, dl, settings.depth_steps, settings.rounds):
         amp = _robust_amplitude(pid, beam_fraction(u, xf, pos[pid], **geom), v, n)
-        pos = _best_offset(pid, u, xf, v, amp, pos, axes, offsets, geom, settings.excess)
+        pos = pos + search(ptr, u, xf, v, amp, pos, offsets, geom, settings.excess)
     amp = _robust_amplitude(pid, beam_fraction(u, xf, pos[pid], **geom), v, n)
     return pos, amp
 
 
 def _schedule(depth_range, lateral_range, depth_steps, rounds):
-    """Return the searches of the refinement: ``(axes, offsets)``, ranges halving.
+    """Return the searches of the refinement: offsets (K, 3), metres, ranges halving.
 
     The first search is joint (depth x lateral grid: near focus depth and lateral position
-    trade off), the next ones alternate depth and lateral.
+    trade off), the next ones alternate depth and lateral. The zero offset is row K // 2.
     """
     z = np.linspace(-depth_range, depth_range, depth_steps)
     lat = _grid2(lateral_range)
-    joint = np.column_stack([np.tile(lat, (len(z), 1)), np.repeat(z, len(lat))])
-    out = [((0, 1, 2), joint)]
+    out = [np.column_stack([np.tile(lat, (len(z), 1)), np.repeat(z, len(lat))])]
     for r in range(rounds):
         h = 0.5 ** r
-        out.append(((2,), np.linspace(-depth_range * h, depth_range * h, depth_steps)[:, None]))
-        out.append(((0, 1), _grid2(lateral_range * h)))
+        zr = np.linspace(-depth_range * h, depth_range * h, depth_steps)
+        out.append(np.column_stack([np.zeros((len(zr), 2)), zr]))
+        out.append(np.column_stack([_grid2(lateral_range * h), np.zeros(25)]))
     return out
 
 
@@ -231,28 +240,38 @@ def _grid2(step):
     return np.column_stack([gx.ravel(), gy.ravel()])
 
 
-def _best_offset(pid, u, xf, v, amp, pos, axes, offsets, geom, excess):
-    """Move each particle along ``axes`` to the offset of least cost (ties: stay).
+def _best_offset(ptr, u, xf, v, amp, pos, offsets, geom, excess):
+    """Return the offset (row of ``offsets`` (K, 3)) of least misfit of each particle.
 
-    Cost: ``sum_i rho(v_i - A f_i)`` with ``rho(r) = r^2`` for r <= 0 (predicted light
-    missing) and ``min(r, excess A)^2`` for r > 0 (unexplained light, capped).
+    NumPy twin of :func:`plenopiv.tracking._kernels.best_offsets`. Misfit:
+    ``sum_i rho(v_i - A f_i)`` with ``rho(r) = r^2`` for r <= 0 (predicted light missing)
+    and ``min(r, excess A)^2`` for r > 0 (unexplained light, capped); the zero offset
+    (row K // 2) is tried first and kept on ties.
     """
     n = len(pos)
+    pid = np.repeat(np.arange(n), np.diff(ptr))
     best = np.full(n, np.inf)
-    choice = np.zeros((n, len(axes)))
+    choice = np.zeros((n, 3))
     centre = offsets.shape[0] // 2
     cap = excess * amp[pid]
     for i in [centre] + [i for i in range(offsets.shape[0]) if i != centre]:
-        trial = pos.copy()
-        trial[:, list(axes)] += offsets[i]
-        res = v - amp[pid] * beam_fraction(u, xf, trial[pid], **geom)
+        res = v - amp[pid] * beam_fraction(u, xf, pos[pid] + offsets[i], **geom)
         cost = np.bincount(pid, np.where(res > 0, np.minimum(res, cap), res) ** 2, n)
         better = cost < best
         best = np.where(better, cost, best)
         choice[better] = offsets[i]
-    out = pos.copy()
-    out[:, list(axes)] += choice
-    return out
+    return choice
+
+
+def _best_offset_numba(ptr, u, xf, v, amp, pos, offsets, geom, excess):
+    """Return :func:`_best_offset` by the compiled kernel."""
+    from plenopiv.tracking import _kernels as _k
+
+    choice = np.zeros((len(pos), 3))
+    c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, amp, pos, offsets)]
+    _k.best_offsets(ptr, *c, float(geom["object_distance"]), float(geom["cell"]),
+                    float(geom["footprint"]), float(excess), choice)
+    return choice
 
 
 def _robust_amplitude(pid, f, v, n):

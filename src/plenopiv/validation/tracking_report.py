@@ -241,7 +241,7 @@ def markdown(result: dict, figures: list[str]) -> str:
               "micro-image are lit and how much. On the same pair it takes the depth rms of the "
               "A positions from 0.93 to 0.70 voxel (0.57 to 0.20 beyond 1 mm from focus, "
               "lateral 0.11 to 0.08) and the tracks' depth rms from 0.68 to 0.38 voxel "
-              "(Hill: 0.50 to 0.35), at ~10 s of CPU per image of ~230 particles (the bundle: "
+              "(Hill: 0.50 to 0.35), at ~0.9 s of CPU per image of ~230 particles (the bundle: "
               "0.2 s). What remains is near focus: a particle seen through one "
               "lenslet has no depth in the image within its depth of field (it keeps the "
               "bundle position), and within ~0.6 mm of focus the misfit is flat enough over "
