@@ -151,13 +151,18 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
     pred = predict_positions(vectors, pa[ia_ok])
     m = match_particles(pa[ia_ok], pb[ib_ok], pred, scale, settings=ms)
     ia, ib = ia_ok[m.index_a], ib_ok[m.index_b]
+    # an end seen through fewer lenslets has no depth in the image within its depth of field
+    # (one lenslet: lit whatever its depth there) and a lateral position to a footprint only
+    seen = ((ba.n_lenslets[ia] >= settings.min_lenslets)
+            & (bb.n_lenslets[ib] >= settings.min_lenslets))
     counts = {"particles_a": len(pa), "particles_b": len(pb),
               "bundle_failed_a": int((~ba.converged).sum()),
               "bundle_failed_b": int((~bb.converged).sum()),
               "rejected_two_way": m.rejected_mutual, "rejected_median": m.rejected_median,
-              "tracks": len(m)}
-    return TrackResult(pa[ia], pb[ib], ua[ia], ub[ib], m.quality, m.residual, ia, ib,
-                       ba.n_lenslets[ia], bb.n_lenslets[ib], vectors.dt, counts)
+              "rejected_few_lenslets": int((~seen).sum()), "tracks": int(seen.sum())}
+    ia, ib = ia[seen], ib[seen]
+    return TrackResult(pa[ia], pb[ib], ua[ia], ub[ib], m.quality[seen], m.residual[seen], ia,
+                       ib, ba.n_lenslets[ia], bb.n_lenslets[ib], vectors.dt, counts)
 
 
 def bin_tracks(tracks: TrackResult, vectors: VectorResult, *, min_tracks: int = 1
