@@ -438,6 +438,16 @@ def test_tracking_in_a_batch_pair_and_its_config(tmp_path):
     with h5py.File(tmp_path / "p1_tracks.h5", "r") as fh:
         assert fh["/displacement_m"].shape == (s["n_tracks"], 3)
         assert json.loads(fh.attrs["config"])["tracking"]["enabled"] is True
+        # the default min_lenslets = 2: no kept end was seen through a single lenslet
+        assert fh["/n_lenslets_a"][()].min() >= 2 and fh["/n_lenslets_b"][()].min() >= 2
+        assert fh.attrs["count_rejected_few_lenslets"] >= 0
+        assert fh.attrs["count_tracks"] == s["n_tracks"]
     (tmp_path / "bad.toml").write_text(text + "search_radius = 2\n")
     with pytest.raises(ConfigError, match="search_radius"):
         load_experiment(tmp_path / "bad.toml")
+    (tmp_path / "bad.toml").write_text(text + "min_lenslets = 0\n")
+    with pytest.raises(ConfigError, match="min_lenslets"):
+        load_experiment(tmp_path / "bad.toml")
+    (tmp_path / "off.toml").write_text(text + "forward_refine = false\nmin_lenslets = 1\n")
+    off = load_experiment(tmp_path / "off.toml").tracking
+    assert off.forward_refine is False and off.min_lenslets == 1

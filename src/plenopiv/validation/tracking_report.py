@@ -247,6 +247,11 @@ def markdown(result: dict, figures: list[str]) -> str:
               "bundle position), and within ~0.6 mm of focus the misfit is flat enough over "
               "±0.1-0.2 mm in depth for the grid search to stop off the truth (single "
               "particles at ±0.5 mm).",
+              "- Tracks with an end seen through one lenslet are dropped (`[tracking] "
+              "min_lenslets = 2`, counted as `rejected_few_lenslets`): on the Oseen pair of "
+              "seed 1 they were 6 of 167 correct tracks, with a depth rms of 1.45 voxel (the "
+              "correlation's at them: 1.32), and took the tracks' depth rms from 0.34 to 0.43 "
+              "voxel.",
               "- The single particle at Z = -5 mm, missing from the earlier report (0 "
               "lenslets, no centroid), was lost by the reconstruction, not by the bundle: the "
               "line-of-sight mask, then judged per whole voxel, emptied that volume; since "
