@@ -240,9 +240,10 @@ def markdown(result: dict, figures: list[str]) -> str:
               "- The forward model uses what the chief rays drop: which pixels of each "
               "micro-image are lit and how much. On the same pair it takes the depth rms of the "
               "A positions from 0.93 to 0.70 voxel (0.57 to 0.20 beyond 1 mm from focus, "
-              "lateral 0.11 to 0.08) and the tracks' depth rms from 0.68 to 0.38 voxel "
-              "(Hill: 0.50 to 0.35), at ~0.9 s of CPU per image of ~230 particles (the bundle: "
-              "0.2 s). What remains is near focus: a particle seen through one "
+              "lateral 0.11 to 0.08) and the tracks' depth rms from 0.68 to 0.43 voxel "
+              "(Hill: 0.50 to 0.33; the same seed, all tracks kept), at ~0.9 s of CPU per "
+              "image of ~230 particles (the bundle: 0.2 s). What remains is near focus: a "
+              "particle seen through one "
               "lenslet has no depth in the image within its depth of field (it keeps the "
               "bundle position), and within ~0.6 mm of focus the misfit is flat enough over "
               "±0.1-0.2 mm in depth for the grid search to stop off the truth (single "
@@ -257,9 +258,10 @@ def markdown(result: dict, figures: list[str]) -> str:
               "line-of-sight mask, then judged per whole voxel, emptied that volume; since "
               "the mask is judged on sub-voxel cells the particle is found.",
               "- A particle in focus lights one lenslet whatever its position on it: its "
-              "lateral position is known to a footprint only (the tracks whose ends were seen "
-              "through one lenslet are left out of the off-focus column). The reported "
-              "uncertainty (the bundle fit's) covers that; in depth it is conservative.",
+              "lateral position is known to a footprint only (the off-focus column leaves out "
+              "the tracks with such an end; with `min_lenslets = 2` there are none). The "
+              "reported uncertainty stays the bundle fit's: it covers the refined positions "
+              "with room to spare (all errors within ±2σ), so it is conservative.",
               ""]
     lines += ["## Density sweep (mean over seeds)", "",
               "| flow | ppl | seeds | tracked | wrong | tracks rms x, y, z | off-focus tracks rms "
