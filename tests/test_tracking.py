@@ -21,6 +21,7 @@ from plenopiv.tracking.bundle import (
     closest_point,
     closest_points,
 )
+from plenopiv.tracking.forward import ForwardSettings, beam_fraction, refine_positions
 from plenopiv.tracking.matching import (
     MatchSettings,
     interpolate_displacement,
@@ -132,6 +133,107 @@ def test_bundle_of_a_dark_image_does_not_converge(thesis_light_field, engine):
     res = bundle_positions(lf, np.zeros(lf.shape), np.array([[0.0, 0.0, 1e-3]]), engine=engine)
     assert not res.converged[0]
     np.testing.assert_allclose(res.position[0], [0.0, 0.0, 1e-3])
+
+
+# ---- forward-model refinement ----------------------------------------------------------------
+
+
+def test_beam_fraction_is_the_share_of_lines_through_the_aperture_cell(rng):
+    """Against a Monte-Carlo of the lines from the pixel's aperture cell through the point.
+
+    The fraction is that of the aperture cell (a c x c square around u on the lens plane)
+    whose lines through the particle cross the focal plane inside the lenslet's footprint (a
+    b x b square around X_f); 20000 samples give a binomial σ <= 0.0035, so 0.015 (4 σ).
+    """
+    so, c, b = 0.1, 1.48e-3, 0.125e-3
+    n = 20000
+    for _ in range(12):
+        p = np.array([*rng.uniform(-b, b, 2), rng.uniform(-3e-3, 3e-3)])
+        t = (so + p[2]) / so
+        u = rng.uniform(-8e-3, 8e-3, 2)
+        # a lenslet whose chief ray passes near the beam's edge, where the fraction is partial
+        half = 0.5 * (b * abs(t) + c * abs(1 - t))
+        miss = rng.uniform(-1.2, 1.2, 2) * half
+        xf = (p[:2] + miss - u * (1 - t)) / t
+        a = u + rng.uniform(-0.5, 0.5, (n, 2)) * c
+        cross = (p[:2] + a * (t - 1)) / t          # line a -> p on the plane Z = 0
+        mc = np.mean(np.all(np.abs(cross - xf) <= b / 2, axis=1))
+        f = beam_fraction(u[None], xf[None], p, object_distance=so, cell=c, footprint=b)[0]
+        assert abs(f - mc) < 0.015, (p, f, mc)
+
+
+@pytest.mark.parametrize(("neighbour_offset_b", "neighbour_dz"), [(1.0, -2e-3), (1.0, 1e-3)])
+def test_refined_position_is_not_pulled_by_a_missed_neighbour(thesis_light_field,
+                                                              neighbour_offset_b, neighbour_dz):
+    """A neighbour the reconstruction missed, one footprint aside, its rays crossing the beam.
+
+    Only the particle is seeded, so every lit pixel of the neighbour is light the bundle
+    cannot share out. The refined position must still meet the tolerances of an isolated
+    particle (test_bundle_position_of_a_rendered_particle: 0.15 b laterally, 1.5 b in depth,
+    from the lenslet quantisation b/sqrt(12) over ~20 lenslets and the parallax R/S_o).
+    """
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    truth = np.array([0.2 * b, 0.1 * b, 2e-3])
+    other = truth + np.array([neighbour_offset_b * b, 0.0, neighbour_dz])
+    img = particle_image(cam, [truth, other], rays_per_particle=20000, seed=12)
+    cell = resolution_cell(cal.effective_camera)[1]
+    start = bundle_positions(lf, img, truth[None], depth_cell=cell)
+    assert start.converged[0] and start.n_lenslets[0] > 10
+    pos, amp = refine_positions(lf, img, start.position, depth_cell=cell)
+    err = pos[0] - truth
+    assert np.abs(err[:2]).max() < 0.15 * b
+    assert abs(err[2]) < 1.5 * b
+    assert amp[0] > 0
+
+
+@pytest.mark.parametrize("depth", [1e-3, -1.5e-3])
+def test_refined_position_of_an_isolated_particle(thesis_light_field, depth):
+    """Started from a bundle seeded off (0.1 b, 0.1 b, 0.3 cell): the isolated tolerances."""
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    truth = np.array([0.3 * b, -0.2 * b, depth])
+    img = particle_image(cam, [truth], rays_per_particle=20000, seed=11)
+    cell = resolution_cell(cal.effective_camera)[1]
+    start = bundle_positions(lf, img, (truth + [0.1 * b, 0.1 * b, 0.3 * cell])[None],
+                             depth_cell=cell)
+    pos, _ = refine_positions(lf, img, start.position, depth_cell=cell)
+    err = pos[0] - truth
+    assert np.abs(err[:2]).max() < 0.15 * b
+    assert abs(err[2]) < 1.5 * b
+
+
+def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng):
+    """Several particles with crossing beams, started off the truth: both engines agree."""
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    truth = np.column_stack([rng.uniform(-4, 4, (5, 2)) * b, rng.uniform(-3e-3, 3e-3, 5)])
+    img = particle_image(cam, truth, rays_per_particle=4000, seed=6)
+    start = truth + rng.normal(0, 0.1, (5, 3)) * [b, b, 2 * b]
+    cell = resolution_cell(cal.effective_camera)[1]
+    res = {e: refine_positions(lf, img, start, depth_cell=cell, engine=e)
+           for e in ("numba", "numpy")}
+    np.testing.assert_allclose(res["numba"][0], res["numpy"][0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(res["numba"][1], res["numpy"][1], rtol=1e-12)
+    assert np.abs(res["numba"][0] - start).max() > 0        # the search moved something
+    with pytest.raises(ValueError, match="engine"):
+        refine_positions(lf, img, start, depth_cell=cell, engine="cuda")
+
+
+def test_refinement_of_a_dark_image_keeps_the_start(thesis_light_field):
+    _, _, lf = thesis_light_field
+    start = np.array([[0.0, 0.0, 1e-3], [1e-4, 0.0, -2e-3]])
+    pos, amp = refine_positions(lf, np.zeros(lf.shape), start, depth_cell=0.55e-3)
+    np.testing.assert_array_equal(pos, start)
+    np.testing.assert_array_equal(amp, 0.0)
+
+
+def test_forward_settings_name_the_bad_value():
+    for kw, name in (({"depth_range": 0}, "depth_range"), ({"depth_steps": 4}, "depth_steps"),
+                     ({"excess": -1}, "excess"), ({"rounds": 0}, "rounds"),
+                     ({"margin": 0.5}, "margin")):
+        with pytest.raises(ValueError, match=name):
+            ForwardSettings(**kw)
 
 
 # ---- matching --------------------------------------------------------------------------------
@@ -336,6 +438,16 @@ def test_tracking_in_a_batch_pair_and_its_config(tmp_path):
     with h5py.File(tmp_path / "p1_tracks.h5", "r") as fh:
         assert fh["/displacement_m"].shape == (s["n_tracks"], 3)
         assert json.loads(fh.attrs["config"])["tracking"]["enabled"] is True
+        # the default min_lenslets = 2: no kept end was seen through a single lenslet
+        assert fh["/n_lenslets_a"][()].min() >= 2 and fh["/n_lenslets_b"][()].min() >= 2
+        assert fh.attrs["count_rejected_few_lenslets"] >= 0
+        assert fh.attrs["count_tracks"] == s["n_tracks"]
     (tmp_path / "bad.toml").write_text(text + "search_radius = 2\n")
     with pytest.raises(ConfigError, match="search_radius"):
         load_experiment(tmp_path / "bad.toml")
+    (tmp_path / "bad.toml").write_text(text + "min_lenslets = 0\n")
+    with pytest.raises(ConfigError, match="min_lenslets"):
+        load_experiment(tmp_path / "bad.toml")
+    (tmp_path / "off.toml").write_text(text + "forward_refine = false\nmin_lenslets = 1\n")
+    off = load_experiment(tmp_path / "off.toml").tracking
+    assert off.forward_refine is False and off.min_lenslets == 1

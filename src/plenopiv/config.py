@@ -320,6 +320,11 @@ class TrackingConfig(_Strict):
         widths of it (1.5).
     bundle_iterations : ray selections and solves per particle, the first around the volume
         centroid (4).
+    forward_refine : move each bundle position to the one whose predicted pixel values fit
+        the image best (:mod:`plenopiv.tracking.forward`) (true).
+    min_lenslets : a track is kept when both its ends were seen through at least this many
+        lenslets (2: a particle seen through one lenslet is lit at any depth within its depth
+        of field, so the image holds no depth for it; 1 keeps every track).
     """
 
     enabled: bool = False
@@ -328,6 +333,8 @@ class TrackingConfig(_Strict):
     median_epsilon_cells: float = Field(0.1, gt=0, allow_inf_nan=False)
     bundle_radius: float = Field(1.5, gt=0, allow_inf_nan=False)
     bundle_iterations: int = Field(4, ge=1)
+    forward_refine: bool = True
+    min_lenslets: int = Field(2, ge=1)
 
 
 class _ExperimentCfg(_Strict):

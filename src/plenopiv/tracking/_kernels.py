@@ -50,6 +50,40 @@ def _window(u, xf, first, last, t, cx, cy, r, margin):
     return a, uy - h, ux - h, ux + h
 
 
+@numba.njit(cache=True)
+def _lenslet_rays(u, xf, first, last, t, cx, cy, r, margin, rays, share):
+    """Rays ``first:last`` of one lenslet passing within ``r`` of ``(cx, cy)`` at depth t.
+
+    Fills ``rays[:n]`` with their indices and ``share[:n]`` with the cone profile
+    ``1 - m/r`` of their miss distances m; returns n. ``rays`` and ``share`` must hold
+    ``last - first`` entries. The one selection behind every kernel below.
+    """
+    n = 0
+    if last == first:
+        return n
+    start, lo, lo_x, hi_x = _window(u, xf, first, last, t, cx, cy, r, margin)
+    for i in range(start, last):
+        if u[i, 1] < lo:
+            break
+        if u[i, 0] < lo_x or u[i, 0] > hi_x:
+            continue
+        m = _miss(u, xf, i, t, cx, cy)
+        if m <= r:
+            rays[n] = i
+            share[n] = max(1.0 - m / r, 0.0)
+            n += 1
+    return n
+
+
+@numba.njit(cache=True)
+def _max_lenslet_rays(rptr):
+    """Most rays of one lenslet (buffer size of :func:`_lenslet_rays`)."""
+    most = 0
+    for k in range(rptr.shape[0] - 1):
+        most = max(most, rptr[k + 1] - rptr[k])
+    return most
+
+
 @numba.njit(cache=True, parallel=True)
 def ray_shares(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, total):
     """Set ``total[c, ray]`` to the sum of every particle's expected share ``B (1 - m/r)``.
@@ -59,24 +93,18 @@ def ray_shares(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, tota
     """
     n = centre.shape[0]
     n_chunks = total.shape[0]
+    most = _max_lenslet_rays(rptr)
     for c in numba.prange(n_chunks):
+        rays = np.empty(most, np.int64)
+        share = np.empty(most)
         for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
             t = (so + centre[p, 2]) / so
-            r = radius[p]
             for a in range(lptr[p], lptr[p + 1]):
                 k = lidx[a]
-                if rptr[k + 1] == rptr[k]:
-                    continue
-                start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
-                                                centre[p, 1], r, margin)
-                for i in range(start, rptr[k + 1]):
-                    if u[i, 1] < lo:
-                        break
-                    if u[i, 0] < lo_x or u[i, 0] > hi_x:
-                        continue
-                    m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
-                    if m <= r:
-                        total[c, i] += max(1.0 - m / r, 0.0) * bright[p]
+                nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
+                                   radius[p], margin, rays, share)
+                for j in range(nk):
+                    total[c, rays[j]] += share[j] * bright[p]
 
 
 @numba.njit(cache=True)
@@ -91,6 +119,14 @@ def _ray(u, xf, so, i, d, a):
     a[0], a[1], a[2] = u[i, 0], u[i, 1], -so
 
 
+@numba.njit(cache=True)
+def _ray_weights(rays, share, n, b, weight, total):
+    """Turn shares into the rays' weights ``weight[ray] B share / total[ray]`` (in place)."""
+    for j in range(n):
+        i = rays[j]
+        share[j] = weight[i] * share[j] * b / total[i] if total[i] > 0.0 else 0.0
+
+
 @numba.njit(cache=True, parallel=True)
 def normal_equations(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, weight,
                      total, normal, rhs, nrays):
@@ -98,35 +134,28 @@ def normal_equations(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin
 
     ``w = weight[ray] * B (1 - m/r) / total[ray]``: the ray's share of its pixel value.
     """
+    most = _max_lenslet_rays(rptr)
     for p in numba.prange(centre.shape[0]):
         t = (so + centre[p, 2]) / so
-        r = radius[p]
         d = np.empty(3)
         a = np.empty(3)
+        rays = np.empty(most, np.int64)
+        w = np.empty(most)
         for q in range(lptr[p], lptr[p + 1]):
             k = lidx[q]
-            if rptr[k + 1] == rptr[k]:
-                continue
-            start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
-                                            centre[p, 1], r, margin)
-            for i in range(start, rptr[k + 1]):
-                if u[i, 1] < lo:
-                    break
-                if u[i, 0] < lo_x or u[i, 0] > hi_x:
-                    continue
-                m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
-                if m > r or total[i] <= 0.0:
-                    continue
-                w = weight[i] * max(1.0 - m / r, 0.0) * bright[p] / total[i]
-                if w <= 0.0:
+            nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
+                               radius[p], margin, rays, w)
+            _ray_weights(rays, w, nk, bright[p], weight, total)
+            for j in range(nk):
+                if w[j] <= 0.0:
                     continue
                 nrays[p] += 1
-                _ray(u, xf, so, i, d, a)
+                _ray(u, xf, so, rays[j], d, a)
                 da = d[0] * a[0] + d[1] * a[1] + d[2] * a[2]
-                for j in range(3):
+                for e in range(3):
                     for c in range(3):
-                        normal[p, j, c] += w * ((1.0 if j == c else 0.0) - d[j] * d[c])
-                    rhs[p, j] += w * (a[j] - d[j] * da)
+                        normal[p, e, c] += w[j] * ((1.0 if e == c else 0.0) - d[e] * d[c])
+                    rhs[p, e] += w[j] * (a[e] - d[e] * da)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -139,9 +168,9 @@ def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin,
     v_k v_k^T / var_k)`` with ``S_k = sum w M``, ``v_k = sum w M (dtheta, 0)``; ``nlens``
     counts the lenslets with weight (see :func:`plenopiv.tracking.bundle.bundle_positions`).
     """
+    most = _max_lenslet_rays(rptr)
     for p in numba.prange(centre.shape[0]):
         t = (so + centre[p, 2]) / so
-        r = radius[p]
         tp = (so + point[p, 2]) / so
         var_q = (tp * footprint) ** 2 / 12.0
         d = np.empty(3)
@@ -150,30 +179,24 @@ def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin,
         s = np.empty((3, 3))
         v = np.empty(3)
         res = np.empty(3)
+        rays = np.empty(most, np.int64)
+        w = np.empty(most)
         for q in range(lptr[p], lptr[p + 1]):
             k = lidx[q]
+            nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
+                               radius[p], margin, rays, w)
+            _ray_weights(rays, w, nk, bright[p], weight, total)
+            # the lenslet's weight and mean slope
             wk = 0.0
             tx = 0.0
             ty = 0.0
-            if rptr[k + 1] == rptr[k]:
-                continue
-            start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
-                                            centre[p, 1], r, margin)
-            for i in range(start, rptr[k + 1]):
-                if u[i, 1] < lo:
-                    break
-                if u[i, 0] < lo_x or u[i, 0] > hi_x:
+            for j in range(nk):
+                if w[j] <= 0.0:
                     continue
-                m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
-                if m > r or total[i] <= 0.0:
-                    continue
-                w = weight[i] * max(1.0 - m / r, 0.0) * bright[p] / total[i]
-                if w <= 0.0:
-                    continue
-                _ray(u, xf, so, i, d, a)
-                wk += w
-                tx += w * d[0] / d[2]
-                ty += w * d[1] / d[2]
+                _ray(u, xf, so, rays[j], d, a)
+                wk += w[j]
+                tx += w[j] * d[0] / d[2]
+                ty += w[j] * d[1] / d[2]
             if wk <= 0.0:
                 continue
             nlens[p] += 1
@@ -183,39 +206,72 @@ def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin,
             s[:, :] = 0.0
             v[:] = 0.0
             var_t = 0.0
-            if rptr[k + 1] == rptr[k]:
-                continue
-            start, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0],
-                                            centre[p, 1], r, margin)
-            for i in range(start, rptr[k + 1]):
-                if u[i, 1] < lo:
-                    break
-                if u[i, 0] < lo_x or u[i, 0] > hi_x:
+            for j in range(nk):
+                if w[j] <= 0.0:
                     continue
-                m = _miss(u, xf, i, t, centre[p, 0], centre[p, 1])
-                if m > r or total[i] <= 0.0:
-                    continue
-                w = weight[i] * max(1.0 - m / r, 0.0) * bright[p] / total[i]
-                if w <= 0.0:
-                    continue
-                _ray(u, xf, so, i, d, a)
-                for j in range(3):
-                    res[j] = point[p, j] - a[j]
+                _ray(u, xf, so, rays[j], d, a)
+                for e in range(3):
+                    res[e] = point[p, e] - a[e]
                 dr = d[0] * res[0] + d[1] * res[1] + d[2] * res[2]
                 dtx = d[0] / d[2] - tx
                 dty = d[1] / d[2] - ty
-                var_t += w * (dtx * dtx + dty * dty)
-                for j in range(3):
-                    g[j] += w * (res[j] - d[j] * dr)
+                var_t += w[j] * (dtx * dtx + dty * dty)
+                for e in range(3):
+                    g[e] += w[j] * (res[e] - d[e] * dr)
                     for c in range(3):
-                        s[j, c] += w * ((1.0 if j == c else 0.0) - d[j] * d[c])
-                    mj = (1.0 if j == 0 else 0.0) * dtx + (1.0 if j == 1 else 0.0) * dty \
-                        - d[j] * (d[0] * dtx + d[1] * dty)
-                    v[j] += w * mj
+                        s[e, c] += w[j] * ((1.0 if e == c else 0.0) - d[e] * d[c])
+                    me = (1.0 if e == 0 else 0.0) * dtx + (1.0 if e == 1 else 0.0) * dty \
+                        - d[e] * (d[0] * dtx + d[1] * dty)
+                    v[e] += w[j] * me
             var_t /= wk
-            for j in range(3):
+            for e in range(3):
                 for c in range(3):
-                    meat_r[p, j, c] += g[j] * g[c]
-                    lat = s[j, 0] * s[0, c] + s[j, 1] * s[1, c]
-                    vv = v[j] * v[c] / var_t if var_t > 1e-12 else 0.0
-                    meat_q[p, j, c] += var_q * (lat + vv)
+                    meat_r[p, e, c] += g[e] * g[c]
+                    lat = s[e, 0] * s[0, c] + s[e, 1] * s[1, c]
+                    vv = v[e] * v[c] / var_t if var_t > 1e-12 else 0.0
+                    meat_q[p, e, c] += var_q * (lat + vv)
+
+
+@numba.njit(cache=True)
+def _overlap(m, wa, wb):
+    """Overlap length of intervals of widths ``wa`` (centred 0) and ``wb`` (centred m)."""
+    lo = max(-0.5 * wa, m - 0.5 * wb)
+    hi = min(0.5 * wa, m + 0.5 * wb)
+    return max(hi - lo, 0.0)
+
+
+@numba.njit(cache=True, parallel=True)
+def best_offsets(ptr, u, xf, v, amp, pos, offsets, so, cell, footprint, excess, choice):
+    """Set ``choice[p]`` to the offset (row of ``offsets`` (K, 3)) of least misfit.
+
+    Pixels ``ptr[p]:ptr[p + 1]`` of ``u``, ``xf`` (P, 2), ``v`` (P,) belong to particle p;
+    the misfit is that of :func:`plenopiv.tracking.forward.refine_positions` with the
+    amplitude ``amp[p]``; offset ``K // 2`` (zero) is tried first and kept on ties.
+    """
+    n_off = offsets.shape[0]
+    centre = n_off // 2
+    for p in numba.prange(pos.shape[0]):
+        best = np.inf
+        a = amp[p]
+        cap = excess * a
+        for j in range(n_off):
+            k = centre if j == 0 else (j - 1 if j <= centre else j)
+            x = pos[p, 0] + offsets[k, 0]
+            y = pos[p, 1] + offsets[k, 1]
+            z = pos[p, 2] + offsets[k, 2]
+            t = (so + z) / so
+            wa = max(cell * abs(1.0 - t), 1e-9 * cell)
+            wb = footprint * abs(t)
+            cost = 0.0
+            for i in range(ptr[p], ptr[p + 1]):
+                ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - x, wa, wb)
+                oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - y, wa, wb)
+                r = v[i] - a * (ox * oy / (wa * wa))
+                if r > 0.0:
+                    r = min(r, cap)
+                cost += r * r
+            if cost < best:
+                best = cost
+                choice[p, 0] = offsets[k, 0]
+                choice[p, 1] = offsets[k, 1]
+                choice[p, 2] = offsets[k, 2]

@@ -19,9 +19,13 @@ from plenopiv.pipeline import resolution_cell
 from plenopiv.products.vectors import VectorResult
 from plenopiv.products.volume import VolumeResult
 from plenopiv.tracking.bundle import BundlePositions, BundleSettings, bundle_positions
+from plenopiv.tracking.forward import ForwardSettings, refine_positions
 from plenopiv.tracking.matching import MatchSettings, match_particles, predict_positions
 
 __all__ = ["TrackResult", "bin_tracks", "physical_bundle", "track_pair"]
+
+#: The forward refinement's default settings.
+FORWARD = ForwardSettings()
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,18 +87,29 @@ class TrackResult:
 
 
 def physical_bundle(lf: LightField, image, volume: VolumeResult,
-                    settings: BundleSettings, depth_cell: float) -> tuple[np.ndarray,
-                                                                          np.ndarray,
-                                                                          BundlePositions]:
+                    settings: BundleSettings, depth_cell: float,
+                    forward: ForwardSettings | None = FORWARD
+                    ) -> tuple[np.ndarray, np.ndarray, BundlePositions]:
     """Bundle positions of a volume's particles, corrected to physical coordinates.
 
     Returns ``(position (N, 3) m, uncertainty (N, 3) m, raw BundlePositions)``; the depth
     and its uncertainty are scaled by the volume's depth correction like the centroids.
+    With ``forward`` (default), the converged bundle positions seen through more than one
+    lenslet are refined by :func:`plenopiv.tracking.forward.refine_positions` (the
+    uncertainty stays the bundle fit's); ``None`` keeps the bundle positions.
     """
     b = bundle_positions(lf, image, volume.particle_position_effective, settings=settings,
                          depth_cell=depth_cell, brightness=volume.particle_intensity)
+    eff = b.position
+    # a particle seen through one lenslet lights all its pixels at any depth within the depth
+    # of field: the pixel values hold no position to refine
+    sel = b.converged & (b.n_lenslets > 1)
+    if forward is not None and sel.any():
+        eff = eff.copy()
+        eff[sel] = refine_positions(lf, image, eff[sel], depth_cell=depth_cell,
+                                    settings=forward)[0]
     corr = volume.correction
-    pos = corr.points(b.position) if len(b) else b.position.reshape(0, 3)
+    pos = corr.points(eff) if len(b) else b.position.reshape(0, 3)
     unc = b.uncertainty * np.array([1.0, 1.0, corr.scale])
     return pos, unc, b
 
@@ -126,8 +141,9 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
         lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
     lat, dep = resolution_cell(calibration.effective_camera, f_number)
     bs = BundleSettings(radius=settings.bundle_radius, iterations=settings.bundle_iterations)
-    pa, ua, ba = physical_bundle(lf, image_a, volume_a, bs, dep)
-    pb, ub, bb = physical_bundle(lf, image_b, volume_b, bs, dep)
+    fs = FORWARD if settings.forward_refine else None
+    pa, ua, ba = physical_bundle(lf, image_a, volume_a, bs, dep, fs)
+    pb, ub, bb = physical_bundle(lf, image_b, volume_b, bs, dep, fs)
     # only converged fits take part (the others keep their seed and are left out)
     ia_ok, ib_ok = np.flatnonzero(ba.converged), np.flatnonzero(bb.converged)
     scale = np.array([lat, lat, dep * volume_a.correction.scale])
@@ -137,13 +153,18 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
     pred = predict_positions(vectors, pa[ia_ok])
     m = match_particles(pa[ia_ok], pb[ib_ok], pred, scale, settings=ms)
     ia, ib = ia_ok[m.index_a], ib_ok[m.index_b]
+    # an end seen through fewer lenslets has no depth in the image within its depth of field
+    # (one lenslet: lit whatever its depth there) and a lateral position to a footprint only
+    seen = ((ba.n_lenslets[ia] >= settings.min_lenslets)
+            & (bb.n_lenslets[ib] >= settings.min_lenslets))
     counts = {"particles_a": len(pa), "particles_b": len(pb),
               "bundle_failed_a": int((~ba.converged).sum()),
               "bundle_failed_b": int((~bb.converged).sum()),
               "rejected_two_way": m.rejected_mutual, "rejected_median": m.rejected_median,
-              "tracks": len(m)}
-    return TrackResult(pa[ia], pb[ib], ua[ia], ub[ib], m.quality, m.residual, ia, ib,
-                       ba.n_lenslets[ia], bb.n_lenslets[ib], vectors.dt, counts)
+              "rejected_few_lenslets": int((~seen).sum()), "tracks": int(seen.sum())}
+    ia, ib = ia[seen], ib[seen]
+    return TrackResult(pa[ia], pb[ib], ua[ia], ub[ib], m.quality[seen], m.residual[seen], ia,
+                       ib, ba.n_lenslets[ia], bb.n_lenslets[ib], vectors.dt, counts)
 
 
 def bin_tracks(tracks: TrackResult, vectors: VectorResult, *, min_tracks: int = 1

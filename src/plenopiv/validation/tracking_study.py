@@ -40,6 +40,7 @@ from plenopiv.synthetic.images import (
 )
 from plenopiv.synthetic.seeding import SeedingBox, particle_count, simulate_pair
 from plenopiv.tracking.bundle import bundle_positions
+from plenopiv.tracking.forward import refine_positions
 from plenopiv.tracking.matching import interpolate_displacement
 from plenopiv.tracking.pair import bin_tracks, track_pair
 from plenopiv.validation.vortex import (
@@ -239,9 +240,11 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
     Returns
     -------
     dict
-        Per depth: ``depth_m``, ``centroid_error_m`` and ``bundle_error_m`` (N, 3, NaN where
-        no particle was found), ``bundle_sigma_m`` (N, 3), ``n_lenslets``; summaries
-        ``rms_mm`` for centroid and bundle per axis, ``within_2sigma``.
+        Per depth: ``depth_m``, ``centroid_error_m``, ``bundle_error_m`` and
+        ``refined_error_m`` (the bundle position refined by
+        :func:`plenopiv.tracking.forward.refine_positions`, as the tracks use it) (N, 3, NaN
+        where no particle was found), ``bundle_sigma_m`` (N, 3), ``n_lenslets``; summaries
+        ``rms_mm`` for centroid, bundle and refined per axis, ``within_2sigma`` (bundle).
     """
     from plenopiv.reconstruction.weights import cached_weights
     from plenopiv.validation.depth_study import (
@@ -259,7 +262,7 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
     lf = light_field(cal, min_lit=0.5)
     rng = np.random.default_rng(seed)
     nan3 = np.full((len(depths), 3), np.nan)
-    cen, bun, sig = nan3.copy(), nan3.copy(), nan3.copy()
+    cen, bun, sig, ref = nan3.copy(), nan3.copy(), nan3.copy(), nan3.copy()
     n_lens = np.zeros(len(depths), int)
     for i, z in enumerate(depths):
         x, y = rng.uniform(-offset_vox, offset_vox, 2) * VOXEL
@@ -269,15 +272,22 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
         if not len(res.particle_intensity):
             continue
         k = int(np.argmax(res.particle_intensity))
-        b = bundle_positions(lf, img, res.particle_position_effective[k][None],
-                             depth_cell=resolution_cell(cal.effective_camera)[1])
+        cell = resolution_cell(cal.effective_camera)[1]
+        b = bundle_positions(lf, img, res.particle_position_effective[k][None], depth_cell=cell)
         cen[i] = res.particle_position[k] - truth
         bun[i] = res.correction.points(b.position)[0] - truth
+        r = b.position
+        if b.converged[0] and b.n_lenslets[0] > 1:    # as the tracks (tracking.pair)
+            r = refine_positions(lf, img, b.position, depth_cell=cell)[0]
+        ref[i] = res.correction.points(r)[0] - truth
         sig[i] = b.uncertainty[0] * np.array([1.0, 1.0, res.correction.scale])
         n_lens[i] = b.n_lenslets[0]
     ok = np.isfinite(bun).all(axis=1) & np.isfinite(cen).all(axis=1)
+    ok &= np.isfinite(ref).all(axis=1)
     return {"depth_m": depths, "centroid_error_m": cen, "bundle_error_m": bun,
+            "refined_error_m": ref,
             "bundle_sigma_m": sig, "n_lenslets": n_lens, "n_found": int(ok.sum()),
             "rms_mm": {"centroid": (np.array(rms_per_axis(cen[ok])) * 1e3).tolist(),
-                       "bundle": (np.array(rms_per_axis(bun[ok])) * 1e3).tolist()},
+                       "bundle": (np.array(rms_per_axis(bun[ok])) * 1e3).tolist(),
+                       "refined": (np.array(rms_per_axis(ref[ok])) * 1e3).tolist()},
             "within_2sigma": (np.abs(bun[ok]) <= 2 * sig[ok]).mean(axis=0).tolist()}
