@@ -5,14 +5,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True)
 def lit_fraction(ux, uy, cell, radius, n):
-    """Lit fraction of each cell × cell square centred at (ux, uy) inside the disc of
-    ``radius``, and the centroid offset of its lit part (n × n samples where the edge
-    crosses the cell)."""
+    """Lit fraction of each cell × cell square centred at (ux, uy) inside a disc.
+
+    The disc has radius ``radius``; also returns the centroid offset of the lit part (n × n
+    samples where the edge crosses the cell). Serial: compiling the parallel loop costs
+    more than the loop itself takes on a camera's lenslets.
+    """
     m = ux.shape[0]
     lit = np.empty(m)
     sx = np.zeros(m)
@@ -20,7 +23,7 @@ def lit_fraction(ux, uy, cell, radius, n):
     reach = cell * math.sqrt(0.5)
     r2 = radius * radius
     step = cell / n
-    for i in prange(m):
+    for i in range(m):
         d = math.hypot(ux[i], uy[i])
         if d + reach <= radius:
             lit[i] = 1.0

@@ -7,6 +7,13 @@ on the same inputs and :func:`plenopiv.piv.correlate_volumes` chooses one by its
 argument (``"numba"``, the default, or ``"numpy"``). All positions, shifts and displacements
 here are in voxels and in the volume's index order ``(z, y, x)``.
 
+``find_peaks``, ``deform_cubic``, ``neighbour_median`` and ``peak_statistics`` are serial
+numba functions: their work in a run is small (a few hundred windows or vectors), and
+numba compiles a parallel (``prange``) loop several times more slowly than a serial one,
+which on the first run cost more than the threads save (README, "What the first run
+costs"). The heavy kernels (``extract_windows``, ``cross_spectrum``, ``deform_trilinear``)
+stay parallel.
+
 Kernels
 -------
 extract_windows
@@ -182,13 +189,13 @@ def _fit3_numba(cm, c0, cp, gaussian):
     return 0.0
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _find_peaks_numba(corr, gaussian):
     n, wz, wy, wx = corr.shape
     disp = np.empty((n, 3), dtype=np.float64)
     peak = np.empty(n, dtype=np.float64)
     snr = np.empty(n, dtype=np.float64)
-    for k in numba.prange(n):
+    for k in range(n):
         c = corr[k]
         # one sweep keeps the two highest face-connected local maxima; the global maximum is
         # one of them, the other is the secondary peak. A voxel is examined further only
@@ -359,12 +366,12 @@ def _bspline3_weights(t, out):
     out[3] = t * t * t / 6.0
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _deform_cubic_numba(coeffs, field, factor, pad):
     _, nz, ny, nx = field.shape
     cz, cy, cx = coeffs.shape
     out = np.empty((nz, ny, nx), dtype=np.float32)
-    for i in numba.prange(nz):
+    for i in range(nz):
         wz = np.empty(4)
         wy = np.empty(4)
         wx = np.empty(4)
@@ -435,8 +442,11 @@ def _deform_cubic_numpy(coeffs, field, factor, pad):
 
 @numba.njit(cache=True)
 def _small_median(a, n):
-    """Median of ``a[:n]`` (n >= 1), sorting ``a[:n]`` in place: an insertion sort of at most
-    26 values, which compiles in a fraction of the time of ``np.median``."""
+    """Median of ``a[:n]`` (n >= 1), sorting ``a[:n]`` in place.
+
+    An insertion sort of at most 26 values, which compiles in a fraction of the time of
+    ``np.median``.
+    """
     for i in range(1, n):
         v = a[i]
         j = i - 1
@@ -448,12 +458,12 @@ def _small_median(a, n):
     return a[h] if n % 2 else 0.5 * (a[h - 1] + a[h])
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _neighbour_median_numba(field, usable):
     ncomp, nz, ny, nx = field.shape
     median = np.full(field.shape, np.nan)
     residual = np.full(field.shape, np.nan)
-    for flat in numba.prange(nz * ny * nx):
+    for flat in range(nz * ny * nx):
         i = flat // (ny * nx)
         j = (flat // nx) % ny
         m = flat % nx
@@ -542,7 +552,7 @@ def _box_sum_circular(x, axis, half, out):
                     s += x[i, j, (m + half + 1) % length] - x[i, j, (m - half) % length]
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _peak_statistics_numba(volume_a, volume_b, starts_a, starts_b, wz, wy, wx, peak, block):
     n = starts_a.shape[0]
     nz, ny, nx = volume_a.shape
@@ -552,7 +562,7 @@ def _peak_statistics_numba(volume_a, volume_b, starts_a, starts_b, wz, wy, wx, p
     hx = min((block[2] - 1) // 2, (wx - 1) // 2)
     box = (2 * hz + 1) * (2 * hy + 1) * (2 * hx + 1)
     size = wz * wy * wx
-    for k in numba.prange(n):
+    for k in range(n):
         a = np.zeros((wz, wy, wx))
         b = np.zeros((wz, wy, wx))
         for i in range(wz):
@@ -609,9 +619,12 @@ def _peak_statistics_numba(volume_a, volume_b, starts_a, starts_b, wz, wy, wx, p
             out[k, 2 + 2 * ax] = cm[ax]
             dx = d[ax]
             dx -= (cp[ax] - cm[ax]) / size
-            _box_sum_circular(dx, 0, hz, tmp)
-            _box_sum_circular(tmp, 1, hy, tmp2)
-            _box_sum_circular(tmp2, 2, hx, tmp)
+            # axis and half as run-time values: one compiled variant of the box sum, not
+            # one per literal axis
+            for axis in range(3):
+                half = hz if axis == 0 else (hy if axis == 1 else hx)
+                src = dx if axis == 0 else (tmp if axis == 1 else tmp2)
+                _box_sum_circular(src, axis, half, tmp2 if axis == 1 else tmp)
             acc = 0.0
             for i in range(wz):
                 for j in range(wy):
