@@ -55,6 +55,13 @@ FLAG_OUTLIER = 1
 FLAG_EMPTY = 2
 """Bit of :attr:`VectorField.flag`: the window had no intensity variation (no particles)."""
 FLAG_MASKED = 4
+
+#: Below this many window voxels (windows × voxels per window) of the last pass, the
+#: correlation statistics use the plain-NumPy twin of their kernel even with
+#: ``engine="numba"``: on a small field compiling the numba kernel (2-4 s of CPU on the first
+#: run) costs more than it saves, and the twin's arrays (about ten float64 arrays of this
+#: many values) stay under 200 MB. The two give the same statistics (tests).
+NUMPY_STATISTICS_MAX_VOXELS = 2**21
 """Bit of :attr:`VectorField.flag`: the window centre lies in the volume mask."""
 
 DEFORMATION_ORDERS = (1, 2, 3, 4, 5)
@@ -923,8 +930,11 @@ def replace_outliers(u, v, w, outlier, *, engine="numba"):
 
 
 def _replace_mean(field_vox, outlier, kernels):
-    """Like :func:`_replace`, with the mean of the usable 3x3x3 neighbours in place of their
-    median (the border completed by linear extrapolation as well)."""
+    """Replace like :func:`_replace`, with the mean of the usable 3x3x3 neighbours.
+
+    The mean takes the place of the median; the border is completed by linear extrapolation
+    as well.
+    """
     usable = ~outlier & np.all(np.isfinite(field_vox), axis=0)
     if not usable.any():
         return _replace(field_vox, outlier, kernels)  # raises the same error
@@ -995,7 +1005,10 @@ def correlate_volumes(
         Threads for the FFTs (``scipy.fft`` ``workers``) and the numba kernels (>= 1);
         None uses every core.
     engine : {"numba", "numpy"}, keyword-only
-        Kernel implementation: ``"numba"`` (fast) or its plain-NumPy twin (reference).
+        Kernel implementation: ``"numba"`` (fast) or its plain-NumPy twin (reference). The
+        correlation statistics of a small field (at most ``NUMPY_STATISTICS_MAX_VOXELS``
+        window voxels) use the twin with either engine: compiling their numba kernel costs
+        more than it saves there.
     progress : callable, keyword-only
         Called after each pass with a dict holding ``pass`` (1-based), ``passes``,
         ``window_vox``, ``n_vectors`` and ``n_outliers``.
@@ -1181,7 +1194,7 @@ def _check_mask(mask, shape):
 
 
 def _centre_mask(mask, layout):
-    """True for the windows of ``layout`` whose centre lies in ``mask`` (flat, (n,))."""
+    """Return True for the windows of ``layout`` whose centre lies in ``mask`` (flat, (n,))."""
     n = math.prod(layout.shape)
     if mask is None:
         return np.zeros(n, dtype=bool)
@@ -1341,7 +1354,7 @@ def _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress
 
 
 def particle_image_size(volume):
-    r"""Standard deviation of the particle images of a volume per axis, voxels ``(z, y, x)``.
+    r"""Measure the particle images' standard deviation per axis, voxels ``(z, y, x)``.
 
     Parameters
     ----------
@@ -1406,8 +1419,21 @@ def _sigma_from_asymmetry(c0, cp, cm, spread, gaussian):
     return np.where(np.isfinite(sigma), np.minimum(sigma, 0.5), 0.5)
 
 
+def _statistics_kernel(kernels, n_windows, window):
+    """Choose the ``peak_statistics`` kernel for ``n_windows`` windows of shape ``window``.
+
+    The NumPy twin when they hold at most ``NUMPY_STATISTICS_MAX_VOXELS`` voxels, else the
+    engine's own.
+    """
+    if n_windows * math.prod(window) <= NUMPY_STATISTICS_MAX_VOXELS:
+        return ENGINES["numpy"].peak_statistics
+    return kernels.peak_statistics
+
+
 def _correlation_uncertainty(vol_a, vol_b, shift, measured, layout, settings, kernels):
-    """Standard uncertainty (3, nz, ny, nx) in voxels ``(z, y, x)`` by correlation statistics.
+    """Estimate the standard uncertainty (3, nz, ny, nx), voxels ``(z, y, x)``, by statistics.
+
+    The statistics are those of the correlation peak (Wieneke 2015).
 
     ``vol_a, vol_b`` are the volumes the last pass correlated (deformed, or with the window
     ``shift`` of a discrete offset), ``measured`` ((n, 3) voxels) the displacement that pass
@@ -1424,7 +1450,7 @@ def _correlation_uncertainty(vol_a, vol_b, shift, measured, layout, settings, ke
     peak = np.zeros((n, 3), dtype=np.int64)
     peak[ok] = np.rint(measured[ok]).astype(np.int64)
     block = _statistics_block(vol_a, layout.window).astype(np.int64)
-    stats = kernels.peak_statistics(
+    stats = _statistics_kernel(kernels, n, layout.window)(
         vol_a,
         vol_b,
         np.ascontiguousarray(starts_a),
@@ -1448,8 +1474,11 @@ def _correlation_uncertainty(vol_a, vol_b, shift, measured, layout, settings, ke
 
 
 def _rejected_uncertainty(sigma_vox, result, rejected, in_mask, kernels):
-    """Uncertainty of the final field: rejected vectors get their neighbours' (see Notes of
-    :func:`correlate_volumes`); NaN where no vector is given."""
+    """Uncertainty of the final field.
+
+    Rejected vectors get their neighbours' (see Notes of :func:`correlate_volumes`); NaN where
+    no vector is given.
+    """
     sigma = np.where(rejected[None], np.nan, sigma_vox)
     usable = ~rejected & np.all(np.isfinite(sigma), axis=0)
     fill = rejected & np.all(np.isfinite(result), axis=0)
