@@ -20,6 +20,7 @@ from plenopiv.piv import (
     particle_image_size,
 )
 from plenopiv.piv._kernels import ENGINES
+from plenopiv.piv.statistics import NUMPY_STATISTICS_MAX_VOXELS, _statistics_kernel
 from test_piv import render, seed_particles, volume_pair
 
 ENGINE_NAMES = tuple(ENGINES)
@@ -47,6 +48,17 @@ def test_kernel_peak_statistics_engines_agree(rng, block):
     out = [ENGINES[e].peak_statistics(a, b, sa, sb, *window, peak, np.array(block))
            for e in ENGINE_NAMES]
     np.testing.assert_allclose(out[0], out[1], rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("engine", ENGINE_NAMES)
+def test_small_fields_take_the_numpy_statistics_with_either_engine(engine):
+    # the numba kernel's compilation costs more than it saves on a small field; the engines
+    # agree (test above), so the choice changes the time only
+    kernels = ENGINES[engine]
+    window = (12, 12, 12)
+    n_small = NUMPY_STATISTICS_MAX_VOXELS // 1728
+    assert _statistics_kernel(kernels, n_small, window) is ENGINES["numpy"].peak_statistics
+    assert _statistics_kernel(kernels, n_small + 1, window) is kernels.peak_statistics
 
 
 def test_peak_statistics_equal_the_circular_correlation(rng):

@@ -59,7 +59,7 @@ def suppress_close(peaks, shape, separation):
     return keep
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True)
 def refine_peaks(volume, peaks, half_box, spacing, gaussian, position, size, intensity):
     """Sub-voxel position, size and integrated intensity of each peak.
 
@@ -76,7 +76,7 @@ def refine_peaks(volume, peaks, half_box, spacing, gaussian, position, size, int
     Otherwise: the intensity-weighted centroid and second central moment over the box.
     """
     nz, ny, nx = volume.shape
-    for n in numba.prange(peaks.shape[0]):
+    for n in range(peaks.shape[0]):
         z, y, x = peaks[n, 0], peaks[n, 1], peaks[n, 2]
         z0 = max(z - half_box[0], 0)
         z1 = min(z + half_box[0] + 1, nz)

@@ -595,7 +595,7 @@ def _window_moments(image, cy, cx, r0, r1, c0, c1, radius, b0, br, bc):
     return s0, sr, sc
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True)
 def window_centroid_numba(image, start, radius, bg_inner, bg_outer, max_iter, tol):
     """First moment of each spot in a soft-edged circular window above a local plane (kernel).
 
@@ -638,7 +638,7 @@ def window_centroid_numba(image, start, radius, bg_inner, bg_outer, max_iter, to
     background = np.zeros(n)
     reach = max(radius + 0.5, bg_outer)
     use_bg = bg_outer > bg_inner
-    for k in numba.prange(n):
+    for k in range(n):
         a = np.zeros((3, 3))
         rhs = np.zeros(3)
         cy = start[k, 0]

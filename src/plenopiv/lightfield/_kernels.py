@@ -5,10 +5,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True)
 def lit_fraction(ux, uy, cell, radius, n):
     """Lit fraction of cell × cell squares centred at (ux, uy) inside a disc, centroid offsets.
 
@@ -36,7 +36,7 @@ def lit_fraction(ux, uy, cell, radius, n):
     reach = cell * math.sqrt(0.5)
     r2 = radius * radius
     step = cell / n
-    for i in prange(m):
+    for i in range(m):
         d = math.hypot(ux[i], uy[i])
         if d + reach <= radius:
             lit[i] = 1.0

@@ -12,6 +12,26 @@ import numpy as np
 
 from plenopiv.piv.validation import _extrapolated_neighbours
 
+#: Below this many window voxels (windows × voxels per window) of the last pass, the
+#: correlation statistics use the plain-NumPy twin of their kernel even with
+#: ``engine="numba"``: on a small field compiling the numba kernel (2-4 s of CPU on the first
+#: run) costs more than it saves, and the twin's arrays (about ten float64 arrays of this
+#: many values) stay under 200 MB. The two give the same statistics (tests).
+NUMPY_STATISTICS_MAX_VOXELS = 2**21
+
+
+def _statistics_kernel(kernels, n_windows: int, window) -> object:
+    """Choose the ``peak_statistics`` kernel for ``n_windows`` windows of shape ``window``.
+
+    The NumPy twin when they hold at most ``NUMPY_STATISTICS_MAX_VOXELS`` voxels, else the
+    engine's own.
+    """
+    from plenopiv.piv._kernels import ENGINES
+
+    if n_windows * math.prod(window) <= NUMPY_STATISTICS_MAX_VOXELS:
+        return ENGINES["numpy"].peak_statistics
+    return kernels.peak_statistics
+
 
 def particle_image_size(volume):
     r"""Standard deviation of the particle images of a volume per axis, voxels ``(z, y, x)``.
@@ -97,7 +117,7 @@ def _correlation_uncertainty(vol_a, vol_b, shift, measured, layout, settings, ke
     peak = np.zeros((n, 3), dtype=np.int64)
     peak[ok] = np.rint(measured[ok]).astype(np.int64)
     block = _statistics_block(vol_a, layout.window).astype(np.int64)
-    stats = kernels.peak_statistics(
+    stats = _statistics_kernel(kernels, n, layout.window)(
         vol_a,
         vol_b,
         np.ascontiguousarray(starts_a),

@@ -81,12 +81,12 @@ def _bspline3_weights(t, out):
     out[3] = t * t * t / 6.0
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def deform_cubic(coeffs, field, factor, pad):
     _, nz, ny, nx = field.shape
     cz, cy, cx = coeffs.shape
     out = np.empty((nz, ny, nx), dtype=np.float32)
-    for i in numba.prange(nz):
+    for i in range(nz):
         wz = np.empty(4)
         wy = np.empty(4)
         wx = np.empty(4)

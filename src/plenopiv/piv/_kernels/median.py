@@ -30,12 +30,12 @@ def _small_median(a, n):
     return a[h] if n % 2 else 0.5 * (a[h - 1] + a[h])
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def neighbour_median(field, usable):
     ncomp, nz, ny, nx = field.shape
     median = np.full(field.shape, np.nan)
     residual = np.full(field.shape, np.nan)
-    for flat in numba.prange(nz * ny * nx):
+    for flat in range(nz * ny * nx):
         i = flat // (ny * nx)
         j = (flat // nx) % ny
         m = flat % nx

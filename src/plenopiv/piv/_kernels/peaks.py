@@ -26,13 +26,13 @@ def _fit3_numba(cm, c0, cp, gaussian):
     return 0.0
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def find_peaks(corr, gaussian):
     n, wz, wy, wx = corr.shape
     disp = np.empty((n, 3), dtype=np.float64)
     peak = np.empty(n, dtype=np.float64)
     snr = np.empty(n, dtype=np.float64)
-    for k in numba.prange(n):
+    for k in range(n):
         c = corr[k]
         # one sweep keeps the two highest face-connected local maxima; the global maximum is
         # one of them, the other is the secondary peak. A voxel is examined further only

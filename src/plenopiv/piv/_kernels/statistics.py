@@ -48,7 +48,7 @@ def _box_sum_circular(x, axis, half, out):
                     s += x[i, j, (m + half + 1) % length] - x[i, j, (m - half) % length]
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def peak_statistics(volume_a, volume_b, starts_a, starts_b, wz, wy, wx, peak, block):
     n = starts_a.shape[0]
     nz, ny, nx = volume_a.shape
@@ -58,7 +58,7 @@ def peak_statistics(volume_a, volume_b, starts_a, starts_b, wz, wy, wx, peak, bl
     hx = min((block[2] - 1) // 2, (wx - 1) // 2)
     box = (2 * hz + 1) * (2 * hy + 1) * (2 * hx + 1)
     size = wz * wy * wx
-    for k in numba.prange(n):
+    for k in range(n):
         a = np.zeros((wz, wy, wx))
         b = np.zeros((wz, wy, wx))
         for i in range(wz):
@@ -115,9 +115,12 @@ def peak_statistics(volume_a, volume_b, starts_a, starts_b, wz, wy, wx, peak, bl
             out[k, 2 + 2 * ax] = cm[ax]
             dx = d[ax]
             dx -= (cp[ax] - cm[ax]) / size
-            _box_sum_circular(dx, 0, hz, tmp)
-            _box_sum_circular(tmp, 1, hy, tmp2)
-            _box_sum_circular(tmp2, 2, hx, tmp)
+            # axis and half as run-time values: one compiled variant of the box sum, not
+            # one per literal axis
+            for axis in range(3):
+                half = hz if axis == 0 else (hy if axis == 1 else hx)
+                src = dx if axis == 0 else (tmp if axis == 1 else tmp2)
+                _box_sum_circular(src, axis, half, tmp2 if axis == 1 else tmp)
             acc = 0.0
             for i in range(wz):
                 for j in range(wy):

@@ -21,7 +21,7 @@ from numba import njit, prange
 from plenopiv.reconstruction._kernels.weights import _axis_range, box_sum_cdf
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True)
 def axis_tables(u, xf, valid, t, al, be, half, origin, vox, n, kmax, start, count, w):
     """1-D beam profiles of every sensor line (column or row) on every slice.
 
@@ -33,7 +33,7 @@ def axis_tables(u, xf, valid, t, al, be, half, origin, vox, n, kmax, start, coun
     nz = t.shape[0]
     npx = u.shape[0]
     worst = np.zeros(nz, np.int64)
-    for k in prange(nz):
+    for k in range(nz):
         tk = t[k]
         for p in range(npx):
             start[k, p] = 0
@@ -166,7 +166,8 @@ def spread_x(tmp, xs, xc, xw, out):
 def row_max(ray_row, ray_col, ray_scale, col_max, row_max_, out):
     """Largest weight of every ray: ``scale · max_k col_max[col, k] · row_max_[row, k]``.
 
-    (The profiles' largest values per line and slice, slices contiguous).
+    ``col_max``, ``row_max_``: the profiles' largest values per line and slice, slices
+    contiguous.
     """
     nz = col_max.shape[1]
     for i in prange(ray_row.shape[0]):

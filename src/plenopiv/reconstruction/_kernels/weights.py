@@ -96,25 +96,34 @@ def _row(i, ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny, m
 
 
 @njit(parallel=True, cache=True)
-def count_nnz(ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny, min_w):
-    """Non-zeros of every pixel row."""
+def weight_rows(ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny, min_w,
+                indptr, indices, data, fill):
+    """Count (``fill`` False) or write (``fill`` True) the weights of every pixel row.
+
+    Returns the non-zeros of every row (int64, (n,)). Writing, row i goes to
+    ``indices[indptr[i]:indptr[i + 1]]`` and ``data[...]``; counting, ``indptr`` is zeros and
+    nothing is written. One kernel for both passes: it compiles once (a parallel loop takes
+    seconds to compile), with one variant of :func:`_row`.
+    """
     n = ux.shape[0]
     counts = np.zeros(n, np.int64)
-    dummy_i = np.zeros(0, np.int32)
-    dummy_w = np.zeros(0, np.float32)
     for i in prange(n):
+        s, e = indptr[i], indptr[i + 1]
         # np.int64: the parallel loop's index is unsigned; one type compiles _row once
         counts[i] = _row(np.int64(i), ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx,
-                         vy, nx, ny, min_w, dummy_i, dummy_w, False)
+                         vy, nx, ny, min_w, indices[s:e], data[s:e], fill)
     return counts
 
 
-@njit(parallel=True, cache=True)
+def count_nnz(ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny, min_w):
+    """Non-zeros of every pixel row (int64, (n,))."""
+    return weight_rows(ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny,
+                       min_w, np.zeros(ux.shape[0] + 1, np.int64), np.zeros(0, np.int32),
+                       np.zeros(0, np.float32), False)
+
+
 def fill_rows(indptr, ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny, min_w,
               indices, data):
     """Write every pixel row into the CSR arrays (``indptr`` from :func:`count_nnz`)."""
-    n = ux.shape[0]
-    for i in prange(n):
-        s, e = indptr[i], indptr[i + 1]
-        _row(np.int64(i), ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny,
-             min_w, indices[s:e], data[s:e], True)
+    weight_rows(ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, ny, min_w,
+                indptr, indices, data, True)
