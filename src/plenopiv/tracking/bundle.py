@@ -240,6 +240,26 @@ def _half_beam(lf: LightField, depth) -> np.ndarray:
     return 0.5 * (lf.footprint * np.abs(t) + lf.cell * np.abs(1.0 - t))
 
 
+def _checked_inputs(lf: LightField, image, seeds, settings: BundleSettings, engine: str):
+    """Return the seeds as (N, 3) floats and each ray's light above the floor (float64).
+
+    Raises ValueError for an unknown engine or non-finite seeds, ReconstructionError for an
+    image that is not the light field's sensor.
+    """
+    if engine not in ENGINES:
+        raise ValueError(f"engine = {engine!r}: expected one of {ENGINES}")
+    img = np.asarray(image)
+    if img.shape != tuple(lf.shape):
+        raise ReconstructionError(f"image is {img.shape}; the light field's sensor is "
+                                  f"{tuple(lf.shape)}")
+    seeds = np.asarray(seeds, float).reshape(-1, 3)
+    if not np.isfinite(seeds).all():
+        raise ValueError("seed positions contain NaN or infinity")
+    values = lf.values(img).astype(np.float64)
+    top = float(values.max()) if len(values) else 0.0
+    return seeds, np.maximum(values - settings.floor * top, 0.0)
+
+
 def bundle_positions(lf: LightField, image, seeds, *,
                      settings: BundleSettings = BundleSettings(), depth_cell: float | None = None,
                      brightness=None, chunk: int = 1024,
@@ -301,19 +321,8 @@ def bundle_positions(lf: LightField, image, seeds, *,
     C_r + C_q. A particle seen through one lenslet (near focus) has no residual scatter and
     so gets σ_x = t b/√12 and a depth uncertainty of its depth of field.
     """
-    if engine not in ENGINES:
-        raise ValueError(f"engine = {engine!r}: expected one of {ENGINES}")
-    img = np.asarray(image)
-    if img.shape != tuple(lf.shape):
-        raise ReconstructionError(f"image is {img.shape}; the light field's sensor is "
-                                  f"{tuple(lf.shape)}")
-    seeds = np.asarray(seeds, float).reshape(-1, 3)
-    if not np.isfinite(seeds).all():
-        raise ValueError("seed positions contain NaN or infinity")
+    seeds, weight = _checked_inputs(lf, image, seeds, settings, engine)
     n = len(seeds)
-    values = lf.values(img).astype(np.float64)
-    top = float(values.max()) if len(values) else 0.0
-    weight = np.maximum(values - settings.floor * top, 0.0)
     order, ptr, conj, has = _lenslet_table(lf)
     lens_ids = np.flatnonzero(has)
     tree = cKDTree(conj[has])

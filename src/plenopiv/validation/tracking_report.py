@@ -152,9 +152,8 @@ def _v(x, n=3) -> str:
     return ", ".join(f"{a:.{n}f}" for a in x)
 
 
-def markdown(result: dict, figures: list[str]) -> str:
-    """Return the Markdown report of a :func:`run` result."""
-    t = result["target"]
+def _header(result: dict) -> list[str]:
+    """Return the report's title and the paragraph on how it was generated."""
     ran = sorted({c["particles_per_lenslet"] for c in result["cases"]})
     seeds = sorted({c["seed"] for c in result["cases"]})
     full = tuple(ran) == tuple(DENSITIES)
@@ -176,7 +175,13 @@ def markdown(result: dict, figures: list[str]) -> str:
              "a track is correct when one true particle lies within one resolution cell "
              "of both its ends (cells of 0.125, 0.125, 0.55 mm), wrong otherwise; the "
              "tracked fraction counts the true particles with a correct track.", ""]
-    lines += ["## Summary", ""]
+    return lines
+
+
+def _summary(result: dict) -> list[str]:
+    """Return the summary section: each target per flow at 0.15 ppl, the single particles."""
+    t = result["target"]
+    lines = ["## Summary", ""]
     for flow in ("oseen", "hill"):
         rs = [r for r in _seed_mean([c for c in result["cases"] if c["flow"] == flow])
               if r["particles_per_lenslet"] == 0.15]
@@ -208,51 +213,59 @@ def markdown(result: dict, figures: list[str]) -> str:
                  if "refined" in s["rms_mm"] else "")
               + "; bundle errors within ±2σ reported: "
               f"{_v(s['within_2sigma'], 2)} (x, y, z).", ""]
-    lines += ["## Reading", "",
-              "- Positions of the tracks are ray-bundle positions refined by the forward model "
-              "(`plenopiv.tracking.forward`, `[tracking] forward_refine`); the single-particle "
-              "table gives both. The position columns below (A particles of the correct "
-              "tracks) are the refined positions against the volume centroids.",
-              "- Where the depth error came from (Oseen, 0.15 particles per lenslet, seed 1, "
-              "bundle positions of the A particles against the truth): with the true position "
-              "of every particle as seed, the missed ones included, the bundle's depth rms is "
-              "0.77 voxel against 0.93 from the centroids, so the light of neighbours, found or "
-              "missed, is not the main part. By depth it is 0.16-0.4 voxel beyond 1 mm from "
-              "focus and 1.2-1.5 voxel within 1 mm: all chief rays of a lenslet meet at Z = 0, "
-              "so a particle seen through one lenslet is placed on the focal plane (errors up "
-              "to its depth of field, 0.48 mm) and one seen through 2-6 lenslets is pushed "
-              "away from it by up to 0.4 mm. Re-weighting the rays does not help (same pair, "
-              "depth rms of the A positions, bundle 0.93 voxel): Tukey weights on the ray-to-"
-              "point distance 1.12-1.25, per-lenslet Tukey weights on the fan offset "
-              "1.33-1.97, a selection radius of 1 or 2 half beams 1.21 / 0.92, chief rays "
-              "bent to the nearest point of their footprint 1.02.",
-              "- The forward model uses what the chief rays drop: which pixels of each "
-              "micro-image are lit and how much. On the same pair it takes the depth rms of the "
-              "A positions from 0.93 to 0.70 voxel (0.57 to 0.20 beyond 1 mm from focus, "
-              "lateral 0.11 to 0.08) and the tracks' depth rms from 0.68 to 0.43 voxel "
-              "(Hill: 0.50 to 0.33; the same seed, all tracks kept), at ~0.9 s of CPU per "
-              "image of ~230 particles (the bundle: 0.2 s). What remains is near focus: a "
-              "particle seen through one "
-              "lenslet has no depth in the image within its depth of field (it keeps the "
-              "bundle position), and within ~0.6 mm of focus the misfit is flat enough over "
-              "±0.1-0.2 mm in depth for the grid search to stop off the truth (single "
-              "particles at ±0.5 mm).",
-              "- Tracks with an end seen through one lenslet are dropped (`[tracking] "
-              "min_lenslets = 2`, counted as `rejected_few_lenslets`): on the Oseen pair of "
-              "seed 1 they were 6 of 167 correct tracks, with a depth rms of 1.45 voxel (the "
-              "correlation's at them: 1.32), and took the tracks' depth rms from 0.34 to 0.43 "
-              "voxel.",
-              "- The single particle at Z = -5 mm, missing from the earlier report (0 "
-              "lenslets, no centroid), was lost by the reconstruction, not by the bundle: the "
-              "line-of-sight mask, then judged per whole voxel, emptied that volume; since "
-              "the mask is judged on sub-voxel cells the particle is found.",
-              "- A particle in focus lights one lenslet whatever its position on it: its "
-              "lateral position is known to a footprint only (the off-focus column leaves out "
-              "the tracks with such an end; with `min_lenslets = 2` there are none). The "
-              "reported uncertainty stays the bundle fit's: it covers the refined positions "
-              "with room to spare (all errors within ±2σ), so it is conservative.",
-              ""]
-    lines += ["## Density sweep (mean over seeds)", "",
+    return lines
+
+
+#: The "Reading" section: what the figures mean and where the depth error came from.
+READING = ["## Reading", "",
+          "- Positions of the tracks are ray-bundle positions refined by the forward model "
+          "(`plenopiv.tracking.forward`, `[tracking] forward_refine`); the single-particle "
+          "table gives both. The position columns below (A particles of the correct "
+          "tracks) are the refined positions against the volume centroids.",
+          "- Where the depth error came from (Oseen, 0.15 particles per lenslet, seed 1, "
+          "bundle positions of the A particles against the truth): with the true position "
+          "of every particle as seed, the missed ones included, the bundle's depth rms is "
+          "0.77 voxel against 0.93 from the centroids, so the light of neighbours, found or "
+          "missed, is not the main part. By depth it is 0.16-0.4 voxel beyond 1 mm from "
+          "focus and 1.2-1.5 voxel within 1 mm: all chief rays of a lenslet meet at Z = 0, "
+          "so a particle seen through one lenslet is placed on the focal plane (errors up "
+          "to its depth of field, 0.48 mm) and one seen through 2-6 lenslets is pushed "
+          "away from it by up to 0.4 mm. Re-weighting the rays does not help (same pair, "
+          "depth rms of the A positions, bundle 0.93 voxel): Tukey weights on the ray-to-"
+          "point distance 1.12-1.25, per-lenslet Tukey weights on the fan offset "
+          "1.33-1.97, a selection radius of 1 or 2 half beams 1.21 / 0.92, chief rays "
+          "bent to the nearest point of their footprint 1.02.",
+          "- The forward model uses what the chief rays drop: which pixels of each "
+          "micro-image are lit and how much. On the same pair it takes the depth rms of the "
+          "A positions from 0.93 to 0.70 voxel (0.57 to 0.20 beyond 1 mm from focus, "
+          "lateral 0.11 to 0.08) and the tracks' depth rms from 0.68 to 0.43 voxel "
+          "(Hill: 0.50 to 0.33; the same seed, all tracks kept), at ~0.9 s of CPU per "
+          "image of ~230 particles (the bundle: 0.2 s). What remains is near focus: a "
+          "particle seen through one "
+          "lenslet has no depth in the image within its depth of field (it keeps the "
+          "bundle position), and within ~0.6 mm of focus the misfit is flat enough over "
+          "±0.1-0.2 mm in depth for the grid search to stop off the truth (single "
+          "particles at ±0.5 mm).",
+          "- Tracks with an end seen through one lenslet are dropped (`[tracking] "
+          "min_lenslets = 2`, counted as `rejected_few_lenslets`): on the Oseen pair of "
+          "seed 1 they were 6 of 167 correct tracks, with a depth rms of 1.45 voxel (the "
+          "correlation's at them: 1.32), and took the tracks' depth rms from 0.34 to 0.43 "
+          "voxel.",
+          "- The single particle at Z = -5 mm, missing from the earlier report (0 "
+          "lenslets, no centroid), was lost by the reconstruction, not by the bundle: the "
+          "line-of-sight mask, then judged per whole voxel, emptied that volume; since "
+          "the mask is judged on sub-voxel cells the particle is found.",
+          "- A particle in focus lights one lenslet whatever its position on it: its "
+          "lateral position is known to a footprint only (the off-focus column leaves out "
+          "the tracks with such an end; with `min_lenslets = 2` there are none). The "
+          "reported uncertainty stays the bundle fit's: it covers the refined positions "
+          "with room to spare (all errors within ±2σ), so it is conservative.",
+          ""]
+
+
+def _density_table(result: dict) -> list[str]:
+    """Return the density sweep's table (mean over seeds)."""
+    lines = ["## Density sweep (mean over seeds)", "",
               "| flow | ppl | seeds | tracked | wrong | tracks rms x, y, z | off-focus tracks rms "
               "(fraction) | correlation rms (grid) | correlation at tracks | binned tracks rms "
               "| refined pos. rms (A) | centroid pos. rms (A) | tracks within ±2σ | track s |",
@@ -268,7 +281,12 @@ def markdown(result: dict, figures: list[str]) -> str:
                 f"{_v(r['position_rms_vox']['bundle'])} | "
                 f"{_v(r['position_rms_vox']['centroid'])} | {_v(r['track_within_2sigma'], 2)} "
                 f"| {r['track_s']:.1f} |")
-    lines += ["", "## Single particles (thesis §5.1)", "",
+    return lines
+
+
+def _single_table(s: dict) -> list[str]:
+    """Return the single particles' table (thesis §5.1)."""
+    lines = ["", "## Single particles (thesis §5.1)", "",
               "| Z (mm) | centroid error x, y, z (µm) | bundle error x, y, z (µm) | refined "
               "error x, y, z (µm) | bundle σ x, y, z (µm) | lenslets |",
               "|---|---|---|---|---|---|"]
@@ -279,5 +297,12 @@ def markdown(result: dict, figures: list[str]) -> str:
                      f"{_v(np.asarray(refined[i], float) * 1e6, 1)} | "
                      f"{_v(np.asarray(s['bundle_sigma_m'][i]) * 1e6, 1)} | "
                      f"{s['n_lenslets'][i]} |")
+    return lines
+
+
+def markdown(result: dict, figures: list[str]) -> str:
+    """Return the Markdown report of a :func:`run` result."""
+    lines = (_header(result) + _summary(result) + READING + _density_table(result)
+             + _single_table(result["single"]))
     lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
