@@ -224,6 +224,7 @@ def test_cli_refuses_a_rotated_volume_beyond_the_memory_limit(tmp_path, small_ca
     (tmp_path / "exp.toml").write_text(
         'camera = "small_m1"\n[volume]\nx_mm = [-1.0, 1.0]\ny_mm = [-1.0, 1.0]\n'
         'z_mm = [-1.5, 1.5]\nvoxel_mm = 0.125\n[reconstruction]\nmax_weights_gb = 1e-6\n'
+        'lateral_subdivision = 1\n'
         '[output]\npng = false\nvtk = false\nweights_cache = ""\n')
     code = main(["reconstruct", str(tmp_path / "cal.h5"), str(tmp_path / "a.tif"), "--config",
                  str(tmp_path / "exp.toml"), "--out", str(tmp_path / "v.h5")])
