@@ -10,11 +10,11 @@ takes the matrix-free lattice projector.
 ``--geometry rotated|hexagonal`` mounts a rotated square array (γ = 2 mrad, offset (3, -2) µm)
 or a hexagonal one (222 × 287 lenslets, γ = 1 mrad) in the same camera; the grid is moved off
 the footprints by ``--grid-offset-vox`` (default 0.37, 0.21 voxels) for every geometry. They
-take the per-lenslet matrix-free projector (:mod:`plenopiv.reconstruction.real_lattice`); a geometry the
-reconstruction cannot take stops at the weights stage (before rendering) with the library's
-error, recorded as ``refused``. ``--lenslets ROWS COLS`` measures a central patch of the
-sensor at the same seeding density and depth (docs/validation/real_arrays.md scales it).
-Every stage prints its wall and CPU time and the load average.
+take the per-lenslet matrix-free projector (:mod:`plenopiv.reconstruction.real_lattice`); a geometry
+the reconstruction cannot take stops at the weights stage (before rendering) with the library's
+error, recorded as ``refused``. ``--lenslets ROWS COLS`` measures a central patch of the sensor at
+the same seeding density and depth (docs/validation/real_arrays.md scales it). Every stage prints
+its wall and CPU time and the load average.
 
 Stages, each printed with its wall time and the process's peak resident memory during it:
 

@@ -463,7 +463,8 @@ def test_random_points_are_not_a_lattice(rng):
 @pytest.mark.parametrize(
     "kwargs, message",
     [
-        (dict(method="peak"), r"method must be one of 'auto', 'window', 'centroid', 'gaussian'; got 'peak'"),
+        (dict(method="peak"),
+         r"method must be one of 'auto', 'window', 'centroid', 'gaussian'; got 'peak'"),
         (dict(background="median"), r"background must be one of 'local', 'none'"),
         (dict(grid="triangular"), r"grid must be one of 'square', 'hexagonal'"),
         (dict(threshold=1.5), r"threshold must satisfy 0 <= threshold < 1"),

@@ -123,7 +123,8 @@ def test_position_errors_within_the_resolution_cell(study):
 def test_iterations_remove_mlos_ghosts_at_high_density(study):
     """The MLOS first guess keeps voxels where lines of sight of different particles cross;
     at 0.3 ppl those intersections are a large part of its light. (Its dark pixels enter at the
-    noise floor, plenopiv.reconstruction.sightline, which already removes part of them.) Iterations that
+    noise floor, plenopiv.reconstruction.sightline, which already removes part of them.) Iterations
+    that
     enforce every view remove more: Q (cell-size truth) rises and the ghost rate falls."""
     mlos, smart = study[DENSE, "mlos"], study[DENSE, "smart"]
     assert smart["q"]["cell"] > mlos["q"]["cell"]
@@ -133,9 +134,9 @@ def test_iterations_remove_mlos_ghosts_at_high_density(study):
 def test_quality_falls_with_density(study):
     """More particles, more crossing lines of sight: every method's detection rate falls from
     0.05 to 0.3 ppl, and the ghost rate of the MLOS guess and of SMART rises. (Q at the
-    resolution cell need not fall: the floor-aware sub-cell MLOS, plenopiv.reconstruction.sightline, already
-    empties most crossings, so Q of the guess is set by the depth elongation of each particle,
-    which does not depend on density (measured 0.680 at 0.05 and 0.685 at 0.3 ppl); and Q
+    resolution cell need not fall: the floor-aware sub-cell MLOS, plenopiv.reconstruction.sightline,
+    already empties most crossings, so Q of the guess is set by the depth elongation of each
+    particle, which does not depend on density (measured 0.680 at 0.05 and 0.685 at 0.3 ppl); and Q
     weights voxels by E², so in a sparse field the iterations pile the light of particles near
     the focal plane into a few bright voxels; see docs/validation/field_quality.md.)"""
     for name in ("mlos", "smart"):
@@ -150,8 +151,8 @@ def test_relaxed_row_action_mart_improves_on_mlos(study):
     finds more particles than its MLOS first guess with fewer ghosts, and its Q stands well
     above that of μ = 1, which over-fits each pixel. (Row-action MART sees only the lit pixels:
     the dark pixels that enter the floor-aware MLOS guess and SMART as ceilings,
-    plenopiv.reconstruction.sightline, do not constrain it, so it need not raise Q above that guess: measured
-    0.669 against 0.685; detection 0.88 against 0.79, ghosts 0.07 against 0.13.) The 0.05
+    plenopiv.reconstruction.sightline, do not constrain it, so it need not raise Q above that guess:
+    measured 0.669 against 0.685; detection 0.88 against 0.79, ghosts 0.07 against 0.13.) The 0.05
     margin is over twice the binomial scatter of a detection rate of ~0.8 over the several
     hundred interior particles at 0.3 ppl (√(0.8·0.2/400) = 0.02)."""
     relaxed, guess = study[DENSE, "mart_relaxed"], study[DENSE, "mlos"]

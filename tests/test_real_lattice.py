@@ -1,4 +1,5 @@
-"""The per-lenslet matrix-free projector (plenopiv.reconstruction.real_lattice) against the explicit weights.
+"""The per-lenslet matrix-free projector (plenopiv.reconstruction.real_lattice) against the explicit
+weights.
 
 Rotated (up to 10 mrad, with an offset), hexagonal and jittered lattices. With the same ray
 model (cell-centre rays for edge pixels, no weight dropped) the projector is the explicit W

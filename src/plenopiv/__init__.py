@@ -16,8 +16,11 @@ from importlib.metadata import PackageNotFoundError, version
 
 
 def cache_dir() -> str:
-    """plenopiv's cache folder: ``$PLENOPIV_CACHE_DIR``, else ``plenopiv`` in the user's cache
-    folder (``$XDG_CACHE_HOME`` or ``~/.cache``; ``%LOCALAPPDATA%`` on Windows)."""
+    """Return plenopiv's cache folder.
+
+    ``$PLENOPIV_CACHE_DIR``, else ``plenopiv`` in the user's cache folder (``$XDG_CACHE_HOME``
+    or ``~/.cache``; ``%LOCALAPPDATA%`` on Windows).
+    """
     if os.environ.get("PLENOPIV_CACHE_DIR"):
         return os.environ["PLENOPIV_CACHE_DIR"]
     if sys.platform == "win32" and os.environ.get("LOCALAPPDATA"):

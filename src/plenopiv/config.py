@@ -65,7 +65,8 @@ class ReconstructionSettings(_Strict):
     pixel_threshold : pixels at or below this fraction of the image's maximum are dark.
     dark_tolerance : a voxel is emptied before MART when, in every one of its lateral
         sub-cells (≤ half a footprint), more than this fraction of the weight falls on dark
-        pixels (a soft line-of-sight mask, :mod:`plenopiv.reconstruction.sightline`; 0 is the hard rule).
+        pixels (a soft line-of-sight mask, :mod:`plenopiv.reconstruction.sightline`; 0 is the hard
+        rule).
     f_number : aperture of the recording (default: the camera's).
     min_lit : pixels whose aperture cell is less than this fraction inside the aperture are
         not used.

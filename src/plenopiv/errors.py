@@ -49,13 +49,17 @@ class ResourceError(PlenopivError):
 
 
 class OutputError(PlenopivError):
-    """An output path is unusable: a directory, not writable, or one of the command's inputs
-    (refused before any work)."""
+    """An output path is unusable (refused before any work).
+
+    A directory, not writable, or one of the command's inputs.
+    """
 
 
 class WriteError(OutputError):
-    """A write failed part way (a full disk, a lost mount); nothing is left under the final
-    name and no product is marked complete."""
+    """A write failed part way (a full disk, a lost mount).
+
+    Nothing is left under the final name and no product is marked complete.
+    """
 
     exit_status = EXIT_FAILED
 

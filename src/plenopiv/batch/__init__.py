@@ -14,10 +14,11 @@ The completeness contract of ``process``
 ``process(job) -> dict`` is a picklable, top-level function (dask sends it by reference to
 worker processes, so it must be importable there). It
 
-1. reads ``job.image_a`` and ``job.image_b`` (e.g. with :func:`plenopiv.products.images.read_image`);
+1. reads ``job.image_a`` and ``job.image_b`` (e.g. with
+   :func:`plenopiv.products.images.read_image`);
 2. writes ``job.output`` **atomically** (:func:`plenopiv.products.hdf5.write_h5` or
-   :func:`plenopiv.products.files.atomic_path`), so that a half-written file never exists under the final
-   name: a killed run leaves at most a hidden ``.NAME.XXXX.part`` temporary, which the next
+   :func:`plenopiv.products.files.atomic_path`), so that a half-written file never exists under the
+   final name: a killed run leaves at most a hidden ``.NAME.XXXX.part`` temporary, which the next
    :func:`run_batch` deletes;
 3. marks the product complete as its **last** write: ``mark_complete(job.output)`` after the
    file is written, or ``mark_complete(tmp)`` inside an ``atomic_path`` block, or

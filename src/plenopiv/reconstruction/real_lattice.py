@@ -1,24 +1,24 @@
 """A matrix-free projector for any lenslet lattice: rotated, hexagonal, jittered.
 
-:class:`~plenopiv.reconstruction.lattice.LatticeProjector` needs every ray's x to depend on its sensor
-column alone, which only an axis-aligned square lattice gives. A real array is rotated by a
-few mrad, may be hexagonal, and its calibrated centres scatter. One thing holds for all of
-them: under one lenslet the rays share X_f, and a pixel's aperture position
-``u = -(pixel - spot) · cell`` (:mod:`plenopiv.lightfield`) has its x fixed by the pixel's
-column and its y by its row. So within each lenslet the weights are separable, and
+:class:`~plenopiv.reconstruction.lattice.LatticeProjector` needs every ray's x to depend on its
+sensor column alone, which only an axis-aligned square lattice gives. A real array is rotated by a
+few mrad, may be hexagonal, and its calibrated centres scatter. One thing holds for all of them:
+under one lenslet the rays share X_f, and a pixel's aperture position ``u = -(pixel - spot) · cell``
+(:mod:`plenopiv.lightfield`) has its x fixed by the pixel's column and its y by its row. So within
+each lenslet the weights are separable, and
 :class:`LensletProjector` computes them on the fly, lenslet by lenslet and slice by slice
-(:mod:`plenopiv.reconstruction._kernels.real_lattice`), from a few numbers per lenslet: its micro-image
-lines' aperture coordinates and its X_f. Per-lens centres and focal spots of the
+(:mod:`plenopiv.reconstruction._kernels.real_lattice`), from a few numbers per lenslet: its
+micro-image lines' aperture coordinates and its X_f. Per-lens centres and focal spots of the
 calibration (jitter, distortion) enter as they are, with no lattice fit.
 
-It implements the :class:`~plenopiv.reconstruction.projector.Projector` protocol and what the pipeline
-uses besides (``row_max``, ``select_rows``, ``scale_rows``); like the lattice projector it
+It implements the :class:`~plenopiv.reconstruction.projector.Projector` protocol and what the
+pipeline uses besides (``row_max``, ``select_rows``, ``scale_rows``); like the lattice projector it
 serves MLOS and SMART, not the row-action MART variants.
 
-Against the explicit weights (:func:`plenopiv.reconstruction.weights.build_weights`) it differs as the
-lattice projector does: a pixel cut by the aperture's edge is traced through its cell centre,
-not through the centroid of the cell's lit part (its weight keeps the lit fraction), and no
-weight is dropped below ``min_weight``. With ``edge_centroid=False`` in
+Against the explicit weights (:func:`plenopiv.reconstruction.weights.build_weights`) it differs as
+the lattice projector does: a pixel cut by the aperture's edge is traced through its cell centre,
+not through the centroid of the cell's lit part (its weight keeps the lit fraction), and no weight
+is dropped below ``min_weight``. With ``edge_centroid=False`` in
 :func:`plenopiv.lightfield.light_field` the two agree to float32 rounding (tests).
 
 Memory: 8 · (2 · box + 3) bytes per lenslet (box: the largest micro-image, ~20 px), the
@@ -284,8 +284,8 @@ def _box_sum_cdf_np(y, alpha, beta):
 def matrix_free_projector(lf: LightField, grid: VolumeGrid):
     """Return the fastest matrix-free projector that takes ``lf``'s lattice.
 
-    The separable :class:`~plenopiv.reconstruction.lattice.LatticeProjector` for an axis-aligned square
-    lattice, else :class:`LensletProjector`.
+    The separable :class:`~plenopiv.reconstruction.lattice.LatticeProjector` for an axis-aligned
+    square lattice, else :class:`LensletProjector`.
     """
     from plenopiv.reconstruction.lattice import LatticeProjector
 
@@ -302,7 +302,8 @@ def estimate_lenslet_gb(lf: LightField, grid: VolumeGrid) -> float:
     rays with their views' copies (~120 bytes each: positions, local indices, scales of the
     projector, its normalised and selected views), the per-lenslet tables, the back
     projection's local images (float32, one box² per lenslet), and one depth slab of the
-    sub-voxel line-of-sight mask (:mod:`plenopiv.reconstruction.sightline`: six refined float32 arrays).
+    sub-voxel line-of-sight mask (:mod:`plenopiv.reconstruction.sightline`: six refined float32
+    arrays).
     """
     from plenopiv.reconstruction.sightline import SLAB_VOXELS, subcell_factors
 

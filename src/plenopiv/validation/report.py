@@ -5,10 +5,10 @@ the figure format, the JSON dialect and the Markdown tables are the same in all 
 
 - figures: PNG at 110 dpi, tight bounding box, drawn with the non-interactive Agg backend and
   closed once written;
-- JSON: indented by one space, NaN and ±inf written as ``null`` (:func:`plenopiv.products.jsonio.finite_json`),
-  never the bare ``NaN`` that JSON parsers reject;
-- every file is written atomically (:func:`plenopiv.products.files.atomic_path`): a reader never sees half a
-  report.
+- JSON: indented by one space, NaN and ±inf written as ``null``
+  (:func:`plenopiv.products.jsonio.finite_json`), never the bare ``NaN`` that JSON parsers reject;
+- every file is written atomically (:func:`plenopiv.products.files.atomic_path`): a reader never
+  sees half a report.
 """
 
 from __future__ import annotations

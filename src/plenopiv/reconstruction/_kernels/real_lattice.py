@@ -1,4 +1,6 @@
-"""Numba kernels of the per-lenslet matrix-free projector (see :mod:`plenopiv.reconstruction.real_lattice`).
+"""Numba kernels of the per-lenslet matrix-free projector.
+
+See :mod:`plenopiv.reconstruction.real_lattice`.
 
 Within one lenslet every ray has the same focal-plane position X_f and an aperture position
 ``u = -(pixel - spot) · cell`` whose x depends only on the pixel's column and y only on its
@@ -8,8 +10,8 @@ lenslet's weights are therefore an outer product:
     W[(r, c), (k, iy, ix)] = scale(r, c) · f_k · wy[k, r, iy] · wx[k, c, ix]
 
 with the per-axis voxel overlaps of the trapezoid beam profile
-(:func:`plenopiv.reconstruction._kernels.weights.box_sum_cdf`, the explicit weights' own factors) and
-``f_k = (a β_k)² / (A Δx Δy)``. The profiles are computed on the fly, per lenslet, slice and
+(:func:`plenopiv.reconstruction._kernels.weights.box_sum_cdf`, the explicit weights' own factors)
+and ``f_k = (a β_k)² / (A Δx Δy)``. The profiles are computed on the fly, per lenslet, slice and
 micro-image line, into small per-thread buffers; nothing of size (pixels × voxels) is stored.
 
 Forward: per lenslet (in parallel), per slice, contract x over the lenslet's voxel patch
