@@ -240,11 +240,11 @@ def _half_beam(lf: LightField, depth) -> np.ndarray:
     return 0.5 * (lf.footprint * np.abs(t) + lf.cell * np.abs(1.0 - t))
 
 
-def _checked_inputs(lf: LightField, image, seeds, settings: BundleSettings, engine: str):
-    """Return the seeds as (N, 3) floats and each ray's light above the floor (float64).
+def checked_image(lf: LightField, image, engine: str) -> np.ndarray:
+    """Return ``image`` as an array after checking it is the light field's sensor.
 
-    Raises ValueError for an unknown engine or non-finite seeds, ReconstructionError for an
-    image that is not the light field's sensor.
+    Raises ValueError for an engine not in ``ENGINES``, ReconstructionError for an image of
+    another shape.
     """
     if engine not in ENGINES:
         raise ValueError(f"engine = {engine!r}: expected one of {ENGINES}")
@@ -252,6 +252,16 @@ def _checked_inputs(lf: LightField, image, seeds, settings: BundleSettings, engi
     if img.shape != tuple(lf.shape):
         raise ReconstructionError(f"image is {img.shape}; the light field's sensor is "
                                   f"{tuple(lf.shape)}")
+    return img
+
+
+def _checked_inputs(lf: LightField, image, seeds, settings: BundleSettings, engine: str):
+    """Return the seeds as (N, 3) floats and each ray's light above the floor (float64).
+
+    Raises ValueError for an unknown engine or non-finite seeds, ReconstructionError for an
+    image that is not the light field's sensor.
+    """
+    img = checked_image(lf, image, engine)
     seeds = np.asarray(seeds, float).reshape(-1, 3)
     if not np.isfinite(seeds).all():
         raise ValueError("seed positions contain NaN or infinity")

@@ -43,13 +43,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
+from plenopiv.tracking.bundle import ENGINES, checked_image
 
 __all__ = ["ENGINES", "ForwardSettings", "beam_fraction", "refine_positions"]
 
 #: Implementations of :func:`refine_positions`.
-ENGINES = ("numba", "numpy")
 
 
 @dataclass(frozen=True)
@@ -187,12 +186,7 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     default, 14 µm at a 0.55 mm cell), the last lateral step ``lateral_range / 2^rounds``
     footprints (1/32).
     """
-    if engine not in ENGINES:
-        raise ValueError(f"engine = {engine!r}: expected one of {ENGINES}")
-    img = np.asarray(image)
-    if img.shape != tuple(lf.shape):
-        raise ReconstructionError(f"image is {img.shape}; the light field's sensor is "
-                                  f"{tuple(lf.shape)}")
+    img = checked_image(lf, image, engine)
     start = np.asarray(start, float).reshape(-1, 3)
     n = len(start)
     if not n:
