@@ -5,6 +5,7 @@ docs/validation/uncertainty.md)."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -154,3 +155,23 @@ def test_response_cache_round_trip_and_key(tmp_path):
 def test_response_from_another_version_is_rejected(bad):
     with pytest.raises(ValueError, match="version"):
         Response.from_dict(bad)
+
+
+def test_curvature_already_in_the_last_correction_is_not_added_again():
+    """The last correction (in sigma_CS) of a smoothed-predictor pass estimates the same
+    curvature: only the window-average bias in excess of it is added."""
+    h = np.array([1e-3, 1e-3, 1e-3])
+    z, y, x = np.meshgrid(np.arange(4) * h[2], np.arange(5) * h[1], np.arange(6) * h[0],
+                          indexing="ij")
+    u = 50.0 * x**2
+    bias = 50.0 * (2 * h[0]) ** 2 / 12           # (W^2 / 24) * 2a with W = 2h
+    base = _grid_field(u, h)
+    for last, added in ((0.0, bias), (0.6 * bias, 0.8 * bias), (2 * bias, 0.0)):
+        parts = {"last_correction": np.stack([np.full(u.shape, last), 0 * u, 0 * u]),
+                 "correlation": np.zeros((3,) + u.shape)}
+        f = combine(replace(base, u_uncertainty=np.full(u.shape, last),
+                            uncertainty_parts=parts), _response(gain_w=1.0, random_w=0.0))
+        np.testing.assert_allclose(f.uncertainty_parts["unresolved_gradient"][0], added,
+                                   rtol=1e-9, atol=1e-15)
+        # the total is the larger of the two estimates, never their quadrature sum
+        np.testing.assert_allclose(f.u_uncertainty, max(last, bias), rtol=1e-9)

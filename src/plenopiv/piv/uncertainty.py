@@ -50,7 +50,8 @@ vector (correlation statistics and the last pass's correction), ``d_k`` its disp
   :math:`g_{min} = 0.1` bounds a vector the chain barely sees at nine times its own
   magnitude.
 - :math:`b_k` the bias of a window average where the displacement varies inside the window
-  (:func:`unresolved_gradient_bias`), which a uniform test displacement cannot reproduce.
+  (:func:`unresolved_gradient_bias`), which a uniform test displacement cannot reproduce,
+  less the part the last correction already counts (:func:`_curvature_excess`).
 
 The response depends on the camera, the grid, the seeding and the settings, not on the
 flow, so it is computed once per experiment and kept in the weights cache (a few more
@@ -353,6 +354,23 @@ def unresolved_gradient_bias(disp, spacing, window):
     return np.abs(np.nan_to_num(out, nan=0.0))
 
 
+def _curvature_excess(curvature, last_correction):
+    r"""The window-average bias less what the last correction already counts, metres.
+
+    With a smoothed predictor (``[1, 2, 1] / 4`` per axis) a converged deformation pass
+    still changes each vector by the filter's offset, :math:`\sum_i \Delta_i^2 d / 4`: the
+    last correction (already in :math:`\sigma_{CS}`) is then an estimate of the same
+    curvature as :func:`unresolved_gradient_bias` (:math:`\sum_i \Delta_i^2 d / 6` at
+    50 % overlap). Adding both would count it twice, so only
+    ``sqrt(max(0, curvature^2 - last_correction^2))`` is added (the larger of the two
+    estimates is kept). ``last_correction`` None (not estimated) keeps ``curvature``.
+    """
+    if last_correction is None:
+        return curvature
+    last = np.nan_to_num(np.asarray(last_correction, float), nan=0.0)
+    return np.sqrt(np.maximum(curvature**2 - last**2, 0.0))
+
+
 def _spacing_and_window(field):
     """Vector spacing and last-pass window edge along ``(x, y, z)``, metres."""
     settings = field.settings
@@ -385,9 +403,10 @@ def combine(field, response: Response | None):
     g = np.maximum(gain, MIN_GAIN)
     sigma_gain = np.abs(1.0 - g) / g * np.abs(disp)
     spacing, window = _spacing_and_window(field)
-    sigma_curv = unresolved_gradient_bias(disp, spacing, window)
-    total = np.sqrt(sigma_cs**2 + excess**2 + sigma_gain**2 + sigma_curv**2)
     parts = dict(field.uncertainty_parts or {})
+    sigma_curv = _curvature_excess(unresolved_gradient_bias(disp, spacing, window),
+                                   parts.get("last_correction"))
+    total = np.sqrt(sigma_cs**2 + excess**2 + sigma_gain**2 + sigma_curv**2)
     parts["response_random"] = np.broadcast_to(excess, total.shape).copy()
     parts["response_gain"] = sigma_gain
     parts["unresolved_gradient"] = sigma_curv
