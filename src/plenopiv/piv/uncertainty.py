@@ -11,8 +11,8 @@ inside the lenslet's footprint and inside about one depth resolution cell, so it
 reconstruction does not follow it there, and the measured displacement is pulled towards
 zero (docs/validation/uncertainty.md: depth displacements near focus are measured at 0.0-0.5
 of their true value). Both exposures are reconstructed the same way, the deformed windows
-match, and the correlation statistics stay small: on the vortex validations only 22-61 % of
-the true depth errors lie within their ±2σ (38-72 % with the last correction added).
+match, and the correlation statistics stay small: on the vortex validations only 40-66 % of
+the true depth errors lie within their ±2σ (67-96 % with the last correction added).
 
 This module measures that error of the chain instead (:func:`measure_response`, a type-B
 evaluation from a calibration of the measuring system). With the calibrated camera, the
