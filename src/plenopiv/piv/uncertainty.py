@@ -11,8 +11,8 @@ inside the lenslet's footprint and inside about one depth resolution cell, so it
 reconstruction does not follow it there, and the measured displacement is pulled towards
 zero (docs/validation/uncertainty.md: depth displacements near focus are measured at 0.0-0.5
 of their true value). Both exposures are reconstructed the same way, the deformed windows
-match, and the correlation statistics stay small: on the vortex validations only 22-61 % of
-the true depth errors lie within their ±2σ (38-72 % with the last correction added).
+match, and the correlation statistics stay small: on the vortex validations only 40-66 % of
+the true depth errors lie within their ±2σ (67-96 % with the last correction added).
 
 This module measures that error of the chain instead (:func:`measure_response`, a type-B
 evaluation from a calibration of the measuring system). With the calibrated camera, the
@@ -28,19 +28,34 @@ as it does the real pair, and tabulates for each layer of vectors (window-centre
 - the random error ``r_k``: the rms over the test displacements of the spread (standard
   deviation) of the layer's vectors.
 
+- the rms uncertainty ``s_k`` the correlation statistics (with the last correction) gave
+  those same test vectors.
+
 :func:`combine` then gives each vector of the real field, per component, the standard
 uncertainty
 
-.. math:: \sigma_k^2 = \sigma_{CS,k}^2 + r_k^2
-          + \Big(\frac{|1 - g_k|}{\max(g_k, g_{min})}\, |d_k|\Big)^2
+.. math:: \sigma_k^2 = \sigma_{CS,k}^2 + r_{ex,k}^2
+          + \Big(\frac{|1 - g_k|}{\max(g_k, g_{min})}\, |d_k|\Big)^2 + b_k^2
 
 with :math:`\sigma_{CS}` the uncertainty :func:`plenopiv.piv.correlate_volumes` gave the
-vector (correlation statistics and the last pass's correction), ``d_k`` its
-displacement and the last term the error of a displacement measured with gain ``g_k`` (its
-true value is ``d_k / g_k``); :math:`g_{min} = 0.1` bounds a vector the chain barely sees at
-nine times its own magnitude. The response depends on the camera, the grid, the seeding and
-the settings, not on the flow, so it is computed once per experiment and kept in the weights
-cache (a few more pairs' worth of work the first time).
+vector (correlation statistics and the last pass's correction), ``d_k`` its displacement and:
+
+- :math:`r_{ex,k}^2 = \max(0, \langle r_k^2 \rangle - \langle s_k^2 \rangle)`, the part of
+  the test vectors' spread the correlation statistics did not see (means over the test
+  displacements). The spread of the test vectors holds their random error, which their own
+  correlation statistics already estimate; adding all of ``r`` to :math:`\sigma_{CS}` would
+  count that part twice. What is left is the error both reconstructions share (the
+  plenoptic lock-in above), invisible to the statistics by construction.
+- the error of a displacement measured with gain ``g_k`` (its true value is ``d_k / g_k``);
+  :math:`g_{min} = 0.1` bounds a vector the chain barely sees at nine times its own
+  magnitude.
+- :math:`b_k` the bias of a window average where the displacement varies inside the window
+  (:func:`unresolved_gradient_bias`), which a uniform test displacement cannot reproduce,
+  less the part the last correction already counts (:func:`_curvature_excess`).
+
+The response depends on the camera, the grid, the seeding and the settings, not on the
+flow, so it is computed once per experiment and kept in the weights cache (a few more
+pairs' worth of work the first time).
 """
 
 from __future__ import annotations
@@ -54,7 +69,14 @@ import numpy as np
 
 from plenopiv.errors import PlenopivError
 
-__all__ = ["UNCERTAINTY_METHODS", "Response", "combine", "measure_response", "response_key"]
+__all__ = [
+    "UNCERTAINTY_METHODS",
+    "Response",
+    "combine",
+    "measure_response",
+    "response_key",
+    "unresolved_gradient_bias",
+]
 
 UNCERTAINTY_METHODS = ("response", "correlation")
 """Valid values of ``[piv] uncertainty``: correlation statistics with the chain's measured
@@ -69,7 +91,7 @@ LATERAL_SHIFTS = (0.5, 1.25, 1.75)
 DEPTH_SHIFTS = (0.1, 0.25, 0.5)
 """Test displacements along z, depth resolution cells."""
 
-RESPONSE_VERSION = 2
+RESPONSE_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -85,7 +107,11 @@ class Response:
     gain : ndarray, shape (n, 3, nz)
         Gain of ``u``, ``v``, ``w`` per test displacement and layer (1 = exact).
     random : ndarray, shape (n, 3, nz)
-        Random error of ``u``, ``v``, ``w`` per test displacement and layer, metres.
+        Random error of ``u``, ``v``, ``w`` per test displacement and layer, metres (the
+        spread of the layer's vectors).
+    statistics : ndarray, shape (n, 3, nz)
+        Rms of the uncertainty the correlation statistics (with the last correction) gave
+        the same vectors, metres.
     n_particles : int
         Particles per test pair.
     """
@@ -94,25 +120,30 @@ class Response:
     shifts: np.ndarray
     gain: np.ndarray
     random: np.ndarray
+    statistics: np.ndarray
     n_particles: int
 
     def at(self, z) -> tuple[np.ndarray, np.ndarray]:
-        """Gain and random error, each ``(3, len(z))``, at depths ``z`` (metres).
+        """Gain and excess random error, each ``(3, len(z))``, at depths ``z`` (metres).
 
-        The gain is the mean over the test displacements, the random error their rms; both
-        are linear between the layers.
+        The gain is the mean over the test displacements; the excess random error is
+        ``sqrt(max(0, <r^2> - <s^2>))``, the test vectors' spread less what their correlation
+        statistics saw (module notes), means over the test displacements. Both are linear
+        between the layers.
         """
         z = np.asarray(z, float)
         gain = self.gain.mean(axis=0)
-        rnd = np.sqrt((self.random**2).mean(axis=0))
+        excess = np.sqrt(np.maximum((self.random**2).mean(axis=0)
+                                    - (self.statistics**2).mean(axis=0), 0.0))
         return (np.stack([np.interp(z, self.z, g) for g in gain]),
-                np.stack([np.interp(z, self.z, r) for r in rnd]))
+                np.stack([np.interp(z, self.z, r) for r in excess]))
 
     def to_dict(self) -> dict:
         """JSON-ready form (metres)."""
         return {"version": RESPONSE_VERSION, "z_m": self.z.tolist(),
                 "shifts_m": self.shifts.tolist(), "gain": self.gain.tolist(),
-                "random_m": self.random.tolist(), "n_particles": self.n_particles}
+                "random_m": self.random.tolist(), "statistics_m": self.statistics.tolist(),
+                "n_particles": self.n_particles}
 
     @classmethod
     def from_dict(cls, d: dict) -> Response:
@@ -121,7 +152,7 @@ class Response:
             raise ValueError(f"response version {d.get('version')!r}")
         return cls(np.asarray(d["z_m"], float), np.asarray(d["shifts_m"], float),
                    np.asarray(d["gain"], float), np.asarray(d["random_m"], float),
-                   int(d["n_particles"]))
+                   np.asarray(d["statistics_m"], float), int(d["n_particles"]))
 
 
 def response_shifts(camera, f_number=None) -> np.ndarray:
@@ -185,7 +216,7 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     b = grid.bounds
     lo = np.array([b[0, 0], b[1, 0], correction.depth(b[2, 0])])
     hi = np.array([b[0, 1], b[1, 1], correction.depth(b[2, 1])])
-    gains, spreads = [], []
+    gains, spreads, stats = [], [], []
     z = None
     for i, s in enumerate(shifts):
         pos = rng.uniform(lo, hi, size=(max(int(n_particles), 1), 3))
@@ -199,12 +230,15 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
         except PlenopivError:   # too few particles for a field: this test pair says nothing
             gains.append(None)
             spreads.append(None)
+            stats.append(None)
             continue
         z = np.asarray(field.z)
         comps = np.stack([field.u, field.v, field.w])
+        sigma = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
         ok = np.asarray(field.valid) & np.all(np.isfinite(comps), axis=0)
         g = np.full((3, z.size), np.nan)
         r = np.full((3, z.size), np.nan)
+        st = np.full((3, z.size), np.nan)
         for layer in range(z.size):
             sel = ok[layer]
             if sel.sum() < 2:
@@ -213,14 +247,20 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
                 m = comps[k, layer][sel]
                 g[k, layer] = m.mean() / s[k]
                 r[k, layer] = m.std()
+                sk = sigma[k, layer][sel]
+                sk = sk[np.isfinite(sk)]
+                st[k, layer] = np.sqrt(np.mean(sk**2)) if sk.size else 0.0
         gains.append(g)
         spreads.append(r)
+        stats.append(st)
     if all(g is None for g in gains):
         return None
     keep = [i for i, g in enumerate(gains) if g is not None]
     gain = np.stack([gains[i] for i in keep])
     random = np.stack([spreads[i] for i in keep])
-    for a, empty in ((gain, 1.0), (random, 0.0)):   # layers without vectors: nearest layers
+    statistics = np.stack([stats[i] for i in keep])
+    # layers without vectors: nearest layers
+    for a, empty in ((gain, 1.0), (random, 0.0), (statistics, 0.0)):
         for j in range(a.shape[0]):
             for k in range(3):
                 bad = ~np.isfinite(a[j, k])
@@ -228,7 +268,7 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
                     a[j, k] = empty
                 elif bad.any():
                     a[j, k, bad] = np.interp(z[bad], z[~bad], a[j, k, ~bad])
-    return Response(z, shifts[keep], gain, random, int(n_particles))
+    return Response(z, shifts[keep], gain, random, statistics, int(n_particles))
 
 
 def cached_response(path: Path | None, key: str, compute) -> tuple[Response | None, bool]:
@@ -253,6 +293,99 @@ def cached_response(path: Path | None, key: str, compute) -> tuple[Response | No
     return resp, False
 
 
+def _second_difference(a, axis):
+    """Second difference of ``a`` along ``axis`` (same shape, units of ``a``).
+
+    Central ``a[i-1] - 2 a[i] + a[i+1]`` inside; a border point takes its neighbour's (the
+    curvature held constant over the last step); zero along an axis of fewer than 3 points.
+    """
+    a = np.moveaxis(np.asarray(a, float), axis, 0)
+    out = np.zeros_like(a)
+    if a.shape[0] >= 3:
+        out[1:-1] = a[:-2] - 2.0 * a[1:-1] + a[2:]
+        out[0] = out[1]
+        out[-1] = out[-2]
+    return np.moveaxis(out, 0, axis)
+
+
+def unresolved_gradient_bias(disp, spacing, window):
+    r"""Bias of window-averaged displacements where the displacement curves inside a window.
+
+    Parameters
+    ----------
+    disp : ndarray, shape (3, nz, ny, nx)
+        Measured displacement ``(u, v, w)`` on the vector grid, metres (NaN: no vector).
+    spacing : sequence of 3 floats
+        Vector spacing along ``(x, y, z)``, metres.
+    window : sequence of 3 floats
+        Window edge along ``(x, y, z)``, metres.
+
+    Returns
+    -------
+    ndarray, shape (3, nz, ny, nx)
+        Magnitude of the estimated bias per component, metres; 0 where a second difference
+        involves a missing vector.
+
+    Notes
+    -----
+    A correlation window of edge :math:`W` weights the displacement in it about evenly (top
+    hat), so it measures the window average rather than the value at its centre. Expanding
+    the displacement to second order about the centre, the linear terms average out and
+
+    .. math:: \bar u - u(0) = \sum_i \frac{1}{W_i}\int_{-W_i/2}^{W_i/2}
+              \frac{x_i^2}{2}\,\partial_i^2 u \;dx_i
+              = \sum_i \frac{W_i^2}{24}\, \partial_i^2 u .
+
+    Window deformation moves the particles by the predictor, but the predictor is
+    interpolated between vectors half a window apart and smoothed, so the curvature inside a
+    window stays unresolved. The second derivatives are taken from the measured field's
+    second differences on the vector grid, :math:`\partial_i^2 u \approx \Delta_i^2 u / h_i^2`
+    (with 50 % overlap, :math:`W = 2h` and the term is :math:`\Delta_i^2 u / 6` per axis).
+    A uniform or linear field gives zero; a quadratic one gives the exact window-average bias.
+    """
+    disp = np.asarray(disp, float)
+    out = np.zeros_like(disp)
+    for axis_xyz in range(3):
+        h, w = float(spacing[axis_xyz]), float(window[axis_xyz])
+        if not (h > 0 and w > 0):
+            continue
+        array_axis = 3 - axis_xyz          # (component, z, y, x): x is array axis 3
+        out += (w**2 / 24.0) / h**2 * _second_difference(disp, array_axis)
+    return np.abs(np.nan_to_num(out, nan=0.0))
+
+
+def _curvature_excess(curvature, last_correction):
+    r"""The window-average bias less what the last correction already counts, metres.
+
+    With a smoothed predictor (``[1, 2, 1] / 4`` per axis) a converged deformation pass
+    still changes each vector by the filter's offset, :math:`\sum_i \Delta_i^2 d / 4`: the
+    last correction (already in :math:`\sigma_{CS}`) is then an estimate of the same
+    curvature as :func:`unresolved_gradient_bias` (:math:`\sum_i \Delta_i^2 d / 6` at
+    50 % overlap). Adding both would count it twice, so only
+    ``sqrt(max(0, curvature^2 - last_correction^2))`` is added (the larger of the two
+    estimates is kept). ``last_correction`` None (not estimated) keeps ``curvature``.
+    """
+    if last_correction is None:
+        return curvature
+    last = np.nan_to_num(np.asarray(last_correction, float), nan=0.0)
+    return np.sqrt(np.maximum(curvature**2 - last**2, 0.0))
+
+
+def _spacing_and_window(field):
+    """Vector spacing and last-pass window edge along ``(x, y, z)``, metres."""
+    settings = field.settings
+    window_vox = settings.window_vox(settings.passes - 1)[::-1]     # (wx, wy, wz)
+    spacing = np.zeros(3)
+    window = np.zeros(3)
+    for i, c in enumerate((field.x, field.y, field.z)):
+        if c.size < 2:
+            continue
+        spacing[i] = abs(float(c[1] - c[0]))
+        step_vox = max(1, round(window_vox[i] * (1.0 - settings.overlap)))
+        window[i] = window_vox[i] * spacing[i] / step_vox
+    return spacing, window
+
+
 def combine(field, response: Response | None):
     """The field with its uncertainties completed by the chain's response (module notes).
 
@@ -264,14 +397,18 @@ def combine(field, response: Response | None):
         return field
     disp = np.stack([field.u, field.v, field.w])
     sigma_cs = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
-    gain, rnd = response.at(field.z)
+    gain, excess = response.at(field.z)
     gain = gain[:, :, None, None]
-    rnd = rnd[:, :, None, None]
+    excess = excess[:, :, None, None]
     g = np.maximum(gain, MIN_GAIN)
     sigma_gain = np.abs(1.0 - g) / g * np.abs(disp)
-    total = np.sqrt(sigma_cs**2 + rnd**2 + sigma_gain**2)
+    spacing, window = _spacing_and_window(field)
     parts = dict(field.uncertainty_parts or {})
-    parts["response_random"] = np.broadcast_to(rnd, total.shape).copy()
+    sigma_curv = _curvature_excess(unresolved_gradient_bias(disp, spacing, window),
+                                   parts.get("last_correction"))
+    total = np.sqrt(sigma_cs**2 + excess**2 + sigma_gain**2 + sigma_curv**2)
+    parts["response_random"] = np.broadcast_to(excess, total.shape).copy()
     parts["response_gain"] = sigma_gain
+    parts["unresolved_gradient"] = sigma_curv
     return replace(field, u_uncertainty=total[0], v_uncertainty=total[1],
                    w_uncertainty=total[2], uncertainty_parts=parts)
