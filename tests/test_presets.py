@@ -61,12 +61,13 @@ def test_a_former_configs_cameras_path_names_the_preset(argv, tmp_path, monkeypa
 
 def test_configs_cameras_are_links_to_the_packaged_presets():
     """One home: every configs/cameras/*.toml is a link to the preset inside the package."""
-    from plenopiv.camera import PRESET_DIR, preset_names
+    from plenopiv.camera import preset_names
 
+    source = REPO / "src" / "plenopiv" / "presets"   # the package's presets in the checkout
     links = sorted((REPO / "configs" / "cameras").glob("*.toml"))
     assert sorted(p.stem for p in links) == sorted(preset_names())
     for p in links:
-        assert p.is_symlink() and p.resolve() == (PRESET_DIR / p.name).resolve()
+        assert p.is_symlink() and p.resolve() == (source / p.name).resolve()
 
 
 def test_every_configs_path_in_readme_exists():
