@@ -526,7 +526,11 @@ def test_temporaries_of_every_product_of_a_pair_are_removed(tmp_path, rng):
 
 
 INTERRUPTED_BATCH = """
+import signal
 import sys
+# Ctrl-C as at a terminal, whatever this test process's own SIGINT disposition (a child
+# started while its parent ignores SIGINT inherits the ignore and Python keeps it)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 sys.path.insert(0, {tests!r})
 from test_batch import slow_mean_difference, with_identity
 from plenopiv.batch import BatchInterrupted, discover_pairs, run_batch
