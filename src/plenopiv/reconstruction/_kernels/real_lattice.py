@@ -151,6 +151,15 @@ def _patch_is_empty(vk, y_lo, y_hi, x_lo, x_hi):
     return True
 
 
+@njit(cache=True, inline="always")
+def _profile_workspace(bmax, kmax):
+    """Per-thread buffers of the x and y voxel profiles (start, count, weights) and edges."""
+    return (np.empty(bmax, np.int64), np.empty(bmax, np.int64),
+            np.empty((bmax, kmax), np.float32), np.empty(bmax, np.int64),
+            np.empty(bmax, np.int64), np.empty((bmax, kmax), np.float32),
+            np.empty((kmax + 2, bmax), np.float64))
+
+
 @njit(parallel=True, cache=True)
 def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, window,
             xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
@@ -172,13 +181,7 @@ def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, 
         nr, nc = r1 - r0, c1 - c0
         ucol = u_col[lens, c0:c1]
         urow = u_row[lens, r0:r1]
-        xs = np.empty(bmax, np.int64)
-        xc = np.empty(bmax, np.int64)
-        xw = np.empty((bmax, kmax), np.float32)
-        ys = np.empty(bmax, np.int64)
-        yc = np.empty(bmax, np.int64)
-        yw = np.empty((bmax, kmax), np.float32)
-        edge = np.empty((kmax + 2, bmax), np.float64)
+        xs, xc, xw, ys, yc, yw, edge = _profile_workspace(bmax, kmax)
         local = np.zeros((nr, nc), np.float32)
         tmp = np.empty((ny, nc), np.float32)
         for k in range(nz):
@@ -251,13 +254,7 @@ def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, wind
         for iy in range(ny):
             for ix in range(nx):
                 ok[iy, ix] = 0.0
-        xs = np.empty(bmax, np.int64)
-        xc = np.empty(bmax, np.int64)
-        xw = np.empty((bmax, kmax), np.float32)
-        ys = np.empty(bmax, np.int64)
-        yc = np.empty(bmax, np.int64)
-        yw = np.empty((bmax, kmax), np.float32)
-        edge = np.empty((kmax + 2, bmax), np.float64)
+        xs, xc, xw, ys, yc, yw, edge = _profile_workspace(bmax, kmax)
         tmp = np.zeros((ny, bmax), np.float32)
         f = np.float32(slice_factor[k])
         for lens in range(n_lens):
@@ -310,13 +307,7 @@ def row_max(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, 
             continue
         r0, r1, c0, c1 = window[lens, 0], window[lens, 1], window[lens, 2], window[lens, 3]
         nr, nc = r1 - r0, c1 - c0
-        xs = np.empty(bmax, np.int64)
-        xc = np.empty(bmax, np.int64)
-        xw = np.empty((bmax, kmax), np.float32)
-        ys = np.empty(bmax, np.int64)
-        yc = np.empty(bmax, np.int64)
-        yw = np.empty((bmax, kmax), np.float32)
-        edge = np.empty((kmax + 2, bmax), np.float64)
+        xs, xc, xw, ys, yc, yw, edge = _profile_workspace(bmax, kmax)
         mx = np.empty(bmax, np.float64)
         my = np.empty(bmax, np.float64)
         best = np.zeros((nr, nc), np.float64)
