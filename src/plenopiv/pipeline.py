@@ -26,11 +26,11 @@ from plenopiv.camera import CameraModel
 from plenopiv.config import ParticleSettings, ReconstructionSettings
 from plenopiv.corrections import DepthCorrection
 from plenopiv.errors import CalibrationError, ConfigError, PIVError, ReconstructionError
-from plenopiv.lightfield import light_field
 from plenopiv.particles import find_particles
 from plenopiv.products.images import check_image
 from plenopiv.products.vectors import VectorResult, check_dt
 from plenopiv.products.volume import VolumeResult
+from plenopiv.reconstruction.geometry import ProjectionGeometry
 from plenopiv.reconstruction.solve import solve_volume
 from plenopiv.reconstruction.subdivision import (  # noqa: F401 - the pipeline's names too
     SUBDIVIDED_VOXEL_FOOTPRINTS,
@@ -137,6 +137,9 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         if progress is not None:
             progress("weights", 0.0)
         weights, _ = weights_for(calibration, grid, settings, cache_dir=cache_dir)
+    geometry = weights.geometry
+    if geometry is None:        # weights made without one: the rays of these settings
+        geometry = ProjectionGeometry.for_settings(calibration, weights.grid, settings)
     ky, kx = (1, 1) if weights.grid == grid else subdivision_of(weights.grid, grid)
     if weights.matrix_free and settings.method != "smart":
         raise ReconstructionError(
@@ -145,12 +148,11 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t["weights_s"] = time.perf_counter() - t0
 
     def report(iteration, _volume):
-        if progress is not None:
-            progress("mart", iteration / max(settings.iterations, 1))
+        progress("mart", iteration / max(settings.iterations, 1))
 
     t1 = time.perf_counter()
-    vol = solve_volume(weights, img, settings, image_mask=image_mask, callback=report,
-                       light_field_of=lambda: _light_field_of(calibration, settings),
+    vol = solve_volume(weights, img, settings, image_mask=image_mask, geometry=geometry,
+                       callback=None if progress is None else report,
                        footprint=footprint(calibration.effective_camera))
     if ky > 1 or kx > 1:            # the working voxels back onto the volume's grid
         vol = merge_subdivided(vol, ky, kx, kernel=settings.subdivision_kernel)
@@ -177,11 +179,6 @@ def _particles_of(vol: np.ndarray, grid: VolumeGrid, calibration: Calibration,
     corr = DepthCorrection.for_camera(calibration.camera, internal=particles.internal_correction)
     return (corr, eff, corr.points(eff) if len(eff) else eff, found.intensity,
             found.size_world(grid.voxel))
-
-
-def _light_field_of(calibration: Calibration, settings):
-    """Return the light field of the weights ``weights_for`` builds with ``settings``."""
-    return light_field(calibration, f_number=settings.f_number, min_lit=settings.min_lit)
 
 
 def reconstruction_quality(volume, volume_true) -> float:

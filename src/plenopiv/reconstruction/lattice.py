@@ -27,6 +27,7 @@ With both aligned, the projections agree to float32 rounding (tests).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -34,80 +35,14 @@ import numpy as np
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import lattice as _k
-from plenopiv.reconstruction.projector import CachedSums, _as_vector
+from plenopiv.reconstruction.geometry import SEPARABLE_TOLERANCE, separable_axes
+from plenopiv.reconstruction.projector import _as_vector
 from plenopiv.volume import VolumeGrid
 
 __all__ = ["LatticeProjector", "separable_axes"]
 
 #: Sensor rows per task of the forward contraction (they share the slices' rows in cache).
 ROW_BLOCK = 16
-
-
-#: Largest scatter of a line's rays, as a fraction of an aperture cell (u) and of a lenslet
-#: footprint (focal-plane x), that the lattice projector replaces by the line's mean. A
-#: calibrated light field takes u from each lenslet's measured focal spot, so u scatters by
-#: the spot noise: 0.02 cell at most on a 41 x 61 patch whose lattice fit leaves 0.014 px
-#: rms. 0.1 cell (spot centres within 0.1 px of their column's) moves a beam by a tenth of
-#: its width; a rotation of 0.1 mrad already exceeds it across 60 lenslets of 17 px.
-SEPARABLE_TOLERANCE = 0.1
-
-
-def separable_axes(lf: LightField, *, tolerance: float = SEPARABLE_TOLERANCE) -> tuple | None:
-    """Per-column and per-row ray coordinates, or None when the rays are not separable.
-
-    Returns ``(u_col, xf_col, u_row, xf_row)`` (metres, one value per sensor column/row;
-    NaN where no ray lies) when every ray's aperture x and focal-plane x depend only on its
-    sensor column, and its y coordinates only on its row, within ``tolerance`` of an aperture
-    cell and of a lenslet footprint respectively. The aperture coordinate of a line is that
-    of its fully lit pixels' cell centres; a line with only edge pixels (cut by the aperture)
-    takes its neighbour's minus its offset in cells.
-    """
-    rows, cols = lf.shape
-    r = lf.pixel // cols
-    c = lf.pixel % cols
-    xf = lf.focal_plane_position
-    full = lf.lit >= 1.0 - 1e-9
-    out = []
-    for line, n, axis in ((c, cols, 0), (r, rows, 1)):
-        x_line = _line_mean(line, xf[:, axis], np.ones_like(full), n)
-        u_line = _line_mean(line, lf.u[:, axis], full, n)
-        _fill_edge_lines(u_line, x_line, lf.cell, lf.footprint)
-        du = np.abs(lf.u[full, axis] - u_line[line[full]])
-        dx = np.abs(xf[:, axis] - x_line[line])
-        if (du.size and du.max() > tolerance * lf.cell) or dx.max() > tolerance * lf.footprint:
-            return None
-        out += [u_line, x_line]
-    return tuple(out)
-
-
-def _line_mean(line, values, use, n):
-    """Mean of ``values`` over the rays ``use`` of each line (NaN where none)."""
-    total = np.bincount(line[use], weights=values[use], minlength=n)
-    count = np.bincount(line[use], minlength=n)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return total / count
-
-
-def _fill_edge_lines(u_line, x_line, cell, footprint, reach=4):
-    """Give lines with rays but no fully lit ray the aperture coordinate of their cell centre.
-
-    The coordinate is that of the nearest line of the same lenslet, minus the offset times a cell
-    (u = -(pixel - spot) · cell).
-    """
-    missing = np.flatnonzero(np.isnan(u_line) & np.isfinite(x_line))
-    n = len(u_line)
-    for d in range(1, reach + 1):
-        if not missing.size:
-            return
-        for step in (d, -d):
-            q = missing + step
-            ok = (q >= 0) & (q < n)
-            p, q = missing[ok], q[ok]
-            good = np.isfinite(u_line[q]) & (np.abs(x_line[q] - x_line[p]) < 0.5 * footprint)
-            u_line[p[good]] = u_line[q[good]] + step * cell
-            missing = np.flatnonzero(np.isnan(u_line) & np.isfinite(x_line))
-            if not missing.size:
-                return
 
 
 def _transpose_rows(ys, yc, yw, ny) -> dict:
@@ -125,7 +60,7 @@ def _transpose_rows(ys, yc, yw, ny) -> dict:
             "t_w": np.ascontiguousarray(yw[k, r, j][order])}
 
 
-class LatticeProjector(CachedSums):
+class LatticeProjector:
     """W for a lattice-aligned camera, never stored: see the module docstring.
 
     Build it with :meth:`from_light_field`. ``select_rows`` and ``scale_rows`` return cheap
@@ -262,6 +197,26 @@ class LatticeProjector(CachedSums):
             return vol.reshape(-1)
         out[:] = vol.reshape(-1)
         return out
+
+    @functools.cached_property
+    def _row_sums(self) -> np.ndarray:
+        return self.forward(np.ones(self.n_voxels, np.float32))
+
+    @functools.cached_property
+    def _column_sums(self) -> np.ndarray:
+        return self.back(np.ones(self.n_pixels, np.float32))
+
+    def row_sums(self) -> np.ndarray:
+        """``sum_j w_ij`` per ray (float32, shape (n_pixels,)); computed once and cached.
+
+        Kept here, not inherited, so that a projection never calls back into the module of
+        the protocol (:mod:`plenopiv.reconstruction.projector`).
+        """
+        return self._row_sums
+
+    def column_sums(self) -> np.ndarray:
+        """``sum_i w_ij`` per voxel (float32, shape (n_voxels,)); computed once and cached."""
+        return self._column_sums
 
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per ray (float32)."""

@@ -305,7 +305,7 @@ def estimate_lenslet_gb(lf: LightField, grid: VolumeGrid) -> float:
     sub-voxel line-of-sight mask (:mod:`plenopiv.reconstruction.sightline`: six refined float32
     arrays).
     """
-    from plenopiv.reconstruction.sightline import SLAB_VOXELS, subcell_factors
+    from plenopiv.reconstruction.geometry import SLAB_VOXELS, subcell_factors
 
     n_lens = len(np.unique(lf.lenslet)) if lf.n_rays else 0
     box = int(math.ceil(2.0 * math.sqrt(lf.n_rays / max(n_lens, 1) / math.pi))) + 3

@@ -8,46 +8,32 @@ weights built before for the same geometry (:func:`weights_key`) or builds and s
 
 from __future__ import annotations
 
-import hashlib
-import json
+import dataclasses
 import os
 from pathlib import Path
 
 import h5py
-import numpy as np
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.errors import ReconstructionError
-from plenopiv.lightfield import LightField, light_field
+from plenopiv.lightfield import LightField
 from plenopiv.products.hdf5 import write_h5
 from plenopiv.reconstruction._kernels import weights as K
-from plenopiv.reconstruction.lattice import separable_axes
+from plenopiv.reconstruction.geometry import (
+    SLAB_VOXELS,
+    ProjectionGeometry,
+    check_grid_in_view,
+    separable_axes,
+    subcell_factors,
+    weights_key,
+)
 from plenopiv.reconstruction.projector import SparseProjector
 from plenopiv.reconstruction.real_lattice import estimate_lenslet_gb, matrix_free_projector
-from plenopiv.reconstruction.weights import (
-    WEIGHTS_VERSION,
-    Weights,
-    _kernel_args,
-    build_weights,
-    check_grid_in_view,
-)
+from plenopiv.reconstruction.weights import Weights, _kernel_args, build_weights
 from plenopiv.volume import VolumeGrid
 
 __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "cached_weights", "choose_projector",
            "estimate_matrix_free_gb", "estimate_nnz", "memory_budget_gb", "weights_key"]
-
-
-def weights_key(calibration: Calibration, grid: VolumeGrid, *, f_number: float | None,
-                min_lit: float, min_weight: float) -> str:
-    """SHA-256 of everything the weights depend on."""
-    h = hashlib.sha256()
-    h.update(json.dumps({"v": WEIGHTS_VERSION, "camera": calibration.camera.to_dict(),
-                         "si": round(calibration.image_distance, 15), "grid": grid.key(),
-                         "f_number": f_number, "min_lit": min_lit, "min_weight": min_weight},
-                        sort_keys=True).encode())
-    for arr in (calibration.centre_px, calibration.focal_spot_px, calibration.grid_index):
-        h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
-    return h.hexdigest()
 
 
 #: Bytes per explicit non-zero in a reconstruction: W's CSR (8: int32 voxel index, float32
@@ -131,8 +117,6 @@ def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
     their per-call copies (~64 bytes each), and one depth slab of the sub-voxel line-of-sight
     mask (:mod:`plenopiv.reconstruction.sightline`: its buffer and six refined float32 arrays).
     """
-    from plenopiv.reconstruction.sightline import SLAB_VOXELS, subcell_factors
-
     nz, ny, nx = grid.shape
     cols = lf.pixel % lf.shape[1]
     n_cols = int(cols.max() - cols.min() + 1) if len(cols) else 0
@@ -148,7 +132,7 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
                    f_number: float | None = None, min_lit: float = 0.5,
                    min_weight: float = 1e-7, projector: str = "auto",
                    max_weights_gb: float | None = None, load: bool = True,
-                   lf: LightField | None = None) -> tuple[Weights | None, bool]:
+                   geometry: ProjectionGeometry | None = None) -> tuple[Weights | None, bool]:
     """Load the weights from ``cache_dir``, or build (and save) them: ``(weights, from_cache)``.
 
     Loaded when built before for the same geometry.
@@ -159,11 +143,18 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
     instead, which is built in seconds and never cached. ``load=False`` only fills the
     cache: a cached file is checked, not read; the lattice projector is not built; None
     comes back in place of the weights.
-    ``lf``, the light field of ``calibration`` with ``f_number`` and ``min_lit``, saves
-    computing it again where the caller has it.
+    ``geometry``, the :class:`~plenopiv.reconstruction.geometry.ProjectionGeometry` of
+    ``calibration`` with ``f_number`` and ``min_lit`` (on any grid), shares its light field
+    where the caller has one; the weights carry the geometry of ``grid`` either way.
     """
-    key = weights_key(calibration, grid, f_number=f_number, min_lit=min_lit,
-                      min_weight=min_weight)
+    if geometry is None:
+        geometry = ProjectionGeometry(calibration, grid, f_number, min_lit)
+    elif (geometry.calibration is not calibration or geometry.f_number != f_number
+          or geometry.min_lit != min_lit):
+        raise ValueError("cached_weights: the geometry is of another calibration, f_number "
+                         "or min_lit than the arguments")
+    geometry = geometry.on_grid(grid)
+    key = geometry.key(min_weight)
     path = None if cache_dir is None else Path(cache_dir) / f"weights-{key[:24]}.h5"
     if projector != "lattice" and path is not None and path.exists():
         try:
@@ -173,22 +164,21 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
                 if fh.attrs.get("key") == key:
                     proj = SparseProjector(fh["/indptr"][()], fh["/indices"][()],
                                            fh["/data"][()], n_voxels=grid.n_voxels, check=False)
-                    return Weights(proj, fh["/pixel"][()], grid, key), True
+                    return Weights(proj, fh["/pixel"][()], grid, key, geometry), True
         except (OSError, KeyError, ValueError):
             pass   # unreadable or from another geometry: rebuild below
-    if lf is None:
-        lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
+    lf = geometry.light_field
     kind = choose_projector(lf, grid, projector=projector, max_weights_gb=max_weights_gb,
                             min_weight=min_weight)
     if kind == "lattice":
         check_grid_in_view(lf, grid)
         if not load:
             return None, False
-        return Weights(matrix_free_projector(lf, grid), lf.pixel, grid, key), False
+        return Weights(matrix_free_projector(lf, grid), lf.pixel, grid, key, geometry), False
     w = build_weights(lf, grid, min_weight=min_weight, key=key)
     if path is not None:
         p = w.projector
         write_h5(path, {"/indptr": p.indptr, "/indices": p.indices, "/data": p.data,
                         "/pixel": w.pixel}, attrs={"key": key, "grid": grid.key()},
                  kind="weights cache", compress=False)
-    return (w if load else None), False
+    return (dataclasses.replace(w, geometry=geometry) if load else None), False

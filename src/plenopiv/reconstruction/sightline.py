@@ -25,39 +25,27 @@ matrix-free, else explicit weights on the refined grid, built in depth slabs.
 
 from __future__ import annotations
 
-import math
 import threading
 
 import numpy as np
 
 from plenopiv.errors import ReconstructionError
+from plenopiv.reconstruction.geometry import (  # noqa: F401 - also importable from here
+    CELLS_PER_FOOTPRINT,
+    SLAB_VOXELS,
+    ProjectionGeometry,
+    separable_axes,
+    subcell_factors,
+)
+from plenopiv.reconstruction.lattice import LatticeProjector
+from plenopiv.reconstruction.real_lattice import LensletProjector
+from plenopiv.reconstruction.weights import build_weights
 from plenopiv.volume import VolumeGrid
 
 __all__ = ["subcell_factors", "refined_grid", "pool_min", "subcell_line_of_sight"]
 
-#: Sub-cells per lenslet footprint along each lateral axis (at least): cells of ≤ b/2.
-CELLS_PER_FOOTPRINT = 2
-#: Refined voxels per depth slab (bounds the memory of one refined projection: with the
-#: lattice projector its buffer is slices × refined rows × sensor columns float32).
-SLAB_VOXELS = 20_000_000
-
 _CACHE: dict = {}
 _LOCK = threading.Lock()
-
-
-def subcell_factors(grid: VolumeGrid, footprint: float) -> tuple[int, int]:
-    """Sub-cells per voxel along x and y: ``ceil(CELLS_PER_FOOTPRINT · voxel / footprint)``.
-
-    Parameters
-    ----------
-    grid : VolumeGrid
-    footprint : float
-        Lenslet footprint on the focal plane, metres (effective).
-    """
-    if not footprint > 0:
-        raise ReconstructionError(f"lenslet footprint {footprint!r} m: expected > 0")
-    return tuple(max(1, math.ceil(CELLS_PER_FOOTPRINT * float(v) / footprint - 1e-9))
-                 for v in grid.voxel[:2])
 
 
 def refined_grid(grid: VolumeGrid, kx: int, ky: int) -> VolumeGrid:
@@ -90,16 +78,23 @@ def _slab_grid(grid: VolumeGrid, z0: int, z1: int) -> VolumeGrid:
                       (z1 - z0, grid.shape[1], grid.shape[2]))
 
 
-def _refined_projectors(weights, light_field_of, kx: int, ky: int) -> list:
+def _light_field_and_axes(geometry) -> tuple:
+    """``(light field, separable axes or None)`` of a ProjectionGeometry or a callable.
+
+    A callable returns the light field (built on each call); a geometry holds its own.
+    """
+    if isinstance(geometry, ProjectionGeometry):
+        return geometry.light_field, geometry.separable_axes
+    lf = geometry()
+    return lf, separable_axes(lf)
+
+
+def _refined_projectors(weights, geometry, kx: int, ky: int) -> list:
     """Return one projector per depth slab of the refined grid.
 
     Rows are scaled like ``weights.normalised`` (each by 1/max of its coarse weights); the
     list is cached for the last weights object.
     """
-    from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
-    from plenopiv.reconstruction.real_lattice import LensletProjector
-    from plenopiv.reconstruction.weights import build_weights
-
     key = (weights.key or id(weights), kx, ky)
     with _LOCK:
         if _CACHE.get("key") == key:
@@ -115,11 +110,11 @@ def _refined_projectors(weights, light_field_of, kx: int, ky: int) -> list:
             _CACHE.clear()
             _CACHE.update(key=key, projectors=out)
         return out
-    lf = light_field_of()
+    lf, axes = _light_field_and_axes(geometry)
     if len(lf.pixel) != len(weights.pixel) or not np.array_equal(lf.pixel, weights.pixel):
         raise ReconstructionError("the light field's rays are not the weights' rows: build both "
                                   "with the same f_number and min_lit")
-    separable = separable_axes(lf) is not None
+    separable = axes is not None
     out = []
     for z0, z1 in _slabs(weights.grid, kx, ky):
         g = _slab_grid(fine, z0, z1)
@@ -153,7 +148,7 @@ def _used_sums(proj, used: np.ndarray, z0: int) -> np.ndarray:
     return hit
 
 
-def subcell_line_of_sight(weights, light_field_of, dark_rows, log_values=None,
+def subcell_line_of_sight(weights, geometry, dark_rows, log_values=None,
                           used_rows=None, *, tolerance: float,
                           footprint: float) -> tuple:
     """Return the soft line-of-sight mask and the MLOS first guess, judged on sub-voxel cells.
@@ -162,9 +157,9 @@ def subcell_line_of_sight(weights, light_field_of, dark_rows, log_values=None,
     ----------
     weights : Weights
         The coarse weights of the reconstruction.
-    light_field_of : callable
-        Returns the light field the weights were built from (same rows); called only when
-        the refined projector is not cached.
+    geometry : ProjectionGeometry or callable
+        What the weights were built from (same rows): its light field is used only when the
+        refined projector is not cached. A callable returning the light field also serves.
     dark_rows : (n_pixels,) bool
         Rows counted as dark.
     log_values : (n_pixels,) float, optional
@@ -197,7 +192,7 @@ def subcell_line_of_sight(weights, light_field_of, dark_rows, log_values=None,
     nz, ny, nx = weights.grid.shape
     best = np.empty((nz, ny, nx), np.float32)
     guess = None if log_values is None else np.empty((nz, ny, nx), np.float32)
-    for (z0, z1), proj in _refined_projectors(weights, light_field_of, kx, ky):
+    for (z0, z1), proj in _refined_projectors(weights, geometry, kx, ky):
         shape = (z1 - z0, ny * ky, nx * kx)
         seen = np.asarray(proj.column_sums()).reshape(shape)
         d = np.asarray(proj.back(dark)).reshape(shape)

@@ -21,6 +21,7 @@ from collections.abc import Callable
 import numpy as np
 
 from plenopiv.errors import ReconstructionError
+from plenopiv.reconstruction.geometry import ProjectionGeometry
 from plenopiv.reconstruction.mart import reconstruct
 from plenopiv.reconstruction.sightline import subcell_line_of_sight
 
@@ -55,9 +56,9 @@ def _unmasked_rows(weights, image: np.ndarray, image_mask) -> tuple[np.ndarray, 
     return ~m.reshape(-1)[weights.pixel], float(image[~m].max())
 
 
-def solve_volume(weights, image: np.ndarray, settings, *, light_field_of: Callable,
-                 footprint: float, image_mask=None,
-                 callback: Callable | None = None) -> np.ndarray:
+def solve_volume(weights, image: np.ndarray, settings, *,
+                 geometry: ProjectionGeometry | None = None, footprint: float | None = None,
+                 image_mask=None, callback: Callable | None = None) -> np.ndarray:
     """The MART volume of one sensor image on ``weights.grid`` (float32, ``[z, y, x]``).
 
     Parameters
@@ -70,16 +71,24 @@ def solve_volume(weights, image: np.ndarray, settings, *, light_field_of: Callab
     settings : ReconstructionSettings
         ``method``, ``iterations``, relaxation, ``pixel_threshold`` (fraction of the brightest
         unmasked pixel), ``dark_tolerance``.
-    light_field_of : callable
-        Returns the light field ``weights`` was built from (for the sub-cell line of sight
-        and the perspective blocks; called only when needed).
-    footprint : float
-        Lenslet footprint on the focal plane, metres.
+    geometry : ProjectionGeometry, optional
+        What ``weights`` was built from (default ``weights.geometry``): its light field, built
+        at most once, serves the sub-cell line of sight and the perspective blocks, and only
+        when they need it.
+    footprint : float, optional
+        Lenslet footprint on the focal plane, metres (default ``geometry.footprint``).
     image_mask : (rows, cols) bool, optional
         Pixels to ignore (True): their rows count neither as light nor as dark.
     callback : callable, optional
         ``callback(iteration, volume)`` after each MART sweep.
     """
+    geometry = weights.geometry if geometry is None else geometry
+    if geometry is None:
+        raise ReconstructionError("solve_volume: the weights carry no ProjectionGeometry; pass "
+                                  "geometry= (the calibration, grid, f_number and min_lit they "
+                                  "were built from)")
+    if footprint is None:
+        footprint = geometry.footprint
     proj, row_scale = weights.normalised
     raw = weights.image_vector(image)
     usable, peak_value = _unmasked_rows(weights, image, image_mask)
@@ -91,7 +100,7 @@ def solve_volume(weights, image: np.ndarray, settings, *, light_field_of: Callab
                                   f"{threshold:g} ([reconstruction] pixel_threshold = "
                                   f"{settings.pixel_threshold}): is the volume in view?")
     floor = max(threshold, 1e-6 * float(image.max()))
-    first = line_of_sight_guess(weights, raw, floor, touching, bright, light_field_of,
+    first = line_of_sight_guess(weights, raw, floor, touching, bright, geometry,
                                 tolerance=settings.dark_tolerance, footprint=footprint)
     common = dict(iterations=settings.iterations, relaxation=settings.relaxation_used,
                   pixel_threshold=0.0, initial=first, shape=weights.grid.shape,
@@ -107,12 +116,12 @@ def solve_volume(weights, image: np.ndarray, settings, *, light_field_of: Callab
                            ceiling=~bright[rows], **common)
     blocks = None
     if settings.method == "block":
-        blocks = perspective_blocks(weights, light_field_of())[bright]
+        blocks = perspective_blocks(weights, geometry.light_field)[bright]
     return reconstruct(raw[bright] / row_scale[bright], proj.select_rows(bright),
                        method=settings.method, blocks=blocks, **common)
 
 
-def line_of_sight_guess(weights, raw, floor: float, touching, bright, light_field_of, *,
+def line_of_sight_guess(weights, raw, floor: float, touching, bright, geometry, *,
                         tolerance: float, footprint: float) -> np.ndarray:
     """Return the first guess of MART: MLOS judged on sub-voxel cells.
 
@@ -129,7 +138,7 @@ def line_of_sight_guess(weights, raw, floor: float, touching, bright, light_fiel
     used = touching & (row_sums > 0)
     log_values = np.zeros(len(raw), np.float32)
     log_values[used] = np.log(np.maximum(raw[used], floor) / row_scale[used] / row_sums[used])
-    keep, guess, _ = subcell_line_of_sight(weights, light_field_of, touching & ~bright,
+    keep, guess, _ = subcell_line_of_sight(weights, geometry, touching & ~bright,
                                            log_values, used, tolerance=tolerance,
                                            footprint=footprint)
     seen_lit = np.asarray(proj.back(bright.astype(np.float32))) > 0

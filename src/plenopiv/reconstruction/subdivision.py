@@ -15,22 +15,16 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import CameraModel
 from plenopiv.config import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
-from plenopiv.lightfield import light_field
-from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
-from plenopiv.reconstruction.select import cached_weights, weights_key
-from plenopiv.reconstruction.weights import Weights, check_grid_in_view
+from plenopiv.reconstruction.geometry import ProjectionGeometry, footprint
+from plenopiv.reconstruction.lattice import LatticeProjector
+from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.weights import Weights
 from plenopiv.volume import VolumeGrid
 
 __all__ = ["SUBDIVIDED_VOXEL_FOOTPRINTS", "footprint", "lateral_subdivision", "merge_subdivided",
            "reconstruction_grid", "subdivided_grid", "subdivision_of", "weights_for"]
-
-
-def footprint(camera: CameraModel) -> float:
-    """Lenslet footprint on the nominal focal plane, p_m S_o/S_i, metres."""
-    return camera.microlens_array.pitch * camera.object_distance / camera.image_distance
 
 
 #: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
@@ -129,8 +123,8 @@ def subdivision_of(work: VolumeGrid, grid: VolumeGrid) -> tuple[int, int]:
 
 
 def weights_for(calibration: Calibration, grid: VolumeGrid, settings: ReconstructionSettings,
-                cache_dir: str | Path | None = None, *, load: bool = True
-                ) -> tuple[Weights | None, bool]:
+                cache_dir: str | Path | None = None, *, load: bool = True,
+                geometry: ProjectionGeometry | None = None) -> tuple[Weights | None, bool]:
     """The weights a reconstruction on ``grid`` with ``settings`` uses: ``(weights, from_cache)``.
 
     Explicit (cached in ``cache_dir``) or the matrix-free lattice projector, by
@@ -145,34 +139,39 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
     is refused before anything is estimated. ``load=False`` only fills the cache: explicit
     weights are built and saved unless cached, the matrix-free projector is not built, and
     None comes back in place of the weights.
+
+    ``geometry`` (:class:`~plenopiv.reconstruction.geometry.ProjectionGeometry` of
+    ``calibration`` with ``settings.f_number`` and ``settings.min_lit``, on any grid) lends
+    its light field; by default one is made here. Either way the weights carry the geometry
+    of their working grid, so the light field is built at most once per reconstruction.
     """
     from plenopiv.resources import check_grid
 
     check_grid(grid)
+    if geometry is None:
+        geometry = ProjectionGeometry.for_settings(calibration, grid, settings)
     projector = settings.projector
     if projector == "auto" and settings.method != "smart":
         projector = "sparse"
     ky, kx = lateral_subdivision(calibration, grid, settings)
-    lf = None
     if projector == "auto" and (ky, kx) != (1, 1):
         # a subdivided grid has k² times the explicit weights; the matrix-free projector is
         # built in seconds and projects it about ten times faster (docs/validation/vortex.md)
-        lf = light_field(calibration, f_number=settings.f_number, min_lit=settings.min_lit)
-        if separable_axes(lf) is not None:
-            work = subdivided_grid(grid, ky, kx)
-            check_grid_in_view(lf, work)
+        work = geometry.on_grid(subdivided_grid(grid, ky, kx))
+        if work.separable_axes is not None:
+            work.check_in_view()
             if not load:
                 return None, False
-            key = weights_key(calibration, work, f_number=settings.f_number,
-                              min_lit=settings.min_lit, min_weight=1e-7)
-            return Weights(LatticeProjector.from_light_field(lf, work), lf.pixel, work,
-                           key), False
+            lf = work.light_field
+            return Weights(LatticeProjector.from_light_field(lf, work.grid), lf.pixel,
+                           work.grid, work.key(1e-7), work), False
     while True:
         try:
             return cached_weights(calibration, subdivided_grid(grid, ky, kx),
                                   cache_dir=cache_dir, f_number=settings.f_number,
                                   min_lit=settings.min_lit, projector=projector,
-                                  max_weights_gb=settings.max_weights_gb, load=load, lf=lf)
+                                  max_weights_gb=settings.max_weights_gb, load=load,
+                                  geometry=geometry)
         except ReconstructionError as exc:
             if (settings.lateral_subdivision != "auto" or max(ky, kx) == 1
                     or "max_weights_gb" not in str(exc)):
@@ -181,6 +180,3 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
                           f"subdivision do not fit ({exc}); trying "
                           f"{max(1, ky - 1)} x {max(1, kx - 1)}", stacklevel=2)
             ky, kx = max(1, ky - 1), max(1, kx - 1)
-            if lf is None:      # the next attempts share one light field
-                lf = light_field(calibration, f_number=settings.f_number,
-                                 min_lit=settings.min_lit)

@@ -26,19 +26,22 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import weights as K
+from plenopiv.reconstruction.geometry import (  # noqa: F401 - also importable from here
+    WEIGHTS_VERSION,
+    ProjectionGeometry,
+    check_grid_in_view,
+)
 from plenopiv.reconstruction.lattice import LatticeProjector
 from plenopiv.reconstruction.projector import Projector, SparseProjector
 from plenopiv.reconstruction.real_lattice import LensletProjector
 from plenopiv.volume import VolumeGrid
-
-WEIGHTS_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -55,12 +58,16 @@ class Weights:
     grid : VolumeGrid
     key : str
         Hash of what the weights depend on (camera, calibration, grid, options).
+    geometry : ProjectionGeometry, optional
+        What they were built from (its light field built at most once and shared with the
+        line-of-sight mask and the perspective blocks); None for weights made without one.
     """
 
     projector: SparseProjector | LatticeProjector | LensletProjector
     pixel: np.ndarray
     grid: VolumeGrid
     key: str
+    geometry: ProjectionGeometry | None = field(default=None, repr=False, compare=False)
 
     @functools.cached_property
     def row_max(self) -> np.ndarray:
@@ -114,22 +121,6 @@ def _kernel_args(lf: LightField, grid: VolumeGrid, min_weight: float, step: int 
     return (*rays, lit, lf.object_distance, lf.cell, lf.footprint, area,
             np.ascontiguousarray(grid.z, dtype=np.float64), grid.origin[0], grid.origin[1],
             grid.voxel[0], grid.voxel[1], grid.shape[2], grid.shape[1], float(min_weight))
-
-
-def check_grid_in_view(lf: LightField, grid: VolumeGrid) -> None:
-    """Raise if the grid lies outside the field of view or crosses the main lens."""
-    zmin = grid.bounds[2, 0]
-    if zmin <= -0.9 * lf.object_distance:
-        raise ReconstructionError(f"[volume] z_mm starts at {zmin * 1e3:.4g} mm, within 10 % of "
-                                  f"the main lens (S_o,eff = {lf.object_distance * 1e3:.4g} mm)")
-    xf = lf.focal_plane_position
-    half = np.abs(xf).max(axis=0) + lf.footprint
-    b = grid.bounds
-    if (b[0, 0] > half[0] or b[0, 1] < -half[0] or b[1, 0] > half[1] or b[1, 1] < -half[1]):
-        raise ReconstructionError(
-            f"[volume] x_mm = {(b[0] * 1e3).round(3).tolist()}, y_mm = "
-            f"{(b[1] * 1e3).round(3).tolist()} lies outside the field of view "
-            f"(±{half[0] * 1e3:.3g} mm × ±{half[1] * 1e3:.3g} mm at the focal plane)")
 
 
 def build_weights(lf: LightField, grid: VolumeGrid, *, min_weight: float = 1e-7,
