@@ -15,6 +15,18 @@ from plenopiv.particles import CENTROID_METHODS, Particles, find_particles
 U32 = 2.0**-24
 
 
+
+#: The options these tests were written for: the 3-point Gaussian fit and 2-voxel boxes
+#: (the pipeline's own come from ``[particles]``, :func:`plenopiv.pipeline.particle_options`).
+GAUSSIAN_3POINT = dict(method="gaussian", min_separation_vox=2.0, box_vox=(2, 2, 2),
+                       fit_spacing_vox=(1, 1, 1))
+
+
+def find(volume, **options):
+    """:func:`find_particles` with :data:`GAUSSIAN_3POINT` where ``options`` leave a gap."""
+    return find_particles(volume, **{**GAUSSIAN_3POINT, **options})
+
+
 def blob(shape, centre, sigma, amplitude=1.0):
     """Point-sampled Gaussian ``A exp(-sum_a (k_a - c_a)^2 / (2 s_a^2))`` on the voxel grid."""
     grid = np.indices(shape, dtype=np.float64)
@@ -88,7 +100,7 @@ def test_gaussian_fit_is_exact_for_sampled_gaussians(rng, sigma):
         for _ in range(5):
             centre = np.array([16, 7, 7]) + rng.uniform(-0.5, 0.5, 3)
             volume = blob(shape, centre, sigma).astype(np.float32)
-            found = find_particles(volume, threshold=0.5, min_separation_vox=(8, 3, 3),
+            found = find(volume, threshold=0.5, min_separation_vox=(8, 3, 3),
                                    fit_spacing_vox=spacing)
             assert len(found) == 1 and found.method == "gaussian"
             for a in range(3):
@@ -108,7 +120,7 @@ def test_centroid_error_is_the_window_truncation_bias(rng, sigma, box):
     for _ in range(8):
         centre = np.array([16, 7, 7]) + rng.uniform(-0.5, 0.5, 3)
         volume = blob(shape, centre, sigma)
-        found = find_particles(volume, threshold=0.5, method="centroid", box_vox=box,
+        found = find(volume, threshold=0.5, method="centroid", box_vox=box,
                                min_separation_vox=(8, 3, 3))
         assert len(found) == 1
         peak = np.round(centre)
@@ -130,7 +142,7 @@ def test_gaussian_fit_beats_centroid_on_elongated_blobs(rng):
         centre = np.array([16, 7, 7]) + rng.uniform(-0.5, 0.5, 3)
         volume = blob(shape, centre, (3.0, 1.0, 1.0)).astype(np.float32)
         for method in CENTROID_METHODS:
-            found = find_particles(volume, threshold=0.5, method=method,
+            found = find(volume, threshold=0.5, method=method,
                                    min_separation_vox=(8, 3, 3))
             errors[method].append(np.abs(found.position_vox[0] - centre))
     gaussian, centroid = (np.max(errors[m], axis=0) for m in CENTROID_METHODS)
@@ -140,11 +152,11 @@ def test_gaussian_fit_beats_centroid_on_elongated_blobs(rng):
 
 def test_sizes_measure_depth_elongation():
     volume = blob((33, 15, 15), (16.2, 7.1, 6.8), (3.0, 1.0, 1.0)).astype(np.float32)
-    found = find_particles(volume, threshold=0.5, min_separation_vox=(8, 3, 3))
+    found = find(volume, threshold=0.5, min_separation_vox=(8, 3, 3))
     np.testing.assert_allclose(found.size_vox[0], [3.0, 1.0, 1.0], rtol=1e-5)
     assert found.elongation[0] == pytest.approx(3.0, rel=1e-5)
     # the centroid's second moment is cut by the box: biased low, most in z
-    moments = find_particles(volume, threshold=0.5, method="centroid", box_vox=(2, 2, 2),
+    moments = find(volume, threshold=0.5, method="centroid", box_vox=(2, 2, 2),
                              min_separation_vox=(8, 3, 3)).size_vox[0]
     assert np.all(moments < [3.0, 1.0, 1.0]) and moments[0] < 2.0
 
@@ -155,7 +167,7 @@ def test_integrated_intensity_of_a_blob():
     erfc(4.5/sqrt 2) < 1e-5 per axis."""
     sigma = np.array([2.0, 1.0, 1.0])
     volume = blob((41, 21, 21), (20.3, 10.4, 9.8), sigma, amplitude=5.0)
-    found = find_particles(volume, threshold=1.0, box_vox=(9, 5, 5),
+    found = find(volume, threshold=1.0, box_vox=(9, 5, 5),
                            min_separation_vox=(8, 3, 3))
     expected = 5.0 * (2 * np.pi) ** 1.5 * np.prod(sigma)
     assert found.intensity[0] == pytest.approx(expected, rel=4e-5)
@@ -181,7 +193,7 @@ def test_two_close_particles_are_both_found():
     a = np.array([7.0, 7.2, 8.3])
     b = a + [0.0, 0.0, 4.3]
     volume = (blob(shape, a, 1.0) + blob(shape, b, 1.0)).astype(np.float32)
-    found = find_particles(volume, threshold=0.5)
+    found = find(volume, threshold=0.5)
     assert len(found) == 2
     order = np.argsort(found.position_vox[:, 2])
     for truth, got in zip((a, b), found.position_vox[order], strict=True):
@@ -194,7 +206,7 @@ def test_two_close_particles_are_both_found():
         assert bound < 0.05
         np.testing.assert_allclose(got[:2], truth[:2], atol=1e-5)
     # a separation larger than their distance merges them into the brighter one
-    merged = find_particles(volume, threshold=0.5, min_separation_vox=6.0)
+    merged = find(volume, threshold=0.5, min_separation_vox=6.0)
     assert len(merged) == 1
 
 
@@ -206,8 +218,8 @@ def test_threshold_excludes_noise(rng):
                for c in ([5, 5, 5], [14, 6, 12], [8, 15, 9], [15, 14, 4])]
     clean = sum(blob(shape, c, 1.0) for c in centres)
     volume = (clean + rng.uniform(0.0, 0.1, shape)).astype(np.float32)
-    assert len(find_particles(volume, threshold=0.0)) > 50
-    found = find_particles(volume, threshold=0.3)
+    assert len(find(volume, threshold=0.0)) > 50
+    found = find(volume, threshold=0.3)
     assert len(found) == 4
     for c in centres:
         nearest = np.min(np.linalg.norm(found.position_vox - c, axis=1))
@@ -217,14 +229,14 @@ def test_threshold_excludes_noise(rng):
 def test_plateaus_and_borders():
     volume = np.zeros((7, 7, 7), np.float32)
     volume[3, 3, 3:5] = 1.0  # a two-voxel plateau is one particle
-    assert len(find_particles(volume, threshold=0.5)) == 1
+    assert len(find(volume, threshold=0.5)) == 1
     volume[:] = 0.0
     volume[0, 3, 3] = 1.0  # on the z = 0 face
-    assert len(find_particles(volume, threshold=0.5)) == 0
-    edge = find_particles(volume, threshold=0.5, exclude_border=False)
+    assert len(find(volume, threshold=0.5)) == 0
+    edge = find(volume, threshold=0.5, exclude_border=False)
     assert len(edge) == 1
     assert edge.position_vox[0, 0] == 0.0 and np.isnan(edge.size_vox[0, 0])
-    empty = find_particles(volume, threshold=2.0)
+    empty = find(volume, threshold=2.0)
     assert len(empty) == 0 and empty.position_vox.shape == (0, 3)
 
 
@@ -258,4 +270,30 @@ def test_world_coordinates_go_through_the_conventions():
 def test_bad_inputs_are_refused(volume, kwargs, error, match):
     kwargs = {"threshold": 0.5, **kwargs}
     with pytest.raises(error, match=match):
-        find_particles(volume, **kwargs)
+        find(volume, **kwargs)
+
+
+def test_defaults_are_those_of_the_particles_settings():
+    """One set of defaults: find_particles' keyword defaults are ParticleSettings' own, and
+    the two that ParticleSettings leaves to the camera (None) have none in find_particles."""
+    import inspect
+
+    from plenopiv.config import ParticleSettings
+
+    settings = ParticleSettings()
+    params = inspect.signature(find_particles).parameters
+    # threshold is a fraction of the reference intensity in the settings and an intensity
+    # here (pipeline.particle_options converts); it has no default here
+    assert params["threshold"].default is inspect.Parameter.empty
+    shared = [name for name in params
+              if name in ParticleSettings.model_fields and name != "threshold"]
+    assert sorted(shared) == ["box_vox", "fit_spacing_vox", "method", "min_separation_vox"]
+    for name in shared:
+        default = params[name].default
+        if getattr(settings, name) is None:
+            assert default is inspect.Parameter.empty, name
+        else:
+            assert default == getattr(settings, name), name
+    volume = blob((15, 15, 15), (7.2, 6.9, 7.1), (2.0, 1.0, 1.0)).astype(np.float32)
+    assert find_particles(volume, threshold=0.5, min_separation_vox=3.0,
+                          box_vox=2).method == settings.method

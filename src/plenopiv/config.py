@@ -134,6 +134,10 @@ class ParticleSettings(_Strict):
         resolution cell (:func:`plenopiv.pipeline.particle_options`): peaks within one cell
         are one particle, the centroid box is ±1 cell.
     internal_correction : "auto" | "none" | "plate" (see :mod:`plenopiv.corrections`).
+
+    These are the only defaults: :func:`plenopiv.particles.find_particles` takes those of
+    ``method`` and ``fit_spacing_vox`` from here, and has none for ``min_separation_vox``
+    and ``box_vox``, which follow from the camera.
     """
 
     threshold: float = Field(0.1, ge=0, lt=1)

@@ -44,13 +44,21 @@ import numpy as np
 import scipy.ndimage
 
 from plenopiv import _particles_kernels as _k
+from plenopiv.config import ParticleSettings
 from plenopiv.conventions import voxel_to_world
 from plenopiv.errors import ReconstructionError
 
-__all__ = ["CENTROID_METHODS", "Particles", "find_particles"]
+__all__ = ["CENTROID_METHODS", "DEFAULT_FIT_SPACING_VOX", "DEFAULT_METHOD", "Particles",
+           "find_particles"]
 
 #: Valid values of ``find_particles(method=...)``.
 CENTROID_METHODS = ("gaussian", "centroid")
+#: Default sub-voxel estimator: that of ``[particles] method``
+#: (:class:`plenopiv.config.ParticleSettings`, the one set of defaults).
+DEFAULT_METHOD = ParticleSettings.model_fields["method"].default
+#: Default sample spacing ``(z, y, x)`` of the Gaussian fit, voxels: that of
+#: ``[particles] fit_spacing_vox``.
+DEFAULT_FIT_SPACING_VOX = ParticleSettings.model_fields["fit_spacing_vox"].default
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,10 +124,10 @@ def find_particles(
     volume,
     *,
     threshold: float,
-    method: str = "gaussian",
-    min_separation_vox=2.0,
-    box_vox=(2, 2, 2),
-    fit_spacing_vox=(1, 1, 1),
+    min_separation_vox,
+    box_vox,
+    method: str = DEFAULT_METHOD,
+    fit_spacing_vox=DEFAULT_FIT_SPACING_VOX,
     exclude_border: bool = True,
 ) -> Particles:
     r"""Find particles in a volume: local maxima above a threshold, refined to sub-voxel.
@@ -130,23 +138,28 @@ def find_particles(
         Reconstructed intensities, indexed ``[z, y, x]``, finite.
     threshold : float
         A peak must be strictly brighter than this (volume units, >= 0).
-    method : {"gaussian", "centroid"}
-        Sub-voxel estimator: ``"gaussian"``, the 3-point Gaussian fit per axis through the
-        peak voxel and its two neighbours (default: exact for a sampled Gaussian blob, see
-        Notes); ``"centroid"``, the intensity-weighted centroid over the box.
     min_separation_vox : float or sequence of 3 floats
         Peaks closer than this, as an ellipsoid with these semi-axes ``(z, y, x)`` in voxels
         (``sum_a (d_a / s_a)**2 < 1``), are merged into the brightest one. Use a larger z
-        value for depth-elongated blobs. Must be > 0.
+        value for depth-elongated blobs. Must be > 0. No default: it follows from the
+        camera's resolution cell and the voxel size
+        (:func:`plenopiv.pipeline.particle_options`, ``[particles] min_separation_vox``).
     box_vox : int or sequence of 3 ints
         Half-widths ``(z, y, x)`` of the box around the peak, voxels (>= 1): the window of the
         centroid and of the integrated intensity. For depth-elongated blobs give z about
-        2 sigma_z (e.g. ``(6, 2, 2)`` for sigma_z = 3), or the box cuts the blob.
+        2 sigma_z (e.g. ``(6, 2, 2)`` for sigma_z = 3), or the box cuts the blob. No default,
+        for the same reason (``[particles] box_vox``).
+    method : {"gaussian", "centroid"}
+        Sub-voxel estimator: ``"centroid"`` (default, :data:`DEFAULT_METHOD`), the
+        intensity-weighted centroid over the box; ``"gaussian"``, the 3-point Gaussian fit
+        per axis through the peak voxel and its two neighbours (exact for a sampled Gaussian
+        blob, see Notes).
     fit_spacing_vox : int or sequence of 3 ints
         Spacing m ``(z, y, x)``, voxels (>= 1), of the samples the Gaussian fit uses on each
         side of the peak. 1 is the classical 3-point fit; on a blob of width s the noise of
         the fitted offset falls like ``s**2 / m``, so for depth-elongated blobs a z spacing
-        near sigma_z (e.g. ``(3, 1, 1)``) is much less noisy (see Notes).
+        near sigma_z (e.g. ``(3, 1, 1)``) is much less noisy (see Notes). Default
+        :data:`DEFAULT_FIT_SPACING_VOX`.
     exclude_border : bool
         Drop peaks on the outermost voxel layer (their blob is cut by the volume's edge).
         If False they are kept; the Gaussian fit then gives offset 0 and size NaN along the
