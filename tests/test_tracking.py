@@ -14,6 +14,7 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.cli import main
 from plenopiv.lightfield import light_field
 from plenopiv.pipeline import resolution_cell
+from plenopiv.products.vectors import load_vectors
 from plenopiv.synthetic.images import particle_image
 from plenopiv.tracking.bundle import (
     BundleSettings,
@@ -30,7 +31,7 @@ from plenopiv.tracking.matching import (
     predict_positions,
 )
 from plenopiv.tracking.pair import TrackResult, bin_tracks
-from plenopiv.tracking.products import TRACK_DATASETS, load_vectors, write_tracks
+from plenopiv.tracking.products import TRACK_DATASETS, write_tracks
 from plenopiv.validation.depth_study import thesis_camera
 
 # ---- least-squares point of a ray bundle ----------------------------------------------------

@@ -30,9 +30,10 @@ def cmd_track(args) -> dict:
     from plenopiv.config import load_experiment
     from plenopiv.pipeline import experiment_calibration
     from plenopiv.products.images import read_image
+    from plenopiv.products.vectors import load_vectors
     from plenopiv.products.volume import load_volume
     from plenopiv.tracking.pair import track_images
-    from plenopiv.tracking.products import load_vectors, save_track_products
+    from plenopiv.tracking.products import save_track_products
 
     out = _check_out(args.out, (".h5",))
     exp = load_experiment(args.config)

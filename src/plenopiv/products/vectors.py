@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.corrections import DepthCorrection
-from plenopiv.errors import ConfigError
+from plenopiv.errors import ConfigError, ReconstructionError
 from plenopiv.products.files import atomic_path
-from plenopiv.products.hdf5 import cf_axes, write_h5
+from plenopiv.products.hdf5 import cf_axes, open_product, write_h5
 
 
 def check_dt(dt, what: str = "dt") -> float | None:
@@ -194,6 +194,21 @@ class VectorResult:
             written = imageToVTK(str(tmp), origin=origin, spacing=sp, pointData=data)
             Path(written).replace(tmp)
         return final
+
+
+def load_vectors(path: str | Path) -> VectorResult:
+    """Read a vectors product (:meth:`VectorResult.save`) as a VectorResult of displacements.
+
+    Velocity products (``dt_s`` set) are turned back into displacements (metres), ``dt`` kept.
+    """
+    with open_product(path, "vectors", ReconstructionError) as fh:
+        dt = float(fh.attrs.get("dt_s", np.nan))
+        f = 1.0 if not np.isfinite(dt) else dt
+        arrays = {k: fh[f"/{k}"][()] for k in ("x", "y", "z", "u", "v", "w", "valid", "snr")}
+    return VectorResult(arrays["x"], arrays["y"], arrays["z"],
+                        arrays["u"].astype(float) * f, arrays["v"].astype(float) * f,
+                        arrays["w"].astype(float) * f, arrays["valid"].astype(bool),
+                        arrays["snr"].astype(float), dt if np.isfinite(dt) else None)
 
 
 def _cf_dimensions(fh, names) -> None:

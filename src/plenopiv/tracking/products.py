@@ -109,25 +109,6 @@ def write_vtp(path: str | Path, tracks: TrackResult) -> Path:
     return final
 
 
-def load_vectors(path: str | Path):
-    """Read a vectors product as a :class:`plenopiv.products.vectors.VectorResult` of displacements.
-
-    Velocity products (``dt_s`` set) are turned back into displacements (metres), ``dt`` kept.
-    """
-    from plenopiv.errors import ReconstructionError
-    from plenopiv.products.hdf5 import open_product
-    from plenopiv.products.vectors import VectorResult
-
-    with open_product(path, "vectors", ReconstructionError) as fh:
-        dt = float(fh.attrs.get("dt_s", np.nan))
-        f = 1.0 if not np.isfinite(dt) else dt
-        arrays = {k: fh[f"/{k}"][()] for k in ("x", "y", "z", "u", "v", "w", "valid", "snr")}
-    return VectorResult(arrays["x"], arrays["y"], arrays["z"],
-                        arrays["u"].astype(float) * f, arrays["v"].astype(float) * f,
-                        arrays["w"].astype(float) * f, arrays["valid"].astype(bool),
-                        arrays["snr"].astype(float), dt if np.isfinite(dt) else None)
-
-
 def save_track_products(tracks: TrackResult, vectors, out: str | Path, *,
                         config: dict | None = None, vtk: bool = True,
                         extra_attrs: dict | None = None) -> dict:
