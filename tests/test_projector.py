@@ -1,4 +1,5 @@
-"""The projector: numba kernels against scipy.sparse, adjointness, schedules, validation."""
+"""The projector: numba kernels and their NumPy twins against scipy.sparse, adjointness,
+schedules, validation."""
 
 from __future__ import annotations
 
@@ -15,6 +16,9 @@ from plenopiv.reconstruction.projector import Projector, RowAccessProjector, Spa
 #: The identity row view of the kernels: pixel i is CSR row i, scale 1.
 NO_ROWS = np.zeros(0, np.int64)
 NO_SCALE = np.zeros(0, np.float32)
+
+#: The kernel sets of :data:`plenopiv.reconstruction._kernels.projector.ENGINES`.
+ENGINE_NAMES = tuple(pk.ENGINES)
 
 #: float32 unit roundoff: a float64 sum rounded once to float32 is off by at most this, relative.
 U32 = 2.0**-24
@@ -55,8 +59,30 @@ def test_forward_and_back_match_scipy(rng, index_dtype, shape, density, transpos
     assert np.all(np.abs(by - m64.T @ y) <= sum_bound(m64.T, y))
 
 
+def row_view(rng, m, n_rows):
+    """A row view of ``m``: ``n_rows`` CSR rows (repeats allowed) with float32 scales."""
+    rows = rng.integers(0, m.shape[0], n_rows).astype(np.int64)
+    scale = rng.uniform(0.5, 2.0, n_rows).astype(np.float32)
+    # the view's matrix as the kernels form it: each weight the float32 product data * scale
+    view = scipy.sparse.csr_array(m[rows].multiply(scale[:, None]).astype(np.float32))
+    return rows, scale, view.astype(np.float64)
+
+
+@pytest.mark.parametrize("engine", ENGINE_NAMES)
+@pytest.mark.parametrize("view", [False, True])
+def test_forward_kernel_matches_scipy(rng, engine, view):
+    m = random_csr(rng, 40, 33, 0.15)
+    rows, scale, m64 = (NO_ROWS, NO_SCALE, m.astype(np.float64)) if not view else \
+        row_view(rng, m, 25)
+    x = rng.normal(size=33).astype(np.float32)
+    out = np.empty(m64.shape[0], np.float32)
+    pk.ENGINES[engine].forward_csr(m.indptr, m.indices, m.data, rows, scale, x, out)
+    assert np.all(np.abs(out - m64 @ x) <= sum_bound(m64, x))
+
+
+@pytest.mark.parametrize("engine", ENGINE_NAMES)
 @pytest.mark.parametrize("n_chunks", [1, 2, 3, 7, 50])
-def test_back_scatter_kernel_any_chunking(rng, n_chunks):
+def test_back_scatter_kernel_any_chunking(rng, engine, n_chunks):
     """The per-chunk accumulators sum to Wᵀy however the rows are cut (empty chunks too)."""
     m = random_csr(rng, 23, 31, 0.2)
     y = rng.normal(size=23).astype(np.float32)
@@ -64,9 +90,65 @@ def test_back_scatter_kernel_any_chunking(rng, n_chunks):
     bounds = np.linspace(0, 23, n_chunks + 1).astype(np.int64)
     acc = np.empty((n_chunks, 31))
     out = np.empty(31, np.float32)
-    pk.back_scatter(m.indptr, m.indices, m.data, NO_ROWS, NO_SCALE, y, bounds, acc, out)
+    pk.ENGINES[engine].back_scatter(m.indptr, m.indices, m.data, NO_ROWS, NO_SCALE, y, bounds,
+                                    acc, out)
     m64 = m.astype(np.float64)
     assert np.all(np.abs(out - m64.T @ y) <= sum_bound(m64.T, y))
+
+
+@pytest.mark.parametrize("engine", ENGINE_NAMES)
+def test_back_kernels_on_a_row_view(rng, engine):
+    """Scatter and gather (through the view's transpose) both give Wᵀy of a row view."""
+    m = random_csr(rng, 30, 26, 0.2)
+    rows, scale, m64 = row_view(rng, m, 35)
+    y = rng.normal(size=35).astype(np.float32)
+    k = pk.ENGINES[engine]
+    scatter = np.empty(26, np.float32)
+    k.back_scatter(m.indptr, m.indices, m.data, rows, scale, y, np.array([0, 17, 35]),
+                   np.empty((2, 26)), scatter)
+    gather = np.empty(26, np.float32)
+    k.back_gather(*k.transpose_csr(m.indptr, m.indices, m.data, rows, scale, 35, 26), y, gather)
+    for out in (scatter, gather):
+        assert np.all(np.abs(out - m64.T @ y) <= sum_bound(m64.T, y))
+
+
+@pytest.mark.parametrize("engine", ENGINE_NAMES)
+def test_column_count_kernel_counts_and_accumulates(rng, engine):
+    """Entries per voxel, added to the counts it is given (so the counts may come in parts)."""
+    indices = rng.integers(0, 17, 500).astype(np.int32)
+    counts = np.zeros(17, np.int64)
+    pk.ENGINES[engine].column_counts(indices[:200], counts)
+    pk.ENGINES[engine].column_counts(indices[200:], counts)
+    np.testing.assert_array_equal(counts, [np.count_nonzero(indices == j) for j in range(17)])
+
+
+@pytest.mark.parametrize("with_sums", [False, True])
+@pytest.mark.parametrize("chunk_rows", [1, 3])
+def test_colour_kernel_matches_its_numpy_twin(rng, chunk_rows, with_sums):
+    """Same first-fit colours, colour counts and block column sums (float64 sums rounded
+    once to float32 in both, in different orders: equal within one float32 rounding)."""
+    m = random_csr(rng, 50, 20, 0.15)
+    scale = rng.uniform(0.5, 2.0, 50).astype(np.float32)
+    labels = rng.integers(0, 3, 50)
+    block_rows = np.argsort(labels, kind="stable").astype(np.int64)
+    block_ptr = np.searchsorted(labels[block_rows], np.arange(4)).astype(np.int64)
+    args = (m.indptr, m.indices, m.data, NO_ROWS, scale, block_ptr, block_rows, chunk_rows,
+            20, 1, with_sums)
+    fast, twin = pk.colour_chunks(*args), pk.colour_chunks_numpy(*args)
+    np.testing.assert_array_equal(fast[0], twin[0])
+    np.testing.assert_array_equal(fast[1], twin[1])
+    np.testing.assert_allclose(fast[2], twin[2], rtol=2 * U32)
+    assert (fast[2].size > 0) == with_sums
+
+
+def test_colour_kernels_give_up_alike_when_colours_run_out():
+    """Every row on one voxel: 70 single-row chunks need 70 colours, more than 64 · 1."""
+    m = scipy.sparse.csr_array(np.ones((70, 1), np.float32))
+    args = (m.indptr.astype(np.int64), m.indices.astype(np.int32), m.data, NO_ROWS, NO_SCALE,
+            np.array([0, 70]), np.arange(70), 1, 1, 1, False)
+    fast, twin = pk.colour_chunks(*args), pk.colour_chunks_numpy(*args)
+    assert np.all(fast[1] == -1) and np.all(twin[1] == -1)
+    np.testing.assert_array_equal(fast[0], twin[0])
 
 
 @settings(max_examples=40, deadline=None)
@@ -108,10 +190,11 @@ def test_duplicates_are_summed_like_scipy(transpose):
     np.testing.assert_array_equal(W.back([2.0]), [2.0, 0.0, 1.5])
 
 
-def test_transpose_kernel_matches_scipy(rng):
+@pytest.mark.parametrize("engine", ENGINE_NAMES)
+def test_transpose_kernel_matches_scipy(rng, engine):
     m = random_csr(rng, 30, 20, 0.2)
-    t_indptr, t_indices, t_data = pk.transpose_csr(m.indptr, m.indices, m.data, NO_ROWS,
-                                                   NO_SCALE, m.shape[0], 20)
+    t_indptr, t_indices, t_data = pk.ENGINES[engine].transpose_csr(
+        m.indptr, m.indices, m.data, NO_ROWS, NO_SCALE, m.shape[0], 20)
     csc = m.tocsc()
     csc.sort_indices()
     np.testing.assert_array_equal(t_indptr, csc.indptr)

@@ -613,15 +613,15 @@ _EMPTY_INDEX = np.zeros(0, np.int64)
 _EMPTY_SCALE = np.zeros(0, np.float32)
 
 
-def _max_column_count(indices: np.ndarray, n_voxels: int, chunk: int = 1 << 22) -> int:
+def _max_column_count(indices: np.ndarray, n_voxels: int) -> int:
     """Largest number of non-zeros of one voxel (column) of the CSR.
 
-    Counted in chunks, so that no int64 copy of all the indices is made (8 bytes per
-    non-zero, as much as the CSR itself).
+    Counted by a kernel in one pass: no int64 copy of the indices, whole or in chunks (a
+    chunk of 4 Mi indices was 1.45 bytes per non-zero of the traced peak of a MART
+    reconstruction with 23 million non-zeros, ``benchmarks/bench_weights.py --reconstruct``).
     """
     counts = np.zeros(n_voxels, np.int64)
-    for start in range(0, indices.shape[0], chunk):
-        counts += np.bincount(indices[start:start + chunk], minlength=n_voxels)
+    _k.column_counts(indices, counts)
     return int(counts.max())
 
 

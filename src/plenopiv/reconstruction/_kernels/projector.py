@@ -8,10 +8,14 @@ share the one CSR. The back projection Wᵀ·y scatters race-free into one accum
 of rows, or gathers from an optional transposed copy. The MART updates (in
 :mod:`plenopiv.reconstruction._kernels.mart`) follow a *row schedule*: chunks of consecutive
 rows, coloured here by :func:`colour_chunks` so that the chunks of one colour share no voxel.
-Every kernel here has a plain NumPy / scipy.sparse twin in ``tests/test_projector.py``.
+Every kernel ``k`` here has its plain-NumPy twin ``k_numpy`` below, with the same arguments
+and the same meaning (float64 sums, rounded once into float32 outputs); :data:`ENGINES` holds
+the two sets and the tests run both.
 """
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import numba
 import numpy as np
@@ -112,6 +116,17 @@ def back_gather(t_indptr, t_indices, t_data, image, out):
 
 
 @numba.njit(cache=True)
+def column_counts(indices, counts):
+    """Add to ``counts[j]`` the number of entries of voxel j in ``indices`` (in place).
+
+    One pass, no copy of ``indices`` (``np.bincount`` would convert them to int64: 8 bytes per
+    non-zero, as much as the CSR itself).
+    """
+    for p in range(indices.shape[0]):
+        counts[indices[p]] += 1
+
+
+@numba.njit(cache=True)
 def colour_chunks(indptr, indices, data, row_index, row_scale, block_ptr, block_rows,
                   chunk_rows, n_voxels, words, with_sums):
     """First-fit colouring of chunks of rows: chunks that share a voxel differ in colour.
@@ -197,3 +212,118 @@ def colour_chunks(indptr, indices, data, row_index, row_scale, block_ptr, block_
                 if with_sums:
                     acc[j] = 0.0
     return chunk_colour, n_colours, block_column_sums
+
+
+# --------------------------------------------------------------------------------------------
+# plain-NumPy twins (same arguments, same results; slow, for tests on small inputs)
+# --------------------------------------------------------------------------------------------
+
+
+def _view_numpy(indptr, indices, data, row_index, row_scale, n_rows):
+    """The first ``n_rows`` rows of the view, entry by entry.
+
+    Returns ``(row, voxel, weight, entry, start)``: the view row, voxel and float64 weight
+    (the float32 product ``data * scale``, as the kernels form it) of each entry, its CSR
+    entry index, and where each view row's entries start (``n_rows + 1``).
+    """
+    rows = np.arange(n_rows) if row_index.shape[0] == 0 else np.asarray(row_index, np.int64)
+    scale = (np.ones(n_rows, np.float32) if row_scale.shape[0] == 0
+             else np.asarray(row_scale[:n_rows], np.float32))
+    lengths = (indptr[rows + 1] - indptr[rows]).astype(np.int64)
+    start = np.zeros(n_rows + 1, np.int64)
+    np.cumsum(lengths, out=start[1:])
+    row = np.repeat(np.arange(n_rows), lengths)
+    entry = np.repeat(indptr[rows].astype(np.int64) - start[:-1], lengths) + np.arange(start[-1])
+    weight = (data[entry] * scale[row]).astype(np.float64)
+    return row, indices[entry].astype(np.int64), weight, entry, start
+
+
+def forward_csr_numpy(indptr, indices, data, row_index, row_scale, volume, out):
+    """Twin of :func:`forward_csr`: ``out = W·volume`` by ``np.bincount`` in float64."""
+    row, col, w, _, _ = _view_numpy(indptr, indices, data, row_index, row_scale, out.shape[0])
+    out[:] = np.bincount(row, w * np.asarray(volume, np.float64)[col], minlength=out.shape[0])
+
+
+def back_scatter_numpy(indptr, indices, data, row_index, row_scale, image, row_bounds, acc, out):
+    """Twin of :func:`back_scatter`: ``out = Wᵀ·image`` by ``np.bincount`` in float64.
+
+    ``row_bounds`` gives the number of view rows (its last entry); ``acc`` is not used (one
+    float64 sum per voxel, rounded once into ``out``).
+    """
+    row, col, w, _, _ = _view_numpy(indptr, indices, data, row_index, row_scale,
+                                    int(row_bounds[-1]))
+    out[:] = np.bincount(col, w * np.asarray(image, np.float64)[row], minlength=out.shape[0])
+
+
+def transpose_csr_numpy(indptr, indices, data, row_index, row_scale, n_rows, n_voxels):
+    """Twin of :func:`transpose_csr`: the CSR of the view's Wᵀ by a stable sort on voxels."""
+    row, col, w, _, _ = _view_numpy(indptr, indices, data, row_index, row_scale, n_rows)
+    order = np.argsort(col, kind="stable")
+    t_indptr = np.zeros(n_voxels + 1, np.int64)
+    np.cumsum(np.bincount(col, minlength=n_voxels), out=t_indptr[1:])
+    return t_indptr, row[order].astype(np.int32), w[order].astype(np.float32)
+
+
+def back_gather_numpy(t_indptr, t_indices, t_data, image, out):
+    """Twin of :func:`back_gather`: ``out = Wᵀ·image`` from the CSR of Wᵀ, float64 sums."""
+    voxel = np.repeat(np.arange(out.shape[0]), np.diff(t_indptr))
+    values = t_data.astype(np.float64) * np.asarray(image, np.float64)[t_indices]
+    out[:] = np.bincount(voxel, values, minlength=out.shape[0])
+
+
+def column_counts_numpy(indices, counts):
+    """Twin of :func:`column_counts`, by ``np.bincount``."""
+    counts += np.bincount(indices, minlength=counts.shape[0]).astype(counts.dtype)
+
+
+def colour_chunks_numpy(indptr, indices, data, row_index, row_scale, block_ptr, block_rows,
+                        chunk_rows, n_voxels, words, with_sums):
+    """Twin of :func:`colour_chunks`: the same first-fit colouring, with Python sets.
+
+    A voxel keeps the set of colours of its block's chunks that touch it; a chunk takes the
+    smallest colour in none of its voxels' sets. Same outputs; ``n_colours`` all -1 (and the
+    colours found so far) when a block would need more than ``64 * words`` colours.
+    """
+    n_view = int(row_index.shape[0] or (block_rows.max(initial=-1) + 1))
+    _, col, w, entry, start = _view_numpy(indptr, indices, data, row_index, row_scale, n_view)
+    n_blocks = block_ptr.shape[0] - 1
+    colours = np.zeros(_n_chunks(block_ptr, chunk_rows), np.int32)
+    n_colours = np.zeros(n_blocks, np.int64)
+    block_column_sums = np.zeros(indices.shape[0] if with_sums else 0, np.float32)
+    n = 0
+    for b in range(n_blocks):
+        rows = block_rows[block_ptr[b]:block_ptr[b + 1]]
+        taken: dict[int, set] = {}
+        for k0 in range(0, len(rows), chunk_rows):
+            voxels = {int(j) for k in rows[k0:k0 + chunk_rows] for j in col[start[k]:start[k + 1]]}
+            busy = set().union(*(taken.get(j, set()) for j in voxels))
+            c = min(set(range(len(busy) + 1)) - busy)
+            if c >= 64 * words:
+                return colours, np.full(n_blocks, -1, np.int64), block_column_sums
+            colours[n], n = c, n + 1
+            n_colours[b] = max(n_colours[b], c + 1)
+            for j in voxels:
+                taken.setdefault(j, set()).add(c)
+        if with_sums and len(rows):
+            sel = np.concatenate([np.arange(start[k], start[k + 1]) for k in rows])
+            sums = np.bincount(col[sel], w[sel], minlength=n_voxels)
+            block_column_sums[entry[sel]] = sums[col[sel]]
+    return colours, n_colours, block_column_sums
+
+
+def _n_chunks(block_ptr, chunk_rows) -> int:
+    """Number of chunks of ``chunk_rows`` rows over all blocks."""
+    sizes = np.diff(block_ptr)
+    return int(((sizes + chunk_rows - 1) // chunk_rows).sum())
+
+
+#: The kernel sets by name, ``"numba"`` and ``"numpy"``: the same six functions each.
+ENGINES = {
+    "numba": SimpleNamespace(forward_csr=forward_csr, back_scatter=back_scatter,
+                             transpose_csr=transpose_csr, back_gather=back_gather,
+                             column_counts=column_counts, colour_chunks=colour_chunks),
+    "numpy": SimpleNamespace(forward_csr=forward_csr_numpy, back_scatter=back_scatter_numpy,
+                             transpose_csr=transpose_csr_numpy, back_gather=back_gather_numpy,
+                             column_counts=column_counts_numpy,
+                             colour_chunks=colour_chunks_numpy),
+}
