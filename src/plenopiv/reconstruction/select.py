@@ -39,10 +39,11 @@ __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "cached_weights", "choose_projecto
 #: Bytes per explicit non-zero in a reconstruction: W's CSR (8: int32 voxel index, float32
 #: weight), held once (its row-normalised and row-selected projectors are views of it), and
 #: 2 for the row views, schedules, images and volumes. The traced peak of a whole
-#: reconstruction (benchmarks/bench_weights.py --reconstruct, 23 million non-zeros, 50 per
-#: row) is 10.0 bytes per non-zero with SMART and 10.9 with row-action MART (22.3 and 24.9
-#: while scaled and selected copies of W were made); method "block" adds 4 for its block
-#: column sums.
+#: reconstruction (benchmarks/bench_weights.py --reconstruct --depth-mm 1, 23 million
+#: non-zeros, 50 per row) is 9.9 bytes per non-zero with SMART and 9.8 with row-action MART
+#: (10.9 while the row schedule counted the non-zeros per voxel with an int64 copy of 4 Mi
+#: indices at a time; 22.3 and 24.9 while scaled and selected copies of W were made); method
+#: "block" adds 4 for its block column sums.
 BYTES_PER_NONZERO = 10
 PROJECTORS = ("auto", "sparse", "lattice")
 
