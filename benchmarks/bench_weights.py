@@ -6,7 +6,8 @@ pass next to scipy's CSR ``W @ x`` + ``W.T @ y`` on the same matrix in the same 
 
 ``--reconstruct`` instead prints the bytes held per explicit non-zero during whole
 reconstructions (``pipeline.reconstruct_volume``; traced peak, and after loading the weights)
-and their CPU time.
+and their CPU time; with ``--peak-site`` also the calls that were running when the traced
+peak was reached (where a copy that sets the peak was made).
 
 Prints figures; not a test.
 """
@@ -36,8 +37,43 @@ def best_of(fn, n=3):
     return min(times)
 
 
-def reconstruction_footprint(camera: str, depth_mm: float, method: str, repeats: int = 2
-                             ) -> dict:
+def _peak_site(fn) -> tuple[float, list[str]]:
+    """Run ``fn()`` traced; the traced peak (bytes) and the call stack that reached it.
+
+    ``sys.setprofile`` reads the traced peak at every call and return (Python and C) and
+    resets it, so the stack of the event that closes the interval holding the peak is where
+    the memory was allocated (innermost first; a temporary inside a C function shows as the
+    Python function that called it).
+    """
+    import sys
+    import tracemalloc
+
+    best, last = [0, []], [[]]
+
+    def profile(frame, event, arg):
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.reset_peak()
+        stack, f = [], frame
+        while f is not None and len(stack) < 8:
+            stack.append(f"{f.f_globals.get('__name__', '?')}.{f.f_code.co_name}:{f.f_lineno}")
+            f = f.f_back
+        if frame.f_back is None:        # a numba kernel's frame: the Python caller's stack
+            stack = stack + last[0]
+        else:
+            last[0] = stack
+        if peak > best[0]:
+            best[:] = [peak, stack]
+
+    sys.setprofile(profile)
+    try:
+        fn()
+    finally:
+        sys.setprofile(None)
+    return best[0], best[1]
+
+
+def reconstruction_footprint(camera: str, depth_mm: float, method: str, repeats: int = 2,
+                             peak_site: bool = False) -> dict:
     """Bytes held per explicit non-zero while a volume is reconstructed, and its CPU time.
 
     The weights are built once into a temporary cache; then, under ``tracemalloc``, they are
@@ -80,11 +116,19 @@ def reconstruction_footprint(camera: str, depth_mm: float, method: str, repeats:
         reconstruct_volume(cal, image, grid, settings=settings, weights=w)
         held_after = tracemalloc.get_traced_memory()[0]
         peak = tracemalloc.get_traced_memory()[1]
+        site = None
+        if peak_site:
+            tracemalloc.reset_peak()
+            _, site = _peak_site(lambda: reconstruct_volume(cal, image, grid, settings=settings,
+                                                            weights=w))
         tracemalloc.stop()
-    return {"method": method, "grid_shape": list(grid.shape), "nnz": nnz,
-            "bytes_per_nnz_loaded": loaded / nnz, "bytes_per_nnz_peak": peak / nnz,
-            "bytes_per_nnz_held_after": held_after / nnz,
-            "reconstruct_cpu_s": min(times)}
+    out = {"method": method, "grid_shape": list(grid.shape), "nnz": nnz,
+           "bytes_per_nnz_loaded": loaded / nnz, "bytes_per_nnz_peak": peak / nnz,
+           "bytes_per_nnz_held_after": held_after / nnz,
+           "reconstruct_cpu_s": min(times)}
+    if site is not None:
+        out["peak_site"] = site
+    return out
 
 
 def main(argv=None):
@@ -96,10 +140,13 @@ def main(argv=None):
                     help="instead: bytes held per non-zero and CPU time of whole "
                          "reconstructions (pipeline.reconstruct_volume) with these methods "
                          "(default smart mart)")
+    ap.add_argument("--peak-site", action="store_true",
+                    help="with --reconstruct: also the call stack at the traced peak")
     a = ap.parse_args(argv)
     if a.reconstruct is not None:
         for method in a.reconstruct or ["smart", "mart"]:
-            r = reconstruction_footprint(a.camera, a.depth_mm, method)
+            r = reconstruction_footprint(a.camera, a.depth_mm, method,
+                                         peak_site=a.peak_site)
             print(json.dumps(r) if a.json else
                   "  ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
                             for k, v in r.items()), flush=True)
