@@ -27,7 +27,6 @@ With both aligned, the projections agree to float32 rounding (tests).
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
@@ -36,7 +35,7 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import lattice as _k
 from plenopiv.reconstruction.geometry import SEPARABLE_TOLERANCE, separable_axes
-from plenopiv.reconstruction.projector import _as_vector
+from plenopiv.reconstruction.projector import CachedSums, _as_vector
 from plenopiv.volume import VolumeGrid
 
 __all__ = ["LatticeProjector", "separable_axes"]
@@ -60,7 +59,7 @@ def _transpose_rows(ys, yc, yw, ny) -> dict:
             "t_w": np.ascontiguousarray(yw[k, r, j][order])}
 
 
-class LatticeProjector:
+class LatticeProjector(CachedSums):
     """W for a lattice-aligned camera, never stored: see the module docstring.
 
     Build it with :meth:`from_light_field`. ``select_rows`` and ``scale_rows`` return cheap
@@ -197,26 +196,6 @@ class LatticeProjector:
             return vol.reshape(-1)
         out[:] = vol.reshape(-1)
         return out
-
-    @functools.cached_property
-    def _row_sums(self) -> np.ndarray:
-        return self.forward(np.ones(self.n_voxels, np.float32))
-
-    @functools.cached_property
-    def _column_sums(self) -> np.ndarray:
-        return self.back(np.ones(self.n_pixels, np.float32))
-
-    def row_sums(self) -> np.ndarray:
-        """``sum_j w_ij`` per ray (float32, shape (n_pixels,)); computed once and cached.
-
-        Kept here, not inherited, so that a projection never calls back into the module of
-        the protocol (:mod:`plenopiv.reconstruction.projector`).
-        """
-        return self._row_sums
-
-    def column_sums(self) -> np.ndarray:
-        """``sum_i w_ij`` per voxel (float32, shape (n_voxels,)); computed once and cached."""
-        return self._column_sums
 
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per ray (float32)."""
