@@ -279,3 +279,16 @@ def test_the_window_s_bias_bounds_what_deformation_passes_leave():
     bound = unresolved_gradient_bias(np.stack([u, 0 * u, 0 * u]), (h, h, h), (2 * h,) * 3)
     np.testing.assert_allclose(bound[0], a * h**2 / 3, rtol=1e-9)
     assert np.all(np.abs(fixed_point_bias) <= 0.5 * bound[0][0, 0, inside] * (1 + 1e-4))
+
+
+def test_the_number_of_test_displacements_is_a_piv_key_not_a_correlation_setting():
+    from pydantic import ValidationError
+
+    from plenopiv.config import PIVConfig
+
+    cfg = PIVConfig(response_displacements=1)
+    assert cfg.response_displacements == 1
+    assert PIVConfig().response_displacements == 3
+    assert not hasattr(cfg.settings(), "response_displacements")
+    with pytest.raises(ValidationError, match="response_displacements"):
+        PIVConfig(response_displacements=2)
