@@ -5,9 +5,11 @@ Runs ``plenopiv demo`` twice in child processes that share one new, empty cache 
 package's own choice applies): the first run ("cold") compiles every numba kernel the demo
 uses and writes it to the cache, the second ("warm") loads them. For each it prints the wall
 time, the CPU time of the child (user + sys, ``getrusage(RUSAGE_CHILDREN)``), the load average
-when it started and the demo's rms error; then the ratios cold/warm and the first-run cost
-(cold - warm). On a shared machine wall times are inflated by the other work, CPU times
-much less: compare CPU times, and read wall times next to the load average.
+when it started, the demo's rms error and its own wall time per stage (calibration, the
+pair's two reconstructions, the PIV with the response uncertainty's test pairs); then the
+ratios cold/warm and the first-run cost (cold - warm). On a shared machine wall times are
+inflated by the other work, CPU times much less: compare CPU times, and read wall times next
+to the load average.
 
 The honest "fresh machine" figure needs a fresh environment too (no ``__pycache__`` of the
 dependencies, no OS file cache): install into a new venv and point ``--plenopiv`` at it::
@@ -66,8 +68,9 @@ def measure(command: list[str], runs: int, keep: bool) -> list[dict]:
             if r["returncode"] != 0:
                 raise SystemExit(f"demo failed (exit {r['returncode']}):\n{r['stderr'][-2000:]}")
             summary = json.loads(r["stdout"])
-            r["summary"] = {key: summary[key] for key in ("valid_fraction", "rms_error_vox",
-                                                          "bias_vox", "seconds")}
+            r["summary"] = {key: summary.get(key) for key in ("valid_fraction", "rms_error_vox",
+                                                              "bias_vox", "seconds",
+                                                              "stage_seconds")}
             results.append(r)
     finally:
         if keep:
@@ -88,12 +91,16 @@ def main() -> None:
     results = measure(command, max(args.runs, 1), args.keep)
     print(f"cores {os.cpu_count()}; command {' '.join(command)}")
     print(f"{'run':<6} {'wall s':>8} {'CPU s':>8} {'user s':>8} {'sys s':>7} "
-          f"{'load':>6} {'rms error (vox, z y x)':>24}")
+          f"{'load':>6} {'rms error (vox, z y x)':>24}   demo's wall s per stage")
     for k, r in enumerate(results):
         name = "cold" if k == 0 else f"warm{k}" if len(results) > 2 else "warm"
         rms = " ".join(f"{v:.3f}" for v in r["summary"]["rms_error_vox"])
+        stages = r["summary"].get("stage_seconds") or {}
+        per_stage = ", ".join(f"{key} {stages[key]:.1f}" for key in
+                              ("calibrate", "simulate", "reconstruct", "piv", "total")
+                              if key in stages)
         print(f"{name:<6} {r['wall_s']:8.1f} {r['cpu_s']:8.1f} {r['user_s']:8.1f} "
-              f"{r['sys_s']:7.1f} {r['load']:6.1f} {rms:>24}")
+              f"{r['sys_s']:7.1f} {r['load']:6.1f} {rms:>24}   {per_stage}")
     if len(results) > 1:
         cold, warm = results[0], results[1]
         print(f"cold/warm: wall {cold['wall_s'] / warm['wall_s']:.2f}, "

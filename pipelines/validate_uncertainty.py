@@ -4,7 +4,7 @@ two seeds; writes JSON, Markdown and a figure.
 
     python pipelines/validate_uncertainty.py --out docs/validation
 
-About 25 minutes on two cores.
+About 4.5 minutes on two idle cores (15 minutes on the shared machine).
 """
 
 import argparse

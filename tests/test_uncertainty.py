@@ -12,11 +12,17 @@ import pytest
 
 from plenopiv.piv import PIVSettings, VectorField
 from plenopiv.piv.uncertainty import (
+    DEFAULT_RATIO,
+    MAX_CONVERGENCE_RATIO,
     MIN_GAIN,
     Response,
     cached_response,
     combine,
+    convergence_ratio,
+    filter_offset,
+    iteration_uncertainty,
     response_key,
+    response_shifts,
     unresolved_gradient_bias,
 )
 
@@ -157,21 +163,132 @@ def test_response_from_another_version_is_rejected(bad):
         Response.from_dict(bad)
 
 
-def test_curvature_already_in_the_last_correction_is_not_added_again():
-    """The last correction (in sigma_CS) of a smoothed-predictor pass estimates the same
-    curvature: only the window-average bias in excess of it is added."""
+def _iterated_field(u, spacing_m, last, previous, correlation=0.0):
+    """``_grid_field`` with the signed corrections of its last two passes (u only, metres)."""
+    zero = np.zeros(u.shape)
+    parts = {"correlation": np.stack([np.full(u.shape, correlation), zero, zero]),
+             "last_correction": np.stack([np.abs(last), zero, zero]),
+             "last_corrector": np.stack([last, zero, zero])}
+    if previous is not None:
+        parts["previous_corrector"] = np.stack([previous, zero, zero])
+    f = _grid_field(u, spacing_m)
+    return replace(f, settings=PIVSettings(windows=((8, 8, 8),), overlap=0.5, passes=3),
+                   uncertainty_parts=parts)
+
+
+def _linear(h=(1e-3, 1e-3, 1e-3)):
+    z, y, x = np.meshgrid(np.arange(4) * h[2], np.arange(5) * h[1], np.arange(6) * h[0],
+                          indexing="ij")
+    return 1e-4 + 0.01 * x - 0.02 * y + 0.03 * z, x, h
+
+
+@pytest.mark.parametrize("ratio", [0.25, 0.5, 0.8])
+def test_the_remaining_error_is_the_geometric_tail_of_the_corrections(ratio):
+    """Passes that each leave a fraction rho of the error change the estimate by
+    c_n = rho c_(n-1); what the last left is the tail rho c_n + rho^2 c_n + ... =
+    rho / (1 - rho) c_n. A linear field has no filter offset."""
+    u, x, h = _linear()
+    last = 2e-6 * (1 + x / x.max())                   # a correction varying over the field
+    cs = 1e-6
+    f = _iterated_field(u, h, last, last / ratio, correlation=cs)
+    sigma = iteration_uncertainty(f)
+    tail = ratio / (1 - ratio) * last
+    np.testing.assert_allclose(sigma[0], np.hypot(cs, tail), rtol=1e-9)
+    np.testing.assert_allclose(sigma[1:], 0.0)
+    np.testing.assert_allclose(combine(f, _response(gain_w=1.0, random_w=0.0)).u_uncertainty,
+                               np.hypot(cs, tail), rtol=1e-9)
+
+
+def test_the_convergence_ratio_is_bounded_and_defaults_to_one_half():
+    u, x, h = _linear()
+    last = np.full(u.shape, 2e-6)
+    # no convergence (the correction grew): held at MAX_CONVERGENCE_RATIO
+    f = _iterated_field(u, h, last, last / 3.0)
+    np.testing.assert_allclose(
+        iteration_uncertainty(f)[0],
+        MAX_CONVERGENCE_RATIO / (1 - MAX_CONVERGENCE_RATIO) * 2e-6, rtol=1e-9)
+    # the previous pass had other windows: rho = 1/2, the remaining error = the last correction
+    assert DEFAULT_RATIO == 0.5
+    np.testing.assert_allclose(iteration_uncertainty(_iterated_field(u, h, last, None))[0],
+                               2e-6, rtol=1e-9)
+    ratio = convergence_ratio(np.stack([last] * 3), np.stack([last * 4] * 3),
+                              np.ones(u.shape, bool))
+    np.testing.assert_allclose(ratio, 0.25)
+    # a field without signed corrections keeps its own uncertainty
+    assert iteration_uncertainty(_grid_field(u, h)) is None
+
+
+def test_the_smoothed_predictor_s_offset_is_not_an_iteration_error():
+    """At the fixed point of passes with the [1, 2, 1]/4 predictor the corrector is still
+    d - S(d) = -a h^2 / 2 for u = a x^2 (inside the grid), the same every pass: the estimate
+    no longer changes, so nothing is left to the iteration, and the curvature is counted
+    once, by the window-average bias (W^2/24) d2u/dx2 = a W^2 / 12."""
     h = np.array([1e-3, 1e-3, 1e-3])
     z, y, x = np.meshgrid(np.arange(4) * h[2], np.arange(5) * h[1], np.arange(6) * h[0],
                           indexing="ij")
-    u = 50.0 * x**2
-    bias = 50.0 * (2 * h[0]) ** 2 / 12           # (W^2 / 24) * 2a with W = 2h
-    base = _grid_field(u, h)
-    for last, added in ((0.0, bias), (0.6 * bias, 0.8 * bias), (2 * bias, 0.0)):
-        parts = {"last_correction": np.stack([np.full(u.shape, last), 0 * u, 0 * u]),
-                 "correlation": np.zeros((3,) + u.shape)}
-        f = combine(replace(base, u_uncertainty=np.full(u.shape, last),
-                            uncertainty_parts=parts), _response(gain_w=1.0, random_w=0.0))
-        np.testing.assert_allclose(f.uncertainty_parts["unresolved_gradient"][0], added,
-                                   rtol=1e-9, atol=1e-15)
-        # the total is the larger of the two estimates, never their quadrature sum
-        np.testing.assert_allclose(f.u_uncertainty, max(last, bias), rtol=1e-9)
+    a = 50.0
+    u = a * x**2
+    offset = filter_offset(np.stack([u, 0 * u, 0 * u]))
+    np.testing.assert_allclose(offset[0][:, :, 1:-1], -a * h[0] ** 2 / 2, rtol=1e-9)
+    np.testing.assert_allclose(offset[1:], 0.0)
+    f = _iterated_field(u, h, offset[0], offset[0])
+    np.testing.assert_allclose(iteration_uncertainty(f)[0], 0.0, atol=1e-15)
+    bias = a * (2 * h[0]) ** 2 / 12                  # W = 2h at 50 % overlap
+    g = combine(f, _response(gain_w=1.0, random_w=0.0))
+    np.testing.assert_allclose(g.u_uncertainty, bias, rtol=1e-9)
+    # without a smoothed predictor the same corrections mean passes that do not converge
+    raw = replace(f, settings=replace(f.settings, smooth_predictor=False))
+    held = MAX_CONVERGENCE_RATIO / (1 - MAX_CONVERGENCE_RATIO)
+    np.testing.assert_allclose(iteration_uncertainty(raw)[0], held * np.abs(offset[0]),
+                               rtol=1e-9)
+
+
+def test_one_test_displacement_is_the_middle_of_the_three(small_camera):
+    three = response_shifts(small_camera)
+    assert three.shape == (3, 3)
+    np.testing.assert_allclose(response_shifts(small_camera, displacements=1), three[1:2])
+    with pytest.raises(ValueError, match="displacements"):
+        response_shifts(small_camera, displacements=2)
+
+
+def test_the_window_s_bias_bounds_what_deformation_passes_leave():
+    """The fixed point of deformation passes, iterated on a 1-D grid of spacing h with
+    windows W = 2h (50 % overlap): each pass takes the predictor P = the previous vectors
+    smoothed by [1, 2, 1]/4 and linearly interpolated, and adds the window average of the
+    flow less P (exact integrals). For u = a x^2 the vectors converge to u - a h^2/6 =
+    u - (h^2/12) u'': half the one-window bias (W^2/24) u'' = a h^2 / 3 that
+    unresolved_gradient_bias gives, which therefore bounds it."""
+    from plenopiv.piv.validation import _smooth_predictor
+
+    h, a = 1e-3, 40.0
+    x = np.arange(30) * h
+    d = np.zeros_like(x)
+    for _ in range(200):
+        p = _smooth_predictor(d[None, None, None, :])[0, 0, 0]
+        # window average over [x - h, x + h] of the flow and of the piecewise-linear P
+        flow_average = a * (x**2 + h**2 / 3)
+        pad = np.concatenate([[2 * p[0] - p[1]], p, [2 * p[-1] - p[-2]]])
+        predictor_average = (pad[:-2] + 2 * pad[1:-1] + pad[2:]) / 4
+        d = p + flow_average - predictor_average
+    # the linear extrapolation at the ends disturbs the vectors near them; the disturbance
+    # decays away from them (3 % three vectors in, 0.2 % five, 0.008 % eight)
+    inside = slice(8, -8)
+    fixed_point_bias = d[inside] - a * x[inside] ** 2
+    np.testing.assert_allclose(fixed_point_bias, -a * h**2 / 6, rtol=1e-4)
+    u = np.broadcast_to(a * x**2, (4, 5, x.size))
+    bound = unresolved_gradient_bias(np.stack([u, 0 * u, 0 * u]), (h, h, h), (2 * h,) * 3)
+    np.testing.assert_allclose(bound[0], a * h**2 / 3, rtol=1e-9)
+    assert np.all(np.abs(fixed_point_bias) <= 0.5 * bound[0][0, 0, inside] * (1 + 1e-4))
+
+
+def test_the_number_of_test_displacements_is_a_piv_key_not_a_correlation_setting():
+    from pydantic import ValidationError
+
+    from plenopiv.config import PIVConfig
+
+    cfg = PIVConfig(response_displacements=1)
+    assert cfg.response_displacements == 1
+    assert PIVConfig().response_displacements == 3
+    assert not hasattr(cfg.settings(), "response_displacements")
+    with pytest.raises(ValidationError, match="response_displacements"):
+        PIVConfig(response_displacements=2)

@@ -169,9 +169,13 @@ class PIVConfig(_Strict):
         with empty windows) after the last pass: "median" (default: the median of their
         3x3x3 neighbours), "mean" (their mean) or "none" (left NaN; ``valid`` is false).
     uncertainty : "response" (default: correlation statistics plus the chain's measured
-        response, from a round trip through the weights; two more reconstructions per
-        pair) | "correlation" (correlation statistics only, faster, under-estimates the
-        depth uncertainty near focus; see docs/validation/uncertainty.md).
+        response to known displacements, once per experiment: two more reconstructions per
+        test displacement) | "correlation" (correlation statistics only, faster,
+        under-estimates the depth uncertainty near focus; see docs/validation/uncertainty.md).
+    response_displacements : test displacements of the ``"response"`` uncertainty, 3
+        (default: 0.5, 1.25 and 1.75 lenslet footprints laterally with 0.1, 0.25 and 0.5
+        depth resolution cells) or 1 (the middle one alone: two reconstructions instead of
+        six, the gain probed at one fraction of the resolution cell).
     overlap_correction, broad_peaks : sub-voxel peak fit on the correlation divided by the
         windows' overlap fraction, and by a 5-point least-squares Gaussian along axes where
         the peak is broad (:class:`plenopiv.piv.PIVSettings`).
@@ -190,12 +194,13 @@ class PIVConfig(_Strict):
     subpixel: Literal[*SUBPIXEL_METHODS] = _PIV.subpixel
     replacement: Literal[*REPLACEMENT_METHODS] = _PIV.replacement
     uncertainty: Literal["response", "correlation"] = "response"
+    response_displacements: Literal[1, 3] = 3
     overlap_correction: bool = _PIV.overlap_correction
     broad_peaks: bool = _PIV.broad_peaks
 
     def settings(self) -> PIVSettings:
-        """The :class:`plenopiv.piv.PIVSettings` of this table (every key but ``uncertainty``)."""
-        return PIVSettings(**self.model_dump(exclude={"uncertainty"}))
+        """The :class:`plenopiv.piv.PIVSettings` of this table (every key but the uncertainty's)."""
+        return PIVSettings(**self.model_dump(exclude={"uncertainty", "response_displacements"}))
 
     @field_validator("windows")
     @classmethod

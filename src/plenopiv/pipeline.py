@@ -411,7 +411,8 @@ def _response_of(calibration, weights, volume_a: VolumeResult, experiment, setti
         resp, _ = cached_response(path, key, lambda: measure_response(
             calibration, grid, volume_a.correction, reconstruct=reconstruct,
             correlate=correlate_pair, n_particles=n_particles,
-            f_number=experiment.reconstruction.f_number))
+            f_number=experiment.reconstruction.f_number,
+            displacements=experiment.piv.response_displacements))
         return resp
 
     return response

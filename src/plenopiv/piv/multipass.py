@@ -325,8 +325,13 @@ def _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress
     deform = _deformer(vol_a, vol_b, settings, kernels)
     predictor = None  # (3, nz, ny, nx) field in voxels on `previous.centres`
     previous = None
+    result = None
+    earlier_change = None  # the previous pass's change, when it had the last pass's windows
     for k in range(settings.passes):
         layout = _window_layout(vol_a.shape, settings.window_vox(k), settings.overlap)
+        if result is not None:
+            same = previous.window == layout.window and previous.shape == layout.shape
+            earlier_change = result.change if same else None
         if predictor is None:
             result = _first_pass(vol_a, vol_b, layout, correlate)
         elif settings.deformation:
@@ -353,7 +358,8 @@ def _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress
     in_mask = in_mask.reshape(layout.shape)
     final = _final_vectors(field_vox, validated, outlier, in_mask, empty.reshape(layout.shape),
                            settings, kernels)
-    sigma_vox, parts = _uncertainty(result, layout, final, in_mask, voxel, settings, kernels)
+    sigma_vox, parts = _uncertainty(result, layout, final, in_mask, voxel, settings, kernels,
+                                    earlier_change)
     return _vector_field(layout, origin, voxel, result, final, sigma_vox, parts, settings)
 
 
@@ -385,8 +391,14 @@ def _final_vectors(field_vox, validated, outlier, in_mask, empty, settings, kern
     return _Final(result, rejected, replaced, flag)
 
 
-def _uncertainty(last_pass, layout, final, in_mask, voxel, settings, kernels):
-    """Standard uncertainty (3, nz, ny, nx) in voxels and its terms in metres ``(u, v, w)``."""
+def _uncertainty(last_pass, layout, final, in_mask, voxel, settings, kernels,
+                 earlier_change=None):
+    """Standard uncertainty (3, nz, ny, nx) in voxels and its terms in metres ``(u, v, w)``.
+
+    Besides the terms, ``parts`` holds the signed changes of the last pass
+    (``"last_corrector"``) and, when it had the same windows, of the pass before
+    (``"previous_corrector"``), metres ``(u, v, w)``, for :mod:`plenopiv.piv.uncertainty`.
+    """
     sigma_cs = _correlation_uncertainty(*last_pass.last, layout, settings, kernels)
     last_change = np.zeros_like(sigma_cs)
     if last_pass.change is not None:
@@ -399,6 +411,10 @@ def _uncertainty(last_pass, layout, final, in_mask, voxel, settings, kernels):
     metres = np.array([voxel[2], voxel[1], voxel[0]])[:, None, None, None]  # (z, y, x) order
     parts = {name: (a * metres)[::-1] for name, a in
              (("correlation", sigma_cs), ("last_correction", last_change))}
+    for name, change in (("last_corrector", last_pass.change),
+                         ("previous_corrector", earlier_change)):
+        if change is not None:
+            parts[name] = (change.T.reshape(sigma_cs.shape) * metres)[::-1]
     return sigma_vox, parts
 
 

@@ -28,8 +28,8 @@ as it does the real pair, and tabulates for each layer of vectors (window-centre
 - the random error ``r_k``: the rms over the test displacements of the spread (standard
   deviation) of the layer's vectors.
 
-- the rms uncertainty ``s_k`` the correlation statistics (with the last correction) gave
-  those same test vectors.
+- the rms uncertainty ``s_k`` the correlation statistics with the error the iteration left
+  (:func:`iteration_uncertainty`) gave those same test vectors.
 
 :func:`combine` then gives each vector of the real field, per component, the standard
 uncertainty
@@ -37,8 +37,10 @@ uncertainty
 .. math:: \sigma_k^2 = \sigma_{CS,k}^2 + r_{ex,k}^2
           + \Big(\frac{|1 - g_k|}{\max(g_k, g_{min})}\, |d_k|\Big)^2 + b_k^2
 
-with :math:`\sigma_{CS}` the uncertainty :func:`plenopiv.piv.correlate_volumes` gave the
-vector (correlation statistics and the last pass's correction), ``d_k`` its displacement and:
+with :math:`\sigma_{CS}` the correlation statistics of :func:`plenopiv.piv.correlate_volumes`
+with the error the passes left (:func:`iteration_uncertainty`: the geometric tail
+:math:`\rho / (1 - \rho)` of the last correction, the predictor filter's offset
+:func:`filter_offset` removed), ``d_k`` the vector's displacement and:
 
 - :math:`r_{ex,k}^2 = \max(0, \langle r_k^2 \rangle - \langle s_k^2 \rangle)`, the part of
   the test vectors' spread the correlation statistics did not see (means over the test
@@ -49,9 +51,10 @@ vector (correlation statistics and the last pass's correction), ``d_k`` its disp
 - the error of a displacement measured with gain ``g_k`` (its true value is ``d_k / g_k``);
   :math:`g_{min} = 0.1` bounds a vector the chain barely sees at nine times its own
   magnitude.
-- :math:`b_k` the bias of a window average where the displacement varies inside the window
-  (:func:`unresolved_gradient_bias`), which a uniform test displacement cannot reproduce,
-  less the part the last correction already counts (:func:`_curvature_excess`).
+- :math:`b_k` the bias of a window average where the displacement curves inside the window
+  (:func:`unresolved_gradient_bias`), which a uniform test displacement cannot reproduce;
+  the last correction no longer counts it (its filter offset is removed), so it is added in
+  full.
 
 The response depends on the camera, the grid, the seeding and the settings, not on the
 flow, so it is computed once per experiment and kept in the weights cache (a few more
@@ -85,13 +88,21 @@ response (default), or correlation statistics alone."""
 MIN_GAIN = 0.1
 """Smallest gain the systematic term divides by (dimensionless)."""
 
+DEFAULT_RATIO = 0.5
+"""Convergence ratio of the passes where it cannot be measured (remaining error = last
+correction)."""
+
+MAX_CONVERGENCE_RATIO = 0.9
+"""Largest convergence ratio counted: a ratio of 1 or more (no convergence) is held here, the
+remaining error then nine times the last correction."""
+
 LATERAL_SHIFTS = (0.5, 1.25, 1.75)
 """Test displacements along x and y, lenslet footprints (different fractions of a footprint)."""
 
 DEPTH_SHIFTS = (0.1, 0.25, 0.5)
 """Test displacements along z, depth resolution cells."""
 
-RESPONSE_VERSION = 3
+RESPONSE_VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -110,7 +121,7 @@ class Response:
         Random error of ``u``, ``v``, ``w`` per test displacement and layer, metres (the
         spread of the layer's vectors).
     statistics : ndarray, shape (n, 3, nz)
-        Rms of the uncertainty the correlation statistics (with the last correction) gave
+        Rms of the uncertainty the correlation statistics and the iteration tail gave
         the same vectors, metres.
     n_particles : int
         Particles per test pair.
@@ -155,19 +166,27 @@ class Response:
                    np.asarray(d["statistics_m"], float), int(d["n_particles"]))
 
 
-def response_shifts(camera, f_number=None) -> np.ndarray:
+RESPONSE_DISPLACEMENTS = (1, 3)
+"""Valid numbers of test displacements: all three, or the middle one alone."""
+
+
+def response_shifts(camera, f_number=None, displacements: int = 3) -> np.ndarray:
     """The test displacements ``(n, 3)``, metres.
 
     ``LATERAL_SHIFTS`` lenslet footprints along x and y with ``DEPTH_SHIFTS`` depth resolution
     cells along z, at once (``camera``: the effective camera,
-    :func:`plenopiv.pipeline.resolution_cell`).
+    :func:`plenopiv.pipeline.resolution_cell`). ``displacements`` 3 gives all three, 1 the
+    middle one (1.25 footprints, 0.25 depth resolution cells).
     """
     from plenopiv.pipeline import resolution_cell
 
+    if displacements not in RESPONSE_DISPLACEMENTS:
+        raise ValueError(f"displacements = {displacements!r}: expected one of "
+                         f"{RESPONSE_DISPLACEMENTS}")
     lateral, depth = resolution_cell(camera, f_number)
     out = np.array([[a * lateral, a * lateral, b * depth]
                     for a, b in zip(LATERAL_SHIFTS, DEPTH_SHIFTS, strict=True)])
-    return out
+    return out if displacements == len(out) else out[len(out) // 2:len(out) // 2 + 1]
 
 
 def response_key(*parts) -> str:
@@ -178,7 +197,8 @@ def response_key(*parts) -> str:
 
 
 def measure_response(calibration, grid, correction, *, reconstruct, correlate, n_particles: int,
-                     f_number=None, rays_per_particle: int = 1024, seed: int = 0) -> Response:
+                     f_number=None, rays_per_particle: int = 1024, seed: int = 0,
+                     displacements: int = 3) -> Response:
     """Measure the chain's response to known uniform displacements (module notes).
 
     Parameters
@@ -202,6 +222,8 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
         Rays per particle of the ray tracer.
     seed : int
         Seed of the particle positions and the tracer.
+    displacements : {3, 1}
+        Test displacements (:func:`response_shifts`): two reconstructions each.
 
     Returns
     -------
@@ -212,7 +234,7 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
 
     rng = np.random.default_rng(seed)
     camera = calibration.camera
-    shifts = response_shifts(calibration.effective_camera, f_number)
+    shifts = response_shifts(calibration.effective_camera, f_number, displacements)
     b = grid.bounds
     lo = np.array([b[0, 0], b[1, 0], correction.depth(b[2, 0])])
     hi = np.array([b[0, 1], b[1, 1], correction.depth(b[2, 1])])
@@ -234,7 +256,9 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
             continue
         z = np.asarray(field.z)
         comps = np.stack([field.u, field.v, field.w])
-        sigma = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
+        sigma = iteration_uncertainty(field)
+        if sigma is None:
+            sigma = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
         ok = np.asarray(field.valid) & np.all(np.isfinite(comps), axis=0)
         g = np.full((3, z.size), np.nan)
         r = np.full((3, z.size), np.nan)
@@ -336,12 +360,21 @@ def unresolved_gradient_bias(disp, spacing, window):
               \frac{x_i^2}{2}\,\partial_i^2 u \;dx_i
               = \sum_i \frac{W_i^2}{24}\, \partial_i^2 u .
 
-    Window deformation moves the particles by the predictor, but the predictor is
-    interpolated between vectors half a window apart and smoothed, so the curvature inside a
-    window stays unresolved. The second derivatives are taken from the measured field's
-    second differences on the vector grid, :math:`\partial_i^2 u \approx \Delta_i^2 u / h_i^2`
-    (with 50 % overlap, :math:`W = 2h` and the term is :math:`\Delta_i^2 u / 6` per axis).
-    A uniform or linear field gives zero; a quadratic one gives the exact window-average bias.
+    Window deformation removes part of it. A deformation pass moves the particles by the
+    predictor :math:`P` (the previous vectors, trilinearly interpolated between vectors
+    :math:`h` apart) and measures the window average of what is left, so at the iteration's
+    fixed point :math:`d = P + \overline{u - P}`: the window averages of the flow's and of the
+    predictor's curvature cancel, and only the mean error of the linear interpolation
+    remains, :math:`-\sum_i (h_i^2/12)\, \partial_i^2 u` (half the one-window bias at 50 %
+    overlap; ``tests/test_uncertainty.py`` iterates the fixed point). A few passes do not
+    reach it for curvature on the scale of the vector spacing (on Hill's vortex the errors
+    follow the one-window bias of the true field, docs/validation/uncertainty.md), so the
+    one-window bias is kept as the bound.
+
+    The second derivatives are taken from the measured field's second differences on the
+    vector grid, :math:`\partial_i^2 u \approx \Delta_i^2 u / h_i^2` (with 50 % overlap,
+    :math:`W = 2h` and the term is :math:`\Delta_i^2 u / 6` per axis). A uniform or linear
+    field gives zero; a quadratic one gives the exact window-average bias.
     """
     disp = np.asarray(disp, float)
     out = np.zeros_like(disp)
@@ -354,21 +387,104 @@ def unresolved_gradient_bias(disp, spacing, window):
     return np.abs(np.nan_to_num(out, nan=0.0))
 
 
-def _curvature_excess(curvature, last_correction):
-    r"""The window-average bias less what the last correction already counts, metres.
+def filter_offset(disp):
+    r"""The change a converged pass still makes with the smoothed predictor, units of ``disp``.
 
-    With a smoothed predictor (``[1, 2, 1] / 4`` per axis) a converged deformation pass
-    still changes each vector by the filter's offset, :math:`\sum_i \Delta_i^2 d / 4`: the
-    last correction (already in :math:`\sigma_{CS}`) is then an estimate of the same
-    curvature as :func:`unresolved_gradient_bias` (:math:`\sum_i \Delta_i^2 d / 6` at
-    50 % overlap). Adding both would count it twice, so only
-    ``sqrt(max(0, curvature^2 - last_correction^2))`` is added (the larger of the two
-    estimates is kept). ``last_correction`` None (not estimated) keeps ``curvature``.
+    Parameters
+    ----------
+    disp : ndarray, shape (3, nz, ny, nx)
+        Displacement on the vector grid (any unit; NaN counts as 0).
+
+    Returns
+    -------
+    ndarray, shape (3, nz, ny, nx)
+        :math:`d - S(d)`, with :math:`S` the predictor's binomial filter ``[1, 2, 1] / 4``
+        per axis (:func:`plenopiv.piv.validation._smooth_predictor`).
+
+    Notes
+    -----
+    A deformation pass correlates the volumes deformed by the smoothed predictor
+    :math:`S(d_{k-1})` and adds the corrector it measures: :math:`d_k = S(d_{k-1}) + c_k`.
+    At the iteration's fixed point :math:`d_k = d_{k-1} = d` the corrector is still
+    :math:`c = d - S(d) \approx -\sum_i \Delta_i^2 d / 4`, nonzero wherever the field
+    curves, although the estimate no longer changes. This part of the last correction is
+    the filter's offset, not an error left by the iteration; the window-average bias of
+    the same curvature is :func:`unresolved_gradient_bias`.
     """
-    if last_correction is None:
-        return curvature
-    last = np.nan_to_num(np.asarray(last_correction, float), nan=0.0)
-    return np.sqrt(np.maximum(curvature**2 - last**2, 0.0))
+    from plenopiv.piv.validation import _smooth_predictor
+
+    d = np.nan_to_num(np.asarray(disp, float), nan=0.0)
+    return d - _smooth_predictor(d)
+
+
+def convergence_ratio(last, previous, usable) -> np.ndarray:
+    r"""Measured ratio of the last two corrections per component, ``(3,)``, dimensionless.
+
+    Parameters
+    ----------
+    last, previous : ndarray, shape (3, nz, ny, nx)
+        The last and the previous pass's corrections, the filter offset removed (metres).
+    usable : ndarray of bool, shape (nz, ny, nx)
+        Vectors to count (valid, finite in both).
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        :math:`\rho_k = \sqrt{\langle c_{n,k}^2 \rangle / \langle c_{n-1,k}^2 \rangle}`
+        over the usable vectors, within ``[0, MAX_CONVERGENCE_RATIO]``; ``DEFAULT_RATIO``
+        for a component without usable vectors or without a previous change.
+
+    Notes
+    -----
+    The passes converge geometrically when each removes a fraction :math:`1 - \rho` of the
+    error it starts from: :math:`e_n = \rho\, e_{n-1}`, so the corrections shrink by the same
+    factor, :math:`c_n = e_n - e_{n-1} = \rho\, c_{n-1}`, and what the last pass left is
+    :math:`e_n = \rho / (1 - \rho)\; c_n` (:func:`iteration_uncertainty`). The ratio is
+    taken over the whole field (a few hundred vectors: a local ratio of two noisy corrections
+    would be unstable). The random error of a correction counts in both; it keeps
+    :math:`\rho` from vanishing where the iteration has converged to its noise (the bound is
+    then about the random error, which the correlation statistics estimate too).
+    """
+    out = np.full(3, DEFAULT_RATIO)
+    if previous is None:
+        return out
+    for k in range(3):
+        a, b = last[k][usable], previous[k][usable]
+        ok = np.isfinite(a) & np.isfinite(b)
+        den = float(np.mean(b[ok] ** 2)) if ok.any() else 0.0
+        if den > 0:
+            out[k] = min(np.sqrt(float(np.mean(a[ok] ** 2)) / den), MAX_CONVERGENCE_RATIO)
+    return out
+
+
+def iteration_uncertainty(field) -> np.ndarray | None:
+    r"""Correlation statistics and the error the iteration left, ``(3, nz, ny, nx)``, metres.
+
+    :math:`\sqrt{\sigma_{CS}^2 + (\rho / (1 - \rho)\; |c_n - o|)^2}` per component, with
+    :math:`c_n` the last pass's correction, :math:`o` the filter's offset
+    (:func:`filter_offset`; zero without a smoothed predictor) and :math:`\rho` the measured
+    ratio of the last two corrections (:func:`convergence_ratio`; 1/2, i.e. the remaining
+    error as large as the last correction, when the previous pass had other windows).
+    A rejected vector keeps the uncertainty :func:`plenopiv.piv.correlate_volumes` gave it
+    (its neighbours' uncertainty and spread). None when ``field`` carries no signed
+    corrections (then its own uncertainty stands).
+    """
+    parts = field.uncertainty_parts or {}
+    if "last_corrector" not in parts or "correlation" not in parts:
+        return None
+    disp = np.stack([field.u, field.v, field.w])
+    smoothed = bool(getattr(field.settings, "smooth_predictor", False))
+    offset = filter_offset(disp) if smoothed else np.zeros_like(disp)
+    last = np.asarray(parts["last_corrector"], float) - offset
+    previous = parts.get("previous_corrector")
+    if previous is not None:
+        previous = np.asarray(previous, float) - offset
+    usable = np.asarray(field.valid, bool) & np.all(np.isfinite(disp), axis=0)
+    rho = convergence_ratio(last, previous, usable)
+    remaining = (rho / (1.0 - rho))[:, None, None, None] * np.abs(np.nan_to_num(last))
+    sigma = np.sqrt(np.asarray(parts["correlation"], float) ** 2 + remaining**2)
+    own = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
+    return np.where(np.asarray(field.valid, bool)[None], sigma, own)
 
 
 def _spacing_and_window(field):
@@ -396,7 +512,9 @@ def combine(field, response: Response | None):
     if response is None:
         return field
     disp = np.stack([field.u, field.v, field.w])
-    sigma_cs = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
+    sigma_cs = iteration_uncertainty(field)
+    if sigma_cs is None:
+        sigma_cs = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
     gain, excess = response.at(field.z)
     gain = gain[:, :, None, None]
     excess = excess[:, :, None, None]
@@ -404,8 +522,7 @@ def combine(field, response: Response | None):
     sigma_gain = np.abs(1.0 - g) / g * np.abs(disp)
     spacing, window = _spacing_and_window(field)
     parts = dict(field.uncertainty_parts or {})
-    sigma_curv = _curvature_excess(unresolved_gradient_bias(disp, spacing, window),
-                                   parts.get("last_correction"))
+    sigma_curv = unresolved_gradient_bias(disp, spacing, window)
     total = np.sqrt(sigma_cs**2 + excess**2 + sigma_gain**2 + sigma_curv**2)
     parts["response_random"] = np.broadcast_to(excess, total.shape).copy()
     parts["response_gain"] = sigma_gain

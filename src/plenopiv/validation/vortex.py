@@ -65,6 +65,7 @@ class VortexCase:
         voxels, see docs/validation/vortex.md)
     uncertainty : ``[piv] uncertainty`` of the run: "response" (default; measures the chain's
         response, three more test pairs) or "correlation" (faster)
+    response_displacements : ``[piv] response_displacements``: 3 test pairs (default) or 1
     windows : interrogation windows per pass (z, y, x) in voxels of the footprint grid; the
         lateral edges are multiplied by ``lateral_oversampling``
     passes : PIV passes (the last window repeats)
@@ -93,6 +94,7 @@ class VortexCase:
     lenslets: tuple[int, int] | None = None
     lateral_oversampling: int = 1
     uncertainty: str = "response"
+    response_displacements: int = 3
     passes: int = 3
     overlap_correction: bool = True
     broad_peaks: bool = True
@@ -312,6 +314,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
                      reconstruction=case.reconstruction,
                      piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5,
                                    passes=case.passes, uncertainty=case.uncertainty,
+                                   response_displacements=case.response_displacements,
                                    overlap_correction=case.overlap_correction,
                                    broad_peaks=case.broad_peaks),
                      images=ImagesConfig(dt_s=case.dt),
