@@ -561,8 +561,9 @@ def _response_section(d: dict) -> list[str]:
              "over its true move between neighbouring depths, per particle; *frozen*: "
              f"response below {FROZEN_RESPONSE}. A particle in focus lights one lenslet; it "
              "lights the same pixels until its blur crosses the lenslet's edge, so near focus "
-             "most particles keep their reconstructed depth for a small move and the others "
-             "jump: the mean response stays near 1 while the median falls to 0. A correlation "
+             "about half the particles keep their reconstructed depth for a small move and the "
+             "others jump: the mean response stays near 1 while the median falls to 0. A "
+             "correlation "
              "peak follows the bulk of the particles, not their mean: this is what flattens w "
              "in the band nearest focus. The 7-point fit along wide peaks takes in more of the "
              "movers' shoulder; placing the volume off the focal plane avoids the zone.", "",
