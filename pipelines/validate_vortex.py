@@ -5,7 +5,8 @@ each cause of a flattened w on its own; writes JSON, Markdown and PNG.
     python pipelines/validate_vortex.py --out docs/validation
 
 About 40 minutes on two cores; ``--series causes depth_shifts`` runs only those series on the
-41 x 61 CI camera (a few minutes).
+41 x 61 CI camera (a few minutes); ``--series depth_response`` how single particles follow
+their depth near the focal plane (33 reconstructions).
 """
 
 import argparse
@@ -13,7 +14,7 @@ import json
 
 from plenopiv.validation.vortex_study import run
 
-SERIES = ("causes", "flows", "depth_shifts", "lateral_shifts")
+SERIES = ("depth_response", "causes", "flows", "depth_shifts", "lateral_shifts")
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -645,6 +645,42 @@ def test_refine_peaks_removes_the_overlap_bias_of_a_broad_peak(engine):
     assert ENGINES[engine].refine_peaks(corr, True, False, True)[0, 0] < true[0] - 0.2
 
 
+@pytest.mark.parametrize("engine", ENGINE_NAMES)
+def test_refine_peaks_fits_seven_samples_of_a_wide_depth_peak(engine):
+    # near focus a share of the particles keeps its reconstructed depth while the others
+    # move further than the flow (a particle's light stays in one lenslet until its blur
+    # crosses the lenslet's edge): the depth peak is a main lobe at the frozen particles'
+    # lag with a shoulder at the movers'. Five samples (lags -2..2) see the top of a peak
+    # 2.7 voxels wide (sigma of the correlation of 1.9-voxel particles) and stay on the main
+    # lobe; seven samples take in more of the shoulder. Mixture: 70 % of the weight at lag 0,
+    # 30 % at lag 4; its mean displacement is 1.2 voxel.
+    shape = (12, 12, 12)
+    sigma = np.array([1.9 * 2**0.5, 0.6, 0.6])
+    frozen = _triangle_weighted_peak(shape, np.array([0.0, 0.0, 0.0]), sigma)
+    moved = _triangle_weighted_peak(shape, np.array([4.0, 0.0, 0.0]), sigma)
+    corr = (0.7 * frozen + 0.3 * moved)[None]
+    seven = ENGINES[engine].refine_peaks(corr, True, True, True)[0, 0]
+    five = _five_point_vertex(corr[0, :, 0, 0], shape[0])
+    # the wider fit moves towards the mean displacement, never past it
+    assert five < seven < 1.2
+    # a single wide Gaussian peak stays exact with seven samples
+    true = np.array([0.6, -0.3, 0.2])
+    single = _triangle_weighted_peak(shape, true, sigma)[None]
+    np.testing.assert_allclose(ENGINES[engine].refine_peaks(single, True, True, True)[0], true,
+                               atol=0.01)
+
+
+def _five_point_vertex(line, w):
+    """Vertex of the weighted least-squares Gaussian through lags -2..2 of the overlap-corrected
+    correlation ``line`` (its integer peak at lag 0 or the highest sample)."""
+    b = int(np.argmax(line))
+    lag0 = b - w if 2 * b >= w else b
+    lags = lag0 + np.arange(-2, 3)
+    u = line[(b + np.arange(-2, 3)) % w] / (1 - np.abs(lags) / w)
+    coef = np.polyfit(lags - lag0, np.log(u), 2, w=u)  # polyfit weights multiply residuals
+    return lag0 - coef[1] / (2 * coef[0])
+
+
 def test_refine_peaks_engines_agree(rng):
     n, shape = 8, (8, 12, 16)
     corr = rng.normal(0.0, 0.03, size=(n,) + shape).astype(np.float32)

@@ -178,7 +178,7 @@ class PIVConfig(_Strict):
         six, the gain probed at one fraction of the resolution cell).
     overlap_correction, broad_peaks : sub-voxel peak fit on the correlation divided by the
         windows' overlap fraction, and by a 5-point least-squares Gaussian along axes where
-        the peak is broad (:class:`plenopiv.piv.PIVSettings`).
+        the peak is broad, 7-point where it is wide (:class:`plenopiv.piv.PIVSettings`).
     """
 
     windows: list[tuple[int, int, int]] = Field(list(_PIV.windows), min_length=1)

@@ -108,7 +108,13 @@ class PIVSettings:
         With the Gaussian estimator, fit a least-squares Gaussian to the five samples about
         the peak along an axis where the peak is broad (fitted standard deviation of at
         least 1 voxel, window of at least 8 voxels): less noise than three samples of a
-        peak several voxels wide, the depth axis of plenoptic volumes.
+        peak several voxels wide, the depth axis of plenoptic volumes; and to seven samples
+        where it is wide (standard deviation of at least 2 voxels, window of at least 12):
+        five samples then lie within one standard deviation and see only the peak's top.
+        Near the focal plane most particles keep their reconstructed depth for a small
+        move while the rest jump by several voxels (a particle's light stays in one lenslet
+        until its blur crosses the lenslet's edge), so the depth peak is a main lobe with a
+        shoulder; seven samples take in more of the shoulder (docs/validation/vortex.md).
 
     Raises
     ------

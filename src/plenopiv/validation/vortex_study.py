@@ -310,6 +310,96 @@ def lateral_shifts(work: Path, *, seed: int = 1, shifts=LATERAL_SHIFTS, progress
     return rows
 
 
+#: Depths of the near-focus depth response (mm): half-voxel steps across ±1 mm.
+RESPONSE_DEPTHS_MM = tuple(np.round(np.arange(-1.0, 1.0001, 0.0625), 4))
+#: |Z| bands of the depth response table, mm.
+RESPONSE_BANDS_MM = ((0.0, 0.25), (0.25, 0.5), (0.5, 0.75), (0.75, 1.0))
+#: A particle whose reconstructed depth moves by less than this fraction of its true move
+#: between neighbouring depths is counted as frozen.
+FROZEN_RESPONSE = 0.25
+
+
+def column_depth(volume: np.ndarray, index, half_lateral: int = 1, half_depth: int = 10):
+    """Intensity-weighted depth (voxel index) of the column about ``index`` = (ix, iy, iz).
+
+    The column is ``2 half_lateral + 1`` voxels across and ``2 half_depth + 1`` deep (cut at
+    the volume's faces); NaN where it holds no intensity.
+    """
+    ix, iy, iz = (int(round(float(c))) for c in index)
+    z0 = max(iz - half_depth, 0)
+    col = volume[z0:iz + half_depth + 1, max(iy - half_lateral, 0):iy + half_lateral + 1,
+                 max(ix - half_lateral, 0):ix + half_lateral + 1].sum(axis=(1, 2), dtype=float)
+    total = col.sum()
+    return float((np.arange(z0, z0 + len(col)) * col).sum() / total) if total > 0 else np.nan
+
+
+def response_by_band(depths_mm, depth_vox: float, recovered) -> list[dict]:
+    """Per-particle depth response d(reconstructed)/d(true) between neighbouring depths.
+
+    ``recovered`` (n_depths, n_particles): reconstructed minus true depth, voxels, for the
+    same particles (fixed lateral positions) at each depth of ``depths_mm``. Returns per
+    |Z| band of :data:`RESPONSE_BANDS_MM` the mean and median response and the share of
+    frozen particles (response below :data:`FROZEN_RESPONSE`).
+    """
+    z = np.asarray(depths_mm, float)
+    rec = np.asarray(recovered, float) + (z / (depth_vox * 1e3))[:, None]
+    step = np.diff(z)[:, None] / (depth_vox * 1e3)
+    resp = np.diff(rec, axis=0) / step
+    mid = np.abs((z[1:] + z[:-1]) / 2)
+    out = []
+    for lo, hi in RESPONSE_BANDS_MM:
+        r = resp[(mid >= lo) & (mid < hi)].ravel()
+        r = r[np.isfinite(r)]
+        out.append({"abs_z_mm": [lo, hi], "n": int(r.size),
+                    "mean": float(r.mean()) if r.size else None,
+                    "median": float(np.median(r)) if r.size else None,
+                    "frozen_share": float(np.mean(np.abs(r) < FROZEN_RESPONSE))
+                    if r.size else None})
+    return out
+
+
+def depth_response(*, seed: int = 1, depths_mm=RESPONSE_DEPTHS_MM, progress=print) -> dict:
+    """How a reconstructed particle follows its true depth near the focal plane.
+
+    CI camera, exact calibration, footprint voxels, library defaults; one particle every six
+    footprints (no neighbours in its column) at a random place inside its lenslet, the same
+    lateral places at every depth of ``depths_mm``; renders with Poisson noise and the
+    study's point spread. Per particle and depth: the depth of its column
+    (:func:`column_depth`) minus the true depth; summarised by :func:`response_by_band`.
+    """
+    from plenopiv.pipeline import reconstruct_volume
+    from plenopiv.synthetic.images import finish_image, particle_image
+    from plenopiv.validation.vortex import aligned_grid
+
+    t0 = time.perf_counter()
+    case = VortexCase(seed=seed)
+    cam = case_camera(case)
+    cal = Calibration.from_camera(cam)
+    grid = aligned_grid(cal.effective_camera, case)
+    b = footprint(cal.effective_camera)
+    rng = np.random.default_rng(seed)
+    (x0, x1), (y0, y1) = grid.bounds[0], grid.bounds[1]
+    gx, gy = np.meshgrid(np.arange(x0 + 3 * b, x1 - 3 * b, 6 * b),
+                         np.arange(y0 + 3 * b, y1 - 3 * b, 6 * b))
+    lateral = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    lateral += rng.uniform(-0.5, 0.5, lateral.shape) * b
+    recovered = []
+    for i, z_mm in enumerate(depths_mm):
+        pos = np.column_stack([lateral, np.full(len(lateral), z_mm * 1e-3)])
+        img = finish_image(particle_image(cam, pos, rays_per_particle=case.rays_per_particle,
+                                          seed=seed + i),
+                           noise="poisson", rng=rng, blur_px=BLUR_PX)
+        res = reconstruct_volume(cal, img, grid)
+        idx = (pos - np.array(res.grid.origin)) / np.array(res.grid.voxel)
+        recovered.append([column_depth(res.volume, p) - p[2] for p in idx])
+        progress(f"depth response, Z {z_mm:+.4f} mm: reconstructed - true "
+                 f"{np.nanmean(recovered[-1]):+.2f} voxel (spread {np.nanstd(recovered[-1]):.2f})")
+    bands = response_by_band(depths_mm, grid.voxel[2], recovered)
+    return {"depths_mm": [float(z) for z in depths_mm], "n_particles": len(lateral),
+            "depth_voxel_mm": grid.voxel[2] * 1e3, "recovered_vox": recovered,
+            "bands": bands, "seconds": round(time.perf_counter() - t0, 1)}
+
+
 def _progress(r: dict) -> str:
     bands = ", ".join(f"{b['gain'][2]:.2f}" for b in r["by_depth"])
     return (f"{r['label']}: w gain {r['gain'][2]:.2f} (bands {bands}), rms "
@@ -317,7 +407,8 @@ def _progress(r: dict) -> str:
 
 
 def run(out: str | Path, *, work: str | Path | None = None, seed: int = 1,
-        series=("causes", "flows", "depth_shifts", "lateral_shifts"), progress=print) -> dict:
+        series=("depth_response", "causes", "flows", "depth_shifts", "lateral_shifts"),
+        progress=print) -> dict:
     """Run the series; write ``vortex.json``, ``vortex.md`` and figures to ``out``.
 
     ``work`` holds every case's products (default ``out/vortex_cases``).
@@ -331,6 +422,8 @@ def run(out: str | Path, *, work: str | Path | None = None, seed: int = 1,
                          "w_gain": list(TARGET_GAIN)},
               "goal": {"rms_lateral_vox": GOAL[0], "rms_depth_vox": GOAL[1],
                        "w_gain": list(GOAL_GAIN)}}
+    if "depth_response" in series:
+        result["depth_response"] = depth_response(seed=seed, progress=progress)
     if "causes" in series:
         result["causes"] = causes(work, seed=seed, progress=progress)
     if "flows" in series:
@@ -455,6 +548,34 @@ def _summary(r: dict) -> list[str]:
     return out + [""]
 
 
+def _response_section(d: dict) -> list[str]:
+    """The near-focus depth response as Markdown."""
+    z = d["depths_mm"]
+    lines = ["## Near focus: how a reconstructed particle follows its depth", "",
+             f"CI camera (41 x 61 lenslets), exact calibration, footprint voxels, library "
+             f"defaults; {d['n_particles']} single particles, six footprints apart, each at a "
+             f"random place inside its lenslet, rendered at the same lateral places at every "
+             f"depth from {z[0]:+.2f} to {z[-1]:+.2f} mm in steps of "
+             f"{(z[1] - z[0]) * 1e3:.1f} µm (half a voxel). *Response*: the move of the "
+             "particle's reconstructed depth (intensity-weighted depth of a 3 × 3-voxel column) "
+             "over its true move between neighbouring depths, per particle; *frozen*: "
+             f"response below {FROZEN_RESPONSE}. A particle in focus lights one lenslet; it "
+             "lights the same pixels until its blur crosses the lenslet's edge, so near focus "
+             "about half the particles keep their reconstructed depth for a small move and the "
+             "others jump: the mean response stays near 1 while the median falls to 0. A "
+             "correlation "
+             "peak follows the bulk of the particles, not their mean: this is what flattens w "
+             "in the band nearest focus. The 7-point fit along wide peaks takes in more of the "
+             "movers' shoulder; placing the volume off the focal plane avoids the zone.", "",
+             "| \\|Z\\| (mm) | particle moves | mean response | median response | frozen |",
+             "|---|---|---|---|---|"]
+    for b in d["bands"]:
+        lo, hi = b["abs_z_mm"]
+        lines.append(f"| {lo:.2f}-{hi:.2f} | {b['n']} | {_g(b['mean'])} | {_g(b['median'])} | "
+                     f"{_g(b['frozen_share'])} |")
+    return lines + ["", f"Series time: {d['seconds']:.0f} s.", ""]
+
+
 def markdown(r: dict) -> str:
     """The study as Markdown."""
     lines = [
@@ -478,12 +599,13 @@ def markdown(r: dict) -> str:
         "(Hill's w is ∝ Z, small in the band nearest focus), and each band's gain carries "
         "its standard error for independent vectors (± …; the vectors of 50 %-overlapping "
         "windows are correlated, so the real uncertainty is two to three times larger).",
-        "- Library defaults since issue 13: the reconstruction runs on lateral voxels of at "
+        "- Library defaults: the reconstruction runs on lateral voxels of at "
         "most a third of a lenslet footprint (`[reconstruction] lateral_subdivision = "
         "\"auto\"`, 3 × 3 for footprint voxels, on the matrix-free projector) and returns "
         "to the volume's grid through a Gaussian of half a voxel (`subdivision_kernel`); "
         "the PIV peak is fitted on the correlation divided by the windows' overlap, with a "
-        "5-point Gaussian along broad peaks (`[piv] overlap_correction`, `broad_peaks`). "
+        "5-point Gaussian along broad peaks (σ ≥ 1 voxel) and a 7-point one along wide "
+        "peaks (σ ≥ 2 voxels: the depth axis) (`[piv] overlap_correction`, `broad_peaks`). "
         "*Previous defaults*: none of these.",
         f"- Renders: Poisson noise (20,000-electron full well, 16 bit) and a Gaussian point "
         f"spread of σ = {r.get('blur_px', BLUR_PX)} px on every image. Camera: the Auburn "
@@ -502,6 +624,8 @@ def markdown(r: dict) -> str:
         "",
         *_summary(r),
     ]
+    if r.get("depth_response"):
+        lines += _response_section(r["depth_response"])
     if r.get("causes"):
         lines += ["## What flattens w: each cause on its own", "",
                   "CI camera (41 x 61 lenslets), 0.3 particles per lenslet, footprint voxels, "

@@ -26,7 +26,8 @@ refine_peaks
     For the same planes: the displacement (n, 3) of the highest peak refined per axis on the
     correlation divided by the windows' overlap fraction (the loss of particle pairs across
     the window border, which pulls a fitted peak towards zero), with a least-squares Gaussian
-    on five samples along an axis where the peak is broad (see :func:`_refine_axis_numba`).
+    on five samples along an axis where the peak is broad, on seven where it is wide (see
+    :func:`_refine_axis_numba`).
 deform_trilinear
     Sample a volume at ``x + factor * d(x)`` by trilinear interpolation (zero outside).
 deform_cubic

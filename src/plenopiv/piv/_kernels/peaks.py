@@ -142,20 +142,34 @@ BROAD_SIGMA_VOX = 1.0
 #: Shortest window edge along an axis for the five-point fit (its samples must be distinct).
 MIN_BROAD_WINDOW = 8
 
+#: A peak whose five-point Gaussian width is at least this (voxels, one standard deviation) is
+#: wide: its samples at ±2 lie within one standard deviation and see only its top, so seven
+#: samples (±3) are fitted instead. Depth peaks of plenoptic volumes are this wide (particles
+#: 4-10 times longer in depth than across); lateral peaks are not.
+WIDE_SIGMA_VOX = 2.0
+
+#: Shortest window edge along an axis for the seven-point fit (its lags of ±3 keep at least
+#: three quarters of the window's particle pairs).
+MIN_WIDE_WINDOW = 12
+
+#: Half the number of samples the refinement reads per axis (lags ``-HALF_SPAN .. HALF_SPAN``).
+HALF_SPAN = 3
+
 
 @numba.njit(cache=True, inline="always")
-def _fit5_log_numba(u):
-    """Least-squares parabola through ``ln u`` at -2..2 with weights ``u**2``.
+def _fit_log_numba(u, first, count):
+    """Least-squares parabola through ``ln u`` of ``u[first:first + count]`` with weights ``u**2``.
 
-    Returns ``(vertex, sigma2)``: the offset of the maximum and the variance of the fitted
-    Gaussian, ``-1 / (2 c)`` with ``c`` the curvature (NaN, NaN where it is not concave). The
-    weights make it the maximum-likelihood fit for samples of equal absolute noise (the
-    variance of ``ln u`` is ``(noise / u)**2``).
+    The samples sit at the lags ``first - HALF_SPAN ...`` about the integer peak. Returns
+    ``(vertex, sigma2)``: the offset of the maximum and the variance of the fitted Gaussian,
+    ``-1 / (2 c)`` with ``c`` the curvature (NaN, NaN where it is not concave). The weights
+    make it the maximum-likelihood fit for samples of equal absolute noise (the variance of
+    ``ln u`` is ``(noise / u)**2``).
     """
     s0 = s1 = s2 = s3 = s4 = 0.0
     t0 = t1 = t2 = 0.0
-    for q in range(5):
-        x = q - 2.0
+    for q in range(first, first + count):
+        x = q - float(HALF_SPAN)
         w = u[q] * u[q]
         y = math.log(u[q])
         s0 += w
@@ -176,36 +190,48 @@ def _fit5_log_numba(u):
     return -b / (2.0 * c), -1.0 / (2.0 * c)
 
 
+@numba.njit(cache=True, inline="always")
+def _positive(u, first, count):
+    for q in range(first, first + count):
+        if not u[q] > 0.0:
+            return False
+    return True
+
+
 @numba.njit(cache=True)
 def _refine_axis_numba(v, lag0, w, gaussian, overlap, broad):
     """Sub-voxel offset from the integer peak ``lag0`` along one axis of window length ``w``.
 
-    ``v`` holds the correlation at the lags ``lag0 - 2 .. lag0 + 2`` (circularly sampled).
+    ``v`` holds the correlation at the lags ``lag0 - 3 .. lag0 + 3`` (circularly sampled).
     With ``overlap`` each sample is first divided by the overlap fraction ``1 - |lag|/w`` of
     its lag (at least ``MIN_OVERLAP``): the particle pairs a window loses across its border
     weight the correlation by that triangle, which pulls a fitted peak towards zero by about
     ``2 sigma**2 / w`` voxels for particle images of standard deviation ``sigma``. With
-    ``broad`` and the Gaussian estimator, where the five samples are positive and the window
-    holds ``MIN_BROAD_WINDOW`` voxels, :func:`_fit5_log_numba` fits all five; its vertex is
-    taken, clipped to one voxel, when the fitted peak is broad (standard deviation at least
-    ``BROAD_SIGMA_VOX``). Otherwise the 3-point fit (:func:`_fit3_numba`) is used.
+    ``broad`` and the Gaussian estimator, where the five central samples are positive and the
+    window holds ``MIN_BROAD_WINDOW`` voxels, :func:`_fit_log_numba` fits those five; its
+    vertex is taken when the fitted peak is broad (standard deviation at least
+    ``BROAD_SIGMA_VOX``). Where that peak is wide (at least ``WIDE_SIGMA_VOX``), the window
+    holds ``MIN_WIDE_WINDOW`` voxels and all seven samples are positive, the seven are
+    fitted and their vertex taken if that fit is wide too. Otherwise the 3-point fit
+    (:func:`_fit3_numba`) is used. The offset is clipped to one voxel.
     """
-    u = np.empty(5)
-    for q in range(5):
+    h = HALF_SPAN
+    u = np.empty(2 * h + 1)
+    for q in range(2 * h + 1):
         f = 1.0
         if overlap:
-            f = max(1.0 - abs(lag0 + q - 2) / w, MIN_OVERLAP)
+            f = max(1.0 - abs(lag0 + q - h) / w, MIN_OVERLAP)
         u[q] = v[q] / f
-    frac = _fit3_numba(u[1], u[2], u[3], gaussian)
-    if broad and gaussian and w >= MIN_BROAD_WINDOW:
-        positive = True
-        for q in range(5):
-            if not u[q] > 0.0:
-                positive = False
-        if positive:
-            f5, sigma2 = _fit5_log_numba(u)
-            if sigma2 >= BROAD_SIGMA_VOX * BROAD_SIGMA_VOX:
-                frac = f5
+    frac = _fit3_numba(u[h - 1], u[h], u[h + 1], gaussian)
+    if broad and gaussian and w >= MIN_BROAD_WINDOW and _positive(u, h - 2, 5):
+        f5, sigma2 = _fit_log_numba(u, h - 2, 5)
+        if sigma2 >= BROAD_SIGMA_VOX * BROAD_SIGMA_VOX:
+            frac = f5
+            if (sigma2 >= WIDE_SIGMA_VOX * WIDE_SIGMA_VOX and w >= MIN_WIDE_WINDOW
+                    and _positive(u, 0, 2 * h + 1)):
+                f7, sigma7 = _fit_log_numba(u, 0, 2 * h + 1)
+                if sigma7 >= WIDE_SIGMA_VOX * WIDE_SIGMA_VOX:
+                    frac = f7
     return min(1.0, max(-1.0, frac))
 
 
@@ -230,17 +256,44 @@ def refine_peaks(corr, gaussian, overlap, broad):
         li = bi - wz if 2 * bi >= wz else bi
         lj = bj - wy if 2 * bj >= wy else bj
         lm = bm - wx if 2 * bm >= wx else bm
-        v = np.empty(5)
-        for q in range(5):
-            v[q] = c[(bi + q - 2) % wz, bj, bm]
+        h = HALF_SPAN
+        v = np.empty(2 * h + 1)
+        for q in range(2 * h + 1):
+            v[q] = c[(bi + q - h) % wz, bj, bm]
         disp[k, 0] = li + _refine_axis_numba(v, li, wz, gaussian, overlap, broad)
-        for q in range(5):
-            v[q] = c[bi, (bj + q - 2) % wy, bm]
+        for q in range(2 * h + 1):
+            v[q] = c[bi, (bj + q - h) % wy, bm]
         disp[k, 1] = lj + _refine_axis_numba(v, lj, wy, gaussian, overlap, broad)
-        for q in range(5):
-            v[q] = c[bi, bj, (bm + q - 2) % wx]
+        for q in range(2 * h + 1):
+            v[q] = c[bi, bj, (bm + q - h) % wx]
         disp[k, 2] = lm + _refine_axis_numba(v, lm, wx, gaussian, overlap, broad)
     return disp
+
+
+def _fit_log_numpy(u, first, count):
+    """NumPy twin of :func:`_fit_log_numba` on the columns of ``u`` (2·HALF_SPAN + 1, n).
+
+    Returns ``(vertex, sigma2, ok)`` with ``ok`` where every sample is positive and the fit
+    is concave.
+    """
+    sel = u[first:first + count]
+    positive = np.all(sel > 0.0, axis=0)
+    lu = np.log(np.where(positive, sel, 1.0))
+    x = (np.arange(first, first + count) - float(HALF_SPAN))[:, None]
+    wt = np.where(positive, sel, 0.0) ** 2
+    s = [np.sum(wt * x**p, axis=0) for p in range(5)]
+    t = [np.sum(wt * x**p * lu, axis=0) for p in range(3)]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        det = (s[0] * (s[2] * s[4] - s[3] * s[3]) - s[1] * (s[1] * s[4] - s[3] * s[2])
+               + s[2] * (s[1] * s[3] - s[2] * s[2]))
+        bb = (s[0] * (t[1] * s[4] - s[3] * t[2]) - t[0] * (s[1] * s[4] - s[3] * s[2])
+              + s[2] * (s[1] * t[2] - t[1] * s[2])) / det
+        cc = (s[0] * (s[2] * t[2] - t[1] * s[3]) - s[1] * (s[1] * t[2] - t[1] * s[2])
+              + t[0] * (s[1] * s[3] - s[2] * s[2])) / det
+        ok = positive & (det != 0.0) & (cc < 0.0)
+        sigma2 = np.where(ok, -1.0 / (2.0 * cc), np.nan)
+        vertex = np.where(ok, -bb / (2.0 * cc), np.nan)
+    return vertex, sigma2, ok
 
 
 def refine_peaks_numpy(corr, gaussian, overlap, broad):
@@ -248,33 +301,26 @@ def refine_peaks_numpy(corr, gaussian, overlap, broad):
     best_idx = np.argmax(corr.reshape(n, -1), axis=1)
     peak = np.unravel_index(best_idx, (wz, wy, wx))
     k = np.arange(n)
+    h = HALF_SPAN
     disp = np.empty((n, 3))
     for axis, w in enumerate((wz, wy, wx)):
         b = peak[axis]
         lag0 = np.where(2 * b >= w, b - w, b).astype(np.float64)
-        u = np.empty((5, n))
-        for q in range(5):
+        u = np.empty((2 * h + 1, n))
+        for q in range(2 * h + 1):
             idx = list(peak)
-            idx[axis] = (b + q - 2) % w
-            f = np.maximum(1.0 - np.abs(lag0 + q - 2) / w, MIN_OVERLAP) if overlap else 1.0
+            idx[axis] = (b + q - h) % w
+            f = np.maximum(1.0 - np.abs(lag0 + q - h) / w, MIN_OVERLAP) if overlap else 1.0
             u[q] = corr[k, idx[0], idx[1], idx[2]].astype(np.float64) / f
-        frac = _fit3_numpy(u[1], u[2], u[3], gaussian)
+        frac = _fit3_numpy(u[h - 1], u[h], u[h + 1], gaussian)
         if broad and gaussian and w >= MIN_BROAD_WINDOW:
-            positive = np.all(u > 0.0, axis=0)
-            lu = np.log(np.where(positive, u, 1.0))
-            x = np.arange(-2.0, 3.0)[:, None]
-            wt = np.where(positive, u, 0.0) ** 2
-            s = [np.sum(wt * x**p, axis=0) for p in range(5)]
-            t = [np.sum(wt * x**p * lu, axis=0) for p in range(3)]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                det = (s[0] * (s[2] * s[4] - s[3] * s[3]) - s[1] * (s[1] * s[4] - s[3] * s[2])
-                       + s[2] * (s[1] * s[3] - s[2] * s[2]))
-                bb = (s[0] * (t[1] * s[4] - s[3] * t[2]) - t[0] * (s[1] * s[4] - s[3] * s[2])
-                      + s[2] * (s[1] * t[2] - t[1] * s[2])) / det
-                cc = (s[0] * (s[2] * t[2] - t[1] * s[3]) - s[1] * (s[1] * t[2] - t[1] * s[2])
-                      + t[0] * (s[1] * s[3] - s[2] * s[2])) / det
-                broad_peak = (cc < 0.0) & (-1.0 / (2.0 * cc) >= BROAD_SIGMA_VOX**2)
-                use = positive & (det != 0.0) & broad_peak
-                frac = np.where(use, -bb / (2.0 * cc), frac)
+            f5, s5, ok5 = _fit_log_numpy(u, h - 2, 5)
+            broad_peak = ok5 & (s5 >= BROAD_SIGMA_VOX**2)
+            frac = np.where(broad_peak, f5, frac)
+            if w >= MIN_WIDE_WINDOW:
+                f7, s7, ok7 = _fit_log_numpy(u, 0, 2 * h + 1)
+                wide = (broad_peak & (s5 >= WIDE_SIGMA_VOX**2) & ok7
+                        & (s7 >= WIDE_SIGMA_VOX**2))
+                frac = np.where(wide, f7, frac)
         disp[:, axis] = lag0 + np.clip(frac, -1.0, 1.0)
     return disp
