@@ -23,8 +23,10 @@ a trapezoid in m: flat across the beam, with ramps one aperture cell wide where 
 sees part of the particle's light. The predicted pixel value is ``A f`` with A the
 particle's amplitude. The refinement moves each particle, from its ray-bundle position, to
 the position whose prediction fits the pixel values around its beam best, by a search on
-grids: a joint depth x lateral grid around the start (near focus depth and lateral position
-trade off), then depth and lateral searches in turn over halving ranges. The misfit is
+grids: joint depth x lateral grids around the start over halving ranges. Near focus depth
+and lateral position trade off along a line through a footprint's corner (an edge of the lit
+patch fixes only the ratio of lateral offset to depth), a valley that searches along one
+axis at a time cross without following it. The misfit is
 one-sided (:func:`refine_positions`): light the particle does not explain, a neighbour's
 whose rays cross its beam, weighs little; light it predicts but that is missing weighs in
 full. So a neighbour's rays (of a particle the reconstruction found or missed) do not pull
@@ -71,8 +73,11 @@ class ForwardSettings:
         ``excess`` times the particle's amplitude (dimensionless, > 0); light missing from a
         pixel the candidate predicts lit counts in full.
     rounds : int
-        After a joint depth x lateral grid search over the full ranges, ``rounds`` pairs of
-        depth and lateral searches, the n-th over ranges halved n - 1 times (>= 1).
+        After a joint depth x lateral grid search over the full ranges, ``rounds`` more joint
+        searches, the n-th over ranges halved n times (>= 1).
+    round_depth_steps : int
+        Depth grid points of each of those later searches (odd, >= 3), times the 5 x 5
+        lateral grid.
     """
 
     depth_range: float = 0.6
@@ -81,16 +86,17 @@ class ForwardSettings:
     margin: float = 1.5
     excess: float = 0.2
     rounds: int = 3
+    round_depth_steps: int = 7
 
     def __post_init__(self):
         for name in ("depth_range", "lateral_range", "excess"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"forward {name} = {v!r}: expected a number > 0")
-        if (int(self.depth_steps) != self.depth_steps or self.depth_steps < 3
-                or self.depth_steps % 2 == 0):
-            raise ValueError(f"forward depth_steps = {self.depth_steps!r}: expected an odd "
-                             "int >= 3")
+        for name in ("depth_steps", "round_depth_steps"):
+            v = getattr(self, name)
+            if int(v) != v or v < 3 or v % 2 == 0:
+                raise ValueError(f"forward {name} = {v!r}: expected an odd int >= 3")
         if int(self.rounds) != self.rounds or self.rounds < 1:
             raise ValueError(f"forward rounds = {self.rounds!r}: expected an int >= 1")
         if not (np.isfinite(self.margin) and self.margin >= 1):
@@ -181,10 +187,10 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     epsilon A. A is the median of ``v_i / f_i`` over the pixels the current position lights
     at least half, updated before each search. The pixels i are all pixels (lit or dark)
     whose chief ray passes within ``margin`` half beam widths of the start, widened by the
-    drift ``R/S_o x depth range`` of the steepest ray. The search is on grids: the last
-    depth step is ``2 depth_range / (depth_steps - 1) / 2^(rounds - 1)`` cells (0.025 by
-    default, 14 µm at a 0.55 mm cell), the last lateral step ``lateral_range / 2^rounds``
-    footprints (1/32).
+    drift ``R/S_o x depth range`` of the steepest ray. The search is on joint depth x
+    lateral grids: the last depth step is ``2 depth_range / (round_depth_steps - 1) /
+    2^rounds`` cells (0.025 by default, 14 µm at a 0.55 mm cell), the last lateral step
+    ``lateral_range / 2^(rounds + 1)`` footprints (1/64).
     """
     img = checked_image(lf, image, engine)
     start = np.asarray(start, float).reshape(-1, 3)
@@ -203,28 +209,34 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     dl = settings.lateral_range * lf.footprint
     ptr = np.concatenate([[0], np.cumsum(np.bincount(pid, minlength=n))]).astype(np.int64)
     search = _best_offset_numba if engine == "numba" else _best_offset
-    for offsets in _schedule(dz, dl, settings.depth_steps, settings.rounds):
+    for offsets in _schedule(dz, dl, settings.depth_steps, settings.rounds,
+                             settings.round_depth_steps):
         amp = _robust_amplitude(pid, beam_fraction(u, xf, pos[pid], **geom), v, n)
         pos = pos + search(ptr, u, xf, v, amp, pos, offsets, geom, settings.excess)
     amp = _robust_amplitude(pid, beam_fraction(u, xf, pos[pid], **geom), v, n)
     return pos, amp
 
 
-def _schedule(depth_range, lateral_range, depth_steps, rounds):
+def _schedule(depth_range, lateral_range, depth_steps, rounds, round_depth_steps=7):
     """Return the searches of the refinement: offsets (K, 3), metres, ranges halving.
 
-    The first search is joint (depth x lateral grid: near focus depth and lateral position
-    trade off), the next ones alternate depth and lateral. The zero offset is row K // 2.
+    Every search is a joint depth x lateral grid (near focus depth and lateral position
+    trade off along a slanted valley): the first over the full ranges with ``depth_steps``
+    depths, the r-th of the ``rounds`` after it over ranges halved r times with
+    ``round_depth_steps``. The zero offset is row K // 2.
     """
+    out = [_joint_grid(depth_range, lateral_range, depth_steps)]
+    for r in range(1, rounds + 1):
+        h = 0.5 ** r
+        out.append(_joint_grid(depth_range * h, lateral_range * h, round_depth_steps))
+    return out
+
+
+def _joint_grid(depth_range, lateral_range, depth_steps):
+    """Offsets (25 depth_steps, 3), metres: the 5 x 5 lateral grid at each depth."""
     z = np.linspace(-depth_range, depth_range, depth_steps)
     lat = _grid2(lateral_range)
-    out = [np.column_stack([np.tile(lat, (len(z), 1)), np.repeat(z, len(lat))])]
-    for r in range(rounds):
-        h = 0.5 ** r
-        zr = np.linspace(-depth_range * h, depth_range * h, depth_steps)
-        out.append(np.column_stack([np.zeros((len(zr), 2)), zr]))
-        out.append(np.column_stack([_grid2(lateral_range * h), np.zeros(25)]))
-    return out
+    return np.column_stack([np.tile(lat, (len(z), 1)), np.repeat(z, len(lat))])
 
 
 def _grid2(step):
