@@ -209,51 +209,49 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     dl = settings.lateral_range * lf.footprint
     ptr = np.concatenate([[0], np.cumsum(np.bincount(pid, minlength=n))]).astype(np.int64)
     search = _best_offset_numba if engine == "numba" else _best_offset
-    for offsets in _schedule(dz, dl, settings.depth_steps, settings.rounds,
-                             settings.round_depth_steps):
+    for depth, lateral in _schedule(dz, dl, settings.depth_steps, settings.rounds,
+                                    settings.round_depth_steps):
         amp = _robust_amplitude(pid, beam_fraction(u, xf, pos[pid], **geom), v, n)
-        pos = pos + search(ptr, u, xf, v, amp, pos, offsets, geom, settings.excess)
+        pos = pos + search(ptr, u, xf, v, amp, pos, depth, lateral, geom, settings.excess)
     amp = _robust_amplitude(pid, beam_fraction(u, xf, pos[pid], **geom), v, n)
     return pos, amp
 
 
 def _schedule(depth_range, lateral_range, depth_steps, rounds, round_depth_steps=7):
-    """Return the searches of the refinement: offsets (K, 3), metres, ranges halving.
+    """Return the searches of the refinement: ``(depth (nz,), lateral (5,))`` offsets, m.
 
-    Every search is a joint depth x lateral grid (near focus depth and lateral position
-    trade off along a slanted valley): the first over the full ranges with ``depth_steps``
-    depths, the r-th of the ``rounds`` after it over ranges halved r times with
-    ``round_depth_steps``. The zero offset is row K // 2.
+    Every search is a joint depth x lateral grid (:func:`_grid_offsets`; near focus depth
+    and lateral position trade off along a slanted valley): the first over the full ranges
+    with ``depth_steps`` depths, the r-th of the ``rounds`` after it over ranges halved r
+    times with ``round_depth_steps``.
     """
-    out = [_joint_grid(depth_range, lateral_range, depth_steps)]
+    out = [(np.linspace(-depth_range, depth_range, depth_steps),
+            np.linspace(-lateral_range, lateral_range, 5))]
     for r in range(1, rounds + 1):
         h = 0.5 ** r
-        out.append(_joint_grid(depth_range * h, lateral_range * h, round_depth_steps))
+        out.append((np.linspace(-depth_range * h, depth_range * h, round_depth_steps),
+                    np.linspace(-lateral_range * h, lateral_range * h, 5)))
     return out
 
 
-def _joint_grid(depth_range, lateral_range, depth_steps):
-    """Offsets (25 depth_steps, 3), metres: the 5 x 5 lateral grid at each depth."""
-    z = np.linspace(-depth_range, depth_range, depth_steps)
-    lat = _grid2(lateral_range)
-    return np.column_stack([np.tile(lat, (len(z), 1)), np.repeat(z, len(lat))])
+def _grid_offsets(depth, lateral):
+    """Offsets (K, 3), metres, of the joint grid: row ``(iz n_l + ix) n_l + iy``.
+
+    ``(lateral[ix], lateral[iy], depth[iz])``; with odd lengths the zero offset is row K // 2.
+    """
+    gz, gx, gy = np.meshgrid(depth, lateral, lateral, indexing="ij")
+    return np.column_stack([gx.ravel(), gy.ravel(), gz.ravel()])
 
 
-def _grid2(step):
-    """Offsets (25, 2) of a 5 x 5 lateral grid from ``-step`` to ``step``."""
-    a = np.linspace(-step, step, 5)
-    gx, gy = np.meshgrid(a, a, indexing="ij")
-    return np.column_stack([gx.ravel(), gy.ravel()])
+def _best_offset(ptr, u, xf, v, amp, pos, depth, lateral, geom, excess):
+    """Return the offset of least misfit of each particle on a joint grid (:func:`_grid_offsets`).
 
-
-def _best_offset(ptr, u, xf, v, amp, pos, offsets, geom, excess):
-    """Return the offset (row of ``offsets`` (K, 3)) of least misfit of each particle.
-
-    NumPy twin of :func:`plenopiv.tracking._kernels.best_offsets`. Misfit:
+    NumPy twin of :func:`plenopiv.tracking._kernels.best_grid_offsets`. Misfit:
     ``sum_i rho(v_i - A f_i)`` with ``rho(r) = r^2`` for r <= 0 (predicted light missing)
     and ``min(r, excess A)^2`` for r > 0 (unexplained light, capped); the zero offset
     (row K // 2) is tried first and kept on ties.
     """
+    offsets = _grid_offsets(depth, lateral)
     n = len(pos)
     pid = np.repeat(np.arange(n), np.diff(ptr))
     best = np.full(n, np.inf)
@@ -269,14 +267,14 @@ def _best_offset(ptr, u, xf, v, amp, pos, offsets, geom, excess):
     return choice
 
 
-def _best_offset_numba(ptr, u, xf, v, amp, pos, offsets, geom, excess):
+def _best_offset_numba(ptr, u, xf, v, amp, pos, depth, lateral, geom, excess):
     """Return :func:`_best_offset` by the compiled kernel."""
     from plenopiv.tracking import _kernels as _k
 
     choice = np.zeros((len(pos), 3))
-    c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, amp, pos, offsets)]
-    _k.best_offsets(ptr, *c, float(geom["object_distance"]), float(geom["cell"]),
-                    float(geom["footprint"]), float(excess), choice)
+    c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, amp, pos, depth, lateral)]
+    _k.best_grid_offsets(ptr, *c, float(geom["object_distance"]), float(geom["cell"]),
+                         float(geom["footprint"]), float(excess), choice)
     return choice
 
 
