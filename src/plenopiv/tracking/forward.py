@@ -46,7 +46,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plenopiv.lightfield import LightField
-from plenopiv.tracking.bundle import ENGINES, checked_image
+from plenopiv.tracking.bundle import ENGINES, _lenslet_table, checked_image
 
 __all__ = ["ENGINES", "ForwardSettings", "beam_fraction", "refine_positions"]
 
@@ -154,7 +154,8 @@ def beam_fraction(u, focal_point, point, *, object_distance: float, cell: float,
 
 def refine_positions(lf: LightField, image, start, *, depth_cell: float,
                      settings: ForwardSettings = ForwardSettings(),
-                     engine: str = "numba") -> tuple[np.ndarray, np.ndarray]:
+                     engine: str = "numba", chunk_pixels: int = 1 << 22
+                     ) -> tuple[np.ndarray, np.ndarray]:
     r"""Refine particle positions to those whose predicted pixel values fit the image best.
 
     Parameters
@@ -169,6 +170,9 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     settings : ForwardSettings
     engine : {"numba", "numpy"}
         The compiled search (default) or its plain NumPy twin (same estimator).
+    chunk_pixels : int
+        Particles are refined in runs of about this many candidate pixels (memory only; a
+        far-from-focus particle of a 16 MP camera has ~10^5).
 
     Returns
     -------
@@ -200,12 +204,24 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     if not np.isfinite(start).all():
         raise ValueError("start positions contain NaN or infinity")
     values = lf.values(img).astype(np.float64)
-    pid, ray = _pixels(lf, start, settings.margin, settings.depth_range * depth_cell)
+    index = _lenslet_index(lf)
+    dz = settings.depth_range * depth_cell
+    pos, amp = start.copy(), np.zeros(n)
+    # particles in chunks of a bounded number of candidate pixels (memory only: each
+    # particle's search is independent)
+    for sl in _chunks(lf, index, start, settings.margin, dz, chunk_pixels):
+        pos[sl], amp[sl] = _refine_chunk(lf, index, values, start[sl], dz, settings, engine)
+    return pos, amp
+
+
+def _refine_chunk(lf, index, values, start, dz, settings, engine):
+    """Return :func:`refine_positions` (positions, amplitudes) of some particles."""
+    n = len(start)
+    pid, ray = _pixels(lf, index, start, settings.margin, dz)
     v = values[ray]
     geom = dict(object_distance=lf.object_distance, cell=lf.cell, footprint=lf.footprint)
     u, xf = lf.u[ray], lf.focal_plane_position[ray]
     pos = start.copy()
-    dz = settings.depth_range * depth_cell
     dl = settings.lateral_range * lf.footprint
     ptr = np.concatenate([[0], np.cumsum(np.bincount(pid, minlength=n))]).astype(np.int64)
     search = _best_offset_numba if engine == "numba" else _best_offset
@@ -292,20 +308,46 @@ def _robust_amplitude(pid, f, v, n):
     return np.maximum(med, 0.0)
 
 
-def _pixels(lf: LightField, start, margin: float, depth_range: float):
-    """(particle, ray) of every pixel whose chief ray passes near a particle's beam."""
+def _lenslet_index(lf: LightField):
+    """Rays by lenslet: ``(order, ptr, lenslet ids with rays, KD-tree of their X_f)``."""
+    order, ptr, conj, has = _lenslet_table(lf)
+    return order, ptr, np.flatnonzero(has), cKDTree(conj[has])
+
+
+def _reach(lf: LightField, start, margin: float, depth_range: float):
+    """Return ``(t, radius, reach)`` of each particle's pixel selection (metres).
+
+    A pixel is taken when its chief ray passes within ``radius`` of the start at its depth;
+    its lenslet's conjugate then lies within ``reach`` of ``start / t`` on the focal plane.
+    """
     so, ap = lf.object_distance, lf.aperture_radius
-    order = np.argsort(lf.lenslet, kind="stable")
-    nk = int(lf.lenslet.max()) + 1
-    ptr = np.searchsorted(lf.lenslet[order], np.arange(nk + 1))
-    has = ptr[1:] > ptr[:-1]
-    lens_ids = np.flatnonzero(has)
-    conj = lf.focal_plane_position[order[ptr[:-1][has]]]
-    tree = cKDTree(conj)
     t = (so + start[:, 2]) / so
     half = 0.5 * (lf.footprint * np.abs(t) + lf.cell * np.abs(1.0 - t))
     radius = margin * half + ap / so * depth_range
-    reach = (ap * np.abs(1.0 - t) + radius) / np.abs(t)
+    return t, radius, (ap * np.abs(1.0 - t) + radius) / np.abs(t)
+
+
+def _chunks(lf: LightField, index, start, margin: float, depth_range: float,
+            budget: int) -> list[slice]:
+    """Split the particles into runs whose candidate pixels stay near ``budget``.
+
+    A particle's candidates are all pixels of the lenslets within its reach (before the
+    per-pixel test of :func:`_pixels`); a run holds at least one particle.
+    """
+    _, ptr, lens_ids, tree = index
+    t, _, reach = _reach(lf, start, margin, depth_range)
+    per_lens = float(np.diff(ptr)[lens_ids].mean()) if len(lens_ids) else 0.0
+    cost = tree.query_ball_point(start[:, :2] / t[:, None], reach, return_length=True)
+    run = np.floor_divide(np.cumsum(np.asarray(cost, float) * per_lens), max(budget, 1))
+    edges = np.flatnonzero(np.diff(run)) + 1
+    bounds = np.concatenate([[0], edges, [len(start)]]).astype(int)
+    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
+def _pixels(lf: LightField, index, start, margin: float, depth_range: float):
+    """(particle, ray) of every pixel whose chief ray passes near a particle's beam."""
+    order, ptr, lens_ids, tree = index
+    t, radius, reach = _reach(lf, start, margin, depth_range)
     lists = tree.query_ball_point(start[:, :2] / t[:, None], reach)
     counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
     if counts.sum() == 0:
