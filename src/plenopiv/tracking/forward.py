@@ -220,7 +220,7 @@ def _refine_chunk(lf, index, values, start, dz, settings, engine):
     pid, ray = _pixels(lf, index, start, settings.margin, dz)
     v = values[ray]
     geom = dict(object_distance=lf.object_distance, cell=lf.cell, footprint=lf.footprint)
-    u, xf = lf.u[ray], lf.focal_plane_position[ray]
+    u, xf = lf.u[ray], index[4][ray]
     pos = start.copy()
     dl = settings.lateral_range * lf.footprint
     ptr = np.concatenate([[0], np.cumsum(np.bincount(pid, minlength=n))]).astype(np.int64)
@@ -309,9 +309,13 @@ def _robust_amplitude(pid, f, v, n):
 
 
 def _lenslet_index(lf: LightField):
-    """Rays by lenslet: ``(order, ptr, lenslet ids with rays, KD-tree of their X_f)``."""
+    """Rays by lenslet: ``(order, ptr, lenslet ids with rays, KD-tree of their X_f, X_f)``.
+
+    The last is every ray's focal-plane point (P, 2), metres (computed once: the light
+    field derives it on each access).
+    """
     order, ptr, conj, has = _lenslet_table(lf)
-    return order, ptr, np.flatnonzero(has), cKDTree(conj[has])
+    return order, ptr, np.flatnonzero(has), cKDTree(conj[has]), lf.focal_plane_position
 
 
 def _reach(lf: LightField, start, margin: float, depth_range: float):
@@ -334,7 +338,7 @@ def _chunks(lf: LightField, index, start, margin: float, depth_range: float,
     A particle's candidates are all pixels of the lenslets within its reach (before the
     per-pixel test of :func:`_pixels`); a run holds at least one particle.
     """
-    _, ptr, lens_ids, tree = index
+    _, ptr, lens_ids, tree, _ = index
     t, _, reach = _reach(lf, start, margin, depth_range)
     per_lens = float(np.diff(ptr)[lens_ids].mean()) if len(lens_ids) else 0.0
     cost = tree.query_ball_point(start[:, :2] / t[:, None], reach, return_length=True)
@@ -346,7 +350,7 @@ def _chunks(lf: LightField, index, start, margin: float, depth_range: float,
 
 def _pixels(lf: LightField, index, start, margin: float, depth_range: float):
     """(particle, ray) of every pixel whose chief ray passes near a particle's beam."""
-    order, ptr, lens_ids, tree = index
+    order, ptr, lens_ids, tree, xf_all = index
     t, radius, reach = _reach(lf, start, margin, depth_range)
     lists = tree.query_ball_point(start[:, :2] / t[:, None], reach)
     counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
@@ -358,7 +362,7 @@ def _pixels(lf: LightField, index, start, margin: float, depth_range: float):
     pid = np.repeat(pid, n_r)
     first = np.repeat(ptr[lens] - (np.cumsum(n_r) - n_r), n_r)
     ray = order[first + np.arange(len(first))]
-    xy = lf.u[ray] * (1.0 - t[pid, None]) + lf.focal_plane_position[ray] * t[pid, None]
+    xy = lf.u[ray] * (1.0 - t[pid, None]) + xf_all[ray] * t[pid, None]
     # a square beam: the larger of the two lateral misses
     miss = np.abs(xy - start[pid, :2]).max(axis=1)
     keep = miss <= radius[pid]
