@@ -246,6 +246,12 @@ def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng):
     np.testing.assert_allclose(res["numba"][0], res["numpy"][0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(res["numba"][1], res["numpy"][1], rtol=1e-12)
     assert np.abs(res["numba"][0] - start).max() > 0        # the search moved something
+    # the compiled pixel selection and its twin take the same pixels in the same order
+    from plenopiv.tracking.forward import _lenslet_index, _pixels
+    index = _lenslet_index(lf)
+    for eng_a, eng_b in zip(_pixels(lf, index, start, 1.5, 0.3e-3, "numba"),
+                            _pixels(lf, index, start, 1.5, 0.3e-3, "numpy"), strict=True):
+        np.testing.assert_array_equal(eng_a, eng_b)
     # one particle per run of pixels: each particle's search is its own
     one = refine_positions(lf, img, start, depth_cell=cell, chunk_pixels=1)
     np.testing.assert_array_equal(one[0], res["numba"][0])

@@ -290,3 +290,33 @@ def best_grid_offsets(ptr, u, xf, v, amp, pos, depth, lateral, so, cell, footpri
                 choice[p, 0] = lateral[jx]
                 choice[p, 1] = lateral[k % nl]
                 choice[p, 2] = depth[iz]
+
+
+@numba.njit(cache=True, parallel=True)
+def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, count_only, out_ptr, out):
+    """Rays (indices into the lenslet-sorted arrays) whose chief ray passes near a particle.
+
+    Particle p's candidate lenslets are ``cand[cptr[p]:cptr[p + 1]]``; lenslet k's rays are
+    ``rptr[k]:rptr[k + 1]`` of ``u``, ``xf`` (sorted by lenslet). A ray is kept when at the
+    particle's depth (``t[p] = (S_o + Z)/S_o``) it passes within ``radius[p]`` of ``start[p]``
+    along x and along y (a square beam). With ``count_only`` the kept rays per particle go to
+    ``out_ptr[p]``; otherwise they are written to ``out[out_ptr[p]:out_ptr[p + 1]]`` in
+    candidate then ray order (the NumPy twin: ``plenopiv.tracking.forward._pixels_numpy``).
+    """
+    for p in numba.prange(start.shape[0]):
+        tp = t[p]
+        n = 0
+        w = 0 if count_only else out_ptr[p]
+        for c in range(cptr[p], cptr[p + 1]):
+            k = cand[c]
+            for i in range(rptr[k], rptr[k + 1]):
+                dx = abs(u[i, 0] * (1.0 - tp) + xf[i, 0] * tp - start[p, 0])
+                dy = abs(u[i, 1] * (1.0 - tp) + xf[i, 1] * tp - start[p, 1])
+                if max(dx, dy) <= radius[p]:
+                    if count_only:
+                        n += 1
+                    else:
+                        out[w] = i
+                        w += 1
+        if count_only:
+            out_ptr[p] = n
