@@ -320,3 +320,19 @@ def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, count_only, out_ptr, 
                         w += 1
         if count_only:
             out_ptr[p] = n
+
+
+@numba.njit(cache=True, parallel=True)
+def pixel_fractions(ptr, u, xf, pos, so, cell, footprint, out):
+    """Set ``out[i]`` to :func:`plenopiv.tracking.forward.beam_fraction` of pixel i.
+
+    Pixels ``ptr[p]:ptr[p + 1]`` of ``u``, ``xf`` (P, 2) belong to particle p at ``pos[p]``.
+    """
+    for p in numba.prange(pos.shape[0]):
+        t = (so + pos[p, 2]) / so
+        wa = max(cell * abs(1.0 - t), 1e-9 * cell)
+        wb = footprint * abs(t)
+        for i in range(ptr[p], ptr[p + 1]):
+            ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - pos[p, 0], wa, wb)
+            oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - pos[p, 1], wa, wb)
+            out[i] = ox * oy / (wa * wa)

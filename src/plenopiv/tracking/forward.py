@@ -225,12 +225,30 @@ def _refine_chunk(lf, index, values, start, dz, settings, engine):
     dl = settings.lateral_range * lf.footprint
     ptr = np.concatenate([[0], np.cumsum(np.bincount(pid, minlength=n))]).astype(np.int64)
     search = _best_offset_numba if engine == "numba" else _best_offset
+    fractions = _fractions_numba if engine == "numba" else _fractions
     for depth, lateral in _schedule(dz, dl, settings.depth_steps, settings.rounds,
                                     settings.round_depth_steps):
-        amp = _robust_amplitude(pid, beam_fraction(u, xf, pos[pid], **geom), v, n)
+        amp = _robust_amplitude(pid, fractions(ptr, pid, u, xf, pos, geom), v, n)
         pos = pos + search(ptr, u, xf, v, amp, pos, depth, lateral, geom, settings.excess)
-    amp = _robust_amplitude(pid, beam_fraction(u, xf, pos[pid], **geom), v, n)
+    amp = _robust_amplitude(pid, fractions(ptr, pid, u, xf, pos, geom), v, n)
     return pos, amp
+
+
+def _fractions(ptr, pid, u, xf, pos, geom):
+    """:func:`beam_fraction` of every pixel for its particle's position (NumPy twin)."""
+    return beam_fraction(u, xf, pos[pid], **geom)
+
+
+def _fractions_numba(ptr, pid, u, xf, pos, geom):
+    """Return :func:`_fractions` by the compiled kernel."""
+    from plenopiv.tracking import _kernels as _k
+
+    out = np.empty(len(pid))
+    _k.pixel_fractions(ptr, np.ascontiguousarray(u, np.float64),
+                       np.ascontiguousarray(xf, np.float64),
+                       np.ascontiguousarray(pos, np.float64), float(geom["object_distance"]),
+                       float(geom["cell"]), float(geom["footprint"]), out)
+    return out
 
 
 def _schedule(depth_range, lateral_range, depth_steps, rounds, round_depth_steps=7):
