@@ -163,6 +163,36 @@ def test_beam_fraction_is_the_share_of_lines_through_the_aperture_cell(rng):
         assert abs(f - mc) < 0.015, (p, f, mc)
 
 
+def test_a_particle_seen_through_two_by_two_lenslets_has_no_depth_in_the_image(
+        thesis_light_field):
+    """The reason for ``[tracking] min_lenslets = 6``.
+
+    Near focus a particle's light falls in the 2 x 2 lenslets around a footprint corner X_c;
+    the edge of its lit patch in a micro-image is the aperture point u = X_c - s S_o, s the
+    slope (x - X_c)/Z of the line from the corner to the particle. Every point of that line
+    lights the same pixels to the same fractions: two depths 0.2 mm apart (1.6 footprints)
+    predict the same image to rounding. Off focus (the particle seen through ~20 lenslets,
+    each with two edges) the same depth step changes the prediction by most of a pixel.
+    """
+    _, _, lf = thesis_light_field
+    b, so = lf.footprint, lf.object_distance
+    xf = lf.focal_plane_position
+    corner = xf[np.argmin(np.hypot(*xf.T))] + 0.5 * b
+    slope = np.array([0.03, -0.02])     # within the aperture's R/S_o = 0.11
+    geom = dict(object_distance=so, cell=lf.cell, footprint=b)
+
+    def fraction(z):
+        return beam_fraction(lf.u, xf, np.array([*(corner + slope * z), z]), **geom)
+
+    for z1, z2 in ((0.15e-3, 0.35e-3), (-0.15e-3, -0.35e-3)):
+        f1, f2 = fraction(z1), fraction(z2)
+        assert len(np.unique(lf.lenslet[f1 > 0])) == len(np.unique(lf.lenslet[f2 > 0])) == 4
+        np.testing.assert_allclose(f1, f2, rtol=0, atol=1e-9)
+    f1, f2 = fraction(2e-3), fraction(2.2e-3)
+    assert len(np.unique(lf.lenslet[f1 > 0])) > 6
+    assert np.abs(f1 - f2).max() > 0.5
+
+
 @pytest.mark.parametrize(("neighbour_offset_b", "neighbour_dz"), [(1.0, -2e-3), (1.0, 1e-3)])
 def test_refined_position_is_not_pulled_by_a_missed_neighbour(thesis_light_field,
                                                               neighbour_offset_b, neighbour_dz):
@@ -217,6 +247,16 @@ def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng):
     np.testing.assert_allclose(res["numba"][0], res["numpy"][0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(res["numba"][1], res["numpy"][1], rtol=1e-12)
     assert np.abs(res["numba"][0] - start).max() > 0        # the search moved something
+    # the compiled pixel selection and its twin take the same pixels in the same order
+    from plenopiv.tracking.forward import _lenslet_index, _pixels
+    index = _lenslet_index(lf)
+    for eng_a, eng_b in zip(_pixels(lf, index, start, 1.5, 0.3e-3, "numba"),
+                            _pixels(lf, index, start, 1.5, 0.3e-3, "numpy"), strict=True):
+        np.testing.assert_array_equal(eng_a, eng_b)
+    # one particle per run of pixels: each particle's search is its own
+    one = refine_positions(lf, img, start, depth_cell=cell, chunk_pixels=1)
+    np.testing.assert_array_equal(one[0], res["numba"][0])
+    np.testing.assert_array_equal(one[1], res["numba"][1])
     with pytest.raises(ValueError, match="engine"):
         refine_positions(lf, img, start, depth_cell=cell, engine="cuda")
 
@@ -232,6 +272,7 @@ def test_refinement_of_a_dark_image_keeps_the_start(thesis_light_field):
 def test_forward_settings_name_the_bad_value():
     for kw, name in (({"depth_range": 0}, "depth_range"), ({"depth_steps": 4}, "depth_steps"),
                      ({"excess": -1}, "excess"), ({"rounds": 0}, "rounds"),
+                     ({"round_depth_steps": 6}, "round_depth_steps"),
                      ({"margin": 0.5}, "margin")):
         with pytest.raises(ValueError, match=name):
             ForwardSettings(**kw)
@@ -439,8 +480,8 @@ def test_tracking_in_a_batch_pair_and_its_config(tmp_path):
     with h5py.File(tmp_path / "p1_tracks.h5", "r") as fh:
         assert fh["/displacement_m"].shape == (s["n_tracks"], 3)
         assert json.loads(fh.attrs["config"])["tracking"]["enabled"] is True
-        # the default min_lenslets = 2: no kept end was seen through a single lenslet
-        assert fh["/n_lenslets_a"][()].min() >= 2 and fh["/n_lenslets_b"][()].min() >= 2
+        # the default min_lenslets = 6: no kept end was seen through 2 x 2 lenslets or fewer
+        assert fh["/n_lenslets_a"][()].min() >= 6 and fh["/n_lenslets_b"][()].min() >= 6
         assert fh.attrs["count_rejected_few_lenslets"] >= 0
         assert fh.attrs["count_tracks"] == s["n_tracks"]
     (tmp_path / "bad.toml").write_text(text + "search_radius = 2\n")

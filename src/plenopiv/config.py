@@ -333,8 +333,10 @@ class TrackingConfig(_Strict):
     forward_refine : move each bundle position to the one whose predicted pixel values fit
         the image best (:mod:`plenopiv.tracking.forward`) (true).
     min_lenslets : a track is kept when both its ends were seen through at least this many
-        lenslets (2: a particle seen through one lenslet is lit at any depth within its depth
-        of field, so the image holds no depth for it; 1 keeps every track).
+        lenslets (6: a particle seen through one lenslet is lit at any depth within its depth
+        of field; through up to 2 x 2 lenslets the edges of its lit patches fix the ratio of
+        lateral offset to depth only, so the image holds no depth for it; 1 keeps every
+        track).
     """
 
     enabled: bool = False
@@ -344,7 +346,7 @@ class TrackingConfig(_Strict):
     bundle_radius: float = Field(1.5, gt=0, allow_inf_nan=False)
     bundle_iterations: int = Field(4, ge=1)
     forward_refine: bool = True
-    min_lenslets: int = Field(2, ge=1)
+    min_lenslets: int = Field(6, ge=1)
 
 
 class _ExperimentCfg(_Strict):

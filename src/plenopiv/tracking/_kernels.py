@@ -241,37 +241,98 @@ def _overlap(m, wa, wb):
 
 
 @numba.njit(cache=True, parallel=True)
-def best_offsets(ptr, u, xf, v, amp, pos, offsets, so, cell, footprint, excess, choice):
-    """Set ``choice[p]`` to the offset (row of ``offsets`` (K, 3)) of least misfit.
+def best_grid_offsets(ptr, u, xf, v, amp, pos, depth, lateral, so, cell, footprint, excess,
+                      choice):
+    """Set ``choice[p]`` to the offset of least misfit on a joint depth x lateral grid.
 
-    Pixels ``ptr[p]:ptr[p + 1]`` of ``u``, ``xf`` (P, 2), ``v`` (P,) belong to particle p;
-    the misfit is that of :func:`plenopiv.tracking.forward.refine_positions` with the
-    amplitude ``amp[p]``; offset ``K // 2`` (zero) is tried first and kept on ties.
+    The grid is every ``(lateral[ix], lateral[iy], depth[iz])``, row ``k = (iz n_l + ix) n_l
+    + iy`` of :func:`plenopiv.tracking.forward._grid_offsets` (n_l = len(lateral), odd;
+    len(depth) odd): the zero offset is row K // 2, tried first and kept on ties. Pixels
+    ``ptr[p]:ptr[p + 1]`` of ``u``, ``xf`` (P, 2), ``v`` (P,) belong to particle p; the misfit
+    is that of :func:`plenopiv.tracking.forward.refine_positions` with the amplitude
+    ``amp[p]``. A pixel's overlap along x depends on the x offset and the depth only (along y
+    likewise), so each depth computes ``2 n_l`` overlaps per pixel for its ``n_l²`` offsets.
     """
-    n_off = offsets.shape[0]
+    nl = lateral.shape[0]
+    nz = depth.shape[0]
+    n_off = nz * nl * nl
     centre = n_off // 2
     for p in numba.prange(pos.shape[0]):
-        best = np.inf
         a = amp[p]
         cap = excess * a
-        for j in range(n_off):
-            k = centre if j == 0 else (j - 1 if j <= centre else j)
-            x = pos[p, 0] + offsets[k, 0]
-            y = pos[p, 1] + offsets[k, 1]
-            z = pos[p, 2] + offsets[k, 2]
-            t = (so + z) / so
+        cost = np.zeros(n_off)
+        ox = np.empty(nl)
+        oy = np.empty(nl)
+        for iz in range(nz):
+            t = (so + (pos[p, 2] + depth[iz])) / so
             wa = max(cell * abs(1.0 - t), 1e-9 * cell)
             wb = footprint * abs(t)
-            cost = 0.0
+            base = iz * nl * nl
             for i in range(ptr[p], ptr[p + 1]):
-                ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - x, wa, wb)
-                oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - y, wa, wb)
-                r = v[i] - a * (ox * oy / (wa * wa))
-                if r > 0.0:
-                    r = min(r, cap)
-                cost += r * r
-            if cost < best:
-                best = cost
-                choice[p, 0] = offsets[k, 0]
-                choice[p, 1] = offsets[k, 1]
-                choice[p, 2] = offsets[k, 2]
+                mx = u[i, 0] * (1.0 - t) + xf[i, 0] * t
+                my = u[i, 1] * (1.0 - t) + xf[i, 1] * t
+                for j in range(nl):
+                    ox[j] = _overlap(mx - (pos[p, 0] + lateral[j]), wa, wb)
+                    oy[j] = _overlap(my - (pos[p, 1] + lateral[j]), wa, wb)
+                for jx in range(nl):
+                    for jy in range(nl):
+                        r = v[i] - a * (ox[jx] * oy[jy] / (wa * wa))
+                        if r > 0.0:
+                            r = min(r, cap)
+                        cost[base + jx * nl + jy] += r * r
+        best = np.inf
+        for j in range(n_off):
+            k = centre if j == 0 else (j - 1 if j <= centre else j)
+            if cost[k] < best:
+                best = cost[k]
+                iz = k // (nl * nl)
+                jx = (k // nl) % nl
+                choice[p, 0] = lateral[jx]
+                choice[p, 1] = lateral[k % nl]
+                choice[p, 2] = depth[iz]
+
+
+@numba.njit(cache=True, parallel=True)
+def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, count_only, out_ptr, out):
+    """Rays (indices into the lenslet-sorted arrays) whose chief ray passes near a particle.
+
+    Particle p's candidate lenslets are ``cand[cptr[p]:cptr[p + 1]]``; lenslet k's rays are
+    ``rptr[k]:rptr[k + 1]`` of ``u``, ``xf`` (sorted by lenslet). A ray is kept when at the
+    particle's depth (``t[p] = (S_o + Z)/S_o``) it passes within ``radius[p]`` of ``start[p]``
+    along x and along y (a square beam). With ``count_only`` the kept rays per particle go to
+    ``out_ptr[p]``; otherwise they are written to ``out[out_ptr[p]:out_ptr[p + 1]]`` in
+    candidate then ray order (the NumPy twin: ``plenopiv.tracking.forward._pixels_numpy``).
+    """
+    for p in numba.prange(start.shape[0]):
+        tp = t[p]
+        n = 0
+        w = 0 if count_only else out_ptr[p]
+        for c in range(cptr[p], cptr[p + 1]):
+            k = cand[c]
+            for i in range(rptr[k], rptr[k + 1]):
+                dx = abs(u[i, 0] * (1.0 - tp) + xf[i, 0] * tp - start[p, 0])
+                dy = abs(u[i, 1] * (1.0 - tp) + xf[i, 1] * tp - start[p, 1])
+                if max(dx, dy) <= radius[p]:
+                    if count_only:
+                        n += 1
+                    else:
+                        out[w] = i
+                        w += 1
+        if count_only:
+            out_ptr[p] = n
+
+
+@numba.njit(cache=True, parallel=True)
+def pixel_fractions(ptr, u, xf, pos, so, cell, footprint, out):
+    """Set ``out[i]`` to :func:`plenopiv.tracking.forward.beam_fraction` of pixel i.
+
+    Pixels ``ptr[p]:ptr[p + 1]`` of ``u``, ``xf`` (P, 2) belong to particle p at ``pos[p]``.
+    """
+    for p in numba.prange(pos.shape[0]):
+        t = (so + pos[p, 2]) / so
+        wa = max(cell * abs(1.0 - t), 1e-9 * cell)
+        wb = footprint * abs(t)
+        for i in range(ptr[p], ptr[p + 1]):
+            ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - pos[p, 0], wa, wb)
+            oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - pos[p, 1], wa, wb)
+            out[i] = ox * oy / (wa * wa)

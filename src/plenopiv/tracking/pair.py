@@ -88,22 +88,24 @@ class TrackResult:
 
 def physical_bundle(lf: LightField, image, volume: VolumeResult,
                     settings: BundleSettings, depth_cell: float,
-                    forward: ForwardSettings | None = FORWARD
+                    forward: ForwardSettings | None = FORWARD, min_lenslets: int = 2
                     ) -> tuple[np.ndarray, np.ndarray, BundlePositions]:
     """Bundle positions of a volume's particles, corrected to physical coordinates.
 
     Returns ``(position (N, 3) m, uncertainty (N, 3) m, raw BundlePositions)``; the depth
     and its uncertainty are scaled by the volume's depth correction like the centroids.
-    With ``forward`` (default), the converged bundle positions seen through more than one
-    lenslet are refined by :func:`plenopiv.tracking.forward.refine_positions` (the
-    uncertainty stays the bundle fit's); ``None`` keeps the bundle positions.
+    With ``forward`` (default), the converged bundle positions seen through at least
+    ``min_lenslets`` lenslets (and more than one) are refined by
+    :func:`plenopiv.tracking.forward.refine_positions` (the uncertainty stays the bundle
+    fit's); ``None`` keeps the bundle positions. The others keep their bundle position:
+    :func:`track_pair` drops the tracks they end.
     """
     b = bundle_positions(lf, image, volume.particle_position_effective, settings=settings,
                          depth_cell=depth_cell, brightness=volume.particle_intensity)
     eff = b.position
     # a particle seen through one lenslet lights all its pixels at any depth within the depth
     # of field: the pixel values hold no position to refine
-    sel = b.converged & (b.n_lenslets > 1)
+    sel = b.converged & (b.n_lenslets >= max(2, min_lenslets))
     if forward is not None and sel.any():
         eff = eff.copy()
         eff[sel] = refine_positions(lf, image, eff[sel], depth_cell=depth_cell,
@@ -142,8 +144,8 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
     lat, dep = resolution_cell(calibration.effective_camera, f_number)
     bs = BundleSettings(radius=settings.bundle_radius, iterations=settings.bundle_iterations)
     fs = FORWARD if settings.forward_refine else None
-    pa, ua, ba = physical_bundle(lf, image_a, volume_a, bs, dep, fs)
-    pb, ub, bb = physical_bundle(lf, image_b, volume_b, bs, dep, fs)
+    pa, ua, ba = physical_bundle(lf, image_a, volume_a, bs, dep, fs, settings.min_lenslets)
+    pb, ub, bb = physical_bundle(lf, image_b, volume_b, bs, dep, fs, settings.min_lenslets)
     # only converged fits take part (the others keep their seed and are left out)
     ia_ok, ib_ok = np.flatnonzero(ba.converged), np.flatnonzero(bb.converged)
     scale = np.array([lat, lat, dep * volume_a.correction.scale])
@@ -153,8 +155,9 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
     pred = predict_positions(vectors, pa[ia_ok])
     m = match_particles(pa[ia_ok], pb[ib_ok], pred, scale, settings=ms)
     ia, ib = ia_ok[m.index_a], ib_ok[m.index_b]
-    # an end seen through fewer lenslets has no depth in the image within its depth of field
-    # (one lenslet: lit whatever its depth there) and a lateral position to a footprint only
+    # an end seen through fewer lenslets has no depth in the image: one lenslet is lit
+    # whatever the depth within its depth of field; through up to 2 x 2 lenslets the lit
+    # patch has one edge per axis, which fixes the ratio of lateral offset to depth only
     seen = ((ba.n_lenslets[ia] >= settings.min_lenslets)
             & (bb.n_lenslets[ib] >= settings.min_lenslets))
     counts = {"particles_a": len(pa), "particles_b": len(pb),

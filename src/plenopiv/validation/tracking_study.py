@@ -26,7 +26,13 @@ from scipy.spatial import cKDTree
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.calibration.pipeline import calibrate
-from plenopiv.config import Experiment, ImagesConfig, OutputConfig, PIVConfig
+from plenopiv.config import (
+    Experiment,
+    ImagesConfig,
+    OutputConfig,
+    PIVConfig,
+    TrackingConfig,
+)
 from plenopiv.lightfield import light_field
 from plenopiv.pipeline import process_pair, reconstruct_volume, resolution_cell
 from plenopiv.synthetic.images import (
@@ -264,6 +270,7 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
     nan3 = np.full((len(depths), 3), np.nan)
     cen, bun, sig, ref = nan3.copy(), nan3.copy(), nan3.copy(), nan3.copy()
     n_lens = np.zeros(len(depths), int)
+    seen = max(2, TrackingConfig().min_lenslets)
     for i, z in enumerate(depths):
         x, y = rng.uniform(-offset_vox, offset_vox, 2) * VOXEL
         truth = np.array([x, y, z])
@@ -277,7 +284,7 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
         cen[i] = res.particle_position[k] - truth
         bun[i] = res.correction.points(b.position)[0] - truth
         r = b.position
-        if b.converged[0] and b.n_lenslets[0] > 1:    # as the tracks (tracking.pair)
+        if b.converged[0] and b.n_lenslets[0] >= seen:    # as the tracks (tracking.pair)
             r = refine_positions(lf, img, b.position, depth_cell=cell)[0]
         ref[i] = res.correction.points(r)[0] - truth
         sig[i] = b.uncertainty[0] * np.array([1.0, 1.0, res.correction.scale])
