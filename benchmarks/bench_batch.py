@@ -27,14 +27,28 @@ well below 1. Nothing is asserted; figures are printed.
 per-pair work (:class:`plenopiv.pipeline.ExperimentPairProcess`) on one worker and prints each
 pair's time: the first pair of a worker loads the experiment, the calibration and builds its
 projector (and compiles the kernels), the later ones reuse them.
+
+``--camera auburn_135mm`` runs the pairs on the full-size benchmark camera instead (3280 × 4904
+px, the 287 × 193 × 201-voxel volume of ``benchmarks/full_camera.py`` moved off the footprints
+by (0.37, 0.21) voxels, its 20,000-particle Lamb-Oseen pair, rendered once and cached in
+``benchmarks/_cache/``; every job reads that same pair, so every pair does the same work),
+``--lateral-subdivision`` (default 1: the footprint voxels), its PIV (32³ then 16³ voxels, 3
+passes, 50 % overlap) with ``uncertainty = "correlation"``. ``--no-reuse`` makes every pair
+start from nothing in the same worker process (the experiment, the calibration and the
+projector loaded and built again: what each pair cost before the worker kept them);
+``--compare`` runs the pairs with reuse and then without, in one table. Each row: the pair's
+wall time in the worker, its CPU time (the worker process, all threads) and its
+reconstruction time (projector build included).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import math
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -101,18 +115,33 @@ def run(n_workers: int, n_jobs: int, repeats: int, folder: Path) -> dict:
             "pids": len({r.pid for r in s.results})}
 
 
-def pipeline_pairs(n_pairs: int, folder: Path) -> list[dict]:
-    """Per-pair times of ``plenopiv run``'s work on real pairs, in the order they ran.
+@dataclasses.dataclass(frozen=True)
+class TimedPairProcess:
+    """``plenopiv run``'s per-pair work, timed in the worker (wall and CPU seconds).
 
-    ``n_pairs`` simulated pairs of the small camera (30 particles, 3 mm deep), the default
-    reconstruction (SMART on a laterally subdivided grid: the matrix-free projector, never
-    cached on disk), no weights cache; one worker, one thread. Each row: the pair's wall time
-    in the process and its reconstruction time (``reconstruct_s``, projector included).
+    ``reuse=False`` drops the worker's kept :class:`plenopiv.pipeline.PairProcessor` before
+    every pair, so that each pair loads the experiment and the calibration and builds the
+    projector again, as every pair did before the worker kept them.
     """
+
+    process: object
+    reuse: bool = True
+
+    def __call__(self, job) -> dict:
+        from plenopiv import pipeline
+
+        if not self.reuse:
+            pipeline._WORKER_PROCESSOR.clear()
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = self.process(job)
+        return {**out, "pair_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+
+
+def small_camera_case(n_pairs: int, folder: Path) -> None:
+    """Calibration, ``n_pairs`` simulated pairs and the experiment of the small camera."""
     from plenopiv.calibration.model import Calibration
     from plenopiv.camera import load_camera
     from plenopiv.cli import main as cli
-    from plenopiv.pipeline import ExperimentPairProcess
 
     Calibration.from_camera(load_camera("small_m1")).save(folder / "cal.h5")
     (folder / "pairs").mkdir()
@@ -125,19 +154,81 @@ def pipeline_pairs(n_pairs: int, folder: Path) -> list[dict]:
         'z_mm = [-1.5, 1.5]\nvoxel_mm = 0.125\n[piv]\nwindows = [[12, 12, 12]]\npasses = 2\n'
         '[images]\npairs = "pairs/*.h5"\ncalibration = "cal.h5"\ndt_s = 1e-3\n'
         '[output]\ndirectory = "out"\npng = false\nvtk = false\n')
-    jobs = [PairJob(f"run_{i + 1}", f"{folder}/pairs/run_{i + 1}.h5:/image_a",
-                    f"{folder}/pairs/run_{i + 1}.h5:/image_b",
-                    folder / "out" / f"run_{i + 1}_vectors.h5") for i in range(n_pairs)]
-    (folder / "out").mkdir()
-    process = ExperimentPairProcess(str(folder / "exp.toml"), str(folder / "cal.h5"),
-                                    str(folder / "out"))
-    s = run_batch(jobs, process, n_workers=1, threads_per_worker=1, resume=False,
-                  progress=False)
-    if s.failed:
-        raise SystemExit(f"pairs failed: {s.failed}")
-    done = sorted(s.results, key=lambda r: r.start)
-    return [{"pair": r.name, "seconds": r.seconds,
-             "reconstruct_s": r.result.get("reconstruct_s")} for r in done]
+
+
+def full_camera_case(n_pairs: int, folder: Path, lateral_subdivision: str) -> None:
+    """Calibration, pairs and experiment of the full-size benchmark camera (auburn_135mm).
+
+    The pair, grid and PIV of ``benchmarks/full_camera.py`` (its default arguments, the
+    aligned lenslet array); every one of the ``n_pairs`` jobs reads the same pair.
+    """
+    import types
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import full_camera as fc
+
+    from plenopiv.products.hdf5 import write_h5
+
+    args = types.SimpleNamespace(geometry="aligned", lenslets=None, seed=1,
+                                 displacement_vox=3.0, grid_offset_vox=(0.37, 0.21))
+    cam, cal, case, grid, box, flow = fc.full_case(args)
+    ia, ib, _, _, _ = fc.render_pair(cam, flow, case, box, 20000, 2048)
+    cal.save(folder / "cal.h5")
+    (folder / "pairs").mkdir()
+    write_h5(folder / "pairs" / "pair.h5", {"/image_a": np.asarray(ia, np.float32),
+                                            "/image_b": np.asarray(ib, np.float32)},
+             kind="benchmark", compress=False)
+    for i in range(n_pairs):
+        os.link(folder / "pairs" / "pair.h5", folder / "pairs" / f"run_{i + 1}.h5")
+    g = grid.to_dict()
+    sub = lateral_subdivision if lateral_subdivision == "auto" else int(lateral_subdivision)
+    (folder / "exp.toml").write_text(
+        f'camera = "auburn_135mm"\n[volume]\nx_mm = {g["x_mm"]}\ny_mm = {g["y_mm"]}\n'
+        f'z_mm = {g["z_mm"]}\nshape = {g["shape"]}\n'
+        f'[reconstruction]\niterations = 5\nlateral_subdivision = {sub!r}\n'
+        '[piv]\nwindows = [[32, 32, 32], [16, 16, 16]]\noverlap = 0.5\npasses = 3\n'
+        'uncertainty = "correlation"\n'
+        f'[images]\npairs = "pairs/*.h5"\ncalibration = "cal.h5"\ndt_s = {case.dt}\n'
+        '[output]\ndirectory = "out"\npng = false\nvtk = false\n'.replace("'", '"'))
+
+
+def pipeline_pairs(n_pairs: int, folder: Path, *, camera: str = "small_m1",
+                   reuse=(True,), threads: int = 1,
+                   lateral_subdivision: str = "1") -> dict:
+    """Per-pair times of ``plenopiv run``'s work on real pairs, in the order they ran.
+
+    ``camera="small_m1"``: ``n_pairs`` simulated pairs of the small camera (30 particles,
+    3 mm deep), the default reconstruction (SMART on a laterally subdivided grid: the
+    matrix-free projector, never cached on disk), no weights cache. ``"auburn_135mm"``: the
+    full-size case of :func:`full_camera_case`. One worker of ``threads`` threads, a fresh
+    worker process per entry of ``reuse``. Returns ``{reuse: rows}``; each row: the pair's
+    wall and CPU time in the worker and its reconstruction time (``reconstruct_s``, projector
+    included).
+    """
+    from plenopiv.pipeline import ExperimentPairProcess
+
+    if camera == "small_m1":
+        small_camera_case(n_pairs, folder)
+    else:
+        full_camera_case(n_pairs, folder, lateral_subdivision)
+    out = {}
+    for keep in reuse:
+        tag = "reuse" if keep else "no_reuse"
+        jobs = [PairJob(f"run_{i + 1}", f"{folder}/pairs/run_{i + 1}.h5:/image_a",
+                        f"{folder}/pairs/run_{i + 1}.h5:/image_b",
+                        folder / tag / f"run_{i + 1}_vectors.h5") for i in range(n_pairs)]
+        (folder / tag).mkdir()
+        process = TimedPairProcess(ExperimentPairProcess(
+            str(folder / "exp.toml"), str(folder / "cal.h5"), str(folder / tag)), keep)
+        s = run_batch(jobs, process, n_workers=1, threads_per_worker=threads, resume=False,
+                      progress=False)
+        if s.failed:
+            raise SystemExit(f"pairs failed: {s.failed}")
+        done = sorted(s.results, key=lambda r: r.start)
+        out[keep] = [{"pair": r.name, "seconds": r.result["pair_s"], "cpu_s": r.result["cpu_s"],
+                      "reconstruct_s": r.result.get("reconstruct_s"),
+                      "piv_s": r.result.get("piv_s")} for r in done]
+    return out
 
 
 def main():
@@ -150,17 +241,42 @@ def main():
     ap.add_argument("--pipeline", type=int, metavar="N_PAIRS",
                     help="instead: per-pair times of N_PAIRS real pairs through plenopiv "
                          "run's per-pair work on one worker (first pair and later ones)")
+    ap.add_argument("--camera", choices=["small_m1", "auburn_135mm"], default="small_m1",
+                    help="with --pipeline: the small camera (default) or the full-size "
+                         "benchmark camera (16 MP, the pair of benchmarks/full_camera.py)")
+    ap.add_argument("--lateral-subdivision", default="1",
+                    help="with --camera auburn_135mm: [reconstruction] lateral_subdivision "
+                         "(default 1, the footprint voxels; 'auto' for the library default)")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="with --pipeline: threads of the one worker (default 1)")
+    mode = ap.add_mutually_exclusive_group()
+    mode.add_argument("--no-reuse", action="store_true",
+                      help="with --pipeline: every pair loads the experiment and the "
+                           "calibration and builds the projector again (the before)")
+    mode.add_argument("--compare", action="store_true",
+                      help="with --pipeline: the pairs with reuse, then without, one table")
     args = ap.parse_args()
     if args.pipeline:
+        reuse = (True, False) if args.compare else ((False,) if args.no_reuse else (True,))
+        print(f"{args.pipeline} pairs, camera {args.camera}, one worker of {args.threads} "
+              f"thread(s), load {os.getloadavg()[0]:.1f}", flush=True)
         with tempfile.TemporaryDirectory(prefix="bench_batch_") as tmp:
-            rows = pipeline_pairs(args.pipeline, Path(tmp))
-        for r in rows:
-            print(f"{r['pair']:>8} {r['seconds']:7.2f} s in the pair, reconstruct "
-                  f"{r['reconstruct_s']:6.2f} s")
-        later = [r["seconds"] for r in rows[1:]]
-        if later:
-            print(f"first pair {rows[0]['seconds']:.2f} s; later pairs "
-                  f"{np.mean(later):.2f} s on average (load {os.getloadavg()[0]:.1f})")
+            runs = pipeline_pairs(args.pipeline, Path(tmp), camera=args.camera, reuse=reuse,
+                                  threads=args.threads,
+                                  lateral_subdivision=args.lateral_subdivision)
+        for keep, rows in runs.items():
+            tag = "with reuse" if keep else "no reuse"
+            for r in rows:
+                print(f"{tag:>10} {r['pair']:>8} {r['seconds']:8.2f} s in the pair "
+                      f"(cpu {r['cpu_s']:8.2f} s), reconstruct {r['reconstruct_s']:7.2f} s, "
+                      f"piv {r['piv_s']:6.2f} s")
+            later = rows[1:]
+            if later:
+                print(f"{tag:>10}: first pair {rows[0]['seconds']:.2f} s (cpu "
+                      f"{rows[0]['cpu_s']:.2f} s); later pairs "
+                      f"{np.mean([r['seconds'] for r in later]):.2f} s (cpu "
+                      f"{np.mean([r['cpu_s'] for r in later]):.2f} s) on average "
+                      f"(load {os.getloadavg()[0]:.1f})", flush=True)
         return
 
     repeats, per = calibrate(args.seconds)
