@@ -131,7 +131,7 @@ class TimedPairProcess:
         from plenopiv import pipeline
 
         if not self.reuse:
-            pipeline._WORKER_PROCESSOR.clear()
+            pipeline.drop_worker_processor()
         t0, c0 = time.perf_counter(), time.process_time()
         out = self.process(job)
         return {**out, "pair_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}

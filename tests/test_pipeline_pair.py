@@ -244,3 +244,5 @@ def test_a_worker_keeps_one_processor_and_its_projector(tmp_path, monkeypatch):
     exp.write_text(exp.read_text() + "\n[piv]\npasses = 2\n")
     second = pipeline.worker_processor(exp, tmp_path / "cal.h5")
     assert second is not first and second.experiment.piv.passes == 2
+    pipeline.drop_worker_processor()           # dropped: the same files make a new one
+    assert pipeline.worker_processor(exp, tmp_path / "cal.h5") is not second

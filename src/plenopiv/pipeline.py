@@ -528,6 +528,15 @@ def worker_processor(experiment_path: str | Path, calibration_path: str | Path
         return _WORKER_PROCESSOR["processor"]
 
 
+def drop_worker_processor() -> None:
+    """Forget this process's :class:`PairProcessor`; the next pair builds its projector again.
+
+    Frees the projector's memory; ``benchmarks/bench_batch.py --no-reuse`` times the rebuild.
+    """
+    with _WORKER_LOCK:
+        _WORKER_PROCESSOR.clear()
+
+
 def prepare_weights(experiment, calibration: Calibration) -> tuple[bool, float]:
     """Put the experiment's explicit weights into its weights cache before a batch starts.
 
