@@ -247,6 +247,17 @@ def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
     return out
 
 
+def _finished_pair(case: VortexCase, pair, rng) -> tuple[np.ndarray, np.ndarray]:
+    """The pair's images with the case's Poisson noise and PSF blur (as rendered without)."""
+    if case.noise:
+        return tuple(finish_image(im, noise="poisson", rng=rng, blur_px=case.blur_px)
+                     for im in (pair.image_a, pair.image_b))
+    if case.blur_px > 0:
+        return tuple(finish_image(im, blur_px=case.blur_px, bit_depth=None)
+                     for im in (pair.image_a, pair.image_b))
+    return pair.image_a, pair.image_b
+
+
 def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
     """Run one synthetic case end to end and write every product to ``out``."""
     out = Path(out)
@@ -298,14 +309,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
             / np.prod(2 * np.array(field_of_view(truth_cam, 0.0))))
     pair = simulate_pair(truth_cam, flow, dt=case.dt, box=box, n_particles=n, rng=rng,
                          rays_per_particle=case.rays_per_particle)
-    if case.noise:
-        ia = finish_image(pair.image_a, noise="poisson", rng=rng, blur_px=blur)
-        ib = finish_image(pair.image_b, noise="poisson", rng=rng, blur_px=blur)
-    elif blur > 0:
-        ia, ib = (finish_image(im, blur_px=blur, bit_depth=None) for im in
-                  (pair.image_a, pair.image_b))
-    else:
-        ia, ib = pair.image_a, pair.image_b
+    ia, ib = _finished_pair(case, pair, rng)
     timings["simulate_s"] = time.perf_counter() - t1
     with atomic_path(out / "truth_particles.npz") as tmp, open(tmp, "wb") as fh:
         np.savez(fh, positions_a=pair.positions_a, positions_b=pair.positions_b)
