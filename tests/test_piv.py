@@ -403,7 +403,8 @@ def test_every_setting_is_a_piv_key_with_the_one_default():
 
     names = {f.name for f in fields(PIVSettings)}
     assert names <= set(PIVConfig.model_fields)
-    assert set(PIVConfig.model_fields) - names == {"uncertainty"}
+    # the two keys beyond the correlation's settings choose the pipeline's uncertainty step
+    assert set(PIVConfig.model_fields) - names == {"uncertainty", "response_displacements"}
     assert piv_settings(PIVConfig()) == PIVSettings()
 
 
