@@ -29,7 +29,7 @@ from plenopiv.lightfield import LightField
 ENGINES = ("numba", "numpy")
 
 __all__ = ["ENGINES", "BundlePositions", "BundleSettings", "bundle_positions", "closest_point",
-           "closest_points", "ray_lines"]
+           "closest_points", "lenslet_table", "ray_lines"]
 
 
 @dataclass(frozen=True)
@@ -223,8 +223,13 @@ def _solve(normal, rhs):
     return point, ok
 
 
-def _lenslet_table(lf: LightField):
-    """Rays grouped by lenslet: (order, ptr, lenslet conjugates X_f (K, 2), K)."""
+def lenslet_table(lf: LightField):
+    """Rays grouped by lenslet: ``(order, ptr, conjugates, has)``.
+
+    ``order`` sorts the rays by lenslet, lenslet L's rays are ``order[ptr[L]:ptr[L + 1]]``,
+    ``conjugates`` (K, 2) is each lenslet's focal-plane point X_f (metres) and ``has`` marks
+    the lenslets with rays (K = largest lenslet index + 1).
+    """
     order = np.argsort(lf.lenslet, kind="stable")
     k = int(lf.lenslet.max()) + 1 if lf.n_rays else 0
     ptr = np.searchsorted(lf.lenslet[order], np.arange(k + 1))
@@ -333,7 +338,7 @@ def bundle_positions(lf: LightField, image, seeds, *,
     """
     seeds, weight = _checked_inputs(lf, image, seeds, settings, engine)
     n = len(seeds)
-    order, ptr, conj, has = _lenslet_table(lf)
+    order, ptr, conj, has = lenslet_table(lf)
     lens_ids = np.flatnonzero(has)
     tree = cKDTree(conj[has])
     if engine == "numba":

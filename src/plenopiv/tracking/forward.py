@@ -46,7 +46,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plenopiv.lightfield import LightField
-from plenopiv.tracking.bundle import ENGINES, _lenslet_table, checked_image
+from plenopiv.tracking.bundle import ENGINES, checked_image, lenslet_table
 
 __all__ = ["ENGINES", "ForwardSettings", "beam_fraction", "refine_positions"]
 
@@ -330,10 +330,10 @@ def _lenslet_index(lf: LightField):
     """Rays by lenslet: order, ptr, lenslet ids, KD-tree, X_f, u and X_f sorted by lenslet.
 
     ``(order, ptr, lenslet ids with rays, KD-tree of their X_f, X_f, u sorted, X_f sorted)``;
-    X_f is every ray's focal-plane point (P, 2), metres (computed once: the light field
-    derives it on each access); the last two are u and X_f in lenslet order.
+    X_f is every ray's focal-plane point (P, 2), metres; the last two are u and X_f in
+    lenslet order.
     """
-    order, ptr, conj, has = _lenslet_table(lf)
+    order, ptr, conj, has = lenslet_table(lf)
     xf = lf.focal_plane_position
     return (order, ptr, np.flatnonzero(has), cKDTree(conj[has]), xf,
             np.ascontiguousarray(lf.u[order], np.float64),
