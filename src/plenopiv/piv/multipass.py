@@ -23,9 +23,11 @@ divided by the overlap fraction of their lag, :math:`R(s) / \prod_i (1 - |s_i|/w
 (Westerweel 1997), which removes the bias of particle pairs lost across the window
 border; with ``settings.broad_peaks`` (default) the five samples ``s_0 - 2 .. s_0 + 2``
 along each axis are fitted by a weighted least-squares Gaussian, whose vertex (within
-one voxel of ``s_0``) is taken where that Gaussian is at least 1 voxel wide (standard
-deviation), and the seven samples ``s_0 - 3 .. s_0 + 3`` where it is at least 2 voxels
-wide (the depth peaks of plenoptic volumes, which five samples see only the top of).
+1.5 voxel of ``s_0``) is taken where that Gaussian is at least 1 voxel wide (standard
+deviation), and the seven samples ``s_0 - 3 .. s_0 + 3`` (vertex within 2.5 voxels) where
+it is at least 2 voxels wide (the depth peaks of plenoptic volumes, which five samples see
+only the top of; the overlap correction moves their vertex up to :math:`2\sigma^2/w`, over
+a voxel, from the raw correlation's highest sample).
 
 The window spectra are computed one axis at a time, so that the 1-D transforms shared by
 overlapping windows are done once (x for every line segment of the volume, y for every

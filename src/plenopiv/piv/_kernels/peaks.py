@@ -155,6 +155,11 @@ MIN_WIDE_WINDOW = 12
 #: Half the number of samples the refinement reads per axis (lags ``-HALF_SPAN .. HALF_SPAN``).
 HALF_SPAN = 3
 
+#: Largest offset (voxels) a 3-point fit may move the integer peak: its vertex beyond the
+#: neighbours it read would be an extrapolation. A five- or seven-sample fit may move it up to
+#: half a voxel inside its outermost lags (1.5 and 2.5 voxels).
+THREE_POINT_BOUND_VOX = 1.0
+
 
 @numba.njit(cache=True, inline="always")
 def _fit_log_numba(u, first, count):
@@ -213,7 +218,10 @@ def _refine_axis_numba(v, lag0, w, gaussian, overlap, broad):
     ``BROAD_SIGMA_VOX``). Where that peak is wide (at least ``WIDE_SIGMA_VOX``), the window
     holds ``MIN_WIDE_WINDOW`` voxels and all seven samples are positive, the seven are
     fitted and their vertex taken if that fit is wide too. Otherwise the 3-point fit
-    (:func:`_fit3_numba`) is used. The offset is clipped to one voxel.
+    (:func:`_fit3_numba`) is used. The offset is clipped to half a voxel inside the lags
+    the chosen fit read (1.5 voxel for five samples, 2.5 for seven: the overlap correction
+    moves a wide peak's vertex up to ``2 sigma**2 / w``, over a voxel, from the raw
+    correlation's highest sample), and to ``THREE_POINT_BOUND_VOX`` for the 3-point fit.
     """
     h = HALF_SPAN
     u = np.empty(2 * h + 1)
@@ -223,16 +231,19 @@ def _refine_axis_numba(v, lag0, w, gaussian, overlap, broad):
             f = max(1.0 - abs(lag0 + q - h) / w, MIN_OVERLAP)
         u[q] = v[q] / f
     frac = _fit3_numba(u[h - 1], u[h], u[h + 1], gaussian)
+    bound = THREE_POINT_BOUND_VOX
     if broad and gaussian and w >= MIN_BROAD_WINDOW and _positive(u, h - 2, 5):
         f5, sigma2 = _fit_log_numba(u, h - 2, 5)
         if sigma2 >= BROAD_SIGMA_VOX * BROAD_SIGMA_VOX:
             frac = f5
+            bound = h - 1.5
             if (sigma2 >= WIDE_SIGMA_VOX * WIDE_SIGMA_VOX and w >= MIN_WIDE_WINDOW
                     and _positive(u, 0, 2 * h + 1)):
                 f7, sigma7 = _fit_log_numba(u, 0, 2 * h + 1)
                 if sigma7 >= WIDE_SIGMA_VOX * WIDE_SIGMA_VOX:
                     frac = f7
-    return min(1.0, max(-1.0, frac))
+                    bound = h - 0.5
+    return min(bound, max(-bound, frac))
 
 
 @numba.njit(cache=True, parallel=True)
@@ -313,14 +324,17 @@ def refine_peaks_numpy(corr, gaussian, overlap, broad):
             f = np.maximum(1.0 - np.abs(lag0 + q - h) / w, MIN_OVERLAP) if overlap else 1.0
             u[q] = corr[k, idx[0], idx[1], idx[2]].astype(np.float64) / f
         frac = _fit3_numpy(u[h - 1], u[h], u[h + 1], gaussian)
+        bound = np.full(n, THREE_POINT_BOUND_VOX)
         if broad and gaussian and w >= MIN_BROAD_WINDOW:
             f5, s5, ok5 = _fit_log_numpy(u, h - 2, 5)
             broad_peak = ok5 & (s5 >= BROAD_SIGMA_VOX**2)
             frac = np.where(broad_peak, f5, frac)
+            bound = np.where(broad_peak, h - 1.5, bound)
             if w >= MIN_WIDE_WINDOW:
                 f7, s7, ok7 = _fit_log_numpy(u, 0, 2 * h + 1)
                 wide = (broad_peak & (s5 >= WIDE_SIGMA_VOX**2) & ok7
                         & (s7 >= WIDE_SIGMA_VOX**2))
                 frac = np.where(wide, f7, frac)
-        disp[:, axis] = lag0 + np.clip(frac, -1.0, 1.0)
+                bound = np.where(wide, h - 0.5, bound)
+        disp[:, axis] = lag0 + np.clip(frac, -bound, bound)
     return disp
