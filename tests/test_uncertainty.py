@@ -19,6 +19,7 @@ from plenopiv.piv.uncertainty import (
     cached_response,
     combine,
     convergence_ratio,
+    curvature_noise_factor,
     filter_offset,
     iteration_uncertainty,
     response_key,
@@ -186,17 +187,41 @@ def _linear(h=(1e-3, 1e-3, 1e-3)):
 def test_the_remaining_error_is_the_geometric_tail_of_the_corrections(ratio):
     """Passes that each leave a fraction rho of the error change the estimate by
     c_n = rho c_(n-1); what the last left is the tail rho c_n + rho^2 c_n + ... =
-    rho / (1 - rho) c_n. A linear field has no filter offset."""
+    rho / (1 - rho) c_n. Each correction also holds the correlation's random error cs in
+    quadrature (|c|^2 = systematic^2 + cs^2): the ratio and the tail are those of the
+    systematic parts. A linear field has no filter offset."""
     u, x, h = _linear()
-    last = 2e-6 * (1 + x / x.max())                   # a correction varying over the field
+    systematic = 2e-6 * (1 + x / x.max())             # a correction varying over the field
     cs = 1e-6
-    f = _iterated_field(u, h, last, last / ratio, correlation=cs)
+    last = np.hypot(systematic, cs)
+    previous = np.hypot(systematic / ratio, cs)
+    f = _iterated_field(u, h, last, previous, correlation=cs)
     sigma = iteration_uncertainty(f)
-    tail = ratio / (1 - ratio) * last
+    tail = ratio / (1 - ratio) * systematic
     np.testing.assert_allclose(sigma[0], np.hypot(cs, tail), rtol=1e-9)
     np.testing.assert_allclose(sigma[1:], 0.0)
     np.testing.assert_allclose(combine(f, _response(gain_w=1.0, random_w=0.0)).u_uncertainty,
                                np.hypot(cs, tail), rtol=1e-9)
+
+
+def test_corrections_at_the_noise_of_the_correlation_leave_nothing_to_the_iteration():
+    """Converged passes still change each vector by the random error of their correlation,
+    which does not shrink from pass to pass: the last two corrections are as large and
+    their raw ratio is 1, a tail of 9 times them at the cap. Their noise removed, nothing
+    is left: the uncertainty is the correlation statistics."""
+    u, x, h = _linear()
+    cs = 1e-6
+    sign = np.where(np.indices(u.shape).sum(axis=0) % 2 == 0, 1.0, -1.0)
+    last, previous = 0.8 * cs * sign, -0.9 * cs * sign
+    f = _iterated_field(u, h, last, previous, correlation=cs)
+    np.testing.assert_allclose(iteration_uncertainty(f)[0], cs, rtol=1e-12)
+    rho = convergence_ratio(np.stack([last] * 3), np.stack([previous] * 3),
+                            np.ones(u.shape, bool), np.full((3,) + u.shape, cs))
+    np.testing.assert_allclose(rho, 0.0)
+    # counted without their noise, the same corrections would give ratio 0.8 / 0.9
+    np.testing.assert_allclose(
+        convergence_ratio(np.stack([last] * 3), np.stack([previous] * 3),
+                          np.ones(u.shape, bool)), 0.8 / 0.9)
 
 
 def test_the_convergence_ratio_is_bounded_and_defaults_to_one_half():
@@ -292,3 +317,33 @@ def test_the_number_of_test_displacements_is_a_piv_key_not_a_correlation_setting
     assert not hasattr(cfg.settings(), "response_displacements")
     with pytest.raises(ValidationError, match="response_displacements"):
         PIVConfig(response_displacements=2)
+
+
+def test_the_curvature_of_random_errors_is_removed_from_the_bias_term(rng):
+    """Vectors with independent random errors sigma and no curvature: the second differences
+    give the bias term the variance k sigma^2, k = 2 sum a_i^2 + 4 (sum a_i)^2 with
+    a_i = W_i^2 / (24 h_i^2) (7/6 at 50 % overlap), as large as the noise itself. combine
+    removes that variance per vector, sqrt(max(0, b^2 - k sigma^2)): for b ~ N(0, k sigma^2)
+    what stays has the mean square k sigma^2 E[max(0, X - 1)] = 0.4839 k sigma^2 (X a
+    chi-square of one degree of freedom), not k sigma^2."""
+    h = np.array([1e-3, 1e-3, 1e-3])
+    k = curvature_noise_factor(h, 2 * h)
+    assert k == pytest.approx(7 / 6)
+    sigma = 1e-6
+    shape = (24, 30, 36)
+    noise = rng.normal(0.0, sigma, size=shape)
+    u = 1e-4 + 0.01 * np.arange(shape[2]) * h[0] + noise       # linear: no curvature
+    raw = unresolved_gradient_bias(np.stack([u, 0 * u, 0 * u]), h, 2 * h)[0]
+    inner = (slice(1, -1),) * 3                                 # borders repeat a neighbour
+    n = raw[inner].size
+    # mean square of n samples of k sigma^2 chi2_1: relative standard error sqrt(2 / n)
+    assert np.mean(raw[inner] ** 2) == pytest.approx(k * sigma**2, rel=5 * np.sqrt(2 / n))
+    f = _grid_field(u, h)
+    f = replace(f, uncertainty_parts={"correlation": np.stack([np.full(shape, sigma),
+                                                               np.zeros(shape),
+                                                               np.zeros(shape)])})
+    kept = combine(f, _response(gain_w=1.0, random_w=0.0)).uncertainty_parts[
+        "unresolved_gradient"][0]
+    assert np.all(kept <= raw)
+    assert np.mean(kept[inner] ** 2) == pytest.approx(0.4839 * k * sigma**2,
+                                                      rel=5 * np.sqrt(2 / n) * 2)

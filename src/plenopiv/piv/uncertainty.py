@@ -40,7 +40,8 @@ uncertainty
 with :math:`\sigma_{CS}` the correlation statistics of :func:`plenopiv.piv.correlate_volumes`
 with the error the passes left (:func:`iteration_uncertainty`: the geometric tail
 :math:`\rho / (1 - \rho)` of the last correction, the predictor filter's offset
-:func:`filter_offset` removed), ``d_k`` the vector's displacement and:
+:func:`filter_offset` and the correlation's own noise removed), ``d_k`` the vector's
+displacement and:
 
 - :math:`r_{ex,k}^2 = \max(0, \langle r_k^2 \rangle - \langle s_k^2 \rangle)`, the part of
   the test vectors' spread the correlation statistics did not see (means over the test
@@ -54,7 +55,9 @@ with the error the passes left (:func:`iteration_uncertainty`: the geometric tai
 - :math:`b_k` the bias of a window average where the displacement curves inside the window
   (:func:`unresolved_gradient_bias`), which a uniform test displacement cannot reproduce;
   the last correction no longer counts it (its filter offset is removed), so it is added in
-  full.
+  full, less the part the vectors' random errors give a curvature estimated from them
+  (:func:`curvature_noise_factor`: the second differences of noise alone are as large as
+  the noise, which the other terms count already).
 
 The response depends on the camera, the grid, the seeding and the settings, not on the
 flow, so it is computed once per experiment and kept in the weights cache (a few more
@@ -102,7 +105,7 @@ LATERAL_SHIFTS = (0.5, 1.25, 1.75)
 DEPTH_SHIFTS = (0.1, 0.25, 0.5)
 """Test displacements along z, depth resolution cells."""
 
-RESPONSE_VERSION = 4
+RESPONSE_VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -387,6 +390,35 @@ def unresolved_gradient_bias(disp, spacing, window):
     return np.abs(np.nan_to_num(out, nan=0.0))
 
 
+def curvature_noise_factor(spacing, window) -> float:
+    r"""Variance of :func:`unresolved_gradient_bias` from vectors' random errors, per unit variance.
+
+    Parameters
+    ----------
+    spacing, window : sequence of 3 floats
+        Vector spacing and window edge along ``(x, y, z)``, metres (as for
+        :func:`unresolved_gradient_bias`).
+
+    Returns
+    -------
+    float
+        :math:`k = 2 \sum_i a_i^2 + 4 (\sum_i a_i)^2` with :math:`a_i = W_i^2 / (24 h_i^2)`
+        (dimensionless; 7/6 at 50 % overlap in 3-D).
+
+    Notes
+    -----
+    The bias term is :math:`\sum_i a_i (d_{i-} - 2 d_0 + d_{i+})`. Vectors with independent
+    random errors of variance :math:`\sigma^2` give it the variance
+    :math:`\sigma^2 (2 \sum_i a_i^2 + 4 (\sum_i a_i)^2)` (the six neighbours once each, the
+    centre with the sum of the weights): the estimate of a curvature from noisy vectors is
+    about as large as their noise where the field does not curve at all. That noise is the
+    vectors' random error, already counted; :func:`combine` removes its variance.
+    """
+    a = np.array([(float(w) ** 2 / 24.0) / float(h) ** 2 if float(h) > 0 and float(w) > 0
+                  else 0.0 for h, w in zip(spacing, window, strict=True)])
+    return float(2.0 * np.sum(a**2) + 4.0 * np.sum(a) ** 2)
+
+
 def filter_offset(disp):
     r"""The change a converged pass still makes with the smoothed predictor, units of ``disp``.
 
@@ -417,7 +449,7 @@ def filter_offset(disp):
     return d - _smooth_predictor(d)
 
 
-def convergence_ratio(last, previous, usable) -> np.ndarray:
+def convergence_ratio(last, previous, usable, noise=None) -> np.ndarray:
     r"""Measured ratio of the last two corrections per component, ``(3,)``, dimensionless.
 
     Parameters
@@ -426,13 +458,19 @@ def convergence_ratio(last, previous, usable) -> np.ndarray:
         The last and the previous pass's corrections, the filter offset removed (metres).
     usable : ndarray of bool, shape (nz, ny, nx)
         Vectors to count (valid, finite in both).
+    noise : ndarray, shape (3, nz, ny, nx), optional
+        The random error of one pass's correction, metres: the correlation statistics
+        (None: no noise, the ratio of the corrections as they are).
 
     Returns
     -------
     ndarray, shape (3,)
-        :math:`\rho_k = \sqrt{\langle c_{n,k}^2 \rangle / \langle c_{n-1,k}^2 \rangle}`
-        over the usable vectors, within ``[0, MAX_CONVERGENCE_RATIO]``; ``DEFAULT_RATIO``
-        for a component without usable vectors or without a previous change.
+        :math:`\rho_k = \sqrt{(\langle c_{n,k}^2 \rangle - \langle \sigma_k^2 \rangle)
+        / (\langle c_{n-1,k}^2 \rangle - \langle \sigma_k^2 \rangle)}` over the usable
+        vectors, within ``[0, MAX_CONVERGENCE_RATIO]``: 0 where the last corrections are no
+        larger than their noise, ``MAX_CONVERGENCE_RATIO`` where only the last ones exceed
+        it; ``DEFAULT_RATIO`` for a component without usable vectors or without a previous
+        change.
 
     Notes
     -----
@@ -441,30 +479,49 @@ def convergence_ratio(last, previous, usable) -> np.ndarray:
     factor, :math:`c_n = e_n - e_{n-1} = \rho\, c_{n-1}`, and what the last pass left is
     :math:`e_n = \rho / (1 - \rho)\; c_n` (:func:`iteration_uncertainty`). The ratio is
     taken over the whole field (a few hundred vectors: a local ratio of two noisy corrections
-    would be unstable). The random error of a correction counts in both; it keeps
-    :math:`\rho` from vanishing where the iteration has converged to its noise (the bound is
-    then about the random error, which the correlation statistics estimate too).
+    would be unstable).
+
+    Each correction also holds the random error of its correlation, which does not shrink
+    from pass to pass: once the iteration has converged the corrections are that noise
+    alone, and their ratio tends to 1 (a tail of nine times the noise at the cap) although
+    nothing is left to correct. The noise adds in quadrature to the systematic change, so
+    its variance (the correlation statistics, counted in the uncertainty on their own) is
+    removed from both mean squares before the ratio is taken. On the vortex validations the
+    offset-free last corrections are 0.3-0.9 times the correlation statistics
+    (docs/validation/uncertainty.md): the passes have converged to their noise.
     """
     out = np.full(3, DEFAULT_RATIO)
     if previous is None:
         return out
     for k in range(3):
         a, b = last[k][usable], previous[k][usable]
-        ok = np.isfinite(a) & np.isfinite(b)
-        den = float(np.mean(b[ok] ** 2)) if ok.any() else 0.0
-        if den > 0:
-            out[k] = min(np.sqrt(float(np.mean(a[ok] ** 2)) / den), MAX_CONVERGENCE_RATIO)
+        n2 = np.zeros_like(a) if noise is None else np.asarray(noise[k], float)[usable] ** 2
+        ok = np.isfinite(a) & np.isfinite(b) & np.isfinite(n2)
+        if not ok.any():
+            continue
+        noise2 = float(np.mean(n2[ok]))
+        num = float(np.mean(a[ok] ** 2)) - noise2
+        den = float(np.mean(b[ok] ** 2)) - noise2
+        if num <= 0.0 and (noise is not None or den > 0.0):
+            out[k] = 0.0
+        elif den > 0.0:
+            out[k] = min(np.sqrt(num / den), MAX_CONVERGENCE_RATIO)
+        elif num > 0.0:
+            out[k] = MAX_CONVERGENCE_RATIO
     return out
 
 
 def iteration_uncertainty(field) -> np.ndarray | None:
     r"""Correlation statistics and the error the iteration left, ``(3, nz, ny, nx)``, metres.
 
-    :math:`\sqrt{\sigma_{CS}^2 + (\rho / (1 - \rho)\; |c_n - o|)^2}` per component, with
-    :math:`c_n` the last pass's correction, :math:`o` the filter's offset
-    (:func:`filter_offset`; zero without a smoothed predictor) and :math:`\rho` the measured
-    ratio of the last two corrections (:func:`convergence_ratio`; 1/2, i.e. the remaining
-    error as large as the last correction, when the previous pass had other windows).
+    :math:`\sqrt{\sigma_{CS}^2 + (\rho / (1 - \rho))^2\, \max(0, (c_n - o)^2 - \sigma_{CS}^2)}`
+    per component, with :math:`\sigma_{CS}` the correlation statistics, :math:`c_n` the last
+    pass's correction, :math:`o` the filter's offset (:func:`filter_offset`; zero without a
+    smoothed predictor) and :math:`\rho` the measured ratio of the last two corrections, their
+    noise removed (:func:`convergence_ratio`; 1/2, i.e. the remaining error as large as the
+    last correction, when the previous pass had other windows). The random error of the
+    last correction is the correlation's, which :math:`\sigma_{CS}` counts already: only the
+    part of the correction above it is a change the iteration was still making.
     A rejected vector keeps the uncertainty :func:`plenopiv.piv.correlate_volumes` gave it
     (its neighbours' uncertainty and spread). None when ``field`` carries no signed
     corrections (then its own uncertainty stands).
@@ -475,14 +532,16 @@ def iteration_uncertainty(field) -> np.ndarray | None:
     disp = np.stack([field.u, field.v, field.w])
     smoothed = bool(getattr(field.settings, "smooth_predictor", False))
     offset = filter_offset(disp) if smoothed else np.zeros_like(disp)
+    noise = np.asarray(parts["correlation"], float)
     last = np.asarray(parts["last_corrector"], float) - offset
     previous = parts.get("previous_corrector")
     if previous is not None:
         previous = np.asarray(previous, float) - offset
     usable = np.asarray(field.valid, bool) & np.all(np.isfinite(disp), axis=0)
-    rho = convergence_ratio(last, previous, usable)
-    remaining = (rho / (1.0 - rho))[:, None, None, None] * np.abs(np.nan_to_num(last))
-    sigma = np.sqrt(np.asarray(parts["correlation"], float) ** 2 + remaining**2)
+    rho = convergence_ratio(last, previous, usable, noise)
+    systematic = np.sqrt(np.maximum(np.nan_to_num(last) ** 2 - np.nan_to_num(noise) ** 2, 0.0))
+    remaining = (rho / (1.0 - rho))[:, None, None, None] * systematic
+    sigma = np.sqrt(noise**2 + remaining**2)
     own = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
     return np.where(np.asarray(field.valid, bool)[None], sigma, own)
 
@@ -522,7 +581,14 @@ def combine(field, response: Response | None):
     sigma_gain = np.abs(1.0 - g) / g * np.abs(disp)
     spacing, window = _spacing_and_window(field)
     parts = dict(field.uncertainty_parts or {})
-    sigma_curv = unresolved_gradient_bias(disp, spacing, window)
+    # the curvature estimate less the part the vectors' random errors give it (counted by
+    # the correlation statistics and the response's excess already)
+    random = parts.get("correlation")
+    random = (np.zeros_like(disp) if random is None
+              else np.nan_to_num(np.asarray(random, float))) ** 2 + excess**2
+    sigma_curv = np.sqrt(np.maximum(
+        unresolved_gradient_bias(disp, spacing, window) ** 2
+        - curvature_noise_factor(spacing, window) * random, 0.0))
     total = np.sqrt(sigma_cs**2 + excess**2 + sigma_gain**2 + sigma_curv**2)
     parts["response_random"] = np.broadcast_to(excess, total.shape).copy()
     parts["response_gain"] = sigma_gain

@@ -250,11 +250,19 @@ METHOD = [
     "motion) and is as large, so it is removed first. The "
     "passes converge geometrically, each leaving a fraction ρ of the error it starts from; "
     "the corrections then shrink by ρ per pass and what the last pass left is ρ/(1 - ρ) "
-    "times the last (offset-free) correction, with ρ the measured ratio of the rms of the "
-    "last two corrections per component over the field (at most 0.9; 1/2 when the previous "
-    "pass had other windows). The previous definition, the whole last correction (ρ = 1/2 "
-    "and the offset counted as error), is what `[piv] uncertainty = \"correlation\"` still "
-    "gives (column \"+ last correction\").",
+    "times the last (offset-free) correction. Each correction also holds the random error "
+    "of its correlation, which does not shrink from pass to pass and which term 1 counts "
+    "already: once the passes have converged the corrections are that noise alone, their "
+    "ratio tends to 1 and the tail (at most 9 times the correction) counted the noise up to "
+    "nine times over. So the noise is removed in quadrature: ρ² = (<c_n²> - <σ_1²>) / "
+    "(<c_(n-1)²> - <σ_1²>) per component over the field (0 where the last corrections are "
+    "no larger than their noise, at most 0.9; 1/2 when the previous pass had other "
+    "windows), times the part of each vector's correction above its noise, "
+    "sqrt(max(0, c_n² - σ_1²)). On every case here the offset-free last corrections are "
+    "0.3-0.9 times the correlation statistics (rms over the field): the passes have "
+    "converged to their noise and the term is 0 but for a few vectors. The previous "
+    "definition, the whole last correction (ρ = 1/2 and the offset counted as error), is "
+    "what `[piv] uncertainty = \"correlation\"` still gives (column \"+ last correction\").",
     "3. **The chain's response**, measured, not modelled: both reconstructions share the "
     "plenoptic camera's errors — a particle near the focal plane lights about one lenslet "
     "wherever it lies inside one footprint and one depth resolution cell, so the "
@@ -280,7 +288,13 @@ METHOD = [
     "of it at 50 % overlap (`tests/test_uncertainty.py` iterates the fixed point), but three "
     "passes do not reach it for curvature on the scale of the vector spacing (Hill, below), "
     "so the one-window bias is kept as the bound. As term 2 no longer holds the filter's "
-    "offset (about the same curvature, Δ²d/4 per axis), term 4 is added in full.",
+    "offset (about the same curvature, Δ²d/4 per axis), term 4 is added in full, less what "
+    "the vectors' random errors put into it: the second differences of vectors with "
+    "independent errors σ have the variance k σ², k = 2 Σ a_i² + 4 (Σ a_i)² with "
+    "a_i = W_i²/(24 h_i²) (7/6 at 50 % overlap), as large as the noise itself where the "
+    "field does not curve at all (Oseen's v, which is 0: term 4 was 0.02-0.03 voxel, the "
+    "noise of v). That noise is terms 1 and 3's random error, counted already; term 4 is "
+    "sqrt(max(0, b² - k (σ_1² + r_ex²))).",
     "",
     "## What is not met",
     "",
