@@ -326,6 +326,11 @@ METHOD = [
     "offset (78-90 %, which over-covered Oseen's u and v, 96-99 %), then the correlation's "
     "noise in the last corrections and in the curvature estimate (u 75-87 %, with Oseen's v "
     "and Hill's w at 97-100 %).",
+    "- Hill's w is covered at 92-99 %, above the band on the footprint-voxel case and the "
+    "patch (99 %): its σ is mostly term 3's per-layer excess, the spread of test pairs that "
+    "move 0.4-2.2 depth voxels, where Hill's w near focus is small (∝ Z) and the error both "
+    "exposures share grows with the depth displacement. The per-vector excess below, which "
+    "would follow that, fails on Oseen's v.",
     "- Near focus the true depth displacement of Oseen's vortex is 1-2 voxels where the "
     "measured one is 0.3-0.6: the gain term scales the measured value, and where the chain "
     "sees almost nothing the bound stays short.",
