@@ -432,53 +432,77 @@ def _damped_step(h, g, lam, step):
     return True
 
 
+@numba.njit(cache=True)
+def _descend(i0, i1, u, xf, v, a, cap, sx0, sy0, sz0, so, cell, footprint, sx, sz, lo, hi,
+             iterations, out):
+    """One Levenberg-Marquardt descent of :func:`local_fit`, returning its misfit.
+
+    From ``(sx0, sy0, sz0)`` within the box ``lo``-``hi`` (3,), metres; the end point goes
+    to ``out`` (3,).
+    """
+    h = np.empty((3, 3))
+    g = np.empty(3)
+    hn = np.empty((3, 3))
+    gn = np.empty(3)
+    step = np.empty(3)
+    x, y, z = sx0, sy0, sz0
+    cost = _misfit_sums(i0, i1, u, xf, v, a, cap, x, y, z, so, cell, footprint, sx, sz, h, g)
+    lam = 1e-3
+    for _ in range(iterations):
+        if a <= 0.0 or not _damped_step(h, g, lam, step):
+            break
+        for e in range(3):
+            step[e] = min(max(step[e], -1.0), 1.0)
+        nx = min(max(x + step[0] * sx, lo[0]), hi[0])
+        ny = min(max(y + step[1] * sx, lo[1]), hi[1])
+        nz = min(max(z + step[2] * sz, lo[2]), hi[2])
+        c = _misfit_sums(i0, i1, u, xf, v, a, cap, nx, ny, nz, so, cell, footprint, sx, sz,
+                         hn, gn)
+        if c < cost:
+            x, y, z, cost = nx, ny, nz, c
+            h[:, :] = hn
+            g[:] = gn
+            lam = max(lam / 3.0, 1e-9)
+            if max(abs(step[0]), abs(step[1]), abs(step[2])) < 1e-3:
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e6:
+                break
+    out[0], out[1], out[2] = x, y, z
+    return cost
+
+
 @numba.njit(cache=True, parallel=True)
 def local_fit(ptr, u, xf, v, amp, start, so, cell, footprint, excess, sx, sz, bound_x,
-              bound_z, iterations, pos):
+              bound_z, offsets, iterations, pos):
     """Levenberg-Marquardt on the one-sided misfit of each particle, from ``start``.
 
     Pixels ``ptr[p]:ptr[p + 1]`` belong to particle p (amplitude ``amp[p]``); parameters are
-    scaled by ``sx`` (lateral) and ``sz`` (depth), metres; a step is taken when it lowers
-    the misfit (damping /3, and the search ends once a step is below 1e-3 scale units),
-    refused otherwise (damping x4, the search ends beyond 1e6); each step is clipped to one
-    scale unit per axis and the position to ``start +- (bound_x, bound_x, bound_z)``.
-    Writes the positions to ``pos`` (N, 3). The NumPy twin is
-    ``plenopiv.tracking.forward._local_fit``.
+    scaled by ``sx`` (lateral) and ``sz`` (depth), metres. From each of ``start[p] + (0, 0,
+    offsets[k])`` (metres): a step is taken when it lowers the misfit (damping /3, and the
+    descent ends once a step is below 1e-3 scale units), refused otherwise (damping x4, the
+    descent ends beyond 1e6); each step is clipped to one scale unit per axis and the
+    position to ``start +- (bound_x, bound_x, bound_z)``. The end of least misfit (the first
+    on ties) goes to ``pos`` (N, 3). The NumPy twin is ``plenopiv.tracking.forward._local_fit``.
     """
     for p in numba.prange(start.shape[0]):
-        h = np.empty((3, 3))
-        g = np.empty(3)
-        hn = np.empty((3, 3))
-        gn = np.empty(3)
-        step = np.empty(3)
+        lo = np.empty(3)
+        hi = np.empty(3)
+        end = np.empty(3)
+        lo[0], hi[0] = start[p, 0] - bound_x, start[p, 0] + bound_x
+        lo[1], hi[1] = start[p, 1] - bound_x, start[p, 1] + bound_x
+        lo[2], hi[2] = start[p, 2] - bound_z, start[p, 2] + bound_z
         a = amp[p]
-        cap = excess * a
-        x, y, z = start[p, 0], start[p, 1], start[p, 2]
-        cost = _misfit_sums(ptr[p], ptr[p + 1], u, xf, v, a, cap, x, y, z, so, cell,
-                            footprint, sx, sz, h, g)
-        lam = 1e-3
-        for _ in range(iterations):
-            if a <= 0.0 or not _damped_step(h, g, lam, step):
-                break
-            for e in range(3):
-                step[e] = min(max(step[e], -1.0), 1.0)
-            nx = min(max(x + step[0] * sx, start[p, 0] - bound_x), start[p, 0] + bound_x)
-            ny = min(max(y + step[1] * sx, start[p, 1] - bound_x), start[p, 1] + bound_x)
-            nz = min(max(z + step[2] * sz, start[p, 2] - bound_z), start[p, 2] + bound_z)
-            c = _misfit_sums(ptr[p], ptr[p + 1], u, xf, v, a, cap, nx, ny, nz, so, cell,
-                             footprint, sx, sz, hn, gn)
-            if c < cost:
-                x, y, z, cost = nx, ny, nz, c
-                h[:, :] = hn
-                g[:] = gn
-                lam = max(lam / 3.0, 1e-9)
-                if max(abs(step[0]), abs(step[1]), abs(step[2])) < 1e-3:
-                    break
-            else:
-                lam *= 4.0
-                if lam > 1e6:
-                    break
-        pos[p, 0], pos[p, 1], pos[p, 2] = x, y, z
+        best = np.inf
+        pos[p, 0], pos[p, 1], pos[p, 2] = start[p, 0], start[p, 1], start[p, 2]
+        for k in range(offsets.shape[0]):
+            z0 = min(max(start[p, 2] + offsets[k], lo[2]), hi[2])
+            c = _descend(ptr[p], ptr[p + 1], u, xf, v, a, excess * a, start[p, 0],
+                         start[p, 1], z0, so, cell, footprint, sx, sz, lo, hi, iterations, end)
+            if c < best:
+                best = c
+                pos[p, 0], pos[p, 1], pos[p, 2] = end[0], end[1], end[2]
 
 
 @numba.njit(cache=True, parallel=True)
