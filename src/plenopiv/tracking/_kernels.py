@@ -378,8 +378,13 @@ def _misfit_sums(i0, i1, u, xf, v, a, cap, px, py, pz, so, cell, footprint, sx, 
     cost = 0.0
     for i in range(i0, i1):
         mx = u[i, 0] * s + xf[i, 0] * t - px
-        my = u[i, 1] * s + xf[i, 1] * t - py
         ox, oxm, oxa, oxb = _overlap_grad(mx, wa, wb)
+        if ox == 0.0:
+            # predicted dark (f = 0): r = v, no derivative (all terms below vanish)
+            r = v[i]
+            cost += cap * cap if r > cap else r * r
+            continue
+        my = u[i, 1] * s + xf[i, 1] * t - py
         oy, oym, oya, oyb = _overlap_grad(my, wa, wb)
         f = ox * oy * inv
         r = v[i] - a * f
@@ -387,6 +392,8 @@ def _misfit_sums(i0, i1, u, xf, v, a, cap, px, py, pz, so, cell, footprint, sx, 
             cost += cap * cap
             continue
         cost += r * r
+        if oy == 0.0:
+            continue
         dox = oxm * (xf[i, 0] - u[i, 0]) / so + oxa * dwa + oxb * dwb
         doy = oym * (xf[i, 1] - u[i, 1]) / so + oya * dwa + oyb * dwb
         j0 = a * oxm * oy * inv * sx
