@@ -276,6 +276,39 @@ def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng, near)
         refine_positions(lf, img, start, depth_cell=cell, engine="cuda")
 
 
+def test_misfit_gradient_is_the_derivative_of_the_misfit(thesis_light_field):
+    """The local steps' Jacobian: 2 J^T r equals the central difference of the misfit.
+
+    The misfit is piecewise quadratic (the trapezoids are piecewise linear in x, y, Z): over
+    a step of 1e-4 footprints (1e-4 depth cells) few pixels cross a kink, so the difference
+    quotient matches the analytic gradient to well within 1 %.
+    """
+    from plenopiv.tracking.bundle import ray_table
+    from plenopiv.tracking.forward import _fractions, _misfit_sums, _pixels, _robust_amplitude
+
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    cell = resolution_cell(cal.effective_camera)[1]
+    truth = np.array([[0.2 * b, -0.1 * b, 2e-3]])
+    img = particle_image(cam, truth, rays_per_particle=20000, seed=3)
+    table = ray_table(lf)
+    at = truth + [[0.05 * b, 0.03 * b, 0.1 * cell]]
+    pid, ray = _pixels(lf, table, at, 1.5, 0.3 * cell, "numpy")
+    v, u, xf = lf.values(img).astype(float)[ray], lf.u[ray], table.focal[ray]
+    ptr = np.array([0, len(pid)])
+    geom = dict(object_distance=lf.object_distance, cell=lf.cell, footprint=lf.footprint)
+    amp = _robust_amplitude(ptr, pid, _fractions(ptr, pid, u, xf, truth, geom), v)
+    scale = (b, cell)
+    _, _, g = _misfit_sums(pid, 1, u, xf, v, amp, at, geom, 0.2, scale)
+    for k, unit in enumerate((b, b, cell)):
+        d = np.zeros((1, 3))
+        d[0, k] = 1e-4 * unit
+        up = _misfit_sums(pid, 1, u, xf, v, amp, at + d, geom, 0.2, scale)[0][0]
+        down = _misfit_sums(pid, 1, u, xf, v, amp, at - d, geom, 0.2, scale)[0][0]
+        numeric = (up - down) / 2e-4               # per scale unit, as g
+        assert numeric == pytest.approx(2 * g[0, k], rel=1e-2, abs=1e-6 * abs(g).max())
+
+
 def test_robust_amplitude_kernel_matches_its_numpy_twin(rng):
     """Median of value / fraction over the half-lit pixels, per particle; none lit: 0."""
     from plenopiv.tracking.forward import _robust_amplitude, _robust_amplitude_numba
