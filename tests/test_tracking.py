@@ -341,7 +341,9 @@ def test_forward_settings_name_the_bad_value():
                      ({"round_depth_steps": 6}, "round_depth_steps"),
                      ({"margin": 0.5}, "margin"), ({"near_focus": -1}, "near_focus"),
                      ({"local_iterations": 0}, "local_iterations"),
-                     ({"local_rounds": 1.5}, "local_rounds")):
+                     ({"local_rounds": 1.5}, "local_rounds"),
+                     ({"local_starts": 2}, "local_starts"),
+                     ({"local_starts_within": -1.0}, "local_starts_within")):
         with pytest.raises(ValueError, match=name):
             ForwardSettings(**kw)
 

@@ -106,6 +106,10 @@ class ForwardSettings:
         range around it (k = 1 ... m, m = (local_starts - 1) / 2; odd, >= 1); the end of
         least misfit is kept (the misfit of a particle seen through few lenslets has
         local minima: two starts on either side in depth find the deeper one).
+    local_starts_within : float
+        Only starts within this many depth cells of the focal plane take ``local_starts``
+        descents (>= 0); farther out one descent, from the position (its many lenslets
+        make the misfit smooth).
     """
 
     depth_range: float = 0.6
@@ -119,6 +123,7 @@ class ForwardSettings:
     local_iterations: int = 20
     local_rounds: int = 2
     local_starts: int = 3
+    local_starts_within: float = 3.0
 
     def __post_init__(self):
         if not (self.near_focus >= 0):
@@ -128,6 +133,9 @@ class ForwardSettings:
             v = getattr(self, name)
             if int(v) != v or v < 1:
                 raise ValueError(f"forward {name} = {v!r}: expected an int >= 1")
+        if not (self.local_starts_within >= 0):
+            raise ValueError(f"forward local_starts_within = {self.local_starts_within!r}: "
+                             "expected a number >= 0 (depth cells)")
         if int(self.local_starts) != self.local_starts or self.local_starts % 2 == 0:
             raise ValueError(f"forward local_starts = {self.local_starts!r}: expected an odd "
                              "int >= 1")
@@ -270,17 +278,22 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     dz = settings.depth_range * depth_cell
     pos, amp = start.copy(), np.zeros(n)
     grid = near_focus(start[:, 2], depth_cell=depth_cell, settings=settings)
-    for rows, local in ((np.flatnonzero(grid), False), (np.flatnonzero(~grid), True)):
+    # the extra starts serve the particles near focus (a misfit with local minima)
+    multi = np.abs(start[:, 2]) <= settings.local_starts_within * depth_cell
+    for rows, local, starts in ((np.flatnonzero(grid), False, 1),
+                                (np.flatnonzero(~grid & multi), True, settings.local_starts),
+                                (np.flatnonzero(~grid & ~multi), True, 1)):
         # particles in chunks of a bounded number of candidate pixels (memory only: each
         # particle's search is independent)
         for sl in _chunks(lf, index, start[rows], settings.margin, dz, chunk_pixels):
             r = rows[sl]
             pos[r], amp[r] = _refine_chunk(lf, index, values, start[r], dz, depth_cell,
-                                           settings, engine, local)
+                                           settings, engine, local, starts)
     return pos, amp
 
 
-def _refine_chunk(lf, index, values, start, dz, depth_cell, settings, engine, local=False):
+def _refine_chunk(lf, index, values, start, dz, depth_cell, settings, engine, local=False,
+                  starts=1):
     """Return :func:`refine_positions` (positions, amplitudes) of some particles.
 
     ``local``: Levenberg-Marquardt steps (:func:`_local_fit`) in place of the grid searches.
@@ -303,7 +316,7 @@ def _refine_chunk(lf, index, values, start, dz, depth_cell, settings, engine, lo
         for _ in range(settings.local_rounds):
             amp = amplitude(ptr, pid, fractions(ptr, pid, u, xf, pos, geom), v)
             pos = fit(ptr, u, xf, v, amp, pos, geom, settings.excess,
-                      (lf.footprint, depth_cell), (dl, dz), _starts(dz, settings.local_starts),
+                      (lf.footprint, depth_cell), (dl, dz), _starts(dz, starts),
                       settings.local_iterations)
     else:
         search = _best_offset_numba if engine == "numba" else _best_offset
