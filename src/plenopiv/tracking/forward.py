@@ -31,8 +31,9 @@ axis at a time cross without following it. Two searches:
   most a few lenslets and the misfit is a staircase of ramps one aperture cell wide), joint
   depth x lateral grids around the start over halving ranges (~850 positions);
 - beyond, Levenberg-Marquardt steps on the misfit's analytic Jacobian (the trapezoids are
-  piecewise linear in x, y and Z), from the start and from two depths on either side of it,
-  keeping the end of least misfit, twice (the amplitude estimated again in between): a damped
+  piecewise linear in x, y and Z), from the start and, within ``local_starts_within`` depth
+  cells of focus (three by default), from two depths on either side of it, keeping the end
+  of least misfit, twice (the amplitude estimated again in between): a damped
   Gauss-Newton step moves depth and lateral position together, so it follows the slanted
   valley, and the many lenslets of a particle out of focus, each with its edge pixels at
   another place on their ramps, make the misfit smooth enough to descend (~20 evaluations
@@ -260,8 +261,9 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     depth step is ``2 depth_range / (round_depth_steps - 1) / 2^rounds`` cells (0.025 by
     default, 14 µm at a 0.55 mm cell), the last lateral step ``lateral_range / 2^(rounds +
     1)`` footprints (1/64). The others take ``local_rounds`` rounds of ``local_starts``
-    Levenberg-Marquardt descents (module docstring) with parameters scaled to footprints and
-    depth cells, within ``lateral_range`` and ``depth_range`` of the round's start.
+    Levenberg-Marquardt descents (one beyond ``local_starts_within`` depth cells; module
+    docstring) with parameters scaled to footprints and depth cells, within
+    ``lateral_range`` and ``depth_range`` of the round's start.
     """
     img = checked_image(lf, image, engine)
     start = np.asarray(start, float).reshape(-1, 3)
