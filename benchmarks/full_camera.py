@@ -30,8 +30,9 @@ Stages, each printed with its wall time and the process's peak resident memory d
    gives the speed-up.
 
 With ``--track``, also 6. the particle tracks of the pair (:mod:`plenopiv.tracking`): the time
-they add (light field, bundle fits of A and B, matching), tracked fraction, wrong matches and
-the displacement error of the tracks.
+they add (bundle fits of A and B, forward refinement, matching; the light field of the
+reconstruction reused), tracked fraction, wrong matches and the displacement error of the
+tracks.
 
 With ``--json`` the last line is one JSON object: ``reconstruct_seconds`` (per volume),
 ``reconstruct_peak_gb``, ``q``, ``pair_seconds`` (two volumes + PIV, the weights included),
@@ -233,23 +234,25 @@ def patch_study(args, log: dict) -> dict:
     return out
 
 
-def track_study(cal, ia, ib, vols, vec, pa, pb, grid, settings, log) -> dict:
-    """Particle tracks of the pair (light field, bundle fits, matching): the time it adds to
-    the pair and the tracks' errors against the truth."""
+def track_study(cal, ia, ib, vols, vec, pa, pb, grid, settings, log, lf=None) -> dict:
+    """Particle tracks of the pair (bundle fits, refinement, matching; the light field ``lf``
+    of the reconstruction's weights reused): the time it adds to the pair and the tracks'
+    errors against the truth."""
     from plenopiv.pipeline import resolution_cell
     from plenopiv.tracking.pair import track_pair
     from plenopiv.validation.tracking_study import associate_tracks, rms_per_axis
 
     with stage("track", log):
         tracks = track_pair(cal, ia, ib, vols["A"], vols["B"], vec, f_number=settings.f_number,
-                            min_lit=settings.min_lit)
+                            min_lit=settings.min_lit, lf=lf)
     lat, dep = resolution_cell(cal.effective_camera, settings.f_number)
     scale = np.array([lat, lat, dep * vols["A"].correction.scale])
     ja = associate_tracks(tracks.position_a, tracks.position_b, pa, pb, scale)
     ok = ja >= 0
     vox = np.asarray(grid.voxel)
     err = (tracks.displacement[ok] - (pb[ja[ok]] - pa[ja[ok]])) / vox
-    return {"seconds": log["track"]["seconds"], "peak_gb": log["track"]["peak_gb"],
+    return {"seconds": log["track"]["seconds"], "cpu_seconds": log["track"]["cpu_seconds"],
+            "load": log["track"]["load"], "peak_gb": log["track"]["peak_gb"],
             "n_tracks": len(tracks), "tracked_fraction": float(len(np.unique(ja[ok])) / len(pa)),
             "wrong_match_rate": float((~ok).mean()) if len(ok) else None,
             "rms_vox": [round(v, 4) for v in rms_per_axis(err)], "counts": tracks.counts}
@@ -351,7 +354,8 @@ def main(argv=None) -> dict:
         "stages": log,
     }
     if args.track:
-        result["track"] = track_study(cal, ia, ib, vols, vec, pa, pb, grid, settings, log)
+        result["track"] = track_study(cal, ia, ib, vols, vec, pa, pb, grid, settings, log,
+                                      lf=w.geometry.light_field)
     if not args.skip_patch:
         result["patch"] = patch_study(args, log)
     if args.json:

@@ -22,7 +22,12 @@ from plenopiv.tracking.bundle import (
     closest_point,
     closest_points,
 )
-from plenopiv.tracking.forward import ForwardSettings, beam_fraction, refine_positions
+from plenopiv.tracking.forward import (
+    ForwardSettings,
+    beam_fraction,
+    near_focus,
+    refine_positions,
+)
 from plenopiv.tracking.matching import (
     MatchSettings,
     interpolate_displacement,
@@ -218,9 +223,11 @@ def test_refined_position_is_not_pulled_by_a_missed_neighbour(thesis_light_field
     assert amp[0] > 0
 
 
-@pytest.mark.parametrize("depth", [1e-3, -1.5e-3])
-def test_refined_position_of_an_isolated_particle(thesis_light_field, depth):
-    """Started from a bundle seeded off (0.1 b, 0.1 b, 0.3 cell): the isolated tolerances."""
+@pytest.mark.parametrize(("depth", "near"), [(1e-3, np.inf), (-1.5e-3, np.inf),
+                                             (-1.5e-3, 0.0), (2.5e-3, 0.0)])
+def test_refined_position_of_an_isolated_particle(thesis_light_field, depth, near):
+    """Started from a bundle seeded off (0.1 b, 0.1 b, 0.3 cell): the isolated tolerances,
+    by the grid searches (``near_focus = inf``) and by the local steps (``0``)."""
     cam, cal, lf = thesis_light_field
     b = lf.footprint
     truth = np.array([0.3 * b, -0.2 * b, depth])
@@ -228,25 +235,33 @@ def test_refined_position_of_an_isolated_particle(thesis_light_field, depth):
     cell = resolution_cell(cal.effective_camera)[1]
     start = bundle_positions(lf, img, (truth + [0.1 * b, 0.1 * b, 0.3 * cell])[None],
                              depth_cell=cell)
-    pos, _ = refine_positions(lf, img, start.position, depth_cell=cell)
+    pos, _ = refine_positions(lf, img, start.position, depth_cell=cell,
+                              settings=ForwardSettings(near_focus=near))
     err = pos[0] - truth
     assert np.abs(err[:2]).max() < 0.15 * b
     assert abs(err[2]) < 1.5 * b
 
 
-def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng):
-    """Several particles with crossing beams, started off the truth: both engines agree."""
+@pytest.mark.parametrize("near", ["grid", "local", "both"])
+def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng, near):
+    """Several particles with crossing beams, started off the truth: both engines agree,
+    by the grid searches, the local steps and both (``near_focus`` between the starts)."""
     cam, cal, lf = thesis_light_field
     b = lf.footprint
     truth = np.column_stack([rng.uniform(-4, 4, (5, 2)) * b, rng.uniform(-3e-3, 3e-3, 5)])
     img = particle_image(cam, truth, rays_per_particle=4000, seed=6)
     start = truth + rng.normal(0, 0.1, (5, 3)) * [b, b, 2 * b]
     cell = resolution_cell(cal.effective_camera)[1]
-    res = {e: refine_positions(lf, img, start, depth_cell=cell, engine=e)
+    mid = float(np.median(np.abs(start[:, 2]))) / cell
+    fs = ForwardSettings(near_focus={"grid": np.inf, "local": 0.0, "both": mid}[near])
+    res = {e: refine_positions(lf, img, start, depth_cell=cell, engine=e, settings=fs)
            for e in ("numba", "numpy")}
     np.testing.assert_allclose(res["numba"][0], res["numpy"][0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(res["numba"][1], res["numpy"][1], rtol=1e-12)
     assert np.abs(res["numba"][0] - start).max() > 0        # the search moved something
+    if near != "both":
+        return
+    assert near_focus(start[:, 2], depth_cell=cell, settings=fs).sum() == 3
     # the compiled pixel selection and its twin take the same pixels in the same order
     from plenopiv.tracking.forward import _lenslet_index, _pixels
     index = _lenslet_index(lf)
@@ -254,11 +269,62 @@ def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng):
                             _pixels(lf, index, start, 1.5, 0.3e-3, "numpy"), strict=True):
         np.testing.assert_array_equal(eng_a, eng_b)
     # one particle per run of pixels: each particle's search is its own
-    one = refine_positions(lf, img, start, depth_cell=cell, chunk_pixels=1)
+    one = refine_positions(lf, img, start, depth_cell=cell, chunk_pixels=1, settings=fs)
     np.testing.assert_array_equal(one[0], res["numba"][0])
     np.testing.assert_array_equal(one[1], res["numba"][1])
     with pytest.raises(ValueError, match="engine"):
         refine_positions(lf, img, start, depth_cell=cell, engine="cuda")
+
+
+def test_misfit_gradient_is_the_derivative_of_the_misfit(thesis_light_field):
+    """The local steps' Jacobian: 2 J^T r equals the central difference of the misfit.
+
+    The misfit is piecewise quadratic (the trapezoids are piecewise linear in x, y, Z): over
+    a step of 1e-4 footprints (1e-4 depth cells) few pixels cross a kink, so the difference
+    quotient matches the analytic gradient to well within 1 %.
+    """
+    from plenopiv.tracking.bundle import ray_table
+    from plenopiv.tracking.forward import _fractions, _misfit_sums, _pixels, _robust_amplitude
+
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    cell = resolution_cell(cal.effective_camera)[1]
+    truth = np.array([[0.2 * b, -0.1 * b, 2e-3]])
+    img = particle_image(cam, truth, rays_per_particle=20000, seed=3)
+    table = ray_table(lf)
+    at = truth + [[0.05 * b, 0.03 * b, 0.1 * cell]]
+    pid, ray = _pixels(lf, table, at, 1.5, 0.3 * cell, "numpy")
+    v, u, xf = lf.values(img).astype(float)[ray], lf.u[ray], table.focal[ray]
+    ptr = np.array([0, len(pid)])
+    geom = dict(object_distance=lf.object_distance, cell=lf.cell, footprint=lf.footprint)
+    amp = _robust_amplitude(ptr, pid, _fractions(ptr, pid, u, xf, truth, geom), v)
+    scale = (b, cell)
+    _, _, g = _misfit_sums(pid, 1, u, xf, v, amp, at, geom, 0.2, scale)
+    for k, unit in enumerate((b, b, cell)):
+        d = np.zeros((1, 3))
+        d[0, k] = 1e-4 * unit
+        up = _misfit_sums(pid, 1, u, xf, v, amp, at + d, geom, 0.2, scale)[0][0]
+        down = _misfit_sums(pid, 1, u, xf, v, amp, at - d, geom, 0.2, scale)[0][0]
+        numeric = (up - down) / 2e-4               # per scale unit, as g
+        assert numeric == pytest.approx(2 * g[0, k], rel=1e-2, abs=1e-6 * abs(g).max())
+
+
+def test_robust_amplitude_kernel_matches_its_numpy_twin(rng):
+    """Median of value / fraction over the half-lit pixels, per particle; none lit: 0."""
+    from plenopiv.tracking.forward import _robust_amplitude, _robust_amplitude_numba
+
+    counts = np.array([7, 0, 1, 12, 3])
+    ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    pid = np.repeat(np.arange(len(counts)), counts)
+    f = rng.uniform(0.0, 1.0, ptr[-1])
+    f[ptr[4]:ptr[5]] = 0.2                      # particle 4 lights no pixel half
+    v = rng.normal(2.0, 1.0, ptr[-1])
+    got = _robust_amplitude_numba(ptr, pid, f, v)
+    np.testing.assert_array_equal(got, _robust_amplitude(ptr, pid, f, v))
+    lit = f[:7] >= 0.5
+    ratio = np.sort(v[:7][lit] / f[:7][lit])
+    assert got[0] == max(ratio[len(ratio) // 2], 0.0)
+    assert got[1] == 0.0 and got[4] == 0.0
 
 
 def test_refinement_of_a_dark_image_keeps_the_start(thesis_light_field):
@@ -273,7 +339,11 @@ def test_forward_settings_name_the_bad_value():
     for kw, name in (({"depth_range": 0}, "depth_range"), ({"depth_steps": 4}, "depth_steps"),
                      ({"excess": -1}, "excess"), ({"rounds": 0}, "rounds"),
                      ({"round_depth_steps": 6}, "round_depth_steps"),
-                     ({"margin": 0.5}, "margin")):
+                     ({"margin": 0.5}, "margin"), ({"near_focus": -1}, "near_focus"),
+                     ({"local_iterations": 0}, "local_iterations"),
+                     ({"local_rounds": 1.5}, "local_rounds"),
+                     ({"local_starts": 2}, "local_starts"),
+                     ({"local_starts_within": -1.0}, "local_starts_within")):
         with pytest.raises(ValueError, match=name):
             ForwardSettings(**kw)
 

@@ -487,7 +487,8 @@ class ExperimentPairProcess:
         if exp.tracking.enabled:  # before the vectors file, which marks the pair complete
             from plenopiv.tracking.pair import track_and_save
 
-            tracked = track_and_save(cal, ia, ib, res, exp, self.out_dir, job.name)
+            tracked = track_and_save(cal, ia, ib, res, exp, self.out_dir, job.name,
+                                     weights=processor.weights())
         paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra)
         vec = res.vectors
         return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),

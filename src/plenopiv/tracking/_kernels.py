@@ -336,3 +336,203 @@ def pixel_fractions(ptr, u, xf, pos, so, cell, footprint, out):
             ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - pos[p, 0], wa, wb)
             oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - pos[p, 1], wa, wb)
             out[i] = ox * oy / (wa * wa)
+
+
+@numba.njit(cache=True)
+def _overlap_grad(m, wa, wb):
+    """:func:`_overlap` and its derivatives ``(o, do/dm, do/dwa, do/dwb)`` (0 where o = 0)."""
+    if m + 0.5 * wb < 0.5 * wa:
+        hi, hi_m, hi_a, hi_b = m + 0.5 * wb, 1.0, 0.0, 0.5
+    else:
+        hi, hi_m, hi_a, hi_b = 0.5 * wa, 0.0, 0.5, 0.0
+    if m - 0.5 * wb > -0.5 * wa:
+        lo, lo_m, lo_a, lo_b = m - 0.5 * wb, 1.0, 0.0, -0.5
+    else:
+        lo, lo_m, lo_a, lo_b = -0.5 * wa, 0.0, -0.5, 0.0
+    if hi - lo <= 0.0:
+        return 0.0, 0.0, 0.0, 0.0
+    return hi - lo, hi_m - lo_m, hi_a - lo_a, hi_b - lo_b
+
+
+@numba.njit(cache=True)
+def _misfit_sums(i0, i1, u, xf, v, a, cap, px, py, pz, so, cell, footprint, sx, sz, h, g):
+    """Misfit of pixels ``i0:i1`` for a particle at (px, py, pz) with amplitude a.
+
+    Returns the one-sided misfit and fills the Gauss-Newton sums ``h = J^T J`` (3, 3) and
+    ``g = J^T r`` (3,) of the residuals ``r = v - a f`` in the scaled parameters
+    ``(x / sx, y / sx, z / sz)``; a capped residual (r > cap) has no derivative.
+    """
+    t = (so + pz) / so
+    s = 1.0 - t
+    wa = cell * abs(s)
+    dwa = 0.0
+    if wa > 1e-9 * cell:
+        dwa = cell / so if pz > 0.0 else -cell / so
+    else:
+        wa = 1e-9 * cell
+    wb = footprint * abs(t)
+    dwb = footprint / so if t > 0.0 else -footprint / so
+    inv = 1.0 / (wa * wa)
+    h[:, :] = 0.0
+    g[:] = 0.0
+    cost = 0.0
+    for i in range(i0, i1):
+        mx = u[i, 0] * s + xf[i, 0] * t - px
+        ox, oxm, oxa, oxb = _overlap_grad(mx, wa, wb)
+        if ox == 0.0:
+            # predicted dark (f = 0): r = v, no derivative (all terms below vanish)
+            r = v[i]
+            cost += cap * cap if r > cap else r * r
+            continue
+        my = u[i, 1] * s + xf[i, 1] * t - py
+        oy, oym, oya, oyb = _overlap_grad(my, wa, wb)
+        f = ox * oy * inv
+        r = v[i] - a * f
+        if r > cap:
+            cost += cap * cap
+            continue
+        cost += r * r
+        if oy == 0.0:
+            continue
+        dox = oxm * (xf[i, 0] - u[i, 0]) / so + oxa * dwa + oxb * dwb
+        doy = oym * (xf[i, 1] - u[i, 1]) / so + oya * dwa + oyb * dwb
+        j0 = a * oxm * oy * inv * sx
+        j1 = a * ox * oym * inv * sx
+        j2 = -a * ((dox * oy + ox * doy) * inv - 2.0 * f * dwa / wa) * sz
+        g[0] += j0 * r
+        g[1] += j1 * r
+        g[2] += j2 * r
+        h[0, 0] += j0 * j0
+        h[0, 1] += j0 * j1
+        h[0, 2] += j0 * j2
+        h[1, 1] += j1 * j1
+        h[1, 2] += j1 * j2
+        h[2, 2] += j2 * j2
+    h[1, 0] = h[0, 1]
+    h[2, 0] = h[0, 2]
+    h[2, 1] = h[1, 2]
+    return cost
+
+
+@numba.njit(cache=True)
+def _damped_step(h, g, lam, step):
+    """Solve ``(h + lam diag(h)) step = -g`` by Cramer's rule; False when singular."""
+    a = np.empty((3, 3))
+    for e in range(3):
+        for c in range(3):
+            a[e, c] = h[e, c] + (lam * h[e, c] if e == c else 0.0)
+    det = (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+           - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+           + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+    if not (abs(det) > 0.0) or not math.isfinite(det):
+        return False
+    b0, b1, b2 = -g[0], -g[1], -g[2]
+    step[0] = (b0 * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+               - a[0, 1] * (b1 * a[2, 2] - a[1, 2] * b2)
+               + a[0, 2] * (b1 * a[2, 1] - a[1, 1] * b2)) / det
+    step[1] = (a[0, 0] * (b1 * a[2, 2] - a[1, 2] * b2)
+               - b0 * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+               + a[0, 2] * (a[1, 0] * b2 - b1 * a[2, 0])) / det
+    step[2] = (a[0, 0] * (a[1, 1] * b2 - b1 * a[2, 1])
+               - a[0, 1] * (a[1, 0] * b2 - b1 * a[2, 0])
+               + b0 * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0])) / det
+    return True
+
+
+@numba.njit(cache=True)
+def _descend(i0, i1, u, xf, v, a, cap, sx0, sy0, sz0, so, cell, footprint, sx, sz, lo, hi,
+             iterations, out):
+    """One Levenberg-Marquardt descent of :func:`local_fit`, returning its misfit.
+
+    From ``(sx0, sy0, sz0)`` within the box ``lo``-``hi`` (3,), metres; the end point goes
+    to ``out`` (3,).
+    """
+    h = np.empty((3, 3))
+    g = np.empty(3)
+    hn = np.empty((3, 3))
+    gn = np.empty(3)
+    step = np.empty(3)
+    x, y, z = sx0, sy0, sz0
+    cost = _misfit_sums(i0, i1, u, xf, v, a, cap, x, y, z, so, cell, footprint, sx, sz, h, g)
+    lam = 1e-3
+    for _ in range(iterations):
+        if a <= 0.0 or not _damped_step(h, g, lam, step):
+            break
+        for e in range(3):
+            step[e] = min(max(step[e], -1.0), 1.0)
+        nx = min(max(x + step[0] * sx, lo[0]), hi[0])
+        ny = min(max(y + step[1] * sx, lo[1]), hi[1])
+        nz = min(max(z + step[2] * sz, lo[2]), hi[2])
+        c = _misfit_sums(i0, i1, u, xf, v, a, cap, nx, ny, nz, so, cell, footprint, sx, sz,
+                         hn, gn)
+        if c < cost:
+            x, y, z, cost = nx, ny, nz, c
+            h[:, :] = hn
+            g[:] = gn
+            lam = max(lam / 3.0, 1e-9)
+            if max(abs(step[0]), abs(step[1]), abs(step[2])) < 1e-3:
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e6:
+                break
+    out[0], out[1], out[2] = x, y, z
+    return cost
+
+
+@numba.njit(cache=True, parallel=True)
+def local_fit(ptr, u, xf, v, amp, start, so, cell, footprint, excess, sx, sz, bound_x,
+              bound_z, offsets, iterations, pos):
+    """Levenberg-Marquardt on the one-sided misfit of each particle, from ``start``.
+
+    Pixels ``ptr[p]:ptr[p + 1]`` belong to particle p (amplitude ``amp[p]``); parameters are
+    scaled by ``sx`` (lateral) and ``sz`` (depth), metres. From each of ``start[p] + (0, 0,
+    offsets[k])`` (metres): a step is taken when it lowers the misfit (damping /3, and the
+    descent ends once a step is below 1e-3 scale units), refused otherwise (damping x4, the
+    descent ends beyond 1e6); each step is clipped to one scale unit per axis and the
+    position to ``start +- (bound_x, bound_x, bound_z)``. The end of least misfit (the first
+    on ties) goes to ``pos`` (N, 3). The NumPy twin is ``plenopiv.tracking.forward._local_fit``.
+    """
+    for p in numba.prange(start.shape[0]):
+        lo = np.empty(3)
+        hi = np.empty(3)
+        end = np.empty(3)
+        lo[0], hi[0] = start[p, 0] - bound_x, start[p, 0] + bound_x
+        lo[1], hi[1] = start[p, 1] - bound_x, start[p, 1] + bound_x
+        lo[2], hi[2] = start[p, 2] - bound_z, start[p, 2] + bound_z
+        a = amp[p]
+        best = np.inf
+        pos[p, 0], pos[p, 1], pos[p, 2] = start[p, 0], start[p, 1], start[p, 2]
+        for k in range(offsets.shape[0]):
+            z0 = min(max(start[p, 2] + offsets[k], lo[2]), hi[2])
+            c = _descend(ptr[p], ptr[p + 1], u, xf, v, a, excess * a, start[p, 0],
+                         start[p, 1], z0, so, cell, footprint, sx, sz, lo, hi, iterations, end)
+            if c < best:
+                best = c
+                pos[p, 0], pos[p, 1], pos[p, 2] = end[0], end[1], end[2]
+
+
+@numba.njit(cache=True, parallel=True)
+def robust_amplitude(ptr, f, v, out):
+    """Set ``out[p]`` to the median of ``v / f`` over particle p's pixels with f >= 0.5.
+
+    Pixels ``ptr[p]:ptr[p + 1]``; the upper median (element ``n // 2`` of the n sorted
+    ratios), 0 when none or negative (NumPy twin:
+    ``plenopiv.tracking.forward._robust_amplitude``).
+    """
+    for p in numba.prange(out.shape[0]):
+        n = 0
+        for i in range(ptr[p], ptr[p + 1]):
+            if f[i] >= 0.5:
+                n += 1
+        if n == 0:
+            out[p] = 0.0
+            continue
+        ratio = np.empty(n)
+        k = 0
+        for i in range(ptr[p], ptr[p + 1]):
+            if f[i] >= 0.5:
+                ratio[k] = v[i] / f[i]
+                k += 1
+        ratio.sort()
+        out[p] = max(ratio[n // 2], 0.0)

@@ -18,6 +18,7 @@ coordinates exactly as for centroids.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -28,8 +29,8 @@ from plenopiv.lightfield import LightField
 #: Implementations of :func:`bundle_positions`.
 ENGINES = ("numba", "numpy")
 
-__all__ = ["ENGINES", "BundlePositions", "BundleSettings", "bundle_positions", "closest_point",
-           "closest_points", "lenslet_table", "ray_lines"]
+__all__ = ["ENGINES", "BundlePositions", "BundleSettings", "RayTable", "bundle_positions",
+           "closest_point", "closest_points", "lenslet_table", "ray_lines", "ray_table"]
 
 
 @dataclass(frozen=True)
@@ -239,6 +240,41 @@ def lenslet_table(lf: LightField):
     return order, ptr, conj, has
 
 
+class RayTable(NamedTuple):
+    """A light field's rays grouped by lenslet (:func:`ray_table`), shared by every image.
+
+    Attributes
+    ----------
+    order, ptr : (P,), (K + 1,) int
+        Lenslet L's rays are ``order[ptr[L]:ptr[L + 1]]`` (:func:`lenslet_table`).
+    lens_ids : (L,) int
+        The lenslets with rays.
+    tree : cKDTree
+        Their focal-plane points X_f (metres).
+    focal : (P, 2) float64
+        Every ray's focal-plane point X_f, metres (the light field's order).
+    u, focal_sorted : (P, 2) float64
+        Aperture point u and X_f of the rays in lenslet order, metres (contiguous).
+    """
+
+    order: np.ndarray
+    ptr: np.ndarray
+    lens_ids: np.ndarray
+    tree: cKDTree
+    focal: np.ndarray
+    u: np.ndarray
+    focal_sorted: np.ndarray
+
+
+def ray_table(lf: LightField) -> RayTable:
+    """Group the rays of ``lf`` by lenslet (:class:`RayTable`; built once per light field)."""
+    order, ptr, conj, has = lenslet_table(lf)
+    xf = lf.focal_plane_position
+    return RayTable(order, ptr, np.flatnonzero(has), cKDTree(conj[has]), xf,
+                    np.ascontiguousarray(lf.u[order], np.float64),
+                    np.ascontiguousarray(xf[order], np.float64))
+
+
 def _half_beam(lf: LightField, depth) -> np.ndarray:
     """Half width of a pixel's beam at effective depth ``depth`` (metres)."""
     t = (lf.object_distance + np.asarray(depth, float)) / lf.object_distance
@@ -278,7 +314,7 @@ def _checked_inputs(lf: LightField, image, seeds, settings: BundleSettings, engi
 def bundle_positions(lf: LightField, image, seeds, *,
                      settings: BundleSettings = BundleSettings(), depth_cell: float | None = None,
                      brightness=None, chunk: int = 1024,
-                     engine: str = "numba") -> BundlePositions:
+                     engine: str = "numba", table: RayTable | None = None) -> BundlePositions:
     r"""Refine particle positions to the point nearest the bundle of rays that saw each.
 
     Parameters
@@ -300,6 +336,9 @@ def bundle_positions(lf: LightField, image, seeds, *,
         Particles per vectorised ray selection (``engine="numpy"``; memory only).
     engine : {"numba", "numpy"}
         The compiled kernels (default) or their plain NumPy twin (same estimator).
+    table : RayTable, optional
+        :func:`ray_table` of ``lf``, when already built (one per light field serves every
+        image).
 
     Returns
     -------
@@ -338,11 +377,12 @@ def bundle_positions(lf: LightField, image, seeds, *,
     """
     seeds, weight = _checked_inputs(lf, image, seeds, settings, engine)
     n = len(seeds)
-    order, ptr, conj, has = lenslet_table(lf)
-    lens_ids = np.flatnonzero(has)
-    tree = cKDTree(conj[has])
+    table = ray_table(lf) if table is None else table
+    order, ptr, lens_ids, tree = table[:4]
     if engine == "numba":
-        rays = _sorted_rays(lf, order, weight)
+        rays = (table.u, table.focal_sorted, np.ascontiguousarray(weight[order], np.float64))
+        # per-thread shares and their sum, allocated once for every solve
+        work = (np.zeros((max(1, min(_threads(), n)), lf.n_rays)), np.zeros(lf.n_rays))
     else:
         origin, direction = ray_lines(lf)
     if depth_cell is None:
@@ -358,7 +398,7 @@ def bundle_positions(lf: LightField, image, seeds, *,
         centre, radius = pos, settings.radius * _half_beam(lf, pos[:, 2]) + widen
         if engine == "numba":
             cand, total, normal, rhs, nr = _numba_normal_equations(lf, index, rays, centre,
-                                                                   radius, bright)
+                                                                   radius, bright, work)
             p, good = _solve(normal, rhs)
         else:
             pid, ray, w = _shared_rays(lf, index, centre, radius, weight, bright, chunk)
@@ -390,17 +430,18 @@ def _candidates(lf, index, centre, radius):
     return lptr, lidx
 
 
-def _sorted_rays(lf, order, weight):
-    """Ray arrays of the kernels, sorted by lenslet: (u (P, 2), X_f (P, 2), weight (P,))."""
-    return (np.ascontiguousarray(lf.u[order], np.float64),
-            np.ascontiguousarray(lf.focal_plane_position[order], np.float64),
-            np.ascontiguousarray(weight[order], np.float64))
-
-
-def _numba_normal_equations(lf, index, rays, centre, radius, bright):
-    """Run one solve on the numba path: candidates, ray shares, normal equations."""
+def _threads() -> int:
+    """Threads of the numba kernels."""
     import numba
 
+    return numba.get_num_threads()
+
+
+def _numba_normal_equations(lf, index, rays, centre, radius, bright, work):
+    """Run one solve on the numba path: candidates, ray shares, normal equations.
+
+    ``work`` holds the per-thread ray shares (C, P) and their sum (P,), overwritten.
+    """
     from plenopiv.tracking import _kernels as _k
 
     ptr = index[1].astype(np.int64)
@@ -408,9 +449,10 @@ def _numba_normal_equations(lf, index, rays, centre, radius, bright):
     u, xf, w = rays
     n = len(centre)
     c, r, b = (np.ascontiguousarray(a, np.float64) for a in (centre, radius, bright))
-    chunks = np.zeros((max(1, min(numba.get_num_threads(), n)), lf.n_rays))
+    chunks, total = work
+    chunks.fill(0.0)
     _k.ray_shares(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, chunks)
-    total = chunks.sum(axis=0)
+    np.sum(chunks, axis=0, out=total)
     normal, rhs, nr = np.zeros((n, 3, 3)), np.zeros((n, 3)), np.zeros(n, np.int64)
     _k.normal_equations(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, w, total,
                         normal, rhs, nr)

@@ -18,8 +18,14 @@ from plenopiv.lightfield import LightField, light_field
 from plenopiv.pipeline import resolution_cell
 from plenopiv.products.vectors import VectorResult
 from plenopiv.products.volume import VolumeResult
-from plenopiv.tracking.bundle import BundlePositions, BundleSettings, bundle_positions
-from plenopiv.tracking.forward import ForwardSettings, refine_positions
+from plenopiv.tracking.bundle import (
+    BundlePositions,
+    BundleSettings,
+    RayTable,
+    bundle_positions,
+    ray_table,
+)
+from plenopiv.tracking.forward import ForwardSettings, near_focus, refine_positions
 from plenopiv.tracking.matching import MatchSettings, match_particles, predict_positions
 
 __all__ = ["TrackResult", "bin_tracks", "physical_bundle", "track_pair"]
@@ -88,7 +94,8 @@ class TrackResult:
 
 def physical_bundle(lf: LightField, image, volume: VolumeResult,
                     settings: BundleSettings, depth_cell: float,
-                    forward: ForwardSettings | None = FORWARD, min_lenslets: int = 2
+                    forward: ForwardSettings | None = FORWARD, min_lenslets: int = 2,
+                    table: RayTable | None = None
                     ) -> tuple[np.ndarray, np.ndarray, BundlePositions]:
     """Bundle positions of a volume's particles, corrected to physical coordinates.
 
@@ -98,10 +105,13 @@ def physical_bundle(lf: LightField, image, volume: VolumeResult,
     ``min_lenslets`` lenslets (and more than one) are refined by
     :func:`plenopiv.tracking.forward.refine_positions` (the uncertainty stays the bundle
     fit's); ``None`` keeps the bundle positions. The others keep their bundle position:
-    :func:`track_pair` drops the tracks they end.
+    :func:`track_pair` drops the tracks they end. ``table``: the light field's
+    :func:`~plenopiv.tracking.bundle.ray_table`, when already built.
     """
+    table = ray_table(lf) if table is None else table
     b = bundle_positions(lf, image, volume.particle_position_effective, settings=settings,
-                         depth_cell=depth_cell, brightness=volume.particle_intensity)
+                         depth_cell=depth_cell, brightness=volume.particle_intensity,
+                         table=table)
     eff = b.position
     # a particle seen through one lenslet lights all its pixels at any depth within the depth
     # of field: the pixel values hold no position to refine
@@ -109,11 +119,21 @@ def physical_bundle(lf: LightField, image, volume: VolumeResult,
     if forward is not None and sel.any():
         eff = eff.copy()
         eff[sel] = refine_positions(lf, image, eff[sel], depth_cell=depth_cell,
-                                    settings=forward)[0]
+                                    settings=forward, table=table)[0]
     corr = volume.correction
     pos = corr.points(eff) if len(b) else b.position.reshape(0, 3)
     unc = b.uncertainty * np.array([1.0, 1.0, corr.scale])
     return pos, unc, b
+
+
+def _refined(b: BundlePositions, forward: ForwardSettings | None, min_lenslets: int,
+             depth_cell: float) -> tuple[int, int]:
+    """Particles :func:`physical_bundle` refined: ``(by the grid searches, by local steps)``."""
+    if forward is None:
+        return 0, 0
+    sel = b.converged & (b.n_lenslets >= max(2, min_lenslets))
+    grid = near_focus(b.position[sel, 2], depth_cell=depth_cell, settings=forward)
+    return int(grid.sum()), int((~grid).sum())
 
 
 def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResult,
@@ -136,7 +156,8 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
     f_number, min_lit : optional
         Aperture and pixel selection of the light field (as in ``[reconstruction]``).
     lf : LightField, optional
-        A light field already built for this calibration.
+        The light field of this calibration with ``f_number`` and ``min_lit``, when already
+        built (the reconstruction's: ``weights.geometry.light_field``); built here otherwise.
     """
     settings = TrackingConfig() if settings is None else settings
     if lf is None:
@@ -144,8 +165,11 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
     lat, dep = resolution_cell(calibration.effective_camera, f_number)
     bs = BundleSettings(radius=settings.bundle_radius, iterations=settings.bundle_iterations)
     fs = FORWARD if settings.forward_refine else None
-    pa, ua, ba = physical_bundle(lf, image_a, volume_a, bs, dep, fs, settings.min_lenslets)
-    pb, ub, bb = physical_bundle(lf, image_b, volume_b, bs, dep, fs, settings.min_lenslets)
+    table = ray_table(lf)
+    pa, ua, ba = physical_bundle(lf, image_a, volume_a, bs, dep, fs, settings.min_lenslets,
+                                 table)
+    pb, ub, bb = physical_bundle(lf, image_b, volume_b, bs, dep, fs, settings.min_lenslets,
+                                 table)
     # only converged fits take part (the others keep their seed and are left out)
     ia_ok, ib_ok = np.flatnonzero(ba.converged), np.flatnonzero(bb.converged)
     scale = np.array([lat, lat, dep * volume_a.correction.scale])
@@ -165,6 +189,9 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
               "bundle_failed_b": int((~bb.converged).sum()),
               "rejected_two_way": m.rejected_mutual, "rejected_median": m.rejected_median,
               "rejected_few_lenslets": int((~seen).sum()), "tracks": int(seen.sum())}
+    for name, b in (("a", ba), ("b", bb)):
+        grid, local = _refined(b, fs, settings.min_lenslets, dep)
+        counts[f"refined_grid_{name}"], counts[f"refined_local_{name}"] = grid, local
     ia, ib = ia[seen], ib[seen]
     return TrackResult(pa[ia], pb[ib], ua[ia], ub[ib], m.quality[seen], m.residual[seen], ia,
                        ib, ba.n_lenslets[ia], bb.n_lenslets[ib], vectors.dt, counts)
@@ -215,10 +242,12 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     t = {}
     t0 = time.perf_counter()
     rec = experiment.reconstruction
+    lf = None
     if volume_a is None or volume_b is None:
         cache = experiment.output.weights_cache
         weights, _ = weights_for(calibration, experiment.volume, rec,
                                  cache_dir=experiment.path(cache) if cache else None)
+        lf = _light_field_of(weights)
         kw = dict(settings=rec, particles=experiment.particles, weights=weights,
                   progress=progress)
         if volume_a is None:
@@ -234,16 +263,24 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     t2 = time.perf_counter()
     tracks = track_pair(calibration, image_a, image_b, volume_a, volume_b, vectors,
                         settings=experiment.tracking, f_number=rec.f_number,
-                        min_lit=rec.min_lit)
+                        min_lit=rec.min_lit, lf=lf)
     t["track_s"] = time.perf_counter() - t2
     return tracks, volume_a, volume_b, vectors, t
 
 
+def _light_field_of(weights) -> LightField | None:
+    """The light field the weights were built from (None when they carry no geometry)."""
+    geometry = getattr(weights, "geometry", None)
+    return None if geometry is None else geometry.light_field
+
+
 def track_and_save(calibration: Calibration, image_a, image_b, result, experiment,
-                   out_dir, name: str) -> dict:
+                   out_dir, name: str, *, weights=None) -> dict:
     """Batch hook (``[tracking] enabled``): track a processed pair, write ``NAME_tracks.h5``.
 
-    ``result`` is the pair's :class:`plenopiv.pipeline.PairResult`; returns a small summary.
+    ``result`` is the pair's :class:`plenopiv.pipeline.PairResult`; ``weights`` the
+    reconstruction's (:class:`plenopiv.reconstruction.weights.Weights`), whose light field
+    the tracking reuses (built again without them); returns a small summary.
     """
     import time
     from pathlib import Path
@@ -254,7 +291,7 @@ def track_and_save(calibration: Calibration, image_a, image_b, result, experimen
     rec = experiment.reconstruction
     tracks = track_pair(calibration, image_a, image_b, result.volume_a, result.volume_b,
                         result.vectors, settings=experiment.tracking, f_number=rec.f_number,
-                        min_lit=rec.min_lit)
+                        min_lit=rec.min_lit, lf=_light_field_of(weights))
     paths = save_track_products(tracks, result.vectors, Path(out_dir) / f"{name}_tracks.h5",
                                 config=experiment.to_dict(), vtk=experiment.output.vtk)
     return {"tracks": paths["tracks"], "n_tracks": len(tracks),
