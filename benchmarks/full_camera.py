@@ -278,6 +278,10 @@ def main(argv=None) -> dict:
                    help="a central patch of ROWS x COLS lenslets (of the square array's 193 x "
                         "287; hexagonal rows scaled to its 222) at the same seeding density and "
                         "depth, for a measurement that scales to the full sensor")
+    p.add_argument("--projector", choices=("auto", "sparse", "lattice"), default="auto",
+                   help="[reconstruction] projector; \"lattice\" (matrix-free) keeps a "
+                        "--lenslets patch, whose explicit weights would fit, on the projector "
+                        "of the full sensor")
     p.add_argument("--json", action="store_true", help="end with one JSON line")
     args = p.parse_args(argv)
     if args.lenslets:
@@ -289,7 +293,7 @@ def main(argv=None) -> dict:
     print(f"grid {grid.shape} (z, y, x), voxel {np.round(np.array(grid.voxel) * 1e3, 4)} mm; "
           f"{args.particles} particles", file=sys.stderr)
     k = args.lateral_subdivision
-    settings = ReconstructionSettings(iterations=args.iterations,
+    settings = ReconstructionSettings(iterations=args.iterations, projector=args.projector,
                                       lateral_subdivision=k if k == "auto" else int(k))
     particles = ParticleSettings()
     try:

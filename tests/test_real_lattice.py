@@ -25,12 +25,15 @@ from plenopiv.lightfield import light_field
 from plenopiv.pipeline import reconstruct_volume
 from plenopiv.reconstruction._kernels import real_lattice as rk
 from plenopiv.reconstruction.lattice import separable_axes
+from plenopiv.reconstruction import mart
+from plenopiv.reconstruction._kernels import mart as mart_kernels
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.real_lattice import (
     LensletProjector,
     estimate_lenslet_gb,
     lenslet_weights_reference,
     matrix_free_projector,
+    smart_sweep_reference,
 )
 from plenopiv.reconstruction.weights import build_weights, cached_weights, choose_projector
 from plenopiv.synthetic.images import particle_image
@@ -147,6 +150,54 @@ def test_kernels_equal_their_numpy_twin(small_camera, rng):
     assert np.abs(proj.back(i) - want_b).max() <= RTOL * np.abs(want_b).max()
     np.testing.assert_allclose(proj.row_max(), dense.max(axis=1), rtol=RTOL, atol=0)
     assert dense.any(axis=1).all()      # every ray reaches the grid: the test covers them
+
+
+def smart_inputs(proj, rng):
+    """A sparse volume (40 % zeros), intensities about its projection, 20 % dark rows, 30 %
+    ceilings: every branch of the SMART update."""
+    e = rng.random(proj.n_voxels).astype(np.float32) * (rng.random(proj.n_voxels) > 0.4)
+    intensity = (np.asarray(proj.forward(e)) * rng.uniform(0.3, 3.0, proj.n_pixels)
+                 ).astype(np.float32)
+    bright = rng.random(proj.n_pixels) > 0.2
+    ceiling = rng.random(proj.n_pixels) < 0.3
+    norm = np.maximum(np.asarray(proj.column_sums(), np.float32), 1.0)
+    return e, intensity, bright, ceiling, norm
+
+
+#: Relative error of a voxel after one fused sweep: the back projection's float32 error
+#: (RTOL of its largest value) times at most log_bound (12) in the exponent, times μ = 2:
+#: 2 · 12 · 1e-5 = 2.4e-4.
+SWEEP_RTOL = 2 * mart_kernels.LOG_RATIO_BOUND * RTOL
+
+
+def test_fused_smart_sweep_equals_forward_then_back(case, rng):
+    """The fused per-lenslet sweep makes the update of forward, log ratio and back."""
+    _, lf, grid, _, lens = case
+    e, intensity, bright, ceiling, norm = smart_inputs(lens, rng)
+    want = e.copy()
+    mart._smart_iteration(lens, intensity, bright, want, 2.0, norm,
+                          np.zeros(lens.n_pixels, np.float32), ceiling)
+    sweep = lens.smart_sweeper(intensity, bright, norm, relaxation=2.0, ceiling=ceiling,
+                               log_bound=mart_kernels.LOG_RATIO_BOUND,
+                               ceiling_bound=mart.CEILING_LOG_BOUND)
+    got = sweep(e.copy())
+    assert np.array_equal(got == 0, e == 0)          # zeros stay zero, the rest positive
+    np.testing.assert_allclose(got, want, rtol=SWEEP_RTOL, atol=0)
+    assert np.abs(np.log(got[e > 0] / e[e > 0])).max() > 0.1   # the sweep moved voxels
+
+
+def test_fused_smart_sweep_equals_its_numpy_twin(small_camera, rng):
+    """The fused kernel against a dense-W SMART sweep in plain NumPy, on a 3 × 4 patch."""
+    cal = Calibration.from_camera(camera_of(small_camera, "hexagonal", (3, 4)))
+    lf = light_field(cal)
+    proj = LensletProjector.from_light_field(lf, small_grid(lf, nx=6, ny=5, nz=4))
+    dense = lenslet_weights_reference(proj)
+    e, intensity, bright, ceiling, norm = smart_inputs(proj, rng)
+    options = dict(relaxation=2.0, ceiling=ceiling, log_bound=mart_kernels.LOG_RATIO_BOUND,
+                   ceiling_bound=mart.CEILING_LOG_BOUND)
+    want = smart_sweep_reference(dense, e, intensity, bright, norm, **options)
+    got = proj.smart_sweeper(intensity, bright, norm, **options)(e.copy())
+    np.testing.assert_allclose(got, want, rtol=SWEEP_RTOL, atol=0)
 
 
 @pytest.mark.parametrize("geometry", ["rotated_10mrad", "hexagonal"])

@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numba
 from numba import njit, prange
 
 
@@ -334,3 +335,164 @@ def row_max(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, 
         for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
             out[ray_pos[i]] = np.float32(best[ray_r[i] - r0, ray_c[i] - c0] * ray_scale[i])
     return out
+
+
+@njit(cache=True, inline="always")
+def _slice_profiles(ucol, nc, urow, nr, xfx, xfy, tk, shape, half, ox, oy, vx, vy, nx, ny,
+                    xs, xc, xw, ys, yc, yw, edge):
+    """Both axes' profiles of one lenslet on one slice; ``(x_lo, x_hi, y_lo, y_hi)``.
+
+    ``x_lo >= x_hi`` or ``y_lo >= y_hi`` when the lenslet's beams miss the slice.
+    """
+    x_lo, x_hi = _profiles(ucol, nc, xfx, tk, shape, half, ox, vx, nx, xs, xc, xw, edge)
+    if x_lo >= x_hi:
+        return x_lo, x_hi, 0, 0
+    y_lo, y_hi = _profiles(urow, nr, xfy, tk, shape, half, oy, vy, ny, ys, yc, yw, edge)
+    return x_lo, x_hi, y_lo, y_hi
+
+
+@njit(parallel=True, cache=True)
+def smart_sweep(volume, intensity, bright, ceiling, column_norm, relaxation, log_bound,
+                ceiling_bound, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row,
+                window, xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, acc):
+    """One SMART sweep, forward, ratio and back fused per lenslet; ``volume`` in place.
+
+    For every ray i (view row ``ray_pos[i]``): ``p_i = (W E)_i``; ``g_i = clip(ln(I_i / p_i),
+    ±log_bound)`` where ``bright`` and ``p_i > 0``, else 0; rays of ``ceiling`` keep
+    ``g_i`` within ``[-ceiling_bound, 0]``. Then ``E_j *= exp(relaxation (Wᵀ g)_j /
+    column_norm_j)``, capped at ``VOXEL_MAX`` (1e30), for the voxels with ``E_j > 0`` (the
+    others stay zero: a multiplicative update cannot move them).
+
+    The sweep of :func:`forward`, the log ratio and :func:`back`, with three savings: each
+    lenslet's profiles are computed once for both directions (kept per slice in a per-thread
+    buffer), a slice whose patch of the volume is all zeros is skipped in both directions
+    (its back projection reaches only voxels that stay zero), and the back projection runs
+    in parallel over lenslets into one accumulator volume per thread (``acc``, float32, shape
+    (threads, nz, ny, nx)), summed at the end. Sums run in another order than
+    :func:`back`'s, so the result agrees with forward/back to float32 rounding.
+    """
+    nz, ny, nx = volume.shape
+    n_lens = xf_x.shape[0]
+    bmax = u_col.shape[1]
+    n_threads = acc.shape[0]
+    for th in prange(n_threads):
+        a = acc[th]
+        for k in range(nz):
+            for iy in range(ny):
+                for ix in range(nx):
+                    a[k, iy, ix] = 0.0
+    # per-thread profiles of every slice of the current lenslet
+    p_xs = np.empty((n_threads, nz, bmax), np.int64)
+    p_xc = np.empty((n_threads, nz, bmax), np.int64)
+    p_xw = np.empty((n_threads, nz, bmax, kmax), np.float32)
+    p_ys = np.empty((n_threads, nz, bmax), np.int64)
+    p_yc = np.empty((n_threads, nz, bmax), np.int64)
+    p_yw = np.empty((n_threads, nz, bmax, kmax), np.float32)
+    p_span = np.empty((n_threads, nz, 4), np.int64)
+    for lens in prange(n_lens):
+        if ray_ptr[lens + 1] == ray_ptr[lens]:
+            continue
+        th = numba.get_thread_id()
+        r0, r1, c0, c1 = window[lens, 0], window[lens, 1], window[lens, 2], window[lens, 3]
+        nr, nc = r1 - r0, c1 - c0
+        ucol = u_col[lens, c0:c1]
+        urow = u_row[lens, r0:r1]
+        xfx, xfy = xf_x[lens], xf_y[lens]
+        edge = np.empty((kmax + 2, bmax), np.float64)
+        local = np.zeros((nr, nc), np.float32)
+        tmp = np.empty((ny, nc), np.float32)
+        span = p_span[th]
+        # forward
+        for k in range(nz):
+            span[k, 0] = 0
+            span[k, 1] = 0
+            x_lo, x_hi = _span(ucol, nc, xfx, t[k], half[k], ox, vx, nx)
+            y_lo, y_hi = _span(urow, nr, xfy, t[k], half[k], oy, vy, ny)
+            if x_lo >= x_hi or y_lo >= y_hi or _patch_is_empty(volume[k], y_lo, y_hi, x_lo,
+                                                                x_hi):
+                continue
+            xs, xc, xw = p_xs[th, k], p_xc[th, k], p_xw[th, k]
+            ys, yc, yw = p_ys[th, k], p_yc[th, k], p_yw[th, k]
+            x_lo, x_hi, y_lo, y_hi = _slice_profiles(ucol, nc, urow, nr, xfx, xfy, t[k],
+                                                     shape[k], half[k], ox, oy, vx, vy, nx,
+                                                     ny, xs, xc, xw, ys, yc, yw, edge)
+            if x_lo >= x_hi or y_lo >= y_hi:
+                continue
+            span[k, 0], span[k, 1], span[k, 2], span[k, 3] = x_lo, x_hi, y_lo, y_hi
+            vk = volume[k]
+            for iy in range(y_lo, y_hi):
+                src = vk[iy]
+                dst = tmp[iy]
+                for c in range(nc):
+                    s_acc = np.float32(0.0)
+                    s = xs[c]
+                    for j in range(xc[c]):
+                        s_acc += xw[c, j] * src[s + j]
+                    dst[c] = s_acc
+            f = np.float32(slice_factor[k])
+            for r in range(nr):
+                s = ys[r]
+                row = local[r]
+                for j in range(yc[r]):
+                    wgt = f * yw[r, j]
+                    src = tmp[s + j]
+                    for c in range(nc):
+                        row[c] += wgt * src[c]
+        # the log ratio of every ray, into the lenslet's local image (scaled for the back)
+        img = np.zeros((nr, nc), np.float32)
+        any_ratio = False
+        for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
+            pos = ray_pos[i]
+            lr, rr, cc = 0.0, ray_r[i] - r0, ray_c[i] - c0
+            p = local[rr, cc] * ray_scale[i]
+            if bright[pos] and p > 0.0:
+                lr = min(max(math.log(intensity[pos] / p), -log_bound), log_bound)
+            if ceiling[pos]:
+                lr = min(max(lr, -ceiling_bound), 0.0)
+            if lr != 0.0:
+                img[rr, cc] = np.float32(lr) * ray_scale[i]
+                any_ratio = True
+        if not any_ratio:
+            continue
+        # back, into this thread's accumulator
+        ok_all = acc[th]
+        for k in range(nz):
+            x_lo, x_hi, y_lo, y_hi = span[k, 0], span[k, 1], span[k, 2], span[k, 3]
+            if x_lo >= x_hi:
+                continue
+            xs, xc, xw = p_xs[th, k], p_xc[th, k], p_xw[th, k]
+            ys, yc, yw = p_ys[th, k], p_yc[th, k], p_yw[th, k]
+            f = np.float32(slice_factor[k])
+            ok = ok_all[k]
+            for iy in range(y_lo, y_hi):
+                for c in range(nc):
+                    tmp[iy, c] = 0.0
+            for r in range(nr):
+                s = ys[r]
+                src = img[r]
+                for j in range(yc[r]):
+                    wgt = f * yw[r, j]
+                    dst = tmp[s + j]
+                    for c in range(nc):
+                        dst[c] += wgt * src[c]
+            for c in range(nc):
+                s = xs[c]
+                for j in range(xc[c]):
+                    w = xw[c, j]
+                    ix = s + j
+                    for iy in range(y_lo, y_hi):
+                        ok[iy, ix] += w * tmp[iy, c]
+    mu = np.float32(relaxation)
+    cap = np.float32(1e30)
+    for k in prange(nz):
+        for iy in range(ny):
+            for ix in range(nx):
+                e = volume[k, iy, ix]
+                if e <= 0.0:
+                    continue
+                g = acc[0, k, iy, ix]
+                for th in range(1, n_threads):
+                    g += acc[th, k, iy, ix]
+                e *= math.exp(mu * g / column_norm[k, iy, ix])
+                volume[k, iy, ix] = min(e, cap)
+    return volume
