@@ -8,13 +8,13 @@ the same density on a ``--lenslets`` patch, grid moved off the footprints by (0.
 voxels, footprint voxels, MLOS + ``--iterations`` SMART sweeps): the projector is built once
 and volume A reconstructed twice (the first builds the line-of-sight mask's refined column
 sums, the second is what every later volume costs). Every call of the projector's
-``forward``, ``back`` and fused SMART sweep (``smart_sweeper``) is timed (CPU seconds, both threads) and
-labelled by its grid (coarse or the mask's refined one) and by the fraction of non-zero
-values it was given; "everything else" is the volume's CPU time less the projector's calls.
-The last SMART sweep's inputs are then replayed: one forward and one back on their own, and
-(``--aligned``) one forward and one back of the axis-aligned array's separable
-:class:`~plenopiv.reconstruction.lattice.LatticeProjector` on the same grid in the same
-process, which gives the ratio of the two projectors.
+``forward``, ``back``, ``back_many`` and fused SMART sweep (``smart_sweeper``) is timed
+(CPU seconds, both threads) and labelled by its grid (coarse or the mask's refined one) and
+by the fraction of non-zero values it was given; "everything else" is the volume's CPU
+time less the projector's calls. The last inputs are then replayed: one forward and one
+back on their own, and (``--aligned``) one forward and one back of the axis-aligned array's
+separable :class:`~plenopiv.reconstruction.lattice.LatticeProjector` on the same grid in
+the same process, which gives the ratio of the two projectors.
 
 Prints a table; with ``--json`` the last line is one JSON object. Not a test. The machine's
 load average is printed with each figure: CPU times are the figure on a shared machine.
@@ -50,8 +50,10 @@ class CallLog:
         self._orig = {}
 
     def install(self):
-        for name in ("forward", "back"):
-            orig = getattr(LensletProjector, name)
+        for name in ("forward", "back", "back_many"):
+            orig = getattr(LensletProjector, name, None)
+            if orig is None:
+                continue
             self._orig[name] = orig
             setattr(LensletProjector, name, self._timed(name, orig))
         orig = getattr(LensletProjector, "smart_sweeper", None)

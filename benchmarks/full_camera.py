@@ -282,6 +282,9 @@ def main(argv=None) -> dict:
                    help="[reconstruction] projector; \"lattice\" (matrix-free) keeps a "
                         "--lenslets patch, whose explicit weights would fit, on the projector "
                         "of the full sensor")
+    p.add_argument("--call-times", action="store_true",
+                   help="time every call of the per-lenslet projector (forward, back, fused "
+                        "SMART sweep) in each volume (benchmarks/bench_real_lattice.py)")
     p.add_argument("--json", action="store_true", help="end with one JSON line")
     args = p.parse_args(argv)
     if args.lenslets:
@@ -312,10 +315,25 @@ def main(argv=None) -> dict:
           f"{' (matrix-free)' if w.matrix_free else ''}, working grid {w.grid.shape} "
           f"(lateral subdivision {lateral_subdivision(cal, grid, settings)})", file=sys.stderr)
     vols = {}
+    calls = None
+    if args.call_times:
+        from bench_real_lattice import CallLog
+
+        calls = CallLog()
+        calls.coarse_shape = w.grid.shape
+        calls.install()
     for name, img in (("A", ia), ("B", ib)):
+        if calls is not None:
+            calls.rows.clear()
         with stage(f"reconstruct {name}", log):
             vols[name] = reconstruct_volume(cal, img, grid, settings=settings,
                                             particles=particles, weights=w)
+        if calls is not None:
+            log[f"reconstruct {name}"]["projector_calls"] = calls.table()
+            print(json.dumps(calls.table()), file=sys.stderr)
+    if calls is not None:
+        calls.uninstall()
+        calls.last.clear()
     sigma = fq.cell_sigma(grid, cal.effective_camera)
     truth = gaussian_truth_volume(grid, pa, sigma_vox=sigma)
     q = reconstruction_quality(vols["A"].volume, truth)

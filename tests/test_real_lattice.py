@@ -23,10 +23,10 @@ from plenopiv.config import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.pipeline import reconstruct_volume
-from plenopiv.reconstruction._kernels import real_lattice as rk
-from plenopiv.reconstruction.lattice import separable_axes
 from plenopiv.reconstruction import mart
 from plenopiv.reconstruction._kernels import mart as mart_kernels
+from plenopiv.reconstruction._kernels import real_lattice as rk
+from plenopiv.reconstruction.lattice import separable_axes
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.real_lattice import (
     LensletProjector,
@@ -150,6 +150,35 @@ def test_kernels_equal_their_numpy_twin(small_camera, rng):
     assert np.abs(proj.back(i) - want_b).max() <= RTOL * np.abs(want_b).max()
     np.testing.assert_allclose(proj.row_max(), dense.max(axis=1), rtol=RTOL, atol=0)
     assert dense.any(axis=1).all()      # every ray reaches the grid: the test covers them
+
+
+def test_back_many_equals_back(case, rng):
+    """Several images in one pass: each equals its own back projection, bit for bit."""
+    _, lf, grid, _, lens = case
+    images = rng.random((3, lf.n_rays)).astype(np.float32)
+    images[1, rng.random(lf.n_rays) < 0.7] = 0.0        # sparse: other lit windows
+    images[2] = 0.0
+    got = lens.back_many(images)
+    for m in range(3):
+        np.testing.assert_array_equal(got[m], lens.back(images[m]))
+
+
+def test_line_of_sight_judges_lit_rows_in_the_refined_pass(case, rng):
+    """``lit_rows`` keeps the voxels a coarse back projection of the lit rows sees."""
+    from plenopiv.reconstruction.sightline import subcell_line_of_sight
+    from plenopiv.reconstruction.weights import Weights
+
+    _, lf, grid, _, lens = case
+    w = Weights(lens, lf.pixel, grid, f"test-{id(lens)}")
+    lenslets = np.unique(lf.lenslet)
+    lit = np.isin(lf.lenslet, rng.choice(lenslets, 3, replace=False))   # 3 lit micro-images
+    dark = ~lit & (rng.random(lf.n_rays) < 0.5)
+    options = dict(tolerance=0.5, footprint=lf.footprint)
+    keep0, _, _ = subcell_line_of_sight(w, lambda: lf, dark, **options)
+    keep1, _, _ = subcell_line_of_sight(w, lambda: lf, dark, lit_rows=lit, **options)
+    seen = np.asarray(w.normalised[0].back(lit.astype(np.float32))) > 0
+    assert (keep0 & seen).any() and (keep0 & ~seen).any()
+    np.testing.assert_array_equal(keep1, keep0 & seen)
 
 
 def smart_inputs(proj, rng):

@@ -238,6 +238,21 @@ class LensletProjector(CachedSums):
         out[:] = vol.reshape(-1)
         return out
 
+    def back_many(self, images) -> np.ndarray:
+        """``Wᵀ·I`` for each row of ``images`` (n, n_pixels); float32 (n, n_voxels).
+
+        Equal to :meth:`back` of each image, at less than n times its cost: the beam
+        profiles are computed once for all of them.
+        """
+        y = np.ascontiguousarray(np.atleast_2d(images), np.float32)
+        if y.ndim != 2 or y.shape[1] != self.n_pixels:
+            raise ReconstructionError(f"images have shape {np.shape(images)}: expected (n, "
+                                      f"{self.n_pixels})")
+        slices, lenses = self._args()
+        vol = _k.back_many(y, *slices, *lenses,
+                           np.empty((y.shape[0], *self.grid.shape), np.float32))
+        return vol.reshape(y.shape[0], -1)
+
     def smart_sweeper(self, intensity, bright, column_norm, *, relaxation: float, ceiling,
                       log_bound: float, ceiling_bound: float):
         """Return ``sweep(volume)``: one SMART iteration fused per lenslet, in place.

@@ -109,8 +109,15 @@ def solve_volume(weights, image: np.ndarray, settings, *,
         # the dark pixels take part as ceilings: their light is at most the threshold, so
         # they lower the voxels that would send more into them and never raise any; only
         # those that see the first guess's support can change anything
-        reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
-        rows = bright | (touching & reach)
+        if hasattr(proj, "smart_sweeper"):
+            # a fused sweep finds for itself the lenslets whose beams miss the support (a
+            # row that misses it projects to zero and changes nothing, now or later: the
+            # support only shrinks), so the forward projection that would select them is
+            # saved
+            rows = bright | touching
+        else:
+            reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
+            rows = bright | (touching & reach)
         values = np.maximum(raw[rows], np.float32(floor)) / row_scale[rows]
         return reconstruct(values, proj.select_rows(rows), method="smart",
                            ceiling=~bright[rows], **common)
@@ -138,11 +145,22 @@ def line_of_sight_guess(weights, raw, floor: float, touching, bright, geometry, 
     used = touching & (row_sums > 0)
     log_values = np.zeros(len(raw), np.float32)
     log_values[used] = np.log(np.maximum(raw[used], floor) / row_scale[used] / row_sums[used])
+    if _projects_many(weights.projector):
+        # "seen by a lit pixel" from the refined back projections the mask makes anyway
+        keep, guess, _ = subcell_line_of_sight(weights, geometry, touching & ~bright,
+                                               log_values, used, tolerance=tolerance,
+                                               footprint=footprint, lit_rows=bright)
+        return np.where(keep, guess, np.float32(0.0))
     keep, guess, _ = subcell_line_of_sight(weights, geometry, touching & ~bright,
                                            log_values, used, tolerance=tolerance,
                                            footprint=footprint)
     seen_lit = np.asarray(proj.back(bright.astype(np.float32))) > 0
     return np.where(keep & seen_lit, guess, np.float32(0.0))
+
+
+def _projects_many(projector) -> bool:
+    """Whether the projector back-projects several images in one pass (``back_many``)."""
+    return hasattr(projector, "back_many")
 
 
 def perspective_blocks(weights, lf) -> np.ndarray:
