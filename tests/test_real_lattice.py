@@ -23,8 +23,6 @@ from plenopiv.config import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.pipeline import reconstruct_volume
-from plenopiv.reconstruction import mart
-from plenopiv.reconstruction._kernels import mart as mart_kernels
 from plenopiv.reconstruction._kernels import real_lattice as rk
 from plenopiv.reconstruction.lattice import separable_axes
 from plenopiv.reconstruction.mart import reconstruction_quality
@@ -33,7 +31,6 @@ from plenopiv.reconstruction.real_lattice import (
     estimate_lenslet_gb,
     lenslet_weights_reference,
     matrix_free_projector,
-    smart_sweep_reference,
 )
 from plenopiv.reconstruction.weights import build_weights, cached_weights, choose_projector
 from plenopiv.synthetic.images import particle_image
@@ -152,81 +149,37 @@ def test_kernels_equal_their_numpy_twin(small_camera, rng):
     assert dense.any(axis=1).all()      # every ray reaches the grid: the test covers them
 
 
-def test_back_many_equals_back(case, rng):
-    """Several images in one pass: each equals its own back projection, bit for bit."""
-    _, lf, grid, _, lens = case
-    images = rng.random((3, lf.n_rays)).astype(np.float32)
-    images[1, rng.random(lf.n_rays) < 0.7] = 0.0        # sparse: other lit windows
-    images[2] = 0.0
-    got = lens.back_many(images)
-    for m in range(3):
-        np.testing.assert_array_equal(got[m], lens.back(images[m]))
-
-
-def test_line_of_sight_judges_lit_rows_in_the_refined_pass(case, rng):
-    """``lit_rows`` keeps the voxels a coarse back projection of the lit rows sees."""
-    from plenopiv.reconstruction.sightline import subcell_line_of_sight
-    from plenopiv.reconstruction.weights import Weights
+def test_smart_over_all_rows_equals_smart_over_the_rows_reaching_the_support(case, rng):
+    """Rows whose beams miss the first guess's support change nothing: the solver may hand
+    SMART every touching row instead of selecting the reaching ones by a forward projection.
+    Their weights on the support are zero, so the sums are the same to the bit."""
+    from plenopiv.reconstruction.mart import reconstruct
 
     _, lf, grid, _, lens = case
-    w = Weights(lens, lf.pixel, grid, f"test-{id(lens)}")
-    lenslets = np.unique(lf.lenslet)
-    lit = np.isin(lf.lenslet, rng.choice(lenslets, 3, replace=False))   # 3 lit micro-images
-    dark = ~lit & (rng.random(lf.n_rays) < 0.5)
-    options = dict(tolerance=0.5, footprint=lf.footprint)
-    keep0, _, _ = subcell_line_of_sight(w, lambda: lf, dark, **options)
-    keep1, _, _ = subcell_line_of_sight(w, lambda: lf, dark, lit_rows=lit, **options)
-    seen = np.asarray(w.normalised[0].back(lit.astype(np.float32))) > 0
-    assert (keep0 & seen).any() and (keep0 & ~seen).any()
-    np.testing.assert_array_equal(keep1, keep0 & seen)
+    first = (rng.random(grid.n_voxels) * (rng.random(grid.n_voxels) < 0.05)).astype(np.float32)
+    reach = np.asarray(lens.forward((first > 0).astype(np.float32))) > 0
+    assert 0.1 < reach.mean() < 0.9
+    values = (np.asarray(lens.forward(first)) * rng.uniform(0.5, 2.0, lf.n_rays) + 1e-3
+              ).astype(np.float32)
+    ceiling = rng.random(lf.n_rays) < 0.3
+    options = dict(method="smart", iterations=3, relaxation=2.0, pixel_threshold=0.0)
+    want = reconstruct(values[reach], lens.select_rows(reach), initial=first,
+                       ceiling=ceiling[reach], **options)
+    got = reconstruct(values, lens, initial=first, ceiling=ceiling, **options)
+    np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(got, first)
 
 
-def smart_inputs(proj, rng):
-    """A sparse volume (40 % zeros), intensities about its projection, 20 % dark rows, 30 %
-    ceilings: every branch of the SMART update."""
-    e = rng.random(proj.n_voxels).astype(np.float32) * (rng.random(proj.n_voxels) > 0.4)
-    intensity = (np.asarray(proj.forward(e)) * rng.uniform(0.3, 3.0, proj.n_pixels)
-                 ).astype(np.float32)
-    bright = rng.random(proj.n_pixels) > 0.2
-    ceiling = rng.random(proj.n_pixels) < 0.3
-    norm = np.maximum(np.asarray(proj.column_sums(), np.float32), 1.0)
-    return e, intensity, bright, ceiling, norm
+def test_the_smart_view_is_kept_for_the_same_projector_and_rows(case, rng):
+    from plenopiv.reconstruction.solve import _smart_view
 
-
-#: Relative error of a voxel after one fused sweep: the back projection's float32 error
-#: (RTOL of its largest value) times at most log_bound (12) in the exponent, times μ = 2:
-#: 2 · 12 · 1e-5 = 2.4e-4.
-SWEEP_RTOL = 2 * mart_kernels.LOG_RATIO_BOUND * RTOL
-
-
-def test_fused_smart_sweep_equals_forward_then_back(case, rng):
-    """The fused per-lenslet sweep makes the update of forward, log ratio and back."""
-    _, lf, grid, _, lens = case
-    e, intensity, bright, ceiling, norm = smart_inputs(lens, rng)
-    want = e.copy()
-    mart._smart_iteration(lens, intensity, bright, want, 2.0, norm,
-                          np.zeros(lens.n_pixels, np.float32), ceiling)
-    sweep = lens.smart_sweeper(intensity, bright, norm, relaxation=2.0, ceiling=ceiling,
-                               log_bound=mart_kernels.LOG_RATIO_BOUND,
-                               ceiling_bound=mart.CEILING_LOG_BOUND)
-    got = sweep(e.copy())
-    assert np.array_equal(got == 0, e == 0)          # zeros stay zero, the rest positive
-    np.testing.assert_allclose(got, want, rtol=SWEEP_RTOL, atol=0)
-    assert np.abs(np.log(got[e > 0] / e[e > 0])).max() > 0.1   # the sweep moved voxels
-
-
-def test_fused_smart_sweep_equals_its_numpy_twin(small_camera, rng):
-    """The fused kernel against a dense-W SMART sweep in plain NumPy, on a 3 × 4 patch."""
-    cal = Calibration.from_camera(camera_of(small_camera, "hexagonal", (3, 4)))
-    lf = light_field(cal)
-    proj = LensletProjector.from_light_field(lf, small_grid(lf, nx=6, ny=5, nz=4))
-    dense = lenslet_weights_reference(proj)
-    e, intensity, bright, ceiling, norm = smart_inputs(proj, rng)
-    options = dict(relaxation=2.0, ceiling=ceiling, log_bound=mart_kernels.LOG_RATIO_BOUND,
-                   ceiling_bound=mart.CEILING_LOG_BOUND)
-    want = smart_sweep_reference(dense, e, intensity, bright, norm, **options)
-    got = proj.smart_sweeper(intensity, bright, norm, **options)(e.copy())
-    np.testing.assert_allclose(got, want, rtol=SWEEP_RTOL, atol=0)
+    _, lf, _, _, lens = case
+    rows = rng.random(lf.n_rays) < 0.5
+    view = _smart_view(None, lens, rows)
+    assert _smart_view(None, lens, rows.copy()) is view
+    assert view.n_pixels == int(rows.sum())
+    assert _smart_view(None, lens, ~rows) is not view
+    assert _smart_view(None, lens.scale_rows(np.ones(lf.n_rays)), ~rows) is not view
 
 
 @pytest.mark.parametrize("geometry", ["rotated_10mrad", "hexagonal"])

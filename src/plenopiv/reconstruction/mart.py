@@ -318,11 +318,6 @@ def _sweep_of(method, projector, intensity, bright, relaxation, schedule, ceilin
     mu = np.float32(relaxation)
     if method == "smart":
         column_norm = np.maximum(np.asarray(projector.column_sums(), np.float32), 1.0)
-        fused = getattr(projector, "smart_sweeper", None)
-        if fused is not None:       # forward, ratio and back in one pass (same update)
-            return fused(intensity, bright, column_norm, relaxation=relaxation,
-                         ceiling=ceiling, log_bound=_k.LOG_RATIO_BOUND,
-                         ceiling_bound=CEILING_LOG_BOUND)
         log_ratio = np.zeros(projector.n_pixels, np.float32)
         return lambda volume: _smart_iteration(projector, intensity, bright, volume, relaxation,
                                                column_norm, log_ratio, ceiling)

@@ -22,8 +22,7 @@ is dropped below ``min_weight``. With ``edge_centroid=False`` in
 :func:`plenopiv.lightfield.light_field` the two agree to float32 rounding (tests).
 
 Memory: 8 · (2 · box + 3) bytes per lenslet (box: the largest micro-image, ~20 px), the
-rays (~30 bytes each) and, per back projection, a float32 local image per lenslet; a fused
-SMART sweep (:meth:`LensletProjector.smart_sweeper`) holds one float32 volume per numba thread.
+rays (~30 bytes each) and, per back projection, a float32 local image per lenslet.
 """
 
 from __future__ import annotations
@@ -39,7 +38,7 @@ from plenopiv.reconstruction.projector import CachedSums, _as_vector
 from plenopiv.volume import VolumeGrid
 
 __all__ = ["LensletProjector", "estimate_lenslet_gb", "lenslet_weights_reference",
-           "matrix_free_projector", "smart_sweep_reference"]
+           "matrix_free_projector"]
 
 #: Largest micro-image (rows or columns of one lenslet's lit pixels) the projector takes; the
 #: Auburn camera's are 17 px, thesis-era cameras' 10-30 px.
@@ -238,52 +237,6 @@ class LensletProjector(CachedSums):
         out[:] = vol.reshape(-1)
         return out
 
-    def back_many(self, images) -> np.ndarray:
-        """``Wᵀ·I`` for each row of ``images`` (n, n_pixels); float32 (n, n_voxels).
-
-        Equal to :meth:`back` of each image, at less than n times its cost: the beam
-        profiles are computed once for all of them.
-        """
-        y = np.ascontiguousarray(np.atleast_2d(images), np.float32)
-        if y.ndim != 2 or y.shape[1] != self.n_pixels:
-            raise ReconstructionError(f"images have shape {np.shape(images)}: expected (n, "
-                                      f"{self.n_pixels})")
-        slices, lenses = self._args()
-        vol = _k.back_many(y, *slices, *lenses,
-                           np.empty((y.shape[0], *self.grid.shape), np.float32))
-        return vol.reshape(y.shape[0], -1)
-
-    def smart_sweeper(self, intensity, bright, column_norm, *, relaxation: float, ceiling,
-                      log_bound: float, ceiling_bound: float):
-        """Return ``sweep(volume)``: one SMART iteration fused per lenslet, in place.
-
-        The same update as :func:`plenopiv.reconstruction.mart.reconstruct`'s SMART sweep
-        through :meth:`forward` and :meth:`back` (``intensity``, ``bright`` and ``ceiling``
-        per row, ``column_norm`` per voxel, ``log_bound`` and ``ceiling_bound`` its bounds on
-        the log ratio), to float32 rounding, at about the cost of one projection less: see
-        :func:`plenopiv.reconstruction._kernels.real_lattice.smart_sweep`. It holds one float32
-        accumulator volume per numba thread.
-        """
-        import numba
-
-        shape = self.grid.shape
-        intensity = np.ascontiguousarray(intensity, np.float32)
-        bright = np.ascontiguousarray(bright, np.bool_)
-        ceiling = (np.zeros(self.n_pixels, np.bool_) if ceiling is None
-                   else np.ascontiguousarray(ceiling, np.bool_))
-        norm = np.ascontiguousarray(column_norm, np.float32).reshape(shape)
-        acc = np.empty((numba.config.NUMBA_NUM_THREADS, *shape), np.float32)
-        slices, lenses = self._args()
-        t, shp, half, factor = slices[:4]
-        geometry = slices[4:]
-
-        def sweep(volume):
-            _k.smart_sweep(volume.reshape(shape), intensity, bright, ceiling, norm,
-                           float(relaxation), float(log_bound), float(ceiling_bound), t, shp,
-                           half, factor, *geometry, *lenses, acc)
-            return volume
-        return sweep
-
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per ray (float32)."""
         slices, lenses = self._args()
@@ -361,25 +314,3 @@ def estimate_lenslet_gb(lf: LightField, grid: VolumeGrid) -> float:
     total = (12 * 4 * grid.n_voxels + 120 * lf.n_rays + n_lens * (16 * box + 4 * box * box)
              + 6 * 4 * fine)
     return total / 1e9
-
-
-def smart_sweep_reference(dense, volume, intensity, bright, column_norm, *, relaxation,
-                          ceiling, log_bound, ceiling_bound) -> np.ndarray:
-    """Return the volume after one SMART sweep with a dense W (float64, plain NumPy).
-
-    The twin of :meth:`LensletProjector.smart_sweeper` (and of the forward/back sweep of
-    :mod:`plenopiv.reconstruction.mart`): ``g = clip(ln(I/(W E)), ±log_bound)`` on bright rows
-    that project above zero, ceiling rows within ``[-ceiling_bound, 0]``, then
-    ``E · exp(relaxation Wᵀg / column_norm)`` capped at 1e30.
-    """
-    e = np.asarray(volume, np.float64).reshape(-1)
-    p = dense @ e
-    g = np.zeros(len(p))
-    up = np.asarray(bright, bool) & (p > 0)
-    g[up] = np.clip(np.log(np.asarray(intensity, np.float64)[up] / p[up]), -log_bound,
-                    log_bound)
-    if ceiling is not None:
-        c = np.asarray(ceiling, bool)
-        g[c] = np.clip(g[c], -ceiling_bound, 0.0)
-    out = e * np.exp(relaxation * (dense.T @ g) / np.asarray(column_norm, np.float64))
-    return np.minimum(out, 1e30)

@@ -148,16 +148,9 @@ def _used_sums(proj, used: np.ndarray, z0: int) -> np.ndarray:
     return hit
 
 
-def _back_all(proj, images: list) -> list:
-    """``proj.back`` of each image; in one pass where the projector has ``back_many``."""
-    if len(images) > 1 and hasattr(proj, "back_many"):
-        return list(proj.back_many(np.stack(images)))
-    return [np.asarray(proj.back(im)) for im in images]
-
-
 def subcell_line_of_sight(weights, geometry, dark_rows, log_values=None,
                           used_rows=None, *, tolerance: float,
-                          footprint: float, lit_rows=None) -> tuple:
+                          footprint: float) -> tuple:
     """Return the soft line-of-sight mask and the MLOS first guess, judged on sub-voxel cells.
 
     Parameters
@@ -177,16 +170,11 @@ def subcell_line_of_sight(weights, geometry, dark_rows, log_values=None,
         Largest dark fraction of a kept cell (``[reconstruction] dark_tolerance``).
     footprint : float
         Lenslet footprint, metres (sets the cell size, :func:`subcell_factors`).
-    lit_rows : (n_pixels,) bool, optional
-        When given, ``keep`` also requires a cell seen by one of these rows (the lit ones):
-        the same voxels as a coarse ``Wᵀ·lit > 0`` (a voxel's weight is the sum of its
-        cells'), judged in the refined back projection that serves the dark fraction.
 
     Returns
     -------
     keep : (n_voxels,) bool
-        Seen by some row (by some ``lit_rows`` row when given), and some cell has a dark
-        fraction Σ_dark ŵ_ic / Σ_all ŵ_ic
+        Seen by some row, and some cell has a dark fraction Σ_dark ŵ_ic / Σ_all ŵ_ic
         (ŵ: weights with each row scaled to a coarse maximum of 1, as MART uses them) of at
         most ``tolerance``.
     guess : (n_voxels,) float32 or None
@@ -204,26 +192,17 @@ def subcell_line_of_sight(weights, geometry, dark_rows, log_values=None,
     nz, ny, nx = weights.grid.shape
     best = np.empty((nz, ny, nx), np.float32)
     guess = None if log_values is None else np.empty((nz, ny, nx), np.float32)
-    seen_lit = None if lit_rows is None else np.empty((nz, ny, nx), bool)
     for (z0, z1), proj in _refined_projectors(weights, geometry, kx, ky):
         shape = (z1 - z0, ny * ky, nx * kx)
         seen = np.asarray(proj.column_sums()).reshape(shape)
-        images = [dark] + ([] if guess is None else [logv])
-        if seen_lit is not None:
-            images.append(np.asarray(lit_rows, np.float32))
-        backs = _back_all(proj, images)
-        d = backs[0].reshape(shape)
+        d = np.asarray(proj.back(dark)).reshape(shape)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             frac = np.where(seen > 0, d / seen, np.inf).astype(np.float32)
             best[z0:z1] = pool_min(frac, kx, ky)
             if guess is not None:
                 s_used = _used_sums(proj, used, z0).reshape(shape)
-                s_log = backs[1].reshape(shape)
+                s_log = np.asarray(proj.back(logv)).reshape(shape)
                 cell = np.where(s_used > 0, np.exp(s_log / s_used), 0.0).astype(np.float32)
                 guess[z0:z1] = -pool_min(-cell, kx, ky)
-        if seen_lit is not None:
-            seen_lit[z0:z1] = -pool_min(-backs[-1].reshape(shape), kx, ky) > 0
     keep = best.reshape(-1) <= tolerance
-    if seen_lit is not None:
-        keep &= seen_lit.reshape(-1)
     return keep, None if guess is None else guess.reshape(-1), best

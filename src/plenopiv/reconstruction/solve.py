@@ -16,6 +16,7 @@ The projectors handed to MART are row views of the one W (no copy of its non-zer
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 
 import numpy as np
@@ -23,9 +24,14 @@ import numpy as np
 from plenopiv.errors import ReconstructionError
 from plenopiv.reconstruction.geometry import ProjectionGeometry
 from plenopiv.reconstruction.mart import reconstruct
+from plenopiv.reconstruction.real_lattice import LensletProjector
 from plenopiv.reconstruction.sightline import subcell_line_of_sight
 
 __all__ = ["solve_volume", "touching_rows", "line_of_sight_guess", "perspective_blocks"]
+
+#: The last SMART row view of a per-lenslet projector (see :func:`_smart_view`).
+_VIEW: dict = {}
+_VIEW_LOCK = threading.Lock()
 
 #: A row touches the volume when its largest weight is at least this fraction of the 95th
 #: percentile of the rows' largest weights.
@@ -109,23 +115,46 @@ def solve_volume(weights, image: np.ndarray, settings, *,
         # the dark pixels take part as ceilings: their light is at most the threshold, so
         # they lower the voxels that would send more into them and never raise any; only
         # those that see the first guess's support can change anything
-        if hasattr(proj, "smart_sweeper"):
-            # a fused sweep finds for itself the lenslets whose beams miss the support (a
-            # row that misses it projects to zero and changes nothing, now or later: the
-            # support only shrinks), so the forward projection that would select them is
-            # saved
-            rows = bright | touching
+        if isinstance(proj, LensletProjector):
+            # all touching rows (bright ones included): a row whose beams miss the first
+            # guess's support projects to zero and changes nothing, now or later (the
+            # support only shrinks), and its lenslet's empty patches are skipped by the
+            # kernels. The view then depends on the geometry and mask alone, so the next
+            # image reuses it with its column sums (one back projection), and no forward
+            # projection of the support selects the rows
+            rows = touching
+            view = _smart_view(weights, proj, rows)
         else:
             reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
             rows = bright | (touching & reach)
+            view = proj.select_rows(rows)
         values = np.maximum(raw[rows], np.float32(floor)) / row_scale[rows]
-        return reconstruct(values, proj.select_rows(rows), method="smart",
-                           ceiling=~bright[rows], **common)
+        return reconstruct(values, view, method="smart", ceiling=~bright[rows], **common)
     blocks = None
     if settings.method == "block":
         blocks = perspective_blocks(weights, geometry.light_field)[bright]
     return reconstruct(raw[bright] / row_scale[bright], proj.select_rows(bright),
                        method=settings.method, blocks=blocks, **common)
+
+
+def _smart_view(weights, proj, rows: np.ndarray):
+    """``proj.select_rows(rows)``, the last one kept (with its cached column sums).
+
+    Kept for the same projector object (``weights.normalised``'s, held by the cache so that
+    its identity cannot be reused) and the same rows, so a series of images of one geometry
+    builds it once.
+    """
+    import hashlib
+
+    digest = hashlib.blake2b(np.packbits(rows).tobytes(), digest_size=16).hexdigest()
+    with _VIEW_LOCK:
+        if _VIEW.get("projector") is proj and _VIEW.get("rows") == digest:
+            return _VIEW["view"]
+    view = proj.select_rows(rows)
+    with _VIEW_LOCK:
+        _VIEW.clear()
+        _VIEW.update(projector=proj, rows=digest, view=view)
+    return view
 
 
 def line_of_sight_guess(weights, raw, floor: float, touching, bright, geometry, *,
@@ -145,22 +174,11 @@ def line_of_sight_guess(weights, raw, floor: float, touching, bright, geometry, 
     used = touching & (row_sums > 0)
     log_values = np.zeros(len(raw), np.float32)
     log_values[used] = np.log(np.maximum(raw[used], floor) / row_scale[used] / row_sums[used])
-    if _projects_many(weights.projector):
-        # "seen by a lit pixel" from the refined back projections the mask makes anyway
-        keep, guess, _ = subcell_line_of_sight(weights, geometry, touching & ~bright,
-                                               log_values, used, tolerance=tolerance,
-                                               footprint=footprint, lit_rows=bright)
-        return np.where(keep, guess, np.float32(0.0))
     keep, guess, _ = subcell_line_of_sight(weights, geometry, touching & ~bright,
                                            log_values, used, tolerance=tolerance,
                                            footprint=footprint)
     seen_lit = np.asarray(proj.back(bright.astype(np.float32))) > 0
     return np.where(keep & seen_lit, guess, np.float32(0.0))
-
-
-def _projects_many(projector) -> bool:
-    """Whether the projector back-projects several images in one pass (``back_many``)."""
-    return hasattr(projector, "back_many")
 
 
 def perspective_blocks(weights, lf) -> np.ndarray:
