@@ -29,7 +29,7 @@ from plenopiv.reconstruction.sightline import subcell_line_of_sight
 
 __all__ = ["solve_volume", "touching_rows", "line_of_sight_guess", "perspective_blocks"]
 
-#: The last SMART row view of a per-lenslet projector (see :func:`_smart_view`).
+#: The column sums of the last SMART row view of a per-lenslet projector (:func:`_smart_view`).
 _VIEW: dict = {}
 _VIEW_LOCK = threading.Lock()
 
@@ -120,10 +120,10 @@ def solve_volume(weights, image: np.ndarray, settings, *,
             # guess's support projects to zero and changes nothing, now or later (the
             # support only shrinks), and its lenslet's empty patches are skipped by the
             # kernels. The view then depends on the geometry and mask alone, so the next
-            # image reuses it with its column sums (one back projection), and no forward
-            # projection of the support selects the rows
+            # image reuses its column sums (one back projection), and no forward projection
+            # of the support selects the rows
             rows = touching
-            view = _smart_view(weights, proj, rows)
+            view = _smart_view(proj, rows)
         else:
             reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
             rows = bright | (touching & reach)
@@ -137,23 +137,27 @@ def solve_volume(weights, image: np.ndarray, settings, *,
                        method=settings.method, blocks=blocks, **common)
 
 
-def _smart_view(weights, proj, rows: np.ndarray):
-    """``proj.select_rows(rows)``, the last one kept (with its cached column sums).
+def _smart_view(proj, rows: np.ndarray):
+    """``proj.select_rows(rows)``, with the last such view's column sums if it was equal.
 
-    Kept for the same projector object (``weights.normalised``'s, held by the cache so that
-    its identity cannot be reused) and the same rows, so a series of images of one geometry
-    builds it once.
+    Equal: the same projector and the same rows. The rows of SMART with the per-lenslet
+    projector depend on the geometry and the image mask alone, so a series of images of one
+    geometry back-projects their column sums once. Only the sums are kept (one float32
+    volume), not the view's copies of the rays (36 bytes per ray). ``weights.normalised``'s
+    projector is held by the store, so that its identity cannot be reused by another object.
     """
     import hashlib
 
     digest = hashlib.blake2b(np.packbits(rows).tobytes(), digest_size=16).hexdigest()
-    with _VIEW_LOCK:
-        if _VIEW.get("projector") is proj and _VIEW.get("rows") == digest:
-            return _VIEW["view"]
     view = proj.select_rows(rows)
     with _VIEW_LOCK:
+        if _VIEW.get("projector") is proj and _VIEW.get("rows") == digest:
+            view.set_column_sums(_VIEW["column_sums"])
+            return view
+    sums = view.column_sums()
+    with _VIEW_LOCK:
         _VIEW.clear()
-        _VIEW.update(projector=proj, rows=digest, view=view)
+        _VIEW.update(projector=proj, rows=digest, column_sums=sums)
     return view
 
 
