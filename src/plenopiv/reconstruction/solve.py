@@ -8,7 +8,9 @@ The physics between a recorded image and :func:`plenopiv.reconstruction.mart.rec
    are left out; pixels above the dark threshold are the bright rows;
 3. the first guess is the multiplicative line of sight judged on sub-voxel cells
    (:mod:`plenopiv.reconstruction.sightline`);
-4. SMART keeps the dark pixels that see the first guess's support as ceilings; row-action
+4. SMART keeps the dark pixels that see the first guess's support as ceilings (with the
+   per-lenslet projector it is handed all of them: those that miss the support project to
+   zero and change nothing, and no forward projection is spent to find them); row-action
    and block MART take the bright rows alone.
 
 The projectors handed to MART are row views of the one W (no copy of its non-zeros).
@@ -143,21 +145,23 @@ def _smart_view(proj, rows: np.ndarray):
     Equal: the same projector and the same rows. The rows of SMART with the per-lenslet
     projector depend on the geometry and the image mask alone, so a series of images of one
     geometry back-projects their column sums once. Only the sums are kept (one float32
-    volume), not the view's copies of the rays (36 bytes per ray). ``weights.normalised``'s
-    projector is held by the store, so that its identity cannot be reused by another object.
+    volume), not the view's copies of the rays (36 bytes per ray), and the projector only by
+    a weak reference (a projector that is gone matches nothing).
     """
     import hashlib
+    import weakref
 
     digest = hashlib.blake2b(np.packbits(rows).tobytes(), digest_size=16).hexdigest()
     view = proj.select_rows(rows)
     with _VIEW_LOCK:
-        if _VIEW.get("projector") is proj and _VIEW.get("rows") == digest:
+        ref = _VIEW.get("projector")
+        if ref is not None and ref() is proj and _VIEW.get("rows") == digest:
             view.set_column_sums(_VIEW["column_sums"])
             return view
     sums = view.column_sums()
     with _VIEW_LOCK:
         _VIEW.clear()
-        _VIEW.update(projector=proj, rows=digest, column_sums=sums)
+        _VIEW.update(projector=weakref.ref(proj), rows=digest, column_sums=sums)
     return view
 
 
