@@ -281,6 +281,13 @@ def main(argv=None) -> dict:
                    help="a central patch of ROWS x COLS lenslets (of the square array's 193 x "
                         "287; hexagonal rows scaled to its 222) at the same seeding density and "
                         "depth, for a measurement that scales to the full sensor")
+    p.add_argument("--projector", choices=("auto", "sparse", "lattice"), default="auto",
+                   help="[reconstruction] projector; \"lattice\" (matrix-free) keeps a "
+                        "--lenslets patch, whose explicit weights would fit, on the projector "
+                        "of the full sensor")
+    p.add_argument("--call-times", action="store_true",
+                   help="time every call of the per-lenslet projector (forward, back, fused "
+                        "SMART sweep) in each volume (benchmarks/bench_real_lattice.py)")
     p.add_argument("--json", action="store_true", help="end with one JSON line")
     args = p.parse_args(argv)
     if args.lenslets:
@@ -292,7 +299,7 @@ def main(argv=None) -> dict:
     print(f"grid {grid.shape} (z, y, x), voxel {np.round(np.array(grid.voxel) * 1e3, 4)} mm; "
           f"{args.particles} particles", file=sys.stderr)
     k = args.lateral_subdivision
-    settings = ReconstructionSettings(iterations=args.iterations,
+    settings = ReconstructionSettings(iterations=args.iterations, projector=args.projector,
                                       lateral_subdivision=k if k == "auto" else int(k))
     particles = ParticleSettings()
     try:
@@ -311,10 +318,25 @@ def main(argv=None) -> dict:
           f"{' (matrix-free)' if w.matrix_free else ''}, working grid {w.grid.shape} "
           f"(lateral subdivision {lateral_subdivision(cal, grid, settings)})", file=sys.stderr)
     vols = {}
+    calls = None
+    if args.call_times:
+        from bench_real_lattice import CallLog
+
+        calls = CallLog()
+        calls.coarse_shape = w.grid.shape
+        calls.install()
     for name, img in (("A", ia), ("B", ib)):
+        if calls is not None:
+            calls.rows.clear()
         with stage(f"reconstruct {name}", log):
             vols[name] = reconstruct_volume(cal, img, grid, settings=settings,
                                             particles=particles, weights=w)
+        if calls is not None:
+            log[f"reconstruct {name}"]["projector_calls"] = calls.table()
+            print(json.dumps(calls.table()), file=sys.stderr)
+    if calls is not None:
+        calls.uninstall()
+        calls.last.clear()
     sigma = fq.cell_sigma(grid, cal.effective_camera)
     truth = gaussian_truth_volume(grid, pa, sigma_vox=sigma)
     q = reconstruction_quality(vols["A"].volume, truth)

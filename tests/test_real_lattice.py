@@ -149,6 +149,40 @@ def test_kernels_equal_their_numpy_twin(small_camera, rng):
     assert dense.any(axis=1).all()      # every ray reaches the grid: the test covers them
 
 
+def test_smart_over_all_rows_equals_smart_over_the_rows_reaching_the_support(case, rng):
+    """Rows whose beams miss the first guess's support change nothing: the solver may hand
+    SMART every touching row instead of selecting the reaching ones by a forward projection.
+    Their weights on the support are zero, so the sums are the same to the bit."""
+    from plenopiv.reconstruction.mart import reconstruct
+
+    _, lf, grid, _, lens = case
+    first = (rng.random(grid.n_voxels) * (rng.random(grid.n_voxels) < 0.05)).astype(np.float32)
+    reach = np.asarray(lens.forward((first > 0).astype(np.float32))) > 0
+    assert 0.1 < reach.mean() < 0.9
+    values = (np.asarray(lens.forward(first)) * rng.uniform(0.5, 2.0, lf.n_rays) + 1e-3
+              ).astype(np.float32)
+    ceiling = rng.random(lf.n_rays) < 0.3
+    options = dict(method="smart", iterations=3, relaxation=2.0, pixel_threshold=0.0)
+    want = reconstruct(values[reach], lens.select_rows(reach), initial=first,
+                       ceiling=ceiling[reach], **options)
+    got = reconstruct(values, lens, initial=first, ceiling=ceiling, **options)
+    np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(got, first)
+
+
+def test_the_smart_views_column_sums_are_kept_for_the_same_projector_and_rows(case, rng):
+    _, lf, _, _, lens = case
+    rows = rng.random(lf.n_rays) < 0.5
+    first = lens.summed_row_view(rows)
+    again = lens.summed_row_view(rows.copy())
+    assert again is not first and again.n_pixels == int(rows.sum())
+    assert again.column_sums() is first.column_sums()               # not summed again
+    other = lens.summed_row_view(~rows)
+    np.testing.assert_array_equal(other.column_sums(), lens.select_rows(~rows).column_sums())
+    scaled = lens.scale_rows(np.full(lf.n_rays, 2.0)).summed_row_view(~rows)
+    np.testing.assert_allclose(scaled.column_sums(), 2 * other.column_sums(), rtol=RTOL)
+
+
 @pytest.mark.parametrize("geometry", ["rotated_10mrad", "hexagonal"])
 def test_reconstruction_agrees_with_explicit_path(small_camera, geometry):
     """Same image, both projectors, the default ray model: the volumes agree (Q >= 0.99)."""

@@ -186,6 +186,18 @@ class CachedSums:
         """``sum_i w_ij`` per voxel (float32, shape (n_voxels,)); computed once and cached."""
         return self._column_sums
 
+    def set_column_sums(self, sums: np.ndarray) -> None:
+        """Take ``sums`` as :meth:`column_sums`, computed elsewhere for the same rows.
+
+        For a view that an earlier, equal view has already summed (the caller vouches for
+        the equality); the array is kept as given (read-only use).
+        """
+        sums = np.asarray(sums)
+        if sums.shape != (self.n_voxels,):
+            raise ReconstructionError(f"column sums have shape {sums.shape}: expected "
+                                      f"({self.n_voxels},)")
+        self.__dict__["_column_sums"] = sums
+
 
 class SparseProjector(CachedSums):
     """W as an explicit CSR matrix: rows = pixels, columns = voxels.

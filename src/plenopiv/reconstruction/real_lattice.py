@@ -27,6 +27,7 @@ rays (~30 bytes each) and, per back projection, a float32 local image per lensle
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
@@ -151,6 +152,7 @@ class LensletProjector(CachedSums):
         n_lens = len(lenses["xf_x"])
         self._ray_ptr = np.searchsorted(rays["ray_lens"], np.arange(n_lens + 1)).astype(np.int64)
         self._window = _ray_windows(self._ray_ptr, rays["ray_r"], rays["ray_c"])
+        self._kept_view_sums = None   # (rows digest, column sums) of summed_row_view
 
     @classmethod
     def from_light_field(cls, lf: LightField, grid: VolumeGrid) -> LensletProjector:
@@ -184,6 +186,26 @@ class LensletProjector(CachedSums):
         rays = {k: v[keep] for k, v in self._rays.items()}
         rays["ray_pos"] = new_pos[rays["ray_pos"]].astype(np.int64)
         return LensletProjector(self._lens, rays, self._slices, self.grid)
+
+    def summed_row_view(self, mask) -> LensletProjector:
+        """``select_rows(mask)`` with its column sums, kept on this projector for the next call.
+
+        SMART with this projector takes rows that depend on the geometry and the image mask
+        alone (:func:`plenopiv.reconstruction.solve.solve_volume`), so a series of images
+        asks for the same view again: its column sums (one back projection) are computed
+        once and kept here, one float32 volume (not the view's copies of the rays). A view
+        of other rows replaces them. Two threads asking at once may both sum; the result is
+        the same.
+        """
+        mask = np.asarray(mask, bool)
+        view = self.select_rows(mask)
+        digest = hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).digest()
+        kept = self._kept_view_sums
+        if kept is not None and kept[0] == digest:
+            view.set_column_sums(kept[1])
+        else:
+            self._kept_view_sums = (digest, view.column_sums())
+        return view
 
     def scale_rows(self, factors) -> LensletProjector:
         """Return the projector with row i multiplied by ``factors[i]``."""

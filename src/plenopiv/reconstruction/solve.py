@@ -8,7 +8,9 @@ The physics between a recorded image and :func:`plenopiv.reconstruction.mart.rec
    are left out; pixels above the dark threshold are the bright rows;
 3. the first guess is the multiplicative line of sight judged on sub-voxel cells
    (:mod:`plenopiv.reconstruction.sightline`);
-4. SMART keeps the dark pixels that see the first guess's support as ceilings; row-action
+4. SMART keeps the dark pixels that see the first guess's support as ceilings (with the
+   per-lenslet projector it is handed all of them: those that miss the support project to
+   zero and change nothing, and no forward projection is spent to find them); row-action
    and block MART take the bright rows alone.
 
 The projectors handed to MART are row views of the one W (no copy of its non-zeros).
@@ -23,6 +25,7 @@ import numpy as np
 from plenopiv.errors import ReconstructionError
 from plenopiv.reconstruction.geometry import ProjectionGeometry
 from plenopiv.reconstruction.mart import reconstruct
+from plenopiv.reconstruction.real_lattice import LensletProjector
 from plenopiv.reconstruction.sightline import subcell_line_of_sight
 
 __all__ = ["solve_volume", "touching_rows", "line_of_sight_guess", "perspective_blocks"]
@@ -109,11 +112,21 @@ def solve_volume(weights, image: np.ndarray, settings, *,
         # the dark pixels take part as ceilings: their light is at most the threshold, so
         # they lower the voxels that would send more into them and never raise any; only
         # those that see the first guess's support can change anything
-        reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
-        rows = bright | (touching & reach)
+        if isinstance(proj, LensletProjector):
+            # all touching rows (bright ones included): a row whose beams miss the first
+            # guess's support projects to zero and changes nothing, now or later (the
+            # support only shrinks), and its lenslet's empty patches are skipped by the
+            # kernels. The view then depends on the geometry and mask alone, so the next
+            # image reuses its column sums (one back projection), and no forward projection
+            # of the support selects the rows
+            rows = touching
+            view = proj.summed_row_view(rows)
+        else:
+            reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
+            rows = bright | (touching & reach)
+            view = proj.select_rows(rows)
         values = np.maximum(raw[rows], np.float32(floor)) / row_scale[rows]
-        return reconstruct(values, proj.select_rows(rows), method="smart",
-                           ceiling=~bright[rows], **common)
+        return reconstruct(values, view, method="smart", ceiling=~bright[rows], **common)
     blocks = None
     if settings.method == "block":
         blocks = perspective_blocks(weights, geometry.light_field)[bright]
