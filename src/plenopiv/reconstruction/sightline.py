@@ -18,9 +18,10 @@ a footprint.
 The refined projector depends on the camera and grid only; it is built once per weights
 object and kept (the last one) in memory. For an axis-aligned lattice it is the matrix-free
 :class:`~plenopiv.reconstruction.lattice.LatticeProjector` (seconds to build, a few MB); for
-any other lattice, the per-lenslet
-:class:`~plenopiv.reconstruction.real_lattice.LensletProjector` when the weights are
-matrix-free, else explicit weights on the refined grid, built in depth slabs.
+any other lattice the per-lenslet
+:class:`~plenopiv.reconstruction.real_lattice.LensletProjector`, in depth slabs, also when the
+coarse weights are explicit: explicit refined weights would hold about twice the coarse
+non-zeros again, beyond what the memory estimate of the explicit weights allows for.
 """
 
 from __future__ import annotations
@@ -39,7 +40,6 @@ from plenopiv.reconstruction.geometry import (  # noqa: F401 - also importable f
 )
 from plenopiv.reconstruction.lattice import LatticeProjector
 from plenopiv.reconstruction.real_lattice import LensletProjector
-from plenopiv.reconstruction.weights import build_weights
 from plenopiv.volume import VolumeGrid
 
 __all__ = ["subcell_factors", "refined_grid", "pool_min", "subcell_line_of_sight"]
@@ -114,12 +114,16 @@ def _refined_projectors(weights, geometry, kx: int, ky: int) -> list:
     if len(lf.pixel) != len(weights.pixel) or not np.array_equal(lf.pixel, weights.pixel):
         raise ReconstructionError("the light field's rays are not the weights' rows: build both "
                                   "with the same f_number and min_lit")
-    separable = axes is not None
+    # matrix-free on the refined slabs whatever projector the coarse weights use: explicit
+    # refined weights, every slab kept for the next image, would hold about twice the coarse
+    # non-zeros again (a 49 x 72-lenslet rotated patch: 20 bytes per coarse non-zero, the
+    # estimate's 10 exceeded and the process killed at 21 GB)
+    lenslets = None if axes is not None else LensletProjector.from_light_field(lf, fine)
     out = []
     for z0, z1 in _slabs(weights.grid, kx, ky):
         g = _slab_grid(fine, z0, z1)
-        p = (LatticeProjector.from_light_field(lf, g) if separable
-             else build_weights(lf, g).projector)
+        p = (LatticeProjector.from_light_field(lf, g) if lenslets is None
+             else lenslets.on_grid(g))
         out.append(((z0, z1), p.scale_rows(inv)))
     with _LOCK:
         _CACHE.clear()
