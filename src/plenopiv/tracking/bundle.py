@@ -311,6 +311,20 @@ def _checked_inputs(lf: LightField, image, seeds, settings: BundleSettings, engi
     return seeds, np.maximum(values - settings.floor * top, 0.0)
 
 
+def _engine_inputs(lf: LightField, table: RayTable, weight, n: int, engine: str) -> tuple:
+    """What each engine of :func:`bundle_positions` reads, built once for every solve.
+
+    ``(rays, work, (origin, direction))``: for the numba kernels the rays in lenslet order
+    (aperture points, focal-plane points, pixel weights) and per-thread share buffers with
+    their sum; for NumPy the ray lines (:func:`ray_lines`). The other engine's parts are None.
+    """
+    if engine != "numba":
+        return None, None, ray_lines(lf)
+    rays = (table.u, table.focal_sorted, np.ascontiguousarray(weight[table[0]], np.float64))
+    work = (np.zeros((max(1, min(_threads(), n)), lf.n_rays)), np.zeros(lf.n_rays))
+    return rays, work, (None, None)
+
+
 def bundle_positions(lf: LightField, image, seeds, *,
                      settings: BundleSettings = BundleSettings(), depth_cell: float | None = None,
                      brightness=None, chunk: int = 1024,
@@ -379,12 +393,7 @@ def bundle_positions(lf: LightField, image, seeds, *,
     n = len(seeds)
     table = ray_table(lf) if table is None else table
     order, ptr, lens_ids, tree = table[:4]
-    if engine == "numba":
-        rays = (table.u, table.focal_sorted, np.ascontiguousarray(weight[order], np.float64))
-        # per-thread shares and their sum, allocated once for every solve
-        work = (np.zeros((max(1, min(_threads(), n)), lf.n_rays)), np.zeros(lf.n_rays))
-    else:
-        origin, direction = ray_lines(lf)
+    rays, work, (origin, direction) = _engine_inputs(lf, table, weight, n, engine)
     if depth_cell is None:
         depth_cell = lf.footprint * lf.object_distance / (2.0 * lf.aperture_radius)
     slope = lf.aperture_radius / lf.object_distance
