@@ -72,6 +72,7 @@ from plenopiv.piv import PIVSettings
 from plenopiv.products.files import atomic_path
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.select import cached_weights
+from plenopiv.resources import prefer_small_pages
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.validation import field_quality as fq
 from plenopiv.validation.vortex import VortexCase, _flow, aligned_grid, compare_with_truth
@@ -290,6 +291,7 @@ def main(argv=None) -> dict:
                         "SMART sweep) in each volume (benchmarks/bench_real_lattice.py)")
     p.add_argument("--json", action="store_true", help="end with one JSON line")
     args = p.parse_args(argv)
+    prefer_small_pages()            # as the plenopiv command and batch workers do
     if args.lenslets:
         args.particles = int(round(args.particles * args.lenslets[0] * args.lenslets[1]
                                    / (193 * 287)))

@@ -43,6 +43,7 @@ from plenopiv.reconstruction.subdivision import (  # noqa: F401 - the pipeline's
     weights_for,
 )
 from plenopiv.reconstruction.weights import Weights
+from plenopiv.resources import prefer_small_pages
 from plenopiv.volume import VolumeGrid
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
@@ -523,6 +524,7 @@ def worker_processor(experiment_path: str | Path, calibration_path: str | Path
             from plenopiv.config import load_experiment
 
             _WORKER_PROCESSOR.clear()
+            prefer_small_pages()    # a batch worker's process is the batch's own
             exp = load_experiment(experiment_path)
             cal = experiment_calibration(exp, calibration_path)
             _WORKER_PROCESSOR.update(key=key, processor=PairProcessor(exp, cal))

@@ -18,6 +18,33 @@ BYTES_PER_VOXEL = 32
 BYTES_PER_PIXEL = 40
 
 
+def prefer_small_pages() -> bool:
+    """Stop NumPy asking the kernel for transparent huge pages for this process's arrays.
+
+    NumPy marks every large array ``madvise(MADV_HUGEPAGE)`` on Linux. Where memory is
+    fragmented (a long-running or virtual machine), each first touch of such an array can
+    stall in the kernel's compaction: on this project's 2-core machine the 16 MP light field
+    took 40 s wall of which 33 s in the kernel (2 s user), and 18.6 s with plain pages; a
+    full-size rotated-array pair 4:39 instead of 5:26 (``benchmarks/full_camera.py``,
+    docs/validation/real_arrays.md). The arrays here are written once per stage, where huge
+    pages save little. Called by the ``plenopiv`` command and each batch worker, not on
+    import (a library does not change its caller's process); an explicit
+    ``NUMPY_MADVISE_HUGEPAGE`` in the environment is left as the user set it.
+
+    Returns
+    -------
+    bool
+        True when NumPy's setting was changed by this call.
+    """
+    if "NUMPY_MADVISE_HUGEPAGE" in os.environ:
+        return False
+    try:
+        from numpy._core.multiarray import _set_madvise_hugepage
+    except ImportError:                                 # pragma: no cover - other NumPy
+        return False
+    return bool(_set_madvise_hugepage(False))
+
+
 def available_memory() -> int:
     """Memory available to this process now, bytes (``MemAvailable``; else physical)."""
     try:

@@ -47,6 +47,7 @@ from plenopiv.errors import (
     ResourceError,
 )
 from plenopiv.products.jsonio import to_json
+from plenopiv.resources import prefer_small_pages
 
 __all__ = ["build_parser", "main"]
 
@@ -108,6 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     unexpected error). 2: bad input, refused before any work. 130: interrupted (Ctrl-C).
     """
     argv = list(sys.argv[1:] if argv is None else argv)
+    prefer_small_pages()            # the command owns its process (resources.prefer_small_pages)
     as_json = "--json" in argv
     command = _command_of(argv)
     warned: list[str] = []
