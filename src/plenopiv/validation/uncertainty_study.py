@@ -34,6 +34,7 @@ import numpy as np
 from plenopiv.config import PIVConfig
 from plenopiv.products.hdf5 import open_product
 from plenopiv.products.vectors import VectorResult
+from plenopiv.validation.accuracy import gain_bias_rms
 from plenopiv.validation.report import pyplot, savefig, write_json, write_text
 from plenopiv.validation.vortex import (
     VortexCase,
@@ -107,11 +108,13 @@ def evaluate_case(label: str, case: VortexCase, work: Path) -> dict:
              & (np.abs(yy) <= b[1, 1] - 0.5 * wy * grid.voxel[1])
              & (np.abs(zz) <= b[2, 1] - 0.5 * wz * grid.voxel[2]))
     ok = valid & inner & np.asarray(field.valid)
-    err = np.stack([vec.u, vec.v, vec.w])[:, ok] - truth[:, ok]        # metres, physical
+    measured = np.stack([vec.u, vec.v, vec.w])[:, ok]
+    err = measured - truth[:, ok]                                       # metres, physical
     vox = np.array([grid.voxel[0], grid.voxel[1], grid.voxel[2] * scale[2, 0, 0, 0]])[:, None]
     row = {"label": label, "case": dict(case.__dict__), "uncertainty_method": method,
            "n_vectors": int(ok.sum()),
            "rms_error_vox": np.sqrt(((err / vox) ** 2).mean(axis=1)).tolist(),
+           "gain": gain_bias_rms(measured / vox, truth[:, ok] / vox)["gain"],
            "coverage": {}, "rms_sigma_vox": {}}
     for stage, sg in sigma.items():
         sv = sg[:, ok]
@@ -204,15 +207,17 @@ def markdown(r: dict) -> str:
         f"target is {TARGET[0]:.0%}-{TARGET[1]:.0%} per component (a Gaussian error gives "
         "95.4 %).", "",
         "## Coverage per case (%, u, v, w)", "",
-        "| case | vectors | rms error u, v, w (vox) | correlation statistics | "
+        "| case | vectors | rms error u, v, w (vox) | gain u, v, w | correlation statistics | "
         "+ last correction | statistics + iteration tail | + chain response (default) | "
         "in band |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for c in cases:
         cov = c["coverage"]
         band = all(TARGET[0] <= x <= TARGET[1] for x in cov["response"])
-        lines.append(f"| {c['label']} | {c['n_vectors']} | {_f(c['rms_error_vox'])} | "
+        gain = ", ".join("–" if not np.isfinite(g) else f"{g:.2f}"
+                         for g in np.asarray(c.get("gain", [np.nan] * 3), float))
+        lines.append(f"| {c['label']} | {c['n_vectors']} | {_f(c['rms_error_vox'])} | {gain} | "
                      f"{_f(cov['correlation'], 0)} | {_f(cov['last_correction'], 0)} | "
                      f"{_f(cov.get('iteration', [np.nan] * 3), 0)} | "
                      f"{_f(cov['response'], 0)} | {'yes' if band else 'no'} |")
