@@ -103,7 +103,7 @@ def test_uncertainty_covers_the_true_errors(oseen, hill):
     "measured on these renders: Oseen u, v, w = 98, 97, 86 % (its near-focus depth error, "
     "where the chain sees a fraction of the true w); Hill 81, 89, 95 %: Hill's lateral error "
     "near focus (0.5-0.6 voxel), where the chain measures a lateral motion that varies within "
-    "a window with a gain of 0.2-0.3 (uniform shifts within 0.04 footprint, all the response's "
+    "a window with a gain of 0.0-0.34 (uniform shifts within 0.04 footprint, all the response's "
     "test pairs can show); not the predictor's filter (docs/validation/uncertainty.md: 16 of "
     "30 case-components in the band)"))
 def test_uncertainty_coverage_in_the_band_on_the_ci_camera(oseen, hill):
