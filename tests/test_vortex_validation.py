@@ -89,9 +89,9 @@ def test_uncertainty_covers_the_true_errors(oseen, hill):
     every component, where the correlation statistics alone leave 31-62 % of the depth
     errors outside (docs/validation/uncertainty.md). Oseen's are covered about as a
     Gaussian error would be (95 %) on average; Hill's depth component too, its lateral ones
-    less (near focus the chain follows a lateral motion that varies within a window at a
-    fraction of its size, which the response's uniform test pairs cannot show: the strict
-    xfail below)."""
+    less (the vortex core reverses the lateral motion within about one window, structure the
+    windows average out and no calibration with test pairs restores: the strict xfail
+    below)."""
     for e in (oseen, hill):
         cov = np.asarray(e["coverage_2sigma"])
         assert np.all(cov >= 0.8) and np.all(cov <= 1.0), cov
@@ -102,10 +102,10 @@ def test_uncertainty_covers_the_true_errors(oseen, hill):
 @pytest.mark.xfail(strict=True, reason=(
     "measured on these renders: Oseen u, v, w = 98, 97, 86 % (its near-focus depth error, "
     "where the chain sees a fraction of the true w); Hill 81, 89, 95 %: Hill's lateral error "
-    "near focus (0.5-0.6 voxel), where the chain measures a lateral motion that varies within "
-    "a window with a gain of 0.0-0.34 (uniform shifts within 0.04 footprint, all the response's "
-    "test pairs can show); not the predictor's filter (docs/validation/uncertainty.md: 16 of "
-    "30 case-components in the band)"))
+    "in the vortex core (0.5-0.6 voxel), which reverses within about one window, whether the "
+    "core lies at focus or not (docs/notes/near_focus_lateral_response.md); not the "
+    "predictor's filter (docs/validation/uncertainty.md: 16 of 30 case-components in the "
+    "band)"))
 def test_uncertainty_coverage_in_the_band_on_the_ci_camera(oseen, hill):
     for e in (oseen, hill):
         cov = np.asarray(e["coverage_2sigma"])

@@ -90,8 +90,8 @@ class PIVSettings:
         Filtering fewer predictors (only those before a smaller window, or none) or a weaker
         [1, 6, 1]/8 filter before the passes at the final window was measured on six vortex
         cases of the 41 x 61-lenslet camera: Hill's lateral error does not move (u rms
-        0.80 to 0.83 voxel on half-footprint voxels, gain 0.28: it is the chain's
-        near-focus response, not the filter's) while Oseen's random error grows (u rms by
+        0.80 to 0.83 voxel on half-footprint voxels, gain 0.28: it comes from the vortex
+        core's window-scale structure, not the filter) while Oseen's random error grows (u rms by
         up to 63 %, w by up to 19 %); so the filter stays on every pass
         (docs/validation/uncertainty.md).
     subpixel : str
