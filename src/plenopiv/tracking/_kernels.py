@@ -84,27 +84,78 @@ def _max_lenslet_rays(rptr):
     return most
 
 
-@numba.njit(cache=True, parallel=True)
-def ray_shares(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, total):
-    """Set ``total[c, ray]`` to the sum of every particle's expected share ``B (1 - m/r)``.
+@numba.njit(cache=True, nogil=True)
+def select_rays(centre, radius, lptr, lidx, rptr, u, xf, so, margin, weight, p0, p1,
+                counts, capacity):
+    """Select once the rays of particles ``p0:p1`` that a solve's passes read.
 
-    ``total`` (C, P) holds one row per chunk of particles (chunks run in parallel); the
-    caller sums the rows.
+    The rays of :func:`_lenslet_rays` (within ``radius[p]`` of ``centre[p]``, cone share
+    ``1 - m/r``) whose pixel carries weight (``weight[ray] > 0``: a ray without weight adds
+    nothing to any sum of the solve). ``counts[a]`` is set to the rays kept of candidate
+    ``a`` (``lptr[p0] <= a < lptr[p1]``); returns ``(rays, share)`` in candidate then ray
+    order (``capacity``: first buffer size, grown as needed). Serial and without the GIL:
+    blocks of particles run on threads (:func:`plenopiv.tracking.bundle.ray_selection`).
     """
-    n = centre.shape[0]
-    n_chunks = total.shape[0]
-    most = _max_lenslet_rays(rptr)
-    for c in numba.prange(n_chunks):
-        rays = np.empty(most, np.int64)
-        share = np.empty(most)
-        for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
-            t = (so + centre[p, 2]) / so
-            for a in range(lptr[p], lptr[p + 1]):
-                k = lidx[a]
-                nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
-                                   radius[p], margin, rays, share)
-                for j in range(nk):
-                    total[c, rays[j]] += share[j] * bright[p]
+    rays = np.empty(max(capacity, 16), np.int64)
+    share = np.empty(max(capacity, 16))
+    n = 0
+    for p in range(p0, p1):
+        t = (so + centre[p, 2]) / so
+        for a in range(lptr[p], lptr[p + 1]):
+            k = lidx[a]
+            size = rptr[k + 1] - rptr[k]
+            if n + size > rays.shape[0]:
+                grown = max(2 * rays.shape[0], n + size)
+                r2 = np.empty(grown, np.int64)
+                s2 = np.empty(grown)
+                r2[:n] = rays[:n]
+                s2[:n] = share[:n]
+                rays, share = r2, s2
+            nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
+                               radius[p], margin, rays[n:], share[n:])
+            kept = 0
+            for j in range(n, n + nk):
+                if weight[rays[j]] > 0.0:
+                    rays[n + kept] = rays[j]
+                    share[n + kept] = share[j]
+                    kept += 1
+            counts[a] = kept
+            n += kept
+    return rays[:n].copy(), share[:n].copy()
+
+
+@numba.njit(cache=True)
+def selected_totals(sptr, share, bright, rays, total):
+    """Add every particle's expected share ``B (1 - m/r)`` of each selected ray to ``total``.
+
+    Particle p's rays are ``rays[sptr[p]:sptr[p + 1]]`` (:func:`select_rays`); ``total``
+    (P,) is accumulated in place.
+    """
+    for p in range(sptr.shape[0] - 1):
+        for j in range(sptr[p], sptr[p + 1]):
+            total[rays[j]] += share[j] * bright[p]
+
+
+@numba.njit(cache=True, parallel=True)
+def selected_normal_equations(sptr, rays, share, bright, u, xf, so, weight, total, normal,
+                              rhs, nrays):
+    """:func:`normal_equations` on the rays :func:`select_rays` kept (same sums)."""
+    for p in numba.prange(sptr.shape[0] - 1):
+        d = np.empty(3)
+        a = np.empty(3)
+        b = bright[p]
+        for j in range(sptr[p], sptr[p + 1]):
+            i = rays[j]
+            w = weight[i] * share[j] * b / total[i] if total[i] > 0.0 else 0.0
+            if w <= 0.0:
+                continue
+            nrays[p] += 1
+            _ray(u, xf, so, i, d, a)
+            da = d[0] * a[0] + d[1] * a[1] + d[2] * a[2]
+            for e in range(3):
+                for c in range(3):
+                    normal[p, e, c] += w * ((1.0 if e == c else 0.0) - d[e] * d[c])
+                rhs[p, e] += w * (a[e] - d[e] * da)
 
 
 @numba.njit(cache=True)
@@ -128,49 +179,22 @@ def _ray_weights(rays, share, n, b, weight, total):
 
 
 @numba.njit(cache=True, parallel=True)
-def normal_equations(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, weight,
-                     total, normal, rhs, nrays):
-    """Accumulate ``sum w M`` (N, 3, 3), ``sum w M a`` (N, 3) and the rays with w > 0 (N,).
-
-    ``w = weight[ray] * B (1 - m/r) / total[ray]``: the ray's share of its pixel value.
-    """
-    most = _max_lenslet_rays(rptr)
-    for p in numba.prange(centre.shape[0]):
-        t = (so + centre[p, 2]) / so
-        d = np.empty(3)
-        a = np.empty(3)
-        rays = np.empty(most, np.int64)
-        w = np.empty(most)
-        for q in range(lptr[p], lptr[p + 1]):
-            k = lidx[q]
-            nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
-                               radius[p], margin, rays, w)
-            _ray_weights(rays, w, nk, bright[p], weight, total)
-            for j in range(nk):
-                if w[j] <= 0.0:
-                    continue
-                nrays[p] += 1
-                _ray(u, xf, so, rays[j], d, a)
-                da = d[0] * a[0] + d[1] * a[1] + d[2] * a[2]
-                for e in range(3):
-                    for c in range(3):
-                        normal[p, e, c] += w[j] * ((1.0 if e == c else 0.0) - d[e] * d[c])
-                    rhs[p, e] += w[j] * (a[e] - d[e] * da)
-
-
-@numba.njit(cache=True, parallel=True)
-def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, weight,
-                    total, point, footprint, meat_r, meat_q, nlens):
+def selected_covariance_sums(lptr, cptr, sel, share, bright, u, xf, so, weight, total, point,
+                             footprint, meat_r, meat_q, nlens):
     """Accumulate the two meats of the bundle covariance, per particle, by lenslet.
 
-    ``centre``/``radius`` select the rays (as in the last solve), ``point`` is the solution.
-    ``meat_r = sum_k g_k g_k^T``; ``meat_q = (t b)^2/12 sum_k (S_k[:, :2] S_k[:2, :] +
-    v_k v_k^T / var_k)`` with ``S_k = sum w M``, ``v_k = sum w M (dtheta, 0)``; ``nlens``
-    counts the lenslets with weight (see :func:`plenopiv.tracking.bundle.bundle_positions`).
+    The rays of the last solve (:func:`select_rays`: candidate lenslet ``a`` of particle p,
+    ``lptr[p] <= a < lptr[p + 1]``, holds rays ``sel[cptr[a]:cptr[a + 1]]`` with their cone
+    shares ``share``), ``point`` is the
+    solution. ``meat_r = sum_k g_k g_k^T``; ``meat_q = (t b)^2/12 sum_k (S_k[:, :2]
+    S_k[:2, :] + v_k v_k^T / var_k)`` with ``S_k = sum w M``, ``v_k = sum w M (dtheta, 0)``;
+    ``nlens`` counts the lenslets with weight (see
+    :func:`plenopiv.tracking.bundle.bundle_positions`).
     """
-    most = _max_lenslet_rays(rptr)
-    for p in numba.prange(centre.shape[0]):
-        t = (so + centre[p, 2]) / so
+    most = 0
+    for a in range(cptr.shape[0] - 1):
+        most = max(most, cptr[a + 1] - cptr[a])
+    for p in numba.prange(point.shape[0]):
         tp = (so + point[p, 2]) / so
         var_q = (tp * footprint) ** 2 / 12.0
         d = np.empty(3)
@@ -182,9 +206,10 @@ def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin,
         rays = np.empty(most, np.int64)
         w = np.empty(most)
         for q in range(lptr[p], lptr[p + 1]):
-            k = lidx[q]
-            nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
-                               radius[p], margin, rays, w)
+            nk = cptr[q + 1] - cptr[q]
+            for j in range(nk):
+                rays[j] = sel[cptr[q] + j]
+                w[j] = share[cptr[q] + j]
             _ray_weights(rays, w, nk, bright[p], weight, total)
             # the lenslet's weight and mean slope
             wk = 0.0

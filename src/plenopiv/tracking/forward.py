@@ -59,7 +59,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from plenopiv.lightfield import LightField
-from plenopiv.tracking.bundle import ENGINES, RayTable, checked_image, ray_table
+from plenopiv.tracking.bundle import ENGINES, RayTable, checked_image, ray_table, spatial_order
 
 __all__ = ["ENGINES", "ForwardSettings", "beam_fraction", "near_focus", "refine_positions"]
 
@@ -282,9 +282,11 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     grid = near_focus(start[:, 2], depth_cell=depth_cell, settings=settings)
     # the extra starts serve the particles near focus (a misfit with local minima)
     multi = np.abs(start[:, 2]) <= settings.local_starts_within * depth_cell
-    for rows, local, starts in ((np.flatnonzero(grid), False, 1),
-                                (np.flatnonzero(~grid & multi), True, settings.local_starts),
-                                (np.flatnonzero(~grid & ~multi), True, 1)):
+    # each group in spatial order: neighbours read the same lenslets' pixels (in cache)
+    key = spatial_order(lf, start) if engine == "numba" else np.arange(n)
+    for rows, local, starts in ((key[grid[key]], False, 1),
+                                (key[(~grid & multi)[key]], True, settings.local_starts),
+                                (key[(~grid & ~multi)[key]], True, 1)):
         # particles in chunks of a bounded number of candidate pixels (memory only: each
         # particle's search is independent)
         for sl in _chunks(lf, index, start[rows], settings.margin, dz, chunk_pixels):
