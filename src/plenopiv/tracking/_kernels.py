@@ -318,23 +318,37 @@ def best_grid_offsets(ptr, u, xf, v, amp, pos, depth, lateral, so, cell, footpri
 
 
 @numba.njit(cache=True, parallel=True)
-def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, count_only, out_ptr, out):
+def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, margin, count_only, out_ptr, out,
+                v, out_u, out_xf, out_v):
     """Rays (indices into the lenslet-sorted arrays) whose chief ray passes near a particle.
 
     Particle p's candidate lenslets are ``cand[cptr[p]:cptr[p + 1]]``; lenslet k's rays are
     ``rptr[k]:rptr[k + 1]`` of ``u``, ``xf`` (sorted by lenslet). A ray is kept when at the
     particle's depth (``t[p] = (S_o + Z)/S_o``) it passes within ``radius[p]`` of ``start[p]``
-    along x and along y (a square beam). With ``count_only`` the kept rays per particle go to
-    ``out_ptr[p]``; otherwise they are written to ``out[out_ptr[p]:out_ptr[p + 1]]`` in
-    candidate then ray order (the NumPy twin: ``plenopiv.tracking.forward._pixels_numpy``).
+    along x and along y (a square beam). Only the rays of a lenslet within the aperture
+    window of :func:`_window` are tested (``margin``: the pixels' edge-centroid offsets,
+    metres). With ``count_only`` the kept rays per particle go to ``out_ptr[p]``; otherwise
+    they are written to ``out[out_ptr[p]:out_ptr[p + 1]]`` in candidate then ray order (the
+    NumPy twin: ``plenopiv.tracking.forward._pixels_numpy``), and where ``out_v`` is not
+    empty their ``u``, ``xf`` and values ``v`` (P,) to ``out_u``, ``out_xf``, ``out_v`` at
+    the same places (the gather the refinement reads, while the rows are in cache).
     """
+    gather = out_v.shape[0] > 0
     for p in numba.prange(start.shape[0]):
         tp = t[p]
         n = 0
         w = 0 if count_only else out_ptr[p]
         for c in range(cptr[p], cptr[p + 1]):
             k = cand[c]
-            for i in range(rptr[k], rptr[k + 1]):
+            if rptr[k + 1] == rptr[k]:
+                continue
+            first, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], tp, start[p, 0],
+                                            start[p, 1], radius[p], margin)
+            for i in range(first, rptr[k + 1]):
+                if u[i, 1] < lo:
+                    break
+                if u[i, 0] < lo_x or u[i, 0] > hi_x:
+                    continue
                 dx = abs(u[i, 0] * (1.0 - tp) + xf[i, 0] * tp - start[p, 0])
                 dy = abs(u[i, 1] * (1.0 - tp) + xf[i, 1] * tp - start[p, 1])
                 if max(dx, dy) <= radius[p]:
@@ -342,6 +356,10 @@ def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, count_only, out_ptr, 
                         n += 1
                     else:
                         out[w] = i
+                        if gather:
+                            out_u[w, 0], out_u[w, 1] = u[i, 0], u[i, 1]
+                            out_xf[w, 0], out_xf[w, 1] = xf[i, 0], xf[i, 1]
+                            out_v[w] = v[i]
                         w += 1
         if count_only:
             out_ptr[p] = n
@@ -559,5 +577,5 @@ def robust_amplitude(ptr, f, v, out):
             if f[i] >= 0.5:
                 ratio[k] = v[i] / f[i]
                 k += 1
-        ratio.sort()
-        out[p] = max(ratio[n // 2], 0.0)
+        # the upper median: element n // 2 of the sorted ratios, found in linear time
+        out[p] = max(np.partition(ratio, n // 2)[n // 2], 0.0)

@@ -305,8 +305,7 @@ def _refine_chunk(lf, index, values, start, dz, depth_cell, settings, engine, lo
     n = len(start)
     geom = dict(object_distance=lf.object_distance, cell=lf.cell, footprint=lf.footprint)
     if engine == "numba":       # values in lenslet order (refine_positions)
-        pid, row = _pixels(lf, index, start, settings.margin, dz, engine, lenslet_order=True)
-        v, u, xf = values[row], index.u[row], index.focal_sorted[row]
+        pid, (v, u, xf) = _pixel_data(lf, index, values, start, settings.margin, dz)
     else:
         pid, ray = _pixels(lf, index, start, settings.margin, dz, engine)
         v, u, xf = values[ray], lf.u[ray], index.focal[ray]
@@ -643,24 +642,49 @@ def _pixels(lf: LightField, index, start, margin: float, depth_range: float,
     """
     if engine == "numpy":
         return _pixels_numpy(lf, index, start, margin, depth_range)
+    pid, out, _ = _near_pixels(lf, index, start, margin, depth_range, None)
+    return pid, out if lenslet_order else index.order[out]
+
+
+def _pixel_data(lf: LightField, index, values, start, margin: float, depth_range: float):
+    """``(particle, (value, u, X_f))`` of the pixels of :func:`_pixels` (numba, gathered).
+
+    ``values`` (P,): the image's ray values in the lenslet order of ``index``.
+    """
+    pid, _, data = _near_pixels(lf, index, start, margin, depth_range, values)
+    return pid, data
+
+
+def _near_pixels(lf: LightField, index, start, margin, depth_range, values):
+    """Run :func:`plenopiv.tracking._kernels.near_pixels`: ``(particle, row, gathered)``.
+
+    Rows of the lenslet-sorted arrays; ``gathered`` is ``(value, u, X_f)`` of those rows when
+    ``values`` (lenslet order) is given, else None.
+    """
     from plenopiv.tracking import _kernels as _k
 
-    order, ptr, lens_ids, tree, _, u_s, xf_s = index
+    _, ptr, lens_ids, tree, _, u_s, xf_s = index
     t, radius, reach = _reach(lf, start, margin, depth_range)
     lists = tree.query_ball_point(start[:, :2] / t[:, None], reach)
     counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
-    if counts.sum() == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    n_pix = np.zeros(len(start), np.int64)
     cptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    cand = lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])].astype(np.int64)
+    cand = (lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])].astype(np.int64)
+            if counts.sum() else np.zeros(0, np.int64))
     args = (cptr, cand, ptr.astype(np.int64), u_s, xf_s, np.ascontiguousarray(start[:, :2]),
-            np.ascontiguousarray(t), np.ascontiguousarray(radius))
-    n = np.zeros(len(start), np.int64)
-    _k.near_pixels(*args, True, n, np.zeros(0, np.int64))
-    out_ptr = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+            np.ascontiguousarray(t), np.ascontiguousarray(radius), lf.cell)
+    none = (np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+    _k.near_pixels(*args, True, n_pix, np.zeros(0, np.int64), *none)
+    out_ptr = np.concatenate([[0], np.cumsum(n_pix)]).astype(np.int64)
     out = np.empty(out_ptr[-1], np.int64)
-    _k.near_pixels(*args, False, out_ptr, out)
-    return np.repeat(np.arange(len(start)), n), out if lenslet_order else order[out]
+    if values is None:
+        gathered, buffers = None, none
+    else:
+        gathered = (np.empty(len(out)), np.empty((len(out), 2)), np.empty((len(out), 2)))
+        buffers = (np.ascontiguousarray(values, np.float64), gathered[1], gathered[2],
+                   gathered[0])
+    _k.near_pixels(*args, False, out_ptr, out, *buffers)
+    return np.repeat(np.arange(len(start)), n_pix), out, gathered
 
 
 def _pixels_numpy(lf: LightField, index, start, margin: float, depth_range: float):
