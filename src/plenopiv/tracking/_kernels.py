@@ -365,22 +365,6 @@ def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, margin, count_only, o
             out_ptr[p] = n
 
 
-@numba.njit(cache=True, parallel=True)
-def pixel_fractions(ptr, u, xf, pos, so, cell, footprint, out):
-    """Set ``out[i]`` to :func:`plenopiv.tracking.forward.beam_fraction` of pixel i.
-
-    Pixels ``ptr[p]:ptr[p + 1]`` of ``u``, ``xf`` (P, 2) belong to particle p at ``pos[p]``.
-    """
-    for p in numba.prange(pos.shape[0]):
-        t = (so + pos[p, 2]) / so
-        wa = max(cell * abs(1.0 - t), 1e-9 * cell)
-        wb = footprint * abs(t)
-        for i in range(ptr[p], ptr[p + 1]):
-            ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - pos[p, 0], wa, wb)
-            oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - pos[p, 1], wa, wb)
-            out[i] = ox * oy / (wa * wa)
-
-
 @numba.njit(cache=True)
 def _overlap_grad(m, wa, wb):
     """:func:`_overlap` and its derivatives ``(o, do/dm, do/dwa, do/dwb)`` (0 where o = 0)."""
@@ -556,26 +540,28 @@ def local_fit(ptr, u, xf, v, amp, start, so, cell, footprint, excess, sx, sz, bo
 
 
 @numba.njit(cache=True, parallel=True)
-def robust_amplitude(ptr, f, v, out):
-    """Set ``out[p]`` to the median of ``v / f`` over particle p's pixels with f >= 0.5.
+def amplitude_at(ptr, u, xf, v, pos, so, cell, footprint, out):
+    """Set ``out[p]`` to particle p's amplitude at ``pos[p]`` (pixels ``ptr[p]:ptr[p + 1]``).
 
-    Pixels ``ptr[p]:ptr[p + 1]``; the upper median (element ``n // 2`` of the n sorted
-    ratios), 0 when none or negative (NumPy twin:
-    ``plenopiv.tracking.forward._robust_amplitude``).
+    One pass per particle: each pixel's :func:`plenopiv.tracking.forward.beam_fraction` f
+    and, where f >= 0.5, its ratio ``v / f``; ``out[p]`` is their upper median (element
+    ``n // 2`` of the n sorted ratios), 0 when none or negative. The NumPy twin is
+    ``plenopiv.tracking.forward._amplitude_at``.
     """
     for p in numba.prange(out.shape[0]):
+        t = (so + pos[p, 2]) / so
+        wa = max(cell * abs(1.0 - t), 1e-9 * cell)
+        wb = footprint * abs(t)
+        ratio = np.empty(ptr[p + 1] - ptr[p])
         n = 0
         for i in range(ptr[p], ptr[p + 1]):
-            if f[i] >= 0.5:
+            ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - pos[p, 0], wa, wb)
+            oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - pos[p, 1], wa, wb)
+            f = ox * oy / (wa * wa)
+            if f >= 0.5:
+                ratio[n] = v[i] / f
                 n += 1
         if n == 0:
             out[p] = 0.0
             continue
-        ratio = np.empty(n)
-        k = 0
-        for i in range(ptr[p], ptr[p + 1]):
-            if f[i] >= 0.5:
-                ratio[k] = v[i] / f[i]
-                k += 1
-        # the upper median: element n // 2 of the sorted ratios, found in linear time
-        out[p] = max(np.partition(ratio, n // 2)[n // 2], 0.0)
+        out[p] = max(np.partition(ratio[:n], n // 2)[n // 2], 0.0)

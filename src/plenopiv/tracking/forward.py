@@ -312,12 +312,11 @@ def _refine_chunk(lf, index, values, start, dz, depth_cell, settings, engine, lo
     pos = start.copy()
     dl = settings.lateral_range * lf.footprint
     ptr = np.concatenate([[0], np.cumsum(np.bincount(pid, minlength=n))]).astype(np.int64)
-    fractions = _fractions_numba if engine == "numba" else _fractions
-    amplitude = _robust_amplitude_numba if engine == "numba" else _robust_amplitude
+    amplitude = _amplitude_at_numba if engine == "numba" else _amplitude_at
     if local:
         fit = _local_fit_numba if engine == "numba" else _local_fit
         for _ in range(settings.local_rounds):
-            amp = amplitude(ptr, pid, fractions(ptr, pid, u, xf, pos, geom), v)
+            amp = amplitude(ptr, pid, u, xf, v, pos, geom)
             pos = fit(ptr, u, xf, v, amp, pos, geom, settings.excess,
                       (lf.footprint, depth_cell), (dl, dz), _starts(dz, starts),
                       settings.local_iterations)
@@ -325,9 +324,9 @@ def _refine_chunk(lf, index, values, start, dz, depth_cell, settings, engine, lo
         search = _best_offset_numba if engine == "numba" else _best_offset
         for depth, lateral in _schedule(dz, dl, settings.depth_steps, settings.rounds,
                                         settings.round_depth_steps):
-            amp = amplitude(ptr, pid, fractions(ptr, pid, u, xf, pos, geom), v)
+            amp = amplitude(ptr, pid, u, xf, v, pos, geom)
             pos = pos + search(ptr, u, xf, v, amp, pos, depth, lateral, geom, settings.excess)
-    amp = amplitude(ptr, pid, fractions(ptr, pid, u, xf, pos, geom), v)
+    amp = amplitude(ptr, pid, u, xf, v, pos, geom)
     return pos, amp
 
 
@@ -499,18 +498,6 @@ def _fractions(ptr, pid, u, xf, pos, geom):
     return beam_fraction(u, xf, pos[pid], **geom)
 
 
-def _fractions_numba(ptr, pid, u, xf, pos, geom):
-    """Return :func:`_fractions` by the compiled kernel."""
-    from plenopiv.tracking import _kernels as _k
-
-    out = np.empty(len(pid))
-    _k.pixel_fractions(ptr, np.ascontiguousarray(u, np.float64),
-                       np.ascontiguousarray(xf, np.float64),
-                       np.ascontiguousarray(pos, np.float64), float(geom["object_distance"]),
-                       float(geom["cell"]), float(geom["footprint"]), out)
-    return out
-
-
 def _schedule(depth_range, lateral_range, depth_steps, rounds, round_depth_steps=7):
     """Return the searches of the refinement: ``(depth (nz,), lateral (5,))`` offsets, m.
 
@@ -572,6 +559,22 @@ def _best_offset_numba(ptr, u, xf, v, amp, pos, depth, lateral, geom, excess):
     return choice
 
 
+def _amplitude_at(ptr, pid, u, xf, v, pos, geom):
+    """Amplitude of each particle at ``pos``: :func:`_robust_amplitude` of :func:`_fractions`."""
+    return _robust_amplitude(ptr, pid, _fractions(ptr, pid, u, xf, pos, geom), v)
+
+
+def _amplitude_at_numba(ptr, pid, u, xf, v, pos, geom):
+    """Return :func:`_amplitude_at` by the compiled kernel (one pass, no fraction array)."""
+    from plenopiv.tracking import _kernels as _k
+
+    out = np.empty(len(ptr) - 1)
+    c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, pos)]
+    _k.amplitude_at(ptr, *c, float(geom["object_distance"]), float(geom["cell"]),
+                    float(geom["footprint"]), out)
+    return out
+
+
 def _robust_amplitude(ptr, pid, f, v):
     """Median of value / fraction over the pixels a particle lights at least half (>= 0)."""
     n = len(ptr) - 1
@@ -585,16 +588,6 @@ def _robust_amplitude(ptr, pid, f, v):
     has = cnt > 0
     med[has] = ratio[first[has] + cnt[has] // 2]
     return np.maximum(med, 0.0)
-
-
-def _robust_amplitude_numba(ptr, pid, f, v):
-    """Return :func:`_robust_amplitude` by the compiled kernel."""
-    from plenopiv.tracking import _kernels as _k
-
-    out = np.empty(len(ptr) - 1)
-    _k.robust_amplitude(ptr, np.ascontiguousarray(f, np.float64),
-                        np.ascontiguousarray(v, np.float64), out)
-    return out
 
 
 #: Rays by lenslet (:func:`plenopiv.tracking.bundle.ray_table`).
