@@ -17,6 +17,7 @@ coordinates exactly as for centroids.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -454,11 +455,16 @@ def _candidates(lf, index, centre, radius):
     t = (so + centre[:, 2]) / so
     reach = (ap * np.abs(1.0 - t) + radius) / np.abs(t)
     lists = tree.query_ball_point(centre[:, :2] / t[:, None], reach)
+    return flat_lists(lists, lens_ids)
+
+
+def flat_lists(lists, ids) -> tuple[np.ndarray, np.ndarray]:
+    """A KD-tree's lists of neighbours as CSR: ``(ptr (N + 1,), ids[neighbours])`` int64."""
     counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
-    lptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    lidx = (lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])]
-            if counts.sum() else np.zeros(0, np.int64)).astype(np.int64)
-    return lptr, lidx
+    ptr = np.zeros(len(lists) + 1, np.int64)
+    np.cumsum(counts, out=ptr[1:])
+    flat = np.fromiter(itertools.chain.from_iterable(lists), np.int64, int(ptr[-1]))
+    return ptr, np.asarray(ids, np.int64)[flat]
 
 
 def _threads() -> int:

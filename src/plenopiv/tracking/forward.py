@@ -59,7 +59,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from plenopiv.lightfield import LightField
-from plenopiv.tracking.bundle import ENGINES, RayTable, checked_image, ray_table, spatial_order
+from plenopiv.tracking.bundle import (
+    ENGINES,
+    RayTable,
+    checked_image,
+    flat_lists,
+    ray_table,
+    spatial_order,
+)
 
 __all__ = ["ENGINES", "ForwardSettings", "beam_fraction", "near_focus", "refine_positions"]
 
@@ -659,11 +666,8 @@ def _near_pixels(lf: LightField, index, start, margin, depth_range, values):
     _, ptr, lens_ids, tree, _, u_s, xf_s = index
     t, radius, reach = _reach(lf, start, margin, depth_range)
     lists = tree.query_ball_point(start[:, :2] / t[:, None], reach)
-    counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+    cptr, cand = flat_lists(lists, lens_ids)
     n_pix = np.zeros(len(start), np.int64)
-    cptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    cand = (lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])].astype(np.int64)
-            if counts.sum() else np.zeros(0, np.int64))
     args = (cptr, cand, ptr.astype(np.int64), u_s, xf_s, np.ascontiguousarray(start[:, :2]),
             np.ascontiguousarray(t), np.ascontiguousarray(radius), lf.cell)
     none = (np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
