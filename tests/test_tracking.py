@@ -387,6 +387,17 @@ def test_amplitude_kernel_matches_its_numpy_twin(thesis_light_field, rng):
     assert got[4] == 0.0
 
 
+def test_kth_smallest_by_quickselect_is_that_of_the_sorted_values(rng):
+    """The amplitude's upper median: element k of the sorted values, ties included."""
+    from plenopiv.tracking._kernels import _select_kth
+
+    for n in (1, 2, 3, 8, 31):
+        for values in (rng.normal(size=n), rng.integers(0, 3, n).astype(float)):
+            for k in range(n):
+                buf = np.concatenate([values, [np.inf]])       # past n: never read
+                assert _select_kth(buf, n, k) == np.sort(values)[k]
+
+
 def test_gathered_pixels_are_those_of_the_selection(thesis_light_field, rng):
     """The selection's gathered values and rays are those of its rows (lenslet order)."""
     from plenopiv.tracking.bundle import ray_table

@@ -539,29 +539,59 @@ def local_fit(ptr, u, xf, v, amp, start, so, cell, footprint, excess, sx, sz, bo
                 pos[p, 0], pos[p, 1], pos[p, 2] = end[0], end[1], end[2]
 
 
+@numba.njit(cache=True)
+def _select_kth(a, n, k):
+    """The k-th smallest of ``a[:n]`` (0-based), reordering ``a[:n]`` in place (quickselect)."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return a[k]
+    return a[k]
+
+
 @numba.njit(cache=True, parallel=True)
 def amplitude_at(ptr, u, xf, v, pos, so, cell, footprint, out):
     """Set ``out[p]`` to particle p's amplitude at ``pos[p]`` (pixels ``ptr[p]:ptr[p + 1]``).
 
     One pass per particle: each pixel's :func:`plenopiv.tracking.forward.beam_fraction` f
     and, where f >= 0.5, its ratio ``v / f``; ``out[p]`` is their upper median (element
-    ``n // 2`` of the n sorted ratios), 0 when none or negative. The NumPy twin is
+    ``n // 2`` of the n sorted ratios), 0 when none or negative. The particles run in 64
+    blocks, each with one buffer for its ratios. The NumPy twin is
     ``plenopiv.tracking.forward._amplitude_at``.
     """
-    for p in numba.prange(out.shape[0]):
-        t = (so + pos[p, 2]) / so
-        wa = max(cell * abs(1.0 - t), 1e-9 * cell)
-        wb = footprint * abs(t)
-        ratio = np.empty(ptr[p + 1] - ptr[p])
-        n = 0
-        for i in range(ptr[p], ptr[p + 1]):
-            ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - pos[p, 0], wa, wb)
-            oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - pos[p, 1], wa, wb)
-            f = ox * oy / (wa * wa)
-            if f >= 0.5:
-                ratio[n] = v[i] / f
-                n += 1
-        if n == 0:
-            out[p] = 0.0
-            continue
-        out[p] = max(np.partition(ratio[:n], n // 2)[n // 2], 0.0)
+    n_p = out.shape[0]
+    blocks = min(n_p, 64)
+    for c in numba.prange(blocks):
+        p0, p1 = c * n_p // blocks, (c + 1) * n_p // blocks
+        most = 1
+        for p in range(p0, p1):
+            most = max(most, ptr[p + 1] - ptr[p])
+        ratio = np.empty(most)
+        for p in range(p0, p1):
+            t = (so + pos[p, 2]) / so
+            wa = max(cell * abs(1.0 - t), 1e-9 * cell)
+            wb = footprint * abs(t)
+            n = 0
+            for i in range(ptr[p], ptr[p + 1]):
+                ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - pos[p, 0], wa, wb)
+                oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - pos[p, 1], wa, wb)
+                f = ox * oy / (wa * wa)
+                if f >= 0.5:
+                    ratio[n] = v[i] / f
+                    n += 1
+            out[p] = max(_select_kth(ratio, n, n // 2), 0.0) if n else 0.0
