@@ -51,12 +51,12 @@ def _window(u, xf, first, last, t, cx, cy, r, margin):
 
 
 @numba.njit(cache=True)
-def _lenslet_rays(u, xf, first, last, t, cx, cy, r, margin, rays, share):
+def _lenslet_rays(u, xf, weight, first, last, t, cx, cy, r, margin, rays, share):
     """Rays ``first:last`` of one lenslet passing within ``r`` of ``(cx, cy)`` at depth t.
 
-    Fills ``rays[:n]`` with their indices and ``share[:n]`` with the cone profile
-    ``1 - m/r`` of their miss distances m; returns n. ``rays`` and ``share`` must hold
-    ``last - first`` entries. The one selection behind every kernel below.
+    Only rays whose pixel carries weight (``weight[i] > 0``) are taken. Fills ``rays[:n]``
+    with their indices and ``share[:n]`` with the cone profile ``1 - m/r`` of their miss
+    distances m; returns n. ``rays`` and ``share`` must hold ``last - first`` entries.
     """
     n = 0
     if last == first:
@@ -65,7 +65,7 @@ def _lenslet_rays(u, xf, first, last, t, cx, cy, r, margin, rays, share):
     for i in range(start, last):
         if u[i, 1] < lo:
             break
-        if u[i, 0] < lo_x or u[i, 0] > hi_x:
+        if u[i, 0] < lo_x or u[i, 0] > hi_x or not weight[i] > 0.0:
             continue
         m = _miss(u, xf, i, t, cx, cy)
         if m <= r:
@@ -111,16 +111,10 @@ def select_rays(centre, radius, lptr, lidx, rptr, u, xf, so, margin, weight, p0,
                 r2[:n] = rays[:n]
                 s2[:n] = share[:n]
                 rays, share = r2, s2
-            nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
-                               radius[p], margin, rays[n:], share[n:])
-            kept = 0
-            for j in range(n, n + nk):
-                if weight[rays[j]] > 0.0:
-                    rays[n + kept] = rays[j]
-                    share[n + kept] = share[j]
-                    kept += 1
-            counts[a] = kept
-            n += kept
+            nk = _lenslet_rays(u, xf, weight, rptr[k], rptr[k + 1], t, centre[p, 0],
+                               centre[p, 1], radius[p], margin, rays[n:], share[n:])
+            counts[a] = nk
+            n += nk
     return rays[:n].copy(), share[:n].copy()
 
 
