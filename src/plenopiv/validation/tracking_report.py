@@ -293,9 +293,9 @@ READING = ["## Reading", "",
           "bundle solve selects its rays once for its shares, normal equations and "
           "covariance, and the refinement's pixel selection scans only each lenslet's "
           "aperture window and gathers the pixels as it selects them: the same benchmark "
-          "adds 43.1 s of CPU, 54.6 s wall (load 4.1), 4.55 GB peak, 14,706 tracks, "
+          "adds 34.5 s of CPU, 41.2 s wall (load 5.1), 4.56 GB peak, 14,706 tracks, "
           "72.5 %, 0.50 % wrong, rms 0.068, 0.044, 0.885 voxel; on the saved pair, "
-          "tracking alone 59.2 -> 35.1 s of CPU at load 3 (14,734 tracks against "
+          "tracking alone 59.2 -> 34.2 s of CPU at load 3-4 (14,734 tracks against "
           "14,735: the rays' shared sums add in another order, last-bit differences). "
           "README, full-camera section.",
           "- The single particle at Z = -5 mm, missing from an earlier report (0 "
