@@ -123,6 +123,56 @@ def test_numba_kernels_match_their_numpy_twin(thesis_light_field, rng):
         bundle_positions(lf, img, seeds, engine="cuda")
 
 
+def test_ray_selection_matches_its_numpy_twin(thesis_light_field, rng):
+    """The rays one solve selects once (numba, threads over blocks of particles) are those
+    of the NumPy selection that carry weight, with the same cone shares, particle by
+    particle."""
+    from plenopiv.tracking.bundle import _engine_inputs, _select_rays, ray_selection, ray_table
+
+    _, _, lf = thesis_light_field
+    b = lf.footprint
+    table = ray_table(lf)
+    centre = np.column_stack([rng.uniform(-4, 4, (9, 2)) * b, rng.uniform(-3e-3, 3e-3, 9)])
+    radius = rng.uniform(0.5, 2.0, 9) * b
+    weight = np.where(rng.uniform(0, 1, lf.n_rays) < 0.3, 0.0, 1.0)
+    rays = _engine_inputs(lf, table, weight, "numba")[0]
+    sel = ray_selection(lf, table[:4], rays, centre, radius)
+    pid, ray, miss = _select_rays(lf, *table[:4], centre, radius)
+    keep = weight[ray] > 0
+    pid, ray, share = pid[keep], ray[keep], 1.0 - miss[keep] / radius[pid[keep]]
+    sptr = sel.particle_ptr
+    got_ray = table.order[sel.ray]
+    assert len(got_ray) == len(ray) > 50
+    for p in range(len(centre)):
+        mine = np.argsort(got_ray[sptr[p]:sptr[p + 1]])
+        twin = np.argsort(ray[pid == p])
+        np.testing.assert_array_equal(got_ray[sptr[p]:sptr[p + 1]][mine], ray[pid == p][twin])
+        np.testing.assert_allclose(sel.share[sptr[p]:sptr[p + 1]][mine],
+                                   np.maximum(share[pid == p][twin], 0.0), rtol=0, atol=1e-12)
+
+
+def test_bundle_positions_do_not_depend_on_the_particles_order(thesis_light_field, rng):
+    """The kernels take the particles in spatial order: given in another order, each
+    particle gets the same fit (to rounding: the rays' shared sums add in another order)."""
+    from plenopiv.tracking.bundle import spatial_order
+
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    truth = np.column_stack([rng.uniform(-4, 4, (7, 2)) * b, rng.uniform(-3e-3, 3e-3, 7)])
+    img = particle_image(cam, truth, rays_per_particle=3000, seed=8)
+    seeds = truth + rng.normal(0, 0.2, (7, 3)) * [b, b, 4 * b]
+    order = spatial_order(lf, seeds)
+    np.testing.assert_array_equal(np.sort(order), np.arange(7))
+    cell = resolution_cell(cal.effective_camera)[1]
+    bright = np.linspace(1, 2, 7)
+    a = bundle_positions(lf, img, seeds, depth_cell=cell, brightness=bright)
+    perm = rng.permutation(7)
+    c = bundle_positions(lf, img, seeds[perm], depth_cell=cell, brightness=bright[perm])
+    np.testing.assert_allclose(c.position, a.position[perm], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(c.n_rays, a.n_rays[perm])
+    np.testing.assert_array_equal(c.n_lenslets, a.n_lenslets[perm])
+
+
 def test_bundle_rejects_a_wrong_image_and_bad_settings(thesis_light_field):
     _, _, lf = thesis_light_field
     with pytest.raises(Exception, match="sensor"):
@@ -309,22 +359,61 @@ def test_misfit_gradient_is_the_derivative_of_the_misfit(thesis_light_field):
         assert numeric == pytest.approx(2 * g[0, k], rel=1e-2, abs=1e-6 * abs(g).max())
 
 
-def test_robust_amplitude_kernel_matches_its_numpy_twin(rng):
+def test_amplitude_kernel_matches_its_numpy_twin(thesis_light_field, rng):
     """Median of value / fraction over the half-lit pixels, per particle; none lit: 0."""
-    from plenopiv.tracking.forward import _robust_amplitude, _robust_amplitude_numba
+    from plenopiv.tracking.bundle import ray_table
+    from plenopiv.tracking.forward import _amplitude_at, _amplitude_at_numba, _fractions, _pixels
 
-    counts = np.array([7, 0, 1, 12, 3])
-    ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    pid = np.repeat(np.arange(len(counts)), counts)
-    f = rng.uniform(0.0, 1.0, ptr[-1])
-    f[ptr[4]:ptr[5]] = 0.2                      # particle 4 lights no pixel half
-    v = rng.normal(2.0, 1.0, ptr[-1])
-    got = _robust_amplitude_numba(ptr, pid, f, v)
-    np.testing.assert_array_equal(got, _robust_amplitude(ptr, pid, f, v))
-    lit = f[:7] >= 0.5
-    ratio = np.sort(v[:7][lit] / f[:7][lit])
+    _, _, lf = thesis_light_field
+    b = lf.footprint
+    table = ray_table(lf)
+    pos = np.column_stack([rng.uniform(-3, 3, (4, 2)) * b, rng.uniform(-3e-3, 3e-3, 4)])
+    pid, ray = _pixels(lf, table, pos, 1.5, 0.3e-3, "numpy")
+    # a fifth particle's pixels all seen from far off: it lights none of them half
+    pid = np.concatenate([pid, np.full(5, 4)])
+    ray = np.concatenate([ray, ray[:5]])
+    pos = np.vstack([pos, [[0.05, 0.05, 0.0]]])
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(pid, minlength=5))]).astype(np.int64)
+    v = rng.normal(2.0, 1.0, len(pid))
+    u, xf = lf.u[ray], table.focal[ray]
+    geom = dict(object_distance=lf.object_distance, cell=lf.cell, footprint=lf.footprint)
+    got = _amplitude_at_numba(ptr, pid, u, xf, v, pos, geom)
+    np.testing.assert_array_equal(got, _amplitude_at(ptr, pid, u, xf, v, pos, geom))
+    f = _fractions(ptr, pid, u, xf, pos, geom)
+    lit = (pid == 0) & (f >= 0.5)
+    assert lit.sum() > 3
+    ratio = np.sort(v[lit] / f[lit])
     assert got[0] == max(ratio[len(ratio) // 2], 0.0)
-    assert got[1] == 0.0 and got[4] == 0.0
+    assert got[4] == 0.0
+
+
+def test_kth_smallest_by_quickselect_is_that_of_the_sorted_values(rng):
+    """The amplitude's upper median: element k of the sorted values, ties included."""
+    from plenopiv.tracking._kernels import _select_kth
+
+    for n in (1, 2, 3, 8, 31):
+        for values in (rng.normal(size=n), rng.integers(0, 3, n).astype(float)):
+            for k in range(n):
+                buf = np.concatenate([values, [np.inf]])       # past n: never read
+                assert _select_kth(buf, n, k) == np.sort(values)[k]
+
+
+def test_gathered_pixels_are_those_of_the_selection(thesis_light_field, rng):
+    """The selection's gathered values and rays are those of its rows (lenslet order)."""
+    from plenopiv.tracking.bundle import ray_table
+    from plenopiv.tracking.forward import _pixel_data, _pixels
+
+    _, _, lf = thesis_light_field
+    b = lf.footprint
+    table = ray_table(lf)
+    start = np.column_stack([rng.uniform(-3, 3, (4, 2)) * b, rng.uniform(-3e-3, 3e-3, 4)])
+    values = rng.uniform(0, 1, lf.n_rays)[table.order]
+    pid, row = _pixels(lf, table, start, 1.5, 0.3e-3, "numba", lenslet_order=True)
+    pid2, (v, u, xf) = _pixel_data(lf, table, values, start, 1.5, 0.3e-3)
+    np.testing.assert_array_equal(pid, pid2)
+    np.testing.assert_array_equal(v, values[row])
+    np.testing.assert_array_equal(u, table.u[row])
+    np.testing.assert_array_equal(xf, table.focal_sorted[row])
 
 
 def test_refinement_of_a_dark_image_keeps_the_start(thesis_light_field):

@@ -51,12 +51,12 @@ def _window(u, xf, first, last, t, cx, cy, r, margin):
 
 
 @numba.njit(cache=True)
-def _lenslet_rays(u, xf, first, last, t, cx, cy, r, margin, rays, share):
+def _lenslet_rays(u, xf, weight, first, last, t, cx, cy, r, margin, rays, share):
     """Rays ``first:last`` of one lenslet passing within ``r`` of ``(cx, cy)`` at depth t.
 
-    Fills ``rays[:n]`` with their indices and ``share[:n]`` with the cone profile
-    ``1 - m/r`` of their miss distances m; returns n. ``rays`` and ``share`` must hold
-    ``last - first`` entries. The one selection behind every kernel below.
+    Only rays whose pixel carries weight (``weight[i] > 0``) are taken. Fills ``rays[:n]``
+    with their indices and ``share[:n]`` with the cone profile ``1 - m/r`` of their miss
+    distances m; returns n. ``rays`` and ``share`` must hold ``last - first`` entries.
     """
     n = 0
     if last == first:
@@ -65,7 +65,7 @@ def _lenslet_rays(u, xf, first, last, t, cx, cy, r, margin, rays, share):
     for i in range(start, last):
         if u[i, 1] < lo:
             break
-        if u[i, 0] < lo_x or u[i, 0] > hi_x:
+        if u[i, 0] < lo_x or u[i, 0] > hi_x or not weight[i] > 0.0:
             continue
         m = _miss(u, xf, i, t, cx, cy)
         if m <= r:
@@ -84,27 +84,72 @@ def _max_lenslet_rays(rptr):
     return most
 
 
-@numba.njit(cache=True, parallel=True)
-def ray_shares(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, total):
-    """Set ``total[c, ray]`` to the sum of every particle's expected share ``B (1 - m/r)``.
+@numba.njit(cache=True, nogil=True)
+def select_rays(centre, radius, lptr, lidx, rptr, u, xf, so, margin, weight, p0, p1,
+                counts, capacity):
+    """Select once the rays of particles ``p0:p1`` that a solve's passes read.
 
-    ``total`` (C, P) holds one row per chunk of particles (chunks run in parallel); the
-    caller sums the rows.
+    The rays of :func:`_lenslet_rays` (within ``radius[p]`` of ``centre[p]``, cone share
+    ``1 - m/r``) whose pixel carries weight (``weight[ray] > 0``: a ray without weight adds
+    nothing to any sum of the solve). ``counts[a]`` is set to the rays kept of candidate
+    ``a`` (``lptr[p0] <= a < lptr[p1]``); returns ``(rays, share)`` in candidate then ray
+    order (``capacity``: first buffer size, grown as needed). Serial and without the GIL:
+    blocks of particles run on threads (:func:`plenopiv.tracking.bundle.ray_selection`).
     """
-    n = centre.shape[0]
-    n_chunks = total.shape[0]
-    most = _max_lenslet_rays(rptr)
-    for c in numba.prange(n_chunks):
-        rays = np.empty(most, np.int64)
-        share = np.empty(most)
-        for p in range(c * n // n_chunks, (c + 1) * n // n_chunks):
-            t = (so + centre[p, 2]) / so
-            for a in range(lptr[p], lptr[p + 1]):
-                k = lidx[a]
-                nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
-                                   radius[p], margin, rays, share)
-                for j in range(nk):
-                    total[c, rays[j]] += share[j] * bright[p]
+    rays = np.empty(max(capacity, 16), np.int64)
+    share = np.empty(max(capacity, 16))
+    n = 0
+    for p in range(p0, p1):
+        t = (so + centre[p, 2]) / so
+        for a in range(lptr[p], lptr[p + 1]):
+            k = lidx[a]
+            size = rptr[k + 1] - rptr[k]
+            if n + size > rays.shape[0]:
+                grown = max(2 * rays.shape[0], n + size)
+                r2 = np.empty(grown, np.int64)
+                s2 = np.empty(grown)
+                r2[:n] = rays[:n]
+                s2[:n] = share[:n]
+                rays, share = r2, s2
+            nk = _lenslet_rays(u, xf, weight, rptr[k], rptr[k + 1], t, centre[p, 0],
+                               centre[p, 1], radius[p], margin, rays[n:], share[n:])
+            counts[a] = nk
+            n += nk
+    return rays[:n].copy(), share[:n].copy()
+
+
+@numba.njit(cache=True)
+def selected_totals(sptr, share, bright, rays, total):
+    """Add every particle's expected share ``B (1 - m/r)`` of each selected ray to ``total``.
+
+    Particle p's rays are ``rays[sptr[p]:sptr[p + 1]]`` (:func:`select_rays`); ``total``
+    (P,) is accumulated in place.
+    """
+    for p in range(sptr.shape[0] - 1):
+        for j in range(sptr[p], sptr[p + 1]):
+            total[rays[j]] += share[j] * bright[p]
+
+
+@numba.njit(cache=True, parallel=True)
+def selected_normal_equations(sptr, rays, share, bright, u, xf, so, weight, total, normal,
+                              rhs, nrays):
+    """:func:`normal_equations` on the rays :func:`select_rays` kept (same sums)."""
+    for p in numba.prange(sptr.shape[0] - 1):
+        d = np.empty(3)
+        a = np.empty(3)
+        b = bright[p]
+        for j in range(sptr[p], sptr[p + 1]):
+            i = rays[j]
+            w = weight[i] * share[j] * b / total[i] if total[i] > 0.0 else 0.0
+            if w <= 0.0:
+                continue
+            nrays[p] += 1
+            _ray(u, xf, so, i, d, a)
+            da = d[0] * a[0] + d[1] * a[1] + d[2] * a[2]
+            for e in range(3):
+                for c in range(3):
+                    normal[p, e, c] += w * ((1.0 if e == c else 0.0) - d[e] * d[c])
+                rhs[p, e] += w * (a[e] - d[e] * da)
 
 
 @numba.njit(cache=True)
@@ -128,49 +173,22 @@ def _ray_weights(rays, share, n, b, weight, total):
 
 
 @numba.njit(cache=True, parallel=True)
-def normal_equations(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, weight,
-                     total, normal, rhs, nrays):
-    """Accumulate ``sum w M`` (N, 3, 3), ``sum w M a`` (N, 3) and the rays with w > 0 (N,).
-
-    ``w = weight[ray] * B (1 - m/r) / total[ray]``: the ray's share of its pixel value.
-    """
-    most = _max_lenslet_rays(rptr)
-    for p in numba.prange(centre.shape[0]):
-        t = (so + centre[p, 2]) / so
-        d = np.empty(3)
-        a = np.empty(3)
-        rays = np.empty(most, np.int64)
-        w = np.empty(most)
-        for q in range(lptr[p], lptr[p + 1]):
-            k = lidx[q]
-            nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
-                               radius[p], margin, rays, w)
-            _ray_weights(rays, w, nk, bright[p], weight, total)
-            for j in range(nk):
-                if w[j] <= 0.0:
-                    continue
-                nrays[p] += 1
-                _ray(u, xf, so, rays[j], d, a)
-                da = d[0] * a[0] + d[1] * a[1] + d[2] * a[2]
-                for e in range(3):
-                    for c in range(3):
-                        normal[p, e, c] += w[j] * ((1.0 if e == c else 0.0) - d[e] * d[c])
-                    rhs[p, e] += w[j] * (a[e] - d[e] * da)
-
-
-@numba.njit(cache=True, parallel=True)
-def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin, weight,
-                    total, point, footprint, meat_r, meat_q, nlens):
+def selected_covariance_sums(lptr, cptr, sel, share, bright, u, xf, so, weight, total, point,
+                             footprint, meat_r, meat_q, nlens):
     """Accumulate the two meats of the bundle covariance, per particle, by lenslet.
 
-    ``centre``/``radius`` select the rays (as in the last solve), ``point`` is the solution.
-    ``meat_r = sum_k g_k g_k^T``; ``meat_q = (t b)^2/12 sum_k (S_k[:, :2] S_k[:2, :] +
-    v_k v_k^T / var_k)`` with ``S_k = sum w M``, ``v_k = sum w M (dtheta, 0)``; ``nlens``
-    counts the lenslets with weight (see :func:`plenopiv.tracking.bundle.bundle_positions`).
+    The rays of the last solve (:func:`select_rays`: candidate lenslet ``a`` of particle p,
+    ``lptr[p] <= a < lptr[p + 1]``, holds rays ``sel[cptr[a]:cptr[a + 1]]`` with their cone
+    shares ``share``), ``point`` is the
+    solution. ``meat_r = sum_k g_k g_k^T``; ``meat_q = (t b)^2/12 sum_k (S_k[:, :2]
+    S_k[:2, :] + v_k v_k^T / var_k)`` with ``S_k = sum w M``, ``v_k = sum w M (dtheta, 0)``;
+    ``nlens`` counts the lenslets with weight (see
+    :func:`plenopiv.tracking.bundle.bundle_positions`).
     """
-    most = _max_lenslet_rays(rptr)
-    for p in numba.prange(centre.shape[0]):
-        t = (so + centre[p, 2]) / so
+    most = 0
+    for a in range(cptr.shape[0] - 1):
+        most = max(most, cptr[a + 1] - cptr[a])
+    for p in numba.prange(point.shape[0]):
         tp = (so + point[p, 2]) / so
         var_q = (tp * footprint) ** 2 / 12.0
         d = np.empty(3)
@@ -182,9 +200,10 @@ def covariance_sums(centre, radius, bright, lptr, lidx, rptr, u, xf, so, margin,
         rays = np.empty(most, np.int64)
         w = np.empty(most)
         for q in range(lptr[p], lptr[p + 1]):
-            k = lidx[q]
-            nk = _lenslet_rays(u, xf, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
-                               radius[p], margin, rays, w)
+            nk = cptr[q + 1] - cptr[q]
+            for j in range(nk):
+                rays[j] = sel[cptr[q] + j]
+                w[j] = share[cptr[q] + j]
             _ray_weights(rays, w, nk, bright[p], weight, total)
             # the lenslet's weight and mean slope
             wk = 0.0
@@ -293,23 +312,37 @@ def best_grid_offsets(ptr, u, xf, v, amp, pos, depth, lateral, so, cell, footpri
 
 
 @numba.njit(cache=True, parallel=True)
-def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, count_only, out_ptr, out):
+def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, margin, count_only, out_ptr, out,
+                v, out_u, out_xf, out_v):
     """Rays (indices into the lenslet-sorted arrays) whose chief ray passes near a particle.
 
     Particle p's candidate lenslets are ``cand[cptr[p]:cptr[p + 1]]``; lenslet k's rays are
     ``rptr[k]:rptr[k + 1]`` of ``u``, ``xf`` (sorted by lenslet). A ray is kept when at the
     particle's depth (``t[p] = (S_o + Z)/S_o``) it passes within ``radius[p]`` of ``start[p]``
-    along x and along y (a square beam). With ``count_only`` the kept rays per particle go to
-    ``out_ptr[p]``; otherwise they are written to ``out[out_ptr[p]:out_ptr[p + 1]]`` in
-    candidate then ray order (the NumPy twin: ``plenopiv.tracking.forward._pixels_numpy``).
+    along x and along y (a square beam). Only the rays of a lenslet within the aperture
+    window of :func:`_window` are tested (``margin``: the pixels' edge-centroid offsets,
+    metres). With ``count_only`` the kept rays per particle go to ``out_ptr[p]``; otherwise
+    they are written to ``out[out_ptr[p]:out_ptr[p + 1]]`` in candidate then ray order (the
+    NumPy twin: ``plenopiv.tracking.forward._pixels_numpy``), and where ``out_v`` is not
+    empty their ``u``, ``xf`` and values ``v`` (P,) to ``out_u``, ``out_xf``, ``out_v`` at
+    the same places (the gather the refinement reads, while the rows are in cache).
     """
+    gather = out_v.shape[0] > 0
     for p in numba.prange(start.shape[0]):
         tp = t[p]
         n = 0
         w = 0 if count_only else out_ptr[p]
         for c in range(cptr[p], cptr[p + 1]):
             k = cand[c]
-            for i in range(rptr[k], rptr[k + 1]):
+            if rptr[k + 1] == rptr[k]:
+                continue
+            first, lo, lo_x, hi_x = _window(u, xf, rptr[k], rptr[k + 1], tp, start[p, 0],
+                                            start[p, 1], radius[p], margin)
+            for i in range(first, rptr[k + 1]):
+                if u[i, 1] < lo:
+                    break
+                if u[i, 0] < lo_x or u[i, 0] > hi_x:
+                    continue
                 dx = abs(u[i, 0] * (1.0 - tp) + xf[i, 0] * tp - start[p, 0])
                 dy = abs(u[i, 1] * (1.0 - tp) + xf[i, 1] * tp - start[p, 1])
                 if max(dx, dy) <= radius[p]:
@@ -317,25 +350,13 @@ def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, count_only, out_ptr, 
                         n += 1
                     else:
                         out[w] = i
+                        if gather:
+                            out_u[w, 0], out_u[w, 1] = u[i, 0], u[i, 1]
+                            out_xf[w, 0], out_xf[w, 1] = xf[i, 0], xf[i, 1]
+                            out_v[w] = v[i]
                         w += 1
         if count_only:
             out_ptr[p] = n
-
-
-@numba.njit(cache=True, parallel=True)
-def pixel_fractions(ptr, u, xf, pos, so, cell, footprint, out):
-    """Set ``out[i]`` to :func:`plenopiv.tracking.forward.beam_fraction` of pixel i.
-
-    Pixels ``ptr[p]:ptr[p + 1]`` of ``u``, ``xf`` (P, 2) belong to particle p at ``pos[p]``.
-    """
-    for p in numba.prange(pos.shape[0]):
-        t = (so + pos[p, 2]) / so
-        wa = max(cell * abs(1.0 - t), 1e-9 * cell)
-        wb = footprint * abs(t)
-        for i in range(ptr[p], ptr[p + 1]):
-            ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - pos[p, 0], wa, wb)
-            oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - pos[p, 1], wa, wb)
-            out[i] = ox * oy / (wa * wa)
 
 
 @numba.njit(cache=True)
@@ -512,27 +533,59 @@ def local_fit(ptr, u, xf, v, amp, start, so, cell, footprint, excess, sx, sz, bo
                 pos[p, 0], pos[p, 1], pos[p, 2] = end[0], end[1], end[2]
 
 
-@numba.njit(cache=True, parallel=True)
-def robust_amplitude(ptr, f, v, out):
-    """Set ``out[p]`` to the median of ``v / f`` over particle p's pixels with f >= 0.5.
+@numba.njit(cache=True)
+def _select_kth(a, n, k):
+    """The k-th smallest of ``a[:n]`` (0-based), reordering ``a[:n]`` in place (quickselect)."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return a[k]
+    return a[k]
 
-    Pixels ``ptr[p]:ptr[p + 1]``; the upper median (element ``n // 2`` of the n sorted
-    ratios), 0 when none or negative (NumPy twin:
-    ``plenopiv.tracking.forward._robust_amplitude``).
+
+@numba.njit(cache=True, parallel=True)
+def amplitude_at(ptr, u, xf, v, pos, so, cell, footprint, out):
+    """Set ``out[p]`` to particle p's amplitude at ``pos[p]`` (pixels ``ptr[p]:ptr[p + 1]``).
+
+    One pass per particle: each pixel's :func:`plenopiv.tracking.forward.beam_fraction` f
+    and, where f >= 0.5, its ratio ``v / f``; ``out[p]`` is their upper median (element
+    ``n // 2`` of the n sorted ratios), 0 when none or negative. The particles run in 64
+    blocks, each with one buffer for its ratios. The NumPy twin is
+    ``plenopiv.tracking.forward._amplitude_at``.
     """
-    for p in numba.prange(out.shape[0]):
-        n = 0
-        for i in range(ptr[p], ptr[p + 1]):
-            if f[i] >= 0.5:
-                n += 1
-        if n == 0:
-            out[p] = 0.0
-            continue
-        ratio = np.empty(n)
-        k = 0
-        for i in range(ptr[p], ptr[p + 1]):
-            if f[i] >= 0.5:
-                ratio[k] = v[i] / f[i]
-                k += 1
-        ratio.sort()
-        out[p] = max(ratio[n // 2], 0.0)
+    n_p = out.shape[0]
+    blocks = min(n_p, 64)
+    for c in numba.prange(blocks):
+        p0, p1 = c * n_p // blocks, (c + 1) * n_p // blocks
+        most = 1
+        for p in range(p0, p1):
+            most = max(most, ptr[p + 1] - ptr[p])
+        ratio = np.empty(most)
+        for p in range(p0, p1):
+            t = (so + pos[p, 2]) / so
+            wa = max(cell * abs(1.0 - t), 1e-9 * cell)
+            wb = footprint * abs(t)
+            n = 0
+            for i in range(ptr[p], ptr[p + 1]):
+                ox = _overlap(u[i, 0] * (1.0 - t) + xf[i, 0] * t - pos[p, 0], wa, wb)
+                oy = _overlap(u[i, 1] * (1.0 - t) + xf[i, 1] * t - pos[p, 1], wa, wb)
+                f = ox * oy / (wa * wa)
+                if f >= 0.5:
+                    ratio[n] = v[i] / f
+                    n += 1
+            out[p] = max(_select_kth(ratio, n, n // 2), 0.0) if n else 0.0

@@ -17,6 +17,7 @@ coordinates exactly as for centroids.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -30,7 +31,8 @@ from plenopiv.lightfield import LightField
 ENGINES = ("numba", "numpy")
 
 __all__ = ["ENGINES", "BundlePositions", "BundleSettings", "RayTable", "bundle_positions",
-           "closest_point", "closest_points", "lenslet_table", "ray_lines", "ray_table"]
+           "closest_point", "closest_points", "lenslet_table", "ray_lines", "ray_table",
+           "spatial_order"]
 
 
 @dataclass(frozen=True)
@@ -311,18 +313,18 @@ def _checked_inputs(lf: LightField, image, seeds, settings: BundleSettings, engi
     return seeds, np.maximum(values - settings.floor * top, 0.0)
 
 
-def _engine_inputs(lf: LightField, table: RayTable, weight, n: int, engine: str) -> tuple:
+def _engine_inputs(lf: LightField, table: RayTable, weight, engine: str) -> tuple:
     """What each engine of :func:`bundle_positions` reads, built once for every solve.
 
-    ``(rays, work, (origin, direction))``: for the numba kernels the rays in lenslet order
-    (aperture points, focal-plane points, pixel weights) and per-thread share buffers with
-    their sum; for NumPy the ray lines (:func:`ray_lines`). The other engine's parts are None.
+    ``(rays, total, (origin, direction))``: for the numba kernels the rays in lenslet order
+    (aperture points, focal-plane points, pixel weights) and a buffer for the rays' summed
+    shares (P,); for NumPy the ray lines (:func:`ray_lines`). The other engine's parts are
+    None.
     """
     if engine != "numba":
         return None, None, ray_lines(lf)
     rays = (table.u, table.focal_sorted, np.ascontiguousarray(weight[table[0]], np.float64))
-    work = (np.zeros((max(1, min(_threads(), n)), lf.n_rays)), np.zeros(lf.n_rays))
-    return rays, work, (None, None)
+    return rays, np.zeros(lf.n_rays), (None, None)
 
 
 def bundle_positions(lf: LightField, image, seeds, *,
@@ -393,11 +395,15 @@ def bundle_positions(lf: LightField, image, seeds, *,
     n = len(seeds)
     table = ray_table(lf) if table is None else table
     order, ptr, lens_ids, tree = table[:4]
-    rays, work, (origin, direction) = _engine_inputs(lf, table, weight, n, engine)
+    rays, total, (origin, direction) = _engine_inputs(lf, table, weight, engine)
     if depth_cell is None:
         depth_cell = lf.footprint * lf.object_distance / (2.0 * lf.aperture_radius)
     slope = lf.aperture_radius / lf.object_distance
     bright = np.ones(n) if brightness is None else np.asarray(brightness, float).reshape(n)
+    # the kernels read each particle's lenslets from memory: in spatial order neighbours
+    # find them in cache (half the time at 16 MP); each particle's sums are unchanged
+    perm = spatial_order(lf, seeds) if engine == "numba" else np.arange(n)
+    seeds, bright = seeds[perm], bright[perm]
 
     pos = seeds.copy()
     ok = np.ones(n, bool)
@@ -406,8 +412,8 @@ def bundle_positions(lf: LightField, image, seeds, *,
         widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
         centre, radius = pos, settings.radius * _half_beam(lf, pos[:, 2]) + widen
         if engine == "numba":
-            cand, total, normal, rhs, nr = _numba_normal_equations(lf, index, rays, centre,
-                                                                   radius, bright, work)
+            sel, normal, rhs, nr = _numba_normal_equations(lf, index, rays, centre, radius,
+                                                           bright, total)
             p, good = _solve(normal, rhs)
         else:
             pid, ray, w = _shared_rays(lf, index, centre, radius, weight, bright, chunk)
@@ -418,11 +424,28 @@ def bundle_positions(lf: LightField, image, seeds, *,
         ok = good
     pos = np.where(ok[:, None], pos, seeds)
     if engine == "numba":
-        cov, n_lens = _numba_covariance(lf, index, rays, cand, centre, radius, bright, total,
-                                        pos, normal, ok)
+        cov, n_lens = _numba_covariance(lf, rays, sel, bright, total, pos, normal, ok)
     else:
         cov, n_lens = _covariance(lf, pid, ray, w, origin, direction, pos, normal, ok)
-    return BundlePositions(pos, cov, nr.astype(np.int64), n_lens, ok)
+    back = np.empty(n, np.int64)
+    back[perm] = np.arange(n)
+    return BundlePositions(pos[back], cov[back], nr.astype(np.int64)[back], n_lens[back],
+                           ok[back])
+
+
+def spatial_order(lf: LightField, points, band: float = 4.0) -> np.ndarray:
+    """Order of ``points`` (N, 3; effective, metres) by where their light reaches the lenslets.
+
+    A particle's candidate lenslets lie around its conjugate ``(x, y) / t`` on the focal
+    plane (t = (S_o + Z)/S_o): the points are sorted into bands of ``band`` lenslet
+    footprints in y, then by x within a band, so that consecutive particles share most of
+    their lenslets (a permutation (N,) int).
+    """
+    p = np.asarray(points, float).reshape(-1, 3)
+    t = (lf.object_distance + p[:, 2]) / lf.object_distance
+    t = np.where(np.abs(t) > 1e-12, t, 1e-12)
+    conj = p[:, :2] / t[:, None]
+    return np.lexsort((conj[:, 0], np.floor(conj[:, 1] / (band * lf.footprint))))
 
 
 def _candidates(lf, index, centre, radius):
@@ -432,11 +455,16 @@ def _candidates(lf, index, centre, radius):
     t = (so + centre[:, 2]) / so
     reach = (ap * np.abs(1.0 - t) + radius) / np.abs(t)
     lists = tree.query_ball_point(centre[:, :2] / t[:, None], reach)
+    return flat_lists(lists, lens_ids)
+
+
+def flat_lists(lists, ids) -> tuple[np.ndarray, np.ndarray]:
+    """A KD-tree's lists of neighbours as CSR: ``(ptr (N + 1,), ids[neighbours])`` int64."""
     counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
-    lptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    lidx = (lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])]
-            if counts.sum() else np.zeros(0, np.int64)).astype(np.int64)
-    return lptr, lidx
+    ptr = np.zeros(len(lists) + 1, np.int64)
+    np.cumsum(counts, out=ptr[1:])
+    flat = np.fromiter(itertools.chain.from_iterable(lists), np.int64, int(ptr[-1]))
+    return ptr, np.asarray(ids, np.int64)[flat]
 
 
 def _threads() -> int:
@@ -446,40 +474,111 @@ def _threads() -> int:
     return numba.get_num_threads()
 
 
-def _numba_normal_equations(lf, index, rays, centre, radius, bright, work):
-    """Run one solve on the numba path: candidates, ray shares, normal equations.
+class RaySelection(NamedTuple):
+    """The rays one solve of :func:`bundle_positions` reads (numba path), selected once.
 
-    ``work`` holds the per-thread ray shares (C, P) and their sum (P,), overwritten.
+    Attributes
+    ----------
+    lptr, lidx : (N + 1,), (C,) int64
+        Candidate lenslets of each particle (CSR, lenslet ids).
+    cptr : (C + 1,) int64
+        Candidate ``a``'s rays are ``ray[cptr[a]:cptr[a + 1]]``.
+    ray : (S,) int64
+        Rows of the lenslet-sorted ray arrays of :class:`RayTable` passing within the radius
+        of their particle and carrying weight (a pixel above the floor).
+    share : (S,) float64
+        Their cone profile ``1 - m/r`` (m the miss distance, r the radius).
     """
+
+    lptr: np.ndarray
+    lidx: np.ndarray
+    cptr: np.ndarray
+    ray: np.ndarray
+    share: np.ndarray
+
+    @property
+    def particle_ptr(self) -> np.ndarray:
+        """Particle p's rays are ``ray[particle_ptr[p]:particle_ptr[p + 1]]`` (N + 1,)."""
+        return self.cptr[self.lptr]
+
+
+def ray_selection(lf: LightField, index, rays, centre, radius) -> RaySelection:
+    """Select the rays within ``radius`` (N,) of ``centre`` (N, 3) that carry weight, once.
+
+    ``index``: ``(order, ptr, lens_ids, tree)`` of :class:`RayTable`; ``rays``: the lenslet-
+    sorted ``(u, X_f, weight)`` of :func:`_engine_inputs`. Blocks of particles (balanced by
+    their candidate lenslets) run on the numba kernel :func:`~plenopiv.tracking._kernels.
+    select_rays` in threads; the result is in particle, candidate, ray order, as the passes
+    of one solve read it (NumPy twin: :func:`_select_rays`).
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
     from plenopiv.tracking import _kernels as _k
 
     ptr = index[1].astype(np.int64)
     lptr, lidx = _candidates(lf, index, centre, radius)
     u, xf, w = rays
     n = len(centre)
-    c, r, b = (np.ascontiguousarray(a, np.float64) for a in (centre, radius, bright))
-    chunks, total = work
-    chunks.fill(0.0)
-    _k.ray_shares(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, chunks)
-    np.sum(chunks, axis=0, out=total)
+    c, r = (np.ascontiguousarray(a, np.float64) for a in (centre, radius))
+    counts = np.zeros(len(lidx), np.int64)
+    threads = _threads()
+    n_blocks = max(1, min(n, 4 * threads))
+    edges = np.searchsorted(lptr, np.linspace(0, lptr[-1], n_blocks + 1)).astype(np.int64)
+    edges[0], edges[-1] = 0, n
+    # about 16 selected rays per candidate lenslet at 16 MP; the kernel grows its buffer
+    spans = [(int(edges[b]), int(edges[b + 1])) for b in range(n_blocks)
+             if edges[b + 1] > edges[b]]
+
+    def block(span):
+        p0, p1 = span
+        return _k.select_rays(c, r, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, w, p0,
+                              p1, counts, int(16 * (lptr[p1] - lptr[p0])))
+
+    if len(spans) > 1 and threads > 1:
+        with ThreadPoolExecutor(threads) as pool:
+            parts = list(pool.map(block, spans))
+    else:
+        parts = [block(s) for s in spans]
+    cptr = np.zeros(len(lidx) + 1, np.int64)
+    np.cumsum(counts, out=cptr[1:])
+    ray = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
+    share = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0)
+    return RaySelection(lptr, lidx, cptr, ray, share)
+
+
+def _numba_normal_equations(lf, index, rays, centre, radius, bright, total):
+    """Run one solve on the numba path: one ray selection, ray shares, normal equations.
+
+    ``total`` (P,) receives the rays' summed shares (overwritten). Returns ``(selection,
+    normal (N, 3, 3), rhs (N, 3), rays with weight (N,))``.
+    """
+    from plenopiv.tracking import _kernels as _k
+
+    sel = ray_selection(lf, index, rays, centre, radius)
+    u, xf, w = rays
+    n = len(centre)
+    b = np.ascontiguousarray(bright, np.float64)
+    sptr = sel.particle_ptr
+    total.fill(0.0)
+    _k.selected_totals(sptr, sel.share, b, sel.ray, total)
     normal, rhs, nr = np.zeros((n, 3, 3)), np.zeros((n, 3)), np.zeros(n, np.int64)
-    _k.normal_equations(c, r, b, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, w, total,
-                        normal, rhs, nr)
-    return (lptr, lidx), total, normal, rhs, nr
+    _k.selected_normal_equations(sptr, sel.ray, sel.share, b, u, xf, lf.object_distance, w,
+                                 total, normal, rhs, nr)
+    return sel, normal, rhs, nr
 
 
-def _numba_covariance(lf, index, rays, cand, centre, radius, bright, total, point, normal, ok):
-    """Return :func:`_covariance` by the numba path (same estimator)."""
+def _numba_covariance(lf, rays, sel, bright, total, point, normal, ok):
+    """Return :func:`_covariance` by the numba path (same estimator, the last solve's rays)."""
     from plenopiv.tracking import _kernels as _k
 
     n = len(point)
     u, xf, w = rays
     meat_r, meat_q = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
     n_lens = np.zeros(n, np.int64)
-    c, r, b, pt = (np.ascontiguousarray(a, np.float64) for a in (centre, radius, bright, point))
-    _k.covariance_sums(c, r, b, cand[0], cand[1], index[1].astype(np.int64), u, xf,
-                       lf.object_distance, lf.cell, w, total, pt, lf.footprint, meat_r, meat_q,
-                       n_lens)
+    b, pt = (np.ascontiguousarray(a, np.float64) for a in (bright, point))
+    _k.selected_covariance_sums(sel.lptr, sel.cptr, sel.ray, sel.share, b, u, xf,
+                                lf.object_distance, w, total, pt, lf.footprint, meat_r, meat_q,
+                                n_lens)
     return _combine(normal, meat_r, meat_q, ok), n_lens
 
 

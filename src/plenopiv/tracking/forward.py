@@ -59,7 +59,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from plenopiv.lightfield import LightField
-from plenopiv.tracking.bundle import ENGINES, RayTable, checked_image, ray_table
+from plenopiv.tracking.bundle import (
+    ENGINES,
+    RayTable,
+    checked_image,
+    flat_lists,
+    ray_table,
+    spatial_order,
+)
 
 __all__ = ["ENGINES", "ForwardSettings", "beam_fraction", "near_focus", "refine_positions"]
 
@@ -282,9 +289,11 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
     grid = near_focus(start[:, 2], depth_cell=depth_cell, settings=settings)
     # the extra starts serve the particles near focus (a misfit with local minima)
     multi = np.abs(start[:, 2]) <= settings.local_starts_within * depth_cell
-    for rows, local, starts in ((np.flatnonzero(grid), False, 1),
-                                (np.flatnonzero(~grid & multi), True, settings.local_starts),
-                                (np.flatnonzero(~grid & ~multi), True, 1)):
+    # each group in spatial order: neighbours read the same lenslets' pixels (in cache)
+    key = spatial_order(lf, start) if engine == "numba" else np.arange(n)
+    for rows, local, starts in ((key[grid[key]], False, 1),
+                                (key[(~grid & multi)[key]], True, settings.local_starts),
+                                (key[(~grid & ~multi)[key]], True, 1)):
         # particles in chunks of a bounded number of candidate pixels (memory only: each
         # particle's search is independent)
         for sl in _chunks(lf, index, start[rows], settings.margin, dz, chunk_pixels):
@@ -303,20 +312,18 @@ def _refine_chunk(lf, index, values, start, dz, depth_cell, settings, engine, lo
     n = len(start)
     geom = dict(object_distance=lf.object_distance, cell=lf.cell, footprint=lf.footprint)
     if engine == "numba":       # values in lenslet order (refine_positions)
-        pid, row = _pixels(lf, index, start, settings.margin, dz, engine, lenslet_order=True)
-        v, u, xf = values[row], index.u[row], index.focal_sorted[row]
+        pid, (v, u, xf) = _pixel_data(lf, index, values, start, settings.margin, dz)
     else:
         pid, ray = _pixels(lf, index, start, settings.margin, dz, engine)
         v, u, xf = values[ray], lf.u[ray], index.focal[ray]
     pos = start.copy()
     dl = settings.lateral_range * lf.footprint
     ptr = np.concatenate([[0], np.cumsum(np.bincount(pid, minlength=n))]).astype(np.int64)
-    fractions = _fractions_numba if engine == "numba" else _fractions
-    amplitude = _robust_amplitude_numba if engine == "numba" else _robust_amplitude
+    amplitude = _amplitude_at_numba if engine == "numba" else _amplitude_at
     if local:
         fit = _local_fit_numba if engine == "numba" else _local_fit
         for _ in range(settings.local_rounds):
-            amp = amplitude(ptr, pid, fractions(ptr, pid, u, xf, pos, geom), v)
+            amp = amplitude(ptr, pid, u, xf, v, pos, geom)
             pos = fit(ptr, u, xf, v, amp, pos, geom, settings.excess,
                       (lf.footprint, depth_cell), (dl, dz), _starts(dz, starts),
                       settings.local_iterations)
@@ -324,9 +331,9 @@ def _refine_chunk(lf, index, values, start, dz, depth_cell, settings, engine, lo
         search = _best_offset_numba if engine == "numba" else _best_offset
         for depth, lateral in _schedule(dz, dl, settings.depth_steps, settings.rounds,
                                         settings.round_depth_steps):
-            amp = amplitude(ptr, pid, fractions(ptr, pid, u, xf, pos, geom), v)
+            amp = amplitude(ptr, pid, u, xf, v, pos, geom)
             pos = pos + search(ptr, u, xf, v, amp, pos, depth, lateral, geom, settings.excess)
-    amp = amplitude(ptr, pid, fractions(ptr, pid, u, xf, pos, geom), v)
+    amp = amplitude(ptr, pid, u, xf, v, pos, geom)
     return pos, amp
 
 
@@ -498,18 +505,6 @@ def _fractions(ptr, pid, u, xf, pos, geom):
     return beam_fraction(u, xf, pos[pid], **geom)
 
 
-def _fractions_numba(ptr, pid, u, xf, pos, geom):
-    """Return :func:`_fractions` by the compiled kernel."""
-    from plenopiv.tracking import _kernels as _k
-
-    out = np.empty(len(pid))
-    _k.pixel_fractions(ptr, np.ascontiguousarray(u, np.float64),
-                       np.ascontiguousarray(xf, np.float64),
-                       np.ascontiguousarray(pos, np.float64), float(geom["object_distance"]),
-                       float(geom["cell"]), float(geom["footprint"]), out)
-    return out
-
-
 def _schedule(depth_range, lateral_range, depth_steps, rounds, round_depth_steps=7):
     """Return the searches of the refinement: ``(depth (nz,), lateral (5,))`` offsets, m.
 
@@ -571,6 +566,22 @@ def _best_offset_numba(ptr, u, xf, v, amp, pos, depth, lateral, geom, excess):
     return choice
 
 
+def _amplitude_at(ptr, pid, u, xf, v, pos, geom):
+    """Amplitude of each particle at ``pos``: :func:`_robust_amplitude` of :func:`_fractions`."""
+    return _robust_amplitude(ptr, pid, _fractions(ptr, pid, u, xf, pos, geom), v)
+
+
+def _amplitude_at_numba(ptr, pid, u, xf, v, pos, geom):
+    """Return :func:`_amplitude_at` by the compiled kernel (one pass, no fraction array)."""
+    from plenopiv.tracking import _kernels as _k
+
+    out = np.empty(len(ptr) - 1)
+    c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, pos)]
+    _k.amplitude_at(ptr, *c, float(geom["object_distance"]), float(geom["cell"]),
+                    float(geom["footprint"]), out)
+    return out
+
+
 def _robust_amplitude(ptr, pid, f, v):
     """Median of value / fraction over the pixels a particle lights at least half (>= 0)."""
     n = len(ptr) - 1
@@ -584,16 +595,6 @@ def _robust_amplitude(ptr, pid, f, v):
     has = cnt > 0
     med[has] = ratio[first[has] + cnt[has] // 2]
     return np.maximum(med, 0.0)
-
-
-def _robust_amplitude_numba(ptr, pid, f, v):
-    """Return :func:`_robust_amplitude` by the compiled kernel."""
-    from plenopiv.tracking import _kernels as _k
-
-    out = np.empty(len(ptr) - 1)
-    _k.robust_amplitude(ptr, np.ascontiguousarray(f, np.float64),
-                        np.ascontiguousarray(v, np.float64), out)
-    return out
 
 
 #: Rays by lenslet (:func:`plenopiv.tracking.bundle.ray_table`).
@@ -641,24 +642,46 @@ def _pixels(lf: LightField, index, start, margin: float, depth_range: float,
     """
     if engine == "numpy":
         return _pixels_numpy(lf, index, start, margin, depth_range)
+    pid, out, _ = _near_pixels(lf, index, start, margin, depth_range, None)
+    return pid, out if lenslet_order else index.order[out]
+
+
+def _pixel_data(lf: LightField, index, values, start, margin: float, depth_range: float):
+    """``(particle, (value, u, X_f))`` of the pixels of :func:`_pixels` (numba, gathered).
+
+    ``values`` (P,): the image's ray values in the lenslet order of ``index``.
+    """
+    pid, _, data = _near_pixels(lf, index, start, margin, depth_range, values)
+    return pid, data
+
+
+def _near_pixels(lf: LightField, index, start, margin, depth_range, values):
+    """Run :func:`plenopiv.tracking._kernels.near_pixels`: ``(particle, row, gathered)``.
+
+    Rows of the lenslet-sorted arrays; ``gathered`` is ``(value, u, X_f)`` of those rows when
+    ``values`` (lenslet order) is given, else None.
+    """
     from plenopiv.tracking import _kernels as _k
 
-    order, ptr, lens_ids, tree, _, u_s, xf_s = index
+    _, ptr, lens_ids, tree, _, u_s, xf_s = index
     t, radius, reach = _reach(lf, start, margin, depth_range)
     lists = tree.query_ball_point(start[:, :2] / t[:, None], reach)
-    counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
-    if counts.sum() == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    cptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    cand = lens_ids[np.concatenate([np.asarray(x, np.int64) for x in lists])].astype(np.int64)
+    cptr, cand = flat_lists(lists, lens_ids)
+    n_pix = np.zeros(len(start), np.int64)
     args = (cptr, cand, ptr.astype(np.int64), u_s, xf_s, np.ascontiguousarray(start[:, :2]),
-            np.ascontiguousarray(t), np.ascontiguousarray(radius))
-    n = np.zeros(len(start), np.int64)
-    _k.near_pixels(*args, True, n, np.zeros(0, np.int64))
-    out_ptr = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+            np.ascontiguousarray(t), np.ascontiguousarray(radius), lf.cell)
+    none = (np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+    _k.near_pixels(*args, True, n_pix, np.zeros(0, np.int64), *none)
+    out_ptr = np.concatenate([[0], np.cumsum(n_pix)]).astype(np.int64)
     out = np.empty(out_ptr[-1], np.int64)
-    _k.near_pixels(*args, False, out_ptr, out)
-    return np.repeat(np.arange(len(start)), n), out if lenslet_order else order[out]
+    if values is None:
+        gathered, buffers = None, none
+    else:
+        gathered = (np.empty(len(out)), np.empty((len(out), 2)), np.empty((len(out), 2)))
+        buffers = (np.ascontiguousarray(values, np.float64), gathered[1], gathered[2],
+                   gathered[0])
+    _k.near_pixels(*args, False, out_ptr, out, *buffers)
+    return np.repeat(np.arange(len(start)), n_pix), out, gathered
 
 
 def _pixels_numpy(lf: LightField, index, start, margin: float, depth_range: float):
