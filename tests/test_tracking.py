@@ -652,3 +652,34 @@ def test_tracking_in_a_batch_pair_and_its_config(tmp_path):
     (tmp_path / "off.toml").write_text(text + "forward_refine = false\nmin_lenslets = 1\n")
     off = load_experiment(tmp_path / "off.toml").tracking
     assert off.forward_refine is False and off.min_lenslets == 1
+
+
+
+def test_bundle_does_not_depend_on_the_order_of_the_light_fields_rays(thesis_light_field, rng):
+    """The kernels find a lenslet's first candidate ray by bisection on aperture y: a light
+    field whose rays come in another order (pixels shuffled) is grouped with each lenslet's
+    rays running down in u_y, and gives the same bundle (to rounding of the sums' order)."""
+    import dataclasses
+
+    from plenopiv.tracking.bundle import lenslet_table
+
+    cam, cal, lf = thesis_light_field
+    perm = rng.permutation(lf.n_rays)
+    per_ray = {f.name: getattr(lf, f.name)[perm] for f in dataclasses.fields(lf)
+               if isinstance(getattr(lf, f.name), np.ndarray)
+               and getattr(lf, f.name).shape[:1] == (lf.n_rays,)}
+    shuffled = dataclasses.replace(lf, **per_ray)
+    for field in (lf, shuffled):
+        order, _, _, _ = lenslet_table(field)
+        lens = field.lenslet[order]
+        assert np.all(np.diff(lens) >= 0)
+        assert np.all(np.diff(field.u[order, 1])[lens[1:] == lens[:-1]] <= 0.0)
+    b = lf.footprint
+    truth = np.column_stack([rng.uniform(-4, 4, (5, 2)) * b, rng.uniform(-3e-3, 3e-3, 5)])
+    img = particle_image(cam, truth, rays_per_particle=3000, seed=9)
+    seeds = truth + rng.normal(0, 0.2, (5, 3)) * [b, b, 4 * b]
+    cell = resolution_cell(cal.effective_camera)[1]
+    a = bundle_positions(lf, img, seeds, depth_cell=cell)
+    c = bundle_positions(shuffled, img, seeds, depth_cell=cell)
+    np.testing.assert_allclose(c.position, a.position, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(c.n_rays, a.n_rays)

@@ -231,9 +231,14 @@ def lenslet_table(lf: LightField):
 
     ``order`` sorts the rays by lenslet, lenslet L's rays are ``order[ptr[L]:ptr[L + 1]]``,
     ``conjugates`` (K, 2) is each lenslet's focal-plane point X_f (metres) and ``has`` marks
-    the lenslets with rays (K = largest lenslet index + 1).
+    the lenslets with rays (K = largest lenslet index + 1). Within a lenslet the rays run down
+    in aperture y, which the kernels' bisection needs: the sensor's row order gives that for
+    the light fields plenopiv builds (checked), any other order is sorted so.
     """
     order = np.argsort(lf.lenslet, kind="stable")
+    same = lf.lenslet[order][1:] == lf.lenslet[order][:-1]
+    if np.any(np.diff(lf.u[order, 1])[same] > 0.0):
+        order = np.lexsort((-lf.u[:, 1], lf.lenslet))
     k = int(lf.lenslet.max()) + 1 if lf.n_rays else 0
     ptr = np.searchsorted(lf.lenslet[order], np.arange(k + 1))
     conj = np.zeros((k, 2))
