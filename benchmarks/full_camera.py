@@ -341,6 +341,9 @@ def main(argv=None) -> dict:
         with stage(f"reconstruct {name}", log):
             vols[name] = reconstruct_volume(cal, img, grid, settings=settings,
                                             particles=particles, weights=w)
+        log[f"reconstruct {name}"]["timings"] = {k: round(v, 2) for k, v in
+                                                 vols[name].timings.items()}
+        print(f"  {log[f'reconstruct {name}']['timings']}", file=sys.stderr)
         if calls is not None:
             log[f"reconstruct {name}"]["projector_calls"] = calls.table()
             print(json.dumps(calls.table()), file=sys.stderr)
