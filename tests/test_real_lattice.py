@@ -150,6 +150,29 @@ def test_kernels_equal_their_numpy_twin(small_camera, rng):
     assert dense.any(axis=1).all()      # every ray reaches the grid: the test covers them
 
 
+def test_back_projection_does_not_depend_on_the_order_of_its_slices(case, rng):
+    """Each slice is summed by one thread alone: dealing the slices to the threads in
+    another order gives the same volume to the bit."""
+    import numba
+
+    _, lf, grid, _, lens = case
+    nz = grid.shape[0]
+    for n in (1, 2, 3, 7):
+        order = rk.interleaved_order(nz, n)
+        np.testing.assert_array_equal(np.sort(order), np.arange(nz))
+    i = rng.random(lf.n_rays).astype(np.float32)
+    want = lens.back(i)
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        got = lens.back(i)
+    finally:
+        numba.set_num_threads(threads)
+    np.testing.assert_array_equal(got, want)
+    if threads > 1:
+        assert not np.array_equal(rk.interleaved_order(nz, 1), rk.interleaved_order(nz, threads))
+
+
 def test_smart_over_all_rows_equals_smart_over_the_rows_reaching_the_support(case, rng):
     """Rows whose beams miss the first guess's support change nothing: the solver may hand
     SMART every touching row instead of selecting the reaching ones by a forward projection.

@@ -31,6 +31,7 @@ import functools
 import hashlib
 import math
 
+import numba
 import numpy as np
 
 from plenopiv.errors import ReconstructionError
@@ -260,7 +261,8 @@ class LensletProjector(CachedSums):
         """``r = Wᵀ·I`` for I of n_pixels values; float32 (n_voxels,)."""
         y = _as_vector(image, self.n_pixels, "image", "n_pixels")
         slices, lenses = self._args()
-        vol = _k.back(y, *slices, *lenses, np.empty(self.grid.shape, np.float32))
+        order = _k.interleaved_order(self.grid.shape[0], numba.get_num_threads())
+        vol = _k.back(y, *slices, *lenses, np.empty(self.grid.shape, np.float32), order)
         if out is None:
             return vol.reshape(-1)
         out[:] = vol.reshape(-1)
