@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from plenopiv.errors import ReconstructionError
+from plenopiv.reconstruction._kernels import sightline as _ks
 from plenopiv.reconstruction.geometry import (  # noqa: F401 - also importable from here
     CELLS_PER_FOOTPRINT,
     SLAB_VOXELS,
@@ -78,6 +79,11 @@ def pool_any(cells: np.ndarray, kx: int, ky: int) -> np.ndarray:
     """Return per voxel whether any of its ``kx × ky`` cells is true (shapes: :func:`pool_min`)."""
     nz, fy, fx = cells.shape
     return cells.reshape(nz, fy // ky, ky, fx // kx, kx).any(axis=(2, 4))
+
+
+def _cells(values, shape) -> np.ndarray:
+    """A refined projection as a contiguous float32 ``shape`` array (no copy if it is one)."""
+    return np.ascontiguousarray(np.asarray(values, np.float32).reshape(shape))
 
 
 def _slabs(grid: VolumeGrid, kx: int, ky: int) -> list[tuple[int, int]]:
@@ -282,20 +288,27 @@ def subcell_sightline(weights, geometry, dark_rows, log_values=None,
         shape = (z1 - z0, ny * ky, nx * kx)
         if guess is None:
             seen = np.asarray(proj.column_sums()).reshape(shape)
-        else:
-            seen, s_used = (a.reshape(shape) for a in _geometry_sums(proj, used, z0))
-        d = np.asarray(proj.back(dark)).reshape(shape)
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            frac = np.where(seen > 0, d / seen, np.inf).astype(np.float32)
+            d = np.asarray(proj.back(dark)).reshape(shape)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                frac = np.where(seen > 0, d / seen, np.inf).astype(np.float32)
             best[z0:z1] = pool_min(frac, kx, ky)
-            if guess is not None:
-                s_log = np.asarray(proj.back(logv)).reshape(shape)
-                cell = np.where(s_used > 0, np.exp(s_log / s_used), 0.0).astype(np.float32)
-                guess[z0:z1] = -pool_min(-cell, kx, ky)
-                if used_sums is not None:
-                    used_sums[z0:z1] = pool_sum(s_used, kx, ky) / np.float32(kx * ky)
-                if lit is not None:
-                    lit[z0:z1] = pool_any(s_used - d > 0, kx, ky)
+            continue
+        seen, s_used = (_cells(a, shape) for a in _geometry_sums(proj, used, z0))
+        d = _cells(proj.back(dark), shape)
+        s_log = _cells(proj.back(logv), shape)
+        coarse = (z1 - z0, ny, nx)
+        ratio = np.empty(coarse, np.float32)
+        has_used = np.empty(coarse, bool)
+        u = np.empty(coarse, np.float32)
+        lt = np.empty(coarse, bool)
+        _ks.pool_cells(seen, d, s_used, s_log, kx, ky, best[z0:z1], ratio, has_used, u, lt)
+        # the largest cell value exp(ratio) is exp of the largest ratio (exp is monotonic)
+        with np.errstate(over="ignore"):
+            guess[z0:z1] = np.where(has_used, np.exp(ratio), np.float32(0.0))
+        if used_sums is not None:
+            used_sums[z0:z1] = u / np.float32(kx * ky)
+        if lit is not None:
+            lit[z0:z1] = lt
     keep = best.reshape(-1) <= tolerance
     return SightLine(keep, None if guess is None else guess.reshape(-1), best,
                      None if used_sums is None else used_sums.reshape(-1),
