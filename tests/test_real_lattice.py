@@ -205,6 +205,11 @@ def test_the_smart_views_column_sums_are_kept_for_the_same_projector_and_rows(ca
     np.testing.assert_array_equal(other.column_sums(), lens.select_rows(~rows).column_sums())
     scaled = lens.scale_rows(np.full(lf.n_rays, 2.0)).summed_row_view(~rows)
     np.testing.assert_allclose(scaled.column_sums(), 2 * other.column_sums(), rtol=RTOL)
+    # sums handed in for new rows are taken (and kept); for the kept rows they are not
+    given = np.asarray(lens.select_rows(rows).column_sums()) + np.float32(1.0)
+    taken = lens.summed_row_view(rows, column_sums=given)
+    np.testing.assert_array_equal(taken.column_sums(), given)
+    assert lens.summed_row_view(rows, column_sums=given * 0).column_sums() is taken.column_sums()
 
 
 def test_line_of_sight_cell_sums_stand_for_the_coarse_back_projections(case, rng):
