@@ -50,6 +50,7 @@ import hashlib
 import json
 import math
 import os
+import resource
 import sys
 import threading
 import time
@@ -106,19 +107,26 @@ def stage(name: str, log: dict):
     th.start()
     t0 = time.perf_counter()
     c0 = time.process_time()
+    u0 = resource.getrusage(resource.RUSAGE_SELF)
     try:
         yield
     finally:
         seconds = time.perf_counter() - t0
         cpu = time.process_time() - c0
+        u1 = resource.getrusage(resource.RUSAGE_SELF)
+        user, system = u1.ru_utime - u0.ru_utime, u1.ru_stime - u0.ru_stime
+        faults = u1.ru_minflt - u0.ru_minflt
         done.set()
         th.join()
         peak[0] = max(peak[0], _rss_gb())
         load = os.getloadavg()[0]
         log[name] = {"seconds": round(seconds, 2), "cpu_seconds": round(cpu, 2),
-                     "peak_gb": round(peak[0], 2), "load": round(load, 1)}
-        print(f"{name:<28s} {seconds:8.1f} s  cpu {cpu:8.1f} s   peak {peak[0]:6.2f} GB   "
-              f"load {load:.1f}", file=sys.stderr, flush=True)
+                     "user_seconds": round(user, 2), "system_seconds": round(system, 2),
+                     "page_faults": faults, "peak_gb": round(peak[0], 2),
+                     "load": round(load, 1)}
+        print(f"{name:<28s} {seconds:8.1f} s  cpu {cpu:8.1f} s (user {user:.1f}, system "
+              f"{system:.1f}, {faults} faults)   peak {peak[0]:6.2f} GB   load {load:.1f}",
+              file=sys.stderr, flush=True)
 
 
 # ---- the case ----------------------------------------------------------------------------------
@@ -333,6 +341,9 @@ def main(argv=None) -> dict:
         with stage(f"reconstruct {name}", log):
             vols[name] = reconstruct_volume(cal, img, grid, settings=settings,
                                             particles=particles, weights=w)
+        log[f"reconstruct {name}"]["timings"] = {k: round(v, 2) for k, v in
+                                                 vols[name].timings.items()}
+        print(f"  {log[f'reconstruct {name}']['timings']}", file=sys.stderr)
         if calls is not None:
             log[f"reconstruct {name}"]["projector_calls"] = calls.table()
             print(json.dumps(calls.table()), file=sys.stderr)

@@ -146,7 +146,31 @@ def test_kernels_equal_their_numpy_twin(small_camera, rng):
     assert np.abs(proj.forward(e) - want_f).max() <= RTOL * np.abs(want_f).max()
     assert np.abs(proj.back(i) - want_b).max() <= RTOL * np.abs(want_b).max()
     np.testing.assert_allclose(proj.row_max(), dense.max(axis=1), rtol=RTOL, atol=0)
+    np.testing.assert_allclose(proj.row_sums(), dense.sum(axis=1), rtol=RTOL, atol=0)
     assert dense.any(axis=1).all()      # every ray reaches the grid: the test covers them
+
+
+def test_back_projection_does_not_depend_on_the_order_of_its_slices(case, rng):
+    """Each slice is summed by one thread alone: dealing the slices to the threads in
+    another order gives the same volume to the bit."""
+    import numba
+
+    _, lf, grid, _, lens = case
+    nz = grid.shape[0]
+    for n in (1, 2, 3, 7):
+        order = rk.interleaved_order(nz, n)
+        np.testing.assert_array_equal(np.sort(order), np.arange(nz))
+    i = rng.random(lf.n_rays).astype(np.float32)
+    want = lens.back(i)
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        got = lens.back(i)
+    finally:
+        numba.set_num_threads(threads)
+    np.testing.assert_array_equal(got, want)
+    if threads > 1:
+        assert not np.array_equal(rk.interleaved_order(nz, 1), rk.interleaved_order(nz, threads))
 
 
 def test_smart_over_all_rows_equals_smart_over_the_rows_reaching_the_support(case, rng):
@@ -181,6 +205,52 @@ def test_the_smart_views_column_sums_are_kept_for_the_same_projector_and_rows(ca
     np.testing.assert_array_equal(other.column_sums(), lens.select_rows(~rows).column_sums())
     scaled = lens.scale_rows(np.full(lf.n_rays, 2.0)).summed_row_view(~rows)
     np.testing.assert_allclose(scaled.column_sums(), 2 * other.column_sums(), rtol=RTOL)
+    # sums handed in for new rows are taken (and kept); for the kept rows they are not
+    given = np.asarray(lens.select_rows(rows).column_sums()) + np.float32(1.0)
+    taken = lens.summed_row_view(rows, column_sums=given)
+    np.testing.assert_array_equal(taken.column_sums(), given)
+    assert lens.summed_row_view(rows, column_sums=given * 0).column_sums() is taken.column_sums()
+
+
+def test_line_of_sight_cell_sums_stand_for_the_coarse_back_projections(case, rng):
+    """The line of sight's cells give the SMART view's column sums and "seen by a lit row".
+
+    A voxel's weight is the mean of its cells' weights per unit area, so the used rows'
+    coarse column sums are the pooled cell sums over kx·ky (float32 summation error, RTOL).
+    Σ_used − Σ_dark on a cell is the lit rows' weight: no voxel that no lit row reaches is
+    called lit (a zero-weight ray adds an exact zero), and a lit voxel is missed only where
+    its lit weight is below float32 resolution of its dark weight.
+    """
+    from plenopiv.reconstruction import sightline
+    from plenopiv.reconstruction.solve import touching_rows
+    from plenopiv.reconstruction.weights import Weights
+
+    name, lf, grid, _, lens = case
+    w = Weights(lens, lf.pixel, grid, key=f"cell-sums-{name}")
+    proj, _ = w.normalised
+    volume = (rng.random(grid.n_voxels) * (rng.random(grid.n_voxels) < 0.02)).astype(np.float32)
+    image = np.asarray(proj.forward(volume))
+    touching = touching_rows(w)
+    bright = touching & (image > 0.05 * image.max())
+    used = touching & (np.asarray(proj.row_sums()) > 0)
+    dark = touching & ~bright
+    assert 0.05 < bright.sum() / touching.sum() < 0.95
+    sl = sightline.subcell_sightline(w, lambda: lf, dark, rng.random(lf.n_rays), used,
+                                     tolerance=0.5, footprint=lf.footprint)
+    want = np.asarray(proj.back(used.astype(np.float32)))
+    assert np.abs(sl.used_column_sums - want).max() <= RTOL * want.max()
+    lit_weight = np.asarray(proj.back((used & ~dark).astype(np.float32)))
+    dark_weight = np.asarray(proj.back(dark.astype(np.float32)))
+    assert not (sl.seen_by_lit & (lit_weight <= 0)).any()
+    missed = ~sl.seen_by_lit & (lit_weight > 0)
+    assert (lit_weight[missed] <= RTOL * dark_weight[missed]).all()
+    assert sl.seen_by_lit.sum() >= 0.999 * (lit_weight > 0).sum()
+    # the cells' column sums: the used rows' back projection plus the others'
+    kx, ky = sightline.subcell_factors(grid, lf.footprint)
+    (z0, _), fine = sightline._refined_projectors(w, lambda: lf, kx, ky)[0]
+    seen, _ = sightline._geometry_sums(fine, used.astype(np.float32), z0)
+    ones = np.asarray(fine.column_sums())
+    assert np.abs(seen - ones).max() <= RTOL * ones.max()
 
 
 @pytest.mark.parametrize("geometry", ["rotated_10mrad", "hexagonal"])

@@ -85,6 +85,33 @@ def test_pool_min_matches_a_loop():
 # ---- the mask ----------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("kx,ky", [(2, 2), (3, 2), (1, 1)])
+def test_pool_cells_kernel_equals_its_numpy_twin(kx, ky):
+    """The one-pass kernel against the NumPy expressions, on cells some of which no row,
+    no used row or no dark row sees. The float32 divisions and comparisons are the same
+    operations (equal to the bit); only the used sums' order of addition may differ."""
+    from plenopiv.reconstruction._kernels import sightline as ks
+
+    rng = np.random.default_rng(3)
+    shape = (4, 5 * ky, 6 * kx)
+    seen = (rng.random(shape) * (rng.random(shape) < 0.8)).astype(np.float32)
+    dark = (seen * rng.random(shape) * (rng.random(shape) < 0.7)).astype(np.float32)
+    used = (seen * rng.random(shape) * (rng.random(shape) < 0.7)).astype(np.float32)
+    seen[:, :ky, :kx] = dark[:, :ky, :kx] = used[:, :ky, :kx] = 0.0   # a voxel no row sees
+    used[:, ky:2 * ky, :kx] = 0.0                                        # one no used row sees
+    log_sum = (-used * rng.random(shape) * 5).astype(np.float32)
+    coarse = (4, 5, 6)
+    out = (np.empty(coarse, np.float32), np.empty(coarse, np.float32), np.empty(coarse, bool),
+           np.empty(coarse, np.float32), np.empty(coarse, bool))
+    ks.pool_cells(seen, dark, used, log_sum, kx, ky, *out)
+    want = ks.pool_cells_numpy(seen, dark, used, log_sum, kx, ky)
+    for i in (0, 1, 2, 4):
+        np.testing.assert_array_equal(out[i], want[i])
+    np.testing.assert_allclose(out[3], want[3], rtol=1e-6, atol=0)
+    assert np.isinf(out[0]).any() and (~out[2]).any() and out[4].any() and (~out[4]).any()
+
+
+
 def test_in_focus_particle_keeps_its_voxels_when_voxel_edges_cross_its_lenslet(odd):
     """Voxel edges through the lenslet centre: every voxel around an in-focus particle covers
     a quarter of the lit lenslet, so ~3/4 of its weight is dark and the whole-voxel rule

@@ -27,9 +27,11 @@ rays (~30 bytes each) and, per back projection, a float32 local image per lensle
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 
+import numba
 import numpy as np
 
 from plenopiv.errors import ReconstructionError
@@ -187,7 +189,7 @@ class LensletProjector(CachedSums):
         rays["ray_pos"] = new_pos[rays["ray_pos"]].astype(np.int64)
         return LensletProjector(self._lens, rays, self._slices, self.grid)
 
-    def summed_row_view(self, mask) -> LensletProjector:
+    def summed_row_view(self, mask, *, column_sums=None) -> LensletProjector:
         """``select_rows(mask)`` with its column sums, kept on this projector for the next call.
 
         SMART with this projector takes rows that depend on the geometry and the image mask
@@ -196,6 +198,10 @@ class LensletProjector(CachedSums):
         once and kept here, one float32 volume (not the view's copies of the rays). A view
         of other rows replaces them. Two threads asking at once may both sum; the result is
         the same.
+
+        ``column_sums`` (float32, n_voxels), when given and none are kept for these rows, are
+        taken as the view's instead of a back projection: sums of exactly these rows' weights
+        computed elsewhere (the line of sight pools them from its cells); the caller vouches.
         """
         mask = np.asarray(mask, bool)
         view = self.select_rows(mask)
@@ -204,6 +210,8 @@ class LensletProjector(CachedSums):
         if kept is not None and kept[0] == digest:
             view.set_column_sums(kept[1])
         else:
+            if column_sums is not None:
+                view.set_column_sums(np.asarray(column_sums, np.float32))
             self._kept_view_sums = (digest, view.column_sums())
         return view
 
@@ -253,11 +261,19 @@ class LensletProjector(CachedSums):
         """``r = Wᵀ·I`` for I of n_pixels values; float32 (n_voxels,)."""
         y = _as_vector(image, self.n_pixels, "image", "n_pixels")
         slices, lenses = self._args()
-        vol = _k.back(y, *slices, *lenses, np.empty(self.grid.shape, np.float32))
+        order = _k.interleaved_order(self.grid.shape[0], numba.get_num_threads())
+        vol = _k.back(y, *slices, *lenses, np.empty(self.grid.shape, np.float32), order)
         if out is None:
             return vol.reshape(-1)
         out[:] = vol.reshape(-1)
         return out
+
+    @functools.cached_property
+    def _row_sums(self) -> np.ndarray:
+        # the product of each slice's profile sums: a third of a forward projection of ones
+        slices, lenses = self._args()
+        nz, ny, nx = self.grid.shape
+        return _k.row_sums(*slices, nx, ny, *lenses, np.zeros(self.n_pixels, np.float32))
 
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per ray (float32)."""

@@ -26,7 +26,7 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.reconstruction.geometry import ProjectionGeometry
 from plenopiv.reconstruction.mart import reconstruct
 from plenopiv.reconstruction.real_lattice import LensletProjector
-from plenopiv.reconstruction.sightline import subcell_line_of_sight
+from plenopiv.reconstruction.sightline import subcell_sightline
 
 __all__ = ["solve_volume", "touching_rows", "line_of_sight_guess", "perspective_blocks"]
 
@@ -103,8 +103,9 @@ def solve_volume(weights, image: np.ndarray, settings, *,
                                   f"{threshold:g} ([reconstruction] pixel_threshold = "
                                   f"{settings.pixel_threshold}): is the volume in view?")
     floor = max(threshold, 1e-6 * float(image.max()))
-    first = line_of_sight_guess(weights, raw, floor, touching, bright, geometry,
-                                tolerance=settings.dark_tolerance, footprint=footprint)
+    first, used, used_sums = _line_of_sight(weights, raw, floor, touching, bright, geometry,
+                                            tolerance=settings.dark_tolerance,
+                                            footprint=footprint)
     common = dict(iterations=settings.iterations, relaxation=settings.relaxation_used,
                   pixel_threshold=0.0, initial=first, shape=weights.grid.shape,
                   callback=callback)
@@ -117,10 +118,12 @@ def solve_volume(weights, image: np.ndarray, settings, *,
             # guess's support projects to zero and changes nothing, now or later (the
             # support only shrinks), and its lenslet's empty patches are skipped by the
             # kernels. The view then depends on the geometry and mask alone, so the next
-            # image reuses its column sums (one back projection), and no forward projection
-            # of the support selects the rows
+            # image reuses its column sums, and no forward projection of the support selects
+            # the rows. When they are the line of sight's used rows, the column sums are
+            # those the line of sight pooled from its cells (no back projection at all)
             rows = touching
-            view = proj.summed_row_view(rows)
+            same = used_sums is not None and np.array_equal(used, rows)
+            view = proj.summed_row_view(rows, column_sums=used_sums if same else None)
         else:
             reach = np.asarray(proj.forward((first > 0).astype(np.float32))) > 0
             rows = bright | (touching & reach)
@@ -146,16 +149,29 @@ def line_of_sight_guess(weights, raw, floor: float, touching, bright, geometry, 
     Judged per voxel instead, a grid whose voxel edges cross the lenslets would empty the
     voxels of in-focus particles.
     """
+    return _line_of_sight(weights, raw, floor, touching, bright, geometry,
+                          tolerance=tolerance, footprint=footprint)[0]
+
+
+def _line_of_sight(weights, raw, floor, touching, bright, geometry, *, tolerance,
+                   footprint) -> tuple:
+    """``(first guess, used rows, their coarse column sums or None)``: see line_of_sight_guess.
+
+    "Seen by a lit pixel" comes from the line of sight's own cell sums where it gives it
+    (the per-lenslet projector), else from a back projection of the bright rows.
+    """
     proj, row_scale = weights.normalised
     row_sums = np.asarray(proj.row_sums())
     used = touching & (row_sums > 0)
     log_values = np.zeros(len(raw), np.float32)
     log_values[used] = np.log(np.maximum(raw[used], floor) / row_scale[used] / row_sums[used])
-    keep, guess, _ = subcell_line_of_sight(weights, geometry, touching & ~bright,
-                                           log_values, used, tolerance=tolerance,
-                                           footprint=footprint)
-    seen_lit = np.asarray(proj.back(bright.astype(np.float32))) > 0
-    return np.where(keep & seen_lit, guess, np.float32(0.0))
+    sl = subcell_sightline(weights, geometry, touching & ~bright, log_values, used,
+                           tolerance=tolerance, footprint=footprint)
+    if sl.seen_by_lit is not None:
+        seen_lit = sl.seen_by_lit
+    else:
+        seen_lit = np.asarray(proj.back(bright.astype(np.float32))) > 0
+    return np.where(sl.keep & seen_lit, sl.guess, np.float32(0.0)), used, sl.used_column_sums
 
 
 def perspective_blocks(weights, lf) -> np.ndarray:

@@ -27,6 +27,19 @@ import numpy as np
 from numba import njit, prange
 
 
+def interleaved_order(n: int, n_threads: int) -> np.ndarray:
+    """Return ``range(n)`` dealt round-robin into ``n_threads`` runs (int64).
+
+    A parallel loop hands each thread one contiguous run of its iterations; a slice's cost
+    grows with its distance from the focal plane (a beam's width), so a depth slab that
+    lies on one side of focus would give one thread the wide slices and the other the
+    narrow ones (1.23 against 0.77 s of CPU for the two halves of a 90-slice refined slab).
+    Dealt round-robin, every run spans the slab's whole depth.
+    """
+    k = max(1, int(n_threads))
+    return np.concatenate([np.arange(i, n, k) for i in range(k)]).astype(np.int64)
+
+
 @njit(cache=True, inline="always")
 def _cdf(y, shape):
     """Return :func:`plenopiv.reconstruction._kernels.weights.box_sum_cdf` at ``y`` = x - centre.
@@ -225,12 +238,14 @@ def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, 
 
 @njit(parallel=True, cache=True)
 def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, window,
-         xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
+         xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out, order):
     """Back projection, the adjoint of :func:`forward`.
 
     ``out[k, iy, ix] = sum_i scale_i f_k wy wx image[ray_pos[i]]``; parallel over slices,
     so each thread writes only its own slice. Each lenslet works on the window of its rays
     whose value is not zero (``window`` is not used: the arguments are forward's).
+    ``order``: the slices in the order the parallel loop takes them (a permutation of
+    ``range(nz)``, see :func:`interleaved_order`); the result does not depend on it.
     """
     nz, ny, nx = out.shape
     n_lens = xf_x.shape[0]
@@ -249,7 +264,8 @@ def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, wind
             local[lens, r, c] = v
             r0, r1, c0, c1 = min(r0, r), max(r1, r + 1), min(c0, c), max(c1, c + 1)
         box[lens, 0], box[lens, 1], box[lens, 2], box[lens, 3] = r0, r1, c0, c1
-    for k in prange(nz):
+    for kk in prange(nz):
+        k = order[kk]
         ok = out[k]
         for iy in range(ny):
             for ix in range(nx):
@@ -333,4 +349,52 @@ def row_max(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, 
                     best[ray_r[i] - r0, ray_c[i] - c0] = v
         for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
             out[ray_pos[i]] = np.float32(best[ray_r[i] - r0, ray_c[i] - c0] * ray_scale[i])
+    return out
+
+
+@njit(parallel=True, cache=True)
+def row_sums(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, window,
+             xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
+    """Sum of every ray's weights: ``scale · sum_k f_k · (sum_ix wx) · (sum_iy wy)``.
+
+    A forward projection of ones without the contractions: on each slice the weights of a
+    ray are the outer product of its column's and its row's voxel profiles, so their sum is
+    the product of the profiles' sums. Parallel over lenslets, summed in float64.
+    """
+    nz = t.shape[0]
+    n_lens = xf_x.shape[0]
+    bmax = u_col.shape[1]
+    for lens in prange(n_lens):
+        if ray_ptr[lens + 1] == ray_ptr[lens]:
+            continue
+        r0, r1, c0, c1 = window[lens, 0], window[lens, 1], window[lens, 2], window[lens, 3]
+        nr, nc = r1 - r0, c1 - c0
+        xs, xc, xw, ys, yc, yw, edge = _profile_workspace(bmax, kmax)
+        sx = np.empty(bmax, np.float64)
+        sy = np.empty(bmax, np.float64)
+        total = np.zeros((nr, nc), np.float64)
+        for k in range(nz):
+            x_lo, x_hi = _profiles(u_col[lens, c0:c1], nc, xf_x[lens], t[k], shape[k],
+                                   half[k], ox, vx, nx, xs, xc, xw, edge)
+            if x_lo >= x_hi:
+                continue
+            y_lo, y_hi = _profiles(u_row[lens, r0:r1], nr, xf_y[lens], t[k], shape[k],
+                                   half[k], oy, vy, ny, ys, yc, yw, edge)
+            if y_lo >= y_hi:
+                continue
+            for c in range(nc):
+                s = 0.0
+                for j in range(xc[c]):
+                    s += xw[c, j]
+                sx[c] = s
+            for r in range(nr):
+                s = 0.0
+                for j in range(yc[r]):
+                    s += yw[r, j]
+                sy[r] = s * slice_factor[k]
+            for r in range(nr):
+                for c in range(nc):
+                    total[r, c] += sy[r] * sx[c]
+        for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
+            out[ray_pos[i]] = np.float32(total[ray_r[i] - r0, ray_c[i] - c0] * ray_scale[i])
     return out
