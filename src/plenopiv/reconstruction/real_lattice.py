@@ -273,13 +273,15 @@ class LensletProjector(CachedSums):
         # the product of each slice's profile sums: a third of a forward projection of ones
         slices, lenses = self._args()
         nz, ny, nx = self.grid.shape
-        return _k.row_sums(*slices, nx, ny, *lenses, np.zeros(self.n_pixels, np.float32))
+        return _k.row_reduce(*slices, nx, ny, *lenses, False,
+                             np.zeros(self.n_pixels, np.float32))
 
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per ray (float32)."""
         slices, lenses = self._args()
         nz, ny, nx = self.grid.shape
-        return _k.row_max(*slices, nx, ny, *lenses, np.zeros(self.n_pixels, np.float32))
+        return _k.row_reduce(*slices, nx, ny, *lenses, True,
+                             np.zeros(self.n_pixels, np.float32))
 
 
 def lenslet_weights_reference(proj: LensletProjector) -> np.ndarray:

@@ -313,53 +313,15 @@ def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, wind
 
 
 @njit(parallel=True, cache=True)
-def row_max(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, window,
-            xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
-    """Largest weight of every ray: ``scale · max_k f_k · max_ix wx · max_iy wy``."""
-    nz = t.shape[0]
-    n_lens = xf_x.shape[0]
-    bmax = u_col.shape[1]
-    for lens in prange(n_lens):
-        if ray_ptr[lens + 1] == ray_ptr[lens]:
-            continue
-        r0, r1, c0, c1 = window[lens, 0], window[lens, 1], window[lens, 2], window[lens, 3]
-        nr, nc = r1 - r0, c1 - c0
-        xs, xc, xw, ys, yc, yw, edge = _profile_workspace(bmax, kmax)
-        mx = np.empty(bmax, np.float64)
-        my = np.empty(bmax, np.float64)
-        best = np.zeros((nr, nc), np.float64)
-        for k in range(nz):
-            _profiles(u_col[lens, c0:c1], nc, xf_x[lens], t[k], shape[k], half[k], ox, vx, nx,
-                      xs, xc, xw, edge)
-            _profiles(u_row[lens, r0:r1], nr, xf_y[lens], t[k], shape[k], half[k], oy, vy, ny,
-                      ys, yc, yw, edge)
-            for c in range(nc):
-                m = 0.0
-                for j in range(xc[c]):
-                    m = max(m, xw[c, j])
-                mx[c] = m
-            for r in range(nr):
-                m = 0.0
-                for j in range(yc[r]):
-                    m = max(m, yw[r, j])
-                my[r] = m * slice_factor[k]
-            for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
-                v = mx[ray_c[i] - c0] * my[ray_r[i] - r0]
-                if v > best[ray_r[i] - r0, ray_c[i] - c0]:
-                    best[ray_r[i] - r0, ray_c[i] - c0] = v
-        for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
-            out[ray_pos[i]] = np.float32(best[ray_r[i] - r0, ray_c[i] - c0] * ray_scale[i])
-    return out
+def row_reduce(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, window,
+               xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, maximum, out):
+    """Largest (``maximum``) or summed weight of every ray, without the contractions.
 
-
-@njit(parallel=True, cache=True)
-def row_sums(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, window,
-             xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
-    """Sum of every ray's weights: ``scale · sum_k f_k · (sum_ix wx) · (sum_iy wy)``.
-
-    A forward projection of ones without the contractions: on each slice the weights of a
-    ray are the outer product of its column's and its row's voxel profiles, so their sum is
-    the product of the profiles' sums. Parallel over lenslets, summed in float64.
+    On each slice the weights of a ray are the outer product of its column's and its row's
+    voxel profiles, so their largest value is the product of the profiles' maxima and their
+    sum the product of the profiles' sums: ``scale · max_k f_k · max wx · max wy`` or
+    ``scale · sum_k f_k · (sum wx) · (sum wy)`` (the sum is a forward projection of ones).
+    Parallel over lenslets, reduced in float64.
     """
     nz = t.shape[0]
     n_lens = xf_x.shape[0]
@@ -370,9 +332,9 @@ def row_sums(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row,
         r0, r1, c0, c1 = window[lens, 0], window[lens, 1], window[lens, 2], window[lens, 3]
         nr, nc = r1 - r0, c1 - c0
         xs, xc, xw, ys, yc, yw, edge = _profile_workspace(bmax, kmax)
-        sx = np.empty(bmax, np.float64)
-        sy = np.empty(bmax, np.float64)
-        total = np.zeros((nr, nc), np.float64)
+        px = np.empty(bmax, np.float64)
+        py = np.empty(bmax, np.float64)
+        acc = np.zeros((nr, nc), np.float64)
         for k in range(nz):
             x_lo, x_hi = _profiles(u_col[lens, c0:c1], nc, xf_x[lens], t[k], shape[k],
                                    half[k], ox, vx, nx, xs, xc, xw, edge)
@@ -383,18 +345,19 @@ def row_sums(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row,
             if y_lo >= y_hi:
                 continue
             for c in range(nc):
-                s = 0.0
+                v = 0.0
                 for j in range(xc[c]):
-                    s += xw[c, j]
-                sx[c] = s
+                    v = max(v, xw[c, j]) if maximum else v + xw[c, j]
+                px[c] = v
             for r in range(nr):
-                s = 0.0
+                v = 0.0
                 for j in range(yc[r]):
-                    s += yw[r, j]
-                sy[r] = s * slice_factor[k]
+                    v = max(v, yw[r, j]) if maximum else v + yw[r, j]
+                py[r] = v * slice_factor[k]
             for r in range(nr):
                 for c in range(nc):
-                    total[r, c] += sy[r] * sx[c]
+                    v = py[r] * px[c]
+                    acc[r, c] = max(acc[r, c], v) if maximum else acc[r, c] + v
         for i in range(ray_ptr[lens], ray_ptr[lens + 1]):
-            out[ray_pos[i]] = np.float32(total[ray_r[i] - r0, ray_c[i] - c0] * ray_scale[i])
+            out[ray_pos[i]] = np.float32(acc[ray_r[i] - r0, ray_c[i] - c0] * ray_scale[i])
     return out
