@@ -139,6 +139,21 @@ def _profiles(u_line, n_line, xf, tk, shape, half, origin, vox, n_vox, start, co
 
 
 @njit(cache=True, inline="always")
+def _slice_profiles(ucol, urow, nc, nr, xf_x, xf_y, tk, shape, half, ox, oy, vx, vy, nx, ny,
+                    xs, xc, xw, ys, yc, yw, edge):
+    """Both voxel profiles of one lenslet on one slice: ``(x_lo, x_hi, y_lo, y_hi)``.
+
+    The column profiles (``xs, xc, xw``) first; the row profiles only when those reach a
+    voxel. The slice adds nothing when ``x_lo >= x_hi`` or ``y_lo >= y_hi``.
+    """
+    x_lo, x_hi = _profiles(ucol, nc, xf_x, tk, shape, half, ox, vx, nx, xs, xc, xw, edge)
+    if x_lo >= x_hi:
+        return x_lo, x_hi, 0, 0
+    y_lo, y_hi = _profiles(urow, nr, xf_y, tk, shape, half, oy, vy, ny, ys, yc, yw, edge)
+    return x_lo, x_hi, y_lo, y_hi
+
+
+@njit(cache=True, inline="always")
 def _span(u_line, n_line, xf, tk, half, origin, vox, n_vox):
     """Return the first and one past the last voxel any of the lines' beams reaches.
 
@@ -204,13 +219,10 @@ def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, 
             if x_lo >= x_hi or y_lo >= y_hi or _patch_is_empty(volume[k], y_lo, y_hi, x_lo,
                                                                 x_hi):
                 continue
-            x_lo, x_hi = _profiles(ucol, nc, xf_x[lens], t[k], shape[k], half[k], ox, vx, nx,
-                                   xs, xc, xw, edge)
-            if x_lo >= x_hi:
-                continue
-            y_lo, y_hi = _profiles(urow, nr, xf_y[lens], t[k], shape[k], half[k], oy, vy, ny,
-                                   ys, yc, yw, edge)
-            if y_lo >= y_hi:
+            x_lo, x_hi, y_lo, y_hi = _slice_profiles(
+                ucol, urow, nc, nr, xf_x[lens], xf_y[lens], t[k], shape[k], half[k], ox, oy,
+                vx, vy, nx, ny, xs, xc, xw, ys, yc, yw, edge)
+            if x_lo >= x_hi or y_lo >= y_hi:
                 continue
             vk = volume[k]
             for iy in range(y_lo, y_hi):
@@ -278,13 +290,10 @@ def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, wind
             if r1 <= r0:
                 continue
             nr, nc = r1 - r0, c1 - c0
-            x_lo, x_hi = _profiles(u_col[lens, c0:c1], nc, xf_x[lens], t[k], shape[k],
-                                   half[k], ox, vx, nx, xs, xc, xw, edge)
-            if x_lo >= x_hi:
-                continue
-            y_lo, y_hi = _profiles(u_row[lens, r0:r1], nr, xf_y[lens], t[k], shape[k],
-                                   half[k], oy, vy, ny, ys, yc, yw, edge)
-            if y_lo >= y_hi:
+            x_lo, x_hi, y_lo, y_hi = _slice_profiles(
+                u_col[lens, c0:c1], u_row[lens, r0:r1], nc, nr, xf_x[lens], xf_y[lens], t[k],
+                shape[k], half[k], ox, oy, vx, vy, nx, ny, xs, xc, xw, ys, yc, yw, edge)
+            if x_lo >= x_hi or y_lo >= y_hi:
                 continue
             img = local[lens]
             for iy in range(y_lo, y_hi):
@@ -336,13 +345,10 @@ def row_reduce(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_ro
         py = np.empty(bmax, np.float64)
         acc = np.zeros((nr, nc), np.float64)
         for k in range(nz):
-            x_lo, x_hi = _profiles(u_col[lens, c0:c1], nc, xf_x[lens], t[k], shape[k],
-                                   half[k], ox, vx, nx, xs, xc, xw, edge)
-            if x_lo >= x_hi:
-                continue
-            y_lo, y_hi = _profiles(u_row[lens, r0:r1], nr, xf_y[lens], t[k], shape[k],
-                                   half[k], oy, vy, ny, ys, yc, yw, edge)
-            if y_lo >= y_hi:
+            x_lo, x_hi, y_lo, y_hi = _slice_profiles(
+                u_col[lens, c0:c1], u_row[lens, r0:r1], nc, nr, xf_x[lens], xf_y[lens], t[k],
+                shape[k], half[k], ox, oy, vx, vy, nx, ny, xs, xc, xw, ys, yc, yw, edge)
+            if x_lo >= x_hi or y_lo >= y_hi:
                 continue
             for c in range(nc):
                 v = 0.0
