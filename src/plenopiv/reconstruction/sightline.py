@@ -44,8 +44,8 @@ from plenopiv.reconstruction.lattice import LatticeProjector
 from plenopiv.reconstruction.real_lattice import LensletProjector
 from plenopiv.volume import VolumeGrid
 
-__all__ = ["SightLine", "subcell_factors", "refined_grid", "pool_min", "pool_sum", "pool_any",
-           "subcell_line_of_sight", "subcell_sightline"]
+__all__ = ["SightLine", "subcell_factors", "refined_grid", "pool_min", "subcell_line_of_sight",
+           "subcell_sightline"]
 
 _CACHE: dict = {}
 _LOCK = threading.Lock()
@@ -67,18 +67,6 @@ def pool_min(cells: np.ndarray, kx: int, ky: int) -> np.ndarray:
     """
     nz, fy, fx = cells.shape
     return cells.reshape(nz, fy // ky, ky, fx // kx, kx).min(axis=(2, 4))
-
-
-def pool_sum(cells: np.ndarray, kx: int, ky: int) -> np.ndarray:
-    """Return per voxel the sum of its ``kx × ky`` cells (float32; shapes as :func:`pool_min`)."""
-    nz, fy, fx = cells.shape
-    return cells.reshape(nz, fy // ky, ky, fx // kx, kx).sum(axis=(2, 4), dtype=np.float32)
-
-
-def pool_any(cells: np.ndarray, kx: int, ky: int) -> np.ndarray:
-    """Return per voxel whether any of its ``kx × ky`` cells is true (shapes: :func:`pool_min`)."""
-    nz, fy, fx = cells.shape
-    return cells.reshape(nz, fy // ky, ky, fx // kx, kx).any(axis=(2, 4))
 
 
 def _cells(values, shape) -> np.ndarray:
