@@ -236,11 +236,11 @@ def lenslet_table(lf: LightField):
     the light fields plenopiv builds (checked), any other order is sorted so.
     """
     order = np.argsort(lf.lenslet, kind="stable")
-    same = lf.lenslet[order][1:] == lf.lenslet[order][:-1]
-    if np.any(np.diff(lf.u[order, 1])[same] > 0.0):
+    lens = lf.lenslet[order]                  # the same whichever sort below is kept
+    if np.any(np.diff(lf.u[order, 1])[lens[1:] == lens[:-1]] > 0.0):
         order = np.lexsort((-lf.u[:, 1], lf.lenslet))
     k = int(lf.lenslet.max()) + 1 if lf.n_rays else 0
-    ptr = np.searchsorted(lf.lenslet[order], np.arange(k + 1))
+    ptr = np.searchsorted(lens, np.arange(k + 1))
     conj = np.zeros((k, 2))
     has = ptr[1:] > ptr[:-1]
     conj[has] = lf.focal_plane_position[order[ptr[:-1][has]]]
