@@ -198,6 +198,13 @@ def q_breakdown(result, truth, positions, cal, grid, image, settings) -> dict:
                    sigmas={"cell": fq.cell_sigma(grid, eff)}, region=region)
     out.update(detection=row["detection_rate"], ghosts=row["ghost_rate"],
                resolution_cell_mm=[lat * 1e3, dep * 1e3])
+    if result.particle_centroid_effective is not None:      # positions from the light field
+        volume_row = fq.score(dataclasses.replace(
+            result, particle_position_effective=result.particle_centroid_effective),
+            positions, tolerance=(lat, lat, dep), sigmas={"cell": fq.cell_sigma(grid, eff)},
+            region=region)
+        out.update(detection_volume_centroids=volume_row["detection_rate"],
+                   ghosts_volume_centroids=volume_row["ghost_rate"])
     out["lit_pixel_share"] = float(np.mean(image > settings.pixel_threshold * image.max()))
     return out
 

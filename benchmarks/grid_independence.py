@@ -86,6 +86,7 @@ def main(argv=None) -> dict:
     lat, dep = resolution_cell(cam)
     settings = ReconstructionSettings()
     out = {"density_ppl": a.density, "n_particles": int(len(pos))}
+    found = {}
     for name, grid in (("aligned", aligned), ("typed", typed)):
         t0 = time.perf_counter()
         w, _ = cached_weights(cal, grid, cache_dir=None, projector="lattice")
@@ -98,11 +99,49 @@ def main(argv=None) -> dict:
                      "ghosts": row["ghost_rate"], "n_true": row["n_true"],
                      "n_found": row["n_found"]}
         out[name]["seconds"] = round(time.perf_counter() - t0, 1)
+        found[name] = res
         print(f"{name}: {grid.shape} " + ", ".join(
             f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}"
             for k, v in out[name].items()), flush=True)
+    out["moved"] = moved_between(found["aligned"], found["typed"], (lat, lat, dep))
+    print("the same particles on the two grids, |position difference| median / 90th "
+          "percentile (lateral in footprints, depth in cells): " + "; ".join(
+              f"{k}: {v['lateral_median']:.3f} / {v['lateral_p90']:.3f} fp, "
+              f"{v['depth_median']:.3f} / {v['depth_p90']:.3f} cells ({v['n']} pairs)"
+              for k, v in out["moved"].items()), flush=True)
     if a.json:
         print(json.dumps(out))
+    return out
+
+
+def moved_between(first, second, cell) -> dict:
+    """How far the particles found in both of two reconstructions of one image moved.
+
+    Particles are paired when they lie within half a resolution cell of each other (mutual
+    nearest neighbours); lateral distances in footprints (``cell[0]``), depth in depth cells.
+    Both the reported positions and the volume centroids (where the positions came from the
+    light field).
+    """
+    from scipy.spatial import cKDTree
+
+    scale = np.asarray(cell, float)
+    out = {}
+    for label in ("position", "centroid"):
+        p = [getattr(r, "particle_centroid_effective" if label == "centroid"
+                     else "particle_position_effective") for r in (first, second)]
+        if p[0] is None or p[1] is None:
+            continue
+        a, b = p[0] / scale, p[1] / scale
+        d_ab, i_ab = cKDTree(b).query(a)
+        _, i_ba = cKDTree(a).query(b)
+        pair = (d_ab < 0.5) & (i_ba[i_ab] == np.arange(len(a)))
+        diff = np.abs(a[pair] - b[i_ab[pair]])
+        lateral, depth = diff[:, :2].max(axis=1), diff[:, 2]
+        out[label] = {"n": int(pair.sum()),
+                      "lateral_median": float(np.median(lateral)),
+                      "lateral_p90": float(np.percentile(lateral, 90)),
+                      "depth_median": float(np.median(depth)),
+                      "depth_p90": float(np.percentile(depth, 90))}
     return out
 
 

@@ -137,14 +137,12 @@ def test_plate_thesis_back_side_slopes(cases):
     assert s["corrected (1/n)"] == pytest.approx(1.0, abs=0.02)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "on this grid (voxel corners meet on the axis, x, y = ±1.5 mm) SMART moves the particles at "
-    "Z = ±6 mm 0.55 mm (one depth cell) towards focus: found at -7.98 / +8.46 mm effective "
-    "against -8.53 / +9.01 mm; the same code on the grid moved by half a voxel errs by at most "
-    "0.09 mm, so it is a remaining grid dependence of the iterations, not of the first guess"))
 def test_plate_thesis_back_side_follows_the_projective_model(cases):
     """The reconstruction follows the projective model (sharp, at Z'), not only its slope:
-    every effective depth within 0.3 mm (half a depth cell) of Z' = n S_o Z/(S_o - (n-1) Z)."""
+    every effective depth within 0.3 mm (half a depth cell) of Z' = n S_o Z/(S_o - (n-1) Z).
+    On this grid (voxel corners on the axis) the volume's centroids at Z = ±6 mm lay one depth
+    cell towards focus (-7.98 / +8.46 mm against -8.53 / +9.01 mm) while the grid moved by half
+    a voxel erred by 0.09 mm: the positions from the light field do not depend on the grid."""
     _, m = slopes(cases["plate_thesis"])
     np.testing.assert_allclose(m["effective_m"], m["expected_effective_m"], atol=0.3e-3)
 

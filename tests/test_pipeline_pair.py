@@ -174,6 +174,14 @@ def test_volume_product_opens_in_xarray_with_coordinates(pair_products):
                          group="particles") as p:
         assert p["intensity"].attrs["units"] == "1"
         assert p["position_m"].attrs["units"] == "m"
+        assert p["centroid_effective_m"].attrs["units"] == "m"    # the volume's own estimate
+    from plenopiv.products.volume import load_volume
+
+    back = load_volume(paths["volume_A"])
+    np.testing.assert_array_equal(back.particle_centroid_effective,
+                                  res.volume_a.particle_centroid_effective)
+    np.testing.assert_array_equal(back.particle_position_effective,
+                                  res.volume_a.particle_position_effective)
 
 
 def test_calibration_grid_index_has_units(tmp_path):

@@ -134,6 +134,13 @@ class ParticleSettings(_Strict):
         resolution cell (:func:`plenopiv.pipeline.particle_options`): peaks within one cell
         are one particle, the centroid box is ±1 cell.
     internal_correction : "auto" | "none" | "plate" (see :mod:`plenopiv.corrections`).
+    position : "light_field" (default: each volume peak seeds the ray-bundle fit of
+        :func:`plenopiv.tracking.bundle.bundle_positions` with
+        :data:`~plenopiv.tracking.bundle.PARTICLE_BUNDLE`, the point nearest the rays of the
+        lit pixels that saw the particle; it does not depend on the voxel grid, and the
+        volume centroid is kept where fewer than ``min_rays`` rays are found) | "volume"
+        (the ``method`` estimate on the voxels: an in-focus particle's centroid moves with the
+        voxel edges by up to 0.7 voxel, docs/validation/grid_independence.md).
 
     These are the only defaults: :func:`plenopiv.particles.find_particles` takes those of
     ``method`` and ``fit_spacing_vox`` from here, and has none for ``min_separation_vox``
@@ -147,6 +154,7 @@ class ParticleSettings(_Strict):
     box_vox: tuple[int, int, int] | None = None
     fit_spacing_vox: tuple[int, int, int] = (2, 1, 1)
     internal_correction: Literal["auto", "none", "plate"] = "auto"
+    position: Literal["light_field", "volume"] = "light_field"
 
 
 _PIV = PIVSettings()

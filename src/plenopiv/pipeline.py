@@ -44,6 +44,7 @@ from plenopiv.reconstruction.subdivision import (  # noqa: F401 - the pipeline's
 )
 from plenopiv.reconstruction.weights import Weights
 from plenopiv.resources import prefer_small_pages
+from plenopiv.tracking.bundle import PARTICLE_BUNDLE, bundle_positions
 from plenopiv.volume import VolumeGrid
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
@@ -161,16 +162,25 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t2 = time.perf_counter()
     if progress is not None:
         progress("particles", 0.0)
-    result = _particles_of(vol, grid, calibration, particles)
+    result, centroid = _particles_of(vol, grid, calibration, particles)
+    if particles.position == "light_field" and len(centroid):
+        if progress is not None:
+            progress("particles", 0.5)
+        eff = light_field_positions(geometry.light_field, img, centroid, result[3],
+                                    calibration, image_mask=image_mask)
+        result = (result[0], eff, result[0].points(eff), *result[3:])
+    else:
+        centroid = None
     t["particles_s"] = time.perf_counter() - t2
-    return VolumeResult(vol, grid, *result, t)
+    return VolumeResult(vol, grid, *result, t, particle_centroid_effective=centroid)
 
 
 def _particles_of(vol: np.ndarray, grid: VolumeGrid, calibration: Calibration,
                   particles: ParticleSettings) -> tuple:
-    """``(correction, effective positions, positions, intensities, sizes)`` of the particles.
+    """The particles of a volume, found and depth-corrected.
 
-    Found by :func:`plenopiv.particles.find_particles`, then depth-corrected.
+    Returns ``((correction, effective positions, positions, intensities, sizes), effective
+    positions)``. Found by :func:`plenopiv.particles.find_particles`, then depth-corrected.
     """
     if float(vol.max()) <= 0:
         raise ReconstructionError("the reconstructed volume is empty: no particle light in "
@@ -179,7 +189,28 @@ def _particles_of(vol: np.ndarray, grid: VolumeGrid, calibration: Calibration,
     eff = found.position_world(grid.origin, grid.voxel)
     corr = DepthCorrection.for_camera(calibration.camera, internal=particles.internal_correction)
     return (corr, eff, corr.points(eff) if len(eff) else eff, found.intensity,
-            found.size_world(grid.voxel))
+            found.size_world(grid.voxel)), eff
+
+
+def light_field_positions(lf, image, seeds, intensity, calibration: Calibration, *,
+                          image_mask=None) -> np.ndarray:
+    """Particle positions from the light field, seeded by the volume's (effective, metres).
+
+    The point nearest the rays of the lit pixels that saw each particle
+    (:func:`plenopiv.tracking.bundle.bundle_positions` with
+    :data:`~plenopiv.tracking.bundle.PARTICLE_BUNDLE`, the volume intensities sharing the
+    rays that pass several particles). The voxel grid quantises a reconstructed particle:
+    an in-focus one fills its lenslet's footprint and its centroid moves with the voxel
+    edges; the rays do not depend on the grid. Masked pixels carry no light. A particle
+    with fewer than ``min_rays`` rays keeps its seed.
+    """
+    _, cell = resolution_cell(calibration.effective_camera)
+    img = np.asarray(image, np.float32)
+    if image_mask is not None:
+        img = np.where(np.asarray(image_mask, bool), np.float32(0), img)
+    fit = bundle_positions(lf, img, seeds, settings=PARTICLE_BUNDLE, depth_cell=cell,
+                           brightness=intensity)
+    return np.where(fit.converged[:, None], fit.position, seeds)
 
 
 def reconstruction_quality(volume, volume_true) -> float:

@@ -35,6 +35,12 @@ class VolumeResult:
         The same after the depth corrections, metres.
     particle_intensity, particle_size : (N,), (N, 3)
         Integrated intensity; blob σ along (x, y, z) in metres (effective).
+    timings : dict
+        Seconds per stage.
+    particle_centroid_effective : (N, 3) or None
+        The volume's own estimate of each position (``[particles] method`` on the voxels),
+        effective coordinates, metres, where the positions come from the light field
+        (``[particles] position = "light_field"``); None where they are the volume's.
     """
 
     volume: np.ndarray
@@ -45,6 +51,7 @@ class VolumeResult:
     particle_intensity: np.ndarray
     particle_size: np.ndarray
     timings: dict = field(default_factory=dict)
+    particle_centroid_effective: np.ndarray | None = None
 
     @property
     def z_corrected(self) -> np.ndarray:
@@ -59,8 +66,11 @@ class VolumeResult:
               "/particles/position_effective_m": self.particle_position_effective,
               "/particles/intensity": self.particle_intensity,
               "/particles/size_m": self.particle_size}
+        if self.particle_centroid_effective is not None:
+            ds["/particles/centroid_effective_m"] = self.particle_centroid_effective
         units = {k: "m" for k in ("/x", "/y", "/z", "/z_effective", "/particles/position_m",
-                                  "/particles/position_effective_m", "/particles/size_m")}
+                                  "/particles/position_effective_m", "/particles/size_m",
+                                  "/particles/centroid_effective_m")}
         # the voxel values are light energies in image counts (W E = I, with W the fraction
         # of a voxel's light reaching each pixel): dimensionless in SI
         units.update({"/volume": "1", "/particles/intensity": "1"})
@@ -68,7 +78,9 @@ class VolumeResult:
                  "depth_correction_scale": self.correction.scale,
                  "depth_correction_external": self.correction.external,
                  "depth_correction_internal": self.correction.internal,
-                 "volume_axes": "z, y, x", "Conventions": "CF-1.8", **(extra_attrs or {})}
+                 "volume_axes": "z, y, x", "Conventions": "CF-1.8",
+                 "particle_positions": ("volume" if self.particle_centroid_effective is None
+                                        else "light_field"), **(extra_attrs or {})}
         return write_h5(path, ds, attrs=attrs, units=units, config=config, kind="volume",
                         finalize=_cf_volume)
 
@@ -84,10 +96,13 @@ def load_volume(path: str | Path) -> VolumeResult:
         pos_e = fh["/particles/position_effective_m"][()]
         inten = fh["/particles/intensity"][()]
         size = fh["/particles/size_m"][()]
+        cen = (fh["/particles/centroid_effective_m"][()]
+               if "/particles/centroid_effective_m" in fh else None)
     step = [a[1] - a[0] if len(a) > 1 else 1.0 for a in (x, y, ze)]
     grid = VolumeGrid((float(x[0]), float(y[0]), float(ze[0])), tuple(float(v) for v in step),
                       vol.shape)
-    return VolumeResult(vol, grid, corr, pos_e, pos, inten, size)
+    return VolumeResult(vol, grid, corr, pos_e, pos, inten, size,
+                        particle_centroid_effective=cen)
 
 
 def _cf_volume(fh) -> None:

@@ -30,9 +30,9 @@ from plenopiv.lightfield import LightField
 #: Implementations of :func:`bundle_positions`.
 ENGINES = ("numba", "numpy")
 
-__all__ = ["ENGINES", "BundlePositions", "BundleSettings", "RayTable", "bundle_positions",
-           "closest_point", "closest_points", "lenslet_table", "ray_lines", "ray_table",
-           "spatial_order"]
+__all__ = ["ENGINES", "PARTICLE_BUNDLE", "BundlePositions", "BundleSettings", "RayTable",
+           "bundle_positions", "closest_point", "closest_points", "lenslet_table", "ray_lines",
+           "ray_table", "spatial_order"]
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,15 @@ class BundleSettings:
         it a pixel weighs ``value - floor * max`` (dimensionless, in [0, 1)).
     min_rays : int
         Fewer selected rays than this leave the particle at its seed, flagged (>= 3).
+    margin : float
+        Lenslet footprints added to every selection radius (>= 0). All rays of a lenslet pass
+        through its conjugate, whereas the light reached it anywhere on its footprint, so near
+        focus the rays of a lenslet that saw only the rim of a particle's cone miss the fitted
+        point by up to a footprint. Without a margin (the tracking's fit, which refines
+        afterwards from several starts) such a lenslet is in or out of the selection
+        depending on the seed; with half a footprint it is always in, and the fit of an
+        isolated particle is the same from any seed within the volume's blur
+        (:data:`PARTICLE_BUNDLE`).
     """
 
     radius: float = 1.5
@@ -64,6 +73,7 @@ class BundleSettings:
     seed_depth_error: float = 0.5
     floor: float = 0.003
     min_rays: int = 6
+    margin: float = 0.0
 
     def __post_init__(self):
         if not (np.isfinite(self.radius) and self.radius > 0):
@@ -78,6 +88,14 @@ class BundleSettings:
             raise ValueError(f"bundle floor = {self.floor!r}: expected a fraction in [0, 1)")
         if int(self.min_rays) != self.min_rays or self.min_rays < 3:
             raise ValueError(f"bundle min_rays = {self.min_rays!r}: expected an int >= 3")
+        if not (np.isfinite(self.margin) and self.margin >= 0):
+            raise ValueError(f"bundle margin = {self.margin!r}: expected >= 0 footprints")
+
+
+#: The fit of the particle table (``[particles] position = "light_field"``): half a footprint
+#: of margin makes each particle's position independent of its seed, and so of the voxel grid
+#: the seed (the volume's centroid) came from.
+PARTICLE_BUNDLE = BundleSettings(margin=0.5)
 
 
 @dataclass(frozen=True, eq=False)
@@ -412,7 +430,9 @@ def bundle_positions(lf: LightField, image, seeds, *,
     pos, ok = seeds.copy(), np.ones(n, bool)
     for it in range(settings.iterations):
         widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
-        centre, radius = pos, settings.radius * _half_beam(lf, pos[:, 2]) + widen
+        centre = pos
+        radius = (settings.radius * _half_beam(lf, pos[:, 2]) + widen
+                  + settings.margin * lf.footprint)
         if engine == "numba":
             sel, normal, rhs, nr = _numba_normal_equations(lf, index, rays, centre, radius,
                                                            bright, total)

@@ -315,7 +315,8 @@ def markdown(results: dict) -> str:
         f"{rec['pixel_threshold']:g}, dark_tolerance {rec['dark_tolerance']:g}; the library's "
         "defaults except where a case says otherwise) with the exact calibration "
         "(`Calibration.from_camera`: the true S_i,eff), located by the brightest particle's "
-        "centroid.", "",
+        "position from the light field (the library's default, `[particles] position = "
+        "\"light_field\"`: the ray-bundle fit seeded by the volume's centroid).", "",
         f"Camera: 50 mm lens, f/{geo['f_number']:g}, S_i,eff = S_o,eff = "
         f"{geo['si_eff_mm']:.2f} mm (M = -1), {geo['lenslets']} × {geo['lenslets']} lenslets of "
         "the Auburn MLA (125 µm, f̄ = 500 µm, 7.4 µm pixels). Volume as a user types it: x, y = "

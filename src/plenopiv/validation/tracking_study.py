@@ -275,7 +275,9 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
         x, y = rng.uniform(-offset_vox, offset_vox, 2) * VOXEL
         truth = np.array([x, y, z])
         img = particle_image(cam, [truth], rays_per_particle=rays_per_particle, seed=seed + i)
-        res = reconstruct_volume(cal, img, grid, particles=STUDY_PARTICLES, weights=weights)
+        # the volume's centroid, the bundle's seed here, is this study's reference
+        volume_positions = STUDY_PARTICLES.model_copy(update={"position": "volume"})
+        res = reconstruct_volume(cal, img, grid, weights=weights, particles=volume_positions)
         if not len(res.particle_intensity):
             continue
         k = int(np.argmax(res.particle_intensity))
