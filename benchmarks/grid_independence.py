@@ -1,10 +1,12 @@
 """Particle-field quality on the grid a user types against the footprint-aligned grid.
 
-Not a unit test. Run ``python benchmarks/grid_independence.py [--density 0.3 --json]``, or
-``--single`` for the single-particle table: the thesis §5.1 camera cut to 61 × 61 lenslets (one
-on the axis), one on-axis particle at Z = -5 … +3 mm (Poisson noise, 50 counts peak), on the
-grid a user types (``x_mm = y_mm = [-3, 3]``, ``z_mm = [-7.5, 7.5]``, ``voxel_mm = 0.125``:
-voxel edges through the lenslet centres) and on the same grid moved by half a voxel.
+Not a unit test. Run ``python benchmarks/grid_independence.py [--density 0.3 --json]``;
+``--spread`` for how far single particles move over random sub-voxel grids
+(:func:`spread_study`); ``--single`` for the single-particle table: the thesis §5.1 camera
+cut to 61 × 61 lenslets (one on the axis), one on-axis particle at Z = -5 … +3 mm (Poisson
+noise, 50 counts peak), on the grid a user types (``x_mm = y_mm = [-3, 3]``,
+``z_mm = [-7.5, 7.5]``, ``voxel_mm = 0.125``: voxel edges through the lenslet centres) and on
+the same grid moved by half a voxel.
 
 The field-quality camera (Auburn 16 MP optics, 50 mm lens at M = -1, 61 × 91-lenslet patch,
 f/2.2) records one particle field; it is reconstructed with the library's defaults
@@ -63,13 +65,90 @@ def single_particles() -> dict:
     return out
 
 
+#: Single particles of the spread study: (lenslets, (x, y, z) metres). 15 lenslets put one on
+#: the axis, 16 put lenslet edges there; 0.125 mm is the footprint of the thesis camera.
+SPREAD_CASES = ((15, (0.0, 0.0, 0.0)), (15, (0.0, 0.0, 0.4e-3)), (15, (0.0, 0.0, -0.8e-3)),
+                (16, (0.3 * 0.125e-3 + 62.5e-6, -0.2 * 0.125e-3 - 62.5e-6, 0.0)),
+                (16, (62.5e-6, 62.5e-6, 0.4e-3)),
+                (16, (0.3 * 0.125e-3 + 62.5e-6, 62.5e-6, 0.4e-3)),
+                (15, (0.2 * 0.125e-3, -0.35 * 0.125e-3, 1.5e-3)))
+
+
+def spread_study(grids_per_size: int = 4, seed: int = 20261202) -> list[dict]:
+    """How far one particle's position moves when only the voxel grid moves.
+
+    Each case's image (thesis §5.1 camera cut to 15 or 16 lenslets, Poisson noise) is
+    reconstructed on ``grids_per_size`` grids with random sub-voxel origins for each voxel
+    size of 0.5, 1 and 1.5 footprints; spread = largest minus smallest over all those grids of
+    the brightest particle's position (light field, the default) and of the volume's
+    centroid, laterally in footprints (per voxel size, in voxels) and in depth cells.
+    """
+    import math
+
+    from plenopiv.pipeline import footprint
+    from plenopiv.synthetic.images import particle_image
+    from plenopiv.validation.depth_study import thesis_camera
+
+    rng = np.random.default_rng(seed)
+    rows = []
+    for lenslets, truth in SPREAD_CASES:
+        cam = thesis_camera(lenslets=lenslets,
+                            sensor_px=int(math.ceil(lenslets * 125 / 7.4)) + 4)
+        cal = Calibration.from_camera(cam)
+        b = footprint(cal.effective_camera)
+        _, cell = resolution_cell(cal.effective_camera)
+        img = particle_image(cam, [truth], rays_per_particle=20000, seed=3)
+        img = np.random.default_rng(4).poisson(img * 50 / img.max()).astype(np.float32)
+        found = {"position": [], "centroid": []}
+        per_size = {}
+        for size in (0.5, 1.0, 1.5):
+            v = size * b
+            start = len(found["position"])
+            for _ in range(grids_per_size):
+                s = rng.uniform(-0.5, 0.5, 3) * v
+                grid = VolumeGrid.from_bounds(*[(t - h + o, t + h + o) for t, h, o in zip(
+                    truth, (5 * b, 5 * b, 2.5e-3), s, strict=True)], voxel=v)
+                w, _ = cached_weights(cal, grid, cache_dir=None, projector="lattice")
+                r = reconstruct_volume(cal, img, grid, weights=w)
+                k = int(np.argmax(r.particle_intensity))
+                found["position"].append(r.particle_position_effective[k])
+                found["centroid"].append(r.particle_centroid_effective[k])
+            per_size[size] = slice(start, len(found["position"]))
+        row = {"lenslets": lenslets, "truth_mm": [round(t * 1e3, 4) for t in truth]}
+        for label, ps in found.items():
+            ps = np.array(ps)
+            spread = ps.max(0) - ps.min(0)
+            err = ps - np.array(truth)
+            row[label] = {
+                "lateral_spread_fp": float(spread[:2].max() / b),
+                "lateral_spread_vox": {str(sz): float(np.ptp(ps[sl, :2], axis=0).max()
+                                                      / (sz * b))
+                                       for sz, sl in per_size.items()},
+                "depth_spread_cells": float(spread[2] / cell),
+                "mean_error_fp": [float(e) for e in err.mean(0)[:2] / b],
+                "mean_error_cells": float(err.mean(0)[2] / cell)}
+        rows.append(row)
+        print(f"{lenslets} lenslets, particle at {row['truth_mm']} mm: " + "; ".join(
+            f"{k} spread {row[k]['lateral_spread_fp']:.3f} fp, "
+            f"{row[k]['depth_spread_cells']:.3f} cells, error "
+            f"{row[k]['mean_error_cells']:+.2f} cells" for k in found), flush=True)
+    return rows
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--density", type=float, default=0.3, help="particles per lenslet")
     ap.add_argument("--seed", type=int, default=20261122)
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--single", action="store_true", help="the single-particle table instead")
+    ap.add_argument("--spread", action="store_true",
+                    help="how far single particles move over random sub-voxel grids instead")
     a = ap.parse_args(argv)
+    if a.spread:
+        rows = spread_study()
+        if a.json:
+            print(json.dumps(rows))
+        return {"spread": rows}
     if a.single:
         out = single_particles()
         if a.json:

@@ -173,6 +173,33 @@ def test_bundle_positions_do_not_depend_on_the_particles_order(thesis_light_fiel
     np.testing.assert_array_equal(c.n_lenslets, a.n_lenslets[perm])
 
 
+@pytest.mark.parametrize("engine", ["numba", "numpy"])
+def test_bundle_on_the_lit_rays_alone_is_the_same_fit(thesis_light_field, rng, engine):
+    """Rays at or below the floor carry no weight: a light field of the lit rays only
+    (``LightField.subset``, what the particle table fits on) gives the same positions, with
+    the particle table's margin too."""
+    from plenopiv.tracking.bundle import PARTICLE_BUNDLE
+
+    cam, cal, lf = thesis_light_field
+    b = lf.footprint
+    truth = np.column_stack([rng.uniform(-4, 4, (5, 2)) * b, rng.uniform(-3e-3, 3e-3, 5)])
+    img = particle_image(cam, truth, rays_per_particle=3000, seed=9)
+    seeds = truth + rng.normal(0, 0.2, (5, 3)) * [b, b, 4 * b]
+    cell = resolution_cell(cal.effective_camera)[1]
+    values = lf.values(img)
+    lit = lf.subset(values > PARTICLE_BUNDLE.floor * values.max())
+    assert lit.n_rays < 0.5 * lf.n_rays
+    for settings in (BundleSettings(), PARTICLE_BUNDLE):
+        full = bundle_positions(lf, img, seeds, settings=settings, depth_cell=cell,
+                                engine=engine)
+        part = bundle_positions(lit, img, seeds, settings=settings, depth_cell=cell,
+                                engine=engine)
+        np.testing.assert_allclose(part.position, full.position, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(part.n_rays, full.n_rays)
+    with pytest.raises(ValueError, match="keep"):
+        lf.subset(np.ones(3, bool))
+
+
 def test_bundle_rejects_a_wrong_image_and_bad_settings(thesis_light_field):
     _, _, lf = thesis_light_field
     with pytest.raises(Exception, match="sensor"):
@@ -181,6 +208,8 @@ def test_bundle_rejects_a_wrong_image_and_bad_settings(thesis_light_field):
         BundleSettings(radius=0)
     with pytest.raises(ValueError, match="iterations"):
         BundleSettings(iterations=0)
+    with pytest.raises(ValueError, match="margin"):
+        BundleSettings(margin=-0.5)
 
 
 @pytest.mark.parametrize("engine", ["numba", "numpy"])

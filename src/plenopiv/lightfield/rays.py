@@ -17,6 +17,7 @@ receive light and are left out.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import warnings
@@ -136,6 +137,14 @@ class LightField:
             / self.object_distance
         q = 0.5 * w / self.aperture_radius
         return (1.0 / (1.0 + q), math.inf if q >= 1.0 else 1.0 / (1.0 - q))
+
+    def subset(self, keep) -> LightField:
+        """The rays where ``keep`` (P,) bool is true, as a light field of the same camera."""
+        keep = np.asarray(keep, bool)
+        if keep.shape != (self.n_rays,):
+            raise ValueError(f"keep has shape {keep.shape}; expected ({self.n_rays},)")
+        return dataclasses.replace(self, pixel=self.pixel[keep], lenslet=self.lenslet[keep],
+                                   s=self.s[keep], u=self.u[keep], lit=self.lit[keep])
 
     def values(self, image) -> np.ndarray:
         """The image's value for every ray (P,)."""
