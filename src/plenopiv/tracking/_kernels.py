@@ -56,7 +56,8 @@ def _lenslet_rays(u, xf, weight, first, last, t, cx, cy, r, margin, rays, share)
 
     Only rays whose pixel carries weight (``weight[i] > 0``) are taken. Fills ``rays[:n]``
     with their indices and ``share[:n]`` with the cone profile ``1 - m/r`` of their miss
-    distances m; returns n. ``rays`` and ``share`` must hold ``last - first`` entries.
+    distances m; returns n. ``rays`` and ``share`` must hold n entries (``last - first``
+    always suffice).
     """
     n = 0
     if last == first:
@@ -85,44 +86,49 @@ def _max_lenslet_rays(rptr):
 
 
 @numba.njit(cache=True, nogil=True)
-def select_rays(centre, radius, lptr, lidx, rptr, u, xf, so, margin, weight, p0, p1,
-                counts, capacity):
-    """Select once the rays of particles ``p0:p1`` that a solve's passes read.
+def count_rays(centre, radius, lptr, lidx, rptr, u, xf, so, margin, weight, p0, p1, counts):
+    """Count the rays of particles ``p0:p1`` that a solve's passes read (first of two passes).
 
-    The rays of :func:`_lenslet_rays` (within ``radius[p]`` of ``centre[p]``, cone share
-    ``1 - m/r``) whose pixel carries weight (``weight[ray] > 0``: a ray without weight adds
-    nothing to any sum of the solve). ``counts[a]`` is set to the rays kept of candidate
-    ``a`` (``lptr[p0] <= a < lptr[p1]``); returns ``(rays, share)`` in candidate then ray
-    order (``capacity``: first buffer size, grown as needed). Serial and without the GIL:
-    blocks of particles run on threads (:func:`plenopiv.tracking.bundle.ray_selection`).
+    The rays of :func:`_lenslet_rays` (within ``radius[p]`` of ``centre[p]``) whose pixel
+    carries weight (``weight[ray] > 0``: a ray without weight adds nothing to any sum of the
+    solve). ``counts[a]`` is set to the rays of candidate ``a`` (``lptr[p0] <= a <
+    lptr[p1]``); :func:`fill_rays` then writes them where the caller's cumulative counts say.
+    Serial and without the GIL: blocks of particles run on threads
+    (:func:`plenopiv.tracking.bundle.ray_selection`).
     """
-    rays = np.empty(max(capacity, 16), np.int64)
-    share = np.empty(max(capacity, 16))
-    n = 0
+    most = _max_lenslet_rays(rptr)
+    rays = np.empty(max(most, 1), np.int64)
+    share = np.empty(max(most, 1))
     for p in range(p0, p1):
         t = (so + centre[p, 2]) / so
         for a in range(lptr[p], lptr[p + 1]):
             k = lidx[a]
-            size = rptr[k + 1] - rptr[k]
-            if n + size > rays.shape[0]:
-                grown = max(2 * rays.shape[0], n + size)
-                r2 = np.empty(grown, np.int64)
-                s2 = np.empty(grown)
-                r2[:n] = rays[:n]
-                s2[:n] = share[:n]
-                rays, share = r2, s2
-            nk = _lenslet_rays(u, xf, weight, rptr[k], rptr[k + 1], t, centre[p, 0],
-                               centre[p, 1], radius[p], margin, rays[n:], share[n:])
-            counts[a] = nk
-            n += nk
-    return rays[:n].copy(), share[:n].copy()
+            counts[a] = _lenslet_rays(u, xf, weight, rptr[k], rptr[k + 1], t, centre[p, 0],
+                                      centre[p, 1], radius[p], margin, rays, share)
+
+
+@numba.njit(cache=True, nogil=True)
+def fill_rays(centre, radius, lptr, lidx, rptr, u, xf, so, margin, weight, p0, p1, cptr,
+              rays, share):
+    """Write the rays :func:`count_rays` counted (second pass).
+
+    Candidate ``a``'s go to ``cptr[a]:cptr[a + 1]`` of ``rays`` (indices) and ``share``
+    (cone profile ``1 - m/r``), in candidate then ray order. The same arithmetic selects the
+    same rays, so each candidate fills its span exactly.
+    """
+    for p in range(p0, p1):
+        t = (so + centre[p, 2]) / so
+        for a in range(lptr[p], lptr[p + 1]):
+            k = lidx[a]
+            _lenslet_rays(u, xf, weight, rptr[k], rptr[k + 1], t, centre[p, 0], centre[p, 1],
+                          radius[p], margin, rays[cptr[a]:], share[cptr[a]:])
 
 
 @numba.njit(cache=True)
 def selected_totals(sptr, share, bright, rays, total):
     """Add every particle's expected share ``B (1 - m/r)`` of each selected ray to ``total``.
 
-    Particle p's rays are ``rays[sptr[p]:sptr[p + 1]]`` (:func:`select_rays`); ``total``
+    Particle p's rays are ``rays[sptr[p]:sptr[p + 1]]`` (:func:`fill_rays`); ``total``
     (P,) is accumulated in place.
     """
     for p in range(sptr.shape[0] - 1):
@@ -133,7 +139,7 @@ def selected_totals(sptr, share, bright, rays, total):
 @numba.njit(cache=True, parallel=True)
 def selected_normal_equations(sptr, rays, share, bright, u, xf, so, weight, total, normal,
                               rhs, nrays):
-    """:func:`normal_equations` on the rays :func:`select_rays` kept (same sums)."""
+    """:func:`normal_equations` on the rays :func:`fill_rays` kept (same sums)."""
     for p in numba.prange(sptr.shape[0] - 1):
         d = np.empty(3)
         a = np.empty(3)
@@ -177,7 +183,7 @@ def selected_covariance_sums(lptr, cptr, sel, share, bright, u, xf, so, weight, 
                              footprint, meat_r, meat_q, nlens):
     """Accumulate the two meats of the bundle covariance, per particle, by lenslet.
 
-    The rays of the last solve (:func:`select_rays`: candidate lenslet ``a`` of particle p,
+    The rays of the last solve (:func:`fill_rays`: candidate lenslet ``a`` of particle p,
     ``lptr[p] <= a < lptr[p + 1]``, holds rays ``sel[cptr[a]:cptr[a + 1]]`` with their cone
     shares ``share``), ``point`` is the
     solution. ``meat_r = sum_k g_k g_k^T``; ``meat_q = (t b)^2/12 sum_k (S_k[:, :2]

@@ -433,15 +433,15 @@ def bundle_positions(lf: LightField, image, seeds, *,
     perm = spatial_order(lf, seeds) if engine == "numba" else np.arange(n)
     seeds, bright = seeds[perm], bright[perm]
     pos, ok = seeds.copy(), np.ones(n, bool)
+    pool: dict = {}                            # the numba selections' buffers, reused
     for it in range(settings.iterations):
         widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
         centre = pos
         radius = (settings.radius * _half_beam(lf, pos[:, 2]) + widen
                   + settings.margin * lf.footprint)
         if engine == "numba":
-            sel = None                         # the previous selection's memory first
             sel, normal, rhs, nr = _numba_normal_equations(lf, index, rays, centre, radius,
-                                                           bright, total)
+                                                           bright, total, pool)
             p, good = _solve(normal, rhs)
         else:
             pid, ray, w = _shared_rays(lf, index, centre, radius, weight, bright, chunk)
@@ -529,14 +529,23 @@ class RaySelection(NamedTuple):
         return self.cptr[self.lptr]
 
 
-def ray_selection(lf: LightField, index, rays, centre, radius) -> RaySelection:
+def ray_selection(lf: LightField, index, rays, centre, radius,
+                  pool: dict | None = None) -> RaySelection:
     """Select the rays within ``radius`` (N,) of ``centre`` (N, 3) that carry weight, once.
 
     ``index``: ``(order, ptr, lens_ids, tree)`` of :class:`RayTable`; ``rays``: the lenslet-
     sorted ``(u, X_f, weight)`` of :func:`_engine_inputs`. Blocks of particles (balanced by
-    their candidate lenslets) run on the numba kernel :func:`~plenopiv.tracking._kernels.
-    select_rays` in threads; the result is in particle, candidate, ray order, as the passes
-    of one solve read it (NumPy twin: :func:`_select_rays`).
+    their candidate lenslets) run on the numba kernels in threads, twice: :func:`~plenopiv.
+    tracking._kernels.count_rays` counts each candidate's rays, :func:`~plenopiv.tracking.
+    _kernels.fill_rays` writes them into arrays of the exact size. The result is in particle,
+    candidate, ray order, as the passes of one solve read it (NumPy twin:
+    :func:`_select_rays`).
+
+    ``pool``: a dict whose ``"ray"`` and ``"share"`` buffers are reused when large enough
+    (and grown in it otherwise): the selections of a fit's solves are about the same size, and
+    fresh arrays of this size (a third of a gigabyte at 16 MP) cost more in page faults than
+    the pass that fills them. The selection then holds views of the pool's buffers, valid
+    until the pool's next use.
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -552,36 +561,49 @@ def ray_selection(lf: LightField, index, rays, centre, radius) -> RaySelection:
     n_blocks = max(1, min(n, 4 * threads))
     edges = np.searchsorted(lptr, np.linspace(0, lptr[-1], n_blocks + 1)).astype(np.int64)
     edges[0], edges[-1] = 0, n
-    # about 16 selected rays per candidate lenslet at 16 MP; the kernel grows its buffer
     spans = [(int(edges[b]), int(edges[b + 1])) for b in range(n_blocks)
              if edges[b + 1] > edges[b]]
-
-    def block(span):
-        p0, p1 = span
-        return _k.select_rays(c, r, lptr, lidx, ptr, u, xf, lf.object_distance, lf.cell, w, p0,
-                              p1, counts, int(16 * (lptr[p1] - lptr[p0])))
-
-    if len(spans) > 1 and threads > 1:
-        with ThreadPoolExecutor(threads) as pool:
-            parts = list(pool.map(block, spans))
-    else:
-        parts = [block(s) for s in spans]
+    so, margin = lf.object_distance, lf.cell
     cptr = np.zeros(len(lidx) + 1, np.int64)
+
+    def count(span):
+        _k.count_rays(c, r, lptr, lidx, ptr, u, xf, so, margin, w, span[0], span[1], counts)
+
+    def fill(span):
+        _k.fill_rays(c, r, lptr, lidx, ptr, u, xf, so, margin, w, span[0], span[1], cptr,
+                     ray, share)
+
+    def run(task):
+        if len(spans) > 1 and threads > 1:
+            with ThreadPoolExecutor(threads) as pool_:
+                list(pool_.map(task, spans))
+        else:
+            for span in spans:
+                task(span)
+
+    run(count)
     np.cumsum(counts, out=cptr[1:])
-    ray = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
-    share = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0)
+    size = int(cptr[-1])
+    pool = {} if pool is None else pool
+    if "ray" not in pool or len(pool["ray"]) < size:
+        pool["ray"], pool["share"] = None, None             # the old buffers first
+        pool["ray"] = np.empty(size + size // 4, np.int64)
+        pool["share"] = np.empty(size + size // 4)
+    ray, share = pool["ray"][:size], pool["share"][:size]
+    run(fill)
     return RaySelection(lptr, lidx, cptr, ray, share)
 
 
-def _numba_normal_equations(lf, index, rays, centre, radius, bright, total):
+def _numba_normal_equations(lf, index, rays, centre, radius, bright, total, pool):
     """Run one solve on the numba path: one ray selection, ray shares, normal equations.
 
-    ``total`` (P,) receives the rays' summed shares (overwritten). Returns ``(selection,
-    normal (N, 3, 3), rhs (N, 3), rays with weight (N,))``.
+    ``total`` (P,) receives the rays' summed shares (overwritten); ``pool``: the selection's
+    buffers (:func:`ray_selection`). Returns ``(selection, normal (N, 3, 3), rhs (N, 3),
+    rays with weight (N,))``.
     """
     from plenopiv.tracking import _kernels as _k
 
-    sel = ray_selection(lf, index, rays, centre, radius)
+    sel = ray_selection(lf, index, rays, centre, radius, pool)
     u, xf, w = rays
     n = len(centre)
     b = np.ascontiguousarray(bright, np.float64)
