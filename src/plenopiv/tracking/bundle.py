@@ -65,11 +65,13 @@ class BundleSettings:
         refines afterwards from several starts) such a lenslet is in or out of the selection
         depending on the seed; with half a footprint it is always in, and the fit of an
         isolated particle is the same from any seed within the volume's blur
-        (:data:`PARTICLE_BUNDLE`). The wider selection takes in more of the neighbours'
-        light in a dense field (16 MP, 20,000 particles, seeds within 0.3 footprint and 0.3
-        depth cells: lateral rms 0.18 against 0.14 footprint with no margin); solves without
-        it after the margin's would bring that back, but they make the near-focus position
-        depend on the seed again.
+        (:data:`PARTICLE_BUNDLE`). Beyond focus the current estimate is close and a pixel's
+        beam already bounds the miss of its ray, so the margin only takes in neighbours' light
+        (a vortex pair at 0.15 particles per lenslet: depth rms 0.74-1.02 voxel beyond two
+        depth cells of focus with it in full, 0.42-0.60 without): it applies in full within
+        ``margin_cells`` depth cells of focus and fades linearly to zero at twice that.
+    margin_cells : float
+        See ``margin`` (depth resolution cells, > 0).
     """
 
     radius: float = 1.5
@@ -78,6 +80,7 @@ class BundleSettings:
     floor: float = 0.003
     min_rays: int = 6
     margin: float = 0.0
+    margin_cells: float = 2.0
 
     def __post_init__(self):
         if not (np.isfinite(self.radius) and self.radius > 0):
@@ -94,6 +97,9 @@ class BundleSettings:
             raise ValueError(f"bundle min_rays = {self.min_rays!r}: expected an int >= 3")
         if not (np.isfinite(self.margin) and self.margin >= 0):
             raise ValueError(f"bundle margin = {self.margin!r}: expected >= 0 footprints")
+        if not (np.isfinite(self.margin_cells) and self.margin_cells > 0):
+            raise ValueError(f"bundle margin_cells = {self.margin_cells!r}: expected > 0 "
+                             "depth cells")
 
 
 #: The fit of the particle table (``[particles] position = "light_field"``): half a footprint
@@ -305,6 +311,16 @@ def ray_table(lf: LightField) -> RayTable:
                     np.ascontiguousarray(xf[order], np.float64))
 
 
+def _margin(settings: BundleSettings, depth, depth_cell: float) -> np.ndarray:
+    """Selection margin at effective depth ``depth`` (metres), in footprints.
+
+    ``margin`` within ``margin_cells`` depth cells of focus, zero beyond twice that, linear
+    between (see :class:`BundleSettings`).
+    """
+    cells = np.abs(np.asarray(depth, float)) / (settings.margin_cells * depth_cell)
+    return settings.margin * np.clip(2.0 - cells, 0.0, 1.0)
+
+
 def _half_beam(lf: LightField, depth) -> np.ndarray:
     """Half width of a pixel's beam at effective depth ``depth`` (metres)."""
     t = (lf.object_distance + np.asarray(depth, float)) / lf.object_distance
@@ -438,7 +454,7 @@ def bundle_positions(lf: LightField, image, seeds, *,
         widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
         centre = pos
         radius = (settings.radius * _half_beam(lf, pos[:, 2]) + widen
-                  + settings.margin * lf.footprint)
+                  + _margin(settings, pos[:, 2], depth_cell) * lf.footprint)
         if engine == "numba":
             sel, normal, rhs, nr = _numba_normal_equations(lf, index, rays, centre, radius,
                                                            bright, total, pool)

@@ -185,7 +185,10 @@ def measure_case(case: VortexCase) -> dict:
     vec = res.vectors
     piv_d = interpolate_displacement(vec.x, vec.y, vec.z, vec.u, vec.v, vec.w, mid)
     pos_err_b = (tracks.position_a[correct] - true_a[ja[correct]])
-    pos_err_c = (res.volume_a.particle_position[tracks.index_a[correct]] - true_a[ja[correct]])
+    va = res.volume_a
+    centroid = (va.particle_position if va.particle_centroid_effective is None
+                else va.correction.points(va.particle_centroid_effective))
+    pos_err_c = centroid[tracks.index_a[correct]] - true_a[ja[correct]]
     sig = tracks.uncertainty_a[correct]
     disp = replace(vec, dt=None)
     piv_grid = compare_with_truth(disp, flow, case.dt, grid, case.windows_vox[-1])
