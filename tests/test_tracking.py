@@ -103,14 +103,21 @@ def test_bundle_position_of_a_rendered_particle(thesis_light_field, depth, engin
     assert res.uncertainty[0, 2] < 0.5 * cell
 
 
-def test_numba_kernels_match_their_numpy_twin(thesis_light_field, rng):
-    """Several overlapping particles (shared rays), seeded off: both engines agree."""
+def seeded_particles(thesis_light_field, rng, n, *, rays, seed):
+    """``n`` particles within ±4 footprints and ±3 mm, their image, seeds off by 0.2
+    footprint laterally and 0.8 footprint in depth, and the depth resolution cell."""
     cam, cal, lf = thesis_light_field
     b = lf.footprint
-    truth = np.column_stack([rng.uniform(-4, 4, (6, 2)) * b, rng.uniform(-3e-3, 3e-3, 6)])
-    img = particle_image(cam, truth, rays_per_particle=4000, seed=5)
-    seeds = truth + rng.normal(0, 0.2, (6, 3)) * [b, b, 4 * b]
-    cell = resolution_cell(cal.effective_camera)[1]
+    truth = np.column_stack([rng.uniform(-4, 4, (n, 2)) * b, rng.uniform(-3e-3, 3e-3, n)])
+    img = particle_image(cam, truth, rays_per_particle=rays, seed=seed)
+    seeds = truth + rng.normal(0, 0.2, (n, 3)) * [b, b, 4 * b]
+    return truth, img, seeds, resolution_cell(cal.effective_camera)[1]
+
+
+def test_numba_kernels_match_their_numpy_twin(thesis_light_field, rng):
+    """Several overlapping particles (shared rays), seeded off: both engines agree."""
+    _, _, lf = thesis_light_field
+    truth, img, seeds, cell = seeded_particles(thesis_light_field, rng, 6, rays=4000, seed=5)
     res = {e: bundle_positions(lf, img, seeds, depth_cell=cell, engine=e,
                                brightness=np.linspace(1, 2, 6)) for e in ("numba", "numpy")}
     a, c = res["numba"], res["numpy"]
@@ -156,14 +163,10 @@ def test_bundle_positions_do_not_depend_on_the_particles_order(thesis_light_fiel
     particle gets the same fit (to rounding: the rays' shared sums add in another order)."""
     from plenopiv.tracking.bundle import spatial_order
 
-    cam, cal, lf = thesis_light_field
-    b = lf.footprint
-    truth = np.column_stack([rng.uniform(-4, 4, (7, 2)) * b, rng.uniform(-3e-3, 3e-3, 7)])
-    img = particle_image(cam, truth, rays_per_particle=3000, seed=8)
-    seeds = truth + rng.normal(0, 0.2, (7, 3)) * [b, b, 4 * b]
+    _, _, lf = thesis_light_field
+    _, img, seeds, cell = seeded_particles(thesis_light_field, rng, 7, rays=3000, seed=8)
     order = spatial_order(lf, seeds)
     np.testing.assert_array_equal(np.sort(order), np.arange(7))
-    cell = resolution_cell(cal.effective_camera)[1]
     bright = np.linspace(1, 2, 7)
     a = bundle_positions(lf, img, seeds, depth_cell=cell, brightness=bright)
     perm = rng.permutation(7)
@@ -180,12 +183,8 @@ def test_bundle_on_the_lit_rays_alone_is_the_same_fit(thesis_light_field, rng, e
     the particle table's margin too."""
     from plenopiv.tracking.bundle import PARTICLE_BUNDLE
 
-    cam, cal, lf = thesis_light_field
-    b = lf.footprint
-    truth = np.column_stack([rng.uniform(-4, 4, (5, 2)) * b, rng.uniform(-3e-3, 3e-3, 5)])
-    img = particle_image(cam, truth, rays_per_particle=3000, seed=9)
-    seeds = truth + rng.normal(0, 0.2, (5, 3)) * [b, b, 4 * b]
-    cell = resolution_cell(cal.effective_camera)[1]
+    _, _, lf = thesis_light_field
+    _, img, seeds, cell = seeded_particles(thesis_light_field, rng, 5, rays=3000, seed=9)
     values = lf.values(img)
     lit = lf.subset(values > PARTICLE_BUNDLE.floor * values.max())
     assert lit.n_rays < 0.5 * lf.n_rays

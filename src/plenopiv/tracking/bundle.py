@@ -311,14 +311,21 @@ def ray_table(lf: LightField) -> RayTable:
                     np.ascontiguousarray(xf[order], np.float64))
 
 
-def _margin(settings: BundleSettings, depth, depth_cell: float) -> np.ndarray:
-    """Selection margin at effective depth ``depth`` (metres), in footprints.
+def _selection_radius(lf: LightField, settings: BundleSettings, depth, depth_cell: float, *,
+                      first: bool) -> np.ndarray:
+    """Radius of a solve's ray selection around estimates at effective depth ``depth``, m.
 
-    ``margin`` within ``margin_cells`` depth cells of focus, zero beyond twice that, linear
-    between (see :class:`BundleSettings`).
+    ``radius`` half beam widths; on the ``first`` solve widened by the steepest ray's drift
+    over ``seed_depth_error`` depth cells; plus ``margin`` footprints within
+    ``margin_cells`` depth cells of focus, none beyond twice that, linear between (see
+    :class:`BundleSettings`).
     """
-    cells = np.abs(np.asarray(depth, float)) / (settings.margin_cells * depth_cell)
-    return settings.margin * np.clip(2.0 - cells, 0.0, 1.0)
+    depth = np.asarray(depth, float)
+    widen = (lf.aperture_radius / lf.object_distance * settings.seed_depth_error * depth_cell
+             if first else 0.0)
+    fade = np.clip(2.0 - np.abs(depth) / (settings.margin_cells * depth_cell), 0.0, 1.0)
+    return (settings.radius * _half_beam(lf, depth) + widen
+            + settings.margin * fade * lf.footprint)
 
 
 def _half_beam(lf: LightField, depth) -> np.ndarray:
@@ -442,7 +449,6 @@ def bundle_positions(lf: LightField, image, seeds, *,
     rays, total, (origin, direction) = _engine_inputs(lf, table, weight, engine)
     depth_cell = (lf.footprint * lf.object_distance / (2.0 * lf.aperture_radius)
                   if depth_cell is None else depth_cell)
-    slope = lf.aperture_radius / lf.object_distance
     bright = np.ones(n) if brightness is None else np.asarray(brightness, float).reshape(n)
     # the kernels read each particle's lenslets from memory: in spatial order neighbours
     # find them in cache (half the time at 16 MP); each particle's sums are unchanged
@@ -451,16 +457,13 @@ def bundle_positions(lf: LightField, image, seeds, *,
     pos, ok = seeds.copy(), np.ones(n, bool)
     pool: dict = {}                            # the numba selections' buffers, reused
     for it in range(settings.iterations):
-        widen = slope * settings.seed_depth_error * depth_cell if it == 0 else 0.0
-        centre = pos
-        radius = (settings.radius * _half_beam(lf, pos[:, 2]) + widen
-                  + _margin(settings, pos[:, 2], depth_cell) * lf.footprint)
+        radius = _selection_radius(lf, settings, pos[:, 2], depth_cell, first=it == 0)
         if engine == "numba":
-            sel, normal, rhs, nr = _numba_normal_equations(lf, index, rays, centre, radius,
+            sel, normal, rhs, nr = _numba_normal_equations(lf, index, rays, pos, radius,
                                                            bright, total, pool)
             p, good = _solve(normal, rhs)
         else:
-            pid, ray, w = _shared_rays(lf, index, centre, radius, weight, bright, chunk)
+            pid, ray, w = _shared_rays(lf, index, pos, radius, weight, bright, chunk)
             nr = np.bincount(pid, w > 0, n)
             p, normal, good = closest_points(pid, origin[ray], direction[ray], w, n)
         good &= nr >= settings.min_rays
