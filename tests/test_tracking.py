@@ -21,6 +21,7 @@ from plenopiv.tracking.bundle import (
     bundle_positions,
     closest_point,
     closest_points,
+    ray_table,
 )
 from plenopiv.tracking.forward import (
     ForwardSettings,
@@ -186,17 +187,26 @@ def test_bundle_on_the_lit_rays_alone_is_the_same_fit(thesis_light_field, rng, e
     _, _, lf = thesis_light_field
     _, img, seeds, cell = seeded_particles(thesis_light_field, rng, 5, rays=3000, seed=9)
     values = lf.values(img)
-    lit = lf.subset(values > PARTICLE_BUNDLE.floor * values.max())
+    keep = values > PARTICLE_BUNDLE.floor * values.max()
+    lit = lf.subset(keep)
     assert lit.n_rays < 0.5 * lf.n_rays
+    # the same rays in the fit's lenslet order: the ray table lends their arrays, no copies
+    idx = np.flatnonzero(keep)
+    ordered = lf.subset(idx[np.lexsort((-lf.u[idx, 1], lf.lenslet[idx]))])
+    table = ray_table(ordered)
+    assert np.shares_memory(table.u, ordered.u)
     for settings in (BundleSettings(), PARTICLE_BUNDLE):
         full = bundle_positions(lf, img, seeds, settings=settings, depth_cell=cell,
                                 engine=engine)
-        part = bundle_positions(lit, img, seeds, settings=settings, depth_cell=cell,
-                                engine=engine)
-        np.testing.assert_allclose(part.position, full.position, rtol=0, atol=1e-12)
-        np.testing.assert_array_equal(part.n_rays, full.n_rays)
+        for part_lf in (lit, ordered):
+            part = bundle_positions(part_lf, img, seeds, settings=settings, depth_cell=cell,
+                                    engine=engine)
+            np.testing.assert_allclose(part.position, full.position, rtol=0, atol=1e-12)
+            np.testing.assert_array_equal(part.n_rays, full.n_rays)
     with pytest.raises(ValueError, match="keep"):
         lf.subset(np.ones(3, bool))
+    with pytest.raises(ValueError, match="keep"):
+        lf.subset(np.ones(3))
 
 
 def test_bundle_rejects_a_wrong_image_and_bad_settings(thesis_light_field):

@@ -139,10 +139,16 @@ class LightField:
         return (1.0 / (1.0 + q), math.inf if q >= 1.0 else 1.0 / (1.0 - q))
 
     def subset(self, keep) -> LightField:
-        """The rays where ``keep`` (P,) bool is true, as a light field of the same camera."""
-        keep = np.asarray(keep, bool)
-        if keep.shape != (self.n_rays,):
+        """Some rays, as a light field of the same camera.
+
+        ``keep``: a (P,) bool mask, or indices of rays (in the order the subset is to have).
+        """
+        keep = np.asarray(keep)
+        if keep.dtype == bool and keep.shape != (self.n_rays,):
             raise ValueError(f"keep has shape {keep.shape}; expected ({self.n_rays},)")
+        if keep.dtype != bool and (keep.ndim != 1 or not np.issubdtype(keep.dtype, np.integer)):
+            raise ValueError(f"keep must be a ({self.n_rays},) bool mask or 1-D ray indices; "
+                             f"got {keep.dtype} of shape {keep.shape}")
         return dataclasses.replace(self, pixel=self.pixel[keep], lenslet=self.lenslet[keep],
                                    s=self.s[keep], u=self.u[keep], lit=self.lit[keep])
 

@@ -303,12 +303,18 @@ class RayTable(NamedTuple):
 
 
 def ray_table(lf: LightField) -> RayTable:
-    """Group the rays of ``lf`` by lenslet (:class:`RayTable`; built once per light field)."""
+    """Group the rays of ``lf`` by lenslet (:class:`RayTable`; built once per light field).
+
+    A light field already in that order (:func:`plenopiv.pipeline.light_field_positions`
+    builds its subset so) lends its own arrays instead of sorted copies.
+    """
     order, ptr, conj, has = lenslet_table(lf)
     xf = lf.focal_plane_position
+    in_order = bool(np.all(order[1:] > order[:-1]))   # a permutation: the identity
+    u, xf_sorted = (lf.u, xf) if in_order else (lf.u[order], xf[order])
     return RayTable(order, ptr, np.flatnonzero(has), cKDTree(conj[has]), xf,
-                    np.ascontiguousarray(lf.u[order], np.float64),
-                    np.ascontiguousarray(xf[order], np.float64))
+                    np.ascontiguousarray(u, np.float64), np.ascontiguousarray(xf_sorted,
+                                                                              np.float64))
 
 
 def _selection_radius(lf: LightField, settings: BundleSettings, depth, depth_cell: float, *,
