@@ -69,13 +69,13 @@ BYTES_PER_VOXEL_PIV = 160
 BASE_BYTES = 0.3e9
 #: Bytes per ray held by the particle table's positions from the light field (``[particles]
 #: position = "light_field"``, the default: the lit rays, their lenslet table and the rays
-#: each particle's fit selects), on top of what the reconstruction holds: 0.5 GB for the
-#: 11.6 million rays of the 16 MP camera at 0.36 particles per lenslet (measured: peak 4.01
+#: each particle's fit selects), on top of what the reconstruction holds: 0.3 GB for the
+#: 11.6 million rays of the 16 MP camera at 0.36 particles per lenslet (measured: peak 3.85
 #: against 3.53 GB per volume, rotated array).
-BYTES_PER_RAY_PARTICLE_FIT = 45
-#: Seconds per ray of that fit on two threads: 5.0 s for the 16 MP camera's 11.6 million
+BYTES_PER_RAY_PARTICLE_FIT = 30
+#: Seconds per ray of that fit on two threads: 4.7 s for the 16 MP camera's 11.6 million
 #: rays and 27,500 particles (measured, idle machine).
-SECONDS_PER_RAY_PARTICLE_FIT = 4.3e-7
+SECONDS_PER_RAY_PARTICLE_FIT = 4.1e-7
 
 
 @dataclass(frozen=True)
