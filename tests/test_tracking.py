@@ -21,6 +21,7 @@ from plenopiv.tracking.bundle import (
     bundle_positions,
     closest_point,
     closest_points,
+    lit_rays,
     ray_table,
 )
 from plenopiv.tracking.forward import (
@@ -191,8 +192,8 @@ def test_bundle_on_the_lit_rays_alone_is_the_same_fit(thesis_light_field, rng, e
     lit = lf.subset(keep)
     assert lit.n_rays < 0.5 * lf.n_rays
     # the same rays in the fit's lenslet order: the ray table lends their arrays, no copies
-    idx = np.flatnonzero(keep)
-    ordered = lf.subset(idx[np.lexsort((-lf.u[idx, 1], lf.lenslet[idx]))])
+    ordered = lit_rays(lf, img, PARTICLE_BUNDLE.floor)
+    assert np.array_equal(np.sort(ordered.pixel), np.sort(lit.pixel))
     table = ray_table(ordered)
     assert np.shares_memory(table.u, ordered.u)
     for settings in (BundleSettings(), PARTICLE_BUNDLE):

@@ -44,7 +44,7 @@ from plenopiv.reconstruction.subdivision import (  # noqa: F401 - the pipeline's
 )
 from plenopiv.reconstruction.weights import Weights
 from plenopiv.resources import prefer_small_pages
-from plenopiv.tracking.bundle import PARTICLE_BUNDLE, bundle_positions
+from plenopiv.tracking.bundle import PARTICLE_BUNDLE, bundle_positions, lit_rays
 from plenopiv.volume import VolumeGrid
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
@@ -162,25 +162,25 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t2 = time.perf_counter()
     if progress is not None:
         progress("particles", 0.0)
-    result, centroid = _particles_of(vol, grid, calibration, particles)
-    if particles.position == "light_field" and len(centroid):
+    corr, eff, pos, intensity, size = _particles_of(vol, grid, calibration, particles)
+    centroid = None
+    if particles.position == "light_field" and len(eff):
         if progress is not None:
             progress("particles", 0.5)
-        eff = light_field_positions(geometry.light_field, img, centroid, result[3],
+        centroid = eff
+        eff = light_field_positions(geometry.light_field, img, centroid, intensity,
                                     calibration, image_mask=image_mask)
-        result = (result[0], eff, result[0].points(eff), *result[3:])
-    else:
-        centroid = None
+        pos = corr.points(eff)
     t["particles_s"] = time.perf_counter() - t2
-    return VolumeResult(vol, grid, *result, t, particle_centroid_effective=centroid)
+    return VolumeResult(vol, grid, corr, eff, pos, intensity, size, t,
+                        particle_centroid_effective=centroid)
 
 
 def _particles_of(vol: np.ndarray, grid: VolumeGrid, calibration: Calibration,
                   particles: ParticleSettings) -> tuple:
-    """The particles of a volume, found and depth-corrected.
+    """``(correction, effective positions, positions, intensities, sizes)`` of the particles.
 
-    Returns ``((correction, effective positions, positions, intensities, sizes), effective
-    positions)``. Found by :func:`plenopiv.particles.find_particles`, then depth-corrected.
+    Found by :func:`plenopiv.particles.find_particles`, then depth-corrected.
     """
     if float(vol.max()) <= 0:
         raise ReconstructionError("the reconstructed volume is empty: no particle light in "
@@ -189,7 +189,7 @@ def _particles_of(vol: np.ndarray, grid: VolumeGrid, calibration: Calibration,
     eff = found.position_world(grid.origin, grid.voxel)
     corr = DepthCorrection.for_camera(calibration.camera, internal=particles.internal_correction)
     return (corr, eff, corr.points(eff) if len(eff) else eff, found.intensity,
-            found.size_world(grid.voxel)), eff
+            found.size_world(grid.voxel))
 
 
 def light_field_positions(lf, image, seeds, intensity, calibration: Calibration, *,
@@ -208,12 +208,7 @@ def light_field_positions(lf, image, seeds, intensity, calibration: Calibration,
     img = np.asarray(image, np.float32)
     if image_mask is not None:
         img = np.where(np.asarray(image_mask, bool), np.float32(0), img)
-    # only rays above the floor carry weight: the fit on them alone is the same, and its ray
-    # table is a fraction of the light field's (half the rays lit at 16 MP); taken in the
-    # fit's lenslet order, its arrays serve the table without sorted copies
-    values = lf.values(img)
-    keep = np.flatnonzero(values > PARTICLE_BUNDLE.floor * float(values.max(initial=0.0)))
-    lit = lf.subset(keep[np.lexsort((-lf.u[keep, 1], lf.lenslet[keep]))])
+    lit = lit_rays(lf, img, PARTICLE_BUNDLE.floor)       # the same fit, a fraction of the rays
     fit = bundle_positions(lit, img, seeds, settings=PARTICLE_BUNDLE, depth_cell=cell,
                            brightness=intensity)
     return np.where(fit.converged[:, None], fit.position, seeds)

@@ -54,6 +54,16 @@ class VolumeResult:
     particle_centroid_effective: np.ndarray | None = None
 
     @property
+    def volume_position_effective(self) -> np.ndarray:
+        """The volume's own estimate of the particle positions (N, 3), effective, metres.
+
+        The centroids where the positions came from the light field, else the positions.
+        """
+        if self.particle_centroid_effective is None:
+            return self.particle_position_effective
+        return self.particle_centroid_effective
+
+    @property
     def z_corrected(self) -> np.ndarray:
         """Physical depth of each voxel layer, metres."""
         return self.correction.depth(self.grid.z)

@@ -31,8 +31,8 @@ from plenopiv.lightfield import LightField
 ENGINES = ("numba", "numpy")
 
 __all__ = ["ENGINES", "PARTICLE_BUNDLE", "BundlePositions", "BundleSettings", "RayTable",
-           "bundle_positions", "closest_point", "closest_points", "lenslet_table", "ray_lines",
-           "ray_table", "spatial_order"]
+           "bundle_positions", "closest_point", "closest_points", "lenslet_table", "lit_rays",
+           "ray_lines", "ray_table", "spatial_order"]
 
 
 @dataclass(frozen=True)
@@ -261,19 +261,41 @@ def lenslet_table(lf: LightField):
     ``order`` sorts the rays by lenslet, lenslet L's rays are ``order[ptr[L]:ptr[L + 1]]``,
     ``conjugates`` (K, 2) is each lenslet's focal-plane point X_f (metres) and ``has`` marks
     the lenslets with rays (K = largest lenslet index + 1). Within a lenslet the rays run down
-    in aperture y, which the kernels' bisection needs: the sensor's row order gives that for
-    the light fields plenopiv builds (checked), any other order is sorted so.
+    in aperture y, which the kernels' bisection needs (:func:`_lenslet_order`).
     """
-    order = np.argsort(lf.lenslet, kind="stable")
-    lens = lf.lenslet[order]                  # the same whichever sort below is kept
-    if np.any(np.diff(lf.u[order, 1])[lens[1:] == lens[:-1]] > 0.0):
-        order = np.lexsort((-lf.u[:, 1], lf.lenslet))
+    order = _lenslet_order(lf.lenslet, lf.u[:, 1])
+    lens = lf.lenslet[order]
     k = int(lf.lenslet.max()) + 1 if lf.n_rays else 0
     ptr = np.searchsorted(lens, np.arange(k + 1))
     conj = np.zeros((k, 2))
     has = ptr[1:] > ptr[:-1]
     conj[has] = lf.focal_plane_position[order[ptr[:-1][has]]]
     return order, ptr, conj, has
+
+
+def _lenslet_order(lenslet, u_y) -> np.ndarray:
+    """Order of rays by lenslet and, within one, down in aperture y ``u_y`` (metres).
+
+    The sensor's row order, kept by a stable sort on the lenslet, gives the second key where
+    it already runs down in y; otherwise the rays are sorted on both keys.
+    """
+    order = np.argsort(lenslet, kind="stable")
+    lens = lenslet[order]
+    if np.any(np.diff(u_y[order])[lens[1:] == lens[:-1]] > 0.0):
+        order = np.lexsort((-u_y, lenslet))
+    return order
+
+
+def lit_rays(lf: LightField, image, floor: float) -> LightField:
+    """The rays of ``lf`` whose pixel in ``image`` exceeds ``floor`` times the maximum.
+
+    Rays at or below the floor carry no weight in :func:`bundle_positions`, so a fit on these
+    alone is the same (half the rays at 16 MP). They come in the order of
+    :func:`lenslet_table`, so that :func:`ray_table` uses their arrays in place.
+    """
+    values = lf.values(image)
+    keep = np.flatnonzero(values > floor * float(values.max(initial=0.0)))
+    return lf.subset(keep[_lenslet_order(lf.lenslet[keep], lf.u[keep, 1])])
 
 
 class RayTable(NamedTuple):
@@ -305,8 +327,8 @@ class RayTable(NamedTuple):
 def ray_table(lf: LightField) -> RayTable:
     """Group the rays of ``lf`` by lenslet (:class:`RayTable`; built once per light field).
 
-    A light field already in that order (:func:`plenopiv.pipeline.light_field_positions`
-    builds its subset so) lends its own arrays instead of sorted copies.
+    A light field already in that order (:func:`lit_rays`) lends its own arrays instead of
+    sorted copies.
     """
     order, ptr, conj, has = lenslet_table(lf)
     xf = lf.focal_plane_position

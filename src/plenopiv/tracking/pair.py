@@ -109,12 +109,10 @@ def physical_bundle(lf: LightField, image, volume: VolumeResult,
     :func:`~plenopiv.tracking.bundle.ray_table`, when already built.
     """
     table = ray_table(lf) if table is None else table
-    # seeded by the volume's own centroids where the particle table's positions came from
-    # the light field (their fit has a selection margin this one has not; the tracking was
-    # validated from the centroids: docs/validation/tracking.md)
-    seeds = (volume.particle_position_effective if volume.particle_centroid_effective is None
-             else volume.particle_centroid_effective)
-    b = bundle_positions(lf, image, seeds, settings=settings,
+    # seeded by the volume's own centroids, also where the particle table's positions came
+    # from the light field (that fit has a selection margin this one has not; the tracking
+    # was validated from the centroids: docs/validation/tracking.md)
+    b = bundle_positions(lf, image, volume.volume_position_effective, settings=settings,
                          depth_cell=depth_cell, brightness=volume.particle_intensity,
                          table=table)
     eff = b.position

@@ -185,9 +185,7 @@ def measure_case(case: VortexCase) -> dict:
     vec = res.vectors
     piv_d = interpolate_displacement(vec.x, vec.y, vec.z, vec.u, vec.v, vec.w, mid)
     pos_err_b = (tracks.position_a[correct] - true_a[ja[correct]])
-    va = res.volume_a
-    centroid = (va.particle_position if va.particle_centroid_effective is None
-                else va.correction.points(va.particle_centroid_effective))
+    centroid = res.volume_a.correction.points(res.volume_a.volume_position_effective)
     pos_err_c = centroid[tracks.index_a[correct]] - true_a[ja[correct]]
     sig = tracks.uncertainty_a[correct]
     disp = replace(vec, dt=None)
@@ -274,12 +272,12 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
     cen, bun, sig, ref = nan3.copy(), nan3.copy(), nan3.copy(), nan3.copy()
     n_lens = np.zeros(len(depths), int)
     seen = max(2, TrackingConfig().min_lenslets)
+    # the volume's centroid, the bundle's seed here, is this study's reference
+    volume_positions = STUDY_PARTICLES.model_copy(update={"position": "volume"})
     for i, z in enumerate(depths):
         x, y = rng.uniform(-offset_vox, offset_vox, 2) * VOXEL
         truth = np.array([x, y, z])
         img = particle_image(cam, [truth], rays_per_particle=rays_per_particle, seed=seed + i)
-        # the volume's centroid, the bundle's seed here, is this study's reference
-        volume_positions = STUDY_PARTICLES.model_copy(update={"position": "volume"})
         res = reconstruct_volume(cal, img, grid, weights=weights, particles=volume_positions)
         if not len(res.particle_intensity):
             continue
