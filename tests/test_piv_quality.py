@@ -231,3 +231,22 @@ def test_vector_field_defaults_for_the_old_constructor():
     assert f.flag.dtype == np.uint8 and f.flag[0, 0, 1] == FLAG_OUTLIER
     assert f.replaced[0, 0, 1] and f.replaced.sum() == 1
     assert np.all(np.isnan(f.u_uncertainty)) and f.peak_ratio is f.snr
+
+
+def test_rejected_vectors_record_how_far_their_measurement_lay(rng):
+    """A rejected vector keeps, per component, the distance of its own measurement from its
+    neighbours' median; valid vectors record 0; the record does not depend on what replaces
+    the rejected vector."""
+    a, b = _corrupted_pair(rng)
+    fields = {m: correlate_volumes(a, b, GRID, settings=PIVSettings(
+        windows=16, overlap=0.0, passes=2, replacement=m)) for m in ("median", "none")}
+    f = fields["median"]
+    d = f.uncertainty_parts["rejected_disagreement"]
+    assert d.shape == (3,) + f.u.shape
+    rejected = ~f.valid
+    assert np.all(d[:, f.valid] == 0.0)
+    # the unrelated particles of the corrupted window: rejected, and its measurement lay more
+    # than the threshold's worth of noise (2 x 0.1 voxel) from the median of its neighbours
+    assert rejected[1, 1, 1] and np.max(d[:, 1, 1, 1] / GRID.voxel_size) > 0.2
+    # its replaced value is that median: the record is the distance from it
+    np.testing.assert_array_equal(d, fields["none"].uncertainty_parts["rejected_disagreement"])

@@ -15,6 +15,7 @@ from plenopiv.piv.uncertainty import (
     DEFAULT_RATIO,
     MAX_CONVERGENCE_RATIO,
     MIN_GAIN,
+    REJECTED_RANGE_FACTOR,
     Response,
     cached_response,
     combine,
@@ -22,6 +23,7 @@ from plenopiv.piv.uncertainty import (
     curvature_noise_factor,
     filter_offset,
     iteration_uncertainty,
+    rejected_neighbour_uncertainty,
     response_key,
     response_shifts,
     unresolved_gradient_bias,
@@ -347,3 +349,67 @@ def test_the_curvature_of_random_errors_is_removed_from_the_bias_term(rng):
     assert np.all(kept <= raw)
     assert np.mean(kept[inner] ** 2) == pytest.approx(0.4839 * k * sigma**2,
                                                       rel=5 * np.sqrt(2 / n) * 2)
+
+
+def test_a_rejected_vector_leaves_its_range_to_its_neighbourhood():
+    """A rejected vector whose measurement lay D from its neighbours' median gives itself and
+    its 3 x 3 x 3 neighbourhood D / sqrt(12) (a rectangular distribution over the range);
+    vectors two spacings away and components without disagreement get nothing; where two
+    ranges overlap the larger counts."""
+    shape = (5, 5, 7)
+    f = _grid_field(np.zeros(shape), (1e-3, 1e-3, 1e-3))
+    jump = np.zeros((3,) + shape)
+    jump[0, 2, 2, 2] = 6e-4          # u of the vector (z, y, x) = (2, 2, 2)
+    jump[0, 2, 2, 4] = 3e-4          # a smaller one two vectors along x
+    f = replace(f, uncertainty_parts={"rejected_disagreement": jump})
+    q = rejected_neighbour_uncertainty(f)
+    assert REJECTED_RANGE_FACTOR == pytest.approx(1 / np.sqrt(12))
+    np.testing.assert_allclose(q[0, 1:4, 1:4, 1:4], 6e-4 / np.sqrt(12))    # incl. (2, 2, 3)
+    np.testing.assert_allclose(q[0, 1:4, 1:4, 5], 3e-4 / np.sqrt(12))
+    assert q[0, 0].max() == 0.0 and q[0, 4].max() == 0.0 and q[0, :, :, 0].max() == 0.0
+    assert q[1:].max() == 0.0
+    # combined in quadrature with the other terms (here all zero)
+    g = combine(f, _response(gain_w=1.0, random_w=0.0))
+    np.testing.assert_allclose(g.u_uncertainty, q[0], atol=1e-18)
+    np.testing.assert_allclose(g.uncertainty_parts["rejected_neighbour"], q)
+    # a field without rejected vectors, or without the record, gets nothing
+    none = replace(f, uncertainty_parts={"rejected_disagreement": np.zeros((3,) + shape)})
+    assert rejected_neighbour_uncertainty(none).max() == 0.0
+    assert rejected_neighbour_uncertainty(replace(f, uncertainty_parts=None)).max() == 0.0
+
+
+def test_the_shared_error_grows_with_the_vectors_motion_whatever_its_direction():
+    """The excess random error (the error both exposures share) is 0 at rest, the test pair's
+    at the test pair's motion in resolution cells, in every component, whichever way the
+    vector moved (a component that does not move gets it too), linear in variance between
+    and held beyond the largest test motion; the same at every lateral position."""
+    cell = np.array([1e-4, 1e-4, 4e-4])                        # lateral, lateral, depth
+    shifts = np.array([[1e-4, 1e-4, 0.0], [3e-4, 3e-4, 0.0]])    # motions sqrt(2), 3 sqrt(2)
+    z = np.array([-1e-3, 0.0, 1e-3])
+    random = np.zeros((2, 3, 3))
+    random[0] = 1e-5                                           # r at the first test motion
+    random[1] = 3e-5
+    statistics = np.full((2, 3, 3), 0.5e-5)
+    resp = Response(z, shifts, np.ones((2, 3, 3)), random, statistics, 100, cell)
+    ex2 = random**2 - statistics**2                             # per test motion
+    m1, m2 = np.sqrt(2.0), 3 * np.sqrt(2.0)
+    motions = {                                                 # (u, v, w) in metres -> t
+        "rest": ((0.0, 0.0, 0.0), 0.0),
+        "first, along x and y": ((1e-4, 1e-4, 0.0), m1),
+        "first, along depth only": ((0.0, 0.0, m1 * 4e-4), m1),
+        "between": ((2e-4, 2e-4, 0.0), 2 * np.sqrt(2.0)),
+        "beyond": ((1e-3, 0.0, 0.0), 10.0),
+    }
+    for name, (d, t) in motions.items():
+        disp = np.broadcast_to(np.asarray(d)[:, None, None, None], (3, 3, 2, 2))
+        got = resp.excess(z, disp)
+        expected = np.sqrt(np.interp(t, [0.0, m1, m2], [0.0, ex2[0, 0, 0], ex2[1, 0, 0]]))
+        np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-20, err_msg=name)
+    # the cell travels with the cached response
+    back = Response.from_dict(json.loads(json.dumps(resp.to_dict())))
+    np.testing.assert_array_equal(back.cell, cell)
+    # through combine: the vector's own motion sets its excess
+    f = _field(w=0.0, sigma=0.0)
+    f = replace(f, u=f.u * 0.0, v=f.v * 0.0)
+    g = combine(f, resp)
+    np.testing.assert_allclose(g.uncertainty_parts["response_random"], 0.0, atol=1e-20)

@@ -88,24 +88,21 @@ def test_uncertainty_covers_the_true_errors(oseen, hill):
     measured response, the windows' curvature bias): most true errors within +-2 sigma in
     every component, where the correlation statistics alone leave 31-62 % of the depth
     errors outside (docs/validation/uncertainty.md). Oseen's are covered about as a
-    Gaussian error would be (95 %) on average; Hill's depth component too, its lateral ones
-    less (the vortex core reverses the lateral motion within about one window, structure the
-    windows average out and no calibration with test pairs restores: the strict xfail
-    below)."""
+    Gaussian error would be (95 %) on average; Hill's depth component too, and its lateral
+    ones once the range a rejected neighbour leaves open is counted (the vortex core reverses
+    the lateral motion within about one window; the median test rejects the vectors that see
+    it: without that term 81 and 89 %)."""
     for e in (oseen, hill):
         cov = np.asarray(e["coverage_2sigma"])
-        assert np.all(cov >= 0.8) and np.all(cov <= 1.0), cov
+        assert np.all(cov >= 0.9) and np.all(cov <= 1.0), cov
     assert np.mean(oseen["coverage_2sigma"]) >= 0.9, oseen["coverage_2sigma"]
-    assert hill["coverage_2sigma"][2] >= 0.9, hill["coverage_2sigma"]
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "measured on these renders: Oseen u, v, w = 98, 97, 86 % (its near-focus depth error, "
-    "where the chain sees a fraction of the true w); Hill 81, 89, 95 %: Hill's lateral error "
-    "in the vortex core (0.5-0.6 voxel), which reverses within about one window, whether the "
-    "core lies at focus or not (docs/notes/near_focus_lateral_response.md); not the "
-    "predictor's filter (docs/validation/uncertainty.md: 16 of 30 case-components in the "
-    "band)"))
+    "measured on these renders: Oseen u, v, w = 98.3, 97.8, 95.0 %, Hill 96.0, 93.8, 98.3 %: "
+    "two components 0.3 points above the band (86 % for Oseen's w and 81, 89 % for Hill's u, "
+    "v before the range a rejected neighbour leaves open was counted); "
+    "docs/validation/uncertainty.md: 19 of 30 case-components in the band"))
 def test_uncertainty_coverage_in_the_band_on_the_ci_camera(oseen, hill):
     for e in (oseen, hill):
         cov = np.asarray(e["coverage_2sigma"])

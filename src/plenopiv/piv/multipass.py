@@ -367,12 +367,18 @@ def _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress
 
 
 class _Final(NamedTuple):
-    """The last pass's vectors after replacement, voxels ``(3, nz, ny, nx)``, and their flags."""
+    """The last pass's vectors after replacement, voxels ``(3, nz, ny, nx)``, and their flags.
+
+    ``disagreement`` is, per component, how far a rejected vector's own measurement lay from
+    the local median of its neighbours (voxels; 0 where a vector was not rejected, was masked
+    or had no measurement).
+    """
 
     displacement: np.ndarray
     rejected: np.ndarray
     replaced: np.ndarray
     flag: np.ndarray
+    disagreement: np.ndarray
 
 
 def _final_vectors(field_vox, validated, outlier, in_mask, empty, settings, kernels):
@@ -391,16 +397,20 @@ def _final_vectors(field_vox, validated, outlier, in_mask, empty, settings, kern
         result = np.where(rejected[None], np.nan, field_vox)
     result[:, in_mask] = np.nan
     replaced = rejected & ~in_mask & np.all(np.isfinite(result), axis=0)
-    return _Final(result, rejected, replaced, flag)
+    measured = outlier & ~in_mask & np.all(np.isfinite(field_vox), axis=0)
+    disagreement = np.where(measured[None], np.abs(np.nan_to_num(field_vox - validated)), 0.0)
+    return _Final(result, rejected, replaced, flag, disagreement)
 
 
 def _uncertainty(last_pass, layout, final, in_mask, voxel, settings, kernels,
                  earlier_change=None):
     """Standard uncertainty (3, nz, ny, nx) in voxels and its terms in metres ``(u, v, w)``.
 
-    Besides the terms, ``parts`` holds the signed changes of the last pass
-    (``"last_corrector"``) and, when it had the same windows, of the pass before
-    (``"previous_corrector"``), metres ``(u, v, w)``, for :mod:`plenopiv.piv.uncertainty`.
+    Besides the terms, ``parts`` holds how far each rejected vector's own measurement lay
+    from its neighbours' median (``"rejected_disagreement"``, 0 elsewhere), the signed
+    changes of the last pass (``"last_corrector"``) and, when it had the same windows, of
+    the pass before (``"previous_corrector"``), metres ``(u, v, w)``, for
+    :mod:`plenopiv.piv.uncertainty`.
     """
     sigma_cs = _correlation_uncertainty(*last_pass.last, layout, settings, kernels)
     last_change = np.zeros_like(sigma_cs)
@@ -413,7 +423,8 @@ def _uncertainty(last_pass, layout, final, in_mask, voxel, settings, kernels,
     )
     metres = np.array([voxel[2], voxel[1], voxel[0]])[:, None, None, None]  # (z, y, x) order
     parts = {name: (a * metres)[::-1] for name, a in
-             (("correlation", sigma_cs), ("last_correction", last_change))}
+             (("correlation", sigma_cs), ("last_correction", last_change),
+              ("rejected_disagreement", final.disagreement))}
     for name, change in (("last_corrector", last_pass.change),
                          ("previous_corrector", earlier_change)):
         if change is not None:

@@ -36,6 +36,7 @@ uncertainty
 
 .. math:: \sigma_k^2 = \sigma_{CS,k}^2 + r_{ex,k}^2
           + \Big(\frac{|1 - g_k|}{\max(g_k, g_{min})}\, |d_k|\Big)^2 + b_k^2
+          + q_k^2
 
 with :math:`\sigma_{CS}` the correlation statistics of :func:`plenopiv.piv.correlate_volumes`
 with the error the passes left (:func:`iteration_uncertainty`: the geometric tail
@@ -43,12 +44,14 @@ with the error the passes left (:func:`iteration_uncertainty`: the geometric tai
 :func:`filter_offset` and the correlation's own noise removed), ``d_k`` the vector's
 displacement and:
 
-- :math:`r_{ex,k}^2 = \max(0, \langle r_k^2 \rangle - \langle s_k^2 \rangle)`, the part of
-  the test vectors' spread the correlation statistics did not see (means over the test
-  displacements). The spread of the test vectors holds their random error, which their own
-  correlation statistics already estimate; adding all of ``r`` to :math:`\sigma_{CS}` would
-  count that part twice. What is left is the error both reconstructions share (the
-  plenoptic lock-in above), invisible to the statistics by construction.
+- :math:`r_{ex,k}^2 = \max(0, r_k^2 - s_k^2)`, the part of the test vectors' spread the
+  correlation statistics did not see, per test displacement, interpolated linearly in the
+  vector's motion measured in resolution cells, from 0 at rest through the test pairs'
+  motions (:meth:`Response.excess`). The spread of the test vectors holds their random
+  error, which their own correlation statistics already estimate; adding all of ``r`` to
+  :math:`\sigma_{CS}` would count that part twice. What is left is the error both
+  reconstructions share (the plenoptic lock-in above), invisible to the statistics by
+  construction, and absent where nothing moved.
 - the error of a displacement measured with gain ``g_k`` (its true value is ``d_k / g_k``);
   :math:`g_{min} = 0.1` bounds a vector the chain barely sees at nine times its own
   magnitude.
@@ -58,6 +61,10 @@ displacement and:
   full, less the part the vectors' random errors give a curvature estimated from them
   (:func:`curvature_noise_factor`: the second differences of noise alone are as large as
   the noise, which the other terms count already).
+- :math:`q_k` the range a rejected vector beside it leaves open
+  (:func:`rejected_neighbour_uncertainty`): where the median test rejected a measurement,
+  the displacement there lies somewhere between that measurement and its neighbours'
+  median, a rectangular distribution of standard deviation (range) / sqrt(12).
 
 The response depends on the camera, the grid, the seeding and the settings, not on the
 flow, so it is computed once per experiment and kept in the weights cache (a few more
@@ -80,6 +87,7 @@ __all__ = [
     "Response",
     "combine",
     "measure_response",
+    "rejected_neighbour_uncertainty",
     "response_key",
     "unresolved_gradient_bias",
 ]
@@ -105,7 +113,7 @@ LATERAL_SHIFTS = (0.5, 1.25, 1.75)
 DEPTH_SHIFTS = (0.1, 0.25, 0.5)
 """Test displacements along z, depth resolution cells."""
 
-RESPONSE_VERSION = 5
+RESPONSE_VERSION = 6
 
 
 @dataclass(frozen=True)
@@ -128,6 +136,10 @@ class Response:
         the same vectors, metres.
     n_particles : int
         Particles per test pair.
+    cell : ndarray, shape (3,), optional
+        The resolution cell ``(lateral, lateral, depth)``, metres, in which the motion of a
+        vector is measured (:meth:`excess`); None: the excess is the mean over the test
+        displacements whatever a vector's motion.
     """
 
     z: np.ndarray
@@ -136,6 +148,7 @@ class Response:
     random: np.ndarray
     statistics: np.ndarray
     n_particles: int
+    cell: np.ndarray | None = None
 
     def at(self, z) -> tuple[np.ndarray, np.ndarray]:
         """Gain and excess random error, each ``(3, len(z))``, at depths ``z`` (metres).
@@ -152,21 +165,68 @@ class Response:
         return (np.stack([np.interp(z, self.z, g) for g in gain]),
                 np.stack([np.interp(z, self.z, r) for r in excess]))
 
+    def excess(self, z, disp) -> np.ndarray:
+        r"""Excess random error of vectors by their motion, ``(3, nz, ny, nx)``, metres.
+
+        Parameters
+        ----------
+        z : ndarray, shape (nz,)
+            Depth of each layer of vectors, metres.
+        disp : ndarray, shape (3, nz, ny, nx)
+            The vectors' displacement ``(u, v, w)``, metres.
+
+        Notes
+        -----
+        The excess is the error both reconstructions share: a particle near focus is
+        reconstructed where its lenslet and depth cell put it, not where it is. At rest the
+        two exposures hold the same particles at the same places and share it exactly, so a
+        displacement computed from them has none of it; it appears as the particles move
+        across lenslets and depth cells, the more of them the farther they move, whatever the
+        direction (a particle that moves along x alone changes the lenslets that see it, and
+        with them its reconstructed depth and y). So the excess variance of every component
+        is interpolated linearly in the vector's motion measured in resolution cells,
+        :math:`t = |(u, v, w) / (c_l, c_l, c_d)|`, from 0 at rest through the test pairs'
+        motions, held at the largest beyond; per layer as in :meth:`at`. Scaling each
+        component by its own displacement instead under-covers a component that does not
+        move while the others do (Oseen's v: 80-88 %, docs/validation/uncertainty.md).
+        Without ``cell`` it is :meth:`at`'s excess, the same for every vector of a layer.
+        """
+        z = np.asarray(z, float)
+        disp = np.asarray(disp, float)
+        if self.cell is None:
+            return np.broadcast_to(self.at(z)[1][:, :, None, None], disp.shape).copy()
+        excess2 = np.maximum(self.random**2 - self.statistics**2, 0.0)       # (n, 3, layers)
+        cell = np.asarray(self.cell, float)
+        test_motion = np.sqrt((((self.shifts / cell) ** 2).sum(axis=1)))
+        order = np.argsort(test_motion)
+        nodes = np.concatenate([[0.0], test_motion[order]])
+        motion = np.sqrt(np.nansum((disp / cell[:, None, None, None]) ** 2, axis=0))
+        out = np.zeros_like(disp)
+        for k in range(3):
+            at_layers = np.stack([np.interp(z, self.z, e) for e in excess2[order, k]])
+            for layer in range(z.size):
+                values = np.concatenate([[0.0], at_layers[:, layer]])
+                out[k, layer] = np.interp(motion[layer], nodes, values)
+        return np.sqrt(out)
+
     def to_dict(self) -> dict:
         """JSON-ready form (metres)."""
         return {"version": RESPONSE_VERSION, "z_m": self.z.tolist(),
                 "shifts_m": self.shifts.tolist(), "gain": self.gain.tolist(),
                 "random_m": self.random.tolist(), "statistics_m": self.statistics.tolist(),
-                "n_particles": self.n_particles}
+                "n_particles": self.n_particles,
+                "cell_m": None if self.cell is None else np.asarray(self.cell).tolist()}
 
     @classmethod
     def from_dict(cls, d: dict) -> Response:
         """Inverse of :meth:`to_dict`."""
         if d.get("version") != RESPONSE_VERSION:
             raise ValueError(f"response version {d.get('version')!r}")
+        cell = d.get("cell_m")
         return cls(np.asarray(d["z_m"], float), np.asarray(d["shifts_m"], float),
                    np.asarray(d["gain"], float), np.asarray(d["random_m"], float),
-                   np.asarray(d["statistics_m"], float), int(d["n_particles"]))
+                   np.asarray(d["statistics_m"], float), int(d["n_particles"]),
+                   None if cell is None else np.asarray(cell, float))
 
 
 RESPONSE_DISPLACEMENTS = (1, 3)
@@ -295,7 +355,11 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
                     a[j, k] = empty
                 elif bad.any():
                     a[j, k, bad] = np.interp(z[bad], z[~bad], a[j, k, ~bad])
-    return Response(z, shifts[keep], gain, random, statistics, int(n_particles))
+    from plenopiv.pipeline import resolution_cell
+
+    lateral, depth = resolution_cell(calibration.effective_camera, f_number)
+    return Response(z, shifts[keep], gain, random, statistics, int(n_particles),
+                    np.array([lateral, lateral, depth]))
 
 
 def cached_response(path: Path | None, key: str, compute) -> tuple[Response | None, bool]:
@@ -546,6 +610,55 @@ def iteration_uncertainty(field) -> np.ndarray | None:
     return np.where(np.asarray(field.valid, bool)[None], sigma, own)
 
 
+REJECTED_RANGE_FACTOR = 1.0 / np.sqrt(12.0)
+"""Standard deviation of a rectangular distribution over a range, per unit of its width."""
+
+
+def rejected_neighbour_uncertainty(field) -> np.ndarray:
+    r"""Uncertainty of vectors beside a rejected one, ``(3, nz, ny, nx)``, metres.
+
+    Parameters
+    ----------
+    field : VectorField
+        A field of :func:`plenopiv.piv.correlate_volumes`; its ``uncertainty_parts`` hold
+        ``"rejected_disagreement"``, how far each rejected vector's own measurement lay from
+        the median of its neighbours (0 for vectors that were not rejected).
+
+    Returns
+    -------
+    ndarray, shape (3, nz, ny, nx)
+        :math:`\max_j D_{j,k} / \sqrt{12}` per component ``k`` over the rejected vectors
+        ``j`` of the vector's 3 x 3 x 3 neighbourhood (itself included), metres; 0 where none
+        was rejected or the field carries no disagreements.
+
+    Notes
+    -----
+    The median test rejects a vector whose measurement :math:`m_j` disagrees with the median
+    :math:`\tilde m_j` of its neighbours by more than their noise allows; it cannot tell a
+    spurious correlation peak from a flow that changes faster than the vector spacing
+    resolves. On Hill's vortex the sphere's core reverses u within about one window: the
+    rejected vectors are mostly the ones that saw the reversal, and their neighbours, whose
+    windows overlap theirs by half, carry errors of the same order that no other term sees
+    (docs/validation/uncertainty.md). Between the two readings the displacement near the
+    rejected vector is known only to lie in the range :math:`D_j = |m_j - \tilde m_j|`; with
+    nothing to prefer a value within it, a rectangular distribution over the range (GUM
+    4.3.7) has the standard deviation :math:`D_j / \sqrt{12}`, counted for the rejected
+    vector and each vector of its 3 x 3 x 3 neighbourhood (the neighbourhood of the median
+    test), the largest where several apply. A field without rejected vectors gets 0.
+    """
+    import scipy.ndimage
+
+    parts = field.uncertainty_parts or {}
+    jump = parts.get("rejected_disagreement")
+    shape = np.shape(field.u)
+    if jump is None:
+        return np.zeros((3,) + shape)
+    jump = np.nan_to_num(np.asarray(jump, float))
+    return REJECTED_RANGE_FACTOR * np.stack([
+        scipy.ndimage.maximum_filter(jump[k], size=3, mode="constant", cval=0.0)
+        for k in range(3)])
+
+
 def _spacing_and_window(field):
     """Vector spacing and last-pass window edge along ``(x, y, z)``, metres."""
     settings = field.settings
@@ -574,9 +687,8 @@ def combine(field, response: Response | None):
     sigma_cs = iteration_uncertainty(field)
     if sigma_cs is None:
         sigma_cs = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
-    gain, excess = response.at(field.z)
-    gain = gain[:, :, None, None]
-    excess = excess[:, :, None, None]
+    gain = response.at(field.z)[0][:, :, None, None]
+    excess = response.excess(field.z, disp)
     g = np.maximum(gain, MIN_GAIN)
     sigma_gain = np.abs(1.0 - g) / g * np.abs(disp)
     spacing, window = _spacing_and_window(field)
@@ -589,9 +701,12 @@ def combine(field, response: Response | None):
     sigma_curv = np.sqrt(np.maximum(
         unresolved_gradient_bias(disp, spacing, window) ** 2
         - curvature_noise_factor(spacing, window) * random, 0.0))
-    total = np.sqrt(sigma_cs**2 + excess**2 + sigma_gain**2 + sigma_curv**2)
-    parts["response_random"] = np.broadcast_to(excess, total.shape).copy()
+    sigma_rejected = rejected_neighbour_uncertainty(field)
+    total = np.sqrt(sigma_cs**2 + excess**2 + sigma_gain**2 + sigma_curv**2
+                    + sigma_rejected**2)
+    parts["response_random"] = excess
     parts["response_gain"] = sigma_gain
     parts["unresolved_gradient"] = sigma_curv
+    parts["rejected_neighbour"] = sigma_rejected
     return replace(field, u_uncertainty=total[0], v_uncertainty=total[1],
                    w_uncertainty=total[2], uncertainty_parts=parts)

@@ -15,9 +15,9 @@ estimate, all from the same field:
 3. correlation statistics plus the error the iteration left (the geometric tail of the last
    corrections, the predictor filter's offset and the correlation's noise removed: terms
    1-2 of the default);
-4. plus the chain's measured response and the deformation passes' curvature bias (less the
-   curvature the vectors' random errors give it) (:mod:`plenopiv.piv.uncertainty`), the
-   product's default.
+4. plus the chain's measured response, the deformation passes' curvature bias (less the
+   curvature the vectors' random errors give it) and the range a rejected neighbour leaves
+   open (:mod:`plenopiv.piv.uncertainty`), the product's default.
 
 ``python pipelines/validate_uncertainty.py --out docs/validation`` writes
 ``uncertainty.json``, ``uncertainty.md`` and ``uncertainty_coverage.png``.
@@ -237,7 +237,7 @@ def markdown(r: dict) -> str:
 METHOD = [
     "## Method",
     "",
-    "Per vector and component the standard uncertainty is the root sum of squares of four "
+    "Per vector and component the standard uncertainty is the root sum of squares of five "
     "terms (`plenopiv.piv.correlate_volumes`, `plenopiv.piv.uncertainty`):",
     "",
     "1. **Correlation statistics** (Wieneke 2015, per axis in 3-D). After the last pass the "
@@ -278,11 +278,16 @@ METHOD = [
     "run on ray-traced pairs of random particles (the pair's seeding) moved by known "
     "uniform displacements — 0.5, 1.25, 1.75 lenslet footprints laterally with 0.1, 0.25, "
     "0.5 depth resolution cells in depth — with the calibrated camera, the grid and every "
-    "setting of the real pair. Per layer of vectors this gives the gain g (mean measured / "
-    "true), the spread r of the layer's vectors and the rms s of the uncertainty terms 1-2 "
-    "gave those same vectors; a vector d then gets the excess r_ex = sqrt(max(0, r² - s²)) "
-    "(the spread less the random error its terms 1-2 already count, so it is not counted "
-    "twice) and the error of a displacement measured with gain g, |1 - g| / max(g, 0.1) |d|. "
+    "setting of the real pair. Per layer of vectors and test displacement this gives the "
+    "gain g (mean measured / true), the spread r of the layer's vectors and the rms s of the "
+    "uncertainty terms 1-2 gave those same vectors. The excess r² - s² (the spread less the "
+    "random error terms 1-2 already count, so it is not counted twice) is the error both "
+    "exposures share: 0 at rest, where they hold the same particles at the same places, and "
+    "growing as particles cross lenslets and depth cells, in every component whichever way "
+    "they move; a vector d gets it interpolated linearly in its motion |d| in resolution "
+    "cells, from 0 at rest through the test pairs' motions (held beyond the largest), "
+    "r_ex = sqrt(max(0, ...)), and the error of a displacement measured with gain g (the mean "
+    "over the test displacements), |1 - g| / max(g, 0.1) |d|. "
     "It is a type-B evaluation from a calibration of the measuring system: the vortex flows "
     "are not used to build it.",
     "4. **Unresolved curvature**: a top-hat window of edge W measures the window average, "
@@ -302,44 +307,66 @@ METHOD = [
     "field does not curve at all (Oseen's v, which is 0: term 4 was 0.02-0.03 voxel, the "
     "noise of v). That noise is terms 1 and 3's random error, counted already; term 4 is "
     "sqrt(max(0, b² - k (σ_1² + r_ex²))).",
+    "5. **The range a rejected neighbour leaves open.** The normalised median test rejects a "
+    "vector whose measurement m disagrees with the median m~ of its 26 neighbours by more "
+    "than their noise allows, and the vector is replaced by that median; the test cannot tell "
+    "a spurious correlation peak from a flow that changes faster than the vector spacing "
+    "resolves. Between the two readings the displacement there is known only to lie in the "
+    "range D = |m - m~| per component; with nothing to prefer a value within it, the "
+    "rectangular distribution over the range (GUM 4.3.7) has the standard deviation "
+    "D / sqrt(12). The rejected vector and every vector of its 3 x 3 x 3 neighbourhood (the "
+    "median test's, whose windows overlap its window) get it, the largest where several "
+    "apply; a field without rejections gets 0. The factor 1/sqrt(12) is the GUM's, not "
+    "fitted: 0.1, 0.25 and 0.5 were measured for comparison (below).",
+    "",
+    "## Why terms 5 and the motion of term 3",
+    "",
+    "- Before term 5, Hill's lateral components were under-covered (u 69-83 %, v 70-86 % on "
+    "the 41 x 61 camera) and the misses gathered beside vectors the median test had rejected "
+    "(61-84 % of the u errors within ±2σ there, 86-94 % elsewhere). Hill's core reverses u "
+    "within about one last-pass window (the true u runs from -1.3 footprints outside to "
+    "+1.8 at the centre over about two vector spacings); the rejected vectors are largely the "
+    "ones that saw the reversal. Correlating the last pass with the test switched off, 15-24 "
+    "of the 33-61 vectors the test flags on each Hill case lie within one voxel of the truth "
+    "(3-18 of 7-48 on Oseen), and the median that replaces them does not: over all vectors "
+    "inside the volume Hill's u rms is 0.68, 1.59, 1.58, 0.55 and 1.25 voxels against "
+    "0.36, 0.81, 0.86, 0.37 and 0.57 over the valid ones. Their valid neighbours, whose "
+    "windows overlap theirs, carry errors of the same order that no other term sees. "
+    "Term 5 brought Hill's u to 94.7-98.1 % and v to 89.0-95.2 %.",
+    "- Measured alternatives to term 5 (with the per-layer excess of term 3, where term 5 "
+    "gave 19 of 30): the factor 0.1, 0.25 or 0.5 instead of 1/sqrt(12) 18, 19, 19 of 30; "
+    "face neighbours only 15; the range less the rejected vector's random error (its "
+    "variance once or four times; with the excess by motion) 22 and 24 of 30 — not adopted, "
+    "the factor would be chosen on these cases; instead of term 5, the local standard "
+    "deviation of the measured field, the median residual of each vector or the "
+    "neighbourhood's largest term 4: 9-13 of 30, over-covering Oseen's u, whose linear "
+    "gradients they count although the deformed windows follow them.",
+    "- Measuring Hill's core instead was tried on the saved volumes: a median threshold of 3 "
+    "instead of 2 (Hill's u rms over all vectors 0.56, 1.50, 1.51, 0.47, 0.88 voxel; Oseen's "
+    "w worse, 0.36 -> 0.45 on the patch); no test (Oseen's u 0.51 and 0.76 voxel: the test is "
+    "needed); testing each pass's corrector instead of the displacement, or keeping a "
+    "flagged vector whose peak ratio is at least 1.5 or 2: Hill's u about unchanged (0.49-1.65). "
+    "The reversal is lost in the first pass, whose 16-footprint windows hold both "
+    "populations of particles and whose peak follows the larger one; the later passes "
+    "deform by that predictor. Not changed.",
+    "- Term 3's excess was the mean over the test displacements, the same for every vector of "
+    "a layer: Oseen's v (which is 0) and Hill's w were over-covered, the test pairs moving "
+    "more than those vectors. Interpolated in each component's own displacement it "
+    "under-covered Oseen's v (80-88 %): v is 0, but its particles move in u and w and change "
+    "lenslets and depth cells all the same. Interpolated in the vector's whole motion in "
+    "resolution cells it gives 23 of 30 (19 with the mean).",
     "",
     "## What is not met",
     "",
-    "- Hill's lateral components stay under-covered (u 69-83 %, v 70-86 % on the 41 x 61 "
-    "camera; u gain 0.28-0.75, v 0.62-0.78). On the footprint-voxel case with seed 1 the three "
-    "layers of vectors nearest focus (|Z| <= 0.8 mm) measure u with a gain of 0.20-0.34 "
-    "against the true u (0.95-1.00 in the outermost layers); on half-footprint voxels "
-    "0.00-0.06. That contrast is the flow's, not the focus's: the sphere's core, where u "
-    "reverses within about one last-pass window, lies at focus, and the outer layers lie "
-    "outside the sphere where u hardly varies (docs/notes/near_focus_lateral_response.md). "
-    "Ray-traced test fields on the same camera, grid and settings are measured at focus with "
-    "a median gain of 0.97-1.12: uniform lateral shifts of 0.1-1 footprint, linear shears of "
-    "1-4 footprints per window along y or z, a strain along x (0.73 for a shear of 0.5 "
-    "footprint per window, whose true u varies by 0.12 footprint rms, at the noise); "
-    "sinusoids of two windows' wavelength are attenuated to 0.65-0.90 at focus and away "
-    "from it alike, as a window average predicts. Hill's own u error inside 0.8 mm of the "
-    "sphere's centre is 0.61 "
-    "footprint rms at focus and 0.64 with the sphere moved 1.4 mm off focus (16 pairs). So "
-    "the response's test pairs (uniform shifts) do not miss a near-focus effect: what they "
-    "cannot show is the flow's content on the scale of one window. Over the field the u error "
-    "follows the top-hat window-average bias of the *true* field (correlation 0.75-0.78 with "
-    "the true field's second differences on the vector grid, 0.24-0.35 with the measured "
-    "field's): its curvature on the scale of the vector spacing is no longer in the measured "
-    "vectors, and no estimate from them restores it. The w errors instead have the sign of "
-    "the fixed-point bias: 1.4-2.3 times -(h²/12) ∂²d/∂x² of the measured field (correlation "
-    "0.3-0.7 on all ten cases), about the size of term 4. On the footprint-voxel Hill case, "
-    "deconvolving the measured field by the top-hat transfer at its dominant wavenumber "
-    "raised u's coverage by 2 points only. Even the true field's window-average bias (an "
-    "oracle no measurement gives) added to σ lifts u to 76-96 % and v to 84-96 % only, on six "
-    "Hill cases of the 41 x 61 camera and the patch. The misses gather where the median test "
-    "rejected a neighbour (the flow reverses within a vector spacing in the sphere's core): "
-    "on the six Hill cases of the 41 x 61 camera 61-84 % of the u errors within ±2σ there, "
-    "86-94 % elsewhere. Earlier forms of terms 2 and 4 covered more of Hill's lateral errors "
-    "only by counting noise as error: the filter's offset (78-90 %, which over-covered "
-    "Oseen's u and v, 96-99 %), then the correlation's noise in the last corrections and in "
-    "the curvature estimate (u 75-87 %, with Oseen's v and Hill's w at 97-100 %).",
-    "- The predictor's filter is not the cause. Hill's lateral error is 1.6-2.5 times the "
-    "true field's window bias on half-footprint voxels, which suggested that the [1, 2, 1]/4 "
+    "- Hill's w is over-covered (98.8-100 % on four of five cases): its σ holds term 3's "
+    "excess for a vector moving up to two footprints (Hill's u) and term 5 where the core's "
+    "vectors were rejected, while Hill's depth errors are mostly small (median 0.11-0.16 "
+    "depth voxel, rms 0.27-0.36). Oseen's v on the patch is covered at 99.8 %: spurious "
+    "peaks with disagreements of several voxels give term 5 to 26 neighbours each, whose v "
+    "errors are 0.04 voxel rms.",
+    "- Hill's v on half-footprint voxels with 0.15 particles per lenslet, 89.0 %; Hill's u on "
+    "the second seed, 98.1 %.",
+    "- The predictor's filter is not the cause of Hill's lateral error. The [1, 2, 1]/4 "
     "filter applied to the predictor before every deformation pass widens the spatial filter "
     "beyond one window (Schrijer & Scarano 2008). Measured on six cases (Oseen and Hill, "
     "footprint and half-footprint voxels, seed 1; Oseen footprint and Hill half-footprint "
@@ -347,44 +374,16 @@ METHOD = [
     "only the predictor of the pass whose window shrinks -> no filter -> a [1, 6, 1]/8 filter "
     "before the passes at the final window: Hill footprint voxels u 0.36 -> 0.32 -> 0.35 -> "
     "0.36 (gain 0.42 -> 0.47 -> 0.46 -> 0.41), half-footprint 0.81 -> 0.80 -> 0.83 -> 0.80 "
-    "(gain 0.28 in all four), seed 2 0.57 -> 0.51 -> 0.51 -> 0.49; Hill's w 0.31-0.36 -> "
-    "0.35-0.40 -> 0.34-0.40 -> 0.34-0.38; Oseen u 0.13, 0.22, 0.12 -> 0.15, 0.30, 0.14 -> 0.17, "
-    "0.36, 0.14 -> 0.13, 0.25, 0.13 and w 0.43, 0.44, 0.53 -> 0.49, 0.53, 0.59 -> 0.49, 0.50, "
-    "0.61 -> 0.41, 0.48, 0.55. Hill's lateral error stays far above the window bias (0.35 "
-    "voxel on half-footprint voxels) and Oseen's random error grows; with term 2 taking each "
-    "variant's filter into account (for the weaker filter it still removes the [1, 2, 1]/4 "
-    "offset), 10 of the 18 case-components are in the band with the "
-    "filter on every pass, 2, 7 and 7 with the three variants. The filter stays on every "
+    "(gain 0.28 in all four), seed 2 0.57 -> 0.51 -> 0.51 -> 0.49; Oseen u 0.13, 0.22, 0.12 "
+    "-> 0.15, 0.30, 0.14 -> 0.17, 0.36, 0.14 -> 0.13, 0.25, 0.13 and w 0.43, 0.44, 0.53 -> "
+    "0.49, 0.53, 0.59 -> 0.49, 0.50, 0.61 -> 0.41, 0.48, 0.55. The filter stays on every "
     "pass (`[piv] smooth_predictor`).",
-    "- Hill's w is covered at 92-99 %, above the band on the footprint-voxel case and the "
-    "patch (99 %): its σ is mostly term 3's per-layer excess, the spread of test pairs that "
-    "move 0.4-2.2 depth voxels, where Hill's w near focus is small (∝ Z) and the error both "
-    "exposures share grows with the depth displacement. Sizing the test pairs to the flow — "
-    "each layer's excess taken between the three test pairs at the layer's rms measured "
-    "displacement (per axis, or at the largest fraction of the test series over the three "
-    "axes; the smallest pair where the flow moves less) — brings Hill's w on the "
-    "footprint-voxel case from 98.8 to 96.5 % but Oseen's w from 94.6 to 88.1 % "
-    "(half-footprint voxels) and from 89.9 to 85.5 % (seed 2): Oseen's near-focus depth error "
-    "is larger than test pairs at its small measured w show (next item); 8 and 9 of the six "
-    "cases' 18 case-components in the band against 10 with the excess over all three pairs, "
-    "which is kept. The per-vector excess below, which would follow the flow more closely "
-    "still, fails on Oseen's v.",
-    "- What would close the lateral gap: more vectors across the structure (smaller last "
-    "windows where the seeding allows, or a larger camera: on the 61 x 91-lenslet patch Hill's "
-    "u and v gains are 0.89 and 0.94 and their coverage 83 and 86 %). A calibration of the "
-    "chain cannot: it follows shifts, shears and strains at focus, and the attenuation of "
-    "window-scale structure is the same at every depth and needs the flow's content at that "
-    "wavelength, which the measured field has lost.",
+    "- Hill's lateral gains stay low on the 41 x 61 camera (u 0.28-0.75): the windows do not "
+    "resolve the core. More vectors across it would: on the 61 x 91-lenslet patch Hill's u "
+    "and v gains are 0.89 and 0.94.",
     "- Near focus the true depth displacement of Oseen's vortex is 1-2 voxels where the "
     "measured one is 0.3-0.6: the gain term scales the measured value, and where the chain "
     "sees almost nothing the bound stays short.",
-    "- The response's excess r_ex is a rms per layer: a vector's random error above its "
-    "layer's is not seen. A per-vector excess was tried: r_ex² interpolated in the vector's "
-    "own displacement from 0 at rest (where the error both exposures share cancels "
-    "exactly) through the three test displacements. It under-covers Oseen's v (80-88 % "
-    "on four cases): v is 0 there, and its errors come from the u and w motion of the same "
-    "particles, which the per-layer spread of test pairs moving along all three axes at "
-    "once does hold. Oseen's v stays covered at 95-99 %.",
     "- `plenopiv piv` on two volume products has no calibration and images: it gives terms 1 "
     "and 2 in their previous form only (`uncertainty_method = \"correlation\"` in the "
     "product).",
