@@ -271,9 +271,14 @@ def test_the_smoothed_predictor_s_offset_is_not_an_iteration_error():
 
 
 def test_one_test_displacement_is_the_middle_of_the_three(small_camera):
-    three = response_shifts(small_camera)
-    assert three.shape == (3, 3)
-    np.testing.assert_allclose(response_shifts(small_camera, displacements=1), three[1:2])
+    """Three displacements along all axes at once, then one lateral only and one along
+    depth only; one displacement is the middle of the three."""
+    five = response_shifts(small_camera)
+    assert five.shape == (5, 3)
+    np.testing.assert_allclose(response_shifts(small_camera, displacements=1), five[1:2])
+    assert np.all(five[:3] > 0)
+    assert five[3, 2] == 0 and np.all(five[3, :2] > 0)
+    assert np.all(five[4, :2] == 0) and five[4, 2] > 0
     with pytest.raises(ValueError, match="displacements"):
         response_shifts(small_camera, displacements=2)
 
@@ -379,37 +384,50 @@ def test_a_rejected_vector_leaves_its_range_to_its_neighbourhood():
 
 
 def test_the_shared_error_grows_with_the_vectors_motion_whatever_its_direction():
-    """The excess random error (the error both exposures share) is 0 at rest, the test pair's
-    at the test pair's motion in resolution cells, in every component, whichever way the
-    vector moved (a component that does not move gets it too), linear in variance between
-    and held beyond the largest test motion; the same at every lateral position."""
+    """The excess random error (the error both exposures share) is 0 at rest; its variance
+    grows linearly with the lateral and the depth motion in resolution cells, each as the
+    test pair moving along it alone measured, in every component whichever way the vector
+    moved (a component that does not move gets it too), additive, held beyond the test
+    pairs' motions; one test pair: linear in the whole motion through it."""
     cell = np.array([1e-4, 1e-4, 4e-4])                        # lateral, lateral, depth
-    shifts = np.array([[1e-4, 1e-4, 0.0], [3e-4, 3e-4, 0.0]])    # motions sqrt(2), 3 sqrt(2)
+    shifts = np.array([[1e-4, 0.0, 0.0], [0.0, 0.0, 4e-4]])    # 1 cell lateral, 1 in depth
     z = np.array([-1e-3, 0.0, 1e-3])
     random = np.zeros((2, 3, 3))
-    random[0] = 1e-5                                           # r at the first test motion
-    random[1] = 3e-5
-    statistics = np.full((2, 3, 3), 0.5e-5)
-    resp = Response(z, shifts, np.ones((2, 3, 3)), random, statistics, 100, cell)
-    ex2 = random**2 - statistics**2                             # per test motion
-    m1, m2 = np.sqrt(2.0), 3 * np.sqrt(2.0)
-    motions = {                                                 # (u, v, w) in metres -> t
+    random[0] = 2e-5                                           # lateral motion's spread
+    random[1] = 3e-5                                           # depth motion's
+    statistics = np.full((2, 3, 3), 1e-5)
+    gain = np.full((2, 3, 3), np.nan)
+    gain[0, 0], gain[1, 2] = 0.9, 0.5                          # along the axes they move
+    resp = Response(z, shifts, gain, random, statistics, 100, cell)
+    a, b = 2e-5**2 - 1e-5**2, 3e-5**2 - 1e-5**2                # excess variance per cell
+    motions = {                                                 # (u, v, w) -> variance
         "rest": ((0.0, 0.0, 0.0), 0.0),
-        "first, along x and y": ((1e-4, 1e-4, 0.0), m1),
-        "first, along depth only": ((0.0, 0.0, m1 * 4e-4), m1),
-        "between": ((2e-4, 2e-4, 0.0), 2 * np.sqrt(2.0)),
-        "beyond": ((1e-3, 0.0, 0.0), 10.0),
+        "half a cell along y": ((0.0, 0.5e-4, 0.0), 0.5 * a),
+        "along x and y": ((0.6e-4, 0.8e-4, 0.0), a),
+        "depth only": ((0.0, 0.0, 2e-4), 0.5 * b),
+        "both": ((0.5e-4, 0.0, 2e-4), 0.5 * a + 0.5 * b),
+        "beyond": ((1e-3, 0.0, 4e-3), a + b),
     }
-    for name, (d, t) in motions.items():
+    for name, (d, var) in motions.items():
         disp = np.broadcast_to(np.asarray(d)[:, None, None, None], (3, 3, 2, 2))
-        got = resp.excess(z, disp)
-        expected = np.sqrt(np.interp(t, [0.0, m1, m2], [0.0, ex2[0, 0, 0], ex2[1, 0, 0]]))
-        np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-20, err_msg=name)
+        np.testing.assert_allclose(resp.excess(z, disp), np.sqrt(var), rtol=1e-9,
+                                   atol=1e-20, err_msg=name)
+    # the gain is the mean over the test pairs that move along each axis
+    g, _ = resp.at(z)
+    np.testing.assert_allclose(g[0], 0.9)
+    np.testing.assert_allclose(g[1], 1.0)      # no pair moved along y: no gain to apply
+    np.testing.assert_allclose(g[2], 0.5)
+    # one test pair: linear in the whole motion through it, held beyond
+    one = Response(z, np.array([[1e-4, 1e-4, 0.0]]), np.ones((1, 3, 3)), random[:1],
+                   statistics[:1], 100, cell)
+    for d, frac in (((0.0, 0.0, 4e-4 / np.sqrt(2)), 0.5), ((1e-3, 0.0, 0.0), 1.0)):
+        disp = np.broadcast_to(np.asarray(d)[:, None, None, None], (3, 3, 2, 2))
+        np.testing.assert_allclose(one.excess(z, disp), np.sqrt(frac * a), rtol=1e-9)
     # the cell travels with the cached response
     back = Response.from_dict(json.loads(json.dumps(resp.to_dict())))
     np.testing.assert_array_equal(back.cell, cell)
     # through combine: the vector's own motion sets its excess
     f = _field(w=0.0, sigma=0.0)
     f = replace(f, u=f.u * 0.0, v=f.v * 0.0)
-    g = combine(f, resp)
-    np.testing.assert_allclose(g.uncertainty_parts["response_random"], 0.0, atol=1e-20)
+    out = combine(f, resp)
+    np.testing.assert_allclose(out.uncertainty_parts["response_random"], 0.0, atol=1e-20)

@@ -83,27 +83,15 @@ def test_hill_depth_target_and_no_bias(hill):
     assert np.all(np.abs(hill["bias_vox"]) <= 0.1)
 
 
-def test_uncertainty_covers_the_true_errors(oseen, hill):
-    """Per-vector uncertainty (correlation statistics, the iteration's remainder, the chain's
-    measured response, the windows' curvature bias): most true errors within +-2 sigma in
-    every component, where the correlation statistics alone leave 31-62 % of the depth
-    errors outside (docs/validation/uncertainty.md). Oseen's are covered about as a
-    Gaussian error would be (95 %) on average; Hill's depth component too, and its lateral
-    ones once the range a rejected neighbour leaves open is counted (the vortex core reverses
-    the lateral motion within about one window; the median test rejects the vectors that see
-    it: without that term 81 and 89 %)."""
-    for e in (oseen, hill):
-        cov = np.asarray(e["coverage_2sigma"])
-        assert np.all(cov >= 0.9) and np.all(cov <= 1.0), cov
-    assert np.mean(oseen["coverage_2sigma"]) >= 0.9, oseen["coverage_2sigma"]
-
-
-@pytest.mark.xfail(strict=True, reason=(
-    "measured on these renders: Oseen u, v, w = 98.3, 97.8, 95.0 %, Hill 96.0, 93.8, 98.3 %: "
-    "two components 0.3 points above the band (86 % for Oseen's w and 81, 89 % for Hill's u, "
-    "v before the range a rejected neighbour leaves open was counted); "
-    "docs/validation/uncertainty.md: 19 of 30 case-components in the band"))
 def test_uncertainty_coverage_in_the_band_on_the_ci_camera(oseen, hill):
+    """Per-vector uncertainty (correlation statistics, the iteration's remainder, the chain's
+    measured response, the windows' curvature bias, the range a rejected neighbour leaves
+    open): 90-98 % of the true errors within +-2 sigma, the issue's band, per component on
+    both flows, where the correlation statistics alone leave 31-62 % of the depth errors
+    outside (docs/validation/uncertainty.md). Measured on these renders: Oseen u, v, w =
+    97.2, 96.7, 92.2 %, Hill 93.8, 93.8, 91.5 % (Oseen 98, 97, 86 % and Hill 81, 89, 95 %
+    before the range a rejected neighbour leaves open was counted and the response's shared
+    error followed each vector's lateral and depth motion)."""
     for e in (oseen, hill):
         cov = np.asarray(e["coverage_2sigma"])
         assert np.all((cov >= 0.90) & (cov <= 0.98)), cov

@@ -6,9 +6,9 @@ from plenopiv.cli._common import _add_common, _seed
 from plenopiv.cli._progress import _StageBar
 from plenopiv.products.files import check_output_path
 
-#: Test displacements of the demo's response uncertainty (a run's default is 3): the same
-#: measurement of the chain's response with one test pair instead of three, which saves four
-#: of the demo's eight reconstructions.
+#: Test displacements of the demo's response uncertainty (a run's default is 3, five test
+#: pairs): the same measurement of the chain's response with one test pair instead of five,
+#: which saves eight of the demo's twelve reconstructions.
 DEMO_RESPONSE_DISPLACEMENTS = 1
 
 
@@ -19,7 +19,7 @@ def add_parser(sub) -> None:
         description="Run the built-in synthetic case end to end (calibration, a Lamb-Oseen "
         "vortex pair, two volumes, 3-D PIV) and print its errors against the truth. The "
         "response uncertainty uses one test displacement ([piv] response_displacements = "
-        "1; a run's default is 3).")
+        "1; a run's default is 3, five test pairs).")
     demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     demo.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     _add_common(demo)

@@ -22,9 +22,11 @@ uniform displacements ``s`` along the three axes at once, reconstructs and corre
 as it does the real pair, and tabulates for each layer of vectors (window-centre depth):
 
 - the gain ``g_k = mean(measured_k) / s_k`` per component ``k`` (averaged over the
-  layer's vectors and over the test displacements: 0.5, 1.25 and 1.75 lenslet footprints
-  laterally, 0.1, 0.25 and 0.5 depth resolution cells in depth, so that every fraction of
-  the resolution cell is probed);
+  layer's vectors and over the test displacements along that axis: 0.5, 1.25 and 1.75
+  lenslet footprints laterally with 0.1, 0.25 and 0.5 depth resolution cells in depth, so
+  that every fraction of the resolution cell is probed, and two more, 1.25 footprints
+  laterally alone and 0.5 depth cells alone, that tell the shared error of lateral and of
+  depth motion apart);
 - the random error ``r_k``: the rms over the test displacements of the spread (standard
   deviation) of the layer's vectors.
 
@@ -113,7 +115,12 @@ LATERAL_SHIFTS = (0.5, 1.25, 1.75)
 DEPTH_SHIFTS = (0.1, 0.25, 0.5)
 """Test displacements along z, depth resolution cells."""
 
-RESPONSE_VERSION = 6
+SEPARATING_SHIFTS = ((1.25, 0.0), (0.0, 0.5))
+"""Two more test displacements (lenslet footprints along x and y, depth resolution cells
+along z): one lateral only, one along depth only, so that the shared error of lateral and of
+depth motion can be told apart (:meth:`Response.excess`)."""
+
+RESPONSE_VERSION = 7
 
 
 @dataclass(frozen=True)
@@ -127,7 +134,8 @@ class Response:
     shifts : ndarray, shape (n, 3)
         The test displacements ``(dx, dy, dz)``, metres (effective coordinates), growing.
     gain : ndarray, shape (n, 3, nz)
-        Gain of ``u``, ``v``, ``w`` per test displacement and layer (1 = exact).
+        Gain of ``u``, ``v``, ``w`` per test displacement and layer (1 = exact; NaN along an
+        axis the test displacement does not move along).
     random : ndarray, shape (n, 3, nz)
         Random error of ``u``, ``v``, ``w`` per test displacement and layer, metres (the
         spread of the layer's vectors).
@@ -153,13 +161,16 @@ class Response:
     def at(self, z) -> tuple[np.ndarray, np.ndarray]:
         """Gain and excess random error, each ``(3, len(z))``, at depths ``z`` (metres).
 
-        The gain is the mean over the test displacements; the excess random error is
+        The gain is the mean over the test displacements that move along its axis; the
+        excess random error is
         ``sqrt(max(0, <r^2> - <s^2>))``, the test vectors' spread less what their correlation
         statistics saw (module notes), means over the test displacements. Both are linear
         between the layers.
         """
         z = np.asarray(z, float)
-        gain = self.gain.mean(axis=0)
+        moved = np.isfinite(self.gain)
+        gain = np.where(moved.any(axis=0),
+                        np.nansum(self.gain, axis=0) / np.maximum(moved.sum(axis=0), 1), 1.0)
         excess = np.sqrt(np.maximum((self.random**2).mean(axis=0)
                                     - (self.statistics**2).mean(axis=0), 0.0))
         return (np.stack([np.interp(z, self.z, g) for g in gain]),
@@ -180,33 +191,44 @@ class Response:
         The excess is the error both reconstructions share: a particle near focus is
         reconstructed where its lenslet and depth cell put it, not where it is. At rest the
         two exposures hold the same particles at the same places and share it exactly, so a
-        displacement computed from them has none of it; it appears as the particles move
-        across lenslets and depth cells, the more of them the farther they move, whatever the
-        direction (a particle that moves along x alone changes the lenslets that see it, and
-        with them its reconstructed depth and y). So the excess variance of every component
-        is interpolated linearly in the vector's motion measured in resolution cells,
-        :math:`t = |(u, v, w) / (c_l, c_l, c_d)|`, from 0 at rest through the test pairs'
-        motions, held at the largest beyond; per layer as in :meth:`at`. Scaling each
-        component by its own displacement instead under-covers a component that does not
-        move while the others do (Oseen's v: 80-88 %, docs/validation/uncertainty.md).
-        Without ``cell`` it is :meth:`at`'s excess, the same for every vector of a layer.
+        displacement computed from them has none of it; it appears as particles move across
+        lenslets (lateral motion) and depth cells (depth motion), the more of them the
+        farther they move, and in every component whatever the direction (a particle that
+        moves along x alone changes the lenslets that see it, and with them its
+        reconstructed depth). So per component and layer the excess variance is modelled as
+        :math:`r_{ex}^2 = a\, t_l + b\, t_d`, with :math:`t_l = |(u, v)| / c_l` and
+        :math:`t_d = |w| / c_d` the motion in lateral and depth resolution cells (``cell``),
+        :math:`a, b \ge 0` fitted by non-negative least squares to the test pairs' excess
+        :math:`\max(0, r^2 - s^2)`; the test pairs moving laterally only and along depth only
+        (``SEPARATING_SHIFTS``) tell the two apart. Motions beyond the test pairs' largest are
+        held there. With a single test pair the two cannot be told apart and the variance is
+        linear in the whole motion :math:`|(t_l, t_d)|` through it. Scaling each component by
+        its own displacement instead under-covers a component that does not move while the
+        others do (Oseen's v: 80-88 %, docs/validation/uncertainty.md). Without ``cell`` it is
+        :meth:`at`'s excess, the same for every vector of a layer.
         """
+        from scipy.optimize import nnls
+
         z = np.asarray(z, float)
         disp = np.asarray(disp, float)
         if self.cell is None:
             return np.broadcast_to(self.at(z)[1][:, :, None, None], disp.shape).copy()
-        excess2 = np.maximum(self.random**2 - self.statistics**2, 0.0)       # (n, 3, layers)
         cell = np.asarray(self.cell, float)
-        test_motion = np.sqrt((((self.shifts / cell) ** 2).sum(axis=1)))
-        order = np.argsort(test_motion)
-        nodes = np.concatenate([[0.0], test_motion[order]])
-        motion = np.sqrt(np.nansum((disp / cell[:, None, None, None]) ** 2, axis=0))
+        test = np.stack([np.hypot(self.shifts[:, 0], self.shifts[:, 1]) / cell[0],
+                         np.abs(self.shifts[:, 2]) / cell[2]], axis=1)       # (n, 2)
+        motion = np.stack([np.hypot(disp[0], disp[1]) / cell[0], np.abs(disp[2]) / cell[2]])
+        motion = np.nan_to_num(motion)
+        if np.linalg.matrix_rank(test) < 2:      # lateral and depth motion not told apart
+            test = np.hypot(test[:, :1], test[:, 1:])
+            motion = np.hypot(motion[:1], motion[1:])
+        motion = np.minimum(motion, test.max(axis=0)[:, None, None, None])
+        excess2 = np.maximum(self.random**2 - self.statistics**2, 0.0)       # (n, 3, layers)
         out = np.zeros_like(disp)
         for k in range(3):
-            at_layers = np.stack([np.interp(z, self.z, e) for e in excess2[order, k]])
-            for layer in range(z.size):
-                values = np.concatenate([[0.0], at_layers[:, layer]])
-                out[k, layer] = np.interp(motion[layer], nodes, values)
+            coef = np.stack([nnls(test, excess2[:, k, layer])[0]
+                             for layer in range(self.z.size)], axis=1)      # (terms, layers)
+            at_z = np.stack([np.interp(z, self.z, c) for c in coef])          # (terms, nz)
+            out[k] = np.einsum("tz,tzyx->zyx", at_z, motion)
         return np.sqrt(out)
 
     def to_dict(self) -> dict:
@@ -238,8 +260,9 @@ def response_shifts(camera, f_number=None, displacements: int = 3) -> np.ndarray
 
     ``LATERAL_SHIFTS`` lenslet footprints along x and y with ``DEPTH_SHIFTS`` depth resolution
     cells along z, at once (``camera``: the effective camera,
-    :func:`plenopiv.pipeline.resolution_cell`). ``displacements`` 3 gives all three, 1 the
-    middle one (1.25 footprints, 0.25 depth resolution cells).
+    :func:`plenopiv.pipeline.resolution_cell`), then the ``SEPARATING_SHIFTS`` (lateral
+    only, depth only). ``displacements`` 3 gives these five, 1 the middle one of the three
+    alone (1.25 footprints, 0.25 depth resolution cells).
     """
     from plenopiv.pipeline import resolution_cell
 
@@ -247,9 +270,12 @@ def response_shifts(camera, f_number=None, displacements: int = 3) -> np.ndarray
         raise ValueError(f"displacements = {displacements!r}: expected one of "
                          f"{RESPONSE_DISPLACEMENTS}")
     lateral, depth = resolution_cell(camera, f_number)
-    out = np.array([[a * lateral, a * lateral, b * depth]
-                    for a, b in zip(LATERAL_SHIFTS, DEPTH_SHIFTS, strict=True)])
-    return out if displacements == len(out) else out[len(out) // 2:len(out) // 2 + 1]
+    pairs = list(zip(LATERAL_SHIFTS, DEPTH_SHIFTS, strict=True))
+    if displacements == 1:
+        pairs = pairs[len(pairs) // 2:len(pairs) // 2 + 1]
+    else:
+        pairs += list(SEPARATING_SHIFTS)
+    return np.array([[a * lateral, a * lateral, b * depth] for a, b in pairs])
 
 
 def response_key(*parts) -> str:
@@ -332,7 +358,8 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
                 continue
             for k in range(3):
                 m = comps[k, layer][sel]
-                g[k, layer] = m.mean() / s[k]
+                if s[k] != 0.0:     # a gain along the axes the test pair moves along
+                    g[k, layer] = m.mean() / s[k]
                 r[k, layer] = m.std()
                 sk = sigma[k, layer][sel]
                 sk = sk[np.isfinite(sk)]
@@ -346,10 +373,13 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     gain = np.stack([gains[i] for i in keep])
     random = np.stack([spreads[i] for i in keep])
     statistics = np.stack([stats[i] for i in keep])
-    # layers without vectors: nearest layers
+    # layers without vectors: nearest layers (an axis a test pair does not move along keeps
+    # no gain)
     for a, empty in ((gain, 1.0), (random, 0.0), (statistics, 0.0)):
         for j in range(a.shape[0]):
             for k in range(3):
+                if a is gain and shifts[keep[j], k] == 0.0:
+                    continue
                 bad = ~np.isfinite(a[j, k])
                 if bad.all():
                     a[j, k] = empty
