@@ -28,8 +28,7 @@ as it does the real pair, and tabulates for each layer of vectors (window-centre
   laterally alone and 0.5 depth cells alone, that tell the shared error of lateral and of
   depth motion apart);
 - the random error ``r_k``: the rms over the test displacements of the spread (standard
-  deviation) of the layer's vectors.
-
+  deviation) of the layer's vectors;
 - the rms uncertainty ``s_k`` the correlation statistics with the error the iteration left
   (:func:`iteration_uncertainty`) gave those same test vectors.
 
@@ -46,10 +45,11 @@ with the error the passes left (:func:`iteration_uncertainty`: the geometric tai
 :func:`filter_offset` and the correlation's own noise removed), ``d_k`` the vector's
 displacement and:
 
-- :math:`r_{ex,k}^2 = \max(0, r_k^2 - s_k^2)`, the part of the test vectors' spread the
-  correlation statistics did not see, per test displacement, interpolated linearly in the
-  vector's motion measured in resolution cells, from 0 at rest through the test pairs'
-  motions (:meth:`Response.excess`). The spread of the test vectors holds their random
+- :math:`r_{ex,k}^2`, the part :math:`\max(0, r_k^2 - s_k^2)` of the test vectors' spread
+  the correlation statistics did not see, per test displacement, fitted per layer as
+  :math:`a\, t_l + b\, t_d` in the lateral and depth motion measured in resolution cells
+  (0 at rest) and taken at the vector's own motion (:meth:`Response.excess`). The spread of
+  the test vectors holds their random
   error, which their own correlation statistics already estimate; adding all of ``r`` to
   :math:`\sigma_{CS}` would count that part twice. What is left is the error both
   reconstructions share (the plenoptic lock-in above), invisible to the statistics by
@@ -132,7 +132,8 @@ class Response:
     z : ndarray, shape (nz,)
         Window-centre depth of each layer, metres (effective coordinates of the grid).
     shifts : ndarray, shape (n, 3)
-        The test displacements ``(dx, dy, dz)``, metres (effective coordinates), growing.
+        The test displacements ``(dx, dy, dz)``, metres (effective coordinates), in the
+        order of :func:`response_shifts`.
     gain : ndarray, shape (n, 3, nz)
         Gain of ``u``, ``v``, ``w`` per test displacement and layer (1 = exact; NaN along an
         axis the test displacement does not move along).
