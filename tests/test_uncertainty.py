@@ -412,6 +412,17 @@ def test_the_shared_error_grows_with_the_vectors_motion_whatever_its_direction()
         disp = np.broadcast_to(np.asarray(d)[:, None, None, None], (3, 3, 2, 2))
         np.testing.assert_allclose(resp.excess(z, disp), np.sqrt(var), rtol=1e-9,
                                    atol=1e-20, err_msg=name)
+    # the same for any direction of the same motion: a lateral motion turned by any angle,
+    # and every motion reversed
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        d = rng.normal(size=3) * np.array([1e-4, 1e-4, 4e-4])
+        turn = rng.uniform(0, 2 * np.pi)
+        other = np.array([d[0] * np.cos(turn) - d[1] * np.sin(turn),
+                          d[0] * np.sin(turn) + d[1] * np.cos(turn), -d[2]])
+        one, two = (resp.excess(z, np.broadcast_to(v[:, None, None, None], (3, 3, 2, 2)))
+                    for v in (d, other))
+        np.testing.assert_allclose(one, two, rtol=1e-12)
     # the gain is the mean over the test pairs that move along each axis
     g, _ = resp.at(z)
     np.testing.assert_allclose(g[0], 0.9)

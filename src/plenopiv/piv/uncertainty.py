@@ -265,18 +265,23 @@ def response_shifts(camera, f_number=None, displacements: int = 3) -> np.ndarray
     only, depth only). ``displacements`` 3 gives these five, 1 the middle one of the three
     alone (1.25 footprints, 0.25 depth resolution cells).
     """
-    from plenopiv.pipeline import resolution_cell
-
     if displacements not in RESPONSE_DISPLACEMENTS:
         raise ValueError(f"displacements = {displacements!r}: expected one of "
                          f"{RESPONSE_DISPLACEMENTS}")
-    lateral, depth = resolution_cell(camera, f_number)
     pairs = list(zip(LATERAL_SHIFTS, DEPTH_SHIFTS, strict=True))
     if displacements == 1:
         pairs = pairs[len(pairs) // 2:len(pairs) // 2 + 1]
     else:
         pairs += list(SEPARATING_SHIFTS)
-    return np.array([[a * lateral, a * lateral, b * depth] for a, b in pairs])
+    return np.array([[a, a, b] for a, b in pairs]) * _cell(camera, f_number)
+
+
+def _cell(camera, f_number=None) -> np.ndarray:
+    """The resolution cell ``(lateral, lateral, depth)``, metres, of the effective ``camera``."""
+    from plenopiv.pipeline import resolution_cell
+
+    lateral, depth = resolution_cell(camera, f_number)
+    return np.array([lateral, lateral, depth])
 
 
 def response_key(*parts) -> str:
@@ -374,23 +379,29 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     gain = np.stack([gains[i] for i in keep])
     random = np.stack([spreads[i] for i in keep])
     statistics = np.stack([stats[i] for i in keep])
-    # layers without vectors: nearest layers (an axis a test pair does not move along keeps
-    # no gain)
-    for a, empty in ((gain, 1.0), (random, 0.0), (statistics, 0.0)):
-        for j in range(a.shape[0]):
-            for k in range(3):
-                if a is gain and shifts[keep[j], k] == 0.0:
-                    continue
-                bad = ~np.isfinite(a[j, k])
-                if bad.all():
-                    a[j, k] = empty
-                elif bad.any():
-                    a[j, k, bad] = np.interp(z[bad], z[~bad], a[j, k, ~bad])
-    from plenopiv.pipeline import resolution_cell
-
-    lateral, depth = resolution_cell(calibration.effective_camera, f_number)
+    moved = shifts[keep] != 0.0                     # (n, 3): an axis without motion has no gain
+    _fill_empty_layers(gain, z, 1.0, moved)
+    _fill_empty_layers(random, z, 0.0)
+    _fill_empty_layers(statistics, z, 0.0)
     return Response(z, shifts[keep], gain, random, statistics, int(n_particles),
-                    np.array([lateral, lateral, depth]))
+                    _cell(calibration.effective_camera, f_number))
+
+
+def _fill_empty_layers(values, z, empty, rows=None) -> None:
+    """Fill, in place, the layers without vectors (NaN) of ``values`` (n, 3, layers).
+
+    From the nearest layers (linear between them), or ``empty`` where a row has none; rows
+    where ``rows`` (n, 3) is false are left as they are.
+    """
+    for j in range(values.shape[0]):
+        for k in range(3):
+            if rows is not None and not rows[j, k]:
+                continue
+            bad = ~np.isfinite(values[j, k])
+            if bad.all():
+                values[j, k] = empty
+            elif bad.any():
+                values[j, k, bad] = np.interp(z[bad], z[~bad], values[j, k, ~bad])
 
 
 def cached_response(path: Path | None, key: str, compute) -> tuple[Response | None, bool]:
