@@ -23,6 +23,8 @@ from plenopiv.piv.uncertainty import (
     curvature_noise_factor,
     filter_offset,
     iteration_uncertainty,
+    location_uncertainty,
+    placement_offset,
     rejected_neighbour_uncertainty,
     response_key,
     response_shifts,
@@ -271,13 +273,13 @@ def test_the_smoothed_predictor_s_offset_is_not_an_iteration_error():
 
 
 def test_one_test_displacement_is_the_middle_of_the_three(small_camera):
-    """Three displacements along all axes at once, then one lateral only and one along
+    """Three displacements along all axes at once, then one along x only and one along
     depth only; one displacement is the middle of the three."""
     five = response_shifts(small_camera)
     assert five.shape == (5, 3)
     np.testing.assert_allclose(response_shifts(small_camera, displacements=1), five[1:2])
     assert np.all(five[:3] > 0)
-    assert five[3, 2] == 0 and np.all(five[3, :2] > 0)
+    assert five[3, 0] > 0 and np.all(five[3, 1:] == 0)
     assert np.all(five[4, :2] == 0) and five[4, 2] > 0
     with pytest.raises(ValueError, match="displacements"):
         response_shifts(small_camera, displacements=2)
@@ -390,7 +392,8 @@ def test_the_shared_error_grows_with_the_vectors_motion_whatever_its_direction()
     moved (a component that does not move gets it too), additive, held beyond the test
     pairs' motions; one test pair: linear in the whole motion through it."""
     cell = np.array([1e-4, 1e-4, 4e-4])                        # lateral, lateral, depth
-    shifts = np.array([[1e-4, 0.0, 0.0], [0.0, 0.0, 4e-4]])    # 1 cell lateral, 1 in depth
+    shifts = np.array([[1e-4, 0.0, 0.0], [0.0, 0.0, 4e-4]])    # 1 cell along x, 1 in depth;
+    # two pairs cannot tell x from y apart: the lateral motion counts whatever its direction
     z = np.array([-1e-3, 0.0, 1e-3])
     random = np.zeros((2, 3, 3))
     random[0] = 2e-5                                           # lateral motion's spread
@@ -442,3 +445,104 @@ def test_the_shared_error_grows_with_the_vectors_motion_whatever_its_direction()
     f = replace(f, u=f.u * 0.0, v=f.v * 0.0)
     out = combine(f, resp)
     np.testing.assert_allclose(out.uncertainty_parts["response_random"], 0.0, atol=1e-20)
+
+
+def test_a_vector_measured_elsewhere_errs_by_the_gradient_times_the_offset():
+    """A window that holds the particles of c - δ reports the displacement there: for a linear
+    field d = G x the error is |G δ| per component, whatever the layer; a uniform field has
+    none; beside a NaN vector the derivative is undefined and the term is 0, not NaN."""
+    h = np.array([1e-3, 2e-3, 3e-3])                               # spacing x, y, z
+    z, y, x = np.meshgrid(np.arange(4) * h[2], np.arange(5) * h[1], np.arange(6) * h[0],
+                          indexing="ij")
+    grad = np.array([[0.01, -0.02, 0.03], [0.0, 0.0, 0.0], [-0.04, 0.0, 0.05]])  # d_k/dx_a
+    disp = np.stack([g[0] * x + g[1] * y + g[2] * z for g in grad])
+    offset = np.array([1e-5, -2e-5, 4e-5])[:, None] * np.ones((3, 4))
+    out = location_uncertainty(disp, h, offset)
+    expected = np.sqrt(((grad * offset[:, 0]) ** 2).sum(axis=1))
+    for k in range(3):
+        np.testing.assert_allclose(out[k], expected[k], rtol=1e-9, atol=1e-20)
+    assert location_uncertainty(np.ones_like(disp), h, offset).max() == 0.0
+    disp[0, 2, 2, 2] = np.nan
+    out = location_uncertainty(disp, h, offset)
+    assert np.isfinite(out).all()
+    # its neighbour along x has no x derivative left, only those along y and z
+    np.testing.assert_allclose(out[0, 2, 2, 1], np.hypot(grad[0, 1] * offset[1, 0],
+                                                         grad[0, 2] * offset[2, 0]))
+    # no offset, no term
+    assert location_uncertainty(disp, h, np.zeros((3, 4))).max() == 0.0
+
+
+def test_the_placement_of_a_shifted_reconstruction_is_its_shift(rng):
+    """Correlating the true particles' volume with a reconstruction that drew every
+    particle δ away gives δ in every layer (sub-voxel, each axis its own), in metres."""
+    from plenopiv.pipeline import gaussian_truth_volume
+    from plenopiv.piv import correlate_volumes
+    from plenopiv.volume import VolumeGrid
+
+    voxel = np.array([50e-6, 50e-6, 100e-6])
+    grid = VolumeGrid.from_bounds((0.0, 48 * voxel[0]), (0.0, 48 * voxel[1]),
+                                  (0.0, 64 * voxel[2]), voxel=tuple(voxel))
+    lo, hi = np.array(grid.bounds)[:, 0], np.array(grid.bounds)[:, 1]
+    margin = 8 * voxel                             # particles beyond the edges, as in a flow
+    pos = rng.uniform(lo - margin, hi + margin, size=(1800, 3))
+    delta = np.array([0.3, -0.2, 0.7]) * voxel
+    blob = (2.0, 0.8, 0.8)
+    recon = gaussian_truth_volume(grid, pos + delta, sigma_vox=(3.0, 1.0, 1.0))  # elongated
+    settings = PIVSettings(windows=((16, 16, 16),), passes=2)
+
+    def correlate(a, b):
+        return correlate_volumes(a, b, grid, settings=settings)
+
+    place = placement_offset(recon, pos, grid, correlate, blob)
+    assert place.shape == (3, correlate(recon, recon).z.size)
+    # a layer's mean over its ~36 vectors, of 50 %-overlapping windows (correlated errors);
+    # along z the two shapes differ (sigma 2 against 3 voxels): within 0.15 voxel per layer,
+    # 0.05 over all layers
+    for k in range(3):
+        np.testing.assert_allclose(place[k], delta[k], atol=0.15 * voxel[k], err_msg="xyz"[k])
+        assert abs(place[k].mean() - delta[k]) < 0.05 * voxel[k]
+
+
+def test_the_location_term_reaches_the_product_through_the_response():
+    """combine adds the location term with the response's placement (the rms over its test
+    pairs), and the placement travels with the cached response."""
+    h = (1e-3, 2e-3, 3e-3)
+    z, y, x = np.meshgrid(np.arange(3) * h[2], np.arange(5) * h[1], np.arange(6) * h[0],
+                          indexing="ij")
+    f = _grid_field(0.02 * z, h)                                    # du/dz = 0.02
+    f = replace(f, z=np.array([-1e-3, 0.0, 1e-3]) * 3)
+    resp = _response(gain_w=1.0, random_w=0.0)
+    placement = np.zeros((2, 3, 3))
+    placement[0, 2], placement[1, 2] = 3e-5, -4e-5                  # z offsets of two pairs
+    resp = replace(resp, placement=placement)
+    dz = np.sqrt((3e-5**2 + 4e-5**2) / 2)
+    np.testing.assert_allclose(resp.location(f.z)[2], dz)
+    out = combine(f, resp)
+    np.testing.assert_allclose(out.uncertainty_parts["location"][0], 0.02 * dz, rtol=1e-9)
+    np.testing.assert_allclose(out.u_uncertainty, 0.02 * dz, rtol=1e-9)
+    back = Response.from_dict(json.loads(json.dumps(resp.to_dict())))
+    np.testing.assert_array_equal(back.placement, placement)
+    assert _response().location(f.z).max() == 0.0                  # not measured: no term
+
+
+def test_the_shared_error_of_each_component_follows_the_motion_along_each_axis():
+    """With test pairs along x alone, along depth alone and diagonal ones, the excess of each
+    component is fitted per axis of motion: a component gets from a motion along x what the
+    pair along x gave it, from a motion along y what the diagonal pairs gave beyond that
+    (here u's error grows with motion along x only, v's along y only, w's with all)."""
+    cell = np.array([1e-4, 1e-4, 4e-4])
+    shifts = np.array([[0.5, 0.5, 0.1], [1.25, 1.25, 0.25], [1.75, 1.75, 0.5],
+                       [1.25, 0.0, 0.0], [0.0, 0.0, 0.5]]) * cell
+    t = shifts / cell                                             # motion in cells
+    rate = np.array([[4.0, 0.0, 0.0], [0.0, 4.0, 0.0], [1.0, 1.0, 9.0]]) * 1e-10  # k x axis
+    statistics = np.full((5, 3, 3), 1e-5)
+    random = np.sqrt(statistics**2 + (t @ rate.T)[:, :, None])   # excess = rate . t
+    gain = np.ones((5, 3, 3))
+    resp = Response(np.array([-1e-3, 0.0, 1e-3]), shifts, gain, random, statistics, 100, cell)
+    for d in ((1e-4, 0.0, 0.0), (0.0, 1.5e-4, 0.0), (0.5e-4, 1e-4, 1e-4), (0.0, 0.0, 0.0)):
+        disp = np.broadcast_to(np.asarray(d)[:, None, None, None], (3, 3, 2, 2))
+        expected = np.sqrt(rate @ (np.abs(d) / cell))
+        got = resp.excess(resp.z, disp)
+        for k in range(3):
+            np.testing.assert_allclose(got[k], expected[k], rtol=1e-6, atol=1e-12,
+                                       err_msg=f"{d} component {k}")

@@ -182,9 +182,9 @@ class PIVConfig(_Strict):
         under-estimates the depth uncertainty near focus; see docs/validation/uncertainty.md).
     response_displacements : test displacements of the ``"response"`` uncertainty, 3
         (default: 0.5, 1.25 and 1.75 lenslet footprints laterally with 0.1, 0.25 and 0.5
-        depth resolution cells, plus 1.25 footprints laterally alone and 0.5 depth cells
+        depth resolution cells, plus 1.25 footprints along x alone and 0.5 depth cells
         alone: ten reconstructions) or 1 (the middle one alone: two reconstructions, the gain
-        probed at one fraction of the resolution cell, lateral and depth motion not told
+        probed at one fraction of the resolution cell, the motion along the axes not told
         apart).
     overlap_correction, broad_peaks : sub-voxel peak fit on the correlation divided by the
         windows' overlap fraction, and by a 5-point least-squares Gaussian along axes where

@@ -237,7 +237,7 @@ def markdown(r: dict) -> str:
 METHOD = [
     "## Method",
     "",
-    "Per vector and component the standard uncertainty is the root sum of squares of five "
+    "Per vector and component the standard uncertainty is the root sum of squares of six "
     "terms (`plenopiv.piv.correlate_volumes`, `plenopiv.piv.uncertainty`):",
     "",
     "1. **Correlation statistics** (Wieneke 2015, per axis in 3-D). After the last pass the "
@@ -277,20 +277,20 @@ METHOD = [
     "displacement is wrong (depth gain 0.0-0.5 near focus). Once per experiment the chain is "
     "run on ray-traced pairs of random particles (the pair's seeding) moved by known "
     "uniform displacements — 0.5, 1.25, 1.75 lenslet footprints laterally with 0.1, 0.25, "
-    "0.5 depth resolution cells in depth, then 1.25 footprints laterally alone and 0.5 cells "
+    "0.5 depth resolution cells in depth, then 1.25 footprints along x alone and 0.5 cells "
     "in depth alone — with the calibrated camera, the grid and every setting of the real "
     "pair. Per layer of vectors and test displacement this gives the gain g (mean measured / "
     "true, along the axes it moves), the spread r of the layer's vectors and the rms s of "
     "the uncertainty terms 1-2 gave those same vectors. The excess r² - s² (the spread less "
     "the random error terms 1-2 already count, so it is not counted twice) is the error both "
     "exposures share: 0 at rest, where they hold the same particles at the same places, and "
-    "growing as particles cross lenslets (lateral motion) and depth cells (depth motion), in "
-    "every component whichever way they move. Per component and layer it is fitted as "
-    "a t_l + b t_d (non-negative least squares over the five test pairs; t_l, t_d the "
-    "lateral and depth motion in resolution cells; the pairs that move one way only tell a "
-    "and b apart), and a vector gets it at its own motion (held at the test pairs' largest): "
-    "r_ex = sqrt(a t_l + b t_d). It also gets the error of a displacement measured with gain "
-    "g, |1 - g| / max(g, 0.1) |d|. "
+    "growing as particles cross lenslets (lateral motion) and depth cells (depth motion). "
+    "Per component and layer it is fitted as a_x t_x + a_y t_y + a_z t_z (non-negative "
+    "least squares over the five test pairs; t_x, t_y, t_z the motion along each axis in "
+    "resolution cells; the pairs along x alone and along depth alone tell the axes apart "
+    "from the diagonal ones), and a vector gets it at its own motion (held at the test "
+    "pairs' largest): r_ex = sqrt(a_x t_x + a_y t_y + a_z t_z). It also gets the error of a "
+    "displacement measured with gain g, |1 - g| / max(g, 0.1) |d|. "
     "It is a type-B evaluation from a calibration of the measuring system: the vortex flows "
     "are not used to build it.",
     "4. **Unresolved curvature**: a top-hat window of edge W measures the window average, "
@@ -321,6 +321,16 @@ METHOD = [
     "median test's, whose windows overlap its window) get it, the largest where several "
     "apply; a field without rejections gets 0. The factor 1/sqrt(12) is the GUM's, not "
     "fitted: 0.1, 0.25 and 0.5 were measured for comparison (below).",
+    "6. **Where the vector is.** A vector is reported at its window's centre, but its window "
+    "holds the particles the reconstruction placed there; where the reconstruction places "
+    "particles a distance δ from where they are, the vector is the flow's displacement at "
+    "centre - δ and errs by δ · ∇d (to first order; the sensitivity coefficient of the "
+    "position, GUM 5.1.3). δ is measured per axis and layer on term 3's test pairs: the "
+    "volume of Gaussians of the resolution cell at the true particle positions is correlated "
+    "with the reconstruction as the real pair is, window by window, and the mean per layer is "
+    "the offset (its rms over the five pairs); ∇d is the measured field's central "
+    "differences. The uniform test displacements have no gradient, so terms 1-5 cannot see "
+    "this error.",
     "",
     "## Why terms 5 and the motion of term 3",
     "",
