@@ -504,18 +504,19 @@ def test_the_placement_of_a_shifted_reconstruction_is_its_shift(rng):
 
 
 def test_the_location_term_reaches_the_product_through_the_response():
-    """combine adds the location term with the response's placement (the rms over its test
-    pairs), and the placement travels with the cached response."""
+    """combine adds the location term with the response's placement (the mean over its test
+    pairs and the uncertainty of that mean), and the placement travels with the cached
+    response."""
     h = (1e-3, 2e-3, 3e-3)
     z, y, x = np.meshgrid(np.arange(3) * h[2], np.arange(5) * h[1], np.arange(6) * h[0],
                           indexing="ij")
     f = _grid_field(0.02 * z, h)                                    # du/dz = 0.02
     f = replace(f, z=np.array([-1e-3, 0.0, 1e-3]) * 3)
     resp = _response(gain_w=1.0, random_w=0.0)
-    placement = np.zeros((2, 3, 3))
-    placement[0, 2], placement[1, 2] = 3e-5, -4e-5                  # z offsets of two pairs
+    placement = np.zeros((3, 3, 3))
+    placement[:, 2] = np.array([3e-5, 5e-5, 7e-5])[:, None]        # z offsets of three pairs
     resp = replace(resp, placement=placement)
-    dz = np.sqrt((3e-5**2 + 4e-5**2) / 2)
+    dz = np.sqrt(5e-5**2 + 2e-5**2 / 3)     # their mean, and its standard error (s = 2e-5)
     np.testing.assert_allclose(resp.location(f.z)[2], dz)
     out = combine(f, resp)
     np.testing.assert_allclose(out.uncertainty_parts["location"][0], 0.02 * dz, rtol=1e-9)

@@ -437,6 +437,7 @@ def _response_of(calibration, weights, volume_a: VolumeResult, experiment, setti
     def response(field):
         key = response_key(weights.key, grid.key(), experiment.reconstruction.model_dump(),
                            experiment.piv.model_dump(), n_particles,
+                           calibration.point_spread_sigma_px,
                            None if img_mask is None else hashlib_of(img_mask),
                            None if vol_mask is None else hashlib_of(vol_mask))
         cache = experiment.output.weights_cache

@@ -98,6 +98,16 @@ class Calibration:
         return self.camera.main_lens.image_distance
 
     @property
+    def point_spread_sigma_px(self) -> float | None:
+        """Standard deviation of the sensor's Gaussian point spread, px.
+
+        Measured on the focal-point image (``extra["point_spread_sigma_px"]``,
+        :func:`plenopiv.calibration.psf.point_spread_sigma`); None when not measured.
+        """
+        value = self.extra.get("point_spread_sigma_px")
+        return None if value is None else float(value)
+
+    @property
     def effective_camera(self) -> CameraModel:
         """The camera with the calibrated image distance: :attr:`camera` itself."""
         return self.camera

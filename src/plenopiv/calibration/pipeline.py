@@ -41,6 +41,7 @@ from plenopiv.calibration.lenslets import (
     spot_lattice,
 )
 from plenopiv.calibration.model import Calibration
+from plenopiv.calibration.psf import point_spread_sigma
 from plenopiv.calibration.spot_types import Lattice, SpotFlag, SpotSet
 from plenopiv.camera import CameraModel, apply_misplacement
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
@@ -166,6 +167,9 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
         The stop of the focal-point image (f/16 in the thesis). Given, the focal-point fit
         predicts each spot's centroid over that stop instead of its chief ray: through a
         plate they differ (with the "thesis" back side by 0.03 mm of S_i at 145 mm, f/16).
+        Given, the spots' size is also compared with the model's at that stop, which
+        measures the sensor's point spread (``extra["point_spread_sigma_px"]``,
+        :func:`~plenopiv.calibration.psf.point_spread_sigma`; None without it).
     phase_harmonics : int
         Harmonics of the sub-pixel phase bias fitted with each lattice (default 2; 0: none),
         see :func:`~plenopiv.calibration.lattice_fit.fit_lattice`.
@@ -214,11 +218,15 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     spots_px, missing_notes = _every_focal_spot(focal_px, spot_of, lenslets, fit, spot_model,
                                                 camera)
     si, meth, si_notes = _chosen_image_distance(method, fit, mag)
+    psf = point_spread_sigma(camera.with_image_distance(si), spots.spot_rms_radius_px,
+                             focal_point_f_number, spot_method=spots.method,
+                             threshold=spot_threshold)
     cal = Calibration(camera=camera.with_image_distance(si), centre_px=lenslets.centre_px,
                       focal_spot_px=spots_px, grid_index=lenslets.grid_index, method=meth,
                       offset=tuple(fit.offset), rotation=fit.rotation,
                       rms_residual_px=fit.rms_residual / pp,
-                      extra=_extra(spot_of, fit, mag, meth, spots, white))
+                      extra={**_extra(spot_of, fit, mag, meth, spots, white),
+                             "point_spread_sigma_px": psf})
     return CalibrationReport(cal, lat, lenslets.lattice, fit, mag, int(np.sum(~found)),
                              lenslets.grid_index[~found], lenslets.source,
                              focal_px[spot_of[found]], notes + missing_notes + si_notes, spots,

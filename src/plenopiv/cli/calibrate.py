@@ -17,7 +17,8 @@ def add_parser(sub) -> None:
                      help="focal-point image (white sheet, stopped-down lens)")
     cal.add_argument("--focal-point-f-number", type=float, metavar="N",
                      help="stop of the focal-point image (e.g. 16): fit the spots' centroids "
-                          "over it, not their chief rays (they differ through a plate)")
+                          "over it, not their chief rays (they differ through a plate), and "
+                          "measure the sensor's point spread from the spots' size")
     cal.add_argument("--alignment", metavar="IMG",
                      help="alignment image (collimated light); default: the nominal lattice")
     cal.add_argument("--ruler", metavar="IMG", help="ruler image on the nominal focal plane")

@@ -176,15 +176,18 @@ class Response:
     def location(self, z) -> np.ndarray:
         """Placement offset of the reconstruction ``(3, len(z))``, metres, at depths ``z``.
 
-        The rms over the test pairs of their offsets per axis and layer (the mean offset
-        and its scatter between pairs together), linear between the layers; zeros where
-        the response carries no placement.
+        Per axis and layer, the mean offset ``m`` over the ``n`` test pairs with the
+        uncertainty of that mean, ``sqrt(m² + s² / n)`` (``s`` their standard deviation), linear
+        between the layers; zeros where the response carries no placement.
         """
         z = np.asarray(z, float)
         if self.placement is None:
             return np.zeros((3, z.size))
-        rms = np.sqrt(np.mean(np.asarray(self.placement, float) ** 2, axis=0))
-        return np.stack([np.interp(z, self.z, r) for r in rms])
+        p = np.asarray(self.placement, float)
+        n = p.shape[0]
+        spread2 = p.var(axis=0, ddof=1) / n if n > 1 else 0.0
+        offset = np.sqrt(p.mean(axis=0) ** 2 + spread2)
+        return np.stack([np.interp(z, self.z, r) for r in offset])
 
     def at(self, z) -> tuple[np.ndarray, np.ndarray]:
         """Gain and excess random error, each ``(3, len(z))``, at depths ``z`` (metres).
@@ -344,8 +347,10 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     Parameters
     ----------
     calibration : Calibration
-        The calibration of the experiment (its camera, with the calibrated S_i, renders the
-        test images).
+        The calibration of the experiment: its camera, with the calibrated S_i, renders the
+        test images, blurred by the point spread measured on its focal-point image
+        (:attr:`~plenopiv.calibration.model.Calibration.point_spread_sigma_px`; none when not
+        measured).
     grid : VolumeGrid
         The reconstruction grid (effective coordinates).
     correction : DepthCorrection
@@ -370,9 +375,10 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     Response or None
         None when no test pair gave a vector field (too few particles).
     """
-    from plenopiv.synthetic.images import particle_image
+    from plenopiv.synthetic.images import blurred, particle_image
 
     rng = np.random.default_rng(seed)
+    psf = calibration.point_spread_sigma_px or 0.0
     camera = calibration.camera
     shifts = response_shifts(calibration.effective_camera, f_number, displacements)
     b = grid.bounds
@@ -385,10 +391,9 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     for i, s in enumerate(shifts):
         pos = rng.uniform(lo, hi, size=(max(int(n_particles), 1), 3))
         s_phys = s * np.array([1.0, 1.0, correction.scale])
-        ia = particle_image(camera, pos, rays_per_particle=rays_per_particle, f_number=f_number,
-                            seed=seed + 2 * i)
-        ib = particle_image(camera, pos + s_phys, rays_per_particle=rays_per_particle,
-                            f_number=f_number, seed=seed + 2 * i + 1)
+        ia, ib = (blurred(particle_image(camera, p, rays_per_particle=rays_per_particle,
+                                         f_number=f_number, seed=seed + 2 * i + j), psf)
+                  for j, p in enumerate((pos, pos + s_phys)))
         try:
             volume_a = reconstruct(ia)
             field = correlate(volume_a, reconstruct(ib))

@@ -212,6 +212,30 @@ def particle_image(camera: CameraModel, positions, intensities=None, *,
 NOISE_MODELS = ("none", "poisson")
 
 
+def blurred(image, sigma_px: float) -> np.ndarray:
+    """``image`` blurred so that every spot's variance grows by ``sigma_px**2`` per axis, float64.
+
+    Repeated [a, 1 - 2a, a] kernels along each axis, ``n = ceil(1.5 sigma_px**2)`` passes with
+    ``a = sigma_px**2 / (2 n)`` (at most 1/3: non-negative, the light kept): each adds
+    exactly ``2a`` to the variance, and many tend to the Gaussian. A Gaussian kernel sampled
+    on the pixels adds less below about a pixel (0.16 px² instead of 0.25 at 0.5 px), and the
+    continuous one in Fourier space rings there. Dark beyond the image's edges.
+    """
+    from scipy import ndimage
+
+    img = np.asarray(image, dtype=float)
+    if sigma_px <= 0:
+        return img.copy()
+    var = float(sigma_px) ** 2
+    n = int(np.ceil(1.5 * var))
+    a = var / (2 * n)
+    kernel = np.array([a, 1.0 - 2.0 * a, a])
+    for _ in range(n):
+        for axis in (0, 1):
+            img = ndimage.convolve1d(img, kernel, axis=axis, mode="constant")
+    return img
+
+
 def finish_image(irradiance, *, exposure: float | None = None, blur_px: float = 0.0,
                  noise: str = "none", full_well: float = 20000.0, read_noise: float = 0.0,
                  bit_depth: int | None = 16, peak_fraction: float = 0.8,

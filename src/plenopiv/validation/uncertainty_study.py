@@ -279,7 +279,9 @@ METHOD = [
     "uniform displacements — 0.5, 1.25, 1.75 lenslet footprints laterally with 0.1, 0.25, "
     "0.5 depth resolution cells in depth, then 1.25 footprints along x alone and 0.5 cells "
     "in depth alone — with the calibrated camera, the grid and every setting of the real "
-    "pair. Per layer of vectors and test displacement this gives the gain g (mean measured / "
+    "pair, the images blurred by the point spread the calibration measured on the "
+    "focal-point image (the spots' rms radius against the model's at the same stop). "
+    "Per layer of vectors and test displacement this gives the gain g (mean measured / "
     "true, along the axes it moves), the spread r of the layer's vectors and the rms s of "
     "the uncertainty terms 1-2 gave those same vectors. The excess r² - s² (the spread less "
     "the random error terms 1-2 already count, so it is not counted twice) is the error both "
@@ -327,10 +329,10 @@ METHOD = [
     "centre - δ and errs by δ · ∇d (to first order; the sensitivity coefficient of the "
     "position, GUM 5.1.3). δ is measured per axis and layer on term 3's test pairs: the "
     "volume of Gaussians of the resolution cell at the true particle positions is correlated "
-    "with the reconstruction as the real pair is, window by window, and the mean per layer is "
-    "the offset (its rms over the five pairs); ∇d is the measured field's central "
-    "differences. The uniform test displacements have no gradient, so terms 1-5 cannot see "
-    "this error.",
+    "with the reconstruction as the real pair is, window by window; the mean per layer over "
+    "the five pairs is the offset, counted with the standard error of that mean. ∇d is the "
+    "measured field's central differences. The uniform test displacements have no "
+    "gradient, so terms 1-5 cannot see this error.",
     "",
     "## Why terms 5 and the motion of term 3",
     "",

@@ -43,6 +43,8 @@ from plenopiv.volume import VolumeGrid
 
 #: The flows a case can run.
 FLOWS = ("oseen", "hill", "uniform")
+FOCAL_POINT_F_NUMBER = 16.0
+"""The stop of the rendered focal-point images (the thesis's f/16), given to the calibration."""
 
 
 @dataclass(frozen=True)
@@ -275,8 +277,8 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
     blur = case.blur_px
     if case.calibrate:
         report("calibration images", 0.0)
-        fp = finish_image(focal_point_image(truth_cam, f_number=16), noise="poisson", rng=rng,
-                          blur_px=blur)
+        fp = finish_image(focal_point_image(truth_cam, f_number=FOCAL_POINT_F_NUMBER),
+                          noise="poisson", rng=rng, blur_px=blur)
         report("calibration images", 0.3)
         al = finish_image(alignment_image(truth_cam), noise="poisson", rng=rng, blur_px=blur)
         report("calibration images", 0.5)
@@ -287,7 +289,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
         user_cam = truth_cam.replace(main_lens=replace(truth_cam.main_lens,
                                                        image_distance=None))
         rep = calibrate(user_cam, fp, alignment_image=al, ruler_image=ru, ruler_spacing=1e-3,
-                        method="both")
+                        method="both", focal_point_f_number=FOCAL_POINT_F_NUMBER)
         cal = rep.calibration
         cal.save(out / "calibration.h5", config={"summary": rep.summary()})
         cal_summary = rep.summary()

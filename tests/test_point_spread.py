@@ -1,0 +1,74 @@
+"""plenopiv.calibration.psf: the sensor's point spread from the focal-point image's spots, and
+the blur the response renders its test images with."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.calibration.pipeline import calibrate
+from plenopiv.calibration.psf import point_spread_sigma
+from plenopiv.calibration.spot_detection import detect_spots
+from plenopiv.synthetic.images import blurred, finish_image, focal_point_image
+
+F_NUMBER = 16.0
+
+
+@pytest.fixture(scope="module")
+def patch(small_camera):
+    return small_camera.patch(21, 21)
+
+
+@pytest.fixture(scope="module")
+def sharp(patch):
+    return focal_point_image(patch, f_number=F_NUMBER)
+
+
+def test_the_blur_adds_its_variance_at_any_width():
+    """A point blurred by sigma has the variance sigma² per axis (the continuous Gaussian),
+    also below a pixel, where a kernel sampled on the pixels adds less."""
+    point = np.zeros((64, 64))
+    point[32, 32] = 1.0
+    r, c = np.mgrid[:64, :64]
+    for sigma in (0.3, 0.5, 1.5):
+        img = blurred(point, sigma)
+        assert img.sum() == pytest.approx(1.0)
+        var_c = (img * (c - 32.0) ** 2).sum()
+        var_r = (img * (r - 32.0) ** 2).sum()
+        assert var_c == pytest.approx(sigma**2, rel=1e-6)
+        assert var_r == pytest.approx(sigma**2, rel=1e-6)
+    assert np.array_equal(blurred(point, 0.0), point)
+
+
+@pytest.mark.parametrize("sigma", [0.5, 0.8, 1.2])
+def test_the_point_spread_is_measured_whatever_the_noise(patch, sharp, sigma):
+    """Spots blurred by sigma (and Poisson noise) give sigma back: the rms radius of a spot
+    of about two pixels is measured to a few hundredths of a pixel, so sigma within 0.06 px;
+    a sharp image gives less than 0.1 px (the pixels sample its disc the same way)."""
+    rng = np.random.default_rng(11)
+    img = finish_image(blurred(sharp, sigma), noise="poisson", rng=rng)
+    spots = detect_spots(img)
+    got = point_spread_sigma(patch, spots.spot_rms_radius_px, F_NUMBER,
+                             spot_method=spots.method)
+    assert got == pytest.approx(sigma, abs=0.06)
+    spots = detect_spots(finish_image(sharp, noise="poisson", rng=rng))
+    assert point_spread_sigma(patch, spots.spot_rms_radius_px, F_NUMBER,
+                              spot_method=spots.method) < 0.1
+    # the stop of the focal-point image unknown: so is the blur
+    assert point_spread_sigma(patch, spots.spot_rms_radius_px, None) is None
+
+
+def test_the_calibration_records_the_point_spread(tmp_path, small_camera):
+    """Calibrating with the focal-point image's stop records the blur in the product (None
+    without the stop), and it survives the file."""
+    rng = np.random.default_rng(5)
+    truth = small_camera.with_image_distance(0.21)
+    fp = finish_image(blurred(focal_point_image(truth, f_number=F_NUMBER), 0.7),
+                      noise="poisson", rng=rng)
+    cal = calibrate(small_camera, fp, focal_point_f_number=F_NUMBER).calibration
+    assert cal.point_spread_sigma_px == pytest.approx(0.7, abs=0.06)
+    assert Calibration.load(cal.save(tmp_path / "cal.h5")).point_spread_sigma_px == \
+        cal.point_spread_sigma_px
+    assert calibrate(small_camera, fp).calibration.point_spread_sigma_px is None
+    assert Calibration.from_camera(truth).point_spread_sigma_px is None
