@@ -86,6 +86,7 @@ class CalibrationReport:
             "grid": self.focal_lattice.grid,
             "pitch_px": [float(v) for v in self.focal_lattice.pitch_px],
             "lenslet_centres_from": self.lenslet_source,
+            "point_spread_sigma_px": cal.point_spread_sigma_px,
             "lattice": {"focal_point": _lattice_summary(self.focal_lattice, self.focal_spots)},
         }
         if self.alignment_lattice is not None:
