@@ -48,15 +48,12 @@ def test_the_point_spread_is_measured_whatever_the_noise(patch, sharp, sigma):
     a sharp image gives less than 0.1 px (the pixels sample its disc the same way)."""
     rng = np.random.default_rng(11)
     img = finish_image(blurred(sharp, sigma), noise="poisson", rng=rng)
-    spots = detect_spots(img)
-    got = point_spread_sigma(patch, spots.spot_rms_radius_px, F_NUMBER,
-                             spot_method=spots.method)
+    got = point_spread_sigma(patch, detect_spots(img), F_NUMBER)
     assert got == pytest.approx(sigma, abs=0.06)
     spots = detect_spots(finish_image(sharp, noise="poisson", rng=rng))
-    assert point_spread_sigma(patch, spots.spot_rms_radius_px, F_NUMBER,
-                              spot_method=spots.method) < 0.1
+    assert point_spread_sigma(patch, spots, F_NUMBER) < 0.1
     # the stop of the focal-point image unknown: so is the blur
-    assert point_spread_sigma(patch, spots.spot_rms_radius_px, None) is None
+    assert point_spread_sigma(patch, spots, None) is None
 
 
 def test_the_calibration_records_the_point_spread(tmp_path, small_camera):

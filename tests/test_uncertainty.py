@@ -11,23 +11,25 @@ import numpy as np
 import pytest
 
 from plenopiv.piv import PIVSettings, VectorField
+from plenopiv.piv.response import (
+    Response,
+    cached_response,
+    placement_offset,
+    response_key,
+    response_shifts,
+)
 from plenopiv.piv.uncertainty import (
     DEFAULT_RATIO,
     MAX_CONVERGENCE_RATIO,
     MIN_GAIN,
     REJECTED_RANGE_FACTOR,
-    Response,
-    cached_response,
     combine,
     convergence_ratio,
     curvature_noise_factor,
     filter_offset,
     iteration_uncertainty,
     location_uncertainty,
-    placement_offset,
     rejected_neighbour_uncertainty,
-    response_key,
-    response_shifts,
     unresolved_gradient_bias,
 )
 

@@ -267,7 +267,7 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
     The volumes are on the effective (air-equivalent) grid.
 
     ``mask``: volume mask (bool ``[z, y, x]``, True outside the flow). ``response``: a
-    callable ``response(field) -> Response`` (:func:`plenopiv.piv.uncertainty.measure_response`)
+    callable ``response(field) -> Response`` (:func:`plenopiv.piv.response.measure_response`)
     whose result completes the uncertainties (:func:`plenopiv.piv.uncertainty.combine`); None
     keeps the correlation statistics alone.
     """
@@ -415,11 +415,11 @@ def _response_of(calibration, weights, volume_a: VolumeResult, experiment, setti
                  img_mask, vol_mask):
     """``response(field)`` for :func:`correlate`: the chain's measured response.
 
-    :func:`plenopiv.piv.uncertainty.measure_response` for this experiment, kept in the weights
+    :func:`plenopiv.piv.response.measure_response` for this experiment, kept in the weights
     cache (``[output] weights_cache``) under a key of everything it depends on.
     """
     from plenopiv.piv import correlate_volumes
-    from plenopiv.piv.uncertainty import cached_response, measure_response, response_key
+    from plenopiv.piv.response import cached_response, measure_response, response_key
 
     grid = volume_a.grid
     # the seeding of the real pair, rounded to a power of two so that pairs share a response

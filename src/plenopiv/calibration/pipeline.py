@@ -168,9 +168,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
         The stop of the focal-point image (f/16 in the thesis). Given, the focal-point fit
         predicts each spot's centroid over that stop instead of its chief ray: through a
         plate they differ (with the "thesis" back side by 0.03 mm of S_i at 145 mm, f/16).
-        Given, the spots' size is also compared with the model's at that stop, which
-        measures the sensor's point spread (``extra["point_spread_sigma_px"]``,
-        :func:`~plenopiv.calibration.psf.point_spread_sigma`; None without it).
+        Also measures the sensor's point spread (``extra["point_spread_sigma_px"]``).
     phase_harmonics : int
         Harmonics of the sub-pixel phase bias fitted with each lattice (default 2; 0: none),
         see :func:`~plenopiv.calibration.lattice_fit.fit_lattice`.
@@ -212,22 +210,18 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
 
     # 4. the micro-image size at the working aperture; 5. the magnification method
     white, notes = _white(camera, white_image, fit.image_distance, limits)
-    mag = None
-    if ruler_image is not None and ruler_spacing is not None:
-        mag = _magnification(camera, ruler_image, lat, ruler_spacing, ruler_axis)
+    mag = _magnification(camera, ruler_image, lat, ruler_spacing, ruler_axis)
 
     spots_px, missing_notes = _every_focal_spot(focal_px, spot_of, lenslets, fit, spot_model,
                                                 camera)
     si, meth, si_notes = _chosen_image_distance(method, fit, mag)
-    psf = point_spread_sigma(camera.with_image_distance(si), spots.spot_rms_radius_px,
-                             focal_point_f_number, spot_method=spots.method,
-                             threshold=spot_threshold)
-    cal = Calibration(camera=camera.with_image_distance(si), centre_px=lenslets.centre_px,
+    calibrated = camera.with_image_distance(si)
+    psf = point_spread_sigma(calibrated, spots, focal_point_f_number, threshold=spot_threshold)
+    cal = Calibration(camera=calibrated, centre_px=lenslets.centre_px,
                       focal_spot_px=spots_px, grid_index=lenslets.grid_index, method=meth,
                       offset=tuple(fit.offset), rotation=fit.rotation,
                       rms_residual_px=fit.rms_residual / pp,
-                      extra={**_extra(spot_of, fit, mag, meth, spots, white),
-                             "point_spread_sigma_px": psf})
+                      extra=_extra(spot_of, fit, mag, meth, spots, white, psf))
     return CalibrationReport(cal, lat, lenslets.lattice, fit, mag, int(np.sum(~found)),
                              lenslets.grid_index[~found], lenslets.source,
                              focal_px[spot_of[found]], notes + missing_notes + si_notes, spots,
@@ -285,11 +279,12 @@ def _chosen_image_distance(method, fit: FocalPointFit, mag: MagnificationResult 
     return fit.image_distance, method, notes
 
 
-def _extra(spot_of, fit: FocalPointFit, mag, meth, spots: SpotSet, white) -> dict:
+def _extra(spot_of, fit: FocalPointFit, mag, meth, spots: SpotSet, white, psf) -> dict:
     """The ``extra`` record of the calibration product (JSON-ready)."""
     sigma = fit.sigma_image_distance if meth != "magnification" else mag.sigma_image_distance
     return {"n_missing": int(np.sum(spot_of < 0)), "sigma_image_distance_m": sigma,
             "focal_spot_rms_radius_px": spots.spot_rms_radius_px, "spot_method": spots.method,
+            "point_spread_sigma_px": psf,
             **({} if white is None else
                {"micro_image_diameter_px": white["micro_image_diameter_px"]})}
 
@@ -308,7 +303,11 @@ def _white(camera: CameraModel, white_image, image_distance, limits):
         f"{white['implied_f_number']:.3g}): set f_number to the recording's aperture"]
 
 
-def _magnification(camera, ruler_image, lat: Lattice, spacing, axis) -> MagnificationResult:
+def _magnification(camera, ruler_image, lat: Lattice, spacing,
+                   axis) -> MagnificationResult | None:
+    """The magnification method on a ruler image (None without the image or its spacing)."""
+    if ruler_image is None or spacing is None:
+        return None
     if axis not in ("x", "y"):
         raise ValueError(f"ruler_axis = {axis!r}: expected 'x' or 'y'")
     shape = camera.sensor.shape

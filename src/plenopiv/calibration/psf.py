@@ -7,7 +7,7 @@ variance to the spot's: per axis ``σ² = (r_measured² - r_model²) / 2``, with
 radius of the stacked spots (:attr:`plenopiv.calibration.spot_types.SpotSet.spot_rms_radius_px`,
 two axes), measured the same way on the focal-point image and on the model's rendering of
 it. The chain's response uncertainty renders its test images with this blur
-(:func:`plenopiv.piv.uncertainty.measure_response`): the reconstruction places particles
+(:func:`plenopiv.piv.response.measure_response`): the reconstruction places particles
 differently in depth when the micro-images are blurred (docs/validation/uncertainty.md).
 """
 
@@ -21,21 +21,22 @@ MODEL_PATCH_LENSLETS = 15
 """Lenslets per side of the central patch on which the model's focal spots are rendered."""
 
 
-def point_spread_sigma(camera, measured_rms_radius_px: float, f_number: float | None, *,
-                       spot_method: str = "auto", threshold: float = 0.1) -> float | None:
+def point_spread_sigma(camera, spots, f_number: float | None, *,
+                       threshold: float = 0.1) -> float | None:
     """Standard deviation of the sensor's Gaussian point spread, px.
 
     Parameters
     ----------
     camera : CameraModel
         The calibrated camera (its S_i sets the size of the model's spots).
-    measured_rms_radius_px : float
-        Rms radius of the focal-point image's stacked spots, px.
+    spots : SpotSet
+        The focal-point image's spots
+        (:func:`~plenopiv.calibration.spot_detection.detect_spots`): their rms radius and
+        the estimator that measured them.
     f_number : float or None
         The stop of the focal-point image; None: unknown, and so is the blur.
-    spot_method, threshold
-        The spot estimator and its threshold the focal-point image was measured with
-        (:func:`~plenopiv.calibration.spot_detection.detect_spots`).
+    threshold : float
+        The threshold ``spots`` were measured with.
 
     Returns
     -------
@@ -46,13 +47,14 @@ def point_spread_sigma(camera, measured_rms_radius_px: float, f_number: float | 
     from plenopiv.calibration.spot_detection import detect_spots
     from plenopiv.synthetic.images import focal_point_image
 
-    if f_number is None or not np.isfinite(measured_rms_radius_px):
+    measured = spots.spot_rms_radius_px
+    if f_number is None or not np.isfinite(measured):
         return None
     mla = camera.microlens_array
     patch = camera.patch(min(MODEL_PATCH_LENSLETS, mla.rows),
                          min(MODEL_PATCH_LENSLETS, mla.cols))
-    model = detect_spots(focal_point_image(patch, f_number=f_number), method=spot_method,
+    model = detect_spots(focal_point_image(patch, f_number=f_number), method=spots.method,
                          threshold=threshold).spot_rms_radius_px
     if not np.isfinite(model):
         return None
-    return float(np.sqrt(max(measured_rms_radius_px**2 - model**2, 0.0) / 2.0))
+    return float(np.sqrt(max(measured**2 - model**2, 0.0) / 2.0))
