@@ -178,7 +178,7 @@ def _ray_weights(rays, share, n, b, weight, total):
         share[j] = weight[i] * share[j] * b / total[i] if total[i] > 0.0 else 0.0
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def selected_covariance_sums(lptr, cptr, sel, share, bright, u, xf, so, weight, total, point,
                              footprint, meat_r, meat_q, nlens):
     """Accumulate the two meats of the bundle covariance, per particle, by lenslet.
@@ -190,11 +190,13 @@ def selected_covariance_sums(lptr, cptr, sel, share, bright, u, xf, so, weight, 
     S_k[:2, :] + v_k v_k^T / var_k)`` with ``S_k = sum w M``, ``v_k = sum w M (dtheta, 0)``;
     ``nlens`` counts the lenslets with weight (see
     :func:`plenopiv.tracking.bundle.bundle_positions`).
+    Serial: in parallel on two cores it took 0.06 s for 1860 particles, and 3.0 s to compile
+    against 1.6 s.
     """
     most = 0
     for a in range(cptr.shape[0] - 1):
         most = max(most, cptr[a + 1] - cptr[a])
-    for p in numba.prange(point.shape[0]):
+    for p in range(point.shape[0]):
         tp = (so + point[p, 2]) / so
         var_q = (tp * footprint) ** 2 / 12.0
         d = np.empty(3)
