@@ -69,3 +69,22 @@ def test_the_calibration_records_the_point_spread(tmp_path, small_camera):
         cal.point_spread_sigma_px
     assert calibrate(small_camera, fp).calibration.point_spread_sigma_px is None
     assert Calibration.from_camera(truth).point_spread_sigma_px is None
+
+
+@pytest.mark.parametrize("layout", [dict(grid="hexagonal"), dict(rotation=0.02),
+                                    dict(grid="hexagonal", rotation=-0.015)],
+                         ids=["hexagonal", "rotated", "hexagonal-rotated"])
+def test_the_point_spread_of_real_lenslet_arrays(small_camera, layout):
+    """Hexagonal and rotated arrays give the blur back as the square one does (their model
+    patch holds the shifted rows)."""
+    import dataclasses
+
+    mla = dataclasses.replace(small_camera.microlens_array, **layout)
+    cam = small_camera.replace(microlens_array=mla).with_image_distance(0.21)
+    img = finish_image(blurred(focal_point_image(cam, f_number=F_NUMBER), 0.6), noise="poisson",
+                       rng=np.random.default_rng(3))
+    spots = detect_spots(img, grid=mla.grid)
+    assert point_spread_sigma(cam, spots, F_NUMBER) == pytest.approx(0.6, abs=0.06)
+    # and its patch fits its sensor
+    patch = cam.patch(15, 15)
+    assert patch.microlens_array.extent[0] <= patch.sensor.width

@@ -452,7 +452,8 @@ class CameraModel:
         """Return the central ``rows`` × ``cols``-lenslet patch of this camera.
 
         The optics, pixel pitch and f-number are kept; the sensor is cut to the patch's
-        micro-images (pitch × (1 + f̄/S_i) each, in pixels) plus ``margin_px`` pixels a side,
+        micro-images (its outer size, a hexagonal grid's shifted rows included, times
+        1 + f̄/S_i, in pixels) plus ``margin_px`` pixels a side,
         so small test cameras keep the full camera's geometry. Odd counts put a lenslet on the
         axis. ``substrate=False`` also removes the plate in front of the lenslets.
         """
@@ -460,10 +461,12 @@ class CameraModel:
             raise ConfigError(f"patch of {rows} x {cols} lenslets: expected at least 1 x 1")
         mla = dataclasses.replace(self.microlens_array, rows=int(rows), cols=int(cols),
                                   **({} if substrate else {"substrate": None}))
-        spot_pitch_px = self.pitch_px * (1 + mla.sensor_distance / self.image_distance)
+        # the array's outer size (a hexagonal grid's shifted rows included) in micro-images
+        width, height = mla.extent
+        spot_px = (1 + mla.sensor_distance / self.image_distance) / self.sensor.pixel_pitch
         sensor = dataclasses.replace(
-            self.sensor, rows=int(math.ceil(rows * spot_pitch_px)) + 2 * margin_px,
-            cols=int(math.ceil(cols * spot_pitch_px)) + 2 * margin_px)
+            self.sensor, rows=int(math.ceil(height * spot_px - 1e-9)) + 2 * margin_px,
+            cols=int(math.ceil(width * spot_px - 1e-9)) + 2 * margin_px)
         plate = "" if substrate or self.microlens_array.substrate is None else ", no substrate"
         return self.replace(sensor=sensor, microlens_array=mla,
                             name=f"{self.name}, {rows} x {cols}-lenslet patch{plate}")

@@ -54,7 +54,7 @@ def point_spread_sigma(camera, spots, f_number: float | None, *,
     patch = camera.patch(min(MODEL_PATCH_LENSLETS, mla.rows),
                          min(MODEL_PATCH_LENSLETS, mla.cols))
     model = detect_spots(focal_point_image(patch, f_number=f_number), method=spots.method,
-                         threshold=threshold).spot_rms_radius_px
+                         threshold=threshold, grid=mla.grid).spot_rms_radius_px
     if not np.isfinite(model):
         return None
     return float(np.sqrt(max(measured**2 - model**2, 0.0) / 2.0))
