@@ -25,6 +25,7 @@ __all__ = [
     "SEPARATING_SHIFTS",
     "Response",
     "cached_response",
+    "cell_blob_vox",
     "measure_response",
     "placement_offset",
     "response_key",
@@ -298,7 +299,7 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     lo = np.array([b[0, 0], b[1, 0], correction.depth(b[2, 0])])
     hi = np.array([b[0, 1], b[1, 1], correction.depth(b[2, 1])])
     cell = _cell(calibration.effective_camera, f_number)
-    blob_vox = cell[::-1] / FWHM_PER_SIGMA / np.asarray(grid.voxel, float)[::-1]   # (z, y, x)
+    blob_vox = cell_blob_vox(calibration.effective_camera, grid, f_number)
     gains, spreads, stats, places = [], [], [], []
     z = None
     for i, s in enumerate(shifts):
@@ -370,6 +371,15 @@ def _layer_statistics(field, shift):
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 """Full width at half maximum of a Gaussian per standard deviation."""
+
+
+def cell_blob_vox(camera, grid, f_number=None) -> np.ndarray:
+    """The true image of a particle: a Gaussian's standard deviation ``(z, y, x)``, voxels.
+
+    As wide (full width at half maximum) as the effective ``camera``'s resolution cell, in
+    voxels of ``grid``.
+    """
+    return _cell(camera, f_number)[::-1] / FWHM_PER_SIGMA / np.asarray(grid.voxel, float)[::-1]
 
 
 def placement_offset(volume, positions, grid, correlate, blob_vox) -> np.ndarray:

@@ -38,7 +38,8 @@ import numpy as np
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.config import ReconstructionSettings
-from plenopiv.pipeline import footprint, gaussian_truth_volume, resolution_cell
+from plenopiv.pipeline import footprint, gaussian_truth_volume
+from plenopiv.piv.response import cell_blob_vox
 from plenopiv.products.volume import load_volume
 from plenopiv.synthetic.seeding import SeedingBox
 from plenopiv.validation.report import write_json, write_text
@@ -154,9 +155,8 @@ def _repiv(label: str, case: VortexCase, run_dir: str, *, exact: bool = False,
     a, b = va.volume, vb.volume
     if exact:
         truth = np.load(Path(run_dir) / "truth_particles.npz")
-        lat, dep = resolution_cell(Calibration.from_camera(case_camera(case)).effective_camera)
-        k = 2 * np.sqrt(2 * np.log(2))
-        sigma = (dep / k / grid.voxel[2], lat / k / grid.voxel[1], lat / k / grid.voxel[0])
+        sigma = cell_blob_vox(Calibration.from_camera(case_camera(case)).effective_camera,
+                              grid)
         a = gaussian_truth_volume(grid, truth["positions_a"], sigma_vox=sigma)
         b = gaussian_truth_volume(grid, truth["positions_b"], sigma_vox=sigma)
     if sharpen is not None:
