@@ -579,3 +579,212 @@ def test_the_placement_does_not_depend_on_where_the_voxel_grid_starts(rng):
     np.testing.assert_allclose(one, two, atol=0.15)
     np.testing.assert_allclose(one.mean(axis=1), two.mean(axis=1), atol=0.05)
     np.testing.assert_allclose(two.mean(axis=1), delta / voxel, atol=0.05)
+
+
+def test_the_lateral_edge_is_the_first_and_last_row_and_column():
+    from plenopiv.piv.response import lateral_edge
+
+    edge = lateral_edge((2, 4, 5))
+    assert edge.shape == (2, 4, 5)
+    np.testing.assert_array_equal(edge[0], edge[1])
+    assert edge[0, 1:-1, 1:-1].sum() == 0 and edge[0].sum() == 4 * 5 - 2 * 3
+    assert lateral_edge((3, 2, 6)).all()          # two rows: no interior
+
+
+def test_edge_vectors_get_the_test_pairs_edge_error_and_interior_ones_theirs():
+    """Test pairs whose edge vectors spread more than their interior ones give the real
+    field's edge vectors the edge's excess and the interior vectors the interior's; the
+    split survives the cache's round trip."""
+    cell = np.array([1e-4, 1e-4, 4e-4])
+    shifts = np.array([[1.25, 0.0, 0.0], [0.0, 0.0, 0.5]]) * cell
+    z = np.array([-1e-3, 0.0, 1e-3])
+    statistics = np.full((2, 3, 3), 1e-5)
+    interior = np.full((2, 3, 3), np.sqrt(2) * 1e-5)      # excess 1e-5 per pair's motion
+    edge = np.full((2, 3, 3), np.sqrt(5) * 1e-5)          # excess 2e-5
+    gain = np.ones((2, 3, 3))
+    resp = Response(z, shifts, gain, interior, statistics, 100, cell, None, edge, statistics)
+    disp = np.broadcast_to((shifts[0] + shifts[1])[:, None, None, None], (3, 3, 4, 5))
+    got = resp.excess(z, disp)
+    # the motion of both pairs at once: twice one pair's excess variance
+    from plenopiv.piv.response import lateral_edge
+
+    mask = lateral_edge((3, 4, 5))
+    np.testing.assert_allclose(got[:, mask], np.sqrt(2) * 2e-5, rtol=1e-6)
+    np.testing.assert_allclose(got[:, ~mask], np.sqrt(2) * 1e-5, rtol=1e-6)
+    back = Response.from_dict(json.loads(json.dumps(resp.to_dict())))
+    np.testing.assert_allclose(back.excess(z, disp), got)
+    # without the split every vector gets the interior's
+    one = Response(z, shifts, gain, interior, statistics, 100, cell)
+    np.testing.assert_allclose(one.excess(z, disp), np.sqrt(2) * 1e-5, rtol=1e-6)
+
+
+def test_a_test_pair_s_edge_and_interior_spread_are_measured_apart(rng):
+    """The spread of a test pair's vectors is taken about the layer's mean for the edge and
+    the interior vectors apart: an edge that errs by 0.3 voxel rms and an exact interior
+    give 0.3 and 0 (not 0.2 for both), and the gain is the layer's mean."""
+    from plenopiv.piv.response import _layer_statistics, lateral_edge
+
+    shape = (2, 5, 6)
+    mask = lateral_edge(shape)
+    u = np.full(shape, 1.0)
+    for layer in range(shape[0]):                      # +-0.3 in equal numbers per layer
+        u[layer][mask[layer]] += rng.permutation(np.resize([-0.3, 0.3], mask[layer].sum()))
+    zero = np.zeros(shape)
+    field = VectorField(x=np.arange(6.0), y=np.arange(5.0), z=np.arange(2.0), u=u, v=zero,
+                        w=zero, valid=np.ones(shape, bool), snr=zero + 3, correlation=zero,
+                        u_uncertainty=zero + 0.05, v_uncertainty=zero + 0.05,
+                        w_uncertainty=zero + 0.05)
+    gain, spread, stats, edge_spread, edge_stats = _layer_statistics(field, (1.0, 0.0, 0.0))
+    np.testing.assert_allclose(gain[0], 1.0, rtol=1e-12)
+    assert np.all(np.isnan(gain[1:]))
+    np.testing.assert_allclose(spread[0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(edge_spread[0], 0.3, rtol=1e-12)
+    np.testing.assert_allclose(stats, 0.05)
+    np.testing.assert_allclose(edge_stats, 0.05)
+
+
+def _wave_field(values_u, x, y, z):
+    shape = values_u.shape
+    zero = np.zeros(shape)
+    return VectorField(x=x, y=y, z=z, u=values_u, v=zero, w=zero,
+                       valid=np.ones(shape, bool), snr=zero + 3, correlation=zero,
+                       u_uncertainty=zero, v_uncertainty=zero, w_uncertainty=zero)
+
+
+@pytest.mark.parametrize("phase", [0.0, 0.7, 2.1])
+def test_the_modulation_gain_is_the_in_phase_part_of_the_measured_wave(rng, phase):
+    """A wave measured at H = 0.62 of its amplitude, shifted by a quarter of its size in
+    quadrature, on an offset and with noise: the fit gives H within its noise whatever the
+    wave's phase and wherever the vector grid starts (a random fraction of a spacing), and
+    NaN along an axis without a wavelength."""
+    from plenopiv.piv.response import modulation_displacement, modulation_gain
+
+    h = 1e-3
+    origin = rng.uniform(0, h, size=3)
+    x, y, z = (o + h * np.arange(n) for o, n in zip(origin, (9, 6, 5), strict=True))
+    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+    wavelength = np.array([4 * h, 4 * h, 0.0])
+    amplitude = np.array([2e-4, 1e-4, 1e-4])
+    axes = (1, 0, 2)                          # u varies along y, v along x, w along z
+    phases = np.array([phase, phase + 1, phase + 2])
+    theta = 2 * np.pi * yy / wavelength[1] + phase
+    noise = 2e-6
+    u = (0.62 * amplitude[0] * np.sin(theta) + 0.25 * amplitude[0] * np.cos(theta) + 3e-5
+         + rng.normal(0.0, noise, size=theta.shape))
+    gain = modulation_gain(_wave_field(u, x, y, z), wavelength, amplitude, axes, phases)
+    # noise of a least-squares amplitude over n samples: noise * sqrt(2 / n) / amplitude
+    tol = 5 * noise * np.sqrt(2 / u.size) / amplitude[0]
+    assert gain[0] == pytest.approx(0.62, abs=tol)
+    assert gain[1] == pytest.approx(0.0, abs=1e-9)          # v is zero: no modulation
+    assert np.isnan(gain[2])                                 # no wavelength along z
+    # the displacement the test pair applies is the same wave
+    pts = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
+    d = modulation_displacement(pts, wavelength, amplitude, axes, phases)
+    np.testing.assert_allclose(d[:, 0], amplitude[0] * np.sin(theta.ravel()), atol=1e-18)
+    assert np.all(d[:, 2] == 0.0)
+
+
+def test_the_modulation_factor_makes_the_curvature_term_the_error_of_the_measured_wave():
+    """A wave of four vector spacings measured through top-hat windows of two spacings
+    (H = sin(pi/2) / (pi/2) = 2/pi): the measured curvature gives the bias term 1/3 H A,
+    short of the error (1 - H) A by 1.71; with the modulation factor it is the error at
+    every vector (inside the border). A chain that loses no modulation keeps the plain term."""
+    from plenopiv.piv.uncertainty import modulation_factor
+
+    h = 1e-3
+    x = h * np.arange(12)
+    amplitude = 1e-4
+    true = amplitude * np.sin(2 * np.pi * x / (4 * h) + 0.4)
+    tophat = 2 / np.pi
+    measured = tophat * true                 # a top-hat average of a sine: its transfer
+    u = np.broadcast_to(measured, (3, 4, 12)).copy()
+    disp = np.stack([u, 0 * u, 0 * u])
+    spacing, window = np.array([h, h, h]), np.array([2 * h, 2 * h, 2 * h])
+    modulation = np.full((3, 3), tophat)
+    factor = modulation_factor(modulation, spacing, window)
+    np.testing.assert_allclose(factor, (1 - tophat) / (2 / 6 * tophat))     # 1.712
+    plain = unresolved_gradient_bias(disp, spacing, window)[0][:, :, 1:-1]
+    scaled = unresolved_gradient_bias(disp, spacing, window, factor)[0][:, :, 1:-1]
+    error = np.abs(measured - true)[1:-1]
+    np.testing.assert_allclose(plain, np.broadcast_to(error / factor[0, 0], plain.shape),
+                               atol=1e-18)
+    np.testing.assert_allclose(scaled, np.broadcast_to(error, scaled.shape), atol=1e-18)
+    # no loss of modulation, a modulation not measured: the plain term
+    np.testing.assert_array_equal(modulation_factor(np.ones((3, 3)), spacing, window), 1.0)
+    np.testing.assert_array_equal(modulation_factor(np.full((3, 3), np.nan), spacing, window),
+                                  1.0)
+    np.testing.assert_array_equal(modulation_factor(None, spacing, window), 1.0)
+
+
+def test_the_scaled_curvature_of_random_errors_is_counted_per_component(rng):
+    """With a factor per component and axis, the second differences of random errors give
+    component k the variance k_k sigma^2 of the scaled stencil (Monte Carlo within its
+    standard error)."""
+    h = np.array([1e-3, 1e-3, 1e-3])
+    scale = np.array([[1.0, 1.0, 1.0], [1.5, 1.0, 2.0], [3.0, 2.5, 1.2]])
+    k = curvature_noise_factor(h, 2 * h, scale)
+    assert k[0] == pytest.approx(curvature_noise_factor(h, 2 * h))
+    sigma = 1e-6
+    shape = (3, 20, 24, 28)
+    noise = rng.normal(0.0, sigma, size=shape)
+    raw = unresolved_gradient_bias(noise, h, 2 * h, scale)[(slice(None),) + (slice(1, -1),) * 3]
+    n = raw[0].size
+    for c in range(3):
+        assert np.mean(raw[c] ** 2) == pytest.approx(k[c] * sigma**2, rel=5 * np.sqrt(2 / n))
+
+
+def test_the_modulation_travels_with_the_cached_response():
+    r = replace(_response(), modulation=np.array([[0.8, 0.7, np.nan]] * 3))
+    back = Response.from_dict(json.loads(json.dumps(r.to_dict())))
+    np.testing.assert_array_equal(back.modulation, r.modulation)
+    assert Response.from_dict(json.loads(json.dumps(_response().to_dict()))).modulation is None
+
+
+def test_three_modulation_pairs_give_every_component_along_every_axis():
+    """A chain that measures component k varying along axis a at H[k, a] of its size
+    (a stand-in for render -> reconstruct -> correlate): the three modulation pairs recover
+    the whole matrix, each wave's largest gradient is 1/8 voxel per voxel, and an axis with
+    fewer than three vectors has no wavelength (NaN)."""
+    from plenopiv.piv.response import MODULATION_GRADIENT, _modulation
+
+    true_h = np.array([[0.8, 0.7, 0.6], [0.75, 0.65, 0.55], [0.5, 0.45, 0.9]])
+    h = np.array([1e-3, 1e-3, 2e-3])                       # vector spacing x, y, z
+    voxel = np.array([1e-4, 1e-4, 2e-4])
+    x, y, z = (s * np.arange(n) for s, n in zip(h, (8, 6, 5), strict=True))
+    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+    centres = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
+    seen = []
+
+    def pair(displacement):
+        # the displacement the pair applies, read back by perturbing one axis at a time
+        base = displacement(centres)
+        comps = np.zeros((3,) + xx.shape)
+        for k in range(3):
+            for a in range(3):
+                probe = centres.copy()
+                probe[:, a] += 1e-7
+                if np.any(displacement(probe)[:, k] != base[:, k]):
+                    comps[k] = true_h[k, a] * base[:, k].reshape(xx.shape)
+                    slope = np.abs(np.gradient(base[:, k].reshape(xx.shape), h[a],
+                                               axis=2 - a)).max()
+                    seen.append(slope * voxel[a] / voxel[k])
+        zero = np.zeros(xx.shape)
+        return VectorField(x=x, y=y, z=z, u=comps[0], v=comps[1], w=comps[2],
+                           valid=np.ones(xx.shape, bool), snr=zero + 3, correlation=zero,
+                           u_uncertainty=zero, v_uncertainty=zero, w_uncertainty=zero)
+
+    grid_field = pair(lambda p: np.zeros_like(p))
+    got = _modulation(grid_field, voxel, pair)
+    np.testing.assert_allclose(got, true_h, rtol=1e-9)
+    # sampled four times per wavelength, the gradient's maximum is read at 1/sqrt(2) of it
+    assert len(seen) == 9 and np.all(np.array(seen) <= MODULATION_GRADIENT * (1 + 1e-9))
+    assert np.all(np.array(seen) >= MODULATION_GRADIENT * 0.6)
+    # two layers of vectors: no wave along z, the lateral ones measured as before
+    zero = np.zeros((2,) + xx.shape[1:])
+    two_layers = VectorField(x=x, y=y, z=z[:2], u=zero, v=zero, w=zero,
+                             valid=np.ones(zero.shape, bool), snr=zero, correlation=zero,
+                             u_uncertainty=zero, v_uncertainty=zero, w_uncertainty=zero)
+    got = _modulation(two_layers, voxel, pair)
+    assert np.all(np.isnan(got[:, 2]))
+    np.testing.assert_allclose(got[:, :2], true_h[:, :2], rtol=1e-9)
+    assert np.all(np.isnan(_modulation(grid_field, voxel, lambda d: None)))

@@ -183,9 +183,10 @@ class PIVConfig(_Strict):
     response_displacements : test displacements of the ``"response"`` uncertainty, 3
         (default: 0.5, 1.25 and 1.75 lenslet footprints laterally with 0.1, 0.25 and 0.5
         depth resolution cells, plus 1.25 footprints along x alone and 0.5 depth cells
-        alone: ten reconstructions) or 1 (the middle one alone: two reconstructions, the gain
-        probed at one fraction of the resolution cell, the motion along the axes not told
-        apart).
+        alone, and three pairs moved as a sine of four vector spacings for the curvature
+        term: sixteen reconstructions) or 1 (the middle one alone: two reconstructions, the
+        gain probed at one fraction of the resolution cell, the motion along the axes not
+        told apart, the curvature term unscaled).
     overlap_correction, broad_peaks : sub-voxel peak fit on the correlation divided by the
         windows' overlap fraction, and by a 5-point least-squares Gaussian along axes where
         the peak is broad, 7-point where it is wide (:class:`plenopiv.piv.PIVSettings`).

@@ -19,7 +19,7 @@ def add_parser(sub) -> None:
         description="Run the built-in synthetic case end to end (calibration, a Lamb-Oseen "
         "vortex pair, two volumes, 3-D PIV) and print its errors against the truth. The "
         "response uncertainty uses one test displacement ([piv] response_displacements = "
-        "1; a run's default is 3, five test pairs).")
+        "1; a run's default is 3, eight test pairs).")
     demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     demo.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     _add_common(demo)

@@ -24,9 +24,11 @@ __all__ = [
     "RESPONSE_VERSION",
     "SEPARATING_SHIFTS",
     "Response",
+    "lateral_edge",
     "cached_response",
     "cell_blob_vox",
     "measure_response",
+    "modulation_displacement",
     "placement_offset",
     "response_key",
     "response_shifts",
@@ -43,7 +45,34 @@ SEPARATING_SHIFTS = ((1.25, 0.0, 0.0), (0.0, 0.0, 0.5))
 resolution cells along z): one along x only, one along depth only, so that the shared error
 of the motion along each axis can be told apart (:meth:`Response.excess`)."""
 
-RESPONSE_VERSION = 8
+MODULATION_PERIOD = 4
+"""Wavelength of the modulation test pairs, vector spacings: two windows at 50 % overlap, the
+shortest wavelength whose sampling on the vector grid shows a curvature (at two spacings,
+the grid's Nyquist limit, a top-hat window's response is zero)."""
+
+MODULATION_GRADIENT = 0.125
+"""Largest displacement gradient of the modulation test pairs, voxel per voxel (a window
+deformation follows it; particle images stay matched)."""
+
+MODULATION_AXES = ((1, 2, 0), (2, 0, 1), (0, 1, 2))
+"""Per modulation test pair, the axis ``(x, y, z)`` = ``(0, 1, 2)`` along which ``u``, ``v``
+and ``w`` vary: three pairs give every component along every axis."""
+
+RESPONSE_VERSION = 9
+
+
+def lateral_edge(shape) -> np.ndarray:
+    """Vectors on a layer's lateral edge (first or last row or column), bool ``(nz, ny, nx)``.
+
+    Their windows hold the volume's lateral boundary: particles cross it between the
+    exposures and its voxels are seen by fewer lines of sight, so their errors differ from
+    the interior's (:class:`Response` keeps the two apart).
+    """
+    nz, ny, nx = shape
+    iy = np.arange(ny)[:, None]
+    ix = np.arange(nx)[None, :]
+    edge = (iy == 0) | (iy == ny - 1) | (ix == 0) | (ix == nx - 1)
+    return np.broadcast_to(edge, (nz, ny, nx)).copy()
 
 
 @dataclass(frozen=True)
@@ -61,8 +90,9 @@ class Response:
         Gain of ``u``, ``v``, ``w`` per test displacement and layer (1 = exact; NaN along an
         axis the test displacement does not move along).
     random : ndarray, shape (n, 3, nz)
-        Random error of ``u``, ``v``, ``w`` per test displacement and layer, metres (the
-        spread of the layer's vectors).
+        Random error of ``u``, ``v``, ``w`` per test displacement and layer, metres: the rms
+        deviation from the layer's mean of the layer's interior vectors (of all its vectors
+        when ``edge_random`` is None).
     statistics : ndarray, shape (n, 3, nz)
         Rms of the uncertainty the correlation statistics and the iteration tail gave
         the same vectors, metres.
@@ -76,6 +106,14 @@ class Response:
         Where the reconstruction puts the particles relative to where they are, per test
         pair, axis ``(x, y, z)`` and layer, metres (:func:`placement_offset`); None: not
         measured (no location term).
+    edge_random, edge_statistics : ndarray, shape (n, 3, nz), optional
+        As ``random`` and ``statistics`` for the vectors on the layer's lateral edge
+        (:func:`lateral_edge`); None: one set for every vector of a layer.
+    modulation : ndarray, shape (3, 3), optional
+        Gain of ``u``, ``v``, ``w`` (rows) for a displacement that varies sinusoidally along
+        ``x``, ``y``, ``z`` (columns) with a wavelength of ``MODULATION_PERIOD`` vector
+        spacings (:func:`modulation_gain`; the chain's spatial response at the shortest
+        wavelength the vectors resolve); NaN where not measured, None: not measured.
     """
 
     z: np.ndarray
@@ -86,6 +124,9 @@ class Response:
     n_particles: int
     cell: np.ndarray | None = None
     placement: np.ndarray | None = None
+    edge_random: np.ndarray | None = None
+    edge_statistics: np.ndarray | None = None
+    modulation: np.ndarray | None = None
 
     def location(self, z) -> np.ndarray:
         """Placement offset of the reconstruction ``(3, len(z))``, metres, at depths ``z``.
@@ -155,6 +196,13 @@ class Response:
         (99 % on the patch, where the test pairs' diagonal motion along y gave v an error
         that Oseen's motion along x does not, docs/validation/uncertainty.md). Without
         ``cell`` it is :meth:`at`'s excess, the same for every vector of a layer.
+
+        With ``edge_random``, the vectors on a layer's lateral edge (:func:`lateral_edge`)
+        get the fit to the test pairs' edge vectors, the others the fit to their interior
+        ones: the windows that hold the volume's lateral boundary err more (particles cross
+        it between the exposures, fewer lines of sight see its voxels), and a layer's mean
+        gave the interior vectors the edge's error and the edge vectors too little
+        (docs/validation/uncertainty.md).
         """
         from scipy.optimize import nnls
 
@@ -169,14 +217,22 @@ class Response:
                 break
         motion = np.nan_to_num(_motion_in_cells(disp, cell, level))
         motion = np.minimum(motion, test.max(axis=0)[:, None, None, None])
-        excess2 = np.maximum(self.random**2 - self.statistics**2, 0.0)       # (n, 3, layers)
-        out = np.zeros_like(disp)
-        for k in range(3):
-            coef = np.stack([nnls(test, excess2[:, k, layer])[0]
-                             for layer in range(self.z.size)], axis=1)      # (terms, layers)
-            at_z = np.stack([np.interp(z, self.z, c) for c in coef])          # (terms, nz)
-            out[k] = np.einsum("tz,tz...->z...", at_z, motion)
-        return np.sqrt(out)
+        sets = [(self.random, self.statistics)]
+        if self.edge_random is not None:
+            sets.append((self.edge_random, self.edge_statistics))
+        variance = []
+        for random, statistics in sets:   # interior (or every vector), then the lateral edge
+            excess2 = np.maximum(random**2 - statistics**2, 0.0)            # (n, 3, layers)
+            out = np.zeros_like(disp)
+            for k in range(3):
+                coef = np.stack([nnls(test, excess2[:, k, layer])[0]
+                                 for layer in range(self.z.size)], axis=1)  # (terms, layers)
+                at_z = np.stack([np.interp(z, self.z, c) for c in coef])      # (terms, nz)
+                out[k] = np.einsum("tz,tz...->z...", at_z, motion)
+            variance.append(out)
+        if len(variance) == 2:
+            variance[0] = np.where(lateral_edge(disp.shape[1:])[None], variance[1], variance[0])
+        return np.sqrt(variance[0])
 
     def to_dict(self) -> dict:
         """JSON-ready form (metres)."""
@@ -186,19 +242,27 @@ class Response:
                 "n_particles": self.n_particles,
                 "cell_m": None if self.cell is None else np.asarray(self.cell).tolist(),
                 "placement_m": (None if self.placement is None
-                                else np.asarray(self.placement).tolist())}
+                                else np.asarray(self.placement).tolist()),
+                "edge_random_m": (None if self.edge_random is None
+                                  else np.asarray(self.edge_random).tolist()),
+                "edge_statistics_m": (None if self.edge_statistics is None
+                                      else np.asarray(self.edge_statistics).tolist()),
+                "modulation": (None if self.modulation is None
+                               else np.asarray(self.modulation).tolist())}
 
     @classmethod
     def from_dict(cls, d: dict) -> Response:
         """Inverse of :meth:`to_dict`."""
         if d.get("version") != RESPONSE_VERSION:
             raise ValueError(f"response version {d.get('version')!r}")
-        cell, placement = d.get("cell_m"), d.get("placement_m")
-        return cls(np.asarray(d["z_m"], float), np.asarray(d["shifts_m"], float),
-                   np.asarray(d["gain"], float), np.asarray(d["random_m"], float),
-                   np.asarray(d["statistics_m"], float), int(d["n_particles"]),
-                   None if cell is None else np.asarray(cell, float),
-                   None if placement is None else np.asarray(placement, float))
+        def array(key):
+            value = d.get(key)
+            return None if value is None else np.asarray(value, float)
+
+        return cls(array("z_m"), array("shifts_m"), array("gain"), array("random_m"),
+                   array("statistics_m"), int(d["n_particles"]), array("cell_m"),
+                   array("placement_m"), array("edge_random_m"), array("edge_statistics_m"),
+                   array("modulation"))
 
 
 def _motion_in_cells(disp, cell, level: int) -> np.ndarray:
@@ -282,7 +346,9 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     seed : int
         Seed of the particle positions and the tracer.
     displacements : {3, 1}
-        Test displacements (:func:`response_shifts`): two reconstructions each.
+        Test displacements (:func:`response_shifts`): two reconstructions each; with 3,
+        three more pairs measure the chain's gain for sinusoidal displacements of
+        ``MODULATION_PERIOD`` vector spacings (``Response.modulation``).
 
     Returns
     -------
@@ -298,52 +364,142 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     b = grid.bounds
     lo = np.array([b[0, 0], b[1, 0], correction.depth(b[2, 0])])
     hi = np.array([b[0, 1], b[1, 1], correction.depth(b[2, 1])])
+    to_physical = np.array([1.0, 1.0, correction.scale])
     cell = _cell(calibration.effective_camera, f_number)
     blob_vox = cell_blob_vox(calibration.effective_camera, grid, f_number)
-    gains, spreads, stats, places = [], [], [], []
-    z = None
-    for i, s in enumerate(shifts):
-        pos = rng.uniform(lo, hi, size=(max(int(n_particles), 1), 3))
-        s_phys = s * np.array([1.0, 1.0, correction.scale])
-        ia, ib = (blurred(particle_image(camera, p, rays_per_particle=rays_per_particle,
-                                         f_number=f_number, seed=seed + 2 * i + j), psf)
-                  for j, p in enumerate((pos, pos + s_phys)))
+    seeds = iter(range(seed, seed + 1000))
+
+    def render(positions):
+        return blurred(particle_image(camera, positions, rays_per_particle=rays_per_particle,
+                                      f_number=f_number, seed=next(seeds)), psf)
+
+    def seeding():
+        return rng.uniform(lo, hi, size=(max(int(n_particles), 1), 3))
+
+    rows = []       # per test pair: gain, spread, statistics, placement, edge's (or None)
+    z = field = None
+    for s in shifts:
+        pos = seeding()
+        ia, ib = render(pos), render(pos + s * to_physical)
         try:
             volume_a = reconstruct(ia)
             field = correlate(volume_a, reconstruct(ib))
-            place = placement_offset(volume_a, pos * np.array([1.0, 1.0, 1.0 / correction.scale]),
-                                     grid, correlate, blob_vox)
+            place = placement_offset(volume_a, pos / to_physical, grid, correlate, blob_vox)
         except PlenopivError:   # too few particles for a field: this test pair says nothing
-            for out in (gains, spreads, stats, places):
-                out.append(None)
+            rows.append(None)
             continue
-        places.append(place)
         z = np.asarray(field.z)
-        for out, values in zip((gains, spreads, stats), _layer_statistics(field, s),
-                               strict=True):
-            out.append(values)
-    if all(g is None for g in gains):
+        gain, spread, stats, edge_spread, edge_stats = _layer_statistics(field, s)
+        rows.append((gain, spread, stats, place, edge_spread, edge_stats))
+    if z is None:           # no test pair gave a field
         return None
-    keep = [i for i, g in enumerate(gains) if g is not None]
-    gain = np.stack([gains[i] for i in keep])
-    random = np.stack([spreads[i] for i in keep])
-    statistics = np.stack([stats[i] for i in keep])
-    placement = np.stack([places[i] for i in keep])
-    moved = shifts[keep] != 0.0                     # (n, 3): an axis without motion has no gain
-    _fill_empty_layers(gain, z, 1.0, moved)
-    for values in (random, statistics, placement):
+
+    def modulated_pair(displacement):
+        pos = seeding()
+        mid = pos / to_physical
+        for _ in range(2):      # the displacement at the pair's midpoint, as PIV measures it
+            d = displacement(mid)
+            mid = pos / to_physical + 0.5 * d
+        try:
+            return correlate(reconstruct(render(pos)), reconstruct(render(pos + d * to_physical)))
+        except PlenopivError:
+            return None
+
+    modulation = (_modulation(field, grid.voxel, modulated_pair) if displacements == 3
+                  else None)
+    keep = [i for i, row in enumerate(rows) if row is not None]
+    tables = [np.stack(values) for values in zip(*(rows[i] for i in keep), strict=True)]
+    _fill_empty_layers(tables[0], z, 1.0, shifts[keep] != 0.0)   # no gain along no motion
+    for values in tables[1:]:
         _fill_empty_layers(values, z, 0.0)
-    return Response(z, shifts[keep], gain, random, statistics, int(n_particles), cell,
-                    placement)
+    return Response(z, shifts[keep], *tables[:3], int(n_particles), cell, *tables[3:],
+                    modulation)
+
+
+def modulation_displacement(points, wavelength, amplitude, axes, phase) -> np.ndarray:
+    """A sinusoidal displacement field ``(n, 3)`` at ``points`` ``(n, 3)``, metres.
+
+    Component ``k`` is ``amplitude[k] sin(2 pi x_a / wavelength[a] + phase[k])`` with
+    ``a = axes[k]`` (points, wavelengths and amplitudes in metres, effective coordinates;
+    phases in radians); 0 where ``wavelength[a]`` is not positive.
+    """
+    points = np.asarray(points, float)
+    out = np.zeros_like(points)
+    for k, a in enumerate(axes):
+        if wavelength[a] > 0:
+            out[:, k] = amplitude[k] * np.sin(2.0 * np.pi * points[:, a] / wavelength[a]
+                                              + phase[k])
+    return out
+
+
+def modulation_gain(field, wavelength, amplitude, axes, phase) -> np.ndarray:
+    """Gain ``(3,)`` of each component of a field measured on a sinusoidal displacement.
+
+    Per component ``k``, the least-squares coefficient of ``sin(theta)`` in
+    ``m_k = H A_k sin(theta) + b cos(theta) + c`` over the valid vectors, ``theta`` the phase
+    of :func:`modulation_displacement` at the vectors' centres, divided by the amplitude
+    ``A_k``: the in-phase part of the measured wave, a shift of the wave (where the
+    reconstruction places particles off their positions) going to ``b``. NaN where the
+    component's wavelength is not positive or fewer than four vectors are valid.
+    """
+    comps = np.stack([field.u, field.v, field.w])
+    ok = np.asarray(field.valid) & np.all(np.isfinite(comps), axis=0)
+    zz, yy, xx = np.meshgrid(field.z, field.y, field.x, indexing="ij")
+    centres = np.stack([xx[ok], yy[ok], zz[ok]], axis=1)
+    out = np.full(3, np.nan)
+    for k, a in enumerate(axes):
+        if not (wavelength[a] > 0 and amplitude[k] > 0) or ok.sum() < 4:
+            continue
+        theta = 2.0 * np.pi * centres[:, a] / wavelength[a] + phase[k]
+        design = np.stack([np.sin(theta), np.cos(theta), np.ones_like(theta)], axis=1)
+        coef = np.linalg.lstsq(design, comps[k][ok], rcond=None)[0]
+        out[k] = coef[0] / amplitude[k]
+    return out
+
+
+def _vector_spacing(field) -> np.ndarray:
+    """Spacing of a field's vectors along ``(x, y, z)``, metres (0 along an axis with one)."""
+    return np.array([abs(float(c[1] - c[0])) if c.size > 1 else 0.0
+                     for c in (np.asarray(field.x), np.asarray(field.y), np.asarray(field.z))])
+
+
+def _modulation(field, voxel, pair) -> np.ndarray:
+    """The chain's gain ``(3, 3)`` at ``MODULATION_PERIOD`` vector spacings (module notes).
+
+    ``field``: any test pair's field (its vector grid is the real pair's); ``voxel``: the
+    grid's voxel ``(x, y, z)``, metres; ``pair(displacement) -> VectorField or None`` renders,
+    reconstructs and correlates a test pair whose particles move by ``displacement(points)``.
+    Rows: ``u``, ``v``, ``w``; columns: the axis of variation ``x``, ``y``, ``z``; NaN where
+    an axis has fewer than three vectors or a pair gave no field.
+    """
+    counts = np.array([np.size(field.x), np.size(field.y), np.size(field.z)])
+    wavelength = np.where(counts >= 3, MODULATION_PERIOD * _vector_spacing(field), 0.0)
+    voxel = np.asarray(voxel, float)
+    out = np.full((3, 3), np.nan)
+    for i, axes in enumerate(MODULATION_AXES):
+        # in voxels of its own component, each wave's gradient is MODULATION_GRADIENT
+        amplitude = np.array([MODULATION_GRADIENT * wavelength[a] / (2.0 * np.pi)
+                              * voxel[k] / voxel[a] for k, a in enumerate(axes)])
+        phase = 2.0 * np.pi * (np.arange(3) + i) / 9.0 + 0.3
+        measured = pair(lambda p, amplitude=amplitude, axes=axes, phase=phase:
+                        modulation_displacement(p, wavelength, amplitude, axes, phase))
+        if measured is not None:
+            gain = modulation_gain(measured, wavelength, amplitude, axes, phase)
+            for k, a in enumerate(axes):
+                out[k, a] = gain[k]
+    return out
 
 
 def _layer_statistics(field, shift):
-    """Gain, spread and rms uncertainty of a test pair's vectors, each ``(3, nz)``.
+    """Gain, spread and rms uncertainty of a test pair's vectors, interior and edge apart.
 
-    Per component and layer of valid vectors: the mean over the true ``shift`` (metres;
-    NaN along an axis it does not move), the standard deviation (metres), and the rms of
-    the correlation statistics with the iteration tail (metres); NaN in a layer with fewer
-    than two vectors.
+    Five arrays ``(3, nz)``: gain, spread and rms uncertainty of the interior vectors, spread
+    and rms uncertainty of the lateral-edge vectors. Per component and layer of valid
+    vectors: the mean over the true ``shift`` (metres; NaN along an axis it does not move),
+    the rms deviation from the layer's mean of its interior vectors and of its edge vectors
+    (:func:`lateral_edge`; metres), and the rms of the correlation statistics with the
+    iteration tail over the same vectors (metres). A class without vectors in a layer takes
+    the whole layer's; NaN in a layer with fewer than two vectors.
     """
     from plenopiv.piv.uncertainty import iteration_uncertainty
 
@@ -352,21 +508,27 @@ def _layer_statistics(field, shift):
     if sigma is None:
         sigma = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
     ok = np.asarray(field.valid) & np.all(np.isfinite(comps), axis=0)
+    edge = lateral_edge(ok.shape)
     nz = comps.shape[1]
-    gain, spread, stats = (np.full((3, nz), np.nan) for _ in range(3))
+    gain, spread, stats, edge_spread, edge_stats = (np.full((3, nz), np.nan) for _ in range(5))
     for layer in range(nz):
         sel = ok[layer]
         if sel.sum() < 2:
             continue
         for k in range(3):
-            m = comps[k, layer][sel]
+            m = comps[k, layer]
+            mean = m[sel].mean()
             if shift[k] != 0.0:     # a gain along the axes the test pair moves along
-                gain[k, layer] = m.mean() / shift[k]
-            spread[k, layer] = m.std()
-            sk = sigma[k, layer][sel]
-            sk = sk[np.isfinite(sk)]
-            stats[k, layer] = np.sqrt(np.mean(sk**2)) if sk.size else 0.0
-    return gain, spread, stats
+                gain[k, layer] = mean / shift[k]
+            for out_r, out_s, cls in ((spread, stats, sel & ~edge[layer]),
+                                      (edge_spread, edge_stats, sel & edge[layer])):
+                if not cls.any():
+                    cls = sel
+                out_r[k, layer] = np.sqrt(np.mean((m[cls] - mean) ** 2))
+                sk = sigma[k, layer][cls]
+                sk = sk[np.isfinite(sk)]
+                out_s[k, layer] = np.sqrt(np.mean(sk**2)) if sk.size else 0.0
+    return gain, spread, stats, edge_spread, edge_stats
 
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))

@@ -33,7 +33,12 @@ as it does the real pair, and tabulates for each layer of vectors (window-centre
 - the rms uncertainty ``s_k`` the correlation statistics with the error the iteration left
   (:func:`iteration_uncertainty`) gave those same test vectors;
 - where the reconstruction places the test particles relative to where they are, per axis
-  (:func:`plenopiv.piv.response.placement_offset`).
+  (:func:`plenopiv.piv.response.placement_offset`);
+- the spread and statistics of the vectors on a layer's lateral edge apart from its interior
+  ones (:func:`plenopiv.piv.response.lateral_edge`);
+- the gain of each component for a displacement that varies sinusoidally along each axis
+  with a wavelength of four vector spacings (three more pairs; the chain's spatial
+  response, :func:`modulation_factor`).
 
 :func:`combine` then gives each vector of the real field, per component, the standard
 uncertainty
@@ -62,6 +67,8 @@ displacement and:
   magnitude.
 - :math:`b_k` the bias of a window average where the displacement curves inside the window
   (:func:`unresolved_gradient_bias`), which a uniform test displacement cannot reproduce;
+  the curvature is the measured field's, which the windows have flattened, so it is scaled
+  by what the chain's measured loss of modulation says it misses (:func:`modulation_factor`);
   the last correction no longer counts it (its filter offset is removed), so it is added in
   full, less the part the vectors' random errors give a curvature estimated from them
   (:func:`curvature_noise_factor`: the second differences of noise alone are as large as
@@ -94,6 +101,7 @@ __all__ = [
     "UNCERTAINTY_METHODS",
     "combine",
     "location_uncertainty",
+    "modulation_factor",
     "rejected_neighbour_uncertainty",
     "unresolved_gradient_bias",
 ]
@@ -128,7 +136,7 @@ def _second_difference(a, axis):
     return np.moveaxis(out, 0, axis)
 
 
-def unresolved_gradient_bias(disp, spacing, window):
+def unresolved_gradient_bias(disp, spacing, window, scale=None):
     r"""Bias of window-averaged displacements where the displacement curves inside a window.
 
     Parameters
@@ -139,6 +147,9 @@ def unresolved_gradient_bias(disp, spacing, window):
         Vector spacing along ``(x, y, z)``, metres.
     window : sequence of 3 floats
         Window edge along ``(x, y, z)``, metres.
+    scale : ndarray, shape (3, 3), optional
+        Factor on the curvature of component ``k`` (rows ``u, v, w``) along axis ``a``
+        (columns ``x, y, z``): :func:`modulation_factor` (None: 1).
 
     Returns
     -------
@@ -173,17 +184,64 @@ def unresolved_gradient_bias(disp, spacing, window):
     field gives zero; a quadratic one gives the exact window-average bias.
     """
     disp = np.asarray(disp, float)
+    scale = np.ones((3, 3)) if scale is None else np.asarray(scale, float)
     out = np.zeros_like(disp)
     for axis_xyz in range(3):
         h, w = float(spacing[axis_xyz]), float(window[axis_xyz])
         if not (h > 0 and w > 0):
             continue
         array_axis = 3 - axis_xyz          # (component, z, y, x): x is array axis 3
-        out += (w**2 / 24.0) / h**2 * _second_difference(disp, array_axis)
+        out += (scale[:, axis_xyz, None, None, None] * (w**2 / 24.0) / h**2
+                * _second_difference(disp, array_axis))
     return np.abs(np.nan_to_num(out, nan=0.0))
 
 
-def curvature_noise_factor(spacing, window) -> float:
+def modulation_factor(modulation, spacing, window) -> np.ndarray:
+    r"""What the measured curvature misses of the window's bias, ``(3, 3)``, dimensionless.
+
+    Parameters
+    ----------
+    modulation : ndarray, shape (3, 3)
+        The chain's gain :math:`H_{ka}` of component ``k`` for a sinusoidal displacement
+        along axis ``a`` of ``MODULATION_PERIOD`` = 4 vector spacings
+        (:attr:`plenopiv.piv.response.Response.modulation`; NaN: not measured).
+    spacing, window : sequence of 3 floats
+        Vector spacing and window edge along ``(x, y, z)``, metres.
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        :math:`F_{ka} = \max\big(1, (1 - H_{ka}) / (2 c_a H_{ka})\big)` with
+        :math:`c_a = W_a^2 / (24 h_a^2)` and :math:`H` held within ``[MIN_GAIN, 1]``; 1 where
+        :math:`H` is not measured or the axis has no spacing.
+
+    Notes
+    -----
+    :func:`unresolved_gradient_bias` takes the curvature from the measured field, which the
+    windows have already flattened: where the flow curves on the scale of a window (Hill's
+    core) the measured curvature, and with it the bias, is short by the chain's own loss of
+    modulation. A wave :math:`A \sin(k x_a)` of wavelength :math:`4 h_a` is measured as
+    :math:`H A \sin(k x_a)`, an error of :math:`(1 - H) A`; its second difference on the
+    vector grid is :math:`-2 H A \sin(k x_a)`, so the bias term gives :math:`2 c_a H A`.
+    ``F`` makes the term the error at that wavelength. For a top-hat window at 50 % overlap
+    (:math:`H = 2/\pi`, :math:`c = 1/6`) it is 1.71; for longer waves the bias the
+    curvature gives approaches the true one (``F`` = 1 in the limit), so ``F`` is the
+    bound over the wavelengths the vector grid resolves. ``H`` is measured, not modelled:
+    window deformation and the reconstruction change it from the top hat's.
+    """
+    out = np.ones((3, 3))
+    if modulation is None:
+        return out
+    h = np.clip(np.nan_to_num(np.asarray(modulation, float), nan=1.0), MIN_GAIN, 1.0)
+    for a in range(3):
+        if not (spacing[a] > 0 and window[a] > 0):
+            continue
+        c = float(window[a]) ** 2 / (24.0 * float(spacing[a]) ** 2)
+        out[:, a] = np.maximum(1.0, (1.0 - h[:, a]) / (2.0 * c * h[:, a]))
+    return out
+
+
+def curvature_noise_factor(spacing, window, scale=None):
     r"""Variance of :func:`unresolved_gradient_bias` from vectors' random errors, per unit variance.
 
     Parameters
@@ -192,11 +250,15 @@ def curvature_noise_factor(spacing, window) -> float:
         Vector spacing and window edge along ``(x, y, z)``, metres (as for
         :func:`unresolved_gradient_bias`).
 
+    scale : ndarray, shape (3, 3), optional
+        The factors of :func:`unresolved_gradient_bias` (None: 1).
+
     Returns
     -------
-    float
+    float or ndarray, shape (3,)
         :math:`k = 2 \sum_i a_i^2 + 4 (\sum_i a_i)^2` with :math:`a_i = W_i^2 / (24 h_i^2)`
-        (dimensionless; 7/6 at 50 % overlap in 3-D).
+        (dimensionless; 7/6 at 50 % overlap in 3-D); with ``scale``, per component ``k``
+        with :math:`a_i` times ``scale[k, i]``.
 
     Notes
     -----
@@ -209,7 +271,10 @@ def curvature_noise_factor(spacing, window) -> float:
     """
     a = np.array([(float(w) ** 2 / 24.0) / float(h) ** 2 if float(h) > 0 and float(w) > 0
                   else 0.0 for h, w in zip(spacing, window, strict=True)])
-    return float(2.0 * np.sum(a**2) + 4.0 * np.sum(a) ** 2)
+    if scale is None:
+        return float(2.0 * np.sum(a**2) + 4.0 * np.sum(a) ** 2)
+    a = np.asarray(scale, float) * a[None, :]
+    return 2.0 * np.sum(a**2, axis=1) + 4.0 * np.sum(a, axis=1) ** 2
 
 
 def filter_offset(disp):
@@ -470,9 +535,10 @@ def combine(field, response: Response | None):
     random = parts.get("correlation")
     random = (np.zeros_like(disp) if random is None
               else np.nan_to_num(np.asarray(random, float))) ** 2 + excess**2
+    scale = modulation_factor(response.modulation, spacing, window)
     sigma_curv = np.sqrt(np.maximum(
-        unresolved_gradient_bias(disp, spacing, window) ** 2
-        - curvature_noise_factor(spacing, window) * random, 0.0))
+        unresolved_gradient_bias(disp, spacing, window, scale) ** 2
+        - curvature_noise_factor(spacing, window, scale)[:, None, None, None] * random, 0.0))
     sigma_rejected = rejected_neighbour_uncertainty(field)
     sigma_location = location_uncertainty(disp, spacing, response.location(field.z))
     total = np.sqrt(sigma_cs**2 + excess**2 + sigma_gain**2 + sigma_curv**2

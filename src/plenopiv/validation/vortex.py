@@ -67,7 +67,7 @@ class VortexCase:
         voxels, see docs/validation/vortex.md)
     uncertainty : ``[piv] uncertainty`` of the run: "response" (default; measures the chain's
         response, three more test pairs) or "correlation" (faster)
-    response_displacements : ``[piv] response_displacements``: 3 (five test pairs, default) or 1
+    response_displacements : ``[piv] response_displacements``: 3 (eight test pairs, default) or 1
     windows : interrogation windows per pass (z, y, x) in voxels of the footprint grid; the
         lateral edges are multiplied by ``lateral_oversampling``
     passes : PIV passes (the last window repeats)
