@@ -788,3 +788,17 @@ def test_three_modulation_pairs_give_every_component_along_every_axis():
     assert np.all(np.isnan(got[:, 2]))
     np.testing.assert_allclose(got[:, :2], true_h[:, :2], rtol=1e-9)
     assert np.all(np.isnan(_modulation(grid_field, voxel, lambda d: None)))
+
+
+def test_the_coverage_report_states_its_sampling_error():
+    """uncertainty.md gives the binomial standard error of its coverages: 95 % over 100
+    vectors is known to 2.2 points, 90 % over 400 to 1.5; cases without vectors are left
+    out."""
+    from plenopiv.validation.uncertainty_study import _sampling_error
+
+    cases = [{"n_vectors": 100, "coverage": {"response": [0.95, 0.95, 0.95]}},
+             {"n_vectors": 400, "coverage": {"response": [0.90, 0.96, 0.98]}},
+             {"n_vectors": 0, "coverage": {"response": [np.nan] * 3}}]
+    text = _sampling_error(cases)
+    assert "0.7-2.2 points" in text and "n = 100-400" in text
+    assert _sampling_error(cases[2:]) == ""
