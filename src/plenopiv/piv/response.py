@@ -9,6 +9,7 @@ the correlation statistics of each vector is :mod:`plenopiv.piv.uncertainty` (mo
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +33,7 @@ __all__ = [
     "placement_offset",
     "response_key",
     "response_shifts",
+    "vector_spacing",
 ]
 
 LATERAL_SHIFTS = (0.5, 1.25, 1.75)
@@ -217,11 +219,7 @@ class Response:
                 break
         motion = np.nan_to_num(_motion_in_cells(disp, cell, level))
         motion = np.minimum(motion, test.max(axis=0)[:, None, None, None])
-        sets = [(self.random, self.statistics)]
-        if self.edge_random is not None:
-            sets.append((self.edge_random, self.edge_statistics))
-        variance = []
-        for random, statistics in sets:   # interior (or every vector), then the lateral edge
+        def fitted(random, statistics):
             excess2 = np.maximum(random**2 - statistics**2, 0.0)            # (n, 3, layers)
             out = np.zeros_like(disp)
             for k in range(3):
@@ -229,10 +227,13 @@ class Response:
                                  for layer in range(self.z.size)], axis=1)  # (terms, layers)
                 at_z = np.stack([np.interp(z, self.z, c) for c in coef])      # (terms, nz)
                 out[k] = np.einsum("tz,tz...->z...", at_z, motion)
-            variance.append(out)
-        if len(variance) == 2:
-            variance[0] = np.where(lateral_edge(disp.shape[1:])[None], variance[1], variance[0])
-        return np.sqrt(variance[0])
+            return out
+
+        variance = fitted(self.random, self.statistics)
+        if self.edge_random is not None:
+            edge = lateral_edge(disp.shape[1:])[None]
+            variance = np.where(edge, fitted(self.edge_random, self.edge_statistics), variance)
+        return np.sqrt(variance)
 
     def to_dict(self) -> dict:
         """JSON-ready form (metres)."""
@@ -367,7 +368,7 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     to_physical = np.array([1.0, 1.0, correction.scale])
     cell = _cell(calibration.effective_camera, f_number)
     blob_vox = cell_blob_vox(calibration.effective_camera, grid, f_number)
-    seeds = iter(range(seed, seed + 1000))
+    seeds = itertools.count(seed)    # the tracer's seed, one per rendered image
 
     def render(positions):
         return blurred(particle_image(camera, positions, rays_per_particle=rays_per_particle,
@@ -457,7 +458,7 @@ def modulation_gain(field, wavelength, amplitude, axes, phase) -> np.ndarray:
     return out
 
 
-def _vector_spacing(field) -> np.ndarray:
+def vector_spacing(field) -> np.ndarray:
     """Spacing of a field's vectors along ``(x, y, z)``, metres (0 along an axis with one)."""
     return np.array([abs(float(c[1] - c[0])) if c.size > 1 else 0.0
                      for c in (np.asarray(field.x), np.asarray(field.y), np.asarray(field.z))])
@@ -473,7 +474,7 @@ def _modulation(field, voxel, pair) -> np.ndarray:
     an axis has fewer than three vectors or a pair gave no field.
     """
     counts = np.array([np.size(field.x), np.size(field.y), np.size(field.z)])
-    wavelength = np.where(counts >= 3, MODULATION_PERIOD * _vector_spacing(field), 0.0)
+    wavelength = np.where(counts >= 3, MODULATION_PERIOD * vector_spacing(field), 0.0)
     voxel = np.asarray(voxel, float)
     out = np.full((3, 3), np.nan)
     for i, axes in enumerate(MODULATION_AXES):

@@ -95,7 +95,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from plenopiv.piv.response import Response
+from plenopiv.piv.response import Response, vector_spacing
 
 __all__ = [
     "UNCERTAINTY_METHODS",
@@ -134,6 +134,16 @@ def _second_difference(a, axis):
         out[0] = out[1]
         out[-1] = out[-2]
     return np.moveaxis(out, 0, axis)
+
+
+def _window_coefficients(spacing, window) -> np.ndarray:
+    """``W_i^2 / (24 h_i^2)`` per axis ``(x, y, z)``, dimensionless.
+
+    The window-average bias per unit second difference; 0 along an axis without spacing or
+    window.
+    """
+    return np.array([float(w) ** 2 / (24.0 * float(h) ** 2) if float(h) > 0 and float(w) > 0
+                     else 0.0 for h, w in zip(spacing, window, strict=True)])
 
 
 def unresolved_gradient_bias(disp, spacing, window, scale=None):
@@ -185,14 +195,12 @@ def unresolved_gradient_bias(disp, spacing, window, scale=None):
     """
     disp = np.asarray(disp, float)
     scale = np.ones((3, 3)) if scale is None else np.asarray(scale, float)
+    coef = scale * _window_coefficients(spacing, window)[None, :]          # (component, axis)
     out = np.zeros_like(disp)
     for axis_xyz in range(3):
-        h, w = float(spacing[axis_xyz]), float(window[axis_xyz])
-        if not (h > 0 and w > 0):
-            continue
-        array_axis = 3 - axis_xyz          # (component, z, y, x): x is array axis 3
-        out += (scale[:, axis_xyz, None, None, None] * (w**2 / 24.0) / h**2
-                * _second_difference(disp, array_axis))
+        if coef[:, axis_xyz].any():
+            array_axis = 3 - axis_xyz      # (component, z, y, x): x is array axis 3
+            out += coef[:, axis_xyz, None, None, None] * _second_difference(disp, array_axis)
     return np.abs(np.nan_to_num(out, nan=0.0))
 
 
@@ -233,11 +241,9 @@ def modulation_factor(modulation, spacing, window) -> np.ndarray:
     if modulation is None:
         return out
     h = np.clip(np.nan_to_num(np.asarray(modulation, float), nan=1.0), MIN_GAIN, 1.0)
-    for a in range(3):
-        if not (spacing[a] > 0 and window[a] > 0):
-            continue
-        c = float(window[a]) ** 2 / (24.0 * float(spacing[a]) ** 2)
-        out[:, a] = np.maximum(1.0, (1.0 - h[:, a]) / (2.0 * c * h[:, a]))
+    for a, c in enumerate(_window_coefficients(spacing, window)):
+        if c > 0:
+            out[:, a] = np.maximum(1.0, (1.0 - h[:, a]) / (2.0 * c * h[:, a]))
     return out
 
 
@@ -269,8 +275,7 @@ def curvature_noise_factor(spacing, window, scale=None):
     about as large as their noise where the field does not curve at all. That noise is the
     vectors' random error, already counted; :func:`combine` removes its variance.
     """
-    a = np.array([(float(w) ** 2 / 24.0) / float(h) ** 2 if float(h) > 0 and float(w) > 0
-                  else 0.0 for h, w in zip(spacing, window, strict=True)])
+    a = _window_coefficients(spacing, window)
     if scale is None:
         return float(2.0 * np.sum(a**2) + 4.0 * np.sum(a) ** 2)
     a = np.asarray(scale, float) * a[None, :]
@@ -500,15 +505,9 @@ def _spacing_and_window(field):
     """Vector spacing and last-pass window edge along ``(x, y, z)``, metres."""
     settings = field.settings
     window_vox = settings.window_vox(settings.passes - 1)[::-1]     # (wx, wy, wz)
-    spacing = np.zeros(3)
-    window = np.zeros(3)
-    for i, c in enumerate((field.x, field.y, field.z)):
-        if c.size < 2:
-            continue
-        spacing[i] = abs(float(c[1] - c[0]))
-        step_vox = max(1, round(window_vox[i] * (1.0 - settings.overlap)))
-        window[i] = window_vox[i] * spacing[i] / step_vox
-    return spacing, window
+    spacing = vector_spacing(field)
+    step_vox = np.array([max(1, round(w * (1.0 - settings.overlap))) for w in window_vox])
+    return spacing, np.asarray(window_vox, float) * spacing / step_vox
 
 
 def combine(field, response: Response | None):
