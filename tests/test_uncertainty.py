@@ -387,6 +387,87 @@ def test_a_rejected_vector_leaves_its_range_to_its_neighbourhood():
     assert rejected_neighbour_uncertainty(replace(f, uncertainty_parts=None)).max() == 0.0
 
 
+def test_a_spurious_peak_s_reach_is_not_counted_as_unresolved_flow():
+    """The uniform test pairs' rejected vectors are spurious peaks; their median disagreement
+    S is removed in quadrature from a real rejection's: D = 5 S/3 leaves 4 S/3 (a 3-4-5
+    triangle), a disagreement within S leaves nothing, a component without S keeps all."""
+    from plenopiv.piv.response import rejected_disagreements, spurious_disagreement
+
+    shape = (5, 5, 7)
+    f = _grid_field(np.zeros(shape), (1e-3, 1e-3, 1e-3))
+    jump = np.zeros((3,) + shape)
+    jump[:, 2, 2, 2] = [5e-4, 2e-4, 5e-4]
+    jump[:, 2, 2, 5] = [2e-4, 1e-4, 2e-4]
+    f = replace(f, uncertainty_parts={"rejected_disagreement": jump})
+    rows = rejected_disagreements(f)
+    assert rows.shape == (2, 3)
+    np.testing.assert_allclose(sorted(rows[:, 0]), [2e-4, 5e-4])
+    # three test pairs' spurious peaks: 3e-4 typically along u and w, nothing along v, and
+    # one peak on a ghost far off, which the median (the typical reach) does not follow
+    spurious = spurious_disagreement([np.array([[3e-4, 0.0, 3e-4], [2e-4, 0.0, 2e-4]]),
+                                      np.array([[3e-4, 0.0, 3e-4], [4e-4, 0.0, 4e-4],
+                                                [5e-3, 0.0, 5e-3]]), np.zeros((0, 3))])
+    np.testing.assert_allclose(spurious, [3e-4, 0.0, 3e-4])
+    np.testing.assert_array_equal(spurious_disagreement([np.zeros((0, 3))]), 0.0)
+    q = rejected_neighbour_uncertainty(f, spurious)
+    np.testing.assert_allclose(q[0, 1:4, 1:4, 1:4], 4e-4 / np.sqrt(12))
+    np.testing.assert_allclose(q[2, 1:4, 1:4, 1:4], 4e-4 / np.sqrt(12))
+    np.testing.assert_allclose(q[1, 1:4, 1:4, 1:4], 2e-4 / np.sqrt(12))   # no S: all of it
+    assert q[0, :, :, 6].max() == 0.0 and q[2, :, :, 6].max() == 0.0  # within S: spurious
+    np.testing.assert_allclose(q[1, 1:4, 1:4, 6], 1e-4 / np.sqrt(12))
+    np.testing.assert_array_equal(rejected_neighbour_uncertainty(f, None),
+                                  rejected_neighbour_uncertainty(f))
+    g = combine(f, replace(_response(gain_w=1.0, random_w=0.0), spurious=spurious))
+    np.testing.assert_allclose(g.uncertainty_parts["rejected_neighbour"], q)
+    r = replace(_response(), spurious=spurious)
+    back = Response.from_dict(json.loads(json.dumps(r.to_dict())))
+    np.testing.assert_array_equal(back.spurious, spurious)
+
+
+def test_the_curvature_at_a_border_vector_is_its_own():
+    """A cubic u = c x^3 curves by 6 c x: the one-sided border stencil gives the second
+    difference 6 c x h^2 at the border vector itself (exact for a cubic, as the central one
+    inside), where the neighbour's, the border's former estimate, is off by 6 c h^3; with
+    three points the border takes the middle's, with two there is none."""
+    from plenopiv.piv.uncertainty import _second_difference
+
+    h, c = 1e-3, 2e3
+    for n in (4, 5, 8):
+        x = (np.arange(n) - 0.3) * h
+        d2 = _second_difference(np.broadcast_to(c * x**3, (2, 3, n)), 2)
+        np.testing.assert_allclose(d2, np.broadcast_to(6 * c * x * h**2, (2, 3, n)),
+                                   rtol=1e-9, atol=1e-21)
+        assert abs(d2[0, 0, 0] - 6 * c * x[1] * h**2) == pytest.approx(6 * c * h**3)
+    x = np.arange(3) * h
+    np.testing.assert_allclose(_second_difference(c * x**3, 0), 6 * c * x[1] * h**2)
+    np.testing.assert_array_equal(_second_difference(c * x[:2] ** 3, 0), 0.0)
+
+
+def test_the_curvature_noise_of_every_vector_border_included(rng):
+    """White noise of variance sigma^2 through the scaled bias stencil: the mean square at
+    every vector of a 3 x 4 x 6 grid (corners, edges, faces, inside) is the factor of that
+    vector times sigma^2, within five standard errors of 4000 draws; inside it is the
+    grid-free factor, at a border vector of a 4-point axis more."""
+    h = np.array([1e-3, 1.2e-3, 1.5e-3])
+    window = 2 * h
+    scale = np.array([[1.0, 1.5, 2.0], [1.2, 1.0, 1.0], [2.5, 3.0, 1.1]])
+    shape = (3, 4, 6)
+    k = curvature_noise_factor(h, window, scale, shape)
+    assert k.shape == (3,) + shape
+    np.testing.assert_allclose(k[:, 1, 1:-1, 1:-1],
+                               np.broadcast_to(curvature_noise_factor(h, window, scale)[:, None,
+                                                                                      None],
+                                               (3, 2, 4)))
+    assert np.all(k[:, 1, 0, 1:-1] > k[:, 1, 1, 1:-1])
+    draws, sigma = 4000, 1.0
+    noise = rng.normal(0.0, sigma, size=(draws, 3) + shape)
+    mean_square = np.zeros((3,) + shape)
+    for d in range(draws):
+        mean_square += unresolved_gradient_bias(noise[d], h, window, scale) ** 2
+    mean_square /= draws
+    np.testing.assert_allclose(mean_square, k * sigma**2, rtol=5 * np.sqrt(2 / draws))
+
+
 def test_the_shared_error_grows_with_the_vectors_motion_whatever_its_direction():
     """The excess random error (the error both exposures share) is 0 at rest; its variance
     grows linearly with the lateral and the depth motion in resolution cells, each as the

@@ -69,14 +69,17 @@ displacement and:
   (:func:`unresolved_gradient_bias`), which a uniform test displacement cannot reproduce;
   the curvature is the measured field's, which the windows have flattened, so it is scaled
   by what the chain's measured loss of modulation says it misses (:func:`modulation_factor`);
-  the last correction no longer counts it (its filter offset is removed), so it is added in
-  full, less the part the vectors' random errors give a curvature estimated from them
+  the curvature at a vector of the grid's border is its own (a one-sided stencil), not its
+  neighbour's; the last correction no longer counts it (its filter offset is removed), so
+  it is added in full, less the part the vectors' random errors give a curvature estimated from them
   (:func:`curvature_noise_factor`: the second differences of noise alone are as large as
   the noise, which the other terms count already).
 - :math:`q_k` the range a rejected vector beside it leaves open
   (:func:`rejected_neighbour_uncertainty`): where the median test rejected a measurement,
   the displacement there lies somewhere between that measurement and its neighbours'
-  median, a rectangular distribution of standard deviation (range) / sqrt(12).
+  median, a rectangular distribution of standard deviation (range) / sqrt(12), less in
+  quadrature the reach of the spurious peaks the median test rejects on the test pairs
+  (their median disagreement), which is no unresolved flow.
 - :math:`l_k` the error of the vector's position (:func:`location_uncertainty`): the
   reconstruction places particles off their true positions (by about 1 % of the distance
   from the focal plane in depth on the Auburn optics), so a window reports the displacement
@@ -121,19 +124,52 @@ MAX_CONVERGENCE_RATIO = 0.9
 """Largest convergence ratio counted: a ratio of 1 or more (no convergence) is held here, the
 remaining error then nine times the last correction."""
 
-def _second_difference(a, axis):
-    """Second difference of ``a`` along ``axis`` (same shape, units of ``a``).
+CENTRAL_STENCIL = (1.0, -2.0, 1.0)
+"""Second difference at an inner vector: its neighbours and itself (centred)."""
 
-    Central ``a[i-1] - 2 a[i] + a[i+1]`` inside; a border point takes its neighbour's (the
-    curvature held constant over the last step); zero along an axis of fewer than 3 points.
+BORDER_STENCIL = (2.0, -5.0, 4.0, -1.0)
+"""Second difference at a border vector, from itself inwards: one-sided and, like the
+central one, of second order (exact for a cubic)."""
+
+
+def _second_difference(a, axis):
+    """Second difference of ``a`` along ``axis`` at every point (same shape, units of ``a``).
+
+    Central ``a[i-1] - 2 a[i] + a[i+1]`` inside; at a border point of an axis of four or
+    more points the one-sided ``2 a[0] - 5 a[1] + 4 a[2] - a[3]`` (``BORDER_STENCIL``: the
+    curvature at that point, where the flow may curve more than one spacing inwards, not its
+    neighbour's); with three points the only second difference there is; zero along an
+    axis of fewer than 3 points.
     """
     a = np.moveaxis(np.asarray(a, float), axis, 0)
     out = np.zeros_like(a)
     if a.shape[0] >= 3:
         out[1:-1] = a[:-2] - 2.0 * a[1:-1] + a[2:]
-        out[0] = out[1]
-        out[-1] = out[-2]
+        if a.shape[0] >= 4:
+            w = BORDER_STENCIL
+            out[0] = sum(c * a[j] for j, c in enumerate(w))
+            out[-1] = sum(c * a[-1 - j] for j, c in enumerate(w))
+        else:
+            out[0] = out[-1] = out[1]
     return np.moveaxis(out, 0, axis)
+
+
+def _stencil_weights(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The noise weights of :func:`_second_difference` per point of an axis of ``n`` points.
+
+    Two arrays ``(n,)``, dimensionless: the weight the stencil at a point gives the point
+    itself, and the sum of squares of the weights it gives the others.
+    """
+    own, others = np.zeros(n), np.zeros(n)
+    if n >= 3:
+        own[:], others[:] = CENTRAL_STENCIL[1], CENTRAL_STENCIL[0] ** 2 + CENTRAL_STENCIL[2] ** 2
+        if n >= 4:
+            own[[0, -1]] = BORDER_STENCIL[0]
+            others[[0, -1]] = sum(c**2 for c in BORDER_STENCIL[1:])
+        else:        # the middle point's stencil, which weights the border point by 1
+            own[[0, -1]] = CENTRAL_STENCIL[0]
+            others[[0, -1]] = CENTRAL_STENCIL[1] ** 2 + CENTRAL_STENCIL[2] ** 2
+    return own, others
 
 
 def _window_coefficients(spacing, window) -> np.ndarray:
@@ -190,8 +226,12 @@ def unresolved_gradient_bias(disp, spacing, window, scale=None):
 
     The second derivatives are taken from the measured field's second differences on the
     vector grid, :math:`\partial_i^2 u \approx \Delta_i^2 u / h_i^2` (with 50 % overlap,
-    :math:`W = 2h` and the term is :math:`\Delta_i^2 u / 6` per axis). A uniform or linear
-    field gives zero; a quadratic one gives the exact window-average bias.
+    :math:`W = 2h` and the term is :math:`\Delta_i^2 u / 6` per axis), central inside and
+    one-sided at the border (:func:`_second_difference`): a border window reaches half a
+    window beyond the last vectors, where the flow may curve more than one spacing inwards
+    (on Hill's vortex 18 of the 21 misses of v on the 41 x 61 camera lay on the first and
+    last of four rows, which took their neighbour's curvature). A uniform or linear field
+    gives zero; a quadratic or cubic one the exact curvature at every vector.
     """
     disp = np.asarray(disp, float)
     scale = np.ones((3, 3)) if scale is None else np.asarray(scale, float)
@@ -247,7 +287,7 @@ def modulation_factor(modulation, spacing, window) -> np.ndarray:
     return out
 
 
-def curvature_noise_factor(spacing, window, scale=None):
+def curvature_noise_factor(spacing, window, scale=None, shape=None):
     r"""Variance of :func:`unresolved_gradient_bias` from vectors' random errors, per unit variance.
 
     Parameters
@@ -255,31 +295,47 @@ def curvature_noise_factor(spacing, window, scale=None):
     spacing, window : sequence of 3 floats
         Vector spacing and window edge along ``(x, y, z)``, metres (as for
         :func:`unresolved_gradient_bias`).
-
     scale : ndarray, shape (3, 3), optional
         The factors of :func:`unresolved_gradient_bias` (None: 1).
+    shape : tuple (nz, ny, nx), optional
+        The vector grid: the factor of every vector, its border ones included.
 
     Returns
     -------
-    float or ndarray, shape (3,)
-        :math:`k = 2 \sum_i a_i^2 + 4 (\sum_i a_i)^2` with :math:`a_i = W_i^2 / (24 h_i^2)`
-        (dimensionless; 7/6 at 50 % overlap in 3-D); with ``scale``, per component ``k``
-        with :math:`a_i` times ``scale[k, i]``.
+    float or ndarray, shape (3,) or (3, nz, ny, nx)
+        At an inner vector :math:`k = 2 \sum_i a_i^2 + 4 (\sum_i a_i)^2` with
+        :math:`a_i = W_i^2 / (24 h_i^2)` (dimensionless; 7/6 at 50 % overlap in 3-D); with
+        ``scale``, per component ``k`` with :math:`a_i` times ``scale[k, i]``; with ``shape``,
+        per component and vector.
 
     Notes
     -----
-    The bias term is :math:`\sum_i a_i (d_{i-} - 2 d_0 + d_{i+})`. Vectors with independent
-    random errors of variance :math:`\sigma^2` give it the variance
-    :math:`\sigma^2 (2 \sum_i a_i^2 + 4 (\sum_i a_i)^2)` (the six neighbours once each, the
-    centre with the sum of the weights): the estimate of a curvature from noisy vectors is
-    about as large as their noise where the field does not curve at all. That noise is the
-    vectors' random error, already counted; :func:`combine` removes its variance.
+    The bias term is :math:`\sum_i a_i \sum_j s_{ij} d_j`, with :math:`s_i` the stencil of
+    :func:`_second_difference` along axis ``i``. Vectors with independent random errors of
+    variance :math:`\sigma^2` give it the variance :math:`\sigma^2 [(\sum_i a_i s_{i0})^2 +
+    \sum_i a_i^2 \sum_{j \ne 0} s_{ij}^2]`, the vector itself with the sum of its weights
+    and every other point with its own. Inside, :math:`s = (1, -2, 1)` gives the formula
+    above (the six neighbours once each, the centre with :math:`-2 \sum_i a_i`): the
+    estimate of a curvature from noisy vectors is about as large as their noise where the
+    field does not curve at all. The one-sided border stencil :math:`(2, -5, 4, -1)`
+    carries 7.7 times the noise of the central one. That noise is the vectors' random
+    error, already counted; :func:`combine` removes its variance.
     """
     a = _window_coefficients(spacing, window)
-    if scale is None:
-        return float(2.0 * np.sum(a**2) + 4.0 * np.sum(a) ** 2)
-    a = np.asarray(scale, float) * a[None, :]
-    return 2.0 * np.sum(a**2, axis=1) + 4.0 * np.sum(a, axis=1) ** 2
+    a = (np.ones((3, 3)) if scale is None else np.asarray(scale, float)) * a[None, :]
+    if shape is None:
+        k = 2.0 * np.sum(a**2, axis=1) + 4.0 * np.sum(a, axis=1) ** 2
+        return float(k[0]) if scale is None else k
+    own = np.zeros((3,) + tuple(shape))
+    others = np.zeros((3,) + tuple(shape))
+    for axis_xyz, n in enumerate(tuple(shape)[::-1]):
+        weight_self, weight_others = _stencil_weights(n)
+        along = [1, 1, 1]
+        along[2 - axis_xyz] = n           # (z, y, x): x is array axis 2
+        coef = a[:, axis_xyz].reshape(3, 1, 1, 1)
+        own = own + coef * weight_self.reshape(along)
+        others = others + coef**2 * weight_others.reshape(along)
+    return own**2 + others
 
 
 def filter_offset(disp):
@@ -413,7 +469,7 @@ REJECTED_RANGE_FACTOR = 1.0 / np.sqrt(12.0)
 """Standard deviation of a rectangular distribution over a range, per unit of its width."""
 
 
-def rejected_neighbour_uncertainty(field) -> np.ndarray:
+def rejected_neighbour_uncertainty(field, spurious=None) -> np.ndarray:
     r"""Uncertainty of vectors beside a rejected one, ``(3, nz, ny, nx)``, metres.
 
     Parameters
@@ -422,11 +478,15 @@ def rejected_neighbour_uncertainty(field) -> np.ndarray:
         A field of :func:`plenopiv.piv.correlate_volumes`; its ``uncertainty_parts`` hold
         ``"rejected_disagreement"``, how far each rejected vector's own measurement lay from
         the median of its neighbours (0 for vectors that were not rejected).
+    spurious : ndarray, shape (3,), optional
+        The reach of a spurious correlation peak per component, metres
+        (:attr:`plenopiv.piv.response.Response.spurious`; None: 0).
 
     Returns
     -------
     ndarray, shape (3, nz, ny, nx)
-        :math:`\max_j D_{j,k} / \sqrt{12}` per component ``k`` over the rejected vectors
+        :math:`\max_j \sqrt{\max(0, D_{j,k}^2 - S_k^2)} / \sqrt{12}` per component ``k``
+        (:math:`S` = ``spurious``) over the rejected vectors
         ``j`` of the vector's 3 x 3 x 3 neighbourhood (itself included), metres; 0 where none
         was rejected or the field carries no disagreements.
 
@@ -444,6 +504,19 @@ def rejected_neighbour_uncertainty(field) -> np.ndarray:
     4.3.7) has the standard deviation :math:`D_j / \sqrt{12}`, counted for the rejected
     vector and each vector of its 3 x 3 x 3 neighbourhood (the neighbourhood of the median
     test), the largest where several apply. A field without rejected vectors gets 0.
+
+    The median test also rejects spurious peaks (a ghost particle, an unmatched pair, the
+    depth peak's elongated neighbour), whose disagreement says nothing about the flow
+    around them: the vectors beside one err as the response's test vectors do beside
+    theirs, which their spread counts already. The rejected vectors of the uniform test
+    pairs, where no flow is left unresolved, give the reach :math:`S_k` of such peaks
+    (:func:`plenopiv.piv.response.spurious_disagreement`, their median); only the part of a
+    disagreement beyond it, in quadrature, is counted as unresolved flow. On Hill's vortex
+    the rejected vectors' depth disagreements are as large as the test pairs' (medians 0.7
+    and 1.1 depth voxels), their lateral ones 2-25 times larger (2.1 and 0.08 voxels): its
+    flow reverses laterally within a window, while its depth readings beside the core are
+    spurious peaks along the elongated depth axis, which made this term 2-3 times the
+    vectors' depth error (docs/validation/uncertainty.md).
     """
     import scipy.ndimage
 
@@ -453,6 +526,9 @@ def rejected_neighbour_uncertainty(field) -> np.ndarray:
     if jump is None:
         return np.zeros((3,) + shape)
     jump = np.nan_to_num(np.asarray(jump, float))
+    if spurious is not None:
+        reach = np.nan_to_num(np.asarray(spurious, float)).reshape(3, 1, 1, 1)
+        jump = np.sqrt(np.maximum(jump**2 - reach**2, 0.0))
     return REJECTED_RANGE_FACTOR * np.stack([
         scipy.ndimage.maximum_filter(jump[k], size=3, mode="constant", cval=0.0)
         for k in range(3)])
@@ -537,8 +613,8 @@ def combine(field, response: Response | None):
     scale = modulation_factor(response.modulation, spacing, window)
     sigma_curv = np.sqrt(np.maximum(
         unresolved_gradient_bias(disp, spacing, window, scale) ** 2
-        - curvature_noise_factor(spacing, window, scale)[:, None, None, None] * random, 0.0))
-    sigma_rejected = rejected_neighbour_uncertainty(field)
+        - curvature_noise_factor(spacing, window, scale, disp.shape[1:]) * random, 0.0))
+    sigma_rejected = rejected_neighbour_uncertainty(field, response.spurious)
     sigma_location = location_uncertainty(disp, spacing, response.location(field.z))
     total = np.sqrt(sigma_cs**2 + excess**2 + sigma_gain**2 + sigma_curv**2
                     + sigma_rejected**2 + sigma_location**2)
