@@ -585,7 +585,7 @@ def spurious_disagreement(rejected) -> np.ndarray:
 
     The reach is the median, not the rms: the disagreements are heavy-tailed. On the
     41 x 61 camera (half-footprint voxels, 76 rejected test vectors) their quartiles are
-    0.04-0.17 voxel laterally and 0.8-1.7 voxel in depth, while a few peaks on ghost
+    0.02-0.20 voxel laterally and 0.8-1.7 voxel in depth, while a few peaks on ghost
     particles 3-4 voxels off make the rms about 2 voxels along every axis; an rms would
     discount the real field's lateral disagreements of 2 voxels where Hill's vortex reverses
     within a window as if they were such peaks (its lateral coverage fell to 86.5 %,

@@ -512,11 +512,11 @@ def rejected_neighbour_uncertainty(field, spurious=None) -> np.ndarray:
     pairs, where no flow is left unresolved, give the reach :math:`S_k` of such peaks
     (:func:`plenopiv.piv.response.spurious_disagreement`, their median); only the part of a
     disagreement beyond it, in quadrature, is counted as unresolved flow. On Hill's vortex
-    the rejected vectors' depth disagreements are as large as the test pairs' (medians 0.7
-    and 1.1 depth voxels), their lateral ones 2-25 times larger (2.1 and 0.08 voxels): its
-    flow reverses laterally within a window, while its depth readings beside the core are
-    spurious peaks along the elongated depth axis, which made this term 2-3 times the
-    vectors' depth error (docs/validation/uncertainty.md).
+    the rejected vectors' depth disagreements are no larger than the test pairs' (medians
+    0.7 and 1.1 depth voxels), their lateral ones 2-26 times larger (u 2.1 voxels against
+    0.08, v 0.2 against 0.09): its flow reverses laterally within a window, while its depth
+    readings beside the core are spurious peaks along the elongated depth axis, which made
+    this term 2-3 times the vectors' depth error (docs/validation/uncertainty.md).
     """
     import scipy.ndimage
 

@@ -205,6 +205,23 @@ def _band(meas: np.ndarray, truth: np.ndarray, vox: np.ndarray) -> dict:
             "bias_vox": g["bias"], "rms_vox": g["rms"], "true_rms_vox": g["true_rms"]}
 
 
+def inner_vectors(vectors, grid: VolumeGrid, window_vox) -> np.ndarray:
+    """Vectors whose window lies inside the volume, bool ``(nz, ny, nx)``.
+
+    A vector counts when its centre is at least half a window ``window_vox`` ``(z, y, x)``
+    from every face of ``grid``; a window that touches a face is inside (a millionth of a
+    voxel of rounding allowed, so that the answer does not depend on how the grid's origin
+    rounds).
+    """
+    zz, yy, xx = np.meshgrid(vectors.z, vectors.y, vectors.x, indexing="ij")
+    inner = np.ones(xx.shape, bool)
+    for c, (lo, hi), w, d in zip((xx, yy, zz), grid.bounds, window_vox[::-1], grid.voxel,
+                                 strict=True):
+        margin = (0.5 * w - 1e-6) * d
+        inner &= (c >= lo + margin) & (c <= hi - margin)
+    return inner
+
+
 def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
                        depth_bands: int = 3, truth: np.ndarray | None = None) -> dict:
     """Error of the measured field against the flow's displacement at the window centres.
@@ -216,17 +233,12 @@ def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
     bands of |Z| (distance from the focal plane), the first one nearest focus.
     ``truth``: :func:`true_displacement` of these vectors when already computed.
     """
-    Z, Y, X = np.meshgrid(vectors.z, vectors.y, vectors.x, indexing="ij")
+    Z = np.meshgrid(vectors.z, vectors.y, vectors.x, indexing="ij")[0]
     if truth is None:
         truth = true_displacement(vectors, flow, dt)
     truth = truth.reshape(3, -1).T
     meas = np.stack([vectors.u.ravel(), vectors.v.ravel(), vectors.w.ravel()], axis=1)
-    b = grid.bounds
-    wz, wy, wx = window_vox
-    inner = np.ones(X.size, bool)
-    for c, (lo, hi), w, d in zip((X, Y, Z), b, (wx, wy, wz), grid.voxel, strict=True):
-        inner &= (c.ravel() >= lo + 0.5 * w * d) & (c.ravel() <= hi - 0.5 * w * d)
-    ok = np.asarray(vectors.valid).ravel() & inner
+    ok = np.asarray(vectors.valid).ravel() & inner_vectors(vectors, grid, window_vox).ravel()
     vox = np.array([grid.voxel[0], grid.voxel[1], grid.voxel[2]])
     out = {**_band(meas[ok], truth[ok], vox), "valid_fraction": float(np.mean(vectors.valid)),
            "true_max_displacement_vox": (np.abs(truth) / vox).max(axis=0).tolist()}
