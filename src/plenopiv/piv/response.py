@@ -591,11 +591,9 @@ def spurious_disagreement(rejected) -> np.ndarray:
     within a window as if they were such peaks (its lateral coverage fell to 86.5 %,
     docs/validation/uncertainty.md).
     """
-    rows = [np.asarray(r, float).reshape(-1, 3) for r in rejected]
-    rows = np.concatenate(rows) if rows else np.zeros((0, 3))
-    if not len(rows):
-        return np.zeros(3)
-    return np.median(rows, axis=0)
+    rows = np.concatenate([np.zeros((0, 3))]
+                          + [np.asarray(r, float).reshape(-1, 3) for r in rejected])
+    return np.median(rows, axis=0) if len(rows) else np.zeros(3)
 
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))

@@ -144,11 +144,11 @@ def _second_difference(a, axis):
     a = np.moveaxis(np.asarray(a, float), axis, 0)
     out = np.zeros_like(a)
     if a.shape[0] >= 3:
-        out[1:-1] = a[:-2] - 2.0 * a[1:-1] + a[2:]
+        left, centre, right = CENTRAL_STENCIL
+        out[1:-1] = left * a[:-2] + centre * a[1:-1] + right * a[2:]
         if a.shape[0] >= 4:
-            w = BORDER_STENCIL
-            out[0] = sum(c * a[j] for j, c in enumerate(w))
-            out[-1] = sum(c * a[-1 - j] for j, c in enumerate(w))
+            out[0] = sum(c * a[j] for j, c in enumerate(BORDER_STENCIL))
+            out[-1] = sum(c * a[-1 - j] for j, c in enumerate(BORDER_STENCIL))
         else:
             out[0] = out[-1] = out[1]
     return np.moveaxis(out, 0, axis)
