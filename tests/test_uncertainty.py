@@ -885,6 +885,28 @@ def test_the_coverage_report_states_its_sampling_error():
     assert _sampling_error(cases[2:]) == ""
 
 
+def test_the_chance_that_a_right_sigma_leaves_the_band_matches_sampling(rng):
+    """A σ exactly right puts each error within ±2σ with probability erf(sqrt 2) = 95.45 %;
+    the share over n independent vectors is outside 90-98 % with the binomial chance the
+    report states: checked against 200,000 simulated cases per n (Monte Carlo error below
+    0.1 points), with n = 161 (one of the study's cases) at about 6 %; bounds inclusive
+    (n = 50: 45 and 49 of 50 are inside, 44 and 50 outside)."""
+    from math import erf, sqrt
+
+    from plenopiv.validation.uncertainty_study import GAUSSIAN_2SIGMA, chance_outside_band
+
+    assert GAUSSIAN_2SIGMA == pytest.approx(erf(sqrt(2.0)), rel=1e-12)
+    for n in (50, 161, 473):
+        within = rng.binomial(n, GAUSSIAN_2SIGMA, size=200_000)
+        outside = np.mean((within < 0.90 * n - 1e-9) | (within > 0.98 * n + 1e-9))
+        assert chance_outside_band(n) == pytest.approx(outside, abs=0.002)
+    assert 0.05 < chance_outside_band(161) < 0.08
+    p = GAUSSIAN_2SIGMA
+    from scipy.stats import binom
+    assert chance_outside_band(50) == pytest.approx(binom.cdf(44, 50, p) + binom.pmf(50, 50, p))
+    assert chance_outside_band(0) == 1.0
+
+
 def test_the_modulation_gain_does_not_depend_on_where_the_vector_grid_starts(rng):
     """The same measured wave (H = 0.7, world coordinates) sampled on vector grids whose
     origins differ by a random fraction of a spacing along each axis, with independent noise

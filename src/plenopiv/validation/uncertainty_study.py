@@ -65,6 +65,8 @@ CASES = (
 )
 #: The issue's band for the share of true errors within ±2σ.
 TARGET = (0.90, 0.98)
+#: Share of a Gaussian error within ±2 standard deviations, erf(sqrt(2)).
+GAUSSIAN_2SIGMA = 0.9544997361036416
 STAGES = ("correlation", "last_correction", "iteration", "response")
 STAGE_LABELS = {"correlation": "correlation statistics",
                 "last_correction": "+ last correction",
@@ -230,19 +232,42 @@ def markdown(r: dict) -> str:
     return "\n".join(lines)
 
 
+def chance_outside_band(n: int, band=TARGET, coverage: float = GAUSSIAN_2SIGMA) -> float:
+    """Probability that the share of ``n`` errors within ±2σ falls outside ``band``.
+
+    For independent vectors whose errors lie within ±2σ with probability ``coverage`` (a
+    Gaussian error and a σ exactly right: 95.45 %), the count within is binomial; the share
+    is outside ``band`` (inclusive bounds, fractions) when the count is below
+    ``ceil(band[0] n)`` or above ``floor(band[1] n)``. Dimensionless, 0-1; 1 for ``n`` = 0.
+    """
+    import scipy.stats
+
+    if n <= 0:
+        return 1.0
+    low, high = int(np.ceil(band[0] * n - 1e-9)), int(np.floor(band[1] * n + 1e-9))
+    inside = scipy.stats.binom.cdf(high, n, coverage) - scipy.stats.binom.cdf(low - 1, n, coverage)
+    return float(1.0 - inside)
+
+
 def _sampling_error(cases) -> str:
-    """A sentence on the binomial standard error of the coverages (percentage points)."""
+    """Sentences on the sampling error of the coverages: the binomial standard error
+    (percentage points) and the chance that a σ exactly right falls outside the band."""
     cases = [c for c in cases if c["n_vectors"] > 0]
     if not cases:
         return ""
     se = np.array([[np.sqrt(p * (1.0 - p) / c["n_vectors"]) for p in c["coverage"]["response"]]
                    for c in cases]) * 100
+    chance = np.array([chance_outside_band(c["n_vectors"]) for c in cases])
     return ("A coverage p over n vectors has the binomial standard error sqrt(p (1 - p) / n): "
             f"{se.min():.1f}-{se.max():.1f} points here (n = "
             f"{min(c['n_vectors'] for c in cases)}-{max(c['n_vectors'] for c in cases)}); the "
             "vectors of 50 %-overlapping windows are correlated, so the sampling error of "
             "each figure is larger still, and a case-component within about two of those "
-            "errors of the band's edge is not told apart from it by one realisation.")
+            "errors of the band's edge is not told apart from it by one realisation. Even a σ "
+            "exactly right, with Gaussian errors on independent vectors, falls outside the "
+            f"band by chance: with probability {100 * chance.min():.1f}-"
+            f"{100 * chance.max():.1f} % per case-component at these n, "
+            f"{3 * chance.sum():.1f} of the {3 * len(cases)} case-components on average.")
 
 
 METHOD = [
