@@ -250,8 +250,11 @@ def chance_outside_band(n: int, band=TARGET, coverage: float = GAUSSIAN_2SIGMA) 
 
 
 def _sampling_error(cases) -> str:
-    """Sentences on the sampling error of the coverages: the binomial standard error
-    (percentage points) and the chance that a σ exactly right falls outside the band."""
+    """Sentences on the sampling error of the coverages.
+
+    The binomial standard error (percentage points) and the chance that a σ exactly right
+    falls outside the band.
+    """
     cases = [c for c in cases if c["n_vectors"] > 0]
     if not cases:
         return ""
