@@ -169,6 +169,8 @@ def test_load_camera_refuses_what_is_not_a_name():
     ({"shape": [10, 10]}, "expected a list of 3 voxel counts"),
     ({"voxel_mm": 0.1, "z_mm": [float("-inf"), 3]}, "z_mm = [-inf, 3.0]: expected finite"),
     ({"voxel_mm": float("nan")}, "voxel_mm"),
+    ({"voxel_mm": 0.1, "y_mm": [4.5, -4.5]}, "y_mm = [4.5, -4.5]: expected [lo, hi] with hi > lo"),
+    ({"voxel_mm": 0.1, "x_mm": [2, 2]}, "x_mm = [2, 2]: expected [lo, hi] with hi > lo"),
 ])
 def test_volume_errors_say_what_is_wrong(volume, words):
     cfg = {"x_mm": [-3, 3], "y_mm": [-3, 3], "z_mm": [-3, 3], **volume}

@@ -60,9 +60,13 @@ class VolumeGrid:
                     shown = [float(lo) * 1e3, float(hi) * 1e3]
                     raise ConfigError(f"[volume] {axis}_mm = {shown}: expected finite numbers "
                                       "[lo, hi]")
-        if bounds.shape != (3, 2) or not np.all(bounds[:, 1] > bounds[:, 0]):
+        if bounds.shape != (3, 2):
             raise ConfigError(f"[volume] bounds x, y, z = {bounds.tolist()} m: expected "
                               "[lo, hi] with hi > lo on every axis")
+        for axis, (lo, hi) in zip("xyz", bounds, strict=True):
+            if not hi > lo:
+                raise ConfigError(f"[volume] {axis}_mm = [{lo * 1e3:g}, {hi * 1e3:g}]: expected "
+                                  "[lo, hi] with hi > lo")
         span = bounds[:, 1] - bounds[:, 0]
         if (voxel is None) == (shape is None):
             raise ConfigError("[volume]: give exactly one of voxel_mm and shape")
