@@ -935,3 +935,32 @@ def test_the_modulation_gain_does_not_depend_on_where_the_vector_grid_starts(rng
     tol = 5 * 0.02 * np.sqrt(2 / (8 * 6 * 5))          # five standard errors of the fit
     np.testing.assert_allclose(gains[0], 0.7, atol=tol)
     np.testing.assert_allclose(gains[1], gains[0], atol=tol * np.sqrt(2))
+
+
+def test_coverage_is_split_beside_a_rejected_vector_and_elsewhere():
+    """The study's split: a rejected vector's 3 x 3 x 3 neighbourhood (27 vectors inside the
+    grid, 8 at a corner, itself included) and the rest; per region the share within ±2σ and
+    the median |error| / σ, which for errors of exactly ±k σ is k."""
+    from plenopiv.validation.uncertainty_study import beside_rejection, region_coverage
+
+    valid = np.ones((5, 6, 7), bool)
+    valid[2, 3, 3] = False
+    assert beside_rejection(valid).sum() == 27
+    valid[0, 0, 6] = False
+    got = beside_rejection(valid)
+    assert got.sum() == 27 + 8 and got[1, 1, 5] and not got[2, 2, 5]
+    assert not beside_rejection(np.ones((3, 3, 3), bool)).any()
+
+    beside = np.array([True] * 4 + [False] * 6)
+    sigma = np.ones((3, 10))
+    err = np.vstack([[0.5, -0.5, 3.0, 0.5] + [1.0] * 6,       # u: 3 of 4 beside, all elsewhere
+                     [0.1] * 4 + [-2.5] * 3 + [1.5] * 3,        # v: 4 of 4, 3 of 6
+                     [2.0] * 10])                               # w: on the edge, counted in
+    r = region_coverage(err, sigma, beside)
+    assert r["beside_rejection"]["n"] == 4 and r["elsewhere"]["n"] == 6
+    np.testing.assert_allclose(r["beside_rejection"]["coverage"], [0.75, 1.0, 1.0])
+    np.testing.assert_allclose(r["elsewhere"]["coverage"], [1.0, 0.5, 1.0])
+    np.testing.assert_allclose(r["beside_rejection"]["median_ratio"], [0.5, 0.1, 2.0])
+    np.testing.assert_allclose(r["elsewhere"]["median_ratio"], [1.0, 2.0, 2.0])
+    empty = region_coverage(err, sigma, np.zeros(10, bool))["beside_rejection"]
+    assert empty["n"] == 0 and np.all(np.isnan(empty["coverage"]))

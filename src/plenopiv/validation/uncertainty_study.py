@@ -119,8 +119,75 @@ def evaluate_case(label: str, case: VortexCase, work: Path) -> dict:
         row["rms_sigma_vox"][stage] = np.sqrt(np.nanmean((sv / vox) ** 2, axis=1)).tolist()
     with np.errstate(invalid="ignore", divide="ignore"):
         row["normalised_error"] = (err / sigma["response"][:, ok]).tolist()
+    beside = beside_rejection(np.asarray(field.valid, bool))[ok]
+    row["regions"] = region_coverage(err, sigma["response"][:, ok], beside)
     row["seconds"] = round(time.perf_counter() - t0, 1)
     return row
+
+
+def beside_rejection(valid) -> np.ndarray:
+    """Vectors with a rejected vector in their 3 x 3 x 3 neighbourhood, bool ``(nz, ny, nx)``.
+
+    The neighbourhood of the median test (a rejected vector is beside itself); ``valid`` is
+    the field's validation flag ``(nz, ny, nx)``.
+    """
+    import scipy.ndimage
+
+    rejected = ~np.asarray(valid, bool)
+    return scipy.ndimage.maximum_filter(rejected, size=3, mode="constant", cval=False)
+
+
+def region_coverage(err, sigma, beside) -> dict:
+    """Coverage and the median of |error| / σ beside a rejected vector and elsewhere.
+
+    ``err`` and ``sigma`` ``(3, n)`` (same unit), ``beside`` ``(n,)`` bool. Per region:
+    ``n``, ``coverage`` (share of |error| <= 2σ per component) and ``median_ratio``
+    (median |error| / σ per component; a Gaussian error of that σ gives 0.674); NaN for an
+    empty region.
+    """
+    err, sigma = np.asarray(err, float), np.asarray(sigma, float)
+    out = {}
+    for name, mask in (("beside_rejection", np.asarray(beside, bool)),
+                       ("elsewhere", ~np.asarray(beside, bool))):
+        n = int(mask.sum())
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.abs(err[:, mask]) / sigma[:, mask]
+        out[name] = {"n": n,
+                     "coverage": coverage(err[:, mask].T, sigma[:, mask].T).tolist()
+                     if n else [float("nan")] * 3,
+                     "median_ratio": np.nanmedian(ratio, axis=1).tolist()
+                     if n else [float("nan")] * 3}
+    return out
+
+
+def _region_table(cases) -> list[str]:
+    """Coverage beside a rejected vector and elsewhere, per case (Markdown lines)."""
+    cases = [c for c in cases if c.get("regions")]
+    if not cases:
+        return []
+    lines = ["## Coverage beside a rejected vector and elsewhere", "",
+             "The vectors with a vector the median test rejected in their 3 x 3 x 3 "
+             "neighbourhood (where term 5 applies) apart from the others: share within ±2σ "
+             "(%) and the median ratio |error| / σ (a Gaussian error of that σ gives 0.67).", "",
+             "| case | beside: vectors | beside: within ±2σ u, v, w | beside: median ratio "
+             "| elsewhere: vectors | elsewhere: within ±2σ u, v, w | elsewhere: median ratio "
+             "|", "|---|---|---|---|---|---|---|"]
+    pooled = {"beside_rejection": [np.zeros(3), 0], "elsewhere": [np.zeros(3), 0]}
+    for c in cases:
+        cells = [c["label"]]
+        for name in ("beside_rejection", "elsewhere"):
+            r = c["regions"][name]
+            cells += [str(r["n"]), _f(r["coverage"], 0) if r["n"] else "–",
+                      _f(r["median_ratio"]) if r["n"] else "–"]
+            if r["n"]:
+                pooled[name][0] += np.asarray(r["coverage"]) * r["n"]
+                pooled[name][1] += r["n"]
+        lines.append("| " + " | ".join(cells) + " |")
+    summary = "; ".join(
+        f"{label} {_f(total / n, 0)} % of {n} vectors" for label, (total, n) in
+        (("beside a rejection", pooled["beside_rejection"]),
+         ("elsewhere", pooled["elsewhere"])) if n)
+    return lines + ["", f"Pooled over the cases (u, v, w): {summary}.", ""]
 
 
 def run(out: str | Path, *, work: str | Path | None = None, cases=CASES, progress=print) -> dict:
@@ -227,7 +294,7 @@ def markdown(r: dict) -> str:
               f"{_f(mid.mean(axis=0), 0)} %, final {_f(allcov.mean(axis=0), 0)} %; "
               f"{int(inband.sum())} of {inband.size} case-components in the band, "
               f"{int((allcov < TARGET[0]).sum())} below, {int((allcov > TARGET[1]).sum())} "
-              "above.", "", _sampling_error(cases), "", *METHOD, "",
+              "above.", "", _sampling_error(cases), "", *_region_table(cases), *METHOD, "",
               f"Study time: {r['seconds']:.0f} s.", ""]
     return "\n".join(lines)
 
@@ -542,25 +609,25 @@ METHOD = [
     "most of those vectors rejected and replaced); on the second four core vectors are "
     "measured near the truth (+3.5, +3.1, +1.9, +1.8 against +3.6, +2.8, +2.3, +1.6) and "
     "pass the median test, and the curvature they make is what raises term 4.",
-    "- Where that σ is too large. Split over the ten cases by whether a rejected vector lies "
-    "in the 3 x 3 x 3 neighbourhood (term 5 > 0) or not: beside a rejection u, v, w are "
-    "covered at 98.5, 96.2, 98.8 % (1317, 1088, 776 vectors; 95.9-100, 90.6-100, 92.9-100 "
-    "per case), elsewhere at 90.7, 93.1, 93.9 % (1068, 1297, 1609; 86.4-94.4, 75.5-96.6, "
-    "88.0-95.6). Beside a rejection the median |error|/σ is 0.19-0.49 (u), 0.03-0.53 (v), "
-    "0.23-0.71 (w) where a Gaussian error of that σ gives 0.67: term 5 gives every vector of "
-    "the neighbourhood the whole range, which bounds the few whose windows saw the unresolved "
-    "flow and overstates the rest; and a rectangular distribution lies wholly within ±2σ "
-    "(2/sqrt(12) = 0.58 of its width on either side). The totals land in the band because "
-    "the two regions err in opposite directions; a case whose vectors mostly sit beside "
-    "rejections (Hill's second seed: 125 of 161 for u) shows the first. Measured on the "
-    "saved fields and not adopted: the range weighted by the window overlap with the rejected "
-    "vector (1/2 per axis of offset, 23 of 30; its square root, 29 with Hill's v at 0.3 per "
-    "lenslet at 88.2 %), term 4 without the replaced vectors (25), each neighbour's own "
-    "random error in term 4's noise (26), the larger of terms 4 and 5 instead of their "
-    "quadrature sum (29, unchanged). What would close it: telling, among a rejected vector's "
-    "neighbours, the ones whose windows hold the unresolved flow (for instance from their own "
-    "residual to the median, whose rank correlation with the error is 0.4-0.5 on Hill), "
-    "measured on test pairs with a resolved feature rather than on these cases.",
+    "- Where that σ is too large (the table above). Beside a rejected vector u, v, w are "
+    "covered at 98, 96, 96 % pooled (1426 vectors; 92-100 % per case-component), elsewhere "
+    "at 91, 93, 95 % (959; 80-100 %); beside a rejection the median |error|/σ is 0.20-0.46 "
+    "(u), 0.20-0.68 (v), 0.31-0.77 (w) where a Gaussian error of that σ gives 0.67. Term 5 "
+    "gives every vector of the neighbourhood the whole range, which bounds the few whose "
+    "windows saw the unresolved flow and overstates the rest; and a rectangular "
+    "distribution lies wholly within ±2σ (2/sqrt(12) = 0.58 of its width on either side). "
+    "The totals land in the band because the two regions err in opposite directions; a case "
+    "whose vectors mostly sit beside rejections (Hill's second seed: 126 of 161) shows the "
+    "first. Measured on the saved fields and not adopted: the range weighted by the window "
+    "overlap with the rejected vector (1/2 per axis of offset, 23 of 30; its square root, 29 "
+    "with Hill's v at 0.3 per lenslet at 88.2 %), term 4 without the replaced vectors (25), "
+    "each neighbour's own random error in term 4's noise (26), the larger of terms 4 and 5 "
+    "instead of their quadrature sum (29, unchanged), term 4's squared estimate averaged "
+    "over the 7 or 27 nearest vectors (26, 22: Hill's core spreads). What would close it: "
+    "telling, among a rejected vector's neighbours, the ones whose windows hold the "
+    "unresolved flow (for instance from their own residual to the median, whose rank "
+    "correlation with the error is 0.4-0.5 on Hill), measured on test pairs with a resolved "
+    "feature rather than on these cases.",
     "- This table counts a window touching a face of the volume as inside (a millionth "
     "of a voxel of rounding allowed, `plenopiv.validation.vortex.inner_vectors`); before, "
     "the patch's outer layers, exactly half a window in, were kept or dropped by float "
