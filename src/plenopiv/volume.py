@@ -54,16 +54,14 @@ class VolumeGrid:
         the voxels fill the box) or ``shape = (nz, ny, nx)``.
         """
         bounds = np.array([x, y, z], dtype=float)
-        if bounds.shape == (3, 2):
-            for axis, (lo, hi) in zip("xyz", bounds, strict=True):
-                if not (np.isfinite(lo) and np.isfinite(hi)):
-                    shown = [float(lo) * 1e3, float(hi) * 1e3]
-                    raise ConfigError(f"[volume] {axis}_mm = {shown}: expected finite numbers "
-                                      "[lo, hi]")
         if bounds.shape != (3, 2):
             raise ConfigError(f"[volume] bounds x, y, z = {bounds.tolist()} m: expected "
                               "[lo, hi] with hi > lo on every axis")
         for axis, (lo, hi) in zip("xyz", bounds, strict=True):
+            if not (np.isfinite(lo) and np.isfinite(hi)):
+                shown = [float(lo) * 1e3, float(hi) * 1e3]
+                raise ConfigError(f"[volume] {axis}_mm = {shown}: expected finite numbers "
+                                  "[lo, hi]")
             if not hi > lo:
                 raise ConfigError(f"[volume] {axis}_mm = [{lo * 1e3:g}, {hi * 1e3:g}]: expected "
                                   "[lo, hi] with hi > lo")

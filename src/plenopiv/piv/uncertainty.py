@@ -105,6 +105,7 @@ __all__ = [
     "combine",
     "location_uncertainty",
     "modulation_factor",
+    "neighbourhood_max",
     "rejected_neighbour_uncertainty",
     "unresolved_gradient_bias",
 ]
@@ -465,6 +466,17 @@ def iteration_uncertainty(field) -> np.ndarray | None:
     return np.where(np.asarray(field.valid, bool)[None], sigma, own)
 
 
+def neighbourhood_max(a) -> np.ndarray:
+    """The largest value of ``a`` over each point's 3 x 3 x 3 neighbourhood, itself included.
+
+    The neighbourhood of the median test; points beyond the grid count as 0 (False).
+    ``a`` is ``(nz, ny, nx)``, numeric or bool; the result has its shape and dtype.
+    """
+    import scipy.ndimage
+
+    return scipy.ndimage.maximum_filter(np.asarray(a), size=3, mode="constant", cval=0)
+
+
 REJECTED_RANGE_FACTOR = 1.0 / np.sqrt(12.0)
 """Standard deviation of a rectangular distribution over a range, per unit of its width."""
 
@@ -518,8 +530,6 @@ def rejected_neighbour_uncertainty(field, spurious=None) -> np.ndarray:
     readings beside the core are spurious peaks along the elongated depth axis, which made
     this term 2-3 times the vectors' depth error (docs/validation/uncertainty.md).
     """
-    import scipy.ndimage
-
     parts = field.uncertainty_parts or {}
     jump = parts.get("rejected_disagreement")
     shape = np.shape(field.u)
@@ -529,9 +539,7 @@ def rejected_neighbour_uncertainty(field, spurious=None) -> np.ndarray:
     if spurious is not None:
         reach = np.nan_to_num(np.asarray(spurious, float)).reshape(3, 1, 1, 1)
         jump = np.sqrt(np.maximum(jump**2 - reach**2, 0.0))
-    return REJECTED_RANGE_FACTOR * np.stack([
-        scipy.ndimage.maximum_filter(jump[k], size=3, mode="constant", cval=0.0)
-        for k in range(3)])
+    return REJECTED_RANGE_FACTOR * np.stack([neighbourhood_max(jump[k]) for k in range(3)])
 
 
 def location_uncertainty(disp, spacing, offset) -> np.ndarray:

@@ -131,10 +131,9 @@ def beside_rejection(valid) -> np.ndarray:
     The neighbourhood of the median test (a rejected vector is beside itself); ``valid`` is
     the field's validation flag ``(nz, ny, nx)``.
     """
-    import scipy.ndimage
+    from plenopiv.piv.uncertainty import neighbourhood_max
 
-    rejected = ~np.asarray(valid, bool)
-    return scipy.ndimage.maximum_filter(rejected, size=3, mode="constant", cval=False)
+    return neighbourhood_max(~np.asarray(valid, bool))
 
 
 def region_coverage(err, sigma, beside) -> dict:
@@ -146,17 +145,17 @@ def region_coverage(err, sigma, beside) -> dict:
     empty region.
     """
     err, sigma = np.asarray(err, float), np.asarray(sigma, float)
+    beside = np.asarray(beside, bool)
     out = {}
-    for name, mask in (("beside_rejection", np.asarray(beside, bool)),
-                       ("elsewhere", ~np.asarray(beside, bool))):
-        n = int(mask.sum())
+    for name, mask in (("beside_rejection", beside), ("elsewhere", ~beside)):
+        e, s = err[:, mask], sigma[:, mask]
+        if not mask.any():
+            out[name] = {"n": 0, "coverage": [np.nan] * 3, "median_ratio": [np.nan] * 3}
+            continue
         with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = np.abs(err[:, mask]) / sigma[:, mask]
-        out[name] = {"n": n,
-                     "coverage": coverage(err[:, mask].T, sigma[:, mask].T).tolist()
-                     if n else [float("nan")] * 3,
-                     "median_ratio": np.nanmedian(ratio, axis=1).tolist()
-                     if n else [float("nan")] * 3}
+            ratio = np.nanmedian(np.abs(e) / s, axis=1)
+        out[name] = {"n": int(mask.sum()), "coverage": coverage(e.T, s.T).tolist(),
+                     "median_ratio": ratio.tolist()}
     return out
 
 
