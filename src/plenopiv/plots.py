@@ -13,20 +13,29 @@ import numpy as np
 from plenopiv.products.files import atomic_path
 
 
-def _figure(*args, **kw):
+def _figure(*args, margins=None, **kw):
+    """A new figure: laid out by matplotlib's constrained layout, or by fixed ``margins``.
+
+    ``margins`` (``Figure.subplots_adjust`` keywords, fractions of the figure) serve the
+    figures drawn for every pair: the constrained layout measures every text of the figure
+    and draws it twice, which took half of their time.
+    """
     import matplotlib
 
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 
-    kw.setdefault("layout", "constrained")
-    return plt, plt.figure(*args, **kw)
+    if margins is None:
+        return plt, plt.figure(*args, layout="constrained", **kw)
+    fig = plt.figure(*args, **kw)
+    fig.subplots_adjust(**margins)
+    return plt, fig
 
 
 def _save(plt, fig, path) -> Path:
     p = Path(path)
     with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+        fig.savefig(tmp, format="png", dpi=110)
     plt.close(fig)
     return p
 
@@ -139,7 +148,8 @@ def volume_slices(volume, x, y, z, path, *, particles=None, title="") -> Path:
     ``volume`` is ``[z, y, x]``; x, y, z are voxel-centre coordinates in metres (the
     volume's grid); ``particles`` (N, 3) are (x, y, z) in metres on the same grid.
     """
-    plt, fig = _figure(figsize=(13, 5.5))
+    plt, fig = _figure(figsize=(13, 5.5), margins=dict(left=0.06, right=0.97, bottom=0.11,
+                                                       top=0.86, wspace=0.28))
     v = np.asarray(volume, float)
     x, y, z = (np.asarray(a, float) for a in (x, y, z))
     iz = int(np.argmin(np.abs(z)))
@@ -196,7 +206,8 @@ def vector_slices(vectors, path, *, title="") -> Path:
     metres, shown in mm, or velocities in m/s when it has ``dt``. Rejected vectors are drawn
     grey where they were replaced and left out where they are NaN. ``title`` names the pair.
     """
-    plt, fig = _figure(figsize=(14, 6))
+    plt, fig = _figure(figsize=(14, 6), margins=dict(left=0.06, right=0.97, bottom=0.1,
+                                                     top=0.84, wspace=0.25))
     x, y, z = (np.asarray(a) * 1e3 for a in (vectors.x, vectors.y, vectors.z))
     ok = np.asarray(vectors.valid, bool)
     iz = int(np.argmin(np.abs(z)))
@@ -254,7 +265,8 @@ def vector_comparison(x, y, z, measured, truth, valid, path, *, voxel, title="")
     ``voxel``: (dx, dy, dz), metres, for the axis labels. Rows: true, measured, error;
     columns: u (lateral) and w (depth), each with the in-plane vectors drawn on top.
     """
-    plt, fig = _figure(figsize=(11, 11))
+    plt, fig = _figure(figsize=(11, 11), margins=dict(left=0.08, right=0.97, bottom=0.05,
+                                                      top=0.92, wspace=0.3, hspace=0.35))
     x, z = np.asarray(x) * 1e3, np.asarray(z) * 1e3
     iy = len(y) // 2
     ok = np.asarray(valid, bool)[:, iy]

@@ -22,6 +22,11 @@ def add_parser(sub) -> None:
         "1; a run's default is 3, eight test pairs).")
     demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     demo.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    demo.add_argument("--no-precompile", dest="precompile", action="store_false",
+                      help="compile every numba kernel in this process (by default, on a "
+                      "first run with two or more cores, the reconstruction's and the PIV's "
+                      "kernels are compiled in two background processes while the demo "
+                      "calibrates)")
     _add_common(demo)
     demo.set_defaults(func=cmd_demo)
 
@@ -41,7 +46,7 @@ def cmd_demo(args) -> dict:
     with _StageBar("demo", stages, args.quiet or args.json) as progress:
         s = run_case(VortexCase(flow="oseen", seed=args.seed,
                                 response_displacements=DEMO_RESPONSE_DISPLACEMENTS),
-                     args.out, progress=progress)
+                     args.out, progress=progress, precompile=args.precompile)
     e = s["errors"]
     return {"command": "demo", "out": str(args.out), "camera": s["case"]["camera"],
             "image_distance_mm": s["calibration"]["image_distance_mm"],

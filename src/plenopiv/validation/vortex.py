@@ -272,8 +272,88 @@ def _finished_pair(case: VortexCase, pair, rng) -> tuple[np.ndarray, np.ndarray]
     return pair.image_a, pair.image_b
 
 
-def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
-    """Run one synthetic case end to end and write every product to ``out``."""
+def case_experiment(case: VortexCase, calibration, out: Path) -> Experiment:
+    """The experiment of ``case`` with ``calibration``: its grid, reconstruction and PIV."""
+    return Experiment(camera=calibration.camera,
+                      volume=aligned_grid(calibration.effective_camera, case),
+                      reconstruction=case.reconstruction,
+                      piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5,
+                                    passes=case.passes, uncertainty=case.uncertainty,
+                                    response_displacements=case.response_displacements,
+                                    overlap_correction=case.overlap_correction,
+                                    broad_peaks=case.broad_peaks),
+                      images=ImagesConfig(dt_s=case.dt),
+                      output=OutputConfig(directory=str(out), weights_cache=""),
+                      base_dir=out)
+
+
+def _calibration(case: VortexCase, truth_cam: CameraModel, rng, out: Path, report) -> tuple:
+    """``(calibration, its summary)`` of a case: from rendered calibration images, or exact."""
+    from plenopiv.calibration.model import Calibration
+
+    if not case.calibrate:
+        cal = Calibration.from_camera(truth_cam)
+        return cal, {"image_distance_mm": cal.image_distance * 1e3, "method": "model"}
+    blur = case.blur_px
+    report("calibration images", 0.0)
+    fp = finish_image(focal_point_image(truth_cam, f_number=FOCAL_POINT_F_NUMBER),
+                      noise="poisson", rng=rng, blur_px=blur)
+    report("calibration images", 0.3)
+    al = finish_image(alignment_image(truth_cam), noise="poisson", rng=rng, blur_px=blur)
+    report("calibration images", 0.5)
+    ru = finish_image(ruler_image(truth_cam, Ruler(1e-3), rays_per_lenslet=1000),
+                      noise="poisson", rng=rng, blur_px=blur)
+    report("calibrate")
+    # the user's camera file does not know S_i
+    user_cam = truth_cam.replace(main_lens=replace(truth_cam.main_lens, image_distance=None))
+    rep = calibrate(user_cam, fp, alignment_image=al, ruler_image=ru, ruler_spacing=1e-3,
+                    method="both", focal_point_f_number=FOCAL_POINT_F_NUMBER)
+    rep.calibration.save(out / "calibration.h5", config={"summary": rep.summary()})
+    return rep.calibration, rep.summary()
+
+
+def _case_pair(case: VortexCase, cal, truth_cam: CameraModel, rng, out: Path, report) -> tuple:
+    """The case's seeded pair on the calibrated grid, its truth in ``truth_particles.npz``.
+
+    Returns ``(image A, image B, particle count, flow, start time)``.
+    """
+    report("simulate pair")
+    t1 = time.perf_counter()
+    box = seeding_box(case, aligned_grid(cal.effective_camera, case))
+    flow = _flow(case, box)
+    n = particle_count(truth_cam, box, per_lenslet=case.particles_per_lenslet)
+    n = int(n * (box.x[1] - box.x[0]) * (box.y[1] - box.y[0])
+            / np.prod(2 * np.array(field_of_view(truth_cam, 0.0))))
+    pair = simulate_pair(truth_cam, flow, dt=case.dt, box=box, n_particles=n, rng=rng,
+                         rays_per_particle=case.rays_per_particle)
+    ia, ib = _finished_pair(case, pair, rng)
+    with atomic_path(out / "truth_particles.npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, positions_a=pair.positions_a, positions_b=pair.positions_b)
+    return ia, ib, n, flow, t1
+
+
+def _rehearsals(case: VortexCase, truth_cam: CameraModel, out: Path, precompile: bool):
+    """The background compilation of a case (:mod:`plenopiv.precompile`), or none.
+
+    Rehearsed on the exact calibration, while the case renders and calibrates.
+    """
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.precompile import Rehearsals
+
+    if not (precompile and case.calibrate):
+        return Rehearsals([])
+    model = Calibration.from_camera(truth_cam)
+    return Rehearsals.start(model, case_experiment(case, model, out))
+
+
+def run_case(case: VortexCase, out: str | Path, *, progress=None,
+             precompile: bool = False) -> dict:
+    """Run one synthetic case end to end and write every product to ``out``.
+
+    ``precompile``: while the case renders and calibrates, compile the reconstruction's and
+    the PIV's kernels in two background processes (:mod:`plenopiv.precompile`; for a first
+    run on a machine).
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -285,60 +365,16 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None) -> dict:
         if progress is not None:
             progress(stage, fraction)
 
-    # calibration images and calibration (or the exact model calibration)
-    blur = case.blur_px
-    if case.calibrate:
-        report("calibration images", 0.0)
-        fp = finish_image(focal_point_image(truth_cam, f_number=FOCAL_POINT_F_NUMBER),
-                          noise="poisson", rng=rng, blur_px=blur)
-        report("calibration images", 0.3)
-        al = finish_image(alignment_image(truth_cam), noise="poisson", rng=rng, blur_px=blur)
-        report("calibration images", 0.5)
-        ru = finish_image(ruler_image(truth_cam, Ruler(1e-3), rays_per_lenslet=1000),
-                          noise="poisson", rng=rng, blur_px=blur)
-        report("calibrate")
-        # the user's camera file does not know S_i
-        user_cam = truth_cam.replace(main_lens=replace(truth_cam.main_lens,
-                                                       image_distance=None))
-        rep = calibrate(user_cam, fp, alignment_image=al, ruler_image=ru, ruler_spacing=1e-3,
-                        method="both", focal_point_f_number=FOCAL_POINT_F_NUMBER)
-        cal = rep.calibration
-        cal.save(out / "calibration.h5", config={"summary": rep.summary()})
-        cal_summary = rep.summary()
-    else:
-        from plenopiv.calibration.model import Calibration
-
-        cal = Calibration.from_camera(truth_cam)
-        cal_summary = {"image_distance_mm": cal.image_distance * 1e3, "method": "model"}
-    timings["calibrate_s"] = time.perf_counter() - t0
-
-    # the pair
-    report("simulate pair")
-    t1 = time.perf_counter()
-    grid = aligned_grid(cal.effective_camera, case)
-    box = seeding_box(case, grid)
-    flow = _flow(case, box)
-    n = particle_count(truth_cam, box, per_lenslet=case.particles_per_lenslet)
-    n = int(n * (box.x[1] - box.x[0]) * (box.y[1] - box.y[0])
-            / np.prod(2 * np.array(field_of_view(truth_cam, 0.0))))
-    pair = simulate_pair(truth_cam, flow, dt=case.dt, box=box, n_particles=n, rng=rng,
-                         rays_per_particle=case.rays_per_particle)
-    ia, ib = _finished_pair(case, pair, rng)
-    timings["simulate_s"] = time.perf_counter() - t1
-    with atomic_path(out / "truth_particles.npz") as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, positions_a=pair.positions_a, positions_b=pair.positions_b)
-
-    exp = Experiment(camera=cal.camera, volume=grid,
-                     reconstruction=case.reconstruction,
-                     piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5,
-                                   passes=case.passes, uncertainty=case.uncertainty,
-                                   response_displacements=case.response_displacements,
-                                   overlap_correction=case.overlap_correction,
-                                   broad_peaks=case.broad_peaks),
-                     images=ImagesConfig(dt_s=case.dt),
-                     output=OutputConfig(directory=str(out), weights_cache=""),
-                     base_dir=out)
-    t2 = time.perf_counter()
+    with _rehearsals(case, truth_cam, out, precompile) as rehearsals:
+        cal, cal_summary = _calibration(case, truth_cam, rng, out, report)
+        timings["calibrate_s"] = time.perf_counter() - t0
+        ia, ib, n, flow, t1 = _case_pair(case, cal, truth_cam, rng, out, report)
+        timings["simulate_s"] = time.perf_counter() - t1
+        exp = case_experiment(case, cal, out)
+        t2 = time.perf_counter()
+        report("weights")
+        rehearsals.wait()
+    grid = exp.volume
     res = process_pair(cal, ia, ib, exp, progress=progress)
     timings.update(res.timings)
     report("products")

@@ -1,0 +1,243 @@
+"""Compile a run's later numba kernels in background processes while it does other work.
+
+A first run on a machine spends most of its time compiling numba kernels (about 45 s of CPU
+for ``plenopiv demo``), one kernel after another on one core. Where a run has other work
+first (the demo renders its calibration images before it calibrates, and calibrates before
+it reconstructs), two child processes rehearse the later stages meanwhile, on small inputs of
+the run's own camera, voxels and settings: one the calibration's spot detection (an image of
+Gaussian focal spots on the camera's lenslet pitch) and then the PIV (the multi-pass
+correlation of two volumes of Gaussian blobs), the other the reconstruction (weights, SMART,
+particles and their light-field positions, from blobs projected into an image). Each calls
+the kernels of its stage with the argument types the run will pass, so numba compiles them
+and writes them to its cache (``$NUMBA_CACHE_DIR``, :func:`plenopiv.cache_dir`), from where
+the run loads them when it gets there.
+
+Nothing depends on it. A rehearsal that fails, or has not finished when the run waits for it
+(``timeout``), leaves the run to compile what it still needs itself; the results are the same
+either way. It is not started where the kernels are in the cache already, nor on one core.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+
+#: Edge of the rehearsal's reconstruction volume, voxels (its PIV volume holds three of the
+#: first pass's windows along each axis, so that the median test has neighbours).
+RECONSTRUCTION_EDGE = 16
+
+#: Blobs of the rehearsal's volumes per 1000 voxels, and their standard deviation in voxels.
+BLOBS_PER_KVOX = 2.0
+BLOB_SIGMA_VOX = 1.0
+
+#: Lenslets along each side of the calibration rehearsal's spot image, and the spots' σ, px.
+SPOT_LENSLETS = 8
+SPOT_SIGMA_PX = 1.2
+
+#: Seconds a run waits for its rehearsals before it goes on without them.
+DEFAULT_TIMEOUT_S = 300.0
+
+#: The stages a child can rehearse, each a function of ``(calibration, experiment)``.
+REHEARSALS = {"calibration": "rehearse_calibration",
+              "reconstruction": "rehearse_reconstruction",
+              "piv": "rehearse_piv"}
+
+#: The stages of each child process by default: the calibration's spots first, as the run
+#: reaches them first; the reconstruction's kernels take as long as the other two together.
+DEFAULT_CHILDREN = (("calibration", "piv"), ("reconstruction",))
+
+
+def rehearsal_grid(grid, shape):
+    """A grid of ``grid``'s voxels about its centre, at most ``shape`` (z, y, x) voxels."""
+    from plenopiv.volume import VolumeGrid
+
+    n = np.minimum(np.asarray(grid.shape), np.asarray(shape))                    # z, y, x
+    centre = np.asarray(grid.origin) + 0.5 * (np.asarray(grid.shape[::-1]) - 1) * grid.voxel
+    origin = centre - 0.5 * (n[::-1] - 1) * np.asarray(grid.voxel)
+    return VolumeGrid(tuple(float(v) for v in origin), tuple(grid.voxel),
+                      tuple(int(v) for v in n))
+
+
+def rehearsal_experiment(experiment, grid):
+    """``experiment`` on ``grid``, without its masks and its weights cache (nothing written)."""
+    from plenopiv.config import MaskConfig
+
+    return replace(experiment, volume=grid, mask=MaskConfig(),
+                   output=experiment.output.model_copy(update={"weights_cache": ""}))
+
+
+def blob_volume(shape, rng: np.random.Generator, *, shift_vox=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Gaussian blobs at random places in a ``[z, y, x]`` volume, float32, peak 1.
+
+    :data:`BLOBS_PER_KVOX` of them, σ :data:`BLOB_SIGMA_VOX`, all moved by ``shift_vox``.
+    """
+    shape = tuple(int(n) for n in shape)
+    n = max(4, int(BLOBS_PER_KVOX * np.prod(shape) / 1000))
+    centres = rng.uniform(1.0, np.asarray(shape) - 2.0, size=(n, 3)) + np.asarray(shift_vox)
+    axes = np.meshgrid(*(np.arange(k, dtype=np.float32) for k in shape), indexing="ij",
+                       sparse=True)
+    vol = np.zeros(shape, np.float32)
+    for c in centres:
+        r2 = sum((a - np.float32(ci)) ** 2 for a, ci in zip(axes, c, strict=True))
+        vol += np.exp(-0.5 * r2 / BLOB_SIGMA_VOX ** 2).astype(np.float32)
+    return vol
+
+
+def spot_image(camera, lenslets: int = SPOT_LENSLETS) -> np.ndarray:
+    """A uint16 image of ``lenslets`` x ``lenslets`` Gaussian focal spots.
+
+    On ``camera``'s lenslet pitch and grid, σ :data:`SPOT_SIGMA_PX`, as a camera records them.
+    """
+    mla = camera.microlens_array
+    pitch = mla.pitch / camera.sensor.pixel_pitch
+    rows, cols = np.mgrid[0:lenslets, 0:lenslets].astype(float)
+    if mla.grid == "hexagonal":
+        cols, rows = cols + 0.5 * (rows % 2), rows * np.sqrt(3.0) / 2.0
+    centres = (np.stack([rows.ravel(), cols.ravel()], axis=1) + 1.0) * pitch
+    shape = tuple(int(np.ceil(pitch * (lenslets + 1))) for _ in range(2))
+    r, c = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    image = np.zeros(shape)
+    for cr, cc in centres:
+        image += np.exp(-0.5 * ((r - cr) ** 2 + (c - cc) ** 2) / SPOT_SIGMA_PX ** 2)
+    return np.round(40000.0 * image + 200.0).astype(np.uint16)
+
+
+def rehearse_calibration(calibration, experiment) -> None:
+    """Find and refine the spots of a small image of focal spots of the run's camera."""
+    from plenopiv.calibration.spot_detection import detect_spots
+
+    camera = calibration.camera
+    detect_spots(spot_image(camera), grid=camera.microlens_array.grid)
+
+
+def rehearse_reconstruction(calibration, experiment) -> None:
+    """Reconstruct a tiny volume of the run's voxels with the run's settings.
+
+    The image is a volume of Gaussian blobs projected by the run's own kind of projector, so
+    the reconstruction finds particles and fits their light-field positions.
+    """
+    from plenopiv.pipeline import PairProcessor, reconstruct_volume
+
+    grid = rehearsal_grid(experiment.volume, (RECONSTRUCTION_EDGE,) * 3)
+    tiny = rehearsal_experiment(experiment, grid)
+    weights = PairProcessor(tiny, calibration).weights()
+    rng = np.random.default_rng(0)
+    shape = calibration.camera.sensor.shape
+    image = weights.forward_image(blob_volume(weights.grid.shape, rng), shape)
+    image *= np.float32(1000.0 / max(float(image.max()), 1e-12))
+    reconstruct_volume(calibration, image, grid, settings=tiny.reconstruction,
+                       particles=tiny.particles, weights=weights)
+
+
+def rehearse_piv(calibration, experiment) -> None:
+    """Correlate two tiny volumes of Gaussian blobs with the run's PIV settings."""
+    from plenopiv.pipeline import piv_settings
+    from plenopiv.piv import correlate_volumes
+
+    settings = piv_settings(experiment.piv)
+    first = np.asarray(settings.windows[0])
+    step = np.maximum(1, np.round(first * (1.0 - settings.overlap))).astype(int)
+    grid = rehearsal_grid(experiment.volume, first + 2 * step)
+    rng = np.random.default_rng(0)
+    a = blob_volume(grid.shape, rng)
+    b = blob_volume(grid.shape, np.random.default_rng(0), shift_vox=(0.4, 1.3, -0.7))
+    b += 0.05 * rng.random(grid.shape, dtype=np.float32)      # a few weak outliers
+    correlate_volumes(a, b, grid, settings=settings)
+
+
+def kernels_cached() -> bool:
+    """Whether numba's cache holds the PIV's and the reconstruction's last kernels already.
+
+    Reads the cache index of one kernel of each stage (numba's, for the installed source): a
+    cache that holds them was filled by a run before.
+    """
+    try:
+        from plenopiv._particles_kernels import refine_peaks as particle_peaks
+        from plenopiv.piv._kernels.peaks import refine_peaks
+
+        # an index written for another version of the source loads as empty
+        return all(bool(k._cache._cache_file._load_index()) for k in (refine_peaks,
+                                                                       particle_peaks))
+    except Exception:               # numba's private cache API moved: assume a cold cache
+        return False
+
+
+class Rehearsals:
+    """The background rehearsals of one run: ``start``, do other work, ``wait``.
+
+    As a context manager, any rehearsal still running at the end of the block is stopped (an
+    error in the run leaves no process behind).
+    """
+
+    def __init__(self, processes: list[subprocess.Popen]):
+        self.processes = processes
+
+    def __enter__(self) -> Rehearsals:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for p in self.processes:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+
+    @classmethod
+    def start(cls, calibration, experiment, *, children=DEFAULT_CHILDREN,
+              force: bool = False) -> Rehearsals:
+        """Start one process per group of stages of ``children``; none where not needed.
+
+        Not started (an empty set) on one core or where :func:`kernels_cached`, unless
+        ``force``.
+        """
+        for stage in (s for group in children for s in group):
+            if stage not in REHEARSALS:
+                raise ValueError(f"stage = {stage!r}: expected one of {tuple(REHEARSALS)}")
+        if not force and ((os.cpu_count() or 1) < 2 or kernels_cached()):
+            return cls([])
+        payload = pickle.dumps((calibration, experiment))
+        processes = []
+        for group in children:
+            p = subprocess.Popen([sys.executable, "-m", "plenopiv.precompile", *group],
+                                 stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.DEVNULL)
+            p.stdin.write(payload)
+            p.stdin.close()
+            processes.append(p)
+        return cls(processes)
+
+    def wait(self, timeout: float = DEFAULT_TIMEOUT_S) -> list[int | None]:
+        """Wait for every rehearsal; their exit codes (None: stopped at ``timeout``)."""
+        deadline = time.monotonic() + timeout
+        codes = []
+        for p in self.processes:
+            try:
+                codes.append(p.wait(max(deadline - time.monotonic(), 0.0)))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+                codes.append(None)
+        return codes
+
+
+def _child(stages: list[str]) -> int:
+    """A rehearsal process: the pickled calibration and experiment on stdin, exit 0 or 1."""
+    import warnings
+
+    warnings.simplefilter("ignore")
+    try:
+        calibration, experiment = pickle.load(sys.stdin.buffer)
+        for stage in stages:
+            globals()[REHEARSALS[stage]](calibration, experiment)
+    except Exception:               # the run compiles what is missing itself
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_child(sys.argv[1:]))
