@@ -49,6 +49,15 @@ def _add_common(p: argparse.ArgumentParser):
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _add_precompile(p: argparse.ArgumentParser, what: str):
+    """``--no-precompile`` of the commands that render and calibrate before they reconstruct."""
+    p.add_argument("--no-precompile", dest="precompile", action="store_false",
+                   help="compile every numba kernel in this process (by default, on a first "
+                   "run with two or more cores, the spot-detection, reconstruction and PIV "
+                   f"kernels are compiled in two background processes while {what} renders "
+                   "and calibrates)")
+
+
 def _add_image_options(p: argparse.ArgumentParser):
     p.add_argument("--noise", choices=("none", "poisson"), default="none",
                    help="photon (Poisson) noise, default none")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from plenopiv.cli._common import _add_common, _seed
+from plenopiv.cli._common import _add_common, _add_precompile, _seed
 from plenopiv.cli._progress import _StageBar
 from plenopiv.products.files import check_output_path
 
@@ -22,11 +22,7 @@ def add_parser(sub) -> None:
         "1; a run's default is 3, eight test pairs).")
     demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     demo.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
-    demo.add_argument("--no-precompile", dest="precompile", action="store_false",
-                      help="compile every numba kernel in this process (by default, on a "
-                      "first run with two or more cores, the reconstruction's and the PIV's "
-                      "kernels are compiled in two background processes while the demo "
-                      "calibrates)")
+    _add_precompile(demo, "the demo")
     _add_common(demo)
     demo.set_defaults(func=cmd_demo)
 

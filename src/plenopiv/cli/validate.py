@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from plenopiv.cli._common import _add_common, _integer, _number, _seed
+from plenopiv.cli._common import _add_common, _add_precompile, _integer, _number, _seed
 from plenopiv.errors import ConfigError
 from plenopiv.products.files import check_output_path
 
@@ -38,6 +38,7 @@ def add_parser(sub) -> None:
                      help="oseen/hill: Z of the volume's centre, mm (default 0: on the focal "
                           "plane)")
     val.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    _add_precompile(val, "the oseen/hill case")
     _add_common(val)
     val.set_defaults(func=cmd_validate)
 
@@ -61,7 +62,8 @@ def cmd_validate(args) -> dict:
                                 lenslets=None if args.lenslets is None else tuple(args.lenslets),
                                 lateral_oversampling=args.lateral_oversampling,
                                 blur_px=args.blur_px,
-                                depth_centre=args.depth_centre_mm * 1e-3), args.out)
+                                depth_centre=args.depth_centre_mm * 1e-3), args.out,
+                     precompile=args.precompile)
         out = {"errors": s["errors"], "n_particles": s["n_particles"],
                "grid_shape": s["grid_shape"], "voxel_mm": s["voxel_mm"],
                "timings_s": s["timings_s"], "products": s["products"]}
