@@ -964,3 +964,22 @@ def test_coverage_is_split_beside_a_rejected_vector_and_elsewhere():
     np.testing.assert_allclose(r["elsewhere"]["median_ratio"], [1.0, 2.0, 2.0])
     empty = region_coverage(err, sigma, np.zeros(10, bool))["beside_rejection"]
     assert empty["n"] == 0 and np.all(np.isnan(empty["coverage"]))
+
+
+def test_realisations_pool_by_vectors_and_compare_their_scatter_with_the_binomial_error():
+    """Pooled share = all realisations' vectors together; the scatter of independent
+    realisations of n independent vectors matches the binomial error sqrt(p (1 - p) / n)."""
+    from plenopiv.validation.uncertainty_study import realisation_summary
+
+    r = realisation_summary([[0.9, 1.0, 0.95], [0.96, 0.8, 0.95]], [100, 300])
+    np.testing.assert_allclose(r["pooled"], [(90 + 288) / 400, (100 + 240) / 400, 0.95])
+    assert r["n_total"] == 400 and r["outside"] == 2          # 1.0 above, 0.8 below
+    np.testing.assert_allclose(r["scatter"][2], 0.0)
+
+    rng = np.random.default_rng(11)
+    n, p = 160, 0.954
+    shares = rng.binomial(n, p, size=(400, 3)) / n
+    r = realisation_summary(shares, np.full(400, n))
+    np.testing.assert_allclose(r["pooled"], p, atol=4 * np.sqrt(p * (1 - p) / (400 * n)))
+    # the standard deviation of 400 samples is within ±3.5 % (1 sd) of the true one
+    np.testing.assert_allclose(r["scatter_ratio"], 1.0, atol=0.12)
