@@ -312,14 +312,15 @@ def _calibration(case: VortexCase, truth_cam: CameraModel, rng, out: Path, repor
     return rep.calibration, rep.summary()
 
 
-def _case_pair(case: VortexCase, cal, truth_cam: CameraModel, rng, out: Path, report) -> tuple:
+def _case_pair(case: VortexCase, grid: VolumeGrid, truth_cam: CameraModel, rng, out: Path,
+               report) -> tuple:
     """The case's seeded pair on the calibrated grid, its truth in ``truth_particles.npz``.
 
     Returns ``(image A, image B, particle count, flow, start time)``.
     """
     report("simulate pair")
     t1 = time.perf_counter()
-    box = seeding_box(case, aligned_grid(cal.effective_camera, case))
+    box = seeding_box(case, grid)
     flow = _flow(case, box)
     n = particle_count(truth_cam, box, per_lenslet=case.particles_per_lenslet)
     n = int(n * (box.x[1] - box.x[0]) * (box.y[1] - box.y[0])
@@ -368,9 +369,9 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None,
     with _rehearsals(case, truth_cam, out, precompile) as rehearsals:
         cal, cal_summary = _calibration(case, truth_cam, rng, out, report)
         timings["calibrate_s"] = time.perf_counter() - t0
-        ia, ib, n, flow, t1 = _case_pair(case, cal, truth_cam, rng, out, report)
-        timings["simulate_s"] = time.perf_counter() - t1
         exp = case_experiment(case, cal, out)
+        ia, ib, n, flow, t1 = _case_pair(case, exp.volume, truth_cam, rng, out, report)
+        timings["simulate_s"] = time.perf_counter() - t1
         t2 = time.perf_counter()
         report("weights")
         rehearsals.wait()
