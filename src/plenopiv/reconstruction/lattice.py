@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 
+from plenopiv._threads import run_slices
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import lattice as _k
@@ -175,11 +176,14 @@ class LatticeProjector(CachedSums):
         """``I = W·E`` for E of n_voxels values (``[z, y, x]`` order); float32 (n_pixels,)."""
         e = _as_vector(volume, self.n_voxels, "volume", "n_voxels").reshape(self.grid.shape)
         t = self._t
-        tmp = _k.contract_x(e, t["xs"], t["xc"], t["xw"], self._buffer())
+        nz, ny, _ = self.grid.shape
+        tmp = self._buffer()
+        run_slices(_k.contract_x, nz * ny, e, t["xs"], t["xc"], t["xw"], tmp)
         if out is None:
             out = np.empty(self.n_pixels, np.float32)
-        return _k.contract_y(tmp, t["ys"], t["yc"], t["yw"], self._row_ptr, self._ray_col,
-                             self._scale, ROW_BLOCK, out)
+        run_slices(_k.contract_y, _k.row_blocks(t["ys"].shape[1], ROW_BLOCK), tmp, t["ys"],
+                   t["yc"], t["yw"], self._row_ptr, self._ray_col, self._scale, ROW_BLOCK, out)
+        return out
 
     def back(self, image, *, out=None) -> np.ndarray:
         """``r = Wᵀ·I`` for I of n_pixels values; float32 (n_voxels,)."""
@@ -189,9 +193,11 @@ class LatticeProjector(CachedSums):
         dense = np.zeros((n_rows, n_cols), np.float32)
         dense[self._ray_row, self._ray_col] = y * self._scale
         used = self._row_used & dense.any(axis=1)
-        tmp = _k.spread_y(dense, used, t["t_ptr"], t["t_row"], t["t_w"], self._buffer())
-        vol = _k.spread_x(tmp, t["xs"], t["xc"], t["xw"],
-                          np.empty(self.grid.shape, np.float32))
+        nz, ny, _ = self.grid.shape
+        tmp = self._buffer()
+        run_slices(_k.spread_y, ny, dense, used, t["t_ptr"], t["t_row"], t["t_w"], tmp)
+        vol = np.empty(self.grid.shape, np.float32)
+        run_slices(_k.spread_x, nz * ny, tmp, t["xs"], t["xc"], t["xw"], vol)
         if out is None:
             return vol.reshape(-1)
         out[:] = vol.reshape(-1)
@@ -200,5 +206,7 @@ class LatticeProjector(CachedSums):
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per ray (float32)."""
         t = self._t
-        return _k.row_max(self._ray_row, self._ray_col, self._scale, t["col_max"],
-                          t["row_max"], np.empty(self.n_pixels, np.float32))
+        out = np.empty(self.n_pixels, np.float32)
+        run_slices(_k.row_max, len(out), self._ray_row, self._ray_col, self._scale,
+                   t["col_max"], t["row_max"], out)
+        return out

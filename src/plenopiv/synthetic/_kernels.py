@@ -294,8 +294,8 @@ def paraxial_image(px, py, pz, g):
     return -px * zi / s, -py * zi / s, zi
 
 
-@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
-def render_sources(sources, weights, half_size, n_samples, seed, first, ruler, g, out):
+@njit(nogil=True, cache=True, error_model="numpy", fastmath=True)
+def render_sources(sources, weights, half_size, n_samples, seed, first, ruler, g, out, lo, hi):
     """Render point (or small square area) sources through the whole camera.
 
     Parameters
@@ -317,6 +317,10 @@ def render_sources(sources, weights, half_size, n_samples, seed, first, ruler, g
         pattern), evaluated at each sampled emitting point.
     g : geometry vector
     out : (n_chunks, rows, cols) float64 accumulators, one per parallel chunk
+    lo, hi : int
+        The chunks this call renders, ``lo <= chunk < hi``; chunk ``ch`` renders sources
+        ``ch, ch + n_chunks, ...`` into ``out[ch]`` (:func:`plenopiv._threads.run_slices`
+        runs the chunks in parallel).
     """
     n_chunks = out.shape[0]
     n_src = sources.shape[0]
@@ -324,7 +328,7 @@ def render_sources(sources, weights, half_size, n_samples, seed, first, ruler, g
     e = g[G_E]
     rp = g[G_RPUPIL]
     f = g[G_FM]
-    for ch in prange(n_chunks):
+    for ch in range(lo, hi):
         img = out[ch]
         for i in range(ch, n_src, n_chunks):
             px0, py0, pz = sources[i, 0], sources[i, 1], sources[i, 2]
@@ -366,8 +370,9 @@ def render_sources(sources, weights, half_size, n_samples, seed, first, ruler, g
                         splat(img, sx, sy, w, g)
 
 
-@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
-def render_lenslet_bundles(centres, weights, cell_points, pupil_points, collimated, g, out):
+@njit(nogil=True, cache=True, error_model="numpy", fastmath=True)
+def render_lenslet_bundles(centres, weights, cell_points, pupil_points, collimated, g, out,
+                           lo, hi):
     """Render, lenslet by lenslet, the light of a uniform source seen through a stop.
 
     Each ray goes from a pupil point (x, y, e) (or arrives collimated along z) to a point of
@@ -381,6 +386,8 @@ def render_lenslet_bundles(centres, weights, cell_points, pupil_points, collimat
     cell_points : (M, 2) offsets inside a lenslet cell in the lattice frame (unrotated), m
     pupil_points : (P, 2) points of the stop at z = e, m
     collimated : bool, light along +z (lens removed), pupil_points unused
+    out, lo, hi : the accumulators and the chunks this call renders, as in
+        :func:`render_sources`
     """
     n_chunks = out.shape[0]
     n_len = centres.shape[0]
@@ -389,7 +396,7 @@ def render_lenslet_bundles(centres, weights, cell_points, pupil_points, collimat
     air = g[G_L3] - g[G_E]
     n_cell = cell_points.shape[0]
     n_pup = 1 if collimated else pupil_points.shape[0]
-    for ch in prange(n_chunks):
+    for ch in range(lo, hi):
         img = out[ch]
         for k in range(ch, n_len, n_chunks):
             cx, cy = centres[k, 0], centres[k, 1]

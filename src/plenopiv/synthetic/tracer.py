@@ -14,6 +14,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy import ndimage
 
+from plenopiv._threads import run_slices
 from plenopiv.camera import CameraModel
 from plenopiv.errors import ConfigError
 from plenopiv.optics import chief_ray_tangent
@@ -195,6 +196,11 @@ class _Render:
         grid = (self.shape[0] * self.s, self.shape[1] * self.s)
         self.out = _accumulators(grid, limit_bytes=_SUPERSAMPLE_BYTES if fine else None)
 
+    def run(self, kernel, *args) -> None:
+        """Run a render kernel on ``args``, this grid and its accumulators, one thread each."""
+        n_chunks = self.out.shape[0]
+        run_slices(kernel, n_chunks, *args, self.g, self.out, parts=n_chunks)
+
     def image(self) -> np.ndarray:
         img = _reduce(self.out)
         s = self.s
@@ -244,8 +250,8 @@ def render_lenslet_bundles(camera: CameraModel, *, pupil_points: np.ndarray | No
     cells = cell_points(camera, cell_across)
     pupil = np.zeros((1, 2)) if pupil_points is None else np.ascontiguousarray(pupil_points)
     for a, b in _batches(len(centres), n_batches):
-        K.render_lenslet_bundles(np.ascontiguousarray(centres[a:b]), weights[a:b], cells, pupil,
-                                 collimated, r.g, r.out)
+        r.run(K.render_lenslet_bundles, np.ascontiguousarray(centres[a:b]), weights[a:b],
+              cells, pupil, collimated)
         if progress is not None:
             progress(b - a)
     return r.image()
@@ -263,7 +269,7 @@ def render_sources(camera: CameraModel, sources: np.ndarray, weights: np.ndarray
     hs = np.asarray(half_size, dtype=np.float64)
     rl = np.asarray(ruler, dtype=np.float64)
     for a, b in _batches(len(src), n_batches):
-        K.render_sources(src[a:b], w[a:b], hs, int(samples), int(seed), a, rl, r.g, r.out)
+        r.run(K.render_sources, src[a:b], w[a:b], hs, int(samples), int(seed), a, rl)
         if progress is not None:
             progress(b - a)
     return r.image()

@@ -16,9 +16,14 @@ explicit weights' per-axis factors), so nothing of size (pixels × voxels) is ev
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from plenopiv.reconstruction._kernels.weights import _axis_range, box_sum_cdf
+
+
+def row_blocks(n_rows: int, block: int) -> int:
+    """Blocks of ``block`` sensor rows :func:`contract_y` runs over."""
+    return (n_rows + block - 1) // block
 
 
 @njit(cache=True)
@@ -61,12 +66,15 @@ def axis_tables(u, xf, valid, t, al, be, half, origin, vox, n, kmax, start, coun
     return worst.max()
 
 
-@njit(parallel=True, cache=True)
-def contract_x(volume, xs, xc, xw, out):
-    """``out[k, iy, col] = sum_ix wx[k, col, ix] volume[k, iy, ix]`` (forward, first half)."""
-    nz, ny, _ = volume.shape
+@njit(nogil=True, cache=True)
+def contract_x(volume, xs, xc, xw, out, lo, hi):
+    """``out[k, iy, col] = sum_ix wx[k, col, ix] volume[k, iy, ix]`` (forward, first half).
+
+    For the voxel rows ``lo <= k * ny + iy < hi`` (of ``nz * ny``).
+    """
+    _, ny, _ = volume.shape
     ncol = xs.shape[1]
-    for q in prange(nz * ny):
+    for q in range(lo, hi):
         k = q // ny
         iy = q % ny
         row = volume[k, iy]
@@ -77,20 +85,19 @@ def contract_x(volume, xs, xc, xw, out):
             for j in range(xc[k, c]):
                 acc += xw[k, c, j] * row[s + j]
             dst[c] = acc
-    return out
 
 
-@njit(parallel=True, cache=True)
-def contract_y(tmp, ys, yc, yw, row_ptr, ray_col, ray_scale, block, out):
+@njit(nogil=True, cache=True)
+def contract_y(tmp, ys, yc, yw, row_ptr, ray_col, ray_scale, block, out, lo, hi):
     """Forward, second half: sum the slices' row profiles into each pixel row.
 
     Then read the rays of the row (``row_ptr``: rays of sensor row r are
-    ``row_ptr[r]:row_ptr[r + 1]``).
+    ``row_ptr[r]:row_ptr[r + 1]``). For the blocks ``lo <= b < hi`` of ``block`` sensor rows
+    (:func:`row_blocks` of them in all).
     """
     nz, _, ncol = tmp.shape
     nrow = ys.shape[1]
-    nblocks = (nrow + block - 1) // block
-    for b in prange(nblocks):
+    for b in range(lo, hi):
         r0 = b * block
         r1 = min(nrow, r0 + block)
         if row_ptr[r1] == row_ptr[r0]:
@@ -110,20 +117,20 @@ def contract_y(tmp, ys, yc, yw, row_ptr, ray_col, ray_scale, block, out):
         for r in range(r0, r1):
             for i in range(row_ptr[r], row_ptr[r + 1]):
                 out[i] = acc[r - r0, ray_col[i]] * ray_scale[i]
-    return out
 
 
-@njit(parallel=True, cache=True)
-def spread_y(image, row_used, ptr, t_row, t_w, out):
+@njit(nogil=True, cache=True)
+def spread_y(image, row_used, ptr, t_row, t_w, out, lo, hi):
     """Back projection, first half: ``out[k, iy, col] = sum_r wy[k, r, iy] image[r, col]``.
 
     ``ptr``, ``t_row``, ``t_w``: the row profiles transposed, the sensor rows (and weights)
     that reach voxel row iy on slice k being ``ptr[iy * nz + k]:ptr[iy * nz + k + 1]``.
-    Parallel over voxel rows, slices inside: the band of image rows that reaches one voxel
-    row stays in cache from slice to slice, and no two threads write the same element.
+    For the voxel rows ``lo <= iy < hi``; parallel over voxel rows, slices inside: the band
+    of image rows that reaches one voxel row stays in cache from slice to slice, and no two
+    threads write the same element.
     """
-    nz, ny, ncol = out.shape
-    for iy in prange(ny):
+    nz, _, ncol = out.shape
+    for iy in range(lo, hi):
         for k in range(nz):
             dst = out[k, iy]
             for c in range(ncol):
@@ -137,15 +144,17 @@ def spread_y(image, row_used, ptr, t_row, t_w, out):
                 src = image[r]
                 for c in range(ncol):
                     dst[c] += w * src[c]
-    return out
 
 
-@njit(parallel=True, cache=True)
-def spread_x(tmp, xs, xc, xw, out):
-    """Back projection, second half: ``out[k, iy, ix] = sum_col wx[k, col, ix] tmp[k, iy, col]``."""
-    nz, ny, nx = out.shape
+@njit(nogil=True, cache=True)
+def spread_x(tmp, xs, xc, xw, out, lo, hi):
+    """Back projection, second half: ``out[k, iy, ix] = sum_col wx[k, col, ix] tmp[k, iy, col]``.
+
+    For the voxel rows ``lo <= k * ny + iy < hi`` (of ``nz * ny``).
+    """
+    _, ny, nx = out.shape
     ncol = xs.shape[1]
-    for q in prange(nz * ny):
+    for q in range(lo, hi):
         k = q // ny
         iy = q % ny
         dst = out[k, iy]
@@ -159,18 +168,17 @@ def spread_x(tmp, xs, xc, xw, out):
             s = xs[k, c]
             for j in range(xc[k, c]):
                 dst[s + j] += xw[k, c, j] * v
-    return out
 
 
-@njit(parallel=True, cache=True)
-def row_max(ray_row, ray_col, ray_scale, col_max, row_max_, out):
+@njit(nogil=True, cache=True)
+def row_max(ray_row, ray_col, ray_scale, col_max, row_max_, out, lo, hi):
     """Largest weight of every ray: ``scale · max_k col_max[col, k] · row_max_[row, k]``.
 
     ``col_max``, ``row_max_``: the profiles' largest values per line and slice, slices
-    contiguous.
+    contiguous. For the rays ``lo <= i < hi``.
     """
     nz = col_max.shape[1]
-    for i in prange(ray_row.shape[0]):
+    for i in range(lo, hi):
         a = col_max[ray_col[i]]
         b = row_max_[ray_row[i]]
         best = np.float32(0.0)
@@ -179,4 +187,3 @@ def row_max(ray_row, ray_col, ray_scale, col_max, row_max_, out):
             if v > best:
                 best = v
         out[i] = best * ray_scale[i]
-    return out
