@@ -122,17 +122,37 @@ def test_the_spot_image_shows_one_spot_per_lenslet_at_the_camera_pitch(grid):
     np.testing.assert_allclose(np.median(nearest), pitch, rtol=0.02)
 
 
-def test_a_failed_rehearsal_only_returns_its_exit_status():
+@pytest.mark.parametrize("fork", [True, False])
+def test_a_failed_rehearsal_only_returns_its_exit_status(fork):
     """A child that cannot rehearse exits 1; the run goes on (it compiles what it needs)."""
     cal = Calibration.from_camera(case_camera(VortexCase()))
-    with Rehearsals.start(cal, "not an experiment", children=(("piv",),), force=True) as r:
+    with Rehearsals.start(cal, "not an experiment", children=(("piv",),), force=True,
+                          fork=fork) as r:
+        assert not r.ready("piv", timeout=120)
         assert r.wait(timeout=120) == [1]
 
 
-def test_rehearsals_still_running_are_stopped_at_the_end_of_the_block():
+@pytest.mark.parametrize("fork", [True, False])
+def test_a_stage_is_ready_when_its_rehearsal_is_done_and_the_run_is_paced_by_it(fork):
+    """The run waits at the stage's progress report until the child has rehearsed it."""
+    cal = Calibration.from_camera(case_camera(VortexCase()))
+    seen = []
+    with Rehearsals.start(cal, None, children=(("calibration",),), force=True,
+                          fork=fork) as r:
+        report = r.paced(lambda stage, fraction: seen.append((stage,
+                                                              r.rehearsed("calibration"))))
+        report("calibration images", 0.5)
+        report("calibrate")
+        assert not r.ready("piv", timeout=0)            # no child rehearses it
+        assert r.wait(timeout=120) == [0]
+    assert seen[1] == ("calibrate", True)
+
+
+@pytest.mark.parametrize("fork", [True, False])
+def test_rehearsals_still_running_are_stopped_at_the_end_of_the_block(fork):
     cal = Calibration.from_camera(case_camera(VortexCase()))
     with pytest.raises(RuntimeError), Rehearsals.start(
-            cal, "not an experiment", children=(("piv",),), force=True) as r:
+            cal, "not an experiment", children=(("piv",),), force=True, fork=fork) as r:
         raise RuntimeError("the run failed")
     assert all(p.poll() is not None for p in r.processes)
 

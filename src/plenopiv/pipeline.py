@@ -362,13 +362,13 @@ class PairProcessor:
         vb = reconstruct_volume(calibration, image_b, exp.volume, **kw,
                                 progress=_volume_progress(progress, "B"))
         t1 = time.perf_counter()
+        if progress is not None:
+            progress("piv", 0.0)
         settings = piv_settings(exp.piv)
         response = None
         if exp.piv.uncertainty == "response":
             response = _response_of(calibration, weights, va, exp, settings, workers,
                                     img_mask, vol_mask)
-        if progress is not None:
-            progress("piv", 0.0)
         vec = correlate(va, vb, settings, dt=exp.images.dt_s, workers=workers,
                         mask=vol_mask, response=response, progress=_piv_progress(progress))
         t2 = time.perf_counter()

@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import os
 import pickle
+import signal
 import subprocess
 import sys
-import time
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -168,15 +169,84 @@ def kernels_cached() -> bool:
         return False
 
 
-class Rehearsals:
-    """The background rehearsals of one run: ``start``, do other work, ``wait``.
+#: The progress stages of a run (:func:`plenopiv.pipeline.process_pair`,
+#: :func:`plenopiv.validation.vortex.run_case`) at which it calls the kernels of a rehearsed
+#: stage first: :meth:`Rehearsals.paced` waits there for that stage's rehearsal.
+STAGE_AT_PROGRESS = {"calibrate": "calibration", "weights": "reconstruction", "piv": "piv"}
 
-    As a context manager, any rehearsal still running at the end of the block is stopped (an
-    error in the run leaves no process behind).
+
+class _Forked:
+    """A rehearsal in a forked child: the little of :class:`subprocess.Popen` used here."""
+
+    def __init__(self, pid: int):
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
+            if pid:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self) -> int:
+        if self.returncode is None:
+            _, status = os.waitpid(self.pid, 0)
+            self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def kill(self) -> None:
+        if self.poll() is None:
+            try:
+                os.kill(self.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def can_fork() -> bool:
+    """Whether a rehearsal may be a fork of this process (no import, no pickling).
+
+    On Linux, while this process runs one thread and numba has not started its own: a fork
+    copies only the calling thread, and a lock held by another one would stay held.
+    """
+    try:
+        from numba.np.ufunc import parallel
+
+        numba_threads = bool(parallel._is_initialized)
+    except (ImportError, AttributeError):        # numba's private state moved: do not fork
+        numba_threads = True
+    return (sys.platform.startswith("linux") and hasattr(os, "fork")
+            and threading.active_count() == 1 and not numba_threads)
+
+
+class Rehearsals:
+    """The background rehearsals of one run: ``start``, do other work, wait at each stage.
+
+    Each child reports every stage it has rehearsed (a line on a pipe); :meth:`ready`
+    waits for one stage, :meth:`wait` for every child. As a context manager, any rehearsal
+    still running at the end of the block is stopped (an error in the run leaves no process
+    behind).
     """
 
-    def __init__(self, processes: list[subprocess.Popen]):
+    def __init__(self, processes: list, streams=(), groups=()):
         self.processes = processes
+        self.groups = [tuple(g) for g in groups]
+        self._done: set[str] = set()
+        self._ended: set[int] = set()
+        self._changed = threading.Condition()
+        for i, stream in enumerate(streams):
+            threading.Thread(target=self._listen, args=(i, stream), daemon=True,
+                             name=f"plenopiv-rehearsal-{i}").start()
+
+    def _listen(self, index: int, stream) -> None:
+        with stream:
+            for line in stream:
+                with self._changed:
+                    self._done.add(line.strip())
+                    self._changed.notify_all()
+        with self._changed:
+            self._ended.add(index)
+            self._changed.notify_all()
 
     def __enter__(self) -> Rehearsals:
         return self
@@ -189,54 +259,138 @@ class Rehearsals:
 
     @classmethod
     def start(cls, calibration, experiment, *, children=DEFAULT_CHILDREN,
-              force: bool = False) -> Rehearsals:
+              force: bool = False, fork: bool | None = None) -> Rehearsals:
         """Start one process per group of stages of ``children``; none where not needed.
 
         Not started (an empty set) on one core or where :func:`kernels_cached`, unless
-        ``force``.
+        ``force``. ``fork``: fork this process (:func:`can_fork`; saves each child the
+        imports, 2 s of CPU) or start a new interpreter; None: fork where it can.
         """
         for stage in (s for group in children for s in group):
             if stage not in REHEARSALS:
                 raise ValueError(f"stage = {stage!r}: expected one of {tuple(REHEARSALS)}")
         if not force and ((os.cpu_count() or 1) < 2 or kernels_cached()):
             return cls([])
-        payload = pickle.dumps((calibration, experiment))
-        processes = []
-        for group in children:
-            p = subprocess.Popen([sys.executable, "-m", "plenopiv.precompile", *group],
-                                 stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                 stderr=subprocess.DEVNULL)
-            p.stdin.write(payload)
-            p.stdin.close()
-            processes.append(p)
-        return cls(processes)
+        if fork is None:
+            fork = can_fork()
+        if fork:
+            processes, streams = zip(*(_fork(group, calibration, experiment)
+                                       for group in children), strict=True)
+        else:
+            processes, streams = zip(*(_spawn(group, calibration, experiment)
+                                       for group in children), strict=True)
+        return cls(list(processes), streams, children)
+
+    def rehearsed(self, stage: str) -> bool:
+        """Whether ``stage`` has been rehearsed (without waiting)."""
+        with self._changed:
+            return stage in self._done
+
+    def ready(self, stage: str, timeout: float = DEFAULT_TIMEOUT_S) -> bool:
+        """Wait until ``stage`` is rehearsed; whether it was (False: not rehearsed here).
+
+        A child that fails or ends stops the wait for its stages; one still working on
+        ``stage`` at ``timeout`` is stopped, the run then compiles what it needs itself.
+        """
+        holders = [i for i, g in enumerate(self.groups) if stage in g]
+        if not holders:
+            return False
+        with self._changed:
+            self._changed.wait_for(lambda: stage in self._done
+                                   or all(i in self._ended for i in holders), timeout)
+            if stage in self._done:
+                return True
+        for i in holders:
+            if i not in self._ended:
+                self.processes[i].kill()
+        return False
+
+    def paced(self, progress=None):
+        """``progress`` that first waits, on entering a stage, for that stage's rehearsal.
+
+        The stages are the run's progress stages of :data:`STAGE_AT_PROGRESS`; every call is
+        passed on to ``progress`` (None: none).
+        """
+        def report(stage: str, fraction: float = 0.0) -> None:
+            if stage in STAGE_AT_PROGRESS:
+                self.ready(STAGE_AT_PROGRESS[stage])
+            if progress is not None:
+                progress(stage, fraction)
+        return report
 
     def wait(self, timeout: float = DEFAULT_TIMEOUT_S) -> list[int | None]:
-        """Wait for every rehearsal; their exit codes (None: stopped at ``timeout``)."""
-        deadline = time.monotonic() + timeout
+        """Wait for every rehearsal to end; their exit codes (None: stopped at ``timeout``)."""
+        with self._changed:
+            self._changed.wait_for(lambda: len(self._ended) == len(self.processes), timeout)
+            ended = set(self._ended)
         codes = []
-        for p in self.processes:
-            try:
-                codes.append(p.wait(max(deadline - time.monotonic(), 0.0)))
-            except subprocess.TimeoutExpired:
+        for i, p in enumerate(self.processes):
+            if i in ended:                      # its output closed: it is exiting
+                codes.append(p.wait())
+            else:
                 p.kill()
                 p.wait()
                 codes.append(None)
         return codes
 
 
-def _child(stages: list[str]) -> int:
-    """A rehearsal process: the pickled calibration and experiment on stdin, exit 0 or 1."""
+def _rehearse(stages, calibration, experiment, done) -> int:
+    """Rehearse ``stages`` in turn, calling ``done(stage)`` after each; exit status 0 or 1."""
     import warnings
 
     warnings.simplefilter("ignore")
     try:
-        calibration, experiment = pickle.load(sys.stdin.buffer)
         for stage in stages:
             globals()[REHEARSALS[stage]](calibration, experiment)
+            done(stage)
     except Exception:               # the run compiles what is missing itself
         return 1
     return 0
+
+
+def _fork(stages, calibration, experiment):
+    """A forked child rehearsing ``stages``: ``(process, stream of rehearsed stages)``."""
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:                                        # the child: never returns
+        code = 1
+        try:
+            os.close(read)
+            null = os.open(os.devnull, os.O_RDWR)
+            for fd in (0, 1, 2):
+                os.dup2(null, fd)
+            code = _rehearse(stages, calibration, experiment,
+                             lambda stage: os.write(write, f"{stage}\n".encode()))
+        finally:
+            os._exit(code)
+    os.close(write)
+    return _Forked(pid), os.fdopen(read, "r")
+
+
+def _spawn(stages, calibration, experiment):
+    """A new interpreter rehearsing ``stages``: ``(process, stream of rehearsed stages)``."""
+    p = subprocess.Popen([sys.executable, "-m", "plenopiv.precompile", *stages],
+                         stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         stderr=subprocess.DEVNULL, text=True)
+    p.stdin.buffer.write(pickle.dumps((calibration, experiment)))
+    p.stdin.close()
+    return p, p.stdout
+
+
+def _child(stages: list[str]) -> int:
+    """A spawned rehearsal: exit status 0 or 1.
+
+    The pickled calibration and experiment on stdin; the name of each rehearsed stage on
+    stdout.
+    """
+    try:
+        calibration, experiment = pickle.load(sys.stdin.buffer)
+    except Exception:
+        return 1
+
+    def done(stage):
+        print(stage, flush=True)
+    return _rehearse(stages, calibration, experiment, done)
 
 
 if __name__ == "__main__":

@@ -7,9 +7,19 @@ import sys
 from tqdm import tqdm
 
 
+class _Tqdm(tqdm):
+    """tqdm without its monitor thread (it only tunes the refresh of bars that stall).
+
+    A process that runs one thread may fork its background compilation
+    (:func:`plenopiv.precompile.can_fork`).
+    """
+
+    monitor_interval = 0
+
+
 def _progress_bar(total: int, desc: str, quiet: bool):
     # disable=None: tqdm shows the bar only when stderr is a terminal (never in logs)
-    bar = tqdm(total=total, desc=desc, unit="", disable=True if quiet else None, leave=False,
+    bar = _Tqdm(total=total, desc=desc, unit="", disable=True if quiet else None, leave=False,
                file=sys.stderr, dynamic_ncols=True)
     return bar, (lambda n: bar.update(n))
 
@@ -25,7 +35,7 @@ class _StageBar:
 
     def __init__(self, desc: str, stages: dict[str, float], quiet: bool):
         self.desc = desc
-        self.bar = tqdm(total=100, desc=desc, disable=True if quiet else None, leave=False,
+        self.bar = _Tqdm(total=100, desc=desc, disable=True if quiet else None, leave=False,
                         file=sys.stderr, dynamic_ncols=True,
                         bar_format="{desc} {percentage:3.0f}%|{bar}| {elapsed}")
         total = float(sum(stages.values())) or 1.0

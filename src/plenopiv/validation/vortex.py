@@ -362,21 +362,17 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None,
     truth_cam = case_camera(case)
     timings = {}
 
-    def report(stage, fraction=0.0):
-        if progress is not None:
-            progress(stage, fraction)
-
     with _rehearsals(case, truth_cam, out, precompile) as rehearsals:
+        # each stage waits for its rehearsal, if any, before it calls its first kernel
+        report = rehearsals.paced(progress)
         cal, cal_summary = _calibration(case, truth_cam, rng, out, report)
         timings["calibrate_s"] = time.perf_counter() - t0
         exp = case_experiment(case, cal, out)
         ia, ib, n, flow, t1 = _case_pair(case, exp.volume, truth_cam, rng, out, report)
         timings["simulate_s"] = time.perf_counter() - t1
         t2 = time.perf_counter()
-        report("weights")
-        rehearsals.wait()
+        res = process_pair(cal, ia, ib, exp, progress=report)
     grid = exp.volume
-    res = process_pair(cal, ia, ib, exp, progress=progress)
     timings.update(res.timings)
     report("products")
     paths = save_pair(res, out, "pair", exp, extra_attrs={"flow": case.flow})
