@@ -1,6 +1,6 @@
 """Compile a run's later numba kernels in background processes while it does other work.
 
-A first run on a machine spends most of its time compiling numba kernels (about 45 s of CPU
+A first run on a machine spends most of its time compiling numba kernels (about 40 s of CPU
 for ``plenopiv demo``), one kernel after another on one core. Where a run has other work
 first (the demo renders its calibration images before it calibrates, and calibrates before
 it reconstructs), two child processes rehearse the later stages meanwhile, on small inputs of
@@ -9,8 +9,11 @@ Gaussian focal spots on the camera's lenslet pitch) and then the PIV (the multi-
 correlation of two volumes of Gaussian blobs), the other the reconstruction (weights, SMART,
 particles and their light-field positions, from blobs projected into an image). Each calls
 the kernels of its stage with the argument types the run will pass, so numba compiles them
-and writes them to its cache (``$NUMBA_CACHE_DIR``, :func:`plenopiv.cache_dir`), from where
-the run loads them when it gets there.
+and writes them to its cache (``$NUMBA_CACHE_DIR``, :func:`plenopiv.cache_dir`), and reports
+each stage it has rehearsed; the run, entering a stage (its progress report, see
+:data:`STAGE_AT_PROGRESS`), waits for that stage's rehearsal only, then loads the kernels
+from the cache. The children are forks of the run where that is safe (:func:`can_fork`:
+they start at once, without importing anything), new interpreters otherwise.
 
 Nothing depends on it. A rehearsal that fails, or has not finished when the run waits for it
 (``timeout``), leaves the run to compile what it still needs itself; the results are the same
