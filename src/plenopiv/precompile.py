@@ -28,6 +28,7 @@ import signal
 import subprocess
 import sys
 import threading
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -339,8 +340,6 @@ class Rehearsals:
 
 def _rehearse(stages, calibration, experiment, done) -> int:
     """Rehearse ``stages`` in turn, calling ``done(stage)`` after each; exit status 0 or 1."""
-    import warnings
-
     warnings.simplefilter("ignore")
     try:
         for stage in stages:
@@ -354,7 +353,12 @@ def _rehearse(stages, calibration, experiment, done) -> int:
 def _fork(stages, calibration, experiment):
     """A forked child rehearsing ``stages``: ``(process, stream of rehearsed stages)``."""
     read, write = os.pipe()
-    pid = os.fork()
+    with warnings.catch_warnings():
+        # Python 3.12+ warns of any fork in a process with several OS threads; here those are
+        # the BLAS libraries' pools (OpenBLAS quiesces them across a fork), :func:`can_fork`
+        # having ruled out Python's and numba's threads.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        pid = os.fork()
     if pid == 0:                                        # the child: never returns
         code = 1
         try:
