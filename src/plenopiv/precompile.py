@@ -354,9 +354,9 @@ def _fork(stages, calibration, experiment):
     """A forked child rehearsing ``stages``: ``(process, stream of rehearsed stages)``."""
     read, write = os.pipe()
     with warnings.catch_warnings():
-        # Python 3.12+ warns of any fork in a process with several OS threads; here those are
-        # the BLAS libraries' pools (OpenBLAS quiesces them across a fork), :func:`can_fork`
-        # having ruled out Python's and numba's threads.
+        # Python 3.12+ warns of a fork in a process it sees running several threads; here
+        # they are the BLAS libraries' pools (OpenBLAS quiesces them across a fork),
+        # :func:`can_fork` having ruled out Python's and numba's threads.
         warnings.simplefilter("ignore", DeprecationWarning)
         pid = os.fork()
     if pid == 0:                                        # the child: never returns
