@@ -32,8 +32,10 @@ def thread_count() -> int:
 
 def slices(n: int, parts: int) -> list[tuple[int, int]]:
     """Split ``range(n)`` into at most ``parts`` consecutive, non-empty ``(lo, hi)`` slices."""
+    if n <= 0:
+        return []
     parts = max(1, min(int(parts), int(n)))
-    return [(n * i // parts, n * (i + 1) // parts) for i in range(parts) if n > 0]
+    return [(n * i // parts, n * (i + 1) // parts) for i in range(parts)]
 
 
 def _pool() -> ThreadPoolExecutor:

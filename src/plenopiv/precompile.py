@@ -275,14 +275,10 @@ class Rehearsals:
                 raise ValueError(f"stage = {stage!r}: expected one of {tuple(REHEARSALS)}")
         if not force and ((os.cpu_count() or 1) < 2 or kernels_cached()):
             return cls([])
-        if fork is None:
-            fork = can_fork()
-        if fork:
-            processes, streams = zip(*(_fork(group, calibration, experiment)
-                                       for group in children), strict=True)
-        else:
-            processes, streams = zip(*(_spawn(group, calibration, experiment)
-                                       for group in children), strict=True)
+        launch = _fork if (can_fork() if fork is None else fork) else _spawn
+        # every child is started before the first listening thread (a fork copies none)
+        processes, streams = zip(*(launch(group, calibration, experiment)
+                                   for group in children), strict=True)
         return cls(list(processes), streams, children)
 
     def rehearsed(self, stage: str) -> bool:

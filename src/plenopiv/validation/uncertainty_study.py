@@ -25,7 +25,6 @@ estimate, all from the same field:
 
 from __future__ import annotations
 
-import json
 import re
 import time
 from pathlib import Path
@@ -220,15 +219,15 @@ def realisation_summary(coverages, counts) -> dict:
 
 def _realisations(rows, cases, work, configurations, seeds, progress) -> list[dict]:
     """Each configuration on every seed (the cases' own rows reused); its summary."""
-    done = {json.dumps(kw, sort_keys=True): row for (_, kw), row in zip(cases, rows, strict=True)}
+    done = [(VortexCase(**kw), row) for (_, kw), row in zip(cases, rows, strict=True)]
     out = []
     for label, kw in configurations:
         per_seed = []
         for seed in seeds:
-            key = {**kw, "seed": seed} if seed != 1 else dict(kw)
-            row = done.get(json.dumps(key, sort_keys=True))
+            case = VortexCase(**{**kw, "seed": seed})
+            row = next((r for c, r in done if c == case), None)
             if row is None:
-                row = evaluate_case(f"{label}, seed {seed}", VortexCase(**key), work)
+                row = evaluate_case(f"{label}, seed {seed}", case, work)
                 progress(f"{label}, seed {seed}: coverage u, v, w = "
                          f"{np.round(row['coverage']['response'], 3).tolist()}")
             per_seed.append({"seed": seed, "n_vectors": row["n_vectors"],
