@@ -24,7 +24,7 @@ cores: 2.0 is perfect; the goal is at least 1.8. Other work on the machine lower
 well below 1. Nothing is asserted; figures are printed.
 
 ``--pipeline N`` instead runs N simulated pairs of the small camera through ``plenopiv run``'s
-per-pair work (:class:`plenopiv.pipeline.ExperimentPairProcess`) on one worker and prints each
+per-pair work (:class:`plenopiv.workflow.worker.ExperimentPairProcess`) on one worker and prints each
 pair's time: the first pair of a worker loads the experiment, the calibration and builds its
 projector (and compiles the kernels), the later ones reuse them.
 
@@ -55,7 +55,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.batch import PairJob, mark_complete, run_batch
+from plenopiv.batch import run_batch
+from plenopiv.batch.jobs import PairJob, mark_complete
 from plenopiv.products.hdf5 import write_h5
 
 SHAPE = (64, 64, 64)
@@ -119,7 +120,7 @@ def run(n_workers: int, n_jobs: int, repeats: int, folder: Path) -> dict:
 class TimedPairProcess:
     """``plenopiv run``'s per-pair work, timed in the worker (wall and CPU seconds).
 
-    ``reuse=False`` drops the worker's kept :class:`plenopiv.pipeline.PairProcessor` before
+    ``reuse=False`` drops the worker's kept :class:`plenopiv.workflow.pair.PairProcessor` before
     every pair, so that each pair loads the experiment and the calibration and builds the
     projector again, as every pair did before the worker kept them.
     """
@@ -140,7 +141,7 @@ class TimedPairProcess:
 def small_camera_case(n_pairs: int, folder: Path) -> None:
     """Calibration, ``n_pairs`` simulated pairs and the experiment of the small camera."""
     from plenopiv.calibration.model import Calibration
-    from plenopiv.camera import load_camera
+    from plenopiv.camera.model import load_camera
     from plenopiv.cli import main as cli
 
     Calibration.from_camera(load_camera("small_m1")).save(folder / "cal.h5")
@@ -205,7 +206,7 @@ def pipeline_pairs(n_pairs: int, folder: Path, *, camera: str = "small_m1",
     wall and CPU time in the worker and its reconstruction time (``reconstruct_s``, projector
     included).
     """
-    from plenopiv.pipeline import ExperimentPairProcess
+    from plenopiv.workflow.worker import ExperimentPairProcess
 
     if camera == "small_m1":
         small_camera_case(n_pairs, folder)

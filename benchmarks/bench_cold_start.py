@@ -4,7 +4,7 @@ Runs ``plenopiv demo`` twice in child processes that share one new, empty cache 
 (``PLENOPIV_CACHE_DIR``; ``NUMBA_CACHE_DIR`` is removed from their environment so that the
 package's own choice applies): the first run ("cold") compiles every numba kernel the demo
 uses and writes it to the cache (the reconstruction's and the PIV's in two background
-processes while it calibrates, :mod:`plenopiv.precompile`), the second ("warm") loads them.
+processes while it calibrates, :mod:`plenopiv.workflow.precompile`), the second ("warm") loads them.
 The baseline, in the same run: a cold demo in a third, empty cache folder with
 ``--no-precompile`` (every kernel compiled in the demo's own process, one after another).
 For each it prints the wall time, the CPU time of the child and its descendants (user +

@@ -36,9 +36,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from full_camera import full_case, render_pair  # noqa: E402
 
-from plenopiv.config import ParticleSettings, ReconstructionSettings  # noqa: E402
-from plenopiv.pipeline import reconstruct_volume, weights_for  # noqa: E402
-from plenopiv.reconstruction.real_lattice import LensletProjector  # noqa: E402
+from plenopiv.config.experiment import ParticleSettings, ReconstructionSettings
+from plenopiv.reconstruction.real_lattice import LensletProjector
+from plenopiv.reconstruction.subdivision import weights_for
+from plenopiv.workflow.volume import reconstruct_volume
 
 
 class CallLog:

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from plenopiv.camera import load_camera
+from plenopiv.camera.model import load_camera
 from plenopiv.synthetic import _kernels as K
 from plenopiv.synthetic.images import focal_point_image, particle_image
 from plenopiv.synthetic.tracer import geometry_vector

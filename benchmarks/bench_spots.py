@@ -14,7 +14,7 @@ Three parts, each printed:
    :func:`fit_lattice`.
 3. **The whole calibration** of a 16 MP focal-point image of the Auburn camera (f/16,
    S_i = 200 mm, rendered by the project's tracer, PSF 0.5 px, photon noise):
-   :func:`~plenopiv.calibration.pipeline.calibrate`, goal at most 10 s on 2 cores.
+   :func:`~plenopiv.calibration.calibrate.calibrate`, goal at most 10 s on 2 cores.
 
 Usage::
 
@@ -36,9 +36,10 @@ from scipy.spatial import cKDTree
 from scipy.special import erf
 
 from plenopiv.calibration import _spot_kernels as K
-from plenopiv.calibration.pipeline import calibrate
-from plenopiv.calibration.spots import detect_spots, fit_lattice
-from plenopiv.camera import load_camera
+from plenopiv.calibration.calibrate import calibrate
+from plenopiv.calibration.lattice_fit import fit_lattice
+from plenopiv.calibration.spot_detection import detect_spots
+from plenopiv.camera.model import load_camera
 from plenopiv.synthetic.images import finish_image, focal_point_image
 
 # the single-spot renderer the estimator tests use (tests/independent_render.py)

@@ -21,11 +21,11 @@ import time
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import load_camera
+from plenopiv.camera.model import load_camera
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction.mart import reconstruct
 from plenopiv.reconstruction.weights import build_weights
-from plenopiv.validation.vortex import VortexCase, aligned_grid
+from plenopiv.workflow.vortex_case import VortexCase, aligned_grid
 
 
 def best_of(fn, n=3):
@@ -77,7 +77,7 @@ def reconstruction_footprint(camera: str, depth_mm: float, method: str, repeats:
     """Bytes held per explicit non-zero while a volume is reconstructed, and its CPU time.
 
     The weights are built once into a temporary cache; then, under ``tracemalloc``, they are
-    loaded from it and one image is reconstructed (:func:`plenopiv.pipeline.reconstruct_volume`,
+    loaded from it and one image is reconstructed (:func:`plenopiv.workflow.volume.reconstruct_volume`,
     ``method``, no lateral subdivision, explicit weights). The traced peak is everything held
     by NumPy at once: W, any scaled or row-selected copies of it, volumes and images
     (arrays allocated inside numba kernels are not traced: the colouring of MART's row
@@ -87,8 +87,9 @@ def reconstruction_footprint(camera: str, depth_mm: float, method: str, repeats:
     import tempfile
     import tracemalloc
 
-    from plenopiv.config import ReconstructionSettings
-    from plenopiv.pipeline import reconstruct_volume, weights_for
+    from plenopiv.config.experiment import ReconstructionSettings
+    from plenopiv.reconstruction.subdivision import weights_for
+    from plenopiv.workflow.volume import reconstruct_volume
 
     cam = load_camera(camera)
     cal = Calibration.from_camera(cam)

@@ -59,25 +59,22 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import load_camera
-from plenopiv.config import ParticleSettings, ReconstructionSettings
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import load_camera
+from plenopiv.config.experiment import ParticleSettings, ReconstructionSettings
 from plenopiv.errors import ReconstructionError
-from plenopiv.pipeline import (
-    correlate,
-    gaussian_truth_volume,
-    lateral_subdivision,
-    reconstruct_volume,
-    weights_for,
-)
 from plenopiv.piv import PIVSettings
 from plenopiv.products.files import atomic_path
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.subdivision import lateral_subdivision, weights_for
 from plenopiv.resources import prefer_small_pages
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
+from plenopiv.synthetic.truth import gaussian_truth_volume
 from plenopiv.validation import field_quality as fq
-from plenopiv.validation.vortex import VortexCase, _flow, aligned_grid, compare_with_truth
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.pair import correlate
+from plenopiv.workflow.volume import reconstruct_volume
+from plenopiv.workflow.vortex_case import VortexCase, _flow, aligned_grid, compare_with_truth
 
 CACHE = Path(__file__).parent / "_cache"
 
@@ -254,9 +251,9 @@ def track_study(cal, ia, ib, vols, vec, pa, pb, grid, settings, log, lf=None) ->
     """Particle tracks of the pair (bundle fits, refinement, matching; the light field ``lf``
     of the reconstruction's weights reused): the time it adds to the pair and the tracks'
     errors against the truth."""
-    from plenopiv.pipeline import resolution_cell
-    from plenopiv.tracking.pair import track_pair
+    from plenopiv.camera.resolution import resolution_cell
     from plenopiv.validation.tracking_study import associate_tracks, rms_per_axis
+    from plenopiv.workflow.tracking import track_pair
 
     with stage("track", log):
         tracks = track_pair(cal, ia, ib, vols["A"], vols["B"], vec, f_number=settings.f_number,

@@ -33,11 +33,12 @@ import time
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.config import ReconstructionSettings
-from plenopiv.pipeline import reconstruct_volume, resolution_cell
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.resolution import resolution_cell
+from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.reconstruction.select import cached_weights
 from plenopiv.validation import field_quality as fq
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.volume import reconstruct_volume
 
 
 def single_particles() -> dict:
@@ -85,7 +86,7 @@ def spread_study(grids_per_size: int = 4, seed: int = 20261202) -> list[dict]:
     """
     import math
 
-    from plenopiv.pipeline import footprint
+    from plenopiv.camera.resolution import footprint
     from plenopiv.synthetic.images import particle_image
     from plenopiv.validation.depth_study import thesis_camera
 

@@ -11,7 +11,8 @@ import argparse
 import json
 from pathlib import Path
 
-from plenopiv.validation.letters import find_data_dir, run
+from plenopiv.validation.letters import run
+from plenopiv.validation.letters_data import find_data_dir
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plenopiv.camera import load_camera
+from plenopiv.camera.model import load_camera
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("PLENOPIV_DATA") or REPO.parent / "shared" / "data")

@@ -1,4 +1,4 @@
-"""Tests of plenopiv.validation.accuracy.gain_bias_rms: slope, bias and rms of measured against
+"""Tests of plenopiv.workflow.accuracy.gain_bias_rms: slope, bias and rms of measured against
 true displacements, on synthetic arrays with a known answer."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plenopiv.validation.accuracy import gain_bias_rms
+from plenopiv.workflow.accuracy import gain_bias_rms
 
 
 def test_known_gain_offset_and_noise(rng):

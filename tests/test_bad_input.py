@@ -15,9 +15,10 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import load_camera
-from plenopiv.config import Experiment, experiment_from_dict
-from plenopiv.corrections import DepthCorrection
+from plenopiv.camera.corrections import DepthCorrection
+from plenopiv.camera.grid import VolumeGrid, volume_from_dict
+from plenopiv.camera.model import load_camera
+from plenopiv.config.experiment import Experiment, experiment_from_dict
 from plenopiv.errors import (
     CalibrationError,
     ConfigError,
@@ -27,13 +28,13 @@ from plenopiv.errors import (
     PlenopivWarning,
     ResourceError,
 )
-from plenopiv.pipeline import correlate, experiment_calibration
 from plenopiv.products.files import check_output_path
 from plenopiv.products.images import check_image, saturation
 from plenopiv.products.jsonio import to_json
 from plenopiv.products.vectors import VectorResult
 from plenopiv.products.volume import VolumeResult
-from plenopiv.volume import VolumeGrid, volume_from_dict
+from plenopiv.workflow.experiment import experiment_calibration
+from plenopiv.workflow.pair import correlate
 
 
 def sparse_image(rng, shape=(120, 160), dtype=np.float64):
@@ -188,7 +189,7 @@ def test_grids_beyond_memory_are_refused_before_estimating(monkeypatch):
     with pytest.raises(ResourceError, match=r"5\.12e\+08 voxels needs about 15\.3 GiB of "
                                             r"memory but this machine has 1 GiB available"):
         resources.check_grid(grid)
-    from plenopiv.pipeline import weights_for
+    from plenopiv.reconstruction.subdivision import weights_for
 
     cal = Calibration.from_camera(load_camera("small_test"))
     with pytest.raises(ResourceError, match="voxels needs about"):
@@ -237,8 +238,8 @@ def test_vectors_with_a_bad_dt_are_never_made():
 
 
 def test_piv_settings_errors_are_config_errors():
-    from plenopiv.config import PIVConfig
-    from plenopiv.pipeline import piv_settings
+    from plenopiv.config.experiment import PIVConfig
+    from plenopiv.workflow.pair import piv_settings
 
     with pytest.raises(ConfigError, match=r"\[piv\] windows = .*expected edges of 4 to 1024"):
         experiment_from_dict({"camera": "small_test", "volume": {

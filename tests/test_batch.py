@@ -18,16 +18,9 @@ import numpy as np
 import pytest
 
 from plenopiv import batch
-from plenopiv.batch import (
-    BatchSummary,
-    PairJob,
-    batch_options,
-    discover_pairs,
-    is_complete,
-    mark_complete,
-    run_batch,
-    slurm_cluster_kwargs,
-)
+from plenopiv.batch import BatchSummary, run_batch
+from plenopiv.batch.cluster import batch_options, slurm_cluster_kwargs
+from plenopiv.batch.jobs import PairJob, discover_pairs, is_complete, mark_complete
 from plenopiv.errors import ConfigError
 from plenopiv.products.hdf5 import write_h5
 from plenopiv.products.images import read_image, write_image

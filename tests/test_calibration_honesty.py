@@ -15,8 +15,10 @@ import numpy as np
 import pytest
 
 from conftest import shared_data_path
-from plenopiv.calibration.pipeline import calibrate
-from plenopiv.calibration.spots import check_lattice, detect_spots, fit_lattice
+from plenopiv.calibration.calibrate import calibrate
+from plenopiv.calibration.lattice_fit import fit_lattice
+from plenopiv.calibration.lattice_quality import check_lattice
+from plenopiv.calibration.spot_detection import detect_spots
 from plenopiv.cli import main
 from plenopiv.errors import CalibrationError
 from plenopiv.lightfield import LightFieldWarning, light_field, refocus
@@ -128,8 +130,8 @@ def test_dim_lenslets_of_a_vignetted_corner_are_found(small_camera):
     lenslets), down to 4 % in the corners, with photon and read noise."""
     from scipy.spatial import cKDTree
 
+    from plenopiv.camera.optics import focal_spot_exact
     from plenopiv.conventions import sensor_to_pixel
-    from plenopiv.optics import focal_spot_exact
 
     irr = focal_point_image(small_camera, f_number=16, psf_px=0.5)
     mla = small_camera.microlens_array

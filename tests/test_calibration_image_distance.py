@@ -8,7 +8,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from plenopiv import optics
 from plenopiv.calibration.image_distance import (
     SpotModel,
     find_ruler_ticks,
@@ -19,7 +18,8 @@ from plenopiv.calibration.image_distance import (
     lenslet_integral_image,
     magnification_from_ticks,
 )
-from plenopiv.camera import Substrate
+from plenopiv.camera import optics
+from plenopiv.camera.model import Substrate
 from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import CalibrationError
 from plenopiv.synthetic.images import Ruler, focal_point_image, ruler_image

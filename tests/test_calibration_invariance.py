@@ -16,9 +16,10 @@ import pytest
 
 import independent_render
 from plenopiv.calibration import _spot_kernels as K
-from plenopiv.calibration.pipeline import calibrate
-from plenopiv.calibration.spots import detect_spots, fit_lattice
-from plenopiv.camera import Substrate
+from plenopiv.calibration.calibrate import calibrate
+from plenopiv.calibration.lattice_fit import fit_lattice
+from plenopiv.calibration.spot_detection import detect_spots
+from plenopiv.camera.model import Substrate
 from plenopiv.synthetic.images import finish_image, focal_point_image
 
 IMAGE_DISTANCES = (0.136, 0.2, 0.27, 0.405)

@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from plenopiv.calibration.calibrate import calibrate
 from plenopiv.calibration.model import Calibration
-from plenopiv.calibration.pipeline import calibrate
 from plenopiv.cli import main
 from plenopiv.errors import CalibrationError, ImageError
 from plenopiv.products.images import write_image

@@ -19,14 +19,9 @@ from scipy.special import erf
 
 from conftest import shared_data_path
 from plenopiv.calibration import _spot_kernels as K
-from plenopiv.calibration.spots import (
-    Lattice,
-    SpotFlag,
-    SpotSet,
-    detect_spots,
-    estimate_pitch,
-    fit_lattice,
-)
+from plenopiv.calibration.lattice_fit import fit_lattice
+from plenopiv.calibration.spot_detection import detect_spots, estimate_pitch
+from plenopiv.calibration.spot_types import Lattice, SpotFlag, SpotSet
 from plenopiv.errors import CalibrationError, ImageError
 
 # ``rng`` (a seeded np.random.Generator) comes from tests/conftest.py.

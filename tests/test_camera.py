@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from plenopiv.camera import (
+from plenopiv.camera.model import (
     CameraModel,
     Substrate,
     camera_from_dict,
@@ -17,8 +17,8 @@ from plenopiv.camera import (
     load_camera,
     preset_names,
 )
+from plenopiv.camera.optics import propagation, system_matrix, thin_lens
 from plenopiv.errors import ConfigError
-from plenopiv.optics import propagation, system_matrix, thin_lens
 
 BASE = {
     "name": "t",
@@ -166,7 +166,7 @@ def test_camera_model_is_frozen():
 
 
 def test_patch_keeps_the_optics_and_cuts_the_sensor_to_the_micro_images():
-    from plenopiv.camera import load_camera
+    from plenopiv.camera.model import load_camera
 
     full = load_camera("auburn_50mm")
     p = full.patch(11, 21)

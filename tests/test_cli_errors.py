@@ -22,11 +22,11 @@ import pytest
 import tifffile
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import load_camera
+from plenopiv.camera.corrections import DepthCorrection
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import load_camera
 from plenopiv.cli import main
-from plenopiv.corrections import DepthCorrection
 from plenopiv.products.volume import VolumeResult
-from plenopiv.volume import VolumeGrid
 
 REPO = Path(__file__).resolve().parents[1]
 SHAPE = (700, 1040)          # the small cameras' sensor

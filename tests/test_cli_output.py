@@ -16,7 +16,9 @@ import pytest
 
 import conftest
 from plenopiv import cli
-from plenopiv.cli import _fmt, _print_human, _StageBar, build_parser, main
+from plenopiv.cli import _print_human, build_parser, main
+from plenopiv.cli._output import _fmt
+from plenopiv.cli._progress import _StageBar
 
 
 def test_numbers_are_short_and_plain():
@@ -112,12 +114,12 @@ def test_stage_bar_only_on_a_terminal(monkeypatch, capsys):
 def test_pair_progress_names_each_volume_and_pass():
     """process_pair reports the weights, each volume and each PIV pass, in order."""
     from plenopiv.calibration.model import Calibration
-    from plenopiv.camera import load_camera
-    from plenopiv.config import Experiment, ImagesConfig, OutputConfig, PIVConfig
-    from plenopiv.pipeline import process_pair
+    from plenopiv.camera.model import load_camera
+    from plenopiv.config.experiment import Experiment, ImagesConfig, OutputConfig, PIVConfig
     from plenopiv.synthetic.flows import Uniform
     from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
-    from plenopiv.validation.vortex import VortexCase, aligned_grid
+    from plenopiv.workflow.pair import process_pair
+    from plenopiv.workflow.vortex_case import VortexCase, aligned_grid
 
     cam = load_camera("small_m1")
     grid = aligned_grid(cam, VortexCase(depth=1.5e-3, lateral_fill=0.4))

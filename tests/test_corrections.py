@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from plenopiv.camera import ExternalInterface, Substrate
-from plenopiv.corrections import DepthCorrection
+from plenopiv.camera.corrections import DepthCorrection
+from plenopiv.camera.model import ExternalInterface, Substrate
 from plenopiv.errors import ConfigError
 
 

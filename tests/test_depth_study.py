@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plenopiv.corrections import DepthCorrection
+from plenopiv.camera.corrections import DepthCorrection
 from plenopiv.synthetic.images import particle_image
 from plenopiv.validation.depth_study import (
     corrected_depths,

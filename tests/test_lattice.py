@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.config import ReconstructionSettings
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
-from plenopiv.pipeline import reconstruct_volume
-from plenopiv.reconstruction.lattice import LatticeProjector, separable_axes
+from plenopiv.reconstruction.geometry import separable_axes
+from plenopiv.reconstruction.lattice import LatticeProjector
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.select import (
     BYTES_PER_NONZERO,
@@ -31,7 +32,7 @@ from plenopiv.reconstruction.select import (
 )
 from plenopiv.reconstruction.weights import build_weights
 from plenopiv.synthetic.images import particle_image
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.volume import reconstruct_volume
 
 RTOL = 1e-5
 
@@ -45,7 +46,7 @@ def small_grid(lf, nx=30, ny=20, nz=24, lateral=1.0, depth=1.0):
 
 @pytest.fixture(scope="module")
 def pair(request):
-    from plenopiv.camera import load_camera
+    from plenopiv.camera.model import load_camera
 
     cal = Calibration.from_camera(load_camera("small_test"))
     lf = light_field(cal, edge_centroid=False)
@@ -159,8 +160,8 @@ def test_a_calibration_from_noisy_images_is_separable_and_reconstructs_alike():
     reconstruct what the explicit weights of the same calibration reconstruct (Q ≥ 0.99)."""
     from dataclasses import replace
 
-    from plenopiv.calibration.pipeline import calibrate
-    from plenopiv.camera import load_camera
+    from plenopiv.calibration.calibrate import calibrate
+    from plenopiv.camera.model import load_camera
     from plenopiv.synthetic.images import alignment_image, finish_image, focal_point_image
 
     cam = load_camera("small_m1")

@@ -16,7 +16,7 @@ from scipy import ndimage as ndi
 
 from conftest import shared_data_path
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import load_camera
+from plenopiv.camera.model import load_camera
 from plenopiv.lightfield import light_field, perspective_view, refocus
 from plenopiv.synthetic.images import particle_image
 from plenopiv.validation.letters import (
@@ -26,13 +26,13 @@ from plenopiv.validation.letters import (
     calibrate_white,
     flat_field,
     focus_sweep,
-    load_letters,
     ncc,
     parallax,
     plenopiv_alpha,
     sharpness,
     source_alpha,
 )
+from plenopiv.validation.letters_data import load_letters
 
 LETTERS = "plenoptomos_letters_ULF"
 

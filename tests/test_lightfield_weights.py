@@ -6,20 +6,17 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
+from plenopiv.camera.grid import VolumeGrid
 from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import ConfigError, ReconstructionError
 from plenopiv.lightfield import _kernels as LK
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction._kernels import weights as WK
 from plenopiv.reconstruction.select import cached_weights
-from plenopiv.reconstruction.weights import (
-    build_weights,
-    weights_reference,
-)
+from plenopiv.reconstruction.weights import build_weights, weights_reference
 from plenopiv.synthetic import _kernels as TK
 from plenopiv.synthetic.images import particle_image
 from plenopiv.synthetic.tracer import geometry_vector
-from plenopiv.volume import VolumeGrid
 
 
 @pytest.fixture(scope="module")

@@ -8,15 +8,16 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import load_camera
-from plenopiv.config import ReconstructionSettings, experiment_from_dict
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import load_camera
+from plenopiv.config.experiment import ReconstructionSettings, experiment_from_dict
 from plenopiv.errors import ConfigError, ReconstructionError
-from plenopiv.masks import cylinder_mask, image_mask, read_mask, volume_mask
-from plenopiv.pipeline import reconstruct_volume, weights_for
+from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.synthetic.images import particle_image
 from plenopiv.synthetic.seeding import SeedingBox, random_particles
-from plenopiv.validation.vortex import VortexCase, aligned_grid
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.masks import cylinder_mask, image_mask, read_mask, volume_mask
+from plenopiv.workflow.volume import reconstruct_volume
+from plenopiv.workflow.vortex_case import VortexCase, aligned_grid
 
 
 def _matched(found, true, lateral=0.15e-3, depth=0.6e-3):

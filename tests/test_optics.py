@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plenopiv import optics as O
+from plenopiv.camera import optics as O
 
 
 def test_abcd_plate_is_air_of_thickness_t_over_n():

@@ -1,4 +1,4 @@
-"""Particle extraction options of the pipeline (plenopiv.pipeline.particle_options)."""
+"""Particle extraction options of the pipeline (plenopiv.workflow.volume.particle_options)."""
 
 from __future__ import annotations
 
@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import load_camera
-from plenopiv.config import ParticleSettings
-from plenopiv.particles import find_particles
-from plenopiv.pipeline import particle_options, resolution_cell
-from plenopiv.volume import VolumeGrid
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import load_camera
+from plenopiv.camera.resolution import resolution_cell
+from plenopiv.config.experiment import ParticleSettings
+from plenopiv.particles.peaks import find_particles
+from plenopiv.workflow.volume import particle_options
 
 
 @pytest.fixture(scope="module")

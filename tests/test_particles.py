@@ -8,16 +8,16 @@ import numpy as np
 import pytest
 
 from plenopiv import ReconstructionError
-from plenopiv import _particles_kernels as pk
 from plenopiv.conventions import voxel_to_world
-from plenopiv.particles import CENTROID_METHODS, Particles, find_particles
+from plenopiv.particles.peaks import CENTROID_METHODS, Particles, find_particles
+from plenopiv.particles import _kernels as pk
 
 U32 = 2.0**-24
 
 
 
 #: The options these tests were written for: the 3-point Gaussian fit and 2-voxel boxes
-#: (the pipeline's own come from ``[particles]``, :func:`plenopiv.pipeline.particle_options`).
+#: (the pipeline's own come from ``[particles]``, :func:`plenopiv.workflow.volume.particle_options`).
 GAUSSIAN_3POINT = dict(method="gaussian", min_separation_vox=2.0, box_vox=(2, 2, 2),
                        fit_spacing_vox=(1, 1, 1))
 
@@ -278,7 +278,7 @@ def test_defaults_are_those_of_the_particles_settings():
     the two that ParticleSettings leaves to the camera (None) have none in find_particles."""
     import inspect
 
-    from plenopiv.config import ParticleSettings
+    from plenopiv.config.experiment import ParticleSettings
 
     settings = ParticleSettings()
     params = inspect.signature(find_particles).parameters

@@ -9,16 +9,16 @@ import pytest
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.cli import main
-from plenopiv.config import Experiment, ImagesConfig, OutputConfig, PIVConfig
-from plenopiv.pipeline import process_pair, save_pair
+from plenopiv.config.experiment import Experiment, ImagesConfig, OutputConfig, PIVConfig
 from plenopiv.synthetic.flows import Uniform
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
-from plenopiv.validation.vortex import VortexCase, aligned_grid
+from plenopiv.workflow.pair import process_pair, save_pair
+from plenopiv.workflow.vortex_case import VortexCase, aligned_grid
 
 
 @pytest.fixture(scope="module")
 def pair_products(tmp_path_factory):
-    from plenopiv.camera import load_camera
+    from plenopiv.camera.model import load_camera
 
     cam = load_camera("small_m1")
     cal = Calibration.from_camera(cam)
@@ -79,7 +79,7 @@ def test_piv_cli_on_volume_products(pair_products, tmp_path, capsys):
 
 def test_plenopiv_run_batch_with_resume(tmp_path, capsys):
     """`plenopiv run`: two pairs on a real LocalCluster; a second run skips both."""
-    from plenopiv.camera import load_camera
+    from plenopiv.camera.model import load_camera
 
     cam = load_camera("small_m1")
     Calibration.from_camera(cam).save(tmp_path / "cal.h5")
@@ -187,7 +187,7 @@ def test_volume_product_opens_in_xarray_with_coordinates(pair_products):
 def test_calibration_grid_index_has_units(tmp_path):
     import h5py
 
-    from plenopiv.camera import load_camera
+    from plenopiv.camera.model import load_camera
 
     path = Calibration.from_camera(load_camera("small_m1")).save(tmp_path / "cal.h5")
     with h5py.File(path) as fh:
@@ -198,7 +198,7 @@ def test_masked_vectors_in_the_pair_pipeline(pair_products):
     """A [mask] box over part of the volume: its vectors are NaN and flagged masked."""
     from dataclasses import replace
 
-    from plenopiv.config import BoxMask, MaskConfig
+    from plenopiv.config.experiment import BoxMask, MaskConfig
     from plenopiv.piv import FLAG_MASKED
 
     _, _, shift, grid, (cal, pair, exp) = pair_products
@@ -236,8 +236,8 @@ def test_piv_cli_leaves_rejected_vectors_nan(pair_products, tmp_path, capsys):
 def test_a_worker_keeps_one_processor_and_its_projector(tmp_path, monkeypatch):
     """`plenopiv run`'s per-pair work: the experiment, calibration and projector are made with
     a worker's first pair and reused; a changed experiment file makes a new processor."""
-    from plenopiv import pipeline
-    from plenopiv.camera import load_camera
+    from plenopiv.workflow import worker
+    from plenopiv.camera.model import load_camera
 
     Calibration.from_camera(load_camera("small_m1")).save(tmp_path / "cal.h5")
     exp = tmp_path / "exp.toml"
@@ -246,11 +246,11 @@ def test_a_worker_keeps_one_processor_and_its_projector(tmp_path, monkeypatch):
     built = []
     monkeypatch.setattr(pipeline, "weights_for",
                         lambda *a, **k: (built.append(a) or object(), False))
-    first = pipeline.worker_processor(exp, tmp_path / "cal.h5")
-    assert pipeline.worker_processor(exp, tmp_path / "cal.h5") is first
+    first = worker.worker_processor(exp, tmp_path / "cal.h5")
+    assert worker.worker_processor(exp, tmp_path / "cal.h5") is first
     assert first.weights() is first.weights() and len(built) == 1
     exp.write_text(exp.read_text() + "\n[piv]\npasses = 2\n")
-    second = pipeline.worker_processor(exp, tmp_path / "cal.h5")
+    second = worker.worker_processor(exp, tmp_path / "cal.h5")
     assert second is not first and second.experiment.piv.passes == 2
-    pipeline.drop_worker_processor()           # dropped: the same files make a new one
-    assert pipeline.worker_processor(exp, tmp_path / "cal.h5") is not second
+    worker.drop_worker_processor()           # dropped: the same files make a new one
+    assert worker.worker_processor(exp, tmp_path / "cal.h5") is not second

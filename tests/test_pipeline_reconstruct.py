@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import ExternalInterface, Sensor, load_camera
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import ExternalInterface, Sensor, load_camera
 from plenopiv.cli import main
-from plenopiv.config import ReconstructionSettings
+from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ConfigError, ImageError, ReconstructionError
-from plenopiv.pipeline import reconstruct_volume
 from plenopiv.synthetic.images import particle_image
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.volume import reconstruct_volume
 
 # the thesis's span (±10 mm) in 4 mm steps; per-particle depth errors of ~0.08 mm (two thirds
 # of a voxel) then leave the fitted slope uncertain by about ±0.005
@@ -95,7 +95,7 @@ def test_bad_inputs(camera_50mm, tmp_path):
         reconstruct_volume(cal, img, far)
     with pytest.raises(ValueError, match="iterations"):
         ReconstructionSettings(iterations=-1)
-    from plenopiv.config import experiment_from_dict
+    from plenopiv.config.experiment import experiment_from_dict
 
     with pytest.raises(ConfigError, match="unknown key .reconstruction. iteration;.*iterations"):
         experiment_from_dict({"camera": "small_test", "reconstruction": {"iteration": 3},

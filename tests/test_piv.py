@@ -398,8 +398,8 @@ def test_every_setting_is_a_piv_key_with_the_one_default():
     """The ``[piv]`` table offers every field of PIVSettings and converts to its defaults."""
     from dataclasses import fields
 
-    from plenopiv.config import PIVConfig
-    from plenopiv.pipeline import piv_settings
+    from plenopiv.config.experiment import PIVConfig
+    from plenopiv.workflow.pair import piv_settings
 
     names = {f.name for f in fields(PIVSettings)}
     assert names <= set(PIVConfig.model_fields)
@@ -409,8 +409,8 @@ def test_every_setting_is_a_piv_key_with_the_one_default():
 
 
 def test_piv_keys_reach_the_settings():
-    from plenopiv.config import PIVConfig
-    from plenopiv.pipeline import piv_settings
+    from plenopiv.config.experiment import PIVConfig
+    from plenopiv.workflow.pair import piv_settings
 
     given = {"windows": [(16, 12, 12)], "passes": 2, "overlap": 0.25, "deformation": False,
              "deformation_order": 1, "median_threshold": 3.0, "median_epsilon_vox": 0.2,
@@ -428,7 +428,7 @@ def test_piv_keys_reach_the_settings():
 def test_bad_piv_keys_are_refused_by_name(key, value):
     from pydantic import ValidationError
 
-    from plenopiv.config import PIVConfig
+    from plenopiv.config.experiment import PIVConfig
 
     with pytest.raises(ValidationError, match=key):
         PIVConfig(**{key: value})
@@ -462,7 +462,7 @@ def test_bad_volumes_raise_piv_errors(small_pair):
 
 
 def test_accepts_the_project_volume_grid(small_pair):
-    from plenopiv.volume import VolumeGrid
+    from plenopiv.camera.grid import VolumeGrid
 
     a, b = small_pair
     grid = VolumeGrid(origin=(1e-3, 2e-3, 3e-3), voxel=(1e-4, 2e-4, 3e-4), shape=a.shape)

@@ -1,4 +1,4 @@
-"""``plenopiv plan`` and plenopiv.planning: resolution, recommendations, fit, size and cost."""
+"""``plenopiv plan`` and plenopiv.workflow.planning: resolution, recommendations, fit, size and cost."""
 
 from __future__ import annotations
 
@@ -9,15 +9,15 @@ import tomllib
 import numpy as np
 import pytest
 
-from plenopiv import planning
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import load_camera
+from plenopiv.camera.grid import VolumeGrid, volume_from_dict
+from plenopiv.camera.model import load_camera
+from plenopiv.camera.resolution import footprint
 from plenopiv.cli import main
-from plenopiv.config import PIVConfig
+from plenopiv.config.experiment import PIVConfig
 from plenopiv.lightfield import light_field
-from plenopiv.pipeline import footprint
 from plenopiv.reconstruction.select import estimate_nnz
-from plenopiv.volume import VolumeGrid, volume_from_dict
+from plenopiv.workflow import planning
 
 MM = 1e-3
 
@@ -165,7 +165,7 @@ def test_cli_plan_camera_with_box(capsys):
 
 
 def test_cli_plan_needs_the_image_distance(tmp_path, capsys):
-    from plenopiv.camera import PRESET_DIR
+    from plenopiv.camera.model import PRESET_DIR
 
     raw = (PRESET_DIR / "small_test.toml").read_text()
     assert "image_distance_mm = 200.0\n" in raw

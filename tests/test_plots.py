@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plenopiv import plots
+from plenopiv.products import figures as plots
 from plenopiv.products.vectors import VectorResult
 
 

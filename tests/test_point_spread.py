@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from plenopiv.calibration.calibrate import calibrate
 from plenopiv.calibration.model import Calibration
-from plenopiv.calibration.pipeline import calibrate
 from plenopiv.calibration.psf import point_spread_sigma
 from plenopiv.calibration.spot_detection import detect_spots
 from plenopiv.synthetic.images import blurred, finish_image, focal_point_image

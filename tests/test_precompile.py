@@ -1,4 +1,4 @@
-"""Background compilation (plenopiv.precompile): the rehearsals compile what the run needs.
+"""Background compilation (plenopiv.workflow.precompile): the rehearsals compile what the run needs.
 
 The rehearsals only save time: the test that matters is that their kernels are the run's
 (same kernels, same argument types), so that a first run finds them in numba's cache. It
@@ -20,7 +20,8 @@ import pytest
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.calibration.spot_detection import detect_spots
-from plenopiv.precompile import (
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.workflow.precompile import (
     DEFAULT_CHILDREN,
     REHEARSALS,
     SPOT_LENSLETS,
@@ -29,8 +30,7 @@ from plenopiv.precompile import (
     rehearsal_grid,
     spot_image,
 )
-from plenopiv.validation.vortex import VortexCase, case_camera
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.vortex_case import VortexCase, case_camera
 
 #: In a fresh interpreter: the rehearsals of the demo's case, then the case itself (a
 #: smaller patch and depth of the same camera and settings); prints the kernels that gained
@@ -40,10 +40,10 @@ import json, sys, tempfile
 from pathlib import Path
 
 import numba
-import plenopiv.precompile as P
+import plenopiv.workflow.precompile as P
 from plenopiv.calibration.model import Calibration
 from plenopiv.cli.demo import DEMO_RESPONSE_DISPLACEMENTS
-from plenopiv.validation.vortex import VortexCase, case_camera, case_experiment, run_case
+from plenopiv.workflow.vortex_case import VortexCase, case_camera, case_experiment, run_case
 
 case = VortexCase(flow="oseen", seed=3, response_displacements=DEMO_RESPONSE_DISPLACEMENTS,
                   depth=2e-3, lateral_fill=0.6)

@@ -10,9 +10,9 @@ import pytest
 
 import plenopiv
 from conftest import REPO
-from plenopiv.camera import load_camera, preset_names, read_toml
+from plenopiv.camera.model import load_camera, preset_names, read_toml
 from plenopiv.cli import main
-from plenopiv.config import load_experiment
+from plenopiv.config.experiment import load_experiment
 
 
 def test_presets_lists_every_preset_shipped_in_the_package(capsys):
@@ -61,7 +61,7 @@ def test_a_former_configs_cameras_path_names_the_preset(argv, tmp_path, monkeypa
 
 def test_configs_cameras_are_links_to_the_packaged_presets():
     """One home: every configs/cameras/*.toml is a link to the preset inside the package."""
-    from plenopiv.camera import preset_names
+    from plenopiv.camera.model import preset_names
 
     source = REPO / "src" / "plenopiv" / "presets"   # the package's presets in the checkout
     links = sorted((REPO / "configs" / "cameras").glob("*.toml"))

@@ -22,7 +22,7 @@ import pytest
 
 from conftest import REPO
 from plenopiv.cli import main
-from plenopiv.config import load_experiment
+from plenopiv.config.experiment import load_experiment
 from plenopiv.synthetic.flows import LambOseen
 
 README = REPO / "README.md"

@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
+from plenopiv.camera.grid import VolumeGrid
 from plenopiv.cli import main
-from plenopiv.config import ReconstructionSettings
+from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
-from plenopiv.pipeline import reconstruct_volume
 from plenopiv.reconstruction._kernels import real_lattice as rk
-from plenopiv.reconstruction.lattice import separable_axes
+from plenopiv.reconstruction.geometry import separable_axes
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.real_lattice import (
     LensletProjector,
@@ -32,9 +32,10 @@ from plenopiv.reconstruction.real_lattice import (
     lenslet_weights_reference,
     matrix_free_projector,
 )
-from plenopiv.reconstruction.weights import build_weights, cached_weights, choose_projector
+from plenopiv.reconstruction.select import cached_weights, choose_projector
+from plenopiv.reconstruction.weights import build_weights
 from plenopiv.synthetic.images import particle_image
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.volume import reconstruct_volume
 
 RTOL = 1e-5
 
@@ -318,7 +319,7 @@ def test_cli_refuses_a_rotated_volume_beyond_the_memory_limit(tmp_path, small_ca
     """The CLI's error path: one ``error:`` line naming the figure and the key, exit 2."""
     import tifffile
 
-    from plenopiv.camera import load_camera
+    from plenopiv.camera.model import load_camera
 
     cam = load_camera("small_m1")
     mla = dataclasses.replace(cam.microlens_array, rotation=2e-3, offset=(3e-6, -2e-6))
@@ -344,7 +345,7 @@ def test_plan_takes_the_matrix_free_path_for_a_rotated_full_camera(auburn_camera
     2.78 times the aligned array's (measured at full size on an idle machine, CPU per volume:
     131.6 s rotated against 47.4 s aligned, the particle fit of 5 s included in both;
     docs/validation/real_arrays.md), within 15 %."""
-    from plenopiv import planning
+    from plenopiv.workflow import planning
 
     mm = 1e-3
     grid = VolumeGrid.from_bounds((-37 * mm, 37 * mm), (-25 * mm, 25 * mm),

@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.config import ReconstructionSettings
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
-from plenopiv.pipeline import reconstruct_volume
 from plenopiv.reconstruction import sightline
 from plenopiv.reconstruction.geometry import ProjectionGeometry, weights_key
 from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.synthetic.images import particle_image
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.volume import reconstruct_volume
 
 LIGHT_FIELD = ("plenopiv.lightfield.rays", "light_field")
 
@@ -107,12 +107,12 @@ def test_one_reconstruction_builds_one_light_field_and_walks_its_modules_one_way
         pytest.fail(f"modules call back upstream, cycle {exc.args[1]}; edges:\n{edge_text}")
     assert calls[LIGHT_FIELD] == 1, (f"light_field built {calls[LIGHT_FIELD]} times; module "
                                      f"order {order}")
-    assert order[0] == "plenopiv.pipeline", f"module order {order}"
-    flow = [m for m in order if m in ("plenopiv.pipeline", "plenopiv.reconstruction.subdivision",
+    assert order[0] == "plenopiv.workflow.volume", f"module order {order}"
+    flow = [m for m in order if m in ("plenopiv.workflow.volume", "plenopiv.reconstruction.subdivision",
                                       "plenopiv.reconstruction.select",
                                       "plenopiv.reconstruction.geometry",
                                       "plenopiv.lightfield.rays")]
-    assert flow == sorted(flow, key=["plenopiv.pipeline", "plenopiv.reconstruction.subdivision",
+    assert flow == sorted(flow, key=["plenopiv.workflow.volume", "plenopiv.reconstruction.subdivision",
                                      "plenopiv.reconstruction.select",
                                      "plenopiv.reconstruction.geometry",
                                      "plenopiv.lightfield.rays"].index), f"module order {order}"

@@ -20,17 +20,14 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.pipeline import footprint, reconstruct_volume, resolution_cell
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.resolution import footprint, resolution_cell
+from plenopiv.reconstruction.geometry import subcell_factors
 from plenopiv.reconstruction.select import cached_weights
-from plenopiv.reconstruction.sightline import (
-    pool_min,
-    refined_grid,
-    subcell_factors,
-    subcell_line_of_sight,
-)
+from plenopiv.reconstruction.sightline import pool_min, refined_grid, subcell_line_of_sight
 from plenopiv.synthetic.images import particle_image
 from plenopiv.validation.depth_study import thesis_camera
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.volume import reconstruct_volume
 
 
 def small_camera(lenslets):
@@ -188,9 +185,9 @@ def test_particle_is_found_whatever_the_grid(lenslets, position):
 def test_volume_positions_keep_the_centroid(odd):
     """``position = "volume"`` gives the voxels' centroid; the light field's positions keep
     it as ``particle_centroid_effective``; a fully masked image leaves every seed."""
-    from plenopiv.config import ParticleSettings
-    from plenopiv.pipeline import light_field_positions
+    from plenopiv.config.experiment import ParticleSettings
     from plenopiv.reconstruction.geometry import ProjectionGeometry
+    from plenopiv.workflow.volume import light_field_positions
 
     cam, cal = odd
     b = footprint(cal.effective_camera)

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import load_camera
-from plenopiv.config import ReconstructionSettings
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import load_camera
+from plenopiv.camera.resolution import footprint
+from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
-from plenopiv.pipeline import reconstruct_volume
 from plenopiv.reconstruction.subdivision import (
-    footprint,
     lateral_subdivision,
     merge_subdivided,
     subdivided_grid,
@@ -20,7 +20,7 @@ from plenopiv.reconstruction.subdivision import (
     weights_for,
 )
 from plenopiv.synthetic.images import particle_image
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.volume import reconstruct_volume
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from plenopiv import optics as O
-from plenopiv.camera import ExternalInterface, Substrate
+from plenopiv.camera import optics as O
+from plenopiv.camera.model import ExternalInterface, Substrate
 from plenopiv.conventions import sensor_to_pixel
 from plenopiv.errors import ConfigError
 from plenopiv.synthetic import _kernels as K

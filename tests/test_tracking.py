@@ -11,12 +11,10 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
+from plenopiv.camera.resolution import resolution_cell
 from plenopiv.cli import main
 from plenopiv.lightfield import light_field
-from plenopiv.pipeline import resolution_cell
-from plenopiv.products.vectors import load_vectors
-from plenopiv.synthetic.images import particle_image
-from plenopiv.tracking.bundle import (
+from plenopiv.particles.bundle import (
     BundleSettings,
     bundle_positions,
     closest_point,
@@ -24,12 +22,10 @@ from plenopiv.tracking.bundle import (
     lit_rays,
     ray_table,
 )
-from plenopiv.tracking.forward import (
-    ForwardSettings,
-    beam_fraction,
-    near_focus,
-    refine_positions,
-)
+from plenopiv.particles.forward import ForwardSettings, beam_fraction, near_focus, refine_positions
+from plenopiv.products.tracks import TRACK_DATASETS, write_tracks
+from plenopiv.products.vectors import load_vectors
+from plenopiv.synthetic.images import particle_image
 from plenopiv.tracking.matching import (
     MatchSettings,
     interpolate_displacement,
@@ -37,8 +33,7 @@ from plenopiv.tracking.matching import (
     neighbour_median_test,
     predict_positions,
 )
-from plenopiv.tracking.pair import TrackResult, bin_tracks
-from plenopiv.tracking.products import TRACK_DATASETS, write_tracks
+from plenopiv.tracking.tracks import TrackResult, bin_tracks
 from plenopiv.validation.depth_study import thesis_camera
 
 # ---- least-squares point of a ray bundle ----------------------------------------------------
@@ -136,7 +131,7 @@ def test_ray_selection_matches_its_numpy_twin(thesis_light_field, rng):
     """The rays one solve selects once (numba, threads over blocks of particles) are those
     of the NumPy selection that carry weight, with the same cone shares, particle by
     particle."""
-    from plenopiv.tracking.bundle import _engine_inputs, _select_rays, ray_selection, ray_table
+    from plenopiv.particles.bundle import _engine_inputs, _select_rays, ray_selection, ray_table
 
     _, _, lf = thesis_light_field
     b = lf.footprint
@@ -163,7 +158,7 @@ def test_ray_selection_matches_its_numpy_twin(thesis_light_field, rng):
 def test_bundle_positions_do_not_depend_on_the_particles_order(thesis_light_field, rng):
     """The kernels take the particles in spatial order: given in another order, each
     particle gets the same fit (to rounding: the rays' shared sums add in another order)."""
-    from plenopiv.tracking.bundle import spatial_order
+    from plenopiv.particles.bundle import spatial_order
 
     _, _, lf = thesis_light_field
     _, img, seeds, cell = seeded_particles(thesis_light_field, rng, 7, rays=3000, seed=8)
@@ -183,7 +178,7 @@ def test_bundle_on_the_lit_rays_alone_is_the_same_fit(thesis_light_field, rng, e
     """Rays at or below the floor carry no weight: a light field of the lit rays only
     (``LightField.subset``, what the particle table fits on) gives the same positions, with
     the particle table's margin too."""
-    from plenopiv.tracking.bundle import PARTICLE_BUNDLE
+    from plenopiv.particles.bundle import PARTICLE_BUNDLE
 
     _, _, lf = thesis_light_field
     _, img, seeds, cell = seeded_particles(thesis_light_field, rng, 5, rays=3000, seed=9)
@@ -352,7 +347,7 @@ def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng, near)
         return
     assert near_focus(start[:, 2], depth_cell=cell, settings=fs).sum() == 3
     # the compiled pixel selection and its twin take the same pixels in the same order
-    from plenopiv.tracking.forward import _lenslet_index, _pixels
+    from plenopiv.particles.forward import _lenslet_index, _pixels
     index = _lenslet_index(lf)
     for eng_a, eng_b in zip(_pixels(lf, index, start, 1.5, 0.3e-3, "numba"),
                             _pixels(lf, index, start, 1.5, 0.3e-3, "numpy"), strict=True):
@@ -372,8 +367,8 @@ def test_misfit_gradient_is_the_derivative_of_the_misfit(thesis_light_field):
     a step of 1e-4 footprints (1e-4 depth cells) few pixels cross a kink, so the difference
     quotient matches the analytic gradient to well within 1 %.
     """
-    from plenopiv.tracking.bundle import ray_table
-    from plenopiv.tracking.forward import _fractions, _misfit_sums, _pixels, _robust_amplitude
+    from plenopiv.particles.bundle import ray_table
+    from plenopiv.particles.forward import _fractions, _misfit_sums, _pixels, _robust_amplitude
 
     cam, cal, lf = thesis_light_field
     b = lf.footprint
@@ -400,8 +395,8 @@ def test_misfit_gradient_is_the_derivative_of_the_misfit(thesis_light_field):
 
 def test_amplitude_kernel_matches_its_numpy_twin(thesis_light_field, rng):
     """Median of value / fraction over the half-lit pixels, per particle; none lit: 0."""
-    from plenopiv.tracking.bundle import ray_table
-    from plenopiv.tracking.forward import _amplitude_at, _amplitude_at_numba, _fractions, _pixels
+    from plenopiv.particles.bundle import ray_table
+    from plenopiv.particles.forward import _amplitude_at, _amplitude_at_numba, _fractions, _pixels
 
     _, _, lf = thesis_light_field
     b = lf.footprint
@@ -428,7 +423,7 @@ def test_amplitude_kernel_matches_its_numpy_twin(thesis_light_field, rng):
 
 def test_kth_smallest_by_quickselect_is_that_of_the_sorted_values(rng):
     """The amplitude's upper median: element k of the sorted values, ties included."""
-    from plenopiv.tracking._kernels import _select_kth
+    from plenopiv.particles._bundle_kernels import _select_kth
 
     for n in (1, 2, 3, 8, 31):
         for values in (rng.normal(size=n), rng.integers(0, 3, n).astype(float)):
@@ -439,8 +434,8 @@ def test_kth_smallest_by_quickselect_is_that_of_the_sorted_values(rng):
 
 def test_gathered_pixels_are_those_of_the_selection(thesis_light_field, rng):
     """The selection's gathered values and rays are those of its rows (lenslet order)."""
-    from plenopiv.tracking.bundle import ray_table
-    from plenopiv.tracking.forward import _pixel_data, _pixels
+    from plenopiv.particles.bundle import ray_table
+    from plenopiv.particles.forward import _pixel_data, _pixels
 
     _, _, lf = thesis_light_field
     b = lf.footprint
@@ -604,7 +599,7 @@ def test_binned_tracks_average_in_their_cell(rng):
 
 def test_track_command_end_to_end(tmp_path, capsys):
     """`plenopiv track` on the CI camera: a uniform shift of 1.5 footprints along x."""
-    from plenopiv.camera import load_camera
+    from plenopiv.camera.model import load_camera
 
     cam = load_camera("small_m1")
     Calibration.from_camera(cam).save(tmp_path / "cal.h5")
@@ -652,11 +647,11 @@ def test_track_command_end_to_end(tmp_path, capsys):
 
 def test_tracking_in_a_batch_pair_and_its_config(tmp_path):
     """`[tracking] enabled = true`: the per-pair work of `plenopiv run` writes NAME_tracks.h5."""
-    from plenopiv.batch import PairJob
-    from plenopiv.camera import load_camera
-    from plenopiv.config import load_experiment
+    from plenopiv.batch.jobs import PairJob
+    from plenopiv.camera.model import load_camera
+    from plenopiv.config.experiment import load_experiment
     from plenopiv.errors import ConfigError
-    from plenopiv.pipeline import ExperimentPairProcess
+    from plenopiv.workflow.worker import ExperimentPairProcess
 
     cam = load_camera("small_m1")
     Calibration.from_camera(cam).save(tmp_path / "cal.h5")
@@ -700,7 +695,7 @@ def test_bundle_does_not_depend_on_the_order_of_the_light_fields_rays(thesis_lig
     rays running down in u_y, and gives the same bundle (to rounding of the sums' order)."""
     import dataclasses
 
-    from plenopiv.tracking.bundle import lenslet_table
+    from plenopiv.particles.bundle import lenslet_table
 
     cam, cal, lf = thesis_light_field
     perm = rng.permutation(lf.n_rays)

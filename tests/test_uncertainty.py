@@ -11,13 +11,7 @@ import numpy as np
 import pytest
 
 from plenopiv.piv import PIVSettings, VectorField
-from plenopiv.piv.response import (
-    Response,
-    cached_response,
-    placement_offset,
-    response_key,
-    response_shifts,
-)
+from plenopiv.piv.response import Response, response_shifts
 from plenopiv.piv.uncertainty import (
     DEFAULT_RATIO,
     MAX_CONVERGENCE_RATIO,
@@ -32,6 +26,8 @@ from plenopiv.piv.uncertainty import (
     rejected_neighbour_uncertainty,
     unresolved_gradient_bias,
 )
+from plenopiv.products.caches import cached_response, response_key
+from plenopiv.workflow.response import placement_offset
 
 
 def _response(gain_w=0.5, random_w=2e-5, statistics_w=0.0):
@@ -294,7 +290,7 @@ def test_the_window_s_bias_bounds_what_deformation_passes_leave():
     flow less P (exact integrals). For u = a x^2 the vectors converge to u - a h^2/6 =
     u - (h^2/12) u'': half the one-window bias (W^2/24) u'' = a h^2 / 3 that
     unresolved_gradient_bias gives, which therefore bounds it."""
-    from plenopiv.piv.validation import _smooth_predictor
+    from plenopiv.piv.outliers import _smooth_predictor
 
     h, a = 1e-3, 40.0
     x = np.arange(30) * h
@@ -320,7 +316,7 @@ def test_the_window_s_bias_bounds_what_deformation_passes_leave():
 def test_the_number_of_test_displacements_is_a_piv_key_not_a_correlation_setting():
     from pydantic import ValidationError
 
-    from plenopiv.config import PIVConfig
+    from plenopiv.config.experiment import PIVConfig
 
     cfg = PIVConfig(response_displacements=1)
     assert cfg.response_displacements == 1
@@ -558,9 +554,9 @@ def test_a_vector_measured_elsewhere_errs_by_the_gradient_times_the_offset():
 def test_the_placement_of_a_shifted_reconstruction_is_its_shift(rng):
     """Correlating the true particles' volume with a reconstruction that drew every
     particle δ away gives δ in every layer (sub-voxel, each axis its own), in metres."""
-    from plenopiv.pipeline import gaussian_truth_volume
+    from plenopiv.camera.grid import VolumeGrid
     from plenopiv.piv import correlate_volumes
-    from plenopiv.volume import VolumeGrid
+    from plenopiv.synthetic.truth import gaussian_truth_volume
 
     voxel = np.array([50e-6, 50e-6, 100e-6])
     grid = VolumeGrid.from_bounds((0.0, 48 * voxel[0]), (0.0, 48 * voxel[1]),
@@ -636,9 +632,9 @@ def test_the_placement_does_not_depend_on_where_the_voxel_grid_starts(rng):
     """The same particles and the same reconstruction error on a grid shifted by a random
     fraction of a voxel along each axis give the same placement: nothing physical moved
     (per-layer means within 0.15 voxel, their mean within 0.05)."""
-    from plenopiv.pipeline import gaussian_truth_volume
+    from plenopiv.camera.grid import VolumeGrid
     from plenopiv.piv import correlate_volumes
-    from plenopiv.volume import VolumeGrid
+    from plenopiv.synthetic.truth import gaussian_truth_volume
 
     voxel = np.array([50e-6, 50e-6, 100e-6])
     n = np.array([48, 48, 64])
@@ -703,7 +699,8 @@ def test_a_test_pair_s_edge_and_interior_spread_are_measured_apart(rng):
     """The spread of a test pair's vectors is taken about the layer's mean for the edge and
     the interior vectors apart: an edge that errs by 0.3 voxel rms and an exact interior
     give 0.3 and 0 (not 0.2 for both), and the gain is the layer's mean."""
-    from plenopiv.piv.response import _layer_statistics, lateral_edge
+    from plenopiv.piv.response import lateral_edge
+    from plenopiv.workflow.response import _layer_statistics
 
     shape = (2, 5, 6)
     mask = lateral_edge(shape)

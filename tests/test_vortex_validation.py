@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plenopiv.pipeline import footprint
-from plenopiv.validation.vortex import VortexCase, case_camera, run_case
+from plenopiv.camera.resolution import footprint
+from plenopiv.workflow.vortex_case import VortexCase, case_camera, run_case
 
 LATERAL, DEPTH = 0.2, 1.0
 GAIN = (0.8, 1.2)
@@ -148,8 +148,8 @@ def test_a_window_touching_the_volume_s_face_counts_as_inside_wherever_the_grid_
     of a voxel nearer a face does not."""
     from types import SimpleNamespace
 
-    from plenopiv.validation.vortex import inner_vectors
-    from plenopiv.volume import VolumeGrid
+    from plenopiv.camera.grid import VolumeGrid
+    from plenopiv.workflow.vortex_case import inner_vectors
 
     rng = np.random.default_rng(11)
     window = (12, 24, 24)                                  # (z, y, x) voxels

@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from plenopiv import optics
-from plenopiv.camera import CameraModel, apply_misplacement
+from plenopiv.camera import optics
+from plenopiv.camera.model import CameraModel, apply_misplacement
 from plenopiv.errors import CalibrationError
 
 MODELS = ("exact", "paraxial")
@@ -56,7 +56,7 @@ class SpotModel:
 
         ``focal_point_f_number``: the stop of the focal-point image; the model then predicts
         each spot's centroid over that stop rather than its chief ray (they differ through a
-        plate, see :func:`plenopiv.optics.focal_spot_exact`).
+        plate, see :func:`plenopiv.camera.optics.focal_spot_exact`).
         """
         mla = camera.microlens_array
         t = 0.0 if ignore_substrate else camera.plate_thickness

@@ -1,6 +1,6 @@
 """Lenslet centres and the white image: where each lenslet is, and how large its micro-image.
 
-Calibration step 2 (:func:`~plenopiv.calibration.pipeline.calibrate`):
+Calibration step 2 (:func:`~plenopiv.calibration.calibrate.calibrate`):
 
 :func:`lenslet_centres`
     The lenslets that exist and their lattice indices: the spots of the alignment image
@@ -29,7 +29,7 @@ from plenopiv.calibration.lattice_fit import fit_lattice
 from plenopiv.calibration.lattice_quality import check_lattice
 from plenopiv.calibration.spot_detection import detect_spots
 from plenopiv.calibration.spot_types import Lattice, SpotFlag, SpotSet
-from plenopiv.camera import CameraModel
+from plenopiv.camera.model import CameraModel
 from plenopiv.conventions import sensor_to_pixel
 from plenopiv.errors import CalibrationError
 from plenopiv.lightfield import micro_image_diameter_px

@@ -15,7 +15,7 @@ reading, the product's ``image_distance_m`` attribute gives it.
 The product records the camera it was made for: the root attribute ``camera`` (the camera's
 config as JSON: sensor, lattice, main lens with the calibrated S_i) and ``camera_summary``
 (one line: lens focal length, S_i, lattice, sensor). Using it with another camera is an error
-naming both (:func:`plenopiv.pipeline.experiment_calibration`). Files written before these
+naming both (:func:`plenopiv.workflow.experiment.experiment_calibration`). Files written before these
 attributes existed are read from the camera in their ``config`` attribute.
 """
 
@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv import optics
-from plenopiv.camera import CameraModel, camera_from_dict
+from plenopiv.camera import optics
+from plenopiv.camera.model import CameraModel, camera_from_dict
 from plenopiv.conventions import sensor_to_pixel
 from plenopiv.errors import CalibrationError
 from plenopiv.products.hdf5 import open_product, write_h5
@@ -128,7 +128,7 @@ class Calibration:
         """The exact calibration of a modelled camera (chief rays from its exit pupil).
 
         Used for synthetic studies where the truth is known; real data go through
-        :mod:`plenopiv.calibration.pipeline`.
+        :mod:`plenopiv.calibration.calibrate`.
         """
         mla = camera.microlens_array
         centres = mla.centres()

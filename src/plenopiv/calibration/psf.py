@@ -7,7 +7,7 @@ variance to the spot's: per axis ``σ² = (r_measured² - r_model²) / 2``, with
 radius of the stacked spots (:attr:`plenopiv.calibration.spot_types.SpotSet.spot_rms_radius_px`,
 two axes), measured the same way on the focal-point image and on the model's rendering of
 it. The chain's response uncertainty renders its test images with this blur
-(:func:`plenopiv.piv.response.measure_response`): the reconstruction places particles
+(:func:`plenopiv.workflow.response.measure_response`): the reconstruction places particles
 differently in depth when the micro-images are blurred (docs/validation/uncertainty.md).
 """
 

@@ -61,14 +61,7 @@ from plenopiv.calibration.lattice_quality import (
 )
 from plenopiv.calibration.lenslets import micro_image_diameter
 from plenopiv.calibration.spot_detection import detect_spots, estimate_pitch
-from plenopiv.calibration.spot_types import (
-    BACKGROUNDS,
-    GRIDS,
-    METHODS,
-    Lattice,
-    SpotFlag,
-    SpotSet,
-)
+from plenopiv.calibration.spot_types import BACKGROUNDS, GRIDS, METHODS, Lattice, SpotFlag, SpotSet
 
 __all__ = [
     "GRIDS",

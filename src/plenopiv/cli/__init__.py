@@ -36,9 +36,9 @@ from plenopiv.cli import (
     validate,
 )
 from plenopiv.cli._common import _Parser
-from plenopiv.cli._output import _fmt as _fmt  # the formatter, for callers of the package
+from plenopiv.cli._output import _fmt as _fmt
 from plenopiv.cli._output import _print_lines
-from plenopiv.cli._progress import _StageBar as _StageBar  # likewise
+from plenopiv.cli._progress import _StageBar as _StageBar
 from plenopiv.errors import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,

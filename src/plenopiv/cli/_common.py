@@ -17,7 +17,7 @@ from plenopiv.errors import ConfigError, PlenopivError
 from plenopiv.products.files import check_output_path
 
 if TYPE_CHECKING:
-    from plenopiv.camera import CameraModel
+    from plenopiv.camera.model import CameraModel
 
 
 class UsageError(PlenopivError):
@@ -158,7 +158,7 @@ def _remove_stale_temporaries(paths) -> None:
 
 
 def _camera_from_args(args) -> CameraModel:
-    from plenopiv.camera import load_camera
+    from plenopiv.camera.model import load_camera
     from plenopiv.resources import check_sensor
 
     cam = load_camera(args.camera)

@@ -11,7 +11,7 @@ class _Tqdm(tqdm):
     """tqdm without its monitor thread (it only tunes the refresh of bars that stall).
 
     A process that runs one thread may fork its background compilation
-    (:func:`plenopiv.precompile.can_fork`).
+    (:func:`plenopiv.workflow.precompile.can_fork`).
     """
 
     monitor_interval = 0

@@ -49,8 +49,8 @@ def add_parser(sub) -> None:
 
 def cmd_calibrate(args) -> dict:
     """Calibrate a camera from its images and write the calibration product."""
-    from plenopiv.calibration.pipeline import calibrate
-    from plenopiv.camera import load_camera
+    from plenopiv.calibration.calibrate import calibrate
+    from plenopiv.camera.model import load_camera
     from plenopiv.products.images import read_image
     from plenopiv.resources import check_sensor
 
@@ -96,7 +96,7 @@ def cmd_calibrate(args) -> dict:
     report.calibration.save(out, config={"inputs": inputs, "summary": report.summary()})
     summary = {"command": "calibrate", "out": str(out), **report.summary()}
     if not args.no_report:
-        from plenopiv.plots import calibration_report
+        from plenopiv.products.figures import calibration_report
 
         png = out.with_suffix(".png")
         calibration_report(report, fp, png)

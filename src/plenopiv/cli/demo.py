@@ -33,7 +33,7 @@ def cmd_demo(args) -> dict:
     Calibration images -> calibration -> a Lamb-Oseen vortex pair -> two volumes -> 3-D PIV
     -> errors against the truth.
     """
-    from plenopiv.validation.vortex import VortexCase, run_case
+    from plenopiv.workflow.vortex_case import VortexCase, run_case
 
     _seed(args.seed)
     check_output_path(args.out, what="--out", folder=True)

@@ -34,10 +34,10 @@ def add_parser(sub) -> None:
 
 def cmd_piv(args) -> dict:
     """Cross-correlate two volume products into a vector field."""
-    from plenopiv.config import MAX_WINDOW_VOX, PIVConfig, load_experiment
-    from plenopiv.pipeline import correlate, piv_settings
+    from plenopiv.config.experiment import MAX_WINDOW_VOX, PIVConfig, load_experiment
     from plenopiv.piv import MIN_WINDOW_VOX
     from plenopiv.products.volume import load_volume
+    from plenopiv.workflow.pair import correlate, piv_settings
 
     _number("--dt", args.dt, minimum=0, open_min=True, unit="seconds between the exposures")
     for w in args.windows or ():
@@ -58,7 +58,7 @@ def cmd_piv(args) -> dict:
     va, vb = load_volume(args.volume_a), load_volume(args.volume_b)
     mask = None
     if exp is not None:
-        from plenopiv.masks import volume_mask
+        from plenopiv.workflow.masks import volume_mask
 
         mask = volume_mask(exp.mask, va.grid, exp.base_dir)
     # without the calibration and images there is no round trip: correlation statistics only
@@ -75,7 +75,7 @@ def cmd_piv(args) -> dict:
                "uncertainty_method": vec.uncertainty_method,
                "files": [str(f) for f in files]}
     if not args.no_png:
-        from plenopiv.plots import vector_slices
+        from plenopiv.products.figures import vector_slices
 
         title = f"{Path(args.volume_a).name} -> {Path(args.volume_b).name}"
         summary["png"] = str(vector_slices(vec, out.with_suffix(".png"), title=title))

@@ -53,9 +53,9 @@ def _config_table(path: Path) -> dict:
     """The TOML table of ``plan``'s argument; {} for a camera named by a preset name.
 
     A missing ``NAME.toml`` of a preset (the old ``configs/cameras/NAME.toml``) is left to
-    :func:`~plenopiv.camera.load_camera`, whose error names the preset to use.
+    :func:`~plenopiv.camera.model.load_camera`, whose error names the preset to use.
     """
-    from plenopiv.camera import preset_names, read_toml
+    from plenopiv.camera.model import preset_names, read_toml
 
     if path.suffix.lower() != ".toml" or (not path.exists() and path.stem in preset_names()):
         return {}
@@ -64,10 +64,10 @@ def _config_table(path: Path) -> dict:
 
 def cmd_plan(args) -> dict:
     """Resolution, recommended voxels and windows, size, memory and time of a reconstruction."""
-    from plenopiv import planning
-    from plenopiv.camera import load_camera
-    from plenopiv.config import PIVConfig, ReconstructionSettings, experiment_from_dict
-    from plenopiv.volume import volume_from_dict
+    from plenopiv.camera.grid import volume_from_dict
+    from plenopiv.camera.model import load_camera
+    from plenopiv.config.experiment import PIVConfig, ReconstructionSettings, experiment_from_dict
+    from plenopiv.workflow import planning
 
     path = Path(args.config)
     table = _config_table(path)

@@ -27,7 +27,7 @@ def add_parser(sub) -> None:
 
 def cmd_presets(args) -> dict:
     """List the presets, or show one and (with ``--out``) write a copy of its TOML file."""
-    from plenopiv.camera import PRESET_DIR, preset_names
+    from plenopiv.camera.model import PRESET_DIR, preset_names
     from plenopiv.products.files import atomic_path
 
     names = preset_names()
@@ -49,7 +49,7 @@ def cmd_presets(args) -> dict:
 
 def describe_preset(name: str) -> dict:
     """Name, description, file and main figures of the preset ``name`` (lengths in mm)."""
-    from plenopiv.camera import PRESET_DIR, load_camera
+    from plenopiv.camera.model import PRESET_DIR, load_camera
 
     cam = load_camera(name)
     mla, lens = cam.microlens_array, cam.main_lens

@@ -22,10 +22,11 @@ def add_parser(sub) -> None:
 
 def cmd_reconstruct(args) -> dict:
     """Reconstruct one image into a volume with its particle table."""
-    from plenopiv.config import load_experiment
-    from plenopiv.pipeline import experiment_calibration, reconstruct_volume
+    from plenopiv.config.experiment import load_experiment
     from plenopiv.products.images import read_image
     from plenopiv.resources import check_grid
+    from plenopiv.workflow.experiment import experiment_calibration
+    from plenopiv.workflow.volume import reconstruct_volume
 
     exp = load_experiment(args.config)
     inputs = _input_files(args.calibration, args.image, args.config)
@@ -35,7 +36,7 @@ def cmd_reconstruct(args) -> dict:
     check_grid(exp.volume)
     img = read_image(args.image)
     t0 = time.perf_counter()
-    from plenopiv.masks import image_mask
+    from plenopiv.workflow.masks import image_mask
 
     stages = {"weights": 30, "mart": 60, "particles": 10}
     with _StageBar("reconstruct", stages, args.quiet or args.json) as progress:
@@ -53,7 +54,7 @@ def cmd_reconstruct(args) -> dict:
                "image_distance_mm": cal.image_distance * 1e3,
                "timings_s": {k: round(v, 3) for k, v in res.timings.items()}}
     if exp.output.png:
-        from plenopiv.plots import volume_slices
+        from plenopiv.products.figures import volume_slices
 
         png = out.with_suffix(".png")
         volume_slices(res.volume, res.grid.x, res.grid.y, res.grid.z, png,

@@ -24,17 +24,14 @@ def add_parser(sub) -> None:
 
 def cmd_run(args) -> dict:
     """Many pairs end to end on dask (local processes, SLURM, or a running scheduler)."""
-    from plenopiv.batch import (
-        BatchInterrupted,
-        batch_options,
-        check_batch_options,
-        discover_pairs,
-        run_batch,
-    )
-    from plenopiv.config import load_experiment
+    from plenopiv.batch import BatchInterrupted, check_batch_options, run_batch
+    from plenopiv.batch.cluster import batch_options
+    from plenopiv.batch.jobs import discover_pairs
+    from plenopiv.config.experiment import load_experiment
     from plenopiv.errors import ComputationError
-    from plenopiv.pipeline import ExperimentPairProcess, experiment_calibration, prepare_weights
     from plenopiv.resources import check_grid
+    from plenopiv.workflow.experiment import experiment_calibration
+    from plenopiv.workflow.worker import ExperimentPairProcess, prepare_weights
 
     _integer("--workers", args.workers, minimum=1, maximum=4096)
     exp = load_experiment(args.experiment)
@@ -116,8 +113,8 @@ def _with_identities(jobs, exp, cal_path):
     """
     from dataclasses import replace
 
-    from plenopiv.pipeline import settings_identity
     from plenopiv.products.files import file_identity
+    from plenopiv.workflow.experiment import settings_identity
 
     common = {"settings": settings_identity(exp), "calibration": file_identity(cal_path)}
     return [replace(j, identity={**common, "image_a": file_identity(j.image_a),

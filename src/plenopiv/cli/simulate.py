@@ -24,7 +24,7 @@ from plenopiv.errors import ConfigError, ResourceError
 from plenopiv.products.files import check_output_path
 
 if TYPE_CHECKING:
-    from plenopiv.camera import CameraModel
+    from plenopiv.camera.model import CameraModel
 
 
 #: The kinds of ``simulate`` and their help, in the order ``--help`` lists them.
@@ -37,7 +37,7 @@ KINDS = (("focal-point", "white sheet through the stopped-down lens"),
 
 def add_parser(sub) -> None:
     """Add ``simulate`` and its kinds (:data:`KINDS`) to the subcommands ``sub``."""
-    from plenopiv.camera import preset_names
+    from plenopiv.camera.model import preset_names
 
     sim = sub.add_parser("simulate", help="render synthetic plenoptic images by ray tracing")
     simsub = sim.add_subparsers(dest="kind", required=True)

@@ -27,13 +27,13 @@ def add_parser(sub) -> None:
 
 def cmd_track(args) -> dict:
     """Particle tracks of one pair: ray-bundle positions matched with the PIV predictor."""
-    from plenopiv.config import load_experiment
-    from plenopiv.pipeline import experiment_calibration
+    from plenopiv.config.experiment import load_experiment
     from plenopiv.products.images import read_image
+    from plenopiv.products.tracks import save_track_products
     from plenopiv.products.vectors import load_vectors
     from plenopiv.products.volume import load_volume
-    from plenopiv.tracking.pair import track_images
-    from plenopiv.tracking.products import save_track_products
+    from plenopiv.workflow.experiment import experiment_calibration
+    from plenopiv.workflow.tracking import track_images
 
     out = _check_out(args.out, (".h5",))
     exp = load_experiment(args.config)

@@ -55,7 +55,7 @@ def cmd_validate(args) -> dict:
     t0 = time.perf_counter()
     case = args.case
     if case in ("oseen", "hill"):
-        from plenopiv.validation.vortex import VortexCase, run_case
+        from plenopiv.workflow.vortex_case import VortexCase, run_case
 
         s = run_case(VortexCase(flow=case, camera=args.camera, seed=args.seed,
                                 particles_per_lenslet=args.particles_per_lenslet,
@@ -72,7 +72,8 @@ def cmd_validate(args) -> dict:
 
         out = run(args.out)
     elif case == "letters":
-        from plenopiv.validation.letters import find_data_dir, run
+        from plenopiv.validation.letters import run
+        from plenopiv.validation.letters_data import find_data_dir
 
         try:
             data = find_data_dir(args.data)

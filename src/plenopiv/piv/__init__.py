@@ -30,7 +30,7 @@ Modules, in the order the data moves:
 
 The settings and the result are imported with the package; the functions that need numba and
 scipy are imported on first use, so that the experiment configuration
-(:mod:`plenopiv.config`) can take its ``[piv]`` defaults from :class:`PIVSettings` without
+(:mod:`plenopiv.config.experiment`) can take its ``[piv]`` defaults from :class:`PIVSettings` without
 loading them.
 """
 
@@ -63,9 +63,9 @@ __all__ = [
 
 _LAZY = {
     "correlate_volumes": "multipass",
-    "normalized_median_test": "validation",
+    "normalized_median_test": "outliers",
     "particle_image_size": "statistics",
-    "replace_outliers": "validation",
+    "replace_outliers": "outliers",
 }
 """Public functions imported on first use: name -> module of :mod:`plenopiv.piv`."""
 

@@ -42,7 +42,7 @@ def _check_volumes(volume_a, volume_b):
 def _grid_geometry(grid, shape):
     """Return ``origin (x, y, z)`` and ``voxel (dx, dy, dz)`` in metres from ``grid``.
 
-    ``grid`` is a :class:`plenopiv.volume.VolumeGrid` (attributes ``origin``, ``voxel``,
+    ``grid`` is a :class:`plenopiv.camera.grid.VolumeGrid` (attributes ``origin``, ``voxel``,
     ``shape``) or any object with ``origin`` and ``voxel_size`` (and optionally ``shape``).
     """
     name = "voxel_size" if hasattr(grid, "voxel_size") else "voxel"

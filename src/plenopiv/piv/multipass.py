@@ -153,9 +153,9 @@ from plenopiv.piv.inputs import (
     _numba_threads,
     _resolve_workers,
 )
+from plenopiv.piv.outliers import _median_test, _replace, _replace_mean, _smooth_predictor
 from plenopiv.piv.settings import PIVSettings
 from plenopiv.piv.statistics import _correlation_uncertainty, _rejected_uncertainty
-from plenopiv.piv.validation import _median_test, _replace, _replace_mean, _smooth_predictor
 from plenopiv.piv.windows import (
     _centre_mask,
     _deform,
@@ -186,7 +186,7 @@ def correlate_volumes(
     grid : VolumeGrid or similar
         The volumes' grid: ``origin``, the ``(x, y, z)`` centre of voxel ``[0, 0, 0]`` in
         metres, and the voxel edge ``(dx, dy, dz)`` (or one edge) in metres, named ``voxel``
-        as in :class:`plenopiv.volume.VolumeGrid` or ``voxel_size``. If it has ``shape``,
+        as in :class:`plenopiv.camera.grid.VolumeGrid` or ``voxel_size``. If it has ``shape``,
         that must equal the volumes' shape.
     settings : PIVSettings, keyword-only
         Windows, passes, deformation and validation settings; ``PIVSettings()`` if None.

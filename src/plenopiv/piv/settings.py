@@ -1,7 +1,7 @@
 """Validated settings of a multi-pass volumetric cross-correlation (:class:`PIVSettings`).
 
 The settings are the one place where the PIV defaults live: the ``[piv]`` table of an
-experiment file (:class:`plenopiv.config.PIVConfig`) takes its defaults from here.
+experiment file (:class:`plenopiv.config.experiment.PIVConfig`) takes its defaults from here.
 """
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ class PIVSettings:
     Notes
     -----
     The defaults here are the only ones: the ``[piv]`` table of an experiment file
-    (:class:`plenopiv.config.PIVConfig`) reads them from this class and offers every field.
+    (:class:`plenopiv.config.experiment.PIVConfig`) reads them from this class and offers every field.
 
     Examples
     --------

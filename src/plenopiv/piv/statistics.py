@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from plenopiv.piv.validation import _extrapolated_neighbours
+from plenopiv.piv.outliers import _extrapolated_neighbours
 
 #: Below this many window voxels (windows × voxels per window) of the last pass, the
 #: correlation statistics use the plain-NumPy twin of their kernel even with

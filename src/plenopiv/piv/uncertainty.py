@@ -15,7 +15,7 @@ match, and the correlation statistics stay small: on the vortex validations only
 the true depth errors lie within their ±2σ (67-96 % with the last correction added).
 
 This module counts that error of the chain, measured by
-:func:`plenopiv.piv.response.measure_response` (a type-B evaluation from a calibration of the
+:func:`plenopiv.workflow.response.measure_response` (a type-B evaluation from a calibration of the
 measuring system). With the calibrated camera, the
 experiment's grid and every processing setting, it renders (ray tracing,
 :func:`plenopiv.synthetic.images.particle_image`) pairs of random particles moved by known
@@ -33,7 +33,7 @@ as it does the real pair, and tabulates for each layer of vectors (window-centre
 - the rms uncertainty ``s_k`` the correlation statistics with the error the iteration left
   (:func:`iteration_uncertainty`) gave those same test vectors;
 - where the reconstruction places the test particles relative to where they are, per axis
-  (:func:`plenopiv.piv.response.placement_offset`);
+  (:func:`plenopiv.workflow.response.placement_offset`);
 - the spread and statistics of the vectors on a layer's lateral edge apart from its interior
   ones (:func:`plenopiv.piv.response.lateral_edge`);
 - the gain of each component for a displacement that varies sinusoidally along each axis
@@ -84,7 +84,7 @@ displacement and:
   reconstruction places particles off their true positions (by about 1 % of the distance
   from the focal plane in depth on the Auburn optics), so a window reports the displacement
   of particles from elsewhere; the offset per layer is measured on the test pairs
-  (:func:`plenopiv.piv.response.placement_offset`), the error is it times the measured
+  (:func:`plenopiv.workflow.response.placement_offset`), the error is it times the measured
   field's gradient.
 
 The response depends on the camera, the grid, the seeding and the settings, not on the
@@ -351,7 +351,7 @@ def filter_offset(disp):
     -------
     ndarray, shape (3, nz, ny, nx)
         :math:`d - S(d)`, with :math:`S` the predictor's binomial filter ``[1, 2, 1] / 4``
-        per axis (:func:`plenopiv.piv.validation._smooth_predictor`).
+        per axis (:func:`plenopiv.piv.outliers._smooth_predictor`).
 
     Notes
     -----
@@ -363,7 +363,7 @@ def filter_offset(disp):
     the filter's offset, not an error left by the iteration; the window-average bias of
     the same curvature is :func:`unresolved_gradient_bias`.
     """
-    from plenopiv.piv.validation import _smooth_predictor
+    from plenopiv.piv.outliers import _smooth_predictor
 
     d = np.nan_to_num(np.asarray(disp, float), nan=0.0)
     return d - _smooth_predictor(d)

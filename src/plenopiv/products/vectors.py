@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.corrections import DepthCorrection
+from plenopiv.camera.corrections import DepthCorrection
 from plenopiv.errors import ConfigError, ReconstructionError
 from plenopiv.products.files import atomic_path
 from plenopiv.products.hdf5 import cf_axes, open_product, write_h5

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.corrections import DepthCorrection
+from plenopiv.camera.corrections import DepthCorrection
+from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.products.hdf5 import cf_axes, open_product, write_h5
-from plenopiv.volume import VolumeGrid
 
 
 @dataclass(frozen=True)

@@ -25,13 +25,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import CameraModel
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.resolution import footprint
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField, light_field
-from plenopiv.volume import VolumeGrid
 
 __all__ = ["CELLS_PER_FOOTPRINT", "SEPARABLE_TOLERANCE", "SLAB_VOXELS", "WEIGHTS_VERSION",
-           "ProjectionGeometry", "check_grid_in_view", "footprint", "separable_axes",
+           "ProjectionGeometry", "check_grid_in_view", "separable_axes",
            "subcell_factors", "weights_key"]
 
 #: Version of the beam model in the weights' key: weights cached by an older model are
@@ -51,11 +51,6 @@ CELLS_PER_FOOTPRINT = 2
 #: Refined voxels per depth slab (bounds the memory of one refined projection: with the
 #: lattice projector its buffer is slices × refined rows × sensor columns float32).
 SLAB_VOXELS = 20_000_000
-
-
-def footprint(camera: CameraModel) -> float:
-    """Lenslet footprint on the nominal focal plane, p_m S_o/S_i, metres."""
-    return camera.microlens_array.pitch * camera.object_distance / camera.image_distance
 
 
 def subcell_factors(grid: VolumeGrid, footprint: float) -> tuple[int, int]:

@@ -32,12 +32,12 @@ import math
 import numpy as np
 
 from plenopiv._threads import run_slices
+from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import lattice as _k
 from plenopiv.reconstruction.geometry import SEPARABLE_TOLERANCE, separable_axes
 from plenopiv.reconstruction.projector import CachedSums, _as_vector
-from plenopiv.volume import VolumeGrid
 
 __all__ = ["LatticeProjector", "separable_axes"]
 

@@ -34,11 +34,11 @@ import math
 import numba
 import numpy as np
 
+from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import real_lattice as _k
 from plenopiv.reconstruction.projector import CachedSums, _as_vector
-from plenopiv.volume import VolumeGrid
 
 __all__ = ["LensletProjector", "estimate_lenslet_gb", "lenslet_weights_reference",
            "matrix_free_projector"]

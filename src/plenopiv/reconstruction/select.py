@@ -15,6 +15,7 @@ from pathlib import Path
 import h5py
 
 from plenopiv.calibration.model import Calibration
+from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.products.hdf5 import write_h5
@@ -30,7 +31,6 @@ from plenopiv.reconstruction.geometry import (
 from plenopiv.reconstruction.projector import SparseProjector
 from plenopiv.reconstruction.real_lattice import estimate_lenslet_gb, matrix_free_projector
 from plenopiv.reconstruction.weights import Weights, _kernel_args, build_weights
-from plenopiv.volume import VolumeGrid
 
 __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "cached_weights", "choose_projector",
            "estimate_matrix_free_gb", "estimate_nnz", "memory_budget_gb", "weights_key"]

@@ -31,10 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.reconstruction._kernels import sightline as _ks
-from plenopiv.reconstruction.geometry import (  # noqa: F401 - also importable from here
-    CELLS_PER_FOOTPRINT,
+from plenopiv.reconstruction.geometry import (
     SLAB_VOXELS,
     ProjectionGeometry,
     separable_axes,
@@ -42,7 +42,6 @@ from plenopiv.reconstruction.geometry import (  # noqa: F401 - also importable f
 )
 from plenopiv.reconstruction.lattice import LatticeProjector
 from plenopiv.reconstruction.real_lattice import LensletProjector
-from plenopiv.volume import VolumeGrid
 
 __all__ = ["SightLine", "subcell_factors", "refined_grid", "pool_min", "subcell_line_of_sight",
            "subcell_sightline"]

@@ -2,7 +2,7 @@
 
 Row i of the weight matrix W is the ray of lit pixel i of a
 :class:`~plenopiv.lightfield.LightField`;
-column j is voxel j of a :class:`~plenopiv.volume.VolumeGrid` (flat ``[z, y, x]`` order).
+column j is voxel j of a :class:`~plenopiv.camera.grid.VolumeGrid` (flat ``[z, y, x]`` order).
 ``W[i, j]`` is the fraction of the light of a particle spread uniformly over voxel j that
 reaches pixel i, in the simulator's units (a particle of energy 1 gives an image summing to 1),
 so that I = W E for a volume E of particle energies.
@@ -30,18 +30,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import weights as K
-from plenopiv.reconstruction.geometry import (  # noqa: F401 - also importable from here
-    WEIGHTS_VERSION,
-    ProjectionGeometry,
-    check_grid_in_view,
-)
+from plenopiv.reconstruction.geometry import ProjectionGeometry, check_grid_in_view
 from plenopiv.reconstruction.lattice import LatticeProjector
 from plenopiv.reconstruction.projector import Projector, SparseProjector
 from plenopiv.reconstruction.real_lattice import LensletProjector
-from plenopiv.volume import VolumeGrid
 
 
 @dataclass(frozen=True)
@@ -165,19 +161,3 @@ def weights_reference(lf: LightField, grid: VolumeGrid, rows) -> np.ndarray:
             w = lf.lit[i] * (lf.cell * be) ** 2 / (area * grid.voxel[0] * grid.voxel[1])
             out[r, iz * ny * nx:(iz + 1) * ny * nx] = (w * fy[:, None] * fx[None, :]).ravel()
     return out
-
-
-
-#: Names that moved to :mod:`plenopiv.reconstruction.select` (projector choice, memory
-#: estimates, the weights cache), still importable from here.
-_MOVED_TO_SELECT = ("BYTES_PER_NONZERO", "PROJECTORS", "cached_weights", "choose_projector",
-                    "estimate_matrix_free_gb", "estimate_nnz", "memory_budget_gb", "weights_key")
-
-
-def __getattr__(name: str):
-    """The names of :data:`_MOVED_TO_SELECT`, from :mod:`plenopiv.reconstruction.select`."""
-    if name in _MOVED_TO_SELECT:
-        from plenopiv.reconstruction import select
-
-        return getattr(select, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from plenopiv.camera import CameraModel
+from plenopiv.camera.model import CameraModel
 from plenopiv.errors import ConfigError
 from plenopiv.synthetic.tracer import (
     Progress,

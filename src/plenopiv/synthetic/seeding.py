@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from plenopiv.camera import CameraModel
+from plenopiv.camera.model import CameraModel
 from plenopiv.errors import ConfigError
 from plenopiv.synthetic.flows import advect
 from plenopiv.synthetic.images import field_of_view, particle_image

@@ -15,9 +15,9 @@ import numpy as np
 from scipy import ndimage
 
 from plenopiv._threads import run_slices
-from plenopiv.camera import CameraModel
+from plenopiv.camera.model import CameraModel
+from plenopiv.camera.optics import chief_ray_tangent
 from plenopiv.errors import ConfigError
-from plenopiv.optics import chief_ray_tangent
 from plenopiv.synthetic import _kernels as K
 
 Progress = Callable[[int], None] | None

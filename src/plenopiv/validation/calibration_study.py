@@ -7,7 +7,7 @@ The focal-point images are rendered the way an independent tracer (and a real ca
 them (issue #10): a Gaussian PSF of sigma 0.5 px, each ray splatted by area onto the four
 nearest pixel centres (or integrated over its pixel), a non-integer pitch (16.89 px) so that
 every spot sits at another sub-pixel phase, the stop in the main-lens plane. Each image is
-calibrated by :func:`~plenopiv.calibration.pipeline.calibrate` against the nominal lattice,
+calibrated by :func:`~plenopiv.calibration.calibrate.calibrate` against the nominal lattice,
 with the spot-centre estimator before issue #10 (thresholded centroid, no phase terms:
 "old") and the one after it (window centroid and the lattice's phase-bias terms, the
 defaults: "new").
@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
+from plenopiv.calibration.calibrate import calibrate
 from plenopiv.calibration.image_distance import SpotModel, fit_focal_points
-from plenopiv.calibration.pipeline import calibrate
-from plenopiv.camera import CameraModel, Substrate, load_camera
+from plenopiv.camera.model import CameraModel, Substrate, load_camera
 from plenopiv.conventions import pixel_to_sensor
 from plenopiv.synthetic.images import finish_image, focal_point_image
 from plenopiv.validation.report import pyplot, savefig, write_json, write_text

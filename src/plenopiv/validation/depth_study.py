@@ -44,15 +44,15 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import CameraModel, ExternalInterface, Sensor, Substrate, load_camera
-from plenopiv.config import ParticleSettings, ReconstructionSettings
-from plenopiv.corrections import DepthCorrection
+from plenopiv.camera.corrections import DepthCorrection
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import CameraModel, ExternalInterface, Sensor, Substrate, load_camera
+from plenopiv.config.experiment import ParticleSettings, ReconstructionSettings
 from plenopiv.errors import ReconstructionError
-from plenopiv.pipeline import reconstruct_volume
-from plenopiv.reconstruction.weights import cached_weights
+from plenopiv.reconstruction.select import cached_weights
 from plenopiv.synthetic.images import particle_image
 from plenopiv.validation.report import write_json, write_text
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.volume import reconstruct_volume
 
 #: Particle extraction of this study (fixed, so that its tables stay reproducible): the
 #: library's defaults when it was written.
@@ -308,7 +308,7 @@ def study_grid(effective_depths, *, half_xy: float = HALF_XY, voxel: float = VOX
 def dark_fraction(weights, calibration, settings, image, voxel_index: int) -> float:
     """Return the soft line-of-sight mask's dark fraction at one voxel (best-lit sub-cell).
 
-    The quantity that :func:`plenopiv.pipeline.reconstruct_volume` compares with
+    The quantity that :func:`plenopiv.workflow.volume.reconstruct_volume` compares with
     ``[reconstruction] dark_tolerance`` (:mod:`plenopiv.reconstruction.sightline`): over the
     voxel's lateral sub-cells (≤ half a footprint), the smallest Σ_dark ŵ_ic / Σ_all ŵ_ic, with
     ŵ the weights scaled to a row maximum of 1 and "dark" meaning at or below
@@ -324,8 +324,8 @@ def dark_fraction(weights, calibration, settings, image, voxel_index: int) -> fl
     voxel_index : int
         Flat ``[z, y, x]`` index of the voxel.
     """
+    from plenopiv.camera.resolution import footprint
     from plenopiv.lightfield import light_field
-    from plenopiv.pipeline import footprint
     from plenopiv.reconstruction.sightline import subcell_line_of_sight
 
     _, row_scale = weights.normalised

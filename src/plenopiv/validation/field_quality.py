@@ -4,14 +4,14 @@ A 61 × 91-lenslet patch of the Auburn camera with the 50 mm lens at M = -1 (S_i
 100 mm, f/2.2: the micro-images nearly fill the lenslets, no substrate) records random
 particles seeded over its field of view and ±5 mm in depth, rendered by the ray tracer
 (:func:`~plenopiv.synthetic.images.particle_image`). Each image is reconstructed by
-:func:`~plenopiv.pipeline.reconstruct_volume` on a grid aligned with the lenslet footprints and
+:func:`~plenopiv.workflow.volume.reconstruct_volume` on a grid aligned with the lenslet footprints and
 compared with the truth:
 
 - Q = Σ E E* / sqrt(Σ E² Σ E*²) against Gaussian blobs at the true positions
-  (:func:`~plenopiv.pipeline.gaussian_truth_volume`), for several blob sizes, one of them
+  (:func:`~plenopiv.synthetic.truth.gaussian_truth_volume`), for several blob sizes, one of them
   matched to the reconstruction of isolated particles (:func:`matched_sigma`);
 - detection rate, ghost rate, position error per axis and depth elongation of the particles
-  that :func:`~plenopiv.particles.find_particles` extracts, matched one-to-one to the true
+  that :func:`~plenopiv.particles.peaks.find_particles` extracts, matched one-to-one to the true
   particles within the camera's resolution cell (:func:`resolution_cell`).
 
 The stage functions take arrays and small parameter objects and return arrays or dicts;
@@ -33,22 +33,20 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.camera import CameraModel, load_camera
-from plenopiv.config import ParticleSettings, ReconstructionSettings
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import CameraModel, load_camera
+from plenopiv.camera.resolution import footprint, resolution_cell
+from plenopiv.config.experiment import ParticleSettings, ReconstructionSettings
 from plenopiv.conventions import world_to_voxel
 from plenopiv.errors import ReconstructionError
-from plenopiv.pipeline import (
-    VolumeResult,
-    footprint,
-    gaussian_truth_volume,
-    reconstruct_volume,
-    resolution_cell,
-)
-from plenopiv.reconstruction.weights import Weights, cached_weights
+from plenopiv.products.volume import VolumeResult
+from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.weights import Weights
 from plenopiv.synthetic.images import finish_image, particle_image
 from plenopiv.synthetic.seeding import SeedingBox, random_particles
+from plenopiv.synthetic.truth import gaussian_truth_volume
 from plenopiv.validation.report import write_json, write_text
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.volume import reconstruct_volume
 
 #: Densities of the main table, particles per lenslet.
 DENSITIES = (0.05, 0.1, 0.2, 0.3)
@@ -298,7 +296,7 @@ def score(result: VolumeResult, positions, *, tolerance, sigmas: dict, region: R
     Parameters
     ----------
     result : VolumeResult
-        Volume and particles from :func:`~plenopiv.pipeline.reconstruct_volume`.
+        Volume and particles from :func:`~plenopiv.workflow.volume.reconstruct_volume`.
     positions : (N, 3) array_like
         True particle positions, metres.
     tolerance : (3,) array_like
@@ -418,7 +416,7 @@ def particle_settings(grid: VolumeGrid, camera: CameraModel, *,
 def reconstruct_and_score(calibration: Calibration, image, weights: Weights, positions, *,
                           settings: ReconstructionSettings, particles: ParticleSettings,
                           tolerance, sigmas: dict, region: Region):
-    """Run :func:`~plenopiv.pipeline.reconstruct_volume` and :func:`score`.
+    """Run :func:`~plenopiv.workflow.volume.reconstruct_volume` and :func:`score`.
 
     Returns ``(row, volume)``. A reconstruction that fails gives a row holding ``"error"`` and
     a None volume instead of raising, so that one case cannot stop a study.
@@ -728,7 +726,7 @@ def run(out: str | Path, *, rows: int = 61, cols: int = 91, densities=DENSITIES,
 def slice_panels(volumes: dict, grid: VolumeGrid, positions, sigmas: dict) -> list[tuple]:
     """The x-z slab figure's panels: ``(name, volume)``, the truth blobs first.
 
-    The truth is :func:`~plenopiv.pipeline.gaussian_truth_volume` of ``positions`` with the
+    The truth is :func:`~plenopiv.synthetic.truth.gaussian_truth_volume` of ``positions`` with the
     matched blob (the cell blob where no matched one was found); the reconstructions follow in
     the order of ``volumes``, failed ones (None) left out.
     """

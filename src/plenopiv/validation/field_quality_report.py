@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.config import ReconstructionSettings
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.conventions import world_to_voxel
 from plenopiv.validation.field_quality import ITERATIONS, METHODS
 from plenopiv.validation.report import pyplot, savefig
-from plenopiv.volume import VolumeGrid
 
 _COLUMNS = ("| ppl | reconstruction | Q cell | Q matched | Q MLOS-blob | detection | ghosts "
             "(near) | bias x, y, z (µm) | rms x, y, z (µm) | elongation | focal-slab E² "

@@ -34,24 +34,16 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage as ndi
 
+from plenopiv.calibration.lattice_fit import fit_lattice
+from plenopiv.calibration.lenslets import micro_image_diameter as _micro_image_diameter
 from plenopiv.calibration.model import Calibration
-from plenopiv.calibration.spots import Lattice, SpotFlag, detect_spots, fit_lattice
-from plenopiv.calibration.spots import micro_image_diameter as _micro_image_diameter
-from plenopiv.camera import camera_from_dict
+from plenopiv.calibration.spot_detection import detect_spots
+from plenopiv.calibration.spot_types import Lattice, SpotFlag
+from plenopiv.camera.model import camera_from_dict
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
 from plenopiv.lightfield import LightField, light_field, perspective_view, refocus
-from plenopiv.validation.letters_data import (  # noqa: F401  (re-exported: the study's data)
-    DATA_NAME,
-    DATA_SOURCE,
-    FILES,
-    LettersData,
-    data_candidates,
-    default_data_dir,
-    find_data_dir,
-    load_letters,
-    read_optics,
-)
+from plenopiv.validation.letters_data import DATA_NAME, LettersData, load_letters
 from plenopiv.validation.report import write_json, write_text
 
 #: Lattice rows and columns (of this calibration's grid index) holding the two "ab" words,

@@ -12,12 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.validation.letters import (
-    LETTERS_ROI,
-    SOURCE_ALPHA,
-    plenopiv_alpha,
-    source_alpha,
-)
+from plenopiv.validation.letters import LETTERS_ROI, SOURCE_ALPHA, plenopiv_alpha, source_alpha
 from plenopiv.validation.report import pyplot, savefig
 
 #: Where each perspective view sits in the 3 × 3 panel grid of the views figure.

@@ -14,7 +14,7 @@ import numpy as np
 
 from plenopiv.validation.report import write_json, write_text
 from plenopiv.validation.tracking_study import measure_case, measure_single_particles
-from plenopiv.validation.vortex import VortexCase
+from plenopiv.workflow.vortex_case import VortexCase
 
 #: Seeding densities of the sweep, particles per lenslet.
 DENSITIES = (0.05, 0.1, 0.15, 0.2, 0.3)
@@ -223,7 +223,7 @@ def _summary(result: dict) -> list[str]:
 #: The "Reading" section: what the figures mean and where the depth error came from.
 READING = ["## Reading", "",
           "- Positions of the tracks are ray-bundle positions refined by the forward model "
-          "(`plenopiv.tracking.forward`, `[tracking] forward_refine`); the single-particle "
+          "(`plenopiv.particles.forward`, `[tracking] forward_refine`); the single-particle "
           "table gives both. The position columns below (A particles of the correct "
           "tracks) are the refined positions against the volume centroids. Within one "
           "depth cell of focus the refinement searches joint depth x lateral grids; beyond, "

@@ -3,8 +3,8 @@
 Two measurements (stage functions: cases in, dicts of numbers out; no files):
 
 :func:`measure_case`
-    one Oseen or Hill pair of :mod:`plenopiv.validation.vortex` (calibration from images,
-    reconstruction, correlation) tracked by :func:`plenopiv.tracking.pair.track_pair`:
+    one Oseen or Hill pair of :mod:`plenopiv.workflow.vortex_case` (calibration from images,
+    reconstruction, correlation) tracked by :func:`plenopiv.workflow.tracking.track_pair`:
     fraction of the true particles tracked, wrong-match rate, displacement error per axis
     of the tracks and of the correlation (on its grid and interpolated at the particles),
     position error per axis of the bundle fits and of the volume centroids, and how often
@@ -24,9 +24,10 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from plenopiv.calibration.calibrate import calibrate
 from plenopiv.calibration.model import Calibration
-from plenopiv.calibration.pipeline import calibrate
-from plenopiv.config import (
+from plenopiv.camera.resolution import resolution_cell
+from plenopiv.config.experiment import (
     Experiment,
     ImagesConfig,
     OutputConfig,
@@ -34,7 +35,8 @@ from plenopiv.config import (
     TrackingConfig,
 )
 from plenopiv.lightfield import light_field
-from plenopiv.pipeline import process_pair, reconstruct_volume, resolution_cell
+from plenopiv.particles.bundle import bundle_positions
+from plenopiv.particles.forward import refine_positions
 from plenopiv.synthetic.images import (
     Ruler,
     alignment_image,
@@ -45,11 +47,12 @@ from plenopiv.synthetic.images import (
     ruler_image,
 )
 from plenopiv.synthetic.seeding import SeedingBox, particle_count, simulate_pair
-from plenopiv.tracking.bundle import bundle_positions
-from plenopiv.tracking.forward import refine_positions
 from plenopiv.tracking.matching import interpolate_displacement
-from plenopiv.tracking.pair import bin_tracks, track_pair
-from plenopiv.validation.vortex import (
+from plenopiv.tracking.tracks import bin_tracks
+from plenopiv.workflow.pair import process_pair
+from plenopiv.workflow.tracking import track_pair
+from plenopiv.workflow.volume import reconstruct_volume
+from plenopiv.workflow.vortex_case import (
     VortexCase,
     _flow,
     aligned_grid,
@@ -145,7 +148,7 @@ def measure_case(case: VortexCase) -> dict:
         were each seen through more than one lenslet, ``off_focus_fraction`` of them),
         ``track_within_2sigma`` (fraction within ±2 reported uncertainties),
         ``piv_grid_rms_vox`` (correlation against the flow on its grid,
-        :func:`~plenopiv.validation.vortex.compare_with_truth`), ``piv_at_tracks_rms_vox``
+        :func:`~plenopiv.workflow.vortex_case.compare_with_truth`), ``piv_at_tracks_rms_vox``
         (correlation interpolated at the correct tracks' mid-points against their true
         displacement), ``binned_rms_vox`` (tracks binned on the PIV grid against the flow),
         ``position_rms_vox`` for ``bundle`` and ``centroid`` (A particles of the correct
@@ -249,17 +252,12 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
     dict
         Per depth: ``depth_m``, ``centroid_error_m``, ``bundle_error_m`` and
         ``refined_error_m`` (the bundle position refined by
-        :func:`plenopiv.tracking.forward.refine_positions`, as the tracks use it) (N, 3, NaN
+        :func:`plenopiv.particles.forward.refine_positions`, as the tracks use it) (N, 3, NaN
         where no particle was found), ``bundle_sigma_m`` (N, 3), ``n_lenslets``; summaries
         ``rms_mm`` for centroid, bundle and refined per axis, ``within_2sigma`` (bundle).
     """
-    from plenopiv.reconstruction.weights import cached_weights
-    from plenopiv.validation.depth_study import (
-        STUDY_PARTICLES,
-        VOXEL,
-        study_grid,
-        thesis_camera,
-    )
+    from plenopiv.reconstruction.select import cached_weights
+    from plenopiv.validation.depth_study import STUDY_PARTICLES, VOXEL, study_grid, thesis_camera
 
     cam = thesis_camera() if camera is None else camera
     depths = np.asarray(depths, float)

@@ -3,7 +3,7 @@
 The share of true errors within ±2σ, per component, on both flows, two lateral voxels, two
 seedings, two camera patches and two seeds.
 
-Every case runs the whole chain (:func:`plenopiv.validation.vortex.run_case`: calibration
+Every case runs the whole chain (:func:`plenopiv.workflow.vortex_case.run_case`: calibration
 images -> calibration -> pair -> volumes -> 3-D PIV with the default ``[piv] uncertainty =
 "response"``). The coverage is counted over the valid vectors at least half a window inside
 the volume, against the flow's displacement at the window centres, for three stages of the
@@ -31,12 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.config import PIVConfig
+from plenopiv.config.experiment import PIVConfig
 from plenopiv.products.hdf5 import open_product
 from plenopiv.products.vectors import VectorResult
-from plenopiv.validation.accuracy import gain_bias_rms
 from plenopiv.validation.report import pyplot, savefig, write_json, write_text
-from plenopiv.validation.vortex import (
+from plenopiv.workflow.accuracy import gain_bias_rms
+from plenopiv.workflow.vortex_case import (
     VortexCase,
     case_flow,
     coverage,
@@ -83,10 +83,10 @@ STAGE_LABELS = {"correlation": "correlation statistics",
 
 def evaluate_case(label: str, case: VortexCase, work: Path) -> dict:
     """Run one case; coverage per stage and component, and the errors in units of σ."""
-    from plenopiv.pipeline import piv_settings
     from plenopiv.piv import correlate_volumes
     from plenopiv.piv.uncertainty import iteration_uncertainty
     from plenopiv.products.volume import load_volume
+    from plenopiv.workflow.pair import piv_settings
 
     name = re.sub(r"[^0-9A-Za-z]+", "_", label).strip("_").lower()
     t0 = time.perf_counter()
@@ -732,7 +732,7 @@ METHOD = [
     "figure, 1.3 points below the band's top: that σ is conservative there, as the split "
     "above says, and about half of Hill's realisations go over on u or v.",
     "- This table counts a window touching a face of the volume as inside (a millionth "
-    "of a voxel of rounding allowed, `plenopiv.validation.vortex.inner_vectors`); before, "
+    "of a voxel of rounding allowed, `plenopiv.workflow.vortex_case.inner_vectors`); before, "
     "the patch's outer layers, exactly half a window in, were kept or dropped by float "
     "rounding (Hill's patch 396 vectors instead of 473, its w 98.7 % instead of 97.5 %; the "
     "counts of the item on term 4's border and term 5's reach above are on 473).",

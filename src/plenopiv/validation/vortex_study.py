@@ -1,8 +1,8 @@
 """Whole-chain accuracy on vortex flows, with the depth component measured at its true size.
 
-Every case runs the whole chain of :func:`plenopiv.validation.vortex.run_case` (calibration
+Every case runs the whole chain of :func:`plenopiv.workflow.vortex_case.run_case` (calibration
 images -> calibration -> pair -> volumes -> 3-D PIV) and is scored by
-:func:`~plenopiv.validation.vortex.compare_with_truth`: per component the **gain** (the
+:func:`~plenopiv.workflow.vortex_case.compare_with_truth`: per component the **gain** (the
 least-squares slope of measured on true displacement), the bias and the rms, in voxels,
 overall and in three bands of |Z| (distance from the focal plane). Four series:
 
@@ -37,13 +37,14 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.config import ReconstructionSettings
-from plenopiv.pipeline import footprint, gaussian_truth_volume
+from plenopiv.camera.resolution import footprint
+from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.piv.response import cell_blob_vox
 from plenopiv.products.volume import load_volume
 from plenopiv.synthetic.seeding import SeedingBox
+from plenopiv.synthetic.truth import gaussian_truth_volume
 from plenopiv.validation.report import write_json, write_text
-from plenopiv.validation.vortex import (
+from plenopiv.workflow.vortex_case import (
     VortexCase,
     _flow,
     case_camera,
@@ -367,9 +368,9 @@ def depth_response(*, seed: int = 1, depths_mm=RESPONSE_DEPTHS_MM, progress=prin
     study's point spread. Per particle and depth: the depth of its column
     (:func:`column_depth`) minus the true depth; summarised by :func:`response_by_band`.
     """
-    from plenopiv.pipeline import reconstruct_volume
     from plenopiv.synthetic.images import finish_image, particle_image
-    from plenopiv.validation.vortex import aligned_grid
+    from plenopiv.workflow.volume import reconstruct_volume
+    from plenopiv.workflow.vortex_case import aligned_grid
 
     t0 = time.perf_counter()
     case = VortexCase(seed=seed)
@@ -590,7 +591,7 @@ def markdown(r: dict) -> str:
         "deformation) -> comparison with the flow's displacement at the window centres "
         "(valid vectors at least half a window inside the volume).",
         "- **Gain**: the least-squares slope of measured on true displacement "
-        "(`plenopiv.validation.accuracy.gain_bias_rms`), 1 for a measurement at true size; "
+        "(`plenopiv.workflow.accuracy.gain_bias_rms`), 1 for a measurement at true size; "
         "a bias and an rms alone hide a component measured at a fraction of its size. "
         "Figures per component in voxels (lateral voxel for u, v; depth voxel for w), "
         "overall and in three bands of |Z| (distance from the focal plane, window "

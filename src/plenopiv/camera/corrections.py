@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plenopiv.camera import CameraModel
+from plenopiv.camera.model import CameraModel
 from plenopiv.errors import ConfigError
 
 

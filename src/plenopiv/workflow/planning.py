@@ -3,7 +3,7 @@
 From a camera and a box this module computes, without reconstructing anything:
 
 * the resolution cell: one lenslet footprint b = p_m S_o/S_i laterally and b S_o/D in depth
-  (:func:`plenopiv.pipeline.resolution_cell`), and the near-focus zone |Z| < b S_o/D, where a
+  (:func:`plenopiv.camera.resolution.resolution_cell`), and the near-focus zone |Z| < b S_o/D, where a
   particle's blur on the focal plane (D |Z|/S_o) is smaller than one footprint, so that it lights
   one lenslet and its depth motion is under-measured (docs/validation/vortex.md);
 * the recommended voxel and PIV windows for this camera: the settings that met the vortex
@@ -35,10 +35,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plenopiv.camera import CameraModel
-from plenopiv.config import PIVConfig, ReconstructionSettings
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import CameraModel
+from plenopiv.config.experiment import PIVConfig, ReconstructionSettings
 from plenopiv.errors import ConfigError
-from plenopiv.volume import VolumeGrid
 
 #: Lateral voxel per lenslet footprint: half-footprint voxels remove the peak locking of
 #: footprint voxels (bias 0.000 instead of -0.10 footprint, docs/validation/vortex.md).
@@ -55,7 +55,7 @@ WINDOW_DEPTH_CELLS = (3.6, 2.7)
 VALIDATED_PARTICLES_PER_LENSLET = 0.15
 
 #: Bytes of an explicit reconstruction per non-zero weight
-#: (:data:`plenopiv.reconstruction.weights.BYTES_PER_NONZERO`).
+#: (:data:`plenopiv.reconstruction.select.BYTES_PER_NONZERO`).
 BYTES_PER_NONZERO = 20
 #: Bytes per ray while the light field is built (temporaries included; measured on the Auburn
 #: camera: 2.9 GB peak for 11.6 million rays).
@@ -229,7 +229,7 @@ def _mm(mm: float) -> str:
 
 def camera_resolution(camera: CameraModel, f_number: float | None = None) -> Camera:
     """Footprint, depth cell, near-focus zone and field of view of ``camera`` (effective)."""
-    from plenopiv.pipeline import resolution_cell
+    from plenopiv.camera.resolution import resolution_cell
     from plenopiv.synthetic.images import field_of_view
 
     n = camera.main_lens.f_number if f_number is None else f_number
@@ -496,8 +496,8 @@ def _measure_piv(cfg: PIVConfig, grid: VolumeGrid, budget_s: float) -> tuple[flo
     Correlations of two random particle volumes of two and three first windows a side (the
     grid where smaller), after a small run that compiles the kernels.
     """
-    from plenopiv.pipeline import piv_settings
     from plenopiv.piv import correlate_volumes
+    from plenopiv.workflow.pair import piv_settings
 
     rng = np.random.default_rng(1)
     points = []
@@ -556,7 +556,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     the defaults). ``rates``: :func:`measure_rates` (this machine) or
     :data:`BENCHMARK_RATES` (default).
     """
-    from plenopiv.reconstruction.weights import memory_budget_gb
+    from plenopiv.reconstruction.select import memory_budget_gb
 
     reconstruction = reconstruction or ReconstructionSettings()
     piv = piv or PIVConfig()

@@ -60,7 +60,7 @@ DEFAULT_CHILDREN = (("calibration", "piv"), ("reconstruction",))
 
 def rehearsal_grid(grid, shape):
     """A grid of ``grid``'s voxels about its centre, at most ``shape`` (z, y, x) voxels."""
-    from plenopiv.volume import VolumeGrid
+    from plenopiv.camera.grid import VolumeGrid
 
     n = np.minimum(np.asarray(grid.shape), np.asarray(shape))                    # z, y, x
     centre = np.asarray(grid.origin) + 0.5 * (np.asarray(grid.shape[::-1]) - 1) * grid.voxel
@@ -71,7 +71,7 @@ def rehearsal_grid(grid, shape):
 
 def rehearsal_experiment(experiment, grid):
     """``experiment`` on ``grid``, without its masks and its weights cache (nothing written)."""
-    from plenopiv.config import MaskConfig
+    from plenopiv.config.experiment import MaskConfig
 
     return replace(experiment, volume=grid, mask=MaskConfig(),
                    output=experiment.output.model_copy(update={"weights_cache": ""}))
@@ -127,7 +127,8 @@ def rehearse_reconstruction(calibration, experiment) -> None:
     The image is a volume of Gaussian blobs projected by the run's own kind of projector, so
     the reconstruction finds particles and fits their light-field positions.
     """
-    from plenopiv.pipeline import PairProcessor, reconstruct_volume
+    from plenopiv.workflow.pair import PairProcessor
+    from plenopiv.workflow.volume import reconstruct_volume
 
     grid = rehearsal_grid(experiment.volume, (RECONSTRUCTION_EDGE,) * 3)
     tiny = rehearsal_experiment(experiment, grid)
@@ -142,8 +143,8 @@ def rehearse_reconstruction(calibration, experiment) -> None:
 
 def rehearse_piv(calibration, experiment) -> None:
     """Correlate two tiny volumes of Gaussian blobs with the run's PIV settings."""
-    from plenopiv.pipeline import piv_settings
     from plenopiv.piv import correlate_volumes
+    from plenopiv.workflow.pair import piv_settings
 
     settings = piv_settings(experiment.piv)
     first = np.asarray(settings.windows[0])
@@ -163,7 +164,7 @@ def kernels_cached() -> bool:
     cache that holds them was filled by a run before.
     """
     try:
-        from plenopiv._particles_kernels import refine_peaks as particle_peaks
+        from plenopiv.particles._kernels import refine_peaks as particle_peaks
         from plenopiv.piv._kernels.peaks import refine_peaks
 
         # an index written for another version of the source loads as empty
@@ -173,8 +174,8 @@ def kernels_cached() -> bool:
         return False
 
 
-#: The progress stages of a run (:func:`plenopiv.pipeline.process_pair`,
-#: :func:`plenopiv.validation.vortex.run_case`) at which it calls the kernels of a rehearsed
+#: The progress stages of a run (:func:`plenopiv.workflow.pair.process_pair`,
+#: :func:`plenopiv.workflow.vortex_case.run_case`) at which it calls the kernels of a rehearsed
 #: stage first: :meth:`Rehearsals.paced` waits there for that stage's rehearsal.
 STAGE_AT_PROGRESS = {"calibrate": "calibration", "weights": "reconstruction", "piv": "piv"}
 
@@ -372,7 +373,7 @@ def _fork(stages, calibration, experiment):
 
 def _spawn(stages, calibration, experiment):
     """A new interpreter rehearsing ``stages``: ``(process, stream of rehearsed stages)``."""
-    p = subprocess.Popen([sys.executable, "-m", "plenopiv.precompile", *stages],
+    p = subprocess.Popen([sys.executable, "-m", "plenopiv.workflow.precompile", *stages],
                          stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                          stderr=subprocess.DEVNULL, text=True)
     p.stdin.buffer.write(pickle.dumps((calibration, experiment)))

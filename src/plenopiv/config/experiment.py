@@ -22,7 +22,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, field_validator
 
-from plenopiv.camera import (
+from plenopiv.camera.grid import VolumeGrid, volume_from_dict
+from plenopiv.camera.model import (
     CameraModel,
     camera_from_dict,
     format_validation_error,
@@ -37,7 +38,6 @@ from plenopiv.piv.settings import (
     SUBPIXEL_METHODS,
     PIVSettings,
 )
-from plenopiv.volume import VolumeGrid, volume_from_dict
 
 #: More MART sweeps than this is refused: 10 is the default, a few hundred already converge.
 MAX_ITERATIONS = 10_000
@@ -130,19 +130,19 @@ class ParticleSettings(_Strict):
         for the depth-elongated particles of plenoptic reconstructions) | "gaussian" (3-point
         per axis).
     min_separation_vox, box_vox, fit_spacing_vox : ``[z, y, x]`` voxels (see
-        :func:`plenopiv.particles.find_particles`). ``None`` (default): from the camera's
-        resolution cell (:func:`plenopiv.pipeline.particle_options`): peaks within one cell
+        :func:`plenopiv.particles.peaks.find_particles`). ``None`` (default): from the camera's
+        resolution cell (:func:`plenopiv.workflow.volume.particle_options`): peaks within one cell
         are one particle, the centroid box is ±1 cell.
-    internal_correction : "auto" | "none" | "plate" (see :mod:`plenopiv.corrections`).
+    internal_correction : "auto" | "none" | "plate" (see :mod:`plenopiv.camera.corrections`).
     position : "light_field" (default: each volume peak seeds the ray-bundle fit of
-        :func:`plenopiv.tracking.bundle.bundle_positions` with
-        :data:`~plenopiv.tracking.bundle.PARTICLE_BUNDLE`, the point nearest the rays of the
+        :func:`plenopiv.particles.bundle.bundle_positions` with
+        :data:`~plenopiv.particles.bundle.PARTICLE_BUNDLE`, the point nearest the rays of the
         lit pixels that saw the particle; it does not depend on the voxel grid, and the
         volume centroid is kept where fewer than ``min_rays`` rays are found) | "volume"
         (the ``method`` estimate on the voxels: an in-focus particle's centroid moves with the
         voxel edges by up to 0.7 voxel, docs/validation/grid_independence.md).
 
-    These are the only defaults: :func:`plenopiv.particles.find_particles` takes those of
+    These are the only defaults: :func:`plenopiv.particles.peaks.find_particles` takes those of
     ``method`` and ``fit_spacing_vox`` from here, and has none for ``min_separation_vox``
     and ``box_vox``, which follow from the camera.
     """
@@ -165,7 +165,7 @@ class PIVConfig(_Strict):
     """``[piv]``: cross-correlation (windows in voxels ``[z, y, x]`` per pass).
 
     Every field of :class:`plenopiv.piv.PIVSettings` (which holds the defaults and the
-    meaning of each) plus ``uncertainty``; :func:`plenopiv.pipeline.piv_settings` converts.
+    meaning of each) plus ``uncertainty``; :func:`plenopiv.workflow.pair.piv_settings` converts.
 
     deformation_order : interpolation of the window deformation, 1 (trilinear) to 5
         (B-spline; 3, cubic, is the default).
@@ -342,7 +342,7 @@ class TrackingConfig(_Strict):
     bundle_iterations : ray selections and solves per particle, the first around the volume
         centroid (4).
     forward_refine : move each bundle position to the one whose predicted pixel values fit
-        the image best (:mod:`plenopiv.tracking.forward`) (true).
+        the image best (:mod:`plenopiv.particles.forward`) (true).
     min_lenslets : a track is kept when both its ends were seen through at least this many
         lenslets (6: a particle seen through one lenslet is lit at any depth within its depth
         of field; through up to 2 x 2 lenslets the edges of its lit patches fix the ratio of

@@ -36,7 +36,7 @@ from plenopiv.errors import ConfigError
 GRIDS = ("square", "hexagonal")
 BACK_SIDES = ("physical", "thesis")
 
-PRESET_DIR = Path(__file__).with_name("presets")
+PRESET_DIR = Path(__file__).resolve().parents[1] / "presets"
 
 
 # --------------------------------------------------------------------------------------------

@@ -43,10 +43,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage
 
-from plenopiv import _particles_kernels as _k
-from plenopiv.config import ParticleSettings
+from plenopiv.config.experiment import ParticleSettings
 from plenopiv.conventions import voxel_to_world
 from plenopiv.errors import ReconstructionError
+from plenopiv.particles import _kernels as _k
 
 __all__ = ["CENTROID_METHODS", "DEFAULT_FIT_SPACING_VOX", "DEFAULT_METHOD", "Particles",
            "find_particles"]
@@ -54,7 +54,7 @@ __all__ = ["CENTROID_METHODS", "DEFAULT_FIT_SPACING_VOX", "DEFAULT_METHOD", "Par
 #: Valid values of ``find_particles(method=...)``.
 CENTROID_METHODS = ("gaussian", "centroid")
 #: Default sub-voxel estimator: that of ``[particles] method``
-#: (:class:`plenopiv.config.ParticleSettings`, the one set of defaults).
+#: (:class:`plenopiv.config.experiment.ParticleSettings`, the one set of defaults).
 DEFAULT_METHOD = ParticleSettings.model_fields["method"].default
 #: Default sample spacing ``(z, y, x)`` of the Gaussian fit, voxels: that of
 #: ``[particles] fit_spacing_vox``.
@@ -143,7 +143,7 @@ def find_particles(
         (``sum_a (d_a / s_a)**2 < 1``), are merged into the brightest one. Use a larger z
         value for depth-elongated blobs. Must be > 0. No default: it follows from the
         camera's resolution cell and the voxel size
-        (:func:`plenopiv.pipeline.particle_options`, ``[particles] min_separation_vox``).
+        (:func:`plenopiv.workflow.volume.particle_options`, ``[particles] min_separation_vox``).
     box_vox : int or sequence of 3 ints
         Half-widths ``(z, y, x)`` of the box around the peak, voxels (>= 1): the window of the
         centroid and of the integrated intensity. For depth-elongated blobs give z about
@@ -182,7 +182,7 @@ def find_particles(
     Peaks are voxels equal to the maximum of their 3x3x3 neighbourhood and above
     ``threshold``; ties and close pairs are resolved by greedy non-maximum suppression in
     order of decreasing peak value. The two sub-voxel estimators, their exactness and
-    their bias are derived in :mod:`plenopiv.particles` (*Sub-voxel estimators*).
+    their bias are derived in :mod:`plenopiv.particles.peaks` (*Sub-voxel estimators*).
     """
     if method not in CENTROID_METHODS:
         raise ValueError(f"method must be one of {CENTROID_METHODS}; got {method!r}")

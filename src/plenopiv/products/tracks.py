@@ -25,7 +25,7 @@ import numpy as np
 
 from plenopiv.products.files import atomic_path
 from plenopiv.products.hdf5 import write_h5
-from plenopiv.tracking.pair import TrackResult
+from plenopiv.tracking.tracks import TrackResult
 
 __all__ = ["TRACK_DATASETS", "write_tracks", "write_vtp"]
 
@@ -113,7 +113,7 @@ def save_track_products(tracks: TrackResult, vectors, out: str | Path, *,
                         config: dict | None = None, vtk: bool = True,
                         extra_attrs: dict | None = None) -> dict:
     """Write ``OUT`` (tracks), ``OUT.vtp`` and ``OUT_binned.h5`` (+ ``.vti``); their paths."""
-    from plenopiv.tracking.pair import bin_tracks
+    from plenopiv.tracking.tracks import bin_tracks
 
     out = Path(out)
     files = write_tracks(out, tracks, config=config, vtk=vtk, extra_attrs=extra_attrs)

@@ -16,18 +16,20 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.calibration.pipeline import calibrate
-from plenopiv.camera import CameraModel, load_camera
-from plenopiv.config import (
+from plenopiv.calibration.calibrate import calibrate
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import CameraModel, load_camera
+from plenopiv.camera.resolution import footprint
+from plenopiv.config.experiment import (
     Experiment,
     ImagesConfig,
     OutputConfig,
     PIVConfig,
     ReconstructionSettings,
 )
-from plenopiv.pipeline import footprint, lateral_subdivision, process_pair, save_pair
-from plenopiv.plots import vector_comparison
+from plenopiv.products.figures import vector_comparison
 from plenopiv.products.files import atomic_path
+from plenopiv.reconstruction.subdivision import lateral_subdivision
 from plenopiv.synthetic.flows import HillVortex, LambOseen, Uniform, advect
 from plenopiv.synthetic.images import (
     Ruler,
@@ -38,8 +40,8 @@ from plenopiv.synthetic.images import (
     ruler_image,
 )
 from plenopiv.synthetic.seeding import SeedingBox, particle_count, simulate_pair
-from plenopiv.validation.accuracy import gain_bias_rms
-from plenopiv.volume import VolumeGrid
+from plenopiv.workflow.accuracy import gain_bias_rms
+from plenopiv.workflow.pair import process_pair, save_pair
 
 #: The flows a case can run.
 FLOWS = ("oseen", "hill", "uniform")
@@ -227,7 +229,7 @@ def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
     """Error of the measured field against the flow's displacement at the window centres.
 
     Returns, per component in voxels (lateral voxel for u, v; depth voxel for w), the gain
-    (least-squares slope of measured on true, :func:`~plenopiv.validation.accuracy.gain_bias_rms`;
+    (least-squares slope of measured on true, :func:`~plenopiv.workflow.accuracy.gain_bias_rms`;
     NaN for a component that does not vary, as in a uniform shift), the bias and the rms, over
     valid vectors at least half a window inside the volume; and the same in ``depth_bands``
     bands of |Z| (distance from the focal plane), the first one nearest focus.
@@ -334,12 +336,12 @@ def _case_pair(case: VortexCase, grid: VolumeGrid, truth_cam: CameraModel, rng, 
 
 
 def _rehearsals(case: VortexCase, truth_cam: CameraModel, out: Path, precompile: bool):
-    """The background compilation of a case (:mod:`plenopiv.precompile`), or none.
+    """The background compilation of a case (:mod:`plenopiv.workflow.precompile`), or none.
 
     Rehearsed on the exact calibration, while the case renders and calibrates.
     """
     from plenopiv.calibration.model import Calibration
-    from plenopiv.precompile import Rehearsals
+    from plenopiv.workflow.precompile import Rehearsals
 
     if not (precompile and case.calibrate):
         return Rehearsals([])
@@ -352,7 +354,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None,
     """Run one synthetic case end to end and write every product to ``out``.
 
     ``precompile``: while the case renders and calibrates, compile the reconstruction's and
-    the PIV's kernels in two background processes (:mod:`plenopiv.precompile`; for a first
+    the PIV's kernels in two background processes (:mod:`plenopiv.workflow.precompile`; for a first
     run on a machine).
     """
     out = Path(out)

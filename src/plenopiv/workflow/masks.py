@@ -1,12 +1,12 @@
 """Masks: sensor pixels the reconstruction ignores, voxels outside the flow that the PIV skips.
 
 An image mask is a boolean ``(rows, cols)`` array, True for a pixel to ignore (a reflection,
-a model in the view); :func:`plenopiv.pipeline.reconstruct_volume` drops those pixels' rows
+a model in the view); :func:`plenopiv.workflow.volume.reconstruct_volume` drops those pixels' rows
 of the system instead of taking them as dark. A volume mask is a boolean ``[z, y, x]`` array
 on the reconstruction grid, True for a voxel outside the flow; :func:`plenopiv.piv.
 correlate_volumes` zeroes those voxels and returns NaN, flagged vectors whose window centre
 is masked. Both come from the ``[mask]`` table of an experiment
-(:class:`plenopiv.config.MaskConfig`): files, and boxes and cylinders in volume
+(:class:`plenopiv.config.experiment.MaskConfig`): files, and boxes and cylinders in volume
 coordinates (the ``[volume]`` grid's, in mm).
 """
 
@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ConfigError
-from plenopiv.volume import VolumeGrid
 
 __all__ = ["box_mask", "cylinder_mask", "image_mask", "read_mask", "volume_mask"]
 

@@ -45,7 +45,7 @@ def calibration_report(report, image, path) -> Path:
 
     Parameters
     ----------
-    report : plenopiv.calibration.pipeline.CalibrationReport
+    report : plenopiv.calibration.calibrate.CalibrationReport
     image : ndarray
         The focal-point image (for the lattice detail).
     """

@@ -1,6 +1,6 @@
 r"""Forward-model refinement of particle positions: the pixel values a position predicts.
 
-The ray bundle (:mod:`plenopiv.tracking.bundle`) treats every lit pixel as its chief ray, the
+The ray bundle (:mod:`plenopiv.particles.bundle`) treats every lit pixel as its chief ray, the
 line from the centre of its aperture cell to the centre of its lenslet's footprint. Near the
 focal plane that model loses the depth: a particle within a footprint-wide beam lights the
 pixel whatever its place in the beam, all chief rays of a lenslet meet at the lenslet's
@@ -49,7 +49,7 @@ it, and the dark pixels around the lit patch fix its edges.
 A particle in focus seen through a single lenslet lights all its pixels at any depth within
 the depth of field: the image holds no depth there, and the position stays at the start.
 
-Effective (air-equivalent) coordinates, metres, as in :mod:`plenopiv.tracking.bundle`.
+Effective (air-equivalent) coordinates, metres, as in :mod:`plenopiv.particles.bundle`.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from plenopiv.lightfield import LightField
-from plenopiv.tracking.bundle import (
+from plenopiv.particles.bundle import (
     ENGINES,
     RayTable,
     checked_image,
@@ -244,7 +244,7 @@ def refine_positions(lf: LightField, image, start, *, depth_cell: float,
         Particles are refined in runs of about this many candidate pixels (memory only; a
         far-from-focus particle of a 16 MP camera has ~10^5).
     table : RayTable, optional
-        :func:`plenopiv.tracking.bundle.ray_table` of ``lf``, when already built.
+        :func:`plenopiv.particles.bundle.ray_table` of ``lf``, when already built.
 
     Returns
     -------
@@ -363,7 +363,7 @@ def _overlap_grad(m, wa, wb):
 def _misfit_sums(pid, n, u, xf, v, amp, pos, geom, excess, scale):
     """One-sided misfit (n,), ``J^T J`` (n, 3, 3) and ``J^T r`` (n, 3) of each particle.
 
-    NumPy twin of ``plenopiv.tracking._kernels._misfit_sums``: residuals ``r = v - A f`` of
+    NumPy twin of ``plenopiv.particles._bundle_kernels._misfit_sums``: residuals ``r = v - A f`` of
     the pixels of each particle at ``pos`` (n, 3), Jacobian in the scaled parameters
     ``(x / sx, y / sx, z / sz)`` with ``scale = (sx, sz)`` metres; a capped residual
     (r > excess A) has none.
@@ -406,7 +406,7 @@ def _misfit_sums(pid, n, u, xf, v, amp, pos, geom, excess, scale):
 def _damped_steps(h, g, lam):
     """Solve ``(h + lam diag(h)) step = -g`` per particle by Cramer's rule.
 
-    NumPy twin of ``plenopiv.tracking._kernels._damped_step``: returns ``(step (n, 3),
+    NumPy twin of ``plenopiv.particles._bundle_kernels._damped_step``: returns ``(step (n, 3),
     solved (n,))``, solved False where the system is singular.
     """
     a = h + lam[:, None, None] * h * np.eye(3)
@@ -432,7 +432,7 @@ def _damped_steps(h, g, lam):
 def _local_fit(ptr, u, xf, v, amp, start, geom, excess, scale, bounds, offsets, iterations):
     """Levenberg-Marquardt steps on each particle's one-sided misfit (NumPy twin).
 
-    Twin of ``plenopiv.tracking._kernels.local_fit``: from each of ``start + (0, 0, offset)``
+    Twin of ``plenopiv.particles._bundle_kernels.local_fit``: from each of ``start + (0, 0, offset)``
     (``offsets`` metres), in the parameters scaled by ``scale = (sx, sz)`` metres, damped
     Gauss-Newton steps ``(J^T J + lam diag J^T J) d = -J^T r`` clipped to one unit per axis,
     the position kept within ``start +- bounds`` (lateral, depth; metres); a step is taken
@@ -489,7 +489,7 @@ def _descend(ptr, u, xf, v, amp, first, lo, hi, geom, excess, scale, iterations)
 def _local_fit_numba(ptr, u, xf, v, amp, start, geom, excess, scale, bounds, offsets,
                      iterations):
     """Return :func:`_local_fit` by the compiled kernel."""
-    from plenopiv.tracking import _kernels as _k
+    from plenopiv.particles.peaks import _bundle_kernels as _k
 
     pos = np.empty_like(start)
     c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, amp, start)]
@@ -534,7 +534,7 @@ def _grid_offsets(depth, lateral):
 def _best_offset(ptr, u, xf, v, amp, pos, depth, lateral, geom, excess):
     """Return the offset of least misfit of each particle on a joint grid (:func:`_grid_offsets`).
 
-    NumPy twin of :func:`plenopiv.tracking._kernels.best_grid_offsets`. Misfit:
+    NumPy twin of :func:`plenopiv.particles._bundle_kernels.best_grid_offsets`. Misfit:
     ``sum_i rho(v_i - A f_i)`` with ``rho(r) = r^2`` for r <= 0 (predicted light missing)
     and ``min(r, excess A)^2`` for r > 0 (unexplained light, capped); the zero offset
     (row K // 2) is tried first and kept on ties.
@@ -557,7 +557,7 @@ def _best_offset(ptr, u, xf, v, amp, pos, depth, lateral, geom, excess):
 
 def _best_offset_numba(ptr, u, xf, v, amp, pos, depth, lateral, geom, excess):
     """Return :func:`_best_offset` by the compiled kernel."""
-    from plenopiv.tracking import _kernels as _k
+    from plenopiv.particles.peaks import _bundle_kernels as _k
 
     choice = np.zeros((len(pos), 3))
     c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, amp, pos, depth, lateral)]
@@ -573,7 +573,7 @@ def _amplitude_at(ptr, pid, u, xf, v, pos, geom):
 
 def _amplitude_at_numba(ptr, pid, u, xf, v, pos, geom):
     """Return :func:`_amplitude_at` by the compiled kernel (one pass, no fraction array)."""
-    from plenopiv.tracking import _kernels as _k
+    from plenopiv.particles.peaks import _bundle_kernels as _k
 
     out = np.empty(len(ptr) - 1)
     c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, pos)]
@@ -597,7 +597,7 @@ def _robust_amplitude(ptr, pid, f, v):
     return np.maximum(med, 0.0)
 
 
-#: Rays by lenslet (:func:`plenopiv.tracking.bundle.ray_table`).
+#: Rays by lenslet (:func:`plenopiv.particles.bundle.ray_table`).
 _lenslet_index = ray_table
 
 
@@ -656,12 +656,12 @@ def _pixel_data(lf: LightField, index, values, start, margin: float, depth_range
 
 
 def _near_pixels(lf: LightField, index, start, margin, depth_range, values):
-    """Run :func:`plenopiv.tracking._kernels.near_pixels`: ``(particle, row, gathered)``.
+    """Run :func:`plenopiv.particles._bundle_kernels.near_pixels`: ``(particle, row, gathered)``.
 
     Rows of the lenslet-sorted arrays; ``gathered`` is ``(value, u, X_f)`` of those rows when
     ``values`` (lenslet order) is given, else None.
     """
-    from plenopiv.tracking import _kernels as _k
+    from plenopiv.particles.peaks import _bundle_kernels as _k
 
     _, ptr, lens_ids, tree, _, u_s, xf_s = index
     t, radius, reach = _reach(lf, start, margin, depth_range)

@@ -2,7 +2,7 @@
 
 Volumes are indexed ``[z, y, x]``; voxel ``[k, j, i]`` has its centre at
 ``(x[i], y[j], z[k])``. Z is measured from the nominal focal plane, + away from the camera;
-the reconstruction works in effective (air-equivalent) depth, see :mod:`plenopiv.corrections`.
+the reconstruction works in effective (air-equivalent) depth, see :mod:`plenopiv.camera.corrections`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from plenopiv.camera import format_validation_error
+from plenopiv.camera.model import format_validation_error
 from plenopiv.errors import ConfigError
 
 #: More voxels than this is refused at once: the voxel-pixel weights index voxels with

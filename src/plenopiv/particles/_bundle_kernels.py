@@ -1,9 +1,9 @@
-"""numba kernels behind :mod:`plenopiv.tracking.bundle` (private; arrays and scalars only).
+"""numba kernels behind :mod:`plenopiv.particles.bundle` (private; arrays and scalars only).
 
 Rays are lines ``(u, -S_o) -> (X_f, 0)`` of the light field, stored sorted by lenslet (rays
 ``rptr[k]:rptr[k + 1]`` belong to lenslet k, so a lenslet's rays are read contiguously); a
 particle's candidate lenslets are a CSR table (``lptr``, ``lidx``). The plain NumPy twin is
-the ``engine="numpy"`` path of :func:`plenopiv.tracking.bundle.bundle_positions`; the tests
+the ``engine="numpy"`` path of :func:`plenopiv.particles.bundle.bundle_positions`; the tests
 run both.
 """
 
@@ -94,7 +94,7 @@ def count_rays(centre, radius, lptr, lidx, rptr, u, xf, so, margin, weight, p0, 
     solve). ``counts[a]`` is set to the rays of candidate ``a`` (``lptr[p0] <= a <
     lptr[p1]``); :func:`fill_rays` then writes them where the caller's cumulative counts say.
     Serial and without the GIL: blocks of particles run on threads
-    (:func:`plenopiv.tracking.bundle.ray_selection`).
+    (:func:`plenopiv.particles.bundle.ray_selection`).
     """
     most = _max_lenslet_rays(rptr)
     rays = np.empty(max(most, 1), np.int64)
@@ -193,7 +193,7 @@ def selected_covariance_sums(lptr, cptr, sel, share, bright, u, xf, so, weight, 
     solution. ``meat_r = sum_k g_k g_k^T``; ``meat_q = (t b)^2/12 sum_k (S_k[:, :2]
     S_k[:2, :] + v_k v_k^T / var_k)`` with ``S_k = sum w M``, ``v_k = sum w M (dtheta, 0)``;
     ``nlens`` counts the lenslets with weight (see
-    :func:`plenopiv.tracking.bundle.bundle_positions`).
+    :func:`plenopiv.particles.bundle.bundle_positions`).
     Serial: in parallel on two cores it took 0.06 s for 1860 particles, and 3.0 s to compile
     against 1.6 s.
     """
@@ -277,10 +277,10 @@ def best_grid_offsets(ptr, u, xf, v, amp, pos, depth, lateral, so, cell, footpri
     """Set ``choice[p]`` to the offset of least misfit on a joint depth x lateral grid.
 
     The grid is every ``(lateral[ix], lateral[iy], depth[iz])``, row ``k = (iz n_l + ix) n_l
-    + iy`` of :func:`plenopiv.tracking.forward._grid_offsets` (n_l = len(lateral), odd;
+    + iy`` of :func:`plenopiv.particles.forward._grid_offsets` (n_l = len(lateral), odd;
     len(depth) odd): the zero offset is row K // 2, tried first and kept on ties. Pixels
     ``ptr[p]:ptr[p + 1]`` of ``u``, ``xf`` (P, 2), ``v`` (P,) belong to particle p; the misfit
-    is that of :func:`plenopiv.tracking.forward.refine_positions` with the amplitude
+    is that of :func:`plenopiv.particles.forward.refine_positions` with the amplitude
     ``amp[p]``. A pixel's overlap along x depends on the x offset and the depth only (along y
     likewise), so each depth computes ``2 n_l`` overlaps per pixel for its ``n_l²`` offsets.
     """
@@ -335,7 +335,7 @@ def near_pixels(cptr, cand, rptr, u, xf, start, t, radius, margin, count_only, o
     window of :func:`_window` are tested (``margin``: the pixels' edge-centroid offsets,
     metres). With ``count_only`` the kept rays per particle go to ``out_ptr[p]``; otherwise
     they are written to ``out[out_ptr[p]:out_ptr[p + 1]]`` in candidate then ray order (the
-    NumPy twin: ``plenopiv.tracking.forward._pixels_numpy``), and where ``out_v`` is not
+    NumPy twin: ``plenopiv.particles.forward._pixels_numpy``), and where ``out_v`` is not
     empty their ``u``, ``xf`` and values ``v`` (P,) to ``out_u``, ``out_xf``, ``out_v`` at
     the same places (the gather the refinement reads, while the rows are in cache).
     """
@@ -524,7 +524,7 @@ def local_fit(ptr, u, xf, v, amp, start, so, cell, footprint, excess, sx, sz, bo
     descent ends once a step is below 1e-3 scale units), refused otherwise (damping x4, the
     descent ends beyond 1e6); each step is clipped to one scale unit per axis and the
     position to ``start +- (bound_x, bound_x, bound_z)``. The end of least misfit (the first
-    on ties) goes to ``pos`` (N, 3). The NumPy twin is ``plenopiv.tracking.forward._local_fit``.
+    on ties) goes to ``pos`` (N, 3). The NumPy twin is ``plenopiv.particles.forward._local_fit``.
     """
     for p in numba.prange(start.shape[0]):
         lo = np.empty(3)
@@ -574,11 +574,11 @@ def _select_kth(a, n, k):
 def amplitude_at(ptr, u, xf, v, pos, so, cell, footprint, out):
     """Set ``out[p]`` to particle p's amplitude at ``pos[p]`` (pixels ``ptr[p]:ptr[p + 1]``).
 
-    One pass per particle: each pixel's :func:`plenopiv.tracking.forward.beam_fraction` f
+    One pass per particle: each pixel's :func:`plenopiv.particles.forward.beam_fraction` f
     and, where f >= 0.5, its ratio ``v / f``; ``out[p]`` is their upper median (element
     ``n // 2`` of the n sorted ratios), 0 when none or negative. The particles run in 64
     blocks, each with one buffer for its ratios. The NumPy twin is
-    ``plenopiv.tracking.forward._amplitude_at``.
+    ``plenopiv.particles.forward._amplitude_at``.
     """
     n_p = out.shape[0]
     blocks = min(n_p, 64)

@@ -1,4 +1,4 @@
-"""numba kernels behind :mod:`plenopiv.particles` (private; arrays and scalars only).
+"""numba kernels behind :mod:`plenopiv.particles.peaks` (private; arrays and scalars only).
 
 Volumes are indexed ``[z, y, x]``; peaks are ``(N, 3)`` integer voxel indices in that order.
 Each kernel ``name`` has its plain-NumPy twin ``name_numpy`` here, with the same arguments and

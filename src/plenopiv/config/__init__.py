@@ -1,0 +1,1 @@
+"""The TOML models of the experiment file, on one strict base."""

@@ -1,0 +1,175 @@
+"""One image -> one volume and its particles (reconstruction, particle finding, light-field positions, depth corrections)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.camera.corrections import DepthCorrection
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.resolution import footprint, resolution_cell
+from plenopiv.config.experiment import ParticleSettings, ReconstructionSettings
+from plenopiv.errors import ReconstructionError
+from plenopiv.particles.bundle import PARTICLE_BUNDLE, bundle_positions, lit_rays
+from plenopiv.particles.peaks import find_particles
+from plenopiv.products.images import check_image
+from plenopiv.products.volume import VolumeResult
+from plenopiv.reconstruction.geometry import ProjectionGeometry
+from plenopiv.reconstruction.solve import solve_volume
+from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of, weights_for
+from plenopiv.reconstruction.weights import Weights
+
+Progress = Callable[[str, float], None] | None
+
+
+_DEFAULT_RECONSTRUCTION = ReconstructionSettings()
+
+
+_DEFAULT_PARTICLES = ParticleSettings()
+
+
+def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration: Calibration,
+                     volume, *, f_number: float | None = None) -> dict:
+    """Keywords of :func:`~plenopiv.particles.peaks.find_particles` for ``particles`` and a volume.
+
+    The threshold is ``particles.threshold`` times the reference intensity (the 99.9th
+    percentile of the positive voxels, or the maximum). Unset separation and box follow the
+    resolution cell (:func:`resolution_cell`) in voxels of ``grid``: peaks closer than one
+    cell (1.5 cells laterally, so that diagonal neighbours merge) are one particle; the
+    centroid box is ±1 cell.
+    """
+    v = np.asarray(volume)
+    if particles.threshold_reference == "maximum":
+        ref = float(v.max())
+    else:
+        pos = v[v > 0]
+        ref = float(np.percentile(pos, 99.9)) if pos.size else 0.0
+    lat, dep = resolution_cell(calibration.effective_camera, f_number)
+    vx, vy, vz = (float(a) for a in grid.voxel)
+    sep = particles.min_separation_vox
+    if sep is None:
+        sep = (max(dep / vz, 1.0), max(1.5 * lat / vy, 1.0), max(1.5 * lat / vx, 1.0))
+    box = particles.box_vox
+    if box is None:
+        box = tuple(max(1, int(round(c / d))) for c, d in ((dep, vz), (lat, vy), (lat, vx)))
+    return {"threshold": particles.threshold * ref, "method": particles.method,
+            "min_separation_vox": tuple(sep), "box_vox": tuple(box),
+            "fit_spacing_vox": particles.fit_spacing_vox}
+
+
+def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
+                       settings: ReconstructionSettings = _DEFAULT_RECONSTRUCTION,
+                       particles: ParticleSettings = _DEFAULT_PARTICLES,
+                       weights: Weights | None = None, cache_dir: str | Path | None = None,
+                       progress: Progress = None, image_mask=None) -> VolumeResult:
+    """Reconstruct one image into a volume and extract its particles.
+
+    Parameters
+    ----------
+    calibration : Calibration
+    image : ndarray
+        Raw plenoptic image of the calibration's sensor shape.
+    grid : VolumeGrid
+        Effective (air-equivalent) reconstruction grid.
+    weights : Weights, optional
+        Pre-built weights for this calibration (e.g. shared by a pair): from
+        :func:`weights_for`, on the working grid; weights built for ``grid`` itself
+        reconstruct on it without subdivision. Default: :func:`weights_for`.
+    cache_dir : path, optional
+        Weight cache folder (used when ``weights`` is not given).
+    progress : callable, optional
+        ``progress(stage, fraction)`` for long stages.
+    image_mask : (rows, cols) bool array, optional
+        Pixels to ignore (True): their rows of the system are dropped, so they count neither
+        as light nor as dark (a reflection, a model in the view). The dark threshold is taken
+        from the unmasked pixels. See :mod:`plenopiv.workflow.masks`.
+    """
+    from plenopiv.resources import check_grid
+
+    t = {}
+    t0 = time.perf_counter()
+    check_grid(grid)
+    img = check_image(image, shape=calibration.camera.sensor.shape, name="particle image",
+                      particles=True)
+    if weights is None:
+        if progress is not None:
+            progress("weights", 0.0)
+        weights, _ = weights_for(calibration, grid, settings, cache_dir=cache_dir)
+    geometry = weights.geometry
+    if geometry is None:        # weights made without one: the rays of these settings
+        geometry = ProjectionGeometry.for_settings(calibration, weights.grid, settings)
+    ky, kx = (1, 1) if weights.grid == grid else subdivision_of(weights.grid, grid)
+    if weights.matrix_free and settings.method != "smart":
+        raise ReconstructionError(
+            f"[reconstruction] method = {settings.method!r} walks the rows of explicit weights; "
+            "the matrix-free lattice projector supports method = \"smart\" only")
+    t["weights_s"] = time.perf_counter() - t0
+
+    def report(iteration, _volume):
+        progress("mart", iteration / max(settings.iterations, 1))
+
+    t1 = time.perf_counter()
+    vol = solve_volume(weights, img, settings, image_mask=image_mask, geometry=geometry,
+                       callback=None if progress is None else report,
+                       footprint=footprint(calibration.effective_camera))
+    if ky > 1 or kx > 1:            # the working voxels back onto the volume's grid
+        vol = merge_subdivided(vol, ky, kx, kernel=settings.subdivision_kernel)
+    t["mart_s"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    if progress is not None:
+        progress("particles", 0.0)
+    corr, eff, pos, intensity, size = _particles_of(vol, grid, calibration, particles)
+    centroid = None
+    if particles.position == "light_field" and len(eff):
+        if progress is not None:
+            progress("particles", 0.5)
+        centroid = eff
+        eff = light_field_positions(geometry.light_field, img, centroid, intensity,
+                                    calibration, image_mask=image_mask)
+        pos = corr.points(eff)
+    t["particles_s"] = time.perf_counter() - t2
+    return VolumeResult(vol, grid, corr, eff, pos, intensity, size, t,
+                        particle_centroid_effective=centroid)
+
+
+def _particles_of(vol: np.ndarray, grid: VolumeGrid, calibration: Calibration,
+                  particles: ParticleSettings) -> tuple:
+    """``(correction, effective positions, positions, intensities, sizes)`` of the particles.
+
+    Found by :func:`plenopiv.particles.peaks.find_particles`, then depth-corrected.
+    """
+    if float(vol.max()) <= 0:
+        raise ReconstructionError("the reconstructed volume is empty: no particle light in "
+                                  "the volume (check [volume] and the image)")
+    found = find_particles(vol, **particle_options(particles, grid, calibration, vol))
+    eff = found.position_world(grid.origin, grid.voxel)
+    corr = DepthCorrection.for_camera(calibration.camera, internal=particles.internal_correction)
+    return (corr, eff, corr.points(eff) if len(eff) else eff, found.intensity,
+            found.size_world(grid.voxel))
+
+
+def light_field_positions(lf, image, seeds, intensity, calibration: Calibration, *,
+                          image_mask=None) -> np.ndarray:
+    """Particle positions from the light field, seeded by the volume's (effective, metres).
+
+    The point nearest the rays of the lit pixels that saw each particle
+    (:func:`plenopiv.particles.bundle.bundle_positions` with
+    :data:`~plenopiv.particles.bundle.PARTICLE_BUNDLE`, the volume intensities sharing the
+    rays that pass several particles). The voxel grid quantises a reconstructed particle:
+    an in-focus one fills its lenslet's footprint and its centroid moves with the voxel
+    edges; the rays do not depend on the grid. Masked pixels carry no light. A particle
+    with fewer than ``min_rays`` rays keeps its seed.
+    """
+    _, cell = resolution_cell(calibration.effective_camera)
+    img = np.asarray(image, np.float32)
+    if image_mask is not None:
+        img = np.where(np.asarray(image_mask, bool), np.float32(0), img)
+    lit = lit_rays(lf, img, PARTICLE_BUNDLE.floor)       # the same fit, a fraction of the rays
+    fit = bundle_positions(lit, img, seeds, settings=PARTICLE_BUNDLE, depth_cell=cell,
+                           brightness=intensity)
+    return np.where(fit.converged[:, None], fit.position, seeds)
+

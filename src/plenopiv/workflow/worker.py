@@ -1,0 +1,120 @@
+"""The pair processor a batch worker keeps between pairs, and the weights it builds once."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.reconstruction.subdivision import weights_for
+from plenopiv.resources import prefer_small_pages
+from plenopiv.workflow.experiment import experiment_calibration
+from plenopiv.workflow.pair import PairProcessor, save_pair
+
+
+@dataclass(frozen=True)
+class ExperimentPairProcess:
+    """The per-pair work of ``plenopiv run``: picklable, so dask workers can run it.
+
+    A worker keeps one :class:`PairProcessor` per experiment and calibration file (keyed by
+    their paths, sizes and modification times, :func:`worker_processor`): its first pair
+    loads the experiment and the calibration and builds or loads the projector, its later
+    pairs reuse them. Each call reads the pair's images, processes them and writes the
+    products; the vectors file is written last, marked complete.
+    """
+
+    experiment_path: str
+    calibration_path: str
+    out_dir: str
+
+    def __call__(self, job) -> dict:
+        """Process one :class:`plenopiv.batch.PairJob`; returns a small summary."""
+        import json
+
+        from plenopiv.products.images import read_image
+
+        processor = worker_processor(self.experiment_path, self.calibration_path)
+        exp, cal = processor.experiment, processor.calibration
+        ia, ib = read_image(job.image_a), read_image(job.image_b)
+        res = processor(ia, ib)
+        extra = {"image_a": str(job.image_a), "image_b": str(job.image_b)}
+        if getattr(job, "identity", None) is not None:
+            extra["identity"] = json.dumps(dict(job.identity), sort_keys=True)
+        tracked = {}
+        if exp.tracking.enabled:  # before the vectors file, which marks the pair complete
+            from plenopiv.workflow.tracking import track_and_save
+
+            tracked = track_and_save(cal, ia, ib, res, exp, self.out_dir, job.name,
+                                     weights=processor.weights())
+        paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra)
+        vec = res.vectors
+        return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),
+                "n_particles_a": len(res.volume_a.particle_position),
+                **{k: round(v, 3) for k, v in res.timings.items()}, **tracked}
+
+
+#: The :class:`PairProcessor` this process keeps, with its key (:func:`worker_processor`).
+_WORKER_PROCESSOR: dict = {}
+
+
+_WORKER_LOCK = threading.Lock()
+
+
+def _file_identity(path: str | Path) -> tuple:
+    """``(resolved path, size, modification time in ns)`` of a file."""
+    p = Path(path).resolve()
+    st = p.stat()
+    return (str(p), st.st_size, st.st_mtime_ns)
+
+
+def worker_processor(experiment_path: str | Path, calibration_path: str | Path
+                     ) -> PairProcessor:
+    """The :class:`PairProcessor` of this process for an experiment file and a calibration.
+
+    Made on first use (the experiment and the calibration loaded, the projector built or read
+    from the weights cache on the first pair) and kept for the later pairs of the process;
+    a changed file (size or modification time) or another experiment replaces it. One is kept
+    at a time, so a worker holds one projector.
+    """
+    key = (_file_identity(experiment_path), _file_identity(calibration_path))
+    with _WORKER_LOCK:
+        if _WORKER_PROCESSOR.get("key") != key:
+            from plenopiv.config.experiment import load_experiment
+
+            _WORKER_PROCESSOR.clear()
+            prefer_small_pages()    # a batch worker's process is the batch's own
+            exp = load_experiment(experiment_path)
+            cal = experiment_calibration(exp, calibration_path)
+            _WORKER_PROCESSOR.update(key=key, processor=PairProcessor(exp, cal))
+        return _WORKER_PROCESSOR["processor"]
+
+
+def drop_worker_processor() -> None:
+    """Forget this process's :class:`PairProcessor`; the next pair builds its projector again.
+
+    Frees the projector's memory; ``benchmarks/bench_batch.py --no-reuse`` times the rebuild.
+    """
+    with _WORKER_LOCK:
+        _WORKER_PROCESSOR.clear()
+
+
+def prepare_weights(experiment, calibration: Calibration) -> tuple[bool, float]:
+    """Put the experiment's explicit weights into its weights cache before a batch starts.
+
+    Returns ``(found in the cache, seconds spent)``. Without ``[output] weights_cache``, or
+    where the reconstruction takes the matrix-free projector (never cached), nothing is
+    built here: each worker makes its projector once, for all its pairs
+    (:func:`worker_processor`).
+    """
+    cache = experiment.output.weights_cache
+    if not cache:
+        return False, 0.0
+    t0 = time.perf_counter()
+    _, hit = weights_for(calibration, experiment.volume, experiment.reconstruction,
+                         cache_dir=experiment.path(cache), load=False)
+    return hit, time.perf_counter() - t0
+
