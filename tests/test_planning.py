@@ -1,4 +1,5 @@
-"""``plenopiv plan`` and plenopiv.workflow.planning: resolution, recommendations, fit, size and cost."""
+"""``plenopiv plan`` and plenopiv.workflow.planning: resolution, recommendations, fit, size and
+cost."""
 
 from __future__ import annotations
 

@@ -59,7 +59,7 @@ try:
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
 
-from plenopiv.errors import (
+from plenopiv.errors import (  # noqa: E402
     CalibrationError,
     ConfigError,
     ImageError,

@@ -2,7 +2,8 @@
 
 Volumes are indexed ``[z, y, x]``; voxel ``[k, j, i]`` has its centre at
 ``(x[i], y[j], z[k])``. Z is measured from the nominal focal plane, + away from the camera;
-the reconstruction works in effective (air-equivalent) depth, see :mod:`plenopiv.camera.corrections`.
+the reconstruction works in effective (air-equivalent) depth, see
+:mod:`plenopiv.camera.corrections`.
 """
 
 from __future__ import annotations
@@ -11,10 +12,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
-from plenopiv.camera.model import format_validation_error
 from plenopiv.errors import ConfigError
+from plenopiv.settings import StrictModel, format_validation_error
 
 #: More voxels than this is refused at once: the voxel-pixel weights index voxels with
 #: 32-bit integers, and a float32 volume of 2^31 voxels alone is 8.6 GB.
@@ -145,8 +146,9 @@ class VolumeGrid:
                f"n={list(self.shape)}"
 
 
-class _VolumeCfg(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class _VolumeCfg(StrictModel):
+    # non-finite bounds are refused by volume_from_dict, naming them in millimetres
+    model_config = {**StrictModel.model_config, "allow_inf_nan": True}
     x_mm: tuple[float, float]
     y_mm: tuple[float, float]
     z_mm: tuple[float, float]

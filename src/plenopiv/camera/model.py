@@ -29,9 +29,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
 from plenopiv.errors import ConfigError
+from plenopiv.settings import StrictModel, format_validation_error
 
 GRIDS = ("square", "hexagonal")
 BACK_SIDES = ("physical", "thesis")
@@ -490,22 +491,18 @@ class CameraModel:
 # --------------------------------------------------------------------------------------------
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=False)
-
-
-class _SensorCfg(_Strict):
+class _SensorCfg(StrictModel):
     rows: int = Field(gt=1)
     cols: int = Field(gt=1)
     pixel_pitch_um: float = Field(gt=0, allow_inf_nan=False)
 
 
-class _SubstrateCfg(_Strict):
+class _SubstrateCfg(StrictModel):
     thickness_mm: float = Field(gt=0, allow_inf_nan=False)
     refractive_index: float = Field(ge=1.0, allow_inf_nan=False)
 
 
-class _MLACfg(_Strict):
+class _MLACfg(StrictModel):
     rows: int = Field(ge=1)
     cols: int = Field(ge=1)
     pitch_um: float = Field(gt=0, allow_inf_nan=False)
@@ -518,120 +515,25 @@ class _MLACfg(_Strict):
     substrate: _SubstrateCfg | None = None
 
 
-class _MainLensCfg(_Strict):
+class _MainLensCfg(StrictModel):
     focal_length_mm: float = Field(gt=0, allow_inf_nan=False)
     f_number: float = Field(gt=0, allow_inf_nan=False)
     image_distance_mm: float | None = Field(None, gt=0, allow_inf_nan=False)
     exit_pupil_offset_mm: float = Field(0.0, allow_inf_nan=False)
 
 
-class _ExternalCfg(_Strict):
+class _ExternalCfg(StrictModel):
     refractive_index: float = Field(ge=1.0, allow_inf_nan=False)
     outside_index: float = Field(1.0, ge=1.0, allow_inf_nan=False)
     medium_depth_mm: float = Field(0.0, ge=0, allow_inf_nan=False)
 
 
-class _CameraCfg(_Strict):
+class _CameraCfg(StrictModel):
     name: str = "plenoptic camera"
     sensor: _SensorCfg
     microlens_array: _MLACfg
     main_lens: _MainLensCfg
     external_interface: _ExternalCfg | None = None
-
-
-_BRANCH_WORDS = {"float": "a number", "int": "an integer", "str": "a string",
-                 "bool": "true or false", "dict": "a table", "none": "nothing",
-                 "list": "a list", "tuple": "a list"}
-
-
-def _branch_text(part: str) -> str | None:
-    """What a pydantic union branch in an error location expects; None for a field name."""
-    if part in _BRANCH_WORDS:
-        return _BRANCH_WORDS[part]
-    if "[" in part:
-        head, _, inner = part.partition("[")
-        if head in ("tuple", "list"):
-            items = [t.strip() for t in inner.rstrip("]").split(",") if t.strip()]
-            if head == "tuple" and items and "..." not in items:
-                kinds = {_BRANCH_WORDS.get(t, t) for t in items}
-                word = "numbers" if kinds <= {"a number", "an integer"} else "values"
-                return f"a list of {len(items)} {word}"
-            return "a list"
-        return part
-    if part.startswith("function-") or part.startswith("literal"):
-        return None
-    return None
-
-
-def format_validation_error(exc: ValidationError, what: str, model: type[BaseModel]) -> str:
-    """Turn a pydantic error into lines that name the key, the value and the expectation.
-
-    A key that accepts several forms (``voxel_mm``: a number or a list of 3) gets one line
-    naming the value and the forms, not one line per form.
-    """
-    lines: list[str] = []
-    unions: dict[str, tuple[Any, list[str]]] = {}
-    for err in exc.errors():
-        raw = [p for p in err["loc"]]
-        fields: list[str] = []
-        branch = None
-        for part in raw:
-            b = _branch_text(part) if isinstance(part, str) else None
-            if b is not None:
-                branch = b
-                break
-            fields.append(str(part) if isinstance(part, str) else f"[{part}]")
-        loc: list[str] = []
-        for f in fields:       # list indices attach to the key before them: voxel_mm[1]
-            if f.startswith("[") and loc:
-                loc[-1] += f
-            else:
-                loc.append(f)
-        section = ".".join(loc[:-1])
-        key = loc[-1] if loc else "?"
-        where = f"[{section}] {key}" if section else key
-        kind = err["type"]
-        if branch is not None:
-            value, forms = unions.setdefault(where, (None, []))
-            if raw[len(fields)] == raw[-1] or value is None:
-                value = err.get("input") if raw[len(fields)] == raw[-1] else value
-            if branch not in forms:
-                forms.append(branch)
-            unions[where] = (value, forms)
-            continue
-        if kind == "extra_forbidden":
-            valid = _valid_keys(model, [p for p in loc[:-1]])
-            lines.append(f"unknown key {where!s}; valid keys here: {', '.join(valid)}")
-        elif kind == "missing":
-            sub = _submodel(model, loc)
-            if sub is not None:
-                lines.append(f"missing section [{'.'.join(loc)}]")
-            else:
-                lines.append(f"missing key {where}")
-        else:
-            lines.append(f"{where} = {err.get('input')!r}: {err['msg'].lower()}")
-    for where, (value, forms) in unions.items():
-        lines.append(f"{where} = {value!r}: expected {' or '.join(forms)}")
-    return f"{what}: " + "; ".join(lines)
-
-
-def _submodel(model: type[BaseModel], loc: list[str]) -> type[BaseModel] | None:
-    current: Any = model
-    for part in loc:
-        fields = getattr(current, "model_fields", None)
-        if fields is None or part not in fields:
-            return None
-        ann = fields[part].annotation
-        args = getattr(ann, "__args__", None)
-        if args:
-            ann = next((a for a in args if isinstance(a, type) and issubclass(a, BaseModel)), ann)
-        current = ann
-    return current if isinstance(current, type) and issubclass(current, BaseModel) else None
-
-
-def _valid_keys(model: type[BaseModel], loc: list[str]) -> list[str]:
-    sub = _submodel(model, loc) if loc else model
-    return sorted(sub.model_fields) if sub is not None else []
 
 
 def camera_from_dict(cfg: dict, *, source: str = "camera config") -> CameraModel:

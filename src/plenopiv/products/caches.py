@@ -1,4 +1,4 @@
-"""The on-disk caches (the chain's response; the weights cache is in this module too), with their keys."""
+"""The on-disk caches and their keys: the chain's measured response."""
 
 from __future__ import annotations
 

@@ -3,8 +3,8 @@
 From a camera and a box this module computes, without reconstructing anything:
 
 * the resolution cell: one lenslet footprint b = p_m S_o/S_i laterally and b S_o/D in depth
-  (:func:`plenopiv.camera.resolution.resolution_cell`), and the near-focus zone |Z| < b S_o/D, where a
-  particle's blur on the focal plane (D |Z|/S_o) is smaller than one footprint, so that it lights
+  (:func:`plenopiv.camera.resolution.resolution_cell`), and the near-focus zone |Z| < b S_o/D, where
+  a particle's blur on the focal plane (D |Z|/S_o) is smaller than one footprint, so that it lights
   one lenslet and its depth motion is under-measured (docs/validation/vortex.md);
 * the recommended voxel and PIV windows for this camera: the settings that met the vortex
   targets in docs/validation/vortex.md (half-footprint lateral voxels; windows of

@@ -1,4 +1,8 @@
-"""The chain's response, measured on synthetic pairs rendered through the experiment's own camera, grid and settings (the per-vector uncertainty's calibration)."""
+"""The chain's response, measured on synthetic pairs.
+
+Rendered through the experiment's own camera, grid and settings: the calibration of the
+per-vector uncertainty (:mod:`plenopiv.piv.uncertainty`).
+"""
 
 from __future__ import annotations
 
