@@ -36,8 +36,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from full_camera import full_case, render_pair  # noqa: E402
 
-from plenopiv.config.experiment import ParticleSettings, ReconstructionSettings
+from plenopiv.particles.settings import ParticleSettings
 from plenopiv.reconstruction.real_lattice import LensletProjector
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.workflow.volume import reconstruct_volume
 

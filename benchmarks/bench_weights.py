@@ -87,7 +87,7 @@ def reconstruction_footprint(camera: str, depth_mm: float, method: str, repeats:
     import tempfile
     import tracemalloc
 
-    from plenopiv.config.experiment import ReconstructionSettings
+    from plenopiv.reconstruction.settings import ReconstructionSettings
     from plenopiv.reconstruction.subdivision import weights_for
     from plenopiv.workflow.volume import reconstruct_volume
 

@@ -61,12 +61,13 @@ import numpy as np
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import load_camera
-from plenopiv.config.experiment import ParticleSettings, ReconstructionSettings
 from plenopiv.errors import ReconstructionError
+from plenopiv.particles.settings import ParticleSettings
 from plenopiv.piv import PIVSettings
 from plenopiv.products.files import atomic_path
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.subdivision import lateral_subdivision, weights_for
 from plenopiv.resources import prefer_small_pages
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair

@@ -35,8 +35,8 @@ import numpy as np
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import resolution_cell
-from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.validation import field_quality as fq
 from plenopiv.workflow.volume import reconstruct_volume
 

@@ -238,17 +238,17 @@ def test_vectors_with_a_bad_dt_are_never_made():
 
 
 def test_piv_settings_errors_are_config_errors():
-    from plenopiv.config.experiment import PIVConfig
-    from plenopiv.workflow.pair import piv_settings
-
-    with pytest.raises(ConfigError, match=r"\[piv\] windows = .*expected edges of 4 to 1024"):
-        experiment_from_dict({"camera": "small_test", "volume": {
-            "x_mm": [-1, 1], "y_mm": [-1, 1], "z_mm": [-1, 1], "voxel_mm": 0.25},
-            "piv": {"windows": [[0, 0, 0]]}})
+    volume = {"x_mm": [-1, 1], "y_mm": [-1, 1], "z_mm": [-1, 1], "voxel_mm": 0.25}
+    with pytest.raises(ConfigError, match=r"\[piv\] windows.*edge must be at least 4 voxels"):
+        experiment_from_dict({"camera": "small_test", "volume": volume,
+                              "piv": {"windows": [[0, 0, 0]]}})
     with pytest.raises(ConfigError, match=r"\[piv\] passes"):
-        piv_settings(PIVConfig.model_construct(windows=[(8, 8, 8), (8, 8, 8)], overlap=0.5,
-                                               passes=1, deformation=True,
-                                               median_threshold=2.0))
+        experiment_from_dict({"camera": "small_test", "volume": volume,
+                              "piv": {"windows": [[8, 8, 8], [8, 8, 8]], "passes": 1}})
+    with pytest.raises(ConfigError, match=r"unknown key \[piv\] window; valid keys here: "
+                                          r"broad_peaks, deformation"):
+        experiment_from_dict({"camera": "small_test", "volume": volume,
+                              "piv": {"window": [8, 8, 8]}})
 
 
 # ---- the simulator's arguments --------------------------------------------------------------

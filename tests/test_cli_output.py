@@ -115,7 +115,8 @@ def test_pair_progress_names_each_volume_and_pass():
     """process_pair reports the weights, each volume and each PIV pass, in order."""
     from plenopiv.calibration.model import Calibration
     from plenopiv.camera.model import load_camera
-    from plenopiv.config.experiment import Experiment, ImagesConfig, OutputConfig, PIVConfig
+    from plenopiv.config.experiment import Experiment, ImagesConfig, OutputConfig
+    from plenopiv.piv.settings import PIVSettings
     from plenopiv.synthetic.flows import Uniform
     from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
     from plenopiv.workflow.pair import process_pair
@@ -126,7 +127,7 @@ def test_pair_progress_names_each_volume_and_pass():
     box = SeedingBox(tuple(grid.bounds[0]), tuple(grid.bounds[1]), (-1.5e-3, 1.5e-3))
     pair = simulate_pair(cam, Uniform((0.125, 0.0, 0.0)), dt=1e-3, box=box, n_particles=30,
                          rng=np.random.default_rng(3), rays_per_particle=256)
-    exp = Experiment(camera=cam, volume=grid, piv=PIVConfig(windows=[(12, 12, 12)], passes=2),
+    exp = Experiment(camera=cam, volume=grid, piv=PIVSettings(windows=[(12, 12, 12)], passes=2),
                      images=ImagesConfig(dt_s=1e-3), output=OutputConfig(weights_cache=""))
     seen = []
     process_pair(Calibration.from_camera(cam), pair.image_a, pair.image_b, exp,

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.config.experiment import ReconstructionSettings
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.validation import field_quality as fq
 
 DEPTH = 3e-3          # particles in |Z| <= 3 mm, grid ±3.5 mm: a small, fast volume

@@ -17,7 +17,6 @@ import pytest
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
-from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction.geometry import separable_axes
@@ -30,6 +29,7 @@ from plenopiv.reconstruction.select import (
     estimate_matrix_free_gb,
     estimate_nnz,
 )
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import build_weights
 from plenopiv.synthetic.images import particle_image
 from plenopiv.workflow.volume import reconstruct_volume

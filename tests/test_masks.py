@@ -10,8 +10,9 @@ import pytest
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import load_camera
-from plenopiv.config.experiment import ReconstructionSettings, experiment_from_dict
+from plenopiv.config.experiment import experiment_from_dict
 from plenopiv.errors import ConfigError, ReconstructionError
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.synthetic.images import particle_image
 from plenopiv.synthetic.seeding import SeedingBox, random_particles

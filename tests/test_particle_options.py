@@ -9,8 +9,8 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import load_camera
 from plenopiv.camera.resolution import resolution_cell
-from plenopiv.config.experiment import ParticleSettings
 from plenopiv.particles.peaks import find_particles
+from plenopiv.particles.settings import ParticleSettings
 from plenopiv.workflow.volume import particle_options
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -279,7 +280,7 @@ def test_defaults_are_those_of_the_particles_settings():
     the two that ParticleSettings leaves to the camera (None) have none in find_particles."""
     import inspect
 
-    from plenopiv.config.experiment import ParticleSettings
+    from plenopiv.particles.settings import ParticleSettings
 
     settings = ParticleSettings()
     params = inspect.signature(find_particles).parameters
@@ -287,7 +288,8 @@ def test_defaults_are_those_of_the_particles_settings():
     # here (pipeline.particle_options converts); it has no default here
     assert params["threshold"].default is inspect.Parameter.empty
     shared = [name for name in params
-              if name in ParticleSettings.model_fields and name != "threshold"]
+              if name in {f.name for f in dataclasses.fields(ParticleSettings)}
+              and name != "threshold"]
     assert sorted(shared) == ["box_vox", "fit_spacing_vox", "method", "min_separation_vox"]
     for name in shared:
         default = params[name].default

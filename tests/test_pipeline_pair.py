@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -9,7 +10,8 @@ import pytest
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.cli import main
-from plenopiv.config.experiment import Experiment, ImagesConfig, OutputConfig, PIVConfig
+from plenopiv.config.experiment import Experiment, ImagesConfig, OutputConfig
+from plenopiv.piv.settings import PIVSettings
 from plenopiv.synthetic.flows import Uniform
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.workflow.pair import process_pair, save_pair
@@ -29,7 +31,7 @@ def pair_products(tmp_path_factory):
     pair = simulate_pair(cam, Uniform(tuple(shift / 1e-3)), dt=1e-3, box=box, n_particles=60,
                          rng=rng, rays_per_particle=1024)
     out = tmp_path_factory.mktemp("pair")
-    exp = Experiment(camera=cam, volume=grid, piv=PIVConfig(windows=[(16, 16, 16)], passes=2),
+    exp = Experiment(camera=cam, volume=grid, piv=PIVSettings(windows=[(16, 16, 16)], passes=2),
                      images=ImagesConfig(dt_s=1e-3),
                      output=OutputConfig(directory=str(out), weights_cache=""), base_dir=out)
     res = process_pair(cal, pair.image_a, pair.image_b, exp)
@@ -205,7 +207,7 @@ def test_masked_vectors_in_the_pair_pipeline(pair_products):
     b = grid.bounds * 1e3
     box = BoxMask(x_mm=(0.0, b[0, 1]), y_mm=tuple(b[1]), z_mm=tuple(b[2]))
     exp = replace(exp, mask=MaskConfig(box=[box]),
-                  piv=exp.piv.model_copy(update={"uncertainty": "correlation"}))
+                  piv=dataclasses.replace(exp.piv, uncertainty="correlation"))
     vec = process_pair(cal, pair.image_a, pair.image_b, exp).vectors
     masked = vec.x[None, None, :] >= -grid.voxel[0] / 2 + np.zeros(vec.u.shape)
     assert masked.any() and (~masked).any()

@@ -13,8 +13,8 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import ExternalInterface, Sensor, load_camera
 from plenopiv.cli import main
-from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ConfigError, ImageError, ReconstructionError
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.synthetic.images import particle_image
 from plenopiv.workflow.volume import reconstruct_volume
 

@@ -395,29 +395,30 @@ def test_bad_settings_name_parameter_value_and_expectation(kwargs, match):
 
 
 def test_every_setting_is_a_piv_key_with_the_one_default():
-    """The ``[piv]`` table offers every field of PIVSettings and converts to its defaults."""
-    from dataclasses import fields
+    """The ``[piv]`` table is PIVSettings: no key of its own, the same defaults."""
+    from plenopiv.config.experiment import experiment_from_dict
+    from plenopiv.piv.settings import PIVSettings
 
-    from plenopiv.config.experiment import PIVConfig
-    from plenopiv.workflow.pair import piv_settings
-
-    names = {f.name for f in fields(PIVSettings)}
-    assert names <= set(PIVConfig.model_fields)
-    # the two keys beyond the correlation's settings choose the pipeline's uncertainty step
-    assert set(PIVConfig.model_fields) - names == {"uncertainty", "response_displacements"}
-    assert piv_settings(PIVConfig()) == PIVSettings()
+    volume = {"x_mm": [-1, 1], "y_mm": [-1, 1], "z_mm": [-1, 1], "voxel_mm": 0.25}
+    exp = experiment_from_dict({"camera": "small_test", "volume": volume})
+    assert exp.piv == PIVSettings()
+    exp = experiment_from_dict({"camera": "small_test", "volume": volume, "piv": {}})
+    assert exp.piv == PIVSettings()
 
 
 def test_piv_keys_reach_the_settings():
-    from plenopiv.config.experiment import PIVConfig
-    from plenopiv.workflow.pair import piv_settings
+    from plenopiv.config.experiment import experiment_from_dict
+    from plenopiv.piv.settings import PIVSettings
 
     given = {"windows": [(16, 12, 12)], "passes": 2, "overlap": 0.25, "deformation": False,
              "deformation_order": 1, "median_threshold": 3.0, "median_epsilon_vox": 0.2,
              "median_iterations": 3, "smooth_predictor": False, "subpixel": "parabolic",
              "replacement": "mean", "overlap_correction": False, "broad_peaks": False}
-    s = piv_settings(PIVConfig(**given))
-    assert s == PIVSettings(**{**given, "windows": ((16, 12, 12),)})
+    volume = {"x_mm": [-1, 1], "y_mm": [-1, 1], "z_mm": [-1, 1], "voxel_mm": 0.25}
+    toml = {**given, "windows": [[16, 12, 12]], "uncertainty": "correlation",
+            "response_displacements": 1}
+    s = experiment_from_dict({"camera": "small_test", "volume": volume, "piv": toml}).piv
+    assert s == PIVSettings(**{**toml, "windows": ((16, 12, 12),)})
 
 
 @pytest.mark.parametrize(
@@ -426,12 +427,10 @@ def test_piv_keys_reach_the_settings():
      ("median_epsilon_vox", float("inf")), ("median_iterations", 0), ("subpixel", "centroid")],
 )
 def test_bad_piv_keys_are_refused_by_name(key, value):
-    from pydantic import ValidationError
+    from plenopiv.piv.settings import PIVSettings
 
-    from plenopiv.config.experiment import PIVConfig
-
-    with pytest.raises(ValidationError, match=key):
-        PIVConfig(**{key: value})
+    with pytest.raises(ValueError, match=key):
+        PIVSettings(**{key: value})
 
 
 @pytest.fixture

@@ -15,8 +15,8 @@ from plenopiv.camera.grid import VolumeGrid, volume_from_dict
 from plenopiv.camera.model import load_camera
 from plenopiv.camera.resolution import footprint
 from plenopiv.cli import main
-from plenopiv.config.experiment import PIVConfig
 from plenopiv.lightfield import light_field
+from plenopiv.piv.settings import PIVSettings
 from plenopiv.reconstruction.select import estimate_nnz
 from plenopiv.workflow import planning
 
@@ -100,7 +100,7 @@ def test_windows_that_do_not_fit_are_a_warning(small_camera):
 def test_box_outside_the_field_of_view(small_camera):
     grid = VolumeGrid.from_bounds((-10 * MM, 10 * MM), (-4 * MM, 4 * MM), (-5 * MM, 5 * MM),
                                   voxel=(0.13 * MM, 0.13 * MM, 0.556 * MM))
-    p = planning.plan(small_camera, grid, piv=PIVConfig(windows=[(8, 32, 32), (6, 24, 24)]))
+    p = planning.plan(small_camera, grid, piv=PIVSettings(windows=[(8, 32, 32), (6, 24, 24)]))
     assert any("field of view" in w for w in p.warnings)
 
 
@@ -120,7 +120,7 @@ def test_full_camera_uses_the_lattice_projector_and_its_memory(auburn_camera):
 def test_measured_rates_are_positive(small_camera):
     grid = VolumeGrid.from_bounds((-2 * MM, 2 * MM), (-2 * MM, 2 * MM), (-3 * MM, 3 * MM),
                                   voxel=(0.13 * MM, 0.13 * MM, 0.556 * MM))
-    cfg = PIVConfig(windows=[(6, 16, 16)], passes=2)
+    cfg = PIVSettings(windows=[(6, 16, 16)], passes=2)
     r = planning.measure_rates(small_camera, grid, piv=cfg, budget_s=0.5)
     assert r.source == "measured" and r.threads >= 1
     for v in (r.build_s_per_nnz, r.sweep_s_per_nnz, r.lattice_s_per_ray_slice,

@@ -20,7 +20,6 @@ import pytest
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.cli import main
-from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction._kernels import real_lattice as rk
@@ -33,6 +32,7 @@ from plenopiv.reconstruction.real_lattice import (
     matrix_free_projector,
 )
 from plenopiv.reconstruction.select import cached_weights, choose_projector
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import build_weights
 from plenopiv.synthetic.images import particle_image
 from plenopiv.workflow.volume import reconstruct_volume

@@ -11,12 +11,12 @@ import pytest
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
-from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction import sightline
 from plenopiv.reconstruction.geometry import ProjectionGeometry, weights_key
 from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.synthetic.images import particle_image
 from plenopiv.workflow.volume import reconstruct_volume

@@ -185,7 +185,7 @@ def test_particle_is_found_whatever_the_grid(lenslets, position):
 def test_volume_positions_keep_the_centroid(odd):
     """``position = "volume"`` gives the voxels' centroid; the light field's positions keep
     it as ``particle_centroid_effective``; a fully masked image leaves every seed."""
-    from plenopiv.config.experiment import ParticleSettings
+    from plenopiv.particles.settings import ParticleSettings
     from plenopiv.reconstruction.geometry import ProjectionGeometry
     from plenopiv.workflow.volume import light_field_positions
 

@@ -10,8 +10,8 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import load_camera
 from plenopiv.camera.resolution import footprint
-from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.subdivision import (
     lateral_subdivision,
     merge_subdivided,

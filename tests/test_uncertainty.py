@@ -313,17 +313,14 @@ def test_the_window_s_bias_bounds_what_deformation_passes_leave():
     assert np.all(np.abs(fixed_point_bias) <= 0.5 * bound[0][0, 0, inside] * (1 + 1e-4))
 
 
-def test_the_number_of_test_displacements_is_a_piv_key_not_a_correlation_setting():
-    from pydantic import ValidationError
+def test_the_number_of_test_displacements_is_a_piv_key():
+    from plenopiv.piv.settings import PIVSettings
 
-    from plenopiv.config.experiment import PIVConfig
-
-    cfg = PIVConfig(response_displacements=1)
+    cfg = PIVSettings(response_displacements=1)
     assert cfg.response_displacements == 1
-    assert PIVConfig().response_displacements == 3
-    assert not hasattr(cfg.settings(), "response_displacements")
-    with pytest.raises(ValidationError, match="response_displacements"):
-        PIVConfig(response_displacements=2)
+    assert PIVSettings().response_displacements == 3
+    with pytest.raises(ValueError, match="response_displacements"):
+        PIVSettings(response_displacements=2)
 
 
 def test_the_curvature_of_random_errors_is_removed_from_the_bias_term(rng):

@@ -77,6 +77,8 @@ def _fields_of(model) -> dict | None:
     fields = getattr(model, "model_fields", None)
     if fields is None:
         fields = getattr(model, "__pydantic_fields__", None)
+    if fields is None and isinstance(model, type) and dataclasses.is_dataclass(model):
+        fields = {f.name: f for f in dataclasses.fields(model)}
     return fields if isinstance(fields, dict) else None
 
 
@@ -87,7 +89,7 @@ def _submodel(model, loc: list[str]):
         fields = _fields_of(current)
         if fields is None or part not in fields:
             return None
-        ann = fields[part].annotation
+        ann = getattr(fields[part], "annotation", None)
         args = getattr(ann, "__args__", None)
         if args:
             ann = next((a for a in args if _fields_of(a) is not None), ann)
@@ -153,7 +155,11 @@ def format_validation_error(exc: ValidationError, what: str, model) -> str:
                 lines.append(f"missing key {where}")
         elif kind == "value_error" and _submodel(model, loc) is not None:
             msg = err["msg"].removeprefix("Value error, ")
-            lines.append(f"[{'.'.join(loc)}] {msg}")
+            table = ".".join(loc)
+            if msg.startswith("unknown key "):
+                lines.append(f"unknown key [{table}] {msg.removeprefix('unknown key ')}")
+            else:
+                lines.append(f"[{table}] {msg}")
         else:
             lines.append(f"{where} = {err.get('input')!r}: {err['msg'].lower()}")
     for where, (value, forms) in unions.items():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -34,10 +35,12 @@ def add_parser(sub) -> None:
 
 def cmd_piv(args) -> dict:
     """Cross-correlate two volume products into a vector field."""
-    from plenopiv.config.experiment import MAX_WINDOW_VOX, PIVConfig, load_experiment
+    from plenopiv.config.experiment import load_experiment
     from plenopiv.piv import MIN_WINDOW_VOX
+    from plenopiv.piv.settings import MAX_WINDOW_VOX, PIVSettings
     from plenopiv.products.volume import load_volume
-    from plenopiv.workflow.pair import correlate, piv_settings
+    from plenopiv.settings import as_dict
+    from plenopiv.workflow.pair import correlate
 
     _number("--dt", args.dt, minimum=0, open_min=True, unit="seconds between the exposures")
     for w in args.windows or ():
@@ -48,12 +51,16 @@ def cmd_piv(args) -> dict:
     beside = (() if args.no_vtk else (".vti",)) + (() if args.no_png else (".png",))
     out = _check_out(args.out, (".h5",), inputs=inputs, beside=beside)
     exp = None if args.config is None else load_experiment(args.config)
-    cfg = PIVConfig() if exp is None else exp.piv
+    cfg = PIVSettings() if exp is None else exp.piv
+    changes = {}
     if args.windows:
-        cfg = cfg.model_copy(update={"windows": [tuple(w) for w in args.windows]})
+        changes["windows"] = tuple(tuple(w) for w in args.windows)
     if args.replacement:
-        cfg = cfg.model_copy(update={"replacement": args.replacement})
-    settings = piv_settings(cfg)
+        changes["replacement"] = args.replacement
+    try:
+        settings = dataclasses.replace(cfg, **changes)
+    except ValueError as exc:
+        raise ConfigError(f"[piv] with the options given: {exc}") from None
     t0 = time.perf_counter()
     va, vb = load_volume(args.volume_a), load_volume(args.volume_b)
     mask = None
@@ -66,7 +73,7 @@ def cmd_piv(args) -> dict:
         bar("piv")
         vec = correlate(va, vb, settings, dt=args.dt, mask=mask, progress=lambda info: bar(
             f"piv pass {info['pass']}/{info['passes']}", info["pass"] / info["passes"]))
-    files = vec.save(out, config={"piv": cfg.model_dump(), "volume_a": str(args.volume_a),
+    files = vec.save(out, config={"piv": as_dict(settings), "volume_a": str(args.volume_a),
                                   "volume_b": str(args.volume_b), "dt_s": args.dt},
                      vtk=not args.no_vtk, extra_attrs={"complete": True})
     summary = {"command": "piv", "out": str(out), "shape": list(vec.u.shape),

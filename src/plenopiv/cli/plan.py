@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -66,7 +67,9 @@ def cmd_plan(args) -> dict:
     """Resolution, recommended voxels and windows, size, memory and time of a reconstruction."""
     from plenopiv.camera.grid import volume_from_dict
     from plenopiv.camera.model import load_camera
-    from plenopiv.config.experiment import PIVConfig, ReconstructionSettings, experiment_from_dict
+    from plenopiv.config.experiment import experiment_from_dict
+    from plenopiv.piv.settings import PIVSettings
+    from plenopiv.reconstruction.settings import ReconstructionSettings
     from plenopiv.workflow import planning
 
     path = Path(args.config)
@@ -90,13 +93,13 @@ def cmd_plan(args) -> dict:
             calibration = args.calibration      # not made yet: the camera's S_i then
     else:
         camera = load_camera(args.config)
-        recon, piv_cfg = ReconstructionSettings(), PIVConfig()
+        recon, piv_cfg = ReconstructionSettings(), PIVSettings()
         calibration = args.calibration
         grid = None
     if args.f_number is not None:
-        recon = recon.model_copy(update={"f_number": args.f_number})
+        recon = dataclasses.replace(recon, f_number=args.f_number)
     if args.windows:
-        piv_cfg = piv_cfg.model_copy(update={"windows": [tuple(w) for w in args.windows]})
+        piv_cfg = dataclasses.replace(piv_cfg, windows=tuple(tuple(w) for w in args.windows))
     if args.image_distance_mm is not None:
         camera = camera.with_image_distance(args.image_distance_mm * 1e-3)
     elif calibration is not None:
@@ -111,8 +114,8 @@ def cmd_plan(args) -> dict:
         default = {"x_mm": [-fx, fx], "y_mm": [-fy, fy], "z_mm": [-dz, dz], "voxel_mm": vox}
         grid = volume_from_dict({**default, **(box or {})}, source="plan options")
         if args.windows is None:
-            piv_cfg = piv_cfg.model_copy(update={
-                "windows": list(planning.recommended_windows(cam, grid.voxel))})
+            piv_cfg = dataclasses.replace(
+                piv_cfg, windows=tuple(planning.recommended_windows(cam, grid.voxel)))
     t0 = time.perf_counter()
     if args.no_measure:
         rates = planning.BENCHMARK_RATES

@@ -43,10 +43,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage
 
-from plenopiv.config.experiment import ParticleSettings
 from plenopiv.conventions import voxel_to_world
 from plenopiv.errors import ReconstructionError
 from plenopiv.particles import _kernels as _k
+from plenopiv.particles.settings import ParticleSettings
 
 __all__ = ["CENTROID_METHODS", "DEFAULT_FIT_SPACING_VOX", "DEFAULT_METHOD", "Particles",
            "find_particles"]
@@ -54,11 +54,11 @@ __all__ = ["CENTROID_METHODS", "DEFAULT_FIT_SPACING_VOX", "DEFAULT_METHOD", "Par
 #: Valid values of ``find_particles(method=...)``.
 CENTROID_METHODS = ("gaussian", "centroid")
 #: Default sub-voxel estimator: that of ``[particles] method``
-#: (:class:`plenopiv.config.experiment.ParticleSettings`, the one set of defaults).
-DEFAULT_METHOD = ParticleSettings.model_fields["method"].default
+#: (:class:`plenopiv.particles.settings.ParticleSettings`, the one set of defaults).
+DEFAULT_METHOD = ParticleSettings().method
 #: Default sample spacing ``(z, y, x)`` of the Gaussian fit, voxels: that of
 #: ``[particles] fit_spacing_vox``.
-DEFAULT_FIT_SPACING_VOX = ParticleSettings.model_fields["fit_spacing_vox"].default
+DEFAULT_FIT_SPACING_VOX = ParticleSettings().fit_spacing_vox
 
 
 @dataclass(frozen=True, eq=False)

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from plenopiv.piv.settings import RESPONSE_DISPLACEMENTS
+
 __all__ = [
     "DEPTH_SHIFTS",
     "LATERAL_SHIFTS",
@@ -287,8 +289,6 @@ def _motion_in_cells(disp, cell, level: int) -> np.ndarray:
     return np.stack([lateral, t[2]]) if level == 2 else np.hypot(lateral, t[2])[None]
 
 
-RESPONSE_DISPLACEMENTS = (1, 3)
-"""Valid numbers of test displacements: all three, or the middle one alone."""
 
 
 def response_shifts(camera, f_number=None, displacements: int = 3) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Validated settings of a multi-pass volumetric cross-correlation (:class:`PIVSettings`).
 
 The settings are the one place where the PIV defaults live: the ``[piv]`` table of an
-experiment file (:class:`plenopiv.config.experiment.PIVConfig`) takes its defaults from here.
+experiment file is this class (:mod:`plenopiv.config.experiment` builds it from the table).
 """
 
 from __future__ import annotations
@@ -23,6 +23,15 @@ DEFORMATION_ORDERS = (1, 2, 3, 4, 5)
 MIN_WINDOW_VOX = 4
 """Smallest interrogation window edge, voxels: the 3-point peak fit needs distinct neighbours."""
 
+MAX_WINDOW_VOX = 1024
+"""Largest interrogation window edge, voxels (a 1024³ float32 window pair is 8 GB)."""
+
+UNCERTAINTY_METHODS = ("response", "correlation")
+"""Valid values of :attr:`PIVSettings.uncertainty`."""
+
+RESPONSE_DISPLACEMENTS = (1, 3)
+"""Valid values of :attr:`PIVSettings.response_displacements`."""
+
 def _as_window(value, name):
     """Return one window as a ``(wz, wy, wx)`` tuple of int, or raise ValueError."""
     if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
@@ -43,6 +52,10 @@ def _as_window(value, name):
     if min(window) < MIN_WINDOW_VOX:
         raise ValueError(
             f"{name} = {window}: every window edge must be at least {MIN_WINDOW_VOX} voxels"
+        )
+    if max(window) > MAX_WINDOW_VOX:
+        raise ValueError(
+            f"{name} = {window}: every window edge must be at most {MAX_WINDOW_VOX} voxels"
         )
     return window
 
@@ -122,6 +135,17 @@ class PIVSettings:
         move while the rest jump by several voxels (a particle's light stays in one lenslet
         until its blur crosses the lenslet's edge), so the depth peak is a main lobe with a
         shoulder; seven samples take in more of the shoulder (docs/validation/vortex.md).
+    uncertainty : str
+        The per-vector uncertainty, one of ``UNCERTAINTY_METHODS``: ``"response"`` (the
+        correlation statistics completed by the chain's measured response to known
+        displacements, once per experiment: :mod:`plenopiv.piv.uncertainty`) or
+        ``"correlation"`` (the correlation statistics only: faster, and short of the depth
+        uncertainty near focus). Used by the pair's workflow, not by the correlation itself.
+    response_displacements : int
+        Test displacements of the ``"response"`` uncertainty, one of
+        ``RESPONSE_DISPLACEMENTS``: 3 (fractions 0.5, 1.25 and 1.75 of a lenslet footprint
+        laterally with 0.1, 0.25 and 0.5 depth resolution cells, the two axes apart, and the
+        modulated pairs of the curvature term) or 1 (the middle one alone).
 
     Raises
     ------
@@ -130,9 +154,8 @@ class PIVSettings:
 
     Notes
     -----
-    The defaults here are the only ones: the ``[piv]`` table of an experiment file
-    (:class:`plenopiv.config.experiment.PIVConfig`) reads them from this class and offers every
-    field.
+    This class is the ``[piv]`` table of an experiment file: every key, its default and its
+    check are here (:mod:`plenopiv.config.experiment` builds it from the table).
 
     Examples
     --------
@@ -157,6 +180,8 @@ class PIVSettings:
     replacement: str = "median"
     overlap_correction: bool = True
     broad_peaks: bool = True
+    uncertainty: str = "response"
+    response_displacements: int = 3
 
     def __post_init__(self):
         w = self.windows
@@ -218,6 +243,15 @@ class PIVSettings:
         if self.replacement not in REPLACEMENT_METHODS:
             raise ValueError(
                 f"replacement = {self.replacement!r}: expected one of {REPLACEMENT_METHODS}"
+            )
+        if self.uncertainty not in UNCERTAINTY_METHODS:
+            raise ValueError(
+                f"uncertainty = {self.uncertainty!r}: expected one of {UNCERTAINTY_METHODS}"
+            )
+        n = self.response_displacements
+        if isinstance(n, bool) or n not in RESPONSE_DISPLACEMENTS:
+            raise ValueError(
+                f"response_displacements = {n!r}: expected one of {RESPONSE_DISPLACEMENTS}"
             )
 
     def window_vox(self, pass_index):

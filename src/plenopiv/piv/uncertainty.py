@@ -99,6 +99,7 @@ from dataclasses import replace
 import numpy as np
 
 from plenopiv.piv.response import Response, vector_spacing
+from plenopiv.piv.settings import UNCERTAINTY_METHODS
 
 __all__ = [
     "UNCERTAINTY_METHODS",
@@ -110,9 +111,6 @@ __all__ = [
     "unresolved_gradient_bias",
 ]
 
-UNCERTAINTY_METHODS = ("response", "correlation")
-"""Valid values of ``[piv] uncertainty``: correlation statistics with the chain's measured
-response (default), or correlation statistics alone."""
 
 MIN_GAIN = 0.1
 """Smallest gain the systematic term divides by (dimensionless)."""

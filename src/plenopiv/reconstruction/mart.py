@@ -102,7 +102,8 @@ def reconstruct(
     r"""Reconstruct the voxel intensities E from one image by multiplicative iterations.
 
     ``method``, ``iterations`` and ``relaxation`` have no defaults here: they are the
-    ``[reconstruction]`` settings (:class:`plenopiv.config.experiment.ReconstructionSettings`, whose
+    ``[reconstruction]`` settings
+    (:class:`~plenopiv.reconstruction.settings.ReconstructionSettings`, whose
     defaults are SMART, 10 sweeps, μ = 2), given by the caller.
 
     Parameters

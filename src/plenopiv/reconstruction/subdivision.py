@@ -17,11 +17,11 @@ import numpy as np
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import footprint
-from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.reconstruction.geometry import ProjectionGeometry
 from plenopiv.reconstruction.lattice import LatticeProjector
 from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import Weights
 
 __all__ = ["SUBDIVIDED_VOXEL_FOOTPRINTS", "footprint", "lateral_subdivision", "merge_subdivided",
@@ -38,7 +38,8 @@ def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
 
     ``settings.lateral_subdivision`` as given, or for ``"auto"`` the smallest k per axis for
     which the working voxel is at most a third of a lenslet footprint (5 % slack, at most
-    :data:`plenopiv.config.experiment.MAX_SUBDIVISION`). Depth along a pixel's beam is told apart by
+    :data:`~plenopiv.reconstruction.settings.MAX_SUBDIVISION`). Depth along a pixel's beam is told
+    apart by
     the beams of the other views shifting sideways by a fraction of a footprint; voxels a
     footprint wide hold those shifts in one voxel, and the reconstructed particle is 2-3
     times longer in depth than with half-footprint voxels. On the CI camera (Oseen, 0.3
@@ -46,7 +47,7 @@ def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
     0.89 with 4 (w rms 0.60, 0.48, 0.40 voxel; without subdivision see
     docs/validation/vortex.md).
     """
-    from plenopiv.config.experiment import MAX_SUBDIVISION
+    from plenopiv.reconstruction.settings import MAX_SUBDIVISION
 
     k = settings.lateral_subdivision
     if k != "auto":

@@ -47,9 +47,10 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera.corrections import DepthCorrection
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import CameraModel, ExternalInterface, Sensor, Substrate, load_camera
-from plenopiv.config.experiment import ParticleSettings, ReconstructionSettings
 from plenopiv.errors import ReconstructionError
+from plenopiv.particles.settings import ParticleSettings
 from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.synthetic.images import particle_image
 from plenopiv.validation.report import write_json, write_text
 from plenopiv.workflow.volume import reconstruct_volume

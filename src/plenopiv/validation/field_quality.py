@@ -36,11 +36,12 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import CameraModel, load_camera
 from plenopiv.camera.resolution import footprint, resolution_cell
-from plenopiv.config.experiment import ParticleSettings, ReconstructionSettings
 from plenopiv.conventions import world_to_voxel
 from plenopiv.errors import ReconstructionError
+from plenopiv.particles.settings import ParticleSettings
 from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import Weights
 from plenopiv.synthetic.images import finish_image, particle_image
 from plenopiv.synthetic.seeding import SeedingBox, random_particles

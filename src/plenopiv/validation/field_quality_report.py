@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.camera.grid import VolumeGrid
-from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.conventions import world_to_voxel
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.validation.field_quality import ITERATIONS, METHODS
 from plenopiv.validation.report import pyplot, savefig
 

@@ -38,9 +38,9 @@ import numpy as np
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.resolution import footprint
-from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.piv.response import cell_blob_vox
 from plenopiv.products.volume import load_volume
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.synthetic.seeding import SeedingBox
 from plenopiv.synthetic.truth import gaussian_truth_volume
 from plenopiv.validation.report import write_json, write_text

@@ -13,23 +13,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.errors import ConfigError, PIVError, ReconstructionError
+from plenopiv.errors import PIVError, ReconstructionError
 from plenopiv.products.vectors import VectorResult, check_dt
 from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.reconstruction.weights import Weights
+from plenopiv.settings import as_dict
 from plenopiv.workflow.volume import Progress, reconstruct_volume
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
-    from plenopiv.piv import PIVSettings
+    pass
 
-
-def piv_settings(cfg) -> PIVSettings:
-    """PIV settings from a ``[piv]`` table (:class:`~plenopiv.config.experiment.PIVConfig`)."""
-    try:
-        return cfg.settings()
-    except ValueError as exc:
-        raise ConfigError(f"[piv] {exc}") from None
 
 
 def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, dt=None,
@@ -136,7 +130,7 @@ class PairProcessor:
         t1 = time.perf_counter()
         if progress is not None:
             progress("piv", 0.0)
-        settings = piv_settings(exp.piv)
+        settings = exp.piv
         response = None
         if exp.piv.uncertainty == "response":
             response = _response_of(calibration, weights, va, exp, settings, workers,
@@ -208,8 +202,8 @@ def _response_of(calibration, weights, volume_a: VolumeResult, experiment, setti
         return correlate_volumes(a, b, grid, settings=settings, workers=workers, mask=vol_mask)
 
     def response(field):
-        key = response_key(weights.key, grid.key(), experiment.reconstruction.model_dump(),
-                           experiment.piv.model_dump(), n_particles,
+        key = response_key(weights.key, grid.key(), as_dict(experiment.reconstruction),
+                           as_dict(experiment.piv), n_particles,
                            calibration.point_spread_sigma_px,
                            None if img_mask is None else hashlib_of(img_mask),
                            None if vol_mask is None else hashlib_of(vol_mask))

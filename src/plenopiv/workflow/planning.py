@@ -28,6 +28,7 @@ Everything here is computation; printing belongs to :mod:`plenopiv.cli`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -37,8 +38,9 @@ import numpy as np
 
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import CameraModel
-from plenopiv.config.experiment import PIVConfig, ReconstructionSettings
 from plenopiv.errors import ConfigError
+from plenopiv.piv.settings import PIVSettings
+from plenopiv.reconstruction.settings import ReconstructionSettings
 
 #: Lateral voxel per lenslet footprint: half-footprint voxels remove the peak locking of
 #: footprint voxels (bias 0.000 instead of -0.10 footprint, docs/validation/vortex.md).
@@ -386,7 +388,7 @@ def _slope(x1: float, t1: float, x2: float, t2: float) -> tuple[float, float]:
 
 
 def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
-                  min_lit: float = 0.5, piv: PIVConfig | None = None,
+                  min_lit: float = 0.5, piv: PIVSettings | None = None,
                   budget_s: float = 2.0) -> Rates:
     """Time the reconstruction's kernels and the PIV on samples of this plan.
 
@@ -474,7 +476,7 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
         else:
             lattice_rate = points[0][1] / points[0][0]
 
-    piv_rate, piv_call = _measure_piv(piv or PIVConfig(), grid, 0.2 * budget_s)
+    piv_rate, piv_call = _measure_piv(piv or PIVSettings(), grid, 0.2 * budget_s)
     return Rates(build_s_per_nnz=build_rate, sweep_s_per_nnz=sweep_rate,
                  sweep_s_per_call=sweep_call, lattice_s_per_ray_slice=lattice_rate,
                  lattice_s_per_call=lattice_call, piv_s_per_window_voxel=piv_rate,
@@ -490,14 +492,13 @@ def _window_voxels(shape, windows, overlap, passes) -> float:
     return total
 
 
-def _measure_piv(cfg: PIVConfig, grid: VolumeGrid, budget_s: float) -> tuple[float, float]:
+def _measure_piv(cfg: PIVSettings, grid: VolumeGrid, budget_s: float) -> tuple[float, float]:
     """``(seconds per window voxel, seconds per call)`` of this plan's PIV.
 
     Correlations of two random particle volumes of two and three first windows a side (the
     grid where smaller), after a small run that compiles the kernels.
     """
     from plenopiv.piv import correlate_volumes
-    from plenopiv.workflow.pair import piv_settings
 
     rng = np.random.default_rng(1)
     points = []
@@ -506,7 +507,7 @@ def _measure_piv(cfg: PIVConfig, grid: VolumeGrid, budget_s: float) -> tuple[flo
                       zip(grid.shape, cfg.windows[0], strict=True))
         windows = [tuple(min(w, n) for w, n in zip(ws, shape, strict=True))
                    for ws in cfg.windows]
-        run = piv_settings(cfg.model_copy(update={"windows": windows}))
+        run = dataclasses.replace(cfg, windows=windows)
         a = np.zeros(shape, np.float32)
         idx = tuple(rng.integers(0, n, max(8, int(np.prod(shape) / 300))) for n in shape)
         a[idx] = 1.0
@@ -547,7 +548,7 @@ LENSLET_COST_RATIO = 3.2
 
 
 def plan(camera: CameraModel, grid: VolumeGrid, *,
-         reconstruction: ReconstructionSettings | None = None, piv: PIVConfig | None = None,
+         reconstruction: ReconstructionSettings | None = None, piv: PIVSettings | None = None,
          rates: Rates | None = None, memory_total: float | None = None) -> Plan:
     """Plan the reconstruction of ``grid`` (effective coordinates) with ``camera``.
 
@@ -559,7 +560,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     from plenopiv.reconstruction.select import memory_budget_gb
 
     reconstruction = reconstruction or ReconstructionSettings()
-    piv = piv or PIVConfig()
+    piv = piv or PIVSettings()
     try:
         _ = camera.image_distance
     except ConfigError:

@@ -144,9 +144,8 @@ def rehearse_reconstruction(calibration, experiment) -> None:
 def rehearse_piv(calibration, experiment) -> None:
     """Correlate two tiny volumes of Gaussian blobs with the run's PIV settings."""
     from plenopiv.piv import correlate_volumes
-    from plenopiv.workflow.pair import piv_settings
 
-    settings = piv_settings(experiment.piv)
+    settings = experiment.piv
     first = np.asarray(settings.windows[0])
     step = np.maximum(1, np.round(first * (1.0 - settings.overlap))).astype(int)
     grid = rehearsal_grid(experiment.volume, first + 2 * step)

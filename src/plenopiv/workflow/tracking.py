@@ -12,7 +12,6 @@ import numpy as np
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.resolution import resolution_cell
-from plenopiv.config.experiment import TrackingConfig
 from plenopiv.lightfield import LightField, light_field
 from plenopiv.particles.bundle import (
     BundlePositions,
@@ -25,6 +24,7 @@ from plenopiv.particles.forward import ForwardSettings, near_focus, refine_posit
 from plenopiv.products.vectors import VectorResult
 from plenopiv.products.volume import VolumeResult
 from plenopiv.tracking.matching import MatchSettings, match_particles, predict_positions
+from plenopiv.tracking.settings import TrackingSettings
 from plenopiv.tracking.tracks import TrackResult
 
 __all__ = ["physical_bundle", "track_images", "track_pair"]
@@ -83,7 +83,7 @@ def _refined(b: BundlePositions, forward: ForwardSettings | None, min_lenslets: 
 
 def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResult,
                volume_b: VolumeResult, vectors: VectorResult, *,
-               settings: TrackingConfig | None = None, f_number: float | None = None,
+               settings: TrackingSettings | None = None, f_number: float | None = None,
                min_lit: float = 0.5, lf: LightField | None = None) -> TrackResult:
     """Track the particles of a pair with the correlation field as predictor.
 
@@ -96,7 +96,7 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
         Their reconstructions (particle centroids seed the bundle fits).
     vectors : VectorResult
         The pair's correlation field (physical coordinates), the predictor.
-    settings : TrackingConfig, optional
+    settings : TrackingSettings, optional
         ``[tracking]`` options (default: the defaults).
     f_number, min_lit : optional
         Aperture and pixel selection of the light field (as in ``[reconstruction]``).
@@ -104,7 +104,7 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
         The light field of this calibration with ``f_number`` and ``min_lit``, when already
         built (the reconstruction's: ``weights.geometry.light_field``); built here otherwise.
     """
-    settings = TrackingConfig() if settings is None else settings
+    settings = TrackingSettings() if settings is None else settings
     if lf is None:
         lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
     lat, dep = resolution_cell(calibration.effective_camera, f_number)
@@ -153,7 +153,7 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     import time
 
     from plenopiv.reconstruction.subdivision import weights_for
-    from plenopiv.workflow.pair import correlate, piv_settings
+    from plenopiv.workflow.pair import correlate
     from plenopiv.workflow.volume import reconstruct_volume
 
     t = {}
@@ -174,7 +174,7 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     t["reconstruct_s"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     if vectors is None:
-        vectors = correlate(volume_a, volume_b, piv_settings(experiment.piv),
+        vectors = correlate(volume_a, volume_b, experiment.piv,
                             dt=experiment.images.dt_s)
     t["piv_s"] = time.perf_counter() - t1
     t2 = time.perf_counter()

@@ -15,13 +15,14 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera.corrections import DepthCorrection
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import footprint, resolution_cell
-from plenopiv.config.experiment import ParticleSettings, ReconstructionSettings
 from plenopiv.errors import ReconstructionError
 from plenopiv.particles.bundle import PARTICLE_BUNDLE, bundle_positions, lit_rays
 from plenopiv.particles.peaks import find_particles
+from plenopiv.particles.settings import ParticleSettings
 from plenopiv.products.images import check_image
 from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.geometry import ProjectionGeometry
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.solve import solve_volume
 from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of, weights_for
 from plenopiv.reconstruction.weights import Weights

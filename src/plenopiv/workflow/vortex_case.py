@@ -20,16 +20,13 @@ from plenopiv.calibration.calibrate import calibrate
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import CameraModel, load_camera
 from plenopiv.camera.resolution import footprint
-from plenopiv.config.experiment import (
-    Experiment,
-    ImagesConfig,
-    OutputConfig,
-    PIVConfig,
-    ReconstructionSettings,
-)
+from plenopiv.config.experiment import Experiment, ImagesConfig, OutputConfig
+from plenopiv.piv.settings import PIVSettings
 from plenopiv.products.figures import vector_comparison
 from plenopiv.products.files import atomic_path
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.subdivision import lateral_subdivision
+from plenopiv.settings import as_dict
 from plenopiv.synthetic.flows import HillVortex, LambOseen, Uniform, advect
 from plenopiv.synthetic.images import (
     Ruler,
@@ -279,7 +276,7 @@ def case_experiment(case: VortexCase, calibration, out: Path) -> Experiment:
     return Experiment(camera=calibration.camera,
                       volume=aligned_grid(calibration.effective_camera, case),
                       reconstruction=case.reconstruction,
-                      piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5,
+                      piv=PIVSettings(windows=list(case.windows_vox), overlap=0.5,
                                     passes=case.passes, uncertainty=case.uncertainty,
                                     response_displacements=case.response_displacements,
                                     overlap_correction=case.overlap_correction,
@@ -392,7 +389,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None,
         disp.x, disp.y, disp.z, measured, truth / vox, disp.valid, out / "pair_vs_truth.png",
         voxel=grid.voxel, title=f"{case.flow}: measured against true displacement"))
     found = len(res.volume_a.particle_position)
-    case_dict = {**case.__dict__, "reconstruction": case.reconstruction.model_dump()}
+    case_dict = {**case.__dict__, "reconstruction": as_dict(case.reconstruction)}
     summary = {"case": case_dict, "n_particles": n, "n_found_a": found,
                "lateral_subdivision": list(lateral_subdivision(cal, grid, case.reconstruction)),
                "calibration": cal_summary, "grid_shape": list(grid.shape),

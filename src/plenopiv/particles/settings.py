@@ -1,0 +1,50 @@
+"""The particle finder's settings: the ``[particles]`` table of an experiment file."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from plenopiv.settings import settings
+
+__all__ = ["ParticleSettings"]
+
+
+@settings
+class ParticleSettings:
+    """``[particles]``: 3-D peak detection.
+
+    threshold : a particle's peak must exceed this fraction of the reference intensity.
+    threshold_reference : "bright" (default: the 99.9th percentile of the positive voxels,
+        which a few hot voxels cannot move; at 16 MP the maximum was 21 times it and a
+        threshold on the maximum found 1 % of the particles) | "maximum" (the volume's maximum).
+    method : sub-voxel estimator, "centroid" (intensity-weighted over box_vox; the better one
+        for the depth-elongated particles of plenoptic reconstructions) | "gaussian" (3-point
+        per axis).
+    min_separation_vox, box_vox, fit_spacing_vox : ``[z, y, x]`` voxels (see
+        :func:`plenopiv.particles.peaks.find_particles`). ``None`` (default): from the camera's
+        resolution cell (:func:`plenopiv.workflow.volume.particle_options`): peaks within one cell
+        are one particle, the centroid box is ±1 cell.
+    internal_correction : "auto" | "none" | "plate" (see :mod:`plenopiv.camera.corrections`).
+    position : "light_field" (default: each volume peak seeds the ray-bundle fit of
+        :func:`plenopiv.particles.bundle.bundle_positions` with
+        :data:`~plenopiv.particles.bundle.PARTICLE_BUNDLE`, the point nearest the rays of the
+        lit pixels that saw the particle; it does not depend on the voxel grid, and the
+        volume centroid is kept where fewer than ``min_rays`` rays are found) | "volume"
+        (the ``method`` estimate on the voxels: an in-focus particle's centroid moves with the
+        voxel edges by up to 0.7 voxel, docs/validation/grid_independence.md).
+
+    These are the only defaults: :func:`plenopiv.particles.peaks.find_particles` takes those of
+    ``method`` and ``fit_spacing_vox`` from here, and has none for ``min_separation_vox``
+    and ``box_vox``, which follow from the camera.
+    """
+
+    threshold: float = Field(0.1, ge=0, lt=1)
+    threshold_reference: Literal["bright", "maximum"] = "bright"
+    method: Literal["gaussian", "centroid"] = "centroid"
+    min_separation_vox: tuple[float, float, float] | None = None
+    box_vox: tuple[int, int, int] | None = None
+    fit_spacing_vox: tuple[int, int, int] = (2, 1, 1)
+    internal_correction: Literal["auto", "none", "plate"] = "auto"
+    position: Literal["light_field", "volume"] = "light_field"

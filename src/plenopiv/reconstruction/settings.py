@@ -1,0 +1,85 @@
+"""The reconstruction's settings: the ``[reconstruction]`` table of an experiment file."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, StrictInt, field_validator
+
+from plenopiv.settings import settings
+
+__all__ = ["MAX_ITERATIONS", "MAX_SUBDIVISION", "ReconstructionSettings"]
+
+#: More MART sweeps than this is refused: 10 is the default, a few hundred already converge.
+MAX_ITERATIONS = 10_000
+#: Largest lateral subdivision of the reconstruction grid (``lateral_subdivision``).
+MAX_SUBDIVISION = 4
+
+
+@settings
+class ReconstructionSettings:
+    """``[reconstruction]``: MART options.
+
+    method : "smart" (simultaneous multiplicative, default: independent of pixel order, so
+        the two exposures of a pair reconstruct consistently) | "mart" (row action, Elsinga
+        2006) | "block" (one block per perspective view).
+    iterations : sweeps after the MLOS first guess (10; see docs/validation/field_quality.md).
+    relaxation : μ, dimensionless; default by method: 2.0 for "smart", 0.03 for "mart" and
+        "block" (in a plenoptic W every voxel is seen by ~200 pixels, so one row-action sweep
+        at μ = 1 over-relaxes ~200-fold: Q 0.43 against 0.81 at μ = 0.03, 0.3 particles per
+        lenslet).
+    pixel_threshold : pixels at or below this fraction of the image's maximum are dark.
+    dark_tolerance : a voxel is emptied before MART when, in every one of its lateral
+        sub-cells (≤ half a footprint), more than this fraction of the weight falls on dark
+        pixels (a soft line-of-sight mask, :mod:`plenopiv.reconstruction.sightline`; 0 is the hard
+        rule).
+    f_number : aperture of the recording (default: the camera's).
+    min_lit : pixels whose aperture cell is less than this fraction inside the aperture are
+        not used.
+    projector : "auto" (explicit weights while they fit in max_weights_gb, else matrix-free)
+        | "sparse" (explicit CSR weights, cached) | "lattice" (matrix-free, axis-aligned
+        square lattices; method "smart" only). See :mod:`plenopiv.reconstruction.lattice`.
+    max_weights_gb : memory allowed for the explicit weights, and for a matrix-free
+        reconstruction, GB (default: 40 % of the machine's memory).
+    lateral_subdivision : "auto" (default) | an int k >= 1. The reconstruction runs on voxels
+        k times finer in x and y than the [volume] grid and is then summed back onto it.
+        "auto" subdivides each lateral axis so that a working voxel is at most a third of a
+        lenslet footprint (k = 3 for voxels of one footprint, 2 for half-footprint voxels, at
+        most 4):
+        the depth of a particle is told by beams shifting sideways by a fraction of a
+        footprint, which voxels a footprint wide cannot represent, so with them a particle
+        is reconstructed 10-20 voxels long and moves in depth by a third of its true
+        displacement (docs/validation/vortex.md). Costs k² in weights and MART time.
+    subdivision_kernel : how the working voxels return to the [volume] grid: "gaussian"
+        (default): each voxel takes the working volume weighted by a Gaussian of σ = half a
+        voxel about its centre, which keeps where a particle lies inside the voxel in the
+        ratio of neighbouring voxels (anti-aliasing; against the peak locking of voxels as
+        wide as a footprint) | "box": the sum of the voxel's own working voxels.
+    """
+
+    method: Literal["mart", "block", "smart"] = "smart"
+    iterations: int = Field(10, ge=0, le=MAX_ITERATIONS)
+    relaxation: float | None = Field(None, gt=0, allow_inf_nan=False)
+    pixel_threshold: float = Field(0.003, ge=0, lt=1)
+    dark_tolerance: float = Field(0.5, ge=0, le=1)
+    f_number: float | None = Field(None, gt=0)
+    min_lit: float = Field(0.5, gt=0, le=1)
+    projector: Literal["auto", "sparse", "lattice"] = "auto"
+    max_weights_gb: float | None = Field(None, gt=0, allow_inf_nan=False)
+    lateral_subdivision: Literal["auto"] | StrictInt = Field("auto", union_mode="left_to_right")
+    subdivision_kernel: Literal["gaussian", "box"] = "gaussian"
+
+    @field_validator("lateral_subdivision")
+    @classmethod
+    def _subdivision(cls, v):
+        if v != "auto" and not (isinstance(v, int) and not isinstance(v, bool)
+                                and 1 <= v <= MAX_SUBDIVISION):
+            raise ValueError(f"expected \"auto\" or an int from 1 to {MAX_SUBDIVISION}")
+        return v
+
+    @property
+    def relaxation_used(self) -> float:
+        """μ: the given relaxation, or the method's default."""
+        if self.relaxation is not None:
+            return self.relaxation
+        return 2.0 if self.method == "smart" else 0.03

@@ -1,0 +1,42 @@
+"""The tracking's settings: the ``[tracking]`` table of an experiment file."""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from plenopiv.settings import settings
+
+__all__ = ["TrackingSettings"]
+
+
+@settings
+class TrackingSettings:
+    """``[tracking]``: particle tracks from the light field (:mod:`plenopiv.tracking`).
+
+    enabled : also track the particles of every pair in ``plenopiv run`` (``NAME_tracks.h5``).
+    search_radius_cells : largest distance of a partner from its PIV-predicted position, in
+        resolution cells (lateral footprint, depth cell) (1.0).
+    median_threshold : normalised median test of a track's deviation from its prediction
+        against its neighbouring tracks (2.0, as Westerweel & Scarano 2005 for PIV).
+    median_epsilon_cells : noise floor of that test, resolution cells (0.1).
+    bundle_radius : a ray belongs to a particle when it passes within this many half beam
+        widths of it (1.5).
+    bundle_iterations : ray selections and solves per particle, the first around the volume
+        centroid (4).
+    forward_refine : move each bundle position to the one whose predicted pixel values fit
+        the image best (:mod:`plenopiv.particles.forward`) (true).
+    min_lenslets : a track is kept when both its ends were seen through at least this many
+        lenslets (6: a particle seen through one lenslet is lit at any depth within its depth
+        of field; through up to 2 x 2 lenslets the edges of its lit patches fix the ratio of
+        lateral offset to depth only, so the image holds no depth for it; 1 keeps every
+        track).
+    """
+
+    enabled: bool = False
+    search_radius_cells: float = Field(1.0, gt=0, allow_inf_nan=False)
+    median_threshold: float = Field(2.0, gt=0, allow_inf_nan=False)
+    median_epsilon_cells: float = Field(0.1, gt=0, allow_inf_nan=False)
+    bundle_radius: float = Field(1.5, gt=0, allow_inf_nan=False)
+    bundle_iterations: int = Field(4, ge=1)
+    forward_refine: bool = True
+    min_lenslets: int = Field(6, ge=1)
