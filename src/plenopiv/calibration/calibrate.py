@@ -44,9 +44,9 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.calibration.psf import point_spread_sigma
 from plenopiv.calibration.spot_types import Lattice, SpotFlag, SpotSet
 from plenopiv.camera.model import CameraModel, apply_misplacement
+from plenopiv.camera.resolution import MICRO_IMAGE_TOLERANCE
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
-from plenopiv.lightfield import MICRO_IMAGE_TOLERANCE
 from plenopiv.products.images import check_image
 
 METHODS = ("focal-point", "magnification", "both")

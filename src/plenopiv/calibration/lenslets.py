@@ -30,9 +30,9 @@ from plenopiv.calibration.lattice_quality import check_lattice
 from plenopiv.calibration.spot_detection import detect_spots
 from plenopiv.calibration.spot_types import Lattice, SpotFlag, SpotSet
 from plenopiv.camera.model import CameraModel
+from plenopiv.camera.resolution import micro_image_diameter_px
 from plenopiv.conventions import sensor_to_pixel
 from plenopiv.errors import CalibrationError
-from plenopiv.lightfield import micro_image_diameter_px
 from plenopiv.products.images import check_image
 
 # the fewest focal spots paired with a lenslet centre that the focal-point fit accepts

@@ -24,3 +24,20 @@ def resolution_cell(camera: CameraModel, f_number: float | None = None) -> tuple
     b = footprint(camera)
     return b, b * camera.object_distance * n / camera.main_lens.focal_length
 
+
+#: Modelled and measured micro-image diameters may differ by this factor before a warning.
+MICRO_IMAGE_TOLERANCE = 1.25
+
+
+def micro_image_diameter_px(camera, image_distance: float, f_number: float) -> float:
+    """Modelled micro-image diameter, px: the aperture ``f_m / N`` seen from the lenslets.
+
+    ``f_m / N * f̄ / S_i`` on the sensor (divided by the plate's index with the "thesis" back
+    side, whose rays keep their in-glass angle). :func:`light_field` takes each lenslet's
+    pixels within this disc (plus a pixel).
+    """
+    d = camera.main_lens.focal_length / f_number
+    mla = camera.microlens_array
+    if mla.back_side == "thesis" and mla.substrate is not None:
+        d /= mla.substrate.refractive_index
+    return d * camera.microlens_array.sensor_distance / image_distance / camera.sensor.pixel_pitch

@@ -11,25 +11,21 @@ The public names are importable from :mod:`plenopiv.lightfield` itself.
 """
 
 from plenopiv.lightfield.rays import (
-    MICRO_IMAGE_TOLERANCE,
     MIN_RAYS_PER_LENSLET,
     LightField,
     LightFieldWarning,
     light_field,
-    micro_image_diameter_px,
 )
 from plenopiv.lightfield.refocusing import REFOCUS_METHODS, refocus
 from plenopiv.lightfield.views import PERSPECTIVE_INTERPOLATIONS, perspective_view
 
 __all__ = [
-    "MICRO_IMAGE_TOLERANCE",
     "MIN_RAYS_PER_LENSLET",
     "PERSPECTIVE_INTERPOLATIONS",
     "REFOCUS_METHODS",
     "LightField",
     "LightFieldWarning",
     "light_field",
-    "micro_image_diameter_px",
     "perspective_view",
     "refocus",
 ]

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
+from plenopiv.camera.resolution import MICRO_IMAGE_TOLERANCE
 from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import CalibrationError
 from plenopiv.lightfield import _kernels as _lk
@@ -35,24 +36,8 @@ class LightFieldWarning(UserWarning):
     """The light field's model does not match its calibration (micro-image size, rays)."""
 
 
-# modelled and measured micro-image diameters may differ by this factor before a warning
-MICRO_IMAGE_TOLERANCE = 1.25
 # fewer rays per lenslet than this on average: the light field is nearly empty
 MIN_RAYS_PER_LENSLET = 4.0
-
-
-def micro_image_diameter_px(camera, image_distance: float, f_number: float) -> float:
-    """Modelled micro-image diameter, px: the aperture ``f_m / N`` seen from the lenslets.
-
-    ``f_m / N * f̄ / S_i`` on the sensor (divided by the plate's index with the "thesis" back
-    side, whose rays keep their in-glass angle). :func:`light_field` takes each lenslet's
-    pixels within this disc (plus a pixel).
-    """
-    d = camera.main_lens.focal_length / f_number
-    mla = camera.microlens_array
-    if mla.back_side == "thesis" and mla.substrate is not None:
-        d /= mla.substrate.refractive_index
-    return d * camera.microlens_array.sensor_distance / image_distance / camera.sensor.pixel_pitch
 
 
 @dataclass(frozen=True)
