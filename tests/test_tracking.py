@@ -526,7 +526,7 @@ def test_two_way_check_rejects_a_contested_particle():
     pa = np.array([[0.0, 0, 0], [0.05e-3, 0, 0]])
     pred = np.array([[1e-6, 0, 0], [0.05e-3, 0, 0]])
     m = match_particles(pa, np.array([[0.0, 0, 0]]), pred, CELL,
-                        settings=MatchSettings(search_radius=1.0))
+                        settings=MatchSettings(search_radius_cells=1.0))
     assert list(m.index_a) == [0] and m.rejected_mutual == 1
 
 
@@ -547,8 +547,8 @@ def test_interpolation_is_exact_for_a_linear_field(rng):
 
 
 def test_match_settings_name_the_bad_value():
-    with pytest.raises(ValueError, match="search_radius"):
-        MatchSettings(search_radius=-1)
+    with pytest.raises(ValueError, match="search_radius_cells"):
+        MatchSettings(search_radius_cells=-1)
     with pytest.raises(ValueError, match="neighbours"):
         MatchSettings(neighbours=2)
 

@@ -11,7 +11,7 @@ radius suits both the sharp lateral and the blurred depth direction.
 
 1. prediction: ``p_B = p_A + d(p_A + d(p_A)/2)``, d the correlation displacement interpolated
    trilinearly (the PIV vector belongs to the material point half-way between the exposures);
-2. candidates: the nearest particle of B within ``search_radius`` of the prediction;
+2. candidates: the nearest particle of B within ``search_radius_cells`` of the prediction;
 3. consistency both ways: that particle's nearest predicted A must be the same particle;
 4. neighbours: a track whose deviation from its prediction fails the normalised median test
    against those of its neighbouring tracks (Westerweel & Scarano 2005) is rejected.
@@ -36,11 +36,11 @@ class MatchSettings:
 
     Attributes
     ----------
-    search_radius : float
+    search_radius_cells : float
         Largest distance from the prediction to a partner, cells (> 0).
     median_threshold : float
         Normalised median test threshold on the neighbouring tracks (> 0).
-    median_epsilon : float
+    median_epsilon_cells : float
         Noise floor of the test, cells (> 0): the displacement scatter of correct tracks
         expected from position noise.
     neighbours : int
@@ -50,14 +50,15 @@ class MatchSettings:
         fewer than 3 neighbours is kept untested.
     """
 
-    search_radius: float = 1.0
+    search_radius_cells: float = 1.0
     median_threshold: float = 2.0
-    median_epsilon: float = 0.1
+    median_epsilon_cells: float = 0.1
     neighbours: int = 8
     neighbour_radius: float = 8.0
 
     def __post_init__(self):
-        for name in ("search_radius", "median_threshold", "median_epsilon", "neighbour_radius"):
+        for name in ("search_radius_cells", "median_threshold", "median_epsilon_cells",
+                     "neighbour_radius"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"tracking {name} = {v!r}: expected a number > 0")
@@ -226,7 +227,7 @@ def match_particles(positions_a, positions_b, predicted_b, scale, *,
     if not len(pa) or not len(pb):
         return Matches(empty, empty, np.zeros(0), np.zeros(0), empty)
     qb, qp = pb / sc, pred / sc
-    r = settings.search_radius
+    r = settings.search_radius_cells
     d2, j2 = cKDTree(qb).query(qp, k=min(2, len(qb)), distance_upper_bound=r)
     d2, j2 = d2.reshape(len(qp), -1), j2.reshape(len(qp), -1)
     found = np.isfinite(d2[:, 0])
@@ -246,7 +247,7 @@ def match_particles(positions_a, positions_b, predicted_b, scale, *,
     # the resolved flow (gradients included), what is left is position noise and mismatch
     bad = neighbour_median_test(pa[ia] / sc, (pb[ib] - pred[ia]) / sc,
                                 threshold=settings.median_threshold,
-                                epsilon=settings.median_epsilon,
+                                epsilon=settings.median_epsilon_cells,
                                 neighbours=settings.neighbours,
                                 radius=settings.neighbour_radius)
     keep = ~bad

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from pydantic import Field
 
+from plenopiv.particles.bundle import BundleSettings
 from plenopiv.settings import settings
+from plenopiv.tracking.matching import MatchSettings
 
 __all__ = ["TrackingSettings"]
 
@@ -40,3 +42,13 @@ class TrackingSettings:
     bundle_iterations: int = Field(4, ge=1)
     forward_refine: bool = True
     min_lenslets: int = Field(6, ge=1)
+
+    def match_settings(self) -> MatchSettings:
+        """The matcher's options of this table (the same names, in resolution cells)."""
+        return MatchSettings(search_radius_cells=self.search_radius_cells,
+                             median_threshold=self.median_threshold,
+                             median_epsilon_cells=self.median_epsilon_cells)
+
+    def bundle_settings(self) -> BundleSettings:
+        """The ray-bundle fit's options of this table (``bundle_radius``, ``bundle_iterations``)."""
+        return BundleSettings(radius=self.bundle_radius, iterations=self.bundle_iterations)

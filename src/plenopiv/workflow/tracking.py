@@ -23,7 +23,7 @@ from plenopiv.particles.bundle import (
 from plenopiv.particles.forward import ForwardSettings, near_focus, refine_positions
 from plenopiv.products.vectors import VectorResult
 from plenopiv.products.volume import VolumeResult
-from plenopiv.tracking.matching import MatchSettings, match_particles, predict_positions
+from plenopiv.tracking.matching import match_particles, predict_positions
 from plenopiv.tracking.settings import TrackingSettings
 from plenopiv.tracking.tracks import TrackResult
 
@@ -108,7 +108,7 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
     if lf is None:
         lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
     lat, dep = resolution_cell(calibration.effective_camera, f_number)
-    bs = BundleSettings(radius=settings.bundle_radius, iterations=settings.bundle_iterations)
+    bs = settings.bundle_settings()
     fs = FORWARD if settings.forward_refine else None
     table = ray_table(lf)
     pa, ua, ba = physical_bundle(lf, image_a, volume_a, bs, dep, fs, settings.min_lenslets,
@@ -118,9 +118,7 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
     # only converged fits take part (the others keep their seed and are left out)
     ia_ok, ib_ok = np.flatnonzero(ba.converged), np.flatnonzero(bb.converged)
     scale = np.array([lat, lat, dep * volume_a.correction.scale])
-    ms = MatchSettings(search_radius=settings.search_radius_cells,
-                       median_threshold=settings.median_threshold,
-                       median_epsilon=settings.median_epsilon_cells)
+    ms = settings.match_settings()
     pred = predict_positions(vectors, pa[ia_ok])
     m = match_particles(pa[ia_ok], pb[ib_ok], pred, scale, settings=ms)
     ia, ib = ia_ok[m.index_a], ib_ok[m.index_b]
