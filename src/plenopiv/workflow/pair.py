@@ -1,4 +1,7 @@
-"""One image pair -> one vector field (two volumes, their correlation, the per-vector uncertainty and the pair's products)."""
+"""One image pair -> one vector field.
+
+Two volumes, their correlation, the per-vector uncertainty and the pair's products.
+"""
 
 from __future__ import annotations
 
@@ -22,7 +25,10 @@ if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
 
 
 def piv_settings(cfg) -> PIVSettings:
-    """PIV settings from a ``[piv]`` config table (:class:`plenopiv.config.experiment.PIVConfig`)."""
+    """PIV settings from a ``[piv]`` config table.
+
+    The table is a :class:`plenopiv.config.experiment.PIVConfig`.
+    """
     try:
         return cfg.settings()
     except ValueError as exc:
@@ -83,8 +89,9 @@ class PairProcessor:
 
     ``processor(image_a, image_b)`` reconstructs both exposures, finds their particles,
     corrects the depths and correlates them, with the experiment's settings
-    (:class:`plenopiv.config.experiment.Experiment`). The weights (explicit, from the weights cache, or
-    the matrix-free projector) and the image and volume masks are made on first use and kept
+    (:class:`plenopiv.config.experiment.Experiment`). The weights (explicit, from the weights
+    cache, or the matrix-free projector) and the image and volume masks are made on first use
+    and kept
     for every later pair.
     """
 
@@ -157,8 +164,8 @@ def process_pair(calibration: Calibration, image_a, image_b, experiment, *,
                  workers=None) -> PairResult:
     """Images A and B -> two volumes -> particles -> corrections -> vectors.
 
-    With the experiment's settings (:class:`plenopiv.config.experiment.Experiment`), the weights built
-    once for both volumes.
+    With the experiment's settings (:class:`plenopiv.config.experiment.Experiment`), the
+    weights built once for both volumes.
 
     One pair; many pairs of one experiment share a :class:`PairProcessor`.
     """
