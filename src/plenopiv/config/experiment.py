@@ -1,6 +1,7 @@
 """Experiment configuration (TOML, DESIGN.md §7): camera, volume and the processing options.
 
-A minimal file holds just the camera and the volume::
+Every table but the camera and the volume is optional, every key has a default, a unit and a
+meaning (README); an unknown key is an error that names it and the valid ones. A minimal file::
 
     camera = "cameras/auburn_135mm.toml"     # relative to this file, or a preset name
 
@@ -9,9 +10,6 @@ A minimal file holds just the camera and the volume::
     y_mm = [-4, 4]
     z_mm = [-6, 6]
     voxel_mm = 0.25                           # or shape = [nz, ny, nx]
-
-Every other table is optional, every key has a default, a unit and a meaning (README). Unknown
-keys are errors that name the key and list the valid ones.
 """
 
 from __future__ import annotations
@@ -60,8 +58,7 @@ class ReconstructionSettings(_Strict):
     iterations : sweeps after the MLOS first guess (10; see docs/validation/field_quality.md).
     relaxation : μ, dimensionless; default by method: 2.0 for "smart", 0.03 for "mart" and
         "block" (in a plenoptic W every voxel is seen by ~200 pixels, so one row-action sweep
-        at μ = 1 over-relaxes ~200-fold: Q 0.43 against 0.81 at μ = 0.03, 0.3 particles per
-        lenslet).
+        at μ = 1 over-relaxes ~200-fold).
     pixel_threshold : pixels at or below this fraction of the image's maximum are dark.
     dark_tolerance : a voxel is emptied before MART when, in every one of its lateral
         sub-cells (≤ half a footprint), more than this fraction of the weight falls on dark
@@ -82,8 +79,8 @@ class ReconstructionSettings(_Strict):
         most 4):
         the depth of a particle is told by beams shifting sideways by a fraction of a
         footprint, which voxels a footprint wide cannot represent, so with them a particle
-        is reconstructed 10-20 voxels long and moves in depth by a third of its true
-        displacement (docs/validation/vortex.md). Costs k² in weights and MART time.
+        is reconstructed far too long in depth and its depth motion is under-measured
+        (docs/validation/vortex.md). Costs k² in weights and MART time.
     subdivision_kernel : how the working voxels return to the [volume] grid: "gaussian"
         (default): each voxel takes the working volume weighted by a Gaussian of σ = half a
         voxel about its centre, which keeps where a particle lies inside the voxel in the
@@ -124,8 +121,8 @@ class ParticleSettings(_Strict):
 
     threshold : a particle's peak must exceed this fraction of the reference intensity.
     threshold_reference : "bright" (default: the 99.9th percentile of the positive voxels,
-        which a few hot voxels cannot move; at 16 MP the maximum was 21 times it and a
-        threshold on the maximum found 1 % of the particles) | "maximum" (the volume's maximum).
+        which a few hot voxels cannot move, while they can put the maximum many times above
+        the particles' peaks) | "maximum" (the volume's maximum).
     method : sub-voxel estimator, "centroid" (intensity-weighted over box_vox; the better one
         for the depth-elongated particles of plenoptic reconstructions) | "gaussian" (3-point
         per axis).
@@ -140,7 +137,7 @@ class ParticleSettings(_Strict):
         lit pixels that saw the particle; it does not depend on the voxel grid, and the
         volume centroid is kept where fewer than ``min_rays`` rays are found) | "volume"
         (the ``method`` estimate on the voxels: an in-focus particle's centroid moves with the
-        voxel edges by up to 0.7 voxel, docs/validation/grid_independence.md).
+        voxel edges, docs/validation/grid_independence.md).
 
     These are the only defaults: :func:`plenopiv.particles.peaks.find_particles` takes those of
     ``method`` and ``fit_spacing_vox`` from here, and has none for ``min_separation_vox``
