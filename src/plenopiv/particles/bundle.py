@@ -63,8 +63,7 @@ class BundleSettings:
         isolated particle is the same from any seed within the volume's blur
         (:data:`PARTICLE_BUNDLE`). Beyond focus the current estimate is close and a pixel's
         beam already bounds the miss of its ray, so the margin only takes in neighbours' light
-        (a vortex pair at 0.15 particles per lenslet: depth rms 0.74-1.02 voxel beyond two
-        depth cells of focus with it in full, 0.42-0.60 without): it applies in full within
+        (in a seeded flow it raises the depth error beyond focus): it applies in full within
         ``margin_cells`` depth cells of focus and fades linearly to zero at twice that.
     margin_cells : float
         See ``margin`` (depth resolution cells, > 0).
@@ -100,8 +99,9 @@ class BundleSettings:
 
 #: The fit of the particle table (``[particles] position = "light_field"``): half a footprint
 #: of margin makes each particle's position independent of its seed, and so of the voxel grid
-#: the seed (the volume's centroid) came from. Three solves: over random sub-voxel grids a
-#: near-focus particle spreads 0.006, 0.012 and 0.023 voxel after four, three and two.
+#: the seed (the volume's centroid) came from. Three solves: a near-focus particle's spread
+#: over random sub-voxel grids halves with each solve and is a small fraction of a voxel
+#: after three.
 PARTICLE_BUNDLE = BundleSettings(margin=0.5, iterations=3)
 
 
