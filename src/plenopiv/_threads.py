@@ -1,17 +1,14 @@
 """Run a serial numba kernel on slices of its outer loop, one slice per thread.
 
-numba compiles a ``parallel=True`` kernel 1.5 to 3 times slower than the same loops serial
-(the parfor passes, then a gufunc for each parallel loop): on a first run that is seconds per
-kernel, paid before the user sees anything. A kernel whose outer loop has independent
-iterations is therefore compiled serial with ``nogil=True``, takes the half-open range
-``lo, hi`` of that loop as its last two arguments, and :func:`run_slices` runs it on
-consecutive slices of the range in a pool of Python threads. Each iteration does exactly
-what it did under ``prange`` (numba's default scheduling also gives each thread one
-consecutive block), so the results are the same bit for bit, at the parallel speed.
-
-The number of slices is numba's thread count of the calling thread
-(:func:`numba.get_num_threads`, so ``NUMBA_NUM_THREADS`` and :func:`numba.set_num_threads`
-apply as to the ``parallel=True`` kernels).
+numba compiles a ``parallel=True`` kernel much more slowly than the same loops serial (the
+parfor passes, then a gufunc for each parallel loop), a cost paid on a first run before the
+user sees anything. A kernel whose outer loop has independent iterations is therefore
+compiled serial with ``nogil=True``, takes the half-open range ``lo, hi`` of that loop as its
+last two arguments, and :func:`run_slices` runs it on consecutive slices of the range in a
+pool of Python threads: each iteration does what it did under ``prange`` (whose default
+scheduling also gives each thread one consecutive block), so the results are the same bit for
+bit, at the parallel speed. There is one slice per numba thread of the calling thread
+(:func:`numba.get_num_threads`; ``NUMBA_NUM_THREADS`` and :func:`numba.set_num_threads` apply).
 """
 
 from __future__ import annotations

@@ -1,21 +1,15 @@
-"""The coordinate conventions of plenopiv, written once.
+"""The coordinate conventions of plenopiv, written once; everything else converts through here.
 
-Everything else converts through these functions; no module re-derives them.
-
-Image space
-    Optical axis z; the (thin) main lens sits at z = 0 and image space is z > 0, towards the
-    sensor. Object space is z < 0.
-Sensor
-    A pixel is ``(row, col)``, 0-based, with the centre of the top-left pixel at (0, 0).
-    Metric sensor coordinates (metres) put the origin at the sensor centre:
-    ``x = (col - (n_cols - 1)/2) * pixel_pitch`` and ``y = (row - (n_rows - 1)/2) * pixel_pitch``.
-    Images are stored exactly as the sensor reads out, ``image[row, col]``; nothing is flipped.
-    Lenslet positions ``(s, t)`` on the microlens plane share the sensor's ``(x, y)`` axes.
-Volume (object space)
-    ``(X, Y, Z)`` in metres. X and Y share the sensor's x and y axes (so the image is inverted:
-    the magnification M = -S_i/S_o is negative). Z is measured from the nominal focal plane and
-    grows AWAY from the camera: a particle in front of the focal plane has Z < 0.
-    World points are ``(N, 3)`` arrays ``(x, y, z)``; volumes are indexed ``[z, y, x]``.
+Image space: optical axis z; the (thin) main lens at z = 0, image space z > 0 (towards the
+sensor), object space z < 0.
+Sensor: a pixel is ``(row, col)``, 0-based, the centre of the top-left pixel at (0, 0); images
+are ``image[row, col]`` as read out, never flipped. Metric sensor coordinates (metres) have
+their origin at the sensor centre, ``x = (col - (n_cols - 1)/2) * pixel_pitch``,
+``y = (row - (n_rows - 1)/2) * pixel_pitch``; lenslet positions ``(s, t)`` share these axes.
+Volume: ``(X, Y, Z)`` in metres; X, Y along the sensor's x, y (the image is inverted:
+M = -S_i/S_o < 0); Z from the nominal focal plane, growing AWAY from the camera (in front of
+the focal plane Z < 0). World points are ``(N, 3)`` arrays ``(x, y, z)``; volumes are indexed
+``[z, y, x]``.
 """
 
 from __future__ import annotations

@@ -23,13 +23,11 @@ def prefer_small_pages() -> bool:
 
     NumPy marks every large array ``madvise(MADV_HUGEPAGE)`` on Linux. Where memory is
     fragmented (a long-running or virtual machine), each first touch of such an array can
-    stall in the kernel's compaction: on this project's 2-core machine the 16 MP light field
-    took 40 s wall of which 33 s in the kernel (2 s user), and 18.6 s with plain pages; a
-    full-size rotated-array pair 4:39 instead of 5:26 (``benchmarks/full_camera.py``,
-    docs/validation/real_arrays.md). The arrays here are written once per stage, where huge
-    pages save little. Called by the ``plenopiv`` command and each batch worker, not on
-    import (a library does not change its caller's process); an explicit
-    ``NUMPY_MADVISE_HUGEPAGE`` in the environment is left as the user set it.
+    stall in the kernel's compaction, for longer than the computation that fills it
+    (``benchmarks/full_camera.py``, docs/validation/real_arrays.md). The arrays here are
+    written once per stage, where huge pages save little. Called by the ``plenopiv`` command
+    and each batch worker, not on import (a library does not change its caller's process);
+    an explicit ``NUMPY_MADVISE_HUGEPAGE`` in the environment is left as the user set it.
 
     Returns
     -------

@@ -1,17 +1,13 @@
 """Calibrate a camera from its images: focal-point (+ alignment) (+ ruler) -> Calibration.
 
-Steps, each a stage function of the calibration package:
+:func:`calibrate` runs the steps of the calibration package in order: focal spots and their
+lattice (:mod:`~plenopiv.calibration.spots`), lenslet centres and the pairing of each focal
+spot with its lenslet (:mod:`~plenopiv.calibration.lenslets`), the focal-point fit of S_i,
+offset and rotation, and optionally the magnification method on a ruler image
+(:mod:`~plenopiv.calibration.image_distance`). Orchestration lives here; file I/O and
+reporting live in the CLI.
 
-1. :func:`~plenopiv.calibration.spot_detection.detect_spots` and
-   :func:`~plenopiv.calibration.lattice_fit.fit_lattice` on the focal-point image: one focal spot
-   (micro-image centre) per lenslet, with its lattice index; missing spots are listed.
-2. Lenslet centres (:mod:`plenopiv.calibration.lenslets`): the spots of the alignment image
-   (collimated light), or, without one, the camera's nominal lattice (with its configured
-   offset and rotation). Each focal spot is paired with its lenslet by position.
-3. :func:`~plenopiv.calibration.image_distance.fit_focal_points`: S_i, MLA offset, rotation.
-4. Optionally the magnification method on a ruler image.
-
-Orchestration lives here; file I/O and reporting live in the CLI.
+See docs/methods.md#calibration.
 """
 
 from __future__ import annotations

@@ -1,25 +1,14 @@
 """The image distance S_i: focal-point method, magnification (ruler) method, lens corrections.
 
-Focal-point method (thesis §3.2, §4.3)
-    The spot under each lenslet of a stopped-down (focal-point) image is where the chief ray
-    from the exit-pupil centre through the lenslet centre meets the sensor. Given the lenslet
-    centres (from the alignment image, or the nominal lattice) and the measured spots, a
-    nonlinear least-squares fit gives S_i together with the MLA offset (s_o, t_o) and rotation
-    γ of Eqs. 3.13-3.14. The forward model is the exact chief ray (Snell in the substrate)
-    for either back-side model; the paraxial Eqs. 3.11 / 4.8 give the closed-form first guess.
-
-Magnification method (§3.1.2)
-    A ruler on the nominal focal plane: tick positions in the lenslet (integral) image give the
-    image-side spacing d_i, hence M = -d_i/d_o, S_i = f_m (1 - M) (Eq. 3.4) and
-    S_o = f_m (M - 1)/M (Eq. 3.3), with the depth-of-focus uncertainty M²(L1 + L2) and the
-    height-error term f_m/d_o · Δd_i (Eq. 3.10).
-
-Lens corrections (§5.5)
-    The thesis's linear correction S_i,corr = a S_i,o + b from an extension-tube series, and
-    the physical two-constant model 1/(p/d - 1) = (D0 + Δ)/f̄_eff (chief rays leave from the
-    exit pupil, and f̄ is known only to ±25 µm).
-
+:func:`fit_focal_points` fits S_i, the MLA offset and rotation to the focal spots (thesis
+§3.2, §4.3, Eqs. 3.12-3.14) with the exact chief ray of :class:`SpotModel`;
+:func:`magnification_from_ticks` gives S_i from a ruler's ticks (§3.1.2, Eqs. 3.3-3.4, with
+the uncertainties of Eqs. 3.9-3.10); :func:`fit_linear_correction` and
+:func:`fit_pupil_correction` fit the lens corrections of an extension-tube series (§5.5).
 Lengths in metres, angles in radians, sensor positions (x, y) in metres from the sensor centre.
+
+See docs/methods.md#image-distance-by-focal-point,
+docs/methods.md#image-distance-by-magnification and docs/methods.md#lens-corrections.
 """
 
 from __future__ import annotations

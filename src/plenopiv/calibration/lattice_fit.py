@@ -1,41 +1,11 @@
 """Calibration step 1b: index the spots on a regular lattice and fit it (:func:`fit_lattice`).
 
-Steps of :func:`fit_lattice`
-----------------------------
-1. Neighbours are the spots closer than 1.25 times the median nearest-neighbour
-   distance. The 4- and 6-fold orders ``|mean(exp(4 i phi))|``,
-   ``|mean(exp(6 i phi))|`` of their directions ``phi`` decide the grid, and the phase of
-   the larger one gives the lattice axis nearest the image +col axis. The medians of the
-   neighbour vectors along that axis and the next one (at 90 or 60 degrees) are the
-   primitive vectors.
-2. Axial indices are assigned from the most central spot outwards: within a radius that
-   grows by 1.6 each pass, every spot's fractional index is rounded, spots within 0.25 of
-   an integer are kept, and the affine lattice is refitted. Holes and dim spots do not
-   break it, because each pass predicts from the fitted lattice, not from neighbours.
-3. The axial indices become ``(row, col)`` indices (odd rows half a step towards +col on
-   a hexagonal grid), and ``origin_px``, ``basis`` (and on a hexagonal grid the odd-row
-   shift) are fitted by linear least squares on the clean spots,
-   ``centre = origin + i basis[0] + j basis[1] + (i mod 2) shift``: the model is linear in
-   its six (eight) unknowns, so the fit is exact. Outliers and duplicate indices are
-   flagged and the fit is repeated, twice. Standard errors come from the residual
-   variance and the normal matrix.
-4. With ``phase_harmonics``, the fit also takes a periodic bias of each measured coordinate
-   against its own sub-pixel phase, ``sum_n a_n sin(2 pi n x) + b_n cos(2 pi n x)``,
-   ``n = 1 .. phase_harmonics``, per axis. This is the pixel-locking of any centre estimator
-   on spots too sharp for the pixel grid (a pixel-integrating sensor with little optical
-   blur); since the pitch is not a whole number of pixels the spots sample every phase, so
-   the bias is measured and removed from the lattice (``phase_bias_px``). An axis whose
-   spots bunch at a few phases (resultant length of any harmonic above 0.8) gets no
-   correction (its bias is then a constant offset), nor one whose fitted terms do not stand
-   out of their own noise by 10 standard errors (chi-square 100: irregularly placed
-   lenslets, noise), which they would only add to.
-5. The fitted lattice must have the shape of its grid type (``max_shape_error``): a square
-   grid's row step perpendicular to its column step and as long, a hexagonal grid's row
-   step perpendicular, ``sqrt(3) / 2`` of the pitch long, and its odd rows shifted by half a
-   pitch. A larger departure is a grid type forced on the other kind of array.
+The grid type and primitive vectors come from the neighbours' directions, the indices are
+assigned outwards from the central spot, and origin, basis (and a hexagonal grid's odd-row
+shift) are fitted by linear least squares, optionally with each coordinate's periodic bias
+against its sub-pixel phase (``phase_harmonics``). Every length is in pixels (px).
 
-The lattice convention (``origin_px``, ``basis``, odd-row shift, index origin) is stated in
-:mod:`plenopiv.calibration.spots`; every length is in pixels (px).
+See docs/methods.md#lattice-fit for the steps and the lattice convention.
 """
 
 from __future__ import annotations
@@ -211,7 +181,23 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
 
     Notes
     -----
-    The steps of the fit are in the docstring of :mod:`plenopiv.calibration.lattice_fit`.
+    The steps of the fit and the lattice convention are in docs/methods.md#lattice-fit.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from plenopiv.calibration.spots import detect_spots, fit_lattice
+    >>> rr, cc = np.mgrid[0:120, 0:120]
+    >>> image = np.zeros((120, 120))
+    >>> for r in range(10, 120, 20):
+    ...     for c in range(10, 120, 20):
+    ...         image += np.exp(-((rr - r - 0.3) ** 2 + (cc - c + 0.2) ** 2) / 2.0)
+    >>> spots = detect_spots(image, expected_pitch_px=20.0)
+    >>> lattice = fit_lattice(spots)
+    >>> lattice.grid, np.round(lattice.pitch_px, 2).tolist()
+    ('square', [20.0, 20.0])
+    >>> np.round(lattice.origin_px, 1).tolist()
+    [10.3, 9.8]
     """
     min_size, max_missing_fraction, phase_harmonics = _checked_options(
         grid, min_size, max_missing_fraction, phase_harmonics)

@@ -1,20 +1,13 @@
 """Lenslet centres and the white image: where each lenslet is, and how large its micro-image.
 
 Calibration step 2 (:func:`~plenopiv.calibration.calibrate.calibrate`):
+:func:`lenslet_centres` (the spots of the alignment image, or the camera's nominal lattice),
+:func:`pair_focal_spots` (each focal spot paired with its lenslet by position) and
+:func:`measure_white_image` (the micro-image diameter of a white image,
+:func:`micro_image_diameter`, against the one the camera's f-number models). Pixels are
+``(row, col)`` with the centre of the top-left pixel at (0, 0) (:mod:`plenopiv.conventions`).
 
-:func:`lenslet_centres`
-    The lenslets that exist and their lattice indices: the spots of the alignment image
-    (collimated light focuses on each lenslet's axis), or, without one, the camera's nominal
-    lattice (with its configured offset and rotation).
-:func:`pair_focal_spots`
-    Each focal spot paired with its lenslet by position, the lenslets without a focal spot
-    counted.
-:func:`measure_white_image`
-    The micro-image diameter of a white image at the working aperture
-    (:func:`micro_image_diameter`), against the one the camera's f-number models.
-
-Pixels are ``(row, col)`` with the centre of the top-left pixel at (0, 0)
-(:mod:`plenopiv.conventions`).
+See docs/methods.md#lenslet-centres.
 """
 
 from __future__ import annotations

@@ -1,22 +1,14 @@
 """The calibration product: what the reconstruction needs to know about a camera.
 
-A :class:`Calibration` holds, for every lenslet, its centre (from the alignment image), its
-focal spot (the micro-image centre, from the focal-point image) and its lattice index, plus
-the effective image distance S_i,eff and how it was obtained. It is saved as the HDF5 product
-of DESIGN.md §7 (``/lenslets/centre_px``, ``/lenslets/focal_spot_px``,
+A :class:`Calibration` holds, for every lenslet, its centre, its focal spot and its lattice
+index, plus the effective image distance S_i,eff and how it was obtained. S_i,eff is kept in
+one place, the main lens of the calibration's camera (:attr:`Calibration.camera`). It is saved
+as the HDF5 product of DESIGN.md §7 (``/lenslets/centre_px``, ``/lenslets/focal_spot_px``,
 ``/lenslets/grid_index``; attributes ``image_distance_m``, ``method``, ``offset_m``,
-``rotation_rad``, ``rms_residual_px``).
-
-S_i,eff is kept in one place, the main lens of the calibration's camera
-(:attr:`Calibration.camera`); :attr:`Calibration.image_distance` reads it from there, and
-:meth:`Calibration.with_camera` carries it over to another description of the camera. On
-reading, the product's ``image_distance_m`` attribute gives it.
-
-The product records the camera it was made for: the root attribute ``camera`` (the camera's
-config as JSON: sensor, lattice, main lens with the calibrated S_i) and ``camera_summary``
-(one line: lens focal length, S_i, lattice, sensor). Using it with another camera is an error
-naming both (:func:`plenopiv.workflow.experiment.experiment_calibration`). Files written before
-these attributes existed are read from the camera in their ``config`` attribute.
+``rotation_rad``, ``rms_residual_px``, ``camera`` and ``camera_summary``); using it with
+another camera is an error naming both
+(:func:`plenopiv.workflow.experiment.experiment_calibration`). A product without the
+``camera`` attribute is read with the camera of its ``config`` attribute.
 """
 
 from __future__ import annotations

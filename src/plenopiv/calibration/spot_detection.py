@@ -1,61 +1,12 @@
 """Calibration step 1a: one sub-pixel spot centre per lenslet (:func:`detect_spots`).
 
-Steps
------
-Validate; estimate the pitch if needed; subtract the background; smooth with a Gaussian of
-standard deviation ``pitch / 6`` and take local maxima at least half a pitch apart as
-candidates, each at least ``detection_threshold`` of the spots around it (so the dim lenslets
-of a vignetted corner are found) and clearly above the noise; refine each candidate with the
-iterative thresholded centroid (the window is re-centred on the estimate until it moves by
-less than 1e-4 px, so a point-symmetric spot carries no window bias); reject candidates
-smaller than ``min_area_px`` (hot pixels) and merge candidates closer than a quarter pitch;
-measure the spot size from all clean spots stacked; refine with the window centroid or the
-Gaussian fit; flag partial (``EDGE``), dim and saturated spots.
+Candidates are the local maxima of the smoothed, background-subtracted image, refined by the
+iterative thresholded centroid and then by the window centroid (the default for focal and
+alignment spots: the first moment of all of a spot's light, free of the pixel-phase bias of a
+thresholded centroid) or a Gaussian fit; partial, dim and saturated spots are flagged.
+:func:`estimate_pitch` finds the lenslet pitch when it is not given.
 
-Why the window centroid for small spots
----------------------------------------
-Subtracting a threshold from every pixel and dropping the pixels below it makes the
-centroid of a pixel-sampled spot depend on where the spot sits on the pixel grid: for 1-5 px
-spots this bias reaches 0.01-0.02 px, and as a focal-point image's spots step through every
-sub-pixel phase across the array (a non-integer pitch) it becomes a spurious spot-lattice
-scale, which the focal-point method reads as an S_i error of up to a millimetre at 405 mm
-(docs/validation/calibration_study.md). The first moment of all the spot's light has no
-such bias when the pixel response reproduces linear functions (a bilinear splat, or any
-optics blur of about half a pixel or more on a pixel-integrating sensor): measured on 1-5 px
-discs with 0-1 px Gaussian blur at ten sub-pixel phases, it stays within 0.0004 px where the
-thresholded centroid is off by 0.005-0.026 px and a Gaussian fit by up to 0.04 px, and under
-photon noise it is the most precise of the three (within 2-7 % of the Cramer-Rao bound;
-``benchmarks/bench_spots.py`` prints the table). Sharper spots on a pixel-integrating sensor
-alias (0.005-0.05 px for every estimator); ``fit_lattice`` removes most of that with its
-phase terms. Its window is soft-edged (a pixel counts by about the fraction of it inside the
-circle), so the window's own moment follows the estimate smoothly, and a plane fitted to the
-annulus just outside it removes any background level and slope, which would otherwise pull
-the estimate.
-
-Measured accuracy
------------------
-Measured on the PlenoptiCam reference images with exact centres (``b``, ``c``, ``d``:
-720 x 720 px, pitches 66.7, 13.1 and 7.7 px, about 10 % multiplicative pixel noise), rms
-error per axis (row, col) of the spots at least one pitch inside the border:
-
-========  ================  ================  ================  ======================
-method    b (hexagonal)     c (hexagonal)     d (square)        white image, lattice
-                                                                rms residual
-========  ================  ================  ================  ======================
-centroid  0.040, 0.041 px   0.067, 0.058 px   0.049, 0.048 px   0.085 px
-gaussian  0.047, 0.048 px   0.068, 0.064 px   0.074, 0.074 px   0.265 px
-========  ================  ================  ================  ======================
-
-(These micro-images fill their pitch: ``"auto"`` takes the centroid on all four.)
-Both keep the mean bias below 0.01 px. The centroid is as good or better on all of these,
-makes no assumption about the spot profile (a white-image disc is not a Gaussian, hence
-the Gaussian's large residual there) and is about twice as fast, so it is the default.
-On truly Gaussian spots in additive noise (the synthetic tests) the Gaussian fit is about
-15 % more precise; choose it for such focal-point images.
-The per-spot error is set by the pixel noise: a least-squares fit of the exact mean spot
-profile (an oracle no detector has) reaches 0.035, 0.06 and 0.10 px rms on ``b``, ``c``,
-``d``. The lattice fit (:func:`~plenopiv.calibration.lattice_fit.fit_lattice`) averages
-thousands of spots; its predicted centres are within 0.01 px rms of the truth on all three.
+See docs/methods.md#focal-spots for the steps, the choice of estimator and its accuracy.
 """
 
 from __future__ import annotations
@@ -327,8 +278,7 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
 
     Notes
     -----
-    The steps, the choice of estimator and their measured accuracy are in the docstring of
-    :mod:`plenopiv.calibration.spot_detection`.
+    The steps, the choice of estimator and its accuracy are in docs/methods.md#focal-spots.
     """
     opts = _checked_options(method, background, grid, threshold, detection_threshold,
                             min_area_px, dim_fraction, max_saturated_fraction)

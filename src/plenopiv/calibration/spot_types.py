@@ -2,7 +2,7 @@
 
 :class:`SpotSet` holds what :func:`~plenopiv.calibration.spot_detection.detect_spots` finds,
 :class:`Lattice` what :func:`~plenopiv.calibration.lattice_fit.fit_lattice` fits; the lattice
-convention is stated in :mod:`plenopiv.calibration.spots`. Every length is in pixels (px).
+convention is stated in docs/methods.md#lattice-fit. Every length is in pixels (px).
 """
 
 from __future__ import annotations

@@ -1,20 +1,11 @@
 """Depth corrections: from effective (reconstruction) depth to physical depth.
 
-The reconstruction works in effective, air-equivalent coordinates (DESIGN.md §4). Two flat
-refractive interfaces change depths, both by a constant factor about the nominal focal plane:
+:class:`DepthCorrection` scales depth about the nominal focal plane for a flat external
+interface (thesis Eq. 4.7) and for the substrate of the "thesis" back side (Eq. 5.1); X and Y
+are unchanged. The corrections are exactly invertible and act on particle tables and on a
+volume's Z axis.
 
-external (thesis Eq. 4.7)
-    a flat window with the particles in a medium of index n1 (outside index n2) compresses
-    effective depth, ΔS_eff = (n2/n1) Δz, so the physical depth is Δz = (n1/n2) ΔS_eff.
-internal (thesis Eq. 5.1)
-    with the "thesis" back side (rays keep their in-glass angle down to the sensor) the
-    aperture positions u of the light field are 1/n too small, parallax is 1/n too small and
-    depths come out n times too large: ΔS_o = (n3/n4) Δz with n3 = 1 (air), n4 = n (glass).
-    With the "physical" back side the lenslets see air angles and S_i,eff already accounts for
-    the plate: no internal correction.
-
-The corrections scale depth only (X and Y are unchanged: the effective focal plane keeps the
-magnification), are exactly invertible, and act on particle tables and on a volume's Z axis.
+See docs/methods.md#depth-corrections.
 """
 
 from __future__ import annotations

@@ -1,21 +1,14 @@
 """The plenoptic 1.0 camera model: sensor, microlens array, main lens, refractive interfaces.
 
-Parameter objects are frozen dataclasses in SI units (metres, radians), validated when they
-are made. Configuration files (TOML, keys with ``_mm``/``_um`` units, DESIGN.md §7) are
-validated at the boundary by :func:`camera_from_dict` / :func:`load_camera`, which convert
-units once and raise :class:`~plenopiv.errors.ConfigError` naming the key, the value found and
-what was expected.
+Frozen parameter objects in SI units (metres, radians), checked when they are made:
+:class:`Sensor`, :class:`Substrate`, :class:`MicrolensArray`, :class:`MainLens`,
+:class:`ExternalInterface` and :class:`CameraModel`. Camera files (TOML, ``_mm``/``_um`` keys,
+DESIGN.md §7) are converted once, at the boundary, by :func:`camera_from_dict` /
+:func:`load_camera`, which raise :class:`~plenopiv.errors.ConfigError` naming the key, the
+value found and what was expected. ``image_distance`` is the effective (air-equivalent)
+S_i,eff = l3 + t/n (thesis Eq. 4.4).
 
-Geometry along the optical axis (image space, z > 0, DESIGN.md §4)::
-
-    main lens (z=0) --- l3 (air) --- [glass substrate, thickness t] | lenslets --- f_bar --- sensor
-
-``image_distance`` is the effective (air-equivalent) S_i,eff = l3 + t/n (thesis Eq. 4.4), so
-the physical lenslet plane sits at ``z_mla = S_i,eff + t (1 - 1/n)``.
-
-Object space: an optional flat interface (medium of index n1 holding the particles, outside
-index n2) lies a path ``medium_depth`` = l1 in front of the nominal focal plane, so
-S_o,eff = l2 + (n2/n1) l1 (Eq. 4.3).
+See docs/methods.md#camera-geometry for the geometry along the optical axis.
 """
 
 from __future__ import annotations

@@ -1,18 +1,14 @@
 """The ``plenopiv`` command (DESIGN.md §7). Every subcommand takes ``--json``.
 
 Orchestration only: parse, validate, call the library, write products atomically, report.
-
-One error path (:func:`main`): every failure is one line on stderr, ``error: ...``, naming the
-thing, the value and what was expected, and with ``--json`` also one JSON object holding
-``"error"`` on stdout. Exit status (README "Exit status"): 0 done; 1 a computation or a write
-failed (a full disk, pairs of a batch failed); 2 bad input, refused before any work (nothing
-is written); 130 interrupted (Ctrl-C). Arguments, output paths and sizes are checked before
-the computation, next to each subcommand; no input file is ever overwritten.
-
-One module per subcommand: ``add_parser(sub)`` builds its parser, ``cmd_<name>(args)`` runs it
-and returns the summary, and ``print_summary(summary)``, where there is one, prints it for
-people. ``_common`` holds the parser class, the shared options and the argument and output
-checks. Heavy libraries (dask, scipy, scikit-image, h5py) are imported inside the commands.
+One error path (:func:`main`, which lists the exit statuses): every failure is one line on
+stderr, ``error: ...``, naming the thing, the value and what was expected, and with ``--json``
+also one JSON object holding ``"error"`` on stdout. Arguments, output paths and sizes are
+checked before the computation; no input file is ever overwritten. One module per
+subcommand: ``add_parser(sub)`` builds its parser, ``cmd_<name>(args)`` runs it and returns
+the summary, ``print_summary(summary)`` prints it for people; ``_common`` holds the parser
+class, the shared options and the checks. Heavy libraries (dask, scipy, scikit-image, h5py)
+are imported inside the commands.
 """
 
 from __future__ import annotations

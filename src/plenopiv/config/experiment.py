@@ -1,6 +1,7 @@
 """Experiment configuration (TOML, DESIGN.md §7): camera, volume and the processing options.
 
-A minimal file holds just the camera and the volume::
+Every table but the camera and the volume is optional, every key has a default, a unit and a
+meaning (README); an unknown key is an error that names it and the valid ones. A minimal file::
 
     camera = "cameras/auburn_135mm.toml"     # relative to this file, or a preset name
 
@@ -9,9 +10,6 @@ A minimal file holds just the camera and the volume::
     y_mm = [-4, 4]
     z_mm = [-6, 6]
     voxel_mm = 0.25                           # or shape = [nz, ny, nx]
-
-Every other table is optional, every key has a default, a unit and a meaning (README). Unknown
-keys are errors that name the key and list the valid ones.
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
 """The light field: every lit pixel of a calibrated camera as a ray (s, t, u, v).
 
-For a pixel at sensor position x under the lenslet with centre d and focal spot x_c
-(DESIGN.md §4, thesis Eqs. 4.1/4.5 with the sign the thesis drops)::
+:func:`light_field` turns a :class:`~plenopiv.calibration.model.Calibration` into a
+:class:`LightField`: per lit pixel its aperture-plane position u = -(x - x_c) · S_i,eff / f̄,
+its lenslet centre s and the lenslet's conjugate X_f = s/M on the nominal focal plane
+(DESIGN.md §4, thesis Eqs. 4.1/4.5), in effective coordinates, metres. Pixels whose aperture
+cell lies mostly outside the aperture disc receive no light and are left out.
 
-    u = -(x - x_c) · S_i,eff / f̄          (aperture-plane position, metres)
-    s = d                                 (lenslet centre on the lenslet plane)
-
-and its conjugate on the nominal focal plane is X_f = s/M = -s S_o,eff/S_i,eff. In object space
-(effective coordinates) the ray passes through (u, 0) at the lens and X_f at S_o,eff, so at
-depth Z it is at X(Z) = u + (X_f - u)(S_o,eff + Z)/S_o,eff.
-
-A pixel is a beam: its aperture cell is p_p S_i,eff/f̄ wide, its lenslet footprint on the focal
-plane p_m S_o,eff/S_i,eff. Pixels whose cell lies mostly outside the aperture disc (f_m/N) never
-receive light and are left out.
+See docs/methods.md#rays.
 """
 
 from __future__ import annotations

@@ -65,13 +65,12 @@ def refocus(image, lf: LightField, alpha: float, *, pitch: float | None = None,
     blurs depends on α: at α = 1 all rays of a lenslet land on one point (the integral
     image, resampled by the bilinear kernel according to where the lenslet centres fall on the
     grid), while at α ≠ 1 they spread over a disc of radius R|1/α - 1|. A sharpness measure
-    evaluated on splatted images over α therefore has a kink at α = 1 and is pulled onto it:
-    for ray-traced particles on the plane α = 1.004 it peaks at 1.000, and on the plenoptomos
-    letters image at 1.000, where parallax puts the letters at about 1.017. The Fourier
+    evaluated on splatted images over α therefore has a kink at α = 1 and is pulled onto it,
+    whatever the depth of the scene. The Fourier
     shift-and-add keeps every output sample on the lenslet lattice and shifts by band-limited
     (sinc) interpolation, which keeps each view's spectrum, so only the alignment of the
-    views changes with α: use it for depth from focus (sharpness over α); it finds the
-    particles' 1.004 to 0.001. The views are zero-padded before the FFT (no wrap-around).
+    views changes with α: use it for depth from focus (sharpness over α;
+    docs/validation/letters.md). The views are zero-padded before the FFT (no wrap-around).
     Its output is at lenslet resolution; the splat can also be evaluated on finer grids.
     Shifts are converted to lattice units with the lattice basis fitted to the lenslet
     centres, so a rotated or anisotropic lattice is handled.

@@ -2,5 +2,5 @@
 
 :mod:`~plenopiv.particles.peaks` finds local maxima with a sub-voxel centroid;
 :mod:`~plenopiv.particles.bundle` and :mod:`~plenopiv.particles.forward` locate a particle from
-the bundle of its rays across lenslets. See docs/methods.md.
+the bundle of its rays across lenslets. See docs/methods.md#particles.
 """

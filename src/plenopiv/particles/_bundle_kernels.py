@@ -141,8 +141,8 @@ def selected_normal_equations(sptr, rays, share, bright, u, xf, so, weight, tota
                               rhs, nrays):
     """:func:`normal_equations` on the rays :func:`fill_rays` kept (same sums).
 
-    Serial, as :func:`selected_covariance_sums`: 5 ms a call for the demo's particles, and
-    parallel loops compile 1.8 s longer.
+    Serial, as :func:`selected_covariance_sums`: a call is short, and parallel loops would
+    compile much longer.
     """
     for p in range(sptr.shape[0] - 1):
         d = np.empty(3)
@@ -194,8 +194,7 @@ def selected_covariance_sums(lptr, cptr, sel, share, bright, u, xf, so, weight, 
     S_k[:2, :] + v_k v_k^T / var_k)`` with ``S_k = sum w M``, ``v_k = sum w M (dtheta, 0)``;
     ``nlens`` counts the lenslets with weight (see
     :func:`plenopiv.particles.bundle.bundle_positions`).
-    Serial: in parallel on two cores it took 0.06 s for 1860 particles, and 3.0 s to compile
-    against 1.6 s.
+    Serial: a parallel loop gains little here and compiles about twice as long.
     """
     most = 0
     for a in range(cptr.shape[0] - 1):

@@ -1,18 +1,14 @@
-r"""Ray-bundle particle positions: the 3-D point nearest the rays that saw the particle.
+"""Ray-bundle particle positions: the 3-D point nearest the rays that saw the particle.
 
-A reconstructed particle is elongated in depth (4-10 times its width): its centroid inherits
-the reconstruction's depth blur. The light field itself holds sharper information. Every lit
-pixel is a ray of the calibrated light field (:mod:`plenopiv.lightfield`); the pixels that
-received a particle's light are those whose rays pass within a beam width of it, across every
-lenslet that sees it. The point that minimises the intensity-weighted sum of squared
-perpendicular distances to those rays is the particle's position, in closed form (3 x 3 normal
-equations per particle). Starting from the volume centroid, the rays are selected around the
-current estimate and the point is solved again (``iterations`` times).
+A reconstructed particle is elongated in depth and its centroid inherits that blur; the light
+field holds sharper information. :func:`bundle_positions` selects, around each particle's
+current estimate, the lit pixels whose rays pass within a beam width of it across every
+lenslet that sees it, and solves for the point of least intensity-weighted squared
+perpendicular distance to those rays (3 x 3 normal equations per particle), ``iterations``
+times from the volume centroid. Effective (air-equivalent) coordinates, metres
+(DESIGN.md §4); :class:`plenopiv.camera.corrections.DepthCorrection` applies as to centroids.
 
-Effective coordinates (air-equivalent, DESIGN.md §4): a ray through aperture point u (the lens
-plane, Z = -S_o,eff) and focal-plane point X_f = s/M (Z = 0). The external-interface and plate
-corrections (:class:`plenopiv.camera.corrections.DepthCorrection`) turn the result into physical
-coordinates exactly as for centroids.
+See docs/methods.md#ray-bundle-positions.
 """
 
 from __future__ import annotations
@@ -67,8 +63,7 @@ class BundleSettings:
         isolated particle is the same from any seed within the volume's blur
         (:data:`PARTICLE_BUNDLE`). Beyond focus the current estimate is close and a pixel's
         beam already bounds the miss of its ray, so the margin only takes in neighbours' light
-        (a vortex pair at 0.15 particles per lenslet: depth rms 0.74-1.02 voxel beyond two
-        depth cells of focus with it in full, 0.42-0.60 without): it applies in full within
+        (in a seeded flow it raises the depth error beyond focus): it applies in full within
         ``margin_cells`` depth cells of focus and fades linearly to zero at twice that.
     margin_cells : float
         See ``margin`` (depth resolution cells, > 0).
@@ -104,8 +99,9 @@ class BundleSettings:
 
 #: The fit of the particle table (``[particles] position = "light_field"``): half a footprint
 #: of margin makes each particle's position independent of its seed, and so of the voxel grid
-#: the seed (the volume's centroid) came from. Three solves: over random sub-voxel grids a
-#: near-focus particle spreads 0.006, 0.012 and 0.023 voxel after four, three and two.
+#: the seed (the volume's centroid) came from. Three solves: a near-focus particle's spread
+#: over random sub-voxel grids halves with each solve and is a small fraction of a voxel
+#: after three.
 PARTICLE_BUNDLE = BundleSettings(margin=0.5, iterations=3)
 
 
@@ -479,7 +475,7 @@ def bundle_positions(lf: LightField, image, seeds, *,
                   if depth_cell is None else depth_cell)
     bright = np.ones(n) if brightness is None else np.asarray(brightness, float).reshape(n)
     # the kernels read each particle's lenslets from memory: in spatial order neighbours
-    # find them in cache (half the time at 16 MP); each particle's sums are unchanged
+    # find them in cache; each particle's sums are unchanged
     perm = spatial_order(lf, seeds) if engine == "numba" else np.arange(n)
     seeds, bright = seeds[perm], bright[perm]
     pos, ok = seeds.copy(), np.ones(n, bool)
@@ -582,9 +578,10 @@ def ray_selection(lf: LightField, index, rays, centre, radius,
 
     ``index``: ``(order, ptr, lens_ids, tree)`` of :class:`RayTable`; ``rays``: the lenslet-
     sorted ``(u, X_f, weight)`` of :func:`_engine_inputs`. Blocks of particles (balanced by
-    their candidate lenslets) run on the numba kernels in threads, twice: :func:`~plenopiv.
-    tracking._kernels.count_rays` counts each candidate's rays, :func:`~plenopiv.tracking.
-    _kernels.fill_rays` writes them into arrays of the exact size. The result is in particle,
+    their candidate lenslets) run on the numba kernels in threads, twice:
+    :func:`~plenopiv.particles._bundle_kernels.count_rays` counts each candidate's rays,
+    :func:`~plenopiv.particles._bundle_kernels.fill_rays` writes them into arrays of the exact
+    size. The result is in particle,
     candidate, ray order, as the passes of one solve read it (NumPy twin:
     :func:`_select_rays`).
 

@@ -1,55 +1,15 @@
-r"""Forward-model refinement of particle positions: the pixel values a position predicts.
+"""Forward-model refinement of particle positions: the pixel values a position predicts.
 
-The ray bundle (:mod:`plenopiv.particles.bundle`) treats every lit pixel as its chief ray, the
-line from the centre of its aperture cell to the centre of its lenslet's footprint. Near the
-focal plane that model loses the depth: a particle within a footprint-wide beam lights the
-pixel whatever its place in the beam, all chief rays of a lenslet meet at the lenslet's
-conjugate (Z = 0), and a particle seen through one to a few lenslets is drawn to Z = 0 or
-pushed away from it by up to half a depth resolution cell. The information is in *which*
-pixels are lit and how much: the edges of the lit patch in each micro-image move with depth.
+Near the focal plane the ray bundle's chief rays lose the depth: the information is in which
+pixels are lit and how much. A pixel is a beam from its aperture cell to its lenslet
+footprint; the fraction of a particle's light it receives is a trapezoid in the particle's
+lateral miss, whose widths change with depth. :func:`refine_positions` moves each particle
+from its ray-bundle position to the position whose predicted pixel values fit the image best
+(a one-sided misfit): joint depth x lateral grids near focus, Levenberg-Marquardt steps on the
+analytic Jacobian beyond. :func:`beam_fraction` is the model. Effective (air-equivalent)
+coordinates, metres, as in :mod:`plenopiv.particles.bundle`.
 
-A pixel is a beam: the lines from its aperture cell (width c at the main lens) to its lenslet
-footprint (width b on the focal plane). At a particle's depth, t = (S_o + Z)/S_o, the
-aperture cell spans ``w_a = c |1 - t|`` and the footprint ``w_b = b |t|``, both centred on
-the chief ray (lateral miss m from the particle). The fraction of the particle's light
-through the aperture cell that lands in the footprint is, per axis, the overlap of two
-intervals,
-
-.. math:: f(m) = \frac{o_x(m_x)\, o_y(m_y)}{w_a^2},\qquad
-          o(m) = \max\big(0, \min(\tfrac{w_a}{2}, m + \tfrac{w_b}{2})
-                 - \max(-\tfrac{w_a}{2}, m - \tfrac{w_b}{2})\big),
-
-a trapezoid in m: flat across the beam, with ramps one aperture cell wide where the pixel
-sees part of the particle's light. The predicted pixel value is ``A f`` with A the
-particle's amplitude. The refinement moves each particle, from its ray-bundle position, to
-the position whose prediction fits the pixel values around its beam best. Near focus depth
-and lateral position trade off along a line through a footprint's corner (an edge of the lit
-patch fixes only the ratio of lateral offset to depth), a valley that searches along one
-axis at a time cross without following it. Two searches:
-
-- within ``near_focus`` depth cells of the focal plane (default one: the particle lights at
-  most a few lenslets and the misfit is a staircase of ramps one aperture cell wide), joint
-  depth x lateral grids around the start over halving ranges (~850 positions);
-- beyond, Levenberg-Marquardt steps on the misfit's analytic Jacobian (the trapezoids are
-  piecewise linear in x, y and Z), from the start and, within ``local_starts_within`` depth
-  cells of focus (three by default), from two depths on either side of it, keeping the end
-  of least misfit, twice (the amplitude estimated again in between): a damped
-  Gauss-Newton step moves depth and lateral position together, so it follows the slanted
-  valley, and the many lenslets of a particle out of focus, each with its edge pixels at
-  another place on their ramps, make the misfit smooth enough to descend (~20 evaluations
-  per descent instead of the grids' 850 positions; at 16 MP the grids took most of the
-  tracking's time).
-
-The misfit is
-one-sided (:func:`refine_positions`): light the particle does not explain, a neighbour's
-whose rays cross its beam, weighs little; light it predicts but that is missing weighs in
-full. So a neighbour's rays (of a particle the reconstruction found or missed) do not pull
-it, and the dark pixels around the lit patch fix its edges.
-
-A particle in focus seen through a single lenslet lights all its pixels at any depth within
-the depth of field: the image holds no depth there, and the position stays at the start.
-
-Effective (air-equivalent) coordinates, metres, as in :mod:`plenopiv.particles.bundle`.
+See docs/methods.md#forward-model-positions.
 """
 
 from __future__ import annotations
@@ -432,8 +392,9 @@ def _damped_steps(h, g, lam):
 def _local_fit(ptr, u, xf, v, amp, start, geom, excess, scale, bounds, offsets, iterations):
     """Levenberg-Marquardt steps on each particle's one-sided misfit (NumPy twin).
 
-    Twin of ``plenopiv.particles._bundle_kernels.local_fit``: from each of ``start + (0, 0,
-    offset)`` (``offsets`` metres), in the parameters scaled by ``scale = (sx, sz)`` metres, damped
+    Twin of ``plenopiv.particles._bundle_kernels.local_fit``: from each of
+    ``start + (0, 0, offset)`` (``offsets`` metres), in the parameters scaled by
+    ``scale = (sx, sz)`` metres, damped
     Gauss-Newton steps ``(J^T J + lam diag J^T J) d = -J^T r`` clipped to one unit per axis,
     the position kept within ``start +- bounds`` (lateral, depth; metres); a step is taken
     when the misfit drops (lam / 3, done once the step is below 1e-3 units), refused

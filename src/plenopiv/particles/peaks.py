@@ -1,39 +1,13 @@
-r"""3-D particle extraction from a reconstructed volume: peaks, sub-voxel centroids, sizes.
+"""3-D particle extraction from a reconstructed volume: peaks, sub-voxel centroids, sizes.
 
-A reconstructed particle is a blob of a few voxels, elongated along the depth axis Z
-because a plenoptic camera sees the volume through a narrow angular aperture (thesis §2.4).
 :func:`find_particles` finds the local maxima above a threshold, keeps the brightest of any
-that lie closer than a minimum separation, and refines each to sub-voxel precision. The
-result, :class:`Particles`, holds positions as fractional voxel indices ``(z, y, x)`` (the
-volume is indexed ``[z, y, x]``) and converts them to world ``(x, y, z)`` metres through
-:func:`plenopiv.conventions.voxel_to_world`.
+that lie closer than a minimum separation, and refines each to sub-voxel precision by the
+3-point Gaussian per axis or the intensity-weighted centroid (the default for the
+depth-elongated particles of plenoptic volumes). The result, :class:`Particles`, holds
+positions as fractional voxel indices ``(z, y, x)`` and converts them to world ``(x, y, z)``
+metres through :func:`plenopiv.conventions.voxel_to_world`.
 
-Sub-voxel estimators
---------------------
-3-point Gaussian (per axis, I0 the peak and I-, I+ the samples m voxels either side):
-
-.. math:: \delta = \frac{m(\ln I_- - \ln I_+)}{2(\ln I_- - 2\ln I_0 + \ln I_+)},
-          \qquad \sigma^2 = \frac{-m^2}{\ln I_- - 2\ln I_0 + \ln I_+}.
-
-For samples of a Gaussian ``A exp(-(x - x0)^2 / (2 s^2))`` at integer x the log is a
-parabola, so delta = x0 - x_peak and sigma = s exactly, whatever s and m
-(depth-elongated blobs included). With noise of standard deviation e relative to the
-peak, the offset's noise is about ``s**2 e / (sqrt(2) m)``: 9 times larger for
-``s = 3`` than for ``s = 1`` at ``m = 1``, hence ``fit_spacing_vox``. Where a sample
-is zero (MART zeroes voxels) the 3-point centroid is used on that axis.
-
-Intensity-weighted centroid over the box ``|k_a| <= h_a``:
-``c_a = sum I k_a / sum I`` and ``sigma_a^2 = sum I (k_a - c_a)^2 / sum I``. The box
-truncates the blob: for a sampled Gaussian of width s centred at offset delta the bias
-is ``|c - delta| <= sum_{|k| > h} |k - delta| g(k - delta) / sum_{|k| <= h} g(k - delta)``,
-which grows quickly once h < 2 s (e.g. in z for elongated blobs), and sigma is biased
-low. See ``tests/test_particles.py`` for the measured comparison.
-
-References
-----------
-M. Raffel, C. E. Willert, F. Scarano, C. J. Kähler, S. T. Wereley, J. Kompenhans,
-"Particle Image Velocimetry: A Practical Guide", 3rd ed., Springer (2018): the
-three-point Gaussian peak estimator, here applied per axis to a voxel volume.
+See docs/methods.md#peaks for the estimators, their bias and the reference.
 """
 
 from __future__ import annotations

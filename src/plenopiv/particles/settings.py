@@ -17,8 +17,8 @@ class ParticleSettings:
 
     threshold : a particle's peak must exceed this fraction of the reference intensity.
     threshold_reference : "bright" (default: the 99.9th percentile of the positive voxels,
-        which a few hot voxels cannot move; at 16 MP the maximum was 21 times it and a
-        threshold on the maximum found 1 % of the particles) | "maximum" (the volume's maximum).
+        which a few hot voxels cannot move, while they can put the maximum many times above
+        the particles' peaks) | "maximum" (the volume's maximum).
     method : sub-voxel estimator, "centroid" (intensity-weighted over box_vox; the better one
         for the depth-elongated particles of plenoptic reconstructions) | "gaussian" (3-point
         per axis).
@@ -33,7 +33,7 @@ class ParticleSettings:
         lit pixels that saw the particle; it does not depend on the voxel grid, and the
         volume centroid is kept where fewer than ``min_rays`` rays are found) | "volume"
         (the ``method`` estimate on the voxels: an in-focus particle's centroid moves with the
-        voxel edges by up to 0.7 voxel, docs/validation/grid_independence.md).
+        voxel edges, docs/validation/grid_independence.md).
 
     These are the only defaults: :func:`plenopiv.particles.peaks.find_particles` takes those of
     ``method`` and ``fit_spacing_vox`` from here, and has none for ``min_separation_vox``

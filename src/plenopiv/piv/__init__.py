@@ -1,37 +1,14 @@
 """Multi-pass 3-D cross-correlation of two reconstructed particle volumes (volumetric PIV).
 
-The stage turns two volumes of the same grid, recorded a time ``dt`` apart, into a field of
-displacement vectors: one per interrogation window. It implements the iterative multigrid
-window-deformation scheme WIDIM (Scarano 2002) with a normalised median test between passes
-(Westerweel & Scarano 2005).
-
-Conventions (see :mod:`plenopiv.conventions`): volumes are indexed ``[z, y, x]``; the grid's
-``origin`` is the ``(x, y, z)`` position of voxel ``[0, 0, 0]`` and its ``voxel_size`` the edge
-``(dx, dy, dz)``, both in metres. The returned :class:`VectorField` holds window-centre
-coordinates ``x, y, z`` (1-D, metres) and the displacement components ``u`` (along x), ``v``
-(along y), ``w`` (along z) as arrays of shape ``(nz, ny, nx)`` in metres. Inside the package
-index-space quantities carry the suffix ``_vox`` and are ordered ``(z, y, x)``.
-
-A displacement ``d`` means that the pattern of ``volume_a`` at position ``p`` is found in
-``volume_b`` at ``p + d``.
-
-Modules, in the order the data moves:
-
-- :mod:`.settings`: :class:`PIVSettings`, the validated settings and their defaults;
-- :mod:`.inputs`: checks of the volumes, grid, mask and options;
-- :mod:`.windows`: window layout of a pass, field interpolation and volume deformation;
-- :mod:`.correlation`: one correlation pass (staged FFTs, cross spectrum, peak fit);
-- :mod:`.validation`: normalised median test and replacement of rejected vectors;
-- :mod:`.statistics`: per-vector uncertainty by correlation statistics;
-- :mod:`.multipass`: :func:`correlate_volumes`, the WIDIM driver;
-- :mod:`.field`: :class:`VectorField`, the result;
-- :mod:`.uncertainty`: the chain's measured response that completes the uncertainty;
-- :mod:`._kernels`: the numba kernels, each with its NumPy twin.
-
-The settings and the result are imported with the package; the functions that need numba and
-scipy are imported on first use, so that the experiment configuration
-(:mod:`plenopiv.config.experiment`) can take its ``[piv]`` defaults from :class:`PIVSettings`
-without loading them.
+:func:`correlate_volumes` turns two volumes of one grid, recorded ``dt`` apart, into a
+:class:`VectorField` by WIDIM window deformation with a normalised median test between passes;
+:class:`PIVSettings` holds the validated settings. Volumes are indexed ``[z, y, x]``; the
+field holds window-centre coordinates and ``u, v, w`` (along x, y, z) in metres, and a
+displacement ``d`` means the pattern of ``volume_a`` at ``p`` is found in ``volume_b`` at
+``p + d`` (:mod:`plenopiv.conventions`). Modules in data order: ``settings``, ``inputs``,
+``windows``, ``correlation``, ``outliers``, ``statistics``, ``multipass``, ``field``,
+``response``, ``uncertainty``; ``_kernels`` holds the numba kernels and their NumPy twins.
+Functions that need numba and scipy are imported on first use. See docs/methods.md#piv.
 """
 
 import importlib

@@ -1,136 +1,14 @@
-r"""The WIDIM driver: :func:`correlate_volumes`, multi-pass 3-D PIV of two particle volumes.
+"""The WIDIM driver: :func:`correlate_volumes`, multi-pass 3-D PIV of two particle volumes.
 
-Method
-------
-*Correlation.* Each window pair ``a, b`` (means removed) is correlated circularly through
-real FFTs, without zero padding, batched over all windows of a pass:
+Each pass correlates every window pair circularly through staged real FFTs, fits the peak
+per axis (3-point Gaussian, or a least-squares Gaussian on the overlap-corrected correlation
+where the peak is broad), validates the field by the normalised median test and replaces the
+outliers; the next pass correlates the volumes deformed symmetrically by that predictor
+(Scarano 2002). After the last pass each vector gets its standard uncertainty from the
+correlation statistics (Wieneke 2015) and the error the iteration left.
 
-.. math:: R(s) = \frac{\sum_x a(x)\, b(x + s)}{\sqrt{\sum_x a^2 \sum_x b^2}}
-          = \frac{\mathcal{F}^{-1}[\overline{\hat a}\, \hat b](s)}
-                  {\lVert a\rVert\, \lVert b\rVert}
-
-so the peak height is a correlation coefficient. The integer peak ``s_0`` is refined per
-axis by the 3-point Gaussian fit (Willert & Gharib 1991)
-
-.. math:: \delta = \frac{\ln R_{-1} - \ln R_{+1}}{2(\ln R_{-1} - 2 \ln R_0 + \ln R_{+1})}
-
-falling back to the parabola (``R`` in place of ``ln R``) where a value is not positive,
-and to the integer peak where the parabola is not concave. The peak ratio ``snr`` is the
-primary peak over the highest other face-connected local maximum.
-
-With ``settings.overlap_correction`` (default) the samples about the peak are first
-divided by the overlap fraction of their lag, :math:`R(s) / \prod_i (1 - |s_i|/w_i)`
-(Westerweel 1997), which removes the bias of particle pairs lost across the window
-border; with ``settings.broad_peaks`` (default) the five samples ``s_0 - 2 .. s_0 + 2``
-along each axis are fitted by a weighted least-squares Gaussian, whose vertex (within
-1.5 voxel of ``s_0``) is taken where that Gaussian is at least 1 voxel wide (standard
-deviation), and the seven samples ``s_0 - 3 .. s_0 + 3`` (vertex within 2.5 voxels) where
-it is at least 2 voxels wide (the depth peaks of plenoptic volumes, which five samples see
-only the top of; the overlap correction moves their vertex up to :math:`2\sigma^2/w`, over
-a voxel, from the raw correlation's highest sample).
-
-The window spectra are computed one axis at a time, so that the 1-D transforms shared by
-overlapping windows are done once (x for every line segment of the volume, y for every
-plane of a window column, z per window), in float32 on ``workers`` threads.
-
-*Bias of one pass.* Particle images cut by the window border move less than the
-particles, so without the overlap correction one correlation underestimates a
-displacement by a fraction that grows with the particle size over the window size:
-about 20 % for images of standard deviation 1 voxel in 16-voxel windows, about 50 %
-along z for images of 2.5 voxels in 24-voxel windows, and 52 % along z for the
-resolution-cell particles of the 50 mm plenoptic geometry (sigma 1.9 voxels) in 12-voxel
-windows (measured on synthetic volumes; with the overlap correction the last measures
-1 voxel as 1.01 in one pass). Window deformation removes the remaining bias: each pass
-measures only what the predictor left, and the corrector tends to zero as the passes
-converge, each pass reducing the remaining error by about that fraction. Particles much
-longer than the window along an axis therefore need more passes. The discrete window
-offset (``deformation=False``) keeps the bias on the sub-voxel remainder.
-
-*Multi-pass window deformation* (WIDIM, Scarano 2002). After each pass the field is
-validated (:func:`normalized_median_test`), outliers are replaced
-(:func:`replace_outliers`), and the result, the predictor ``d_p``, is interpolated
-trilinearly to every voxel. Both volumes are then deformed symmetrically (central
-difference),
-
-.. math:: A'(x) = A(x - d_p(x)/2), \qquad B'(x) = B(x + d_p(x)/2),
-
-with interpolation of order ``settings.deformation_order``, and the correlation of the
-deformed volumes gives the corrector ``d_c``; the new estimate is ``d_p + d_c`` at the
-window centres of the (possibly smaller) windows of the next pass. The predictor is
-extrapolated linearly beyond the outermost window centres and, with
-``settings.smooth_predictor``, low-passed by a [1, 2, 1]/4 filter per axis, which keeps
-repeated passes from amplifying errors whose wavelength is close to the window size
-(Schrijer & Scarano 2008). With ``deformation=False`` each window pair is instead shifted
-by ``-/+ d_p/2`` rounded to whole voxels (discrete window offset).
-
-The last pass is validated too; ``valid`` marks the rejected vectors and
-``settings.replacement`` says whether they are filled by the local median or mean or
-left NaN. The returned field is not smoothed.
-
-*Uncertainty* (correlation statistics, Wieneke 2015, per axis in 3-D). After the last
-pass the two (deformed) windows ``a, b`` (means removed) nearly coincide. Along axis
-``e`` the correlation values beside the integer peak ``s_0`` are sums of per-voxel
-products, :math:`C^\pm = \sum_x c^\pm(x)` with :math:`c^+(x) = a(x)\, b(x + s_0 + e)`
-and :math:`c^-(x) = a(x + e)\, b(x + s_0)` (circular within the window, as the
-correlation), so that :math:`\Delta c = c^+ - c^-` vanishes voxel by voxel where the two
-windows are equal. The asymmetry :math:`\Delta C = C^+ - C^-` moves the sub-voxel peak;
-its standard deviation is estimated from the spread of :math:`\Delta c` about its mean,
-with the covariance of neighbouring voxels (a particle image spans several voxels)
-counted by summing :math:`\Delta c` over circular blocks of ``2h + 1`` voxels per axis
-(Bartlett's estimator):
-
-.. math:: \sigma_{\Delta C}^2 = \frac{1}{|B|} \sum_x
-          \Big( \sum_{y \in B(x)} (\Delta c(y) - \overline{\Delta c}) \Big)^2
-
-with ``h`` per axis the particle image's correlation width, ``ceil(sqrt(2) s_p)`` for
-particle images of standard deviation ``s_p`` (from the volume's autocorrelation at a
-lag of one voxel, :func:`particle_image_size`). The standard uncertainty is the shift of
-the 3-point fit when the neighbours differ by :math:`\pm\sigma_{\Delta C}/2` about
-their mean :math:`\bar C = (C^+ + C^-)/2`:
-
-.. math:: \sigma = \left| \delta\big(C_0,\ \bar C + \sigma_{\Delta C}/2,\
-          \bar C - \sigma_{\Delta C}/2\big) \right|
-
-with :math:`\delta` the Gaussian (or parabolic) estimator above. The statistics see
-only what makes the two deformed windows differ; the error the iteration left behind is
-not in them. After two or more passes the change the last pass made to the estimate,
-:math:`\Delta d` (its corrector), estimates it: the passes converge geometrically, each
-removing a fraction of the remaining error, so what remains after the last pass is of
-the order of the last correction (window-border truncation of elongated particle images,
-flow structures smaller than the smoothed predictor resolves). The standard uncertainty
-per axis is
-
-.. math:: \sigma^2 = \sigma_{CS}^2 + \Delta d^2.
-
-On noisy synthetic particle volumes 85-98 % of the true errors lie within
-:math:`\pm 2\sigma` (the statistics alone: 50-85 %). A replaced vector gets the root sum
-of squares of its neighbours' median uncertainty and the spread of the neighbours
-(1.4826 times their median absolute residual). For plenoptic volumes
-:mod:`plenopiv.piv.uncertainty` adds the chain's measured response; see
-``docs/validation/uncertainty.md`` for the coverage of true errors on the vortex flows.
-
-
-References
-----------
-F. Scarano, "Iterative image deformation methods in PIV", Measurement Science and
-Technology 13, R1-R19 (2002). doi:10.1088/0957-0233/13/1/201
-
-J. Westerweel and F. Scarano, "Universal outlier detection for PIV data", Experiments in
-Fluids 39, 1096-1100 (2005). doi:10.1007/s00348-005-0016-6
-
-C. E. Willert and M. Gharib, "Digital particle image velocimetry", Experiments in Fluids
-10, 181-193 (1991). doi:10.1007/BF00190388
-
-J. Westerweel, "Fundamentals of digital particle image velocimetry", Measurement
-Science and Technology 8, 1379-1392 (1997). doi:10.1088/0957-0233/8/12/002
-
-F. F. J. Schrijer and F. Scarano, "Effect of predictor-corrector filtering on the
-stability and spatial resolution of iterative PIV interrogation", Experiments in Fluids
-45, 927-941 (2008).
-
-B. Wieneke, "PIV uncertainty quantification from correlation statistics", Measurement
-Science and Technology 26, 074002 (2015). doi:10.1088/0957-0233/26/7/074002
-
+See docs/methods.md#multi-pass-correlation, #peak-fit, #window-deformation, #outlier-test
+and #per-vector-uncertainty, with the references.
 """
 
 from __future__ import annotations
@@ -282,7 +160,7 @@ def _first_pass(vol_a, vol_b, layout, correlate):
 def _deformed_pass(vol_a, vol_b, layout, predictor, previous, deform, correlate):
     """Deform both volumes by ``-/+ predictor / 2`` and add the corrector they give."""
     voxel_axes = tuple(np.arange(n, dtype=float) for n in vol_a.shape)
-    # float32 throughout: ten times faster than float64 for a full-size field
+    # float32 throughout: much faster than float64 for a full-size field
     dense = _interpolate_field(predictor.astype(np.float32), previous.centres, voxel_axes)
     a_def = deform(vol_a, dense, -0.5, "a")
     b_def = deform(vol_b, dense, +0.5, "b")

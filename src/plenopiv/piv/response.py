@@ -201,17 +201,17 @@ class Response:
         held there. Test pairs that cannot tell the three apart fall back to the lateral
         motion :math:`|(u, v)|` and the depth motion, and a single test pair to the whole
         motion :math:`|(t_x, t_y, t_z)|` through it. Scaling each component by its own
-        displacement alone under-covers a component that does not move while the others do
-        (Oseen's v: 80-88 %); a lateral motion counted whatever its direction over-covers it
-        (99 % on the patch, where the test pairs' diagonal motion along y gave v an error
-        that Oseen's motion along x does not, docs/validation/uncertainty.md). Without
-        ``cell`` it is :meth:`at`'s excess, the same for every vector of a layer.
+        displacement alone under-covers a component that does not move while the others do;
+        a lateral motion counted whatever its direction over-covers one where the test pairs'
+        diagonal motion gives it an error that the real flow's motion does not
+        (docs/validation/uncertainty.md). Without ``cell`` it is :meth:`at`'s excess, the
+        same for every vector of a layer.
 
         With ``edge_random``, the vectors on a layer's lateral edge (:func:`lateral_edge`)
         get the fit to the test pairs' edge vectors, the others the fit to their interior
         ones: the windows that hold the volume's lateral boundary err more (particles cross
         it between the exposures, fewer lines of sight see its voxels), and a layer's mean
-        gave the interior vectors the edge's error and the edge vectors too little
+        would give the interior vectors the edge's error and the edge vectors too little
         (docs/validation/uncertainty.md).
         """
         from scipy.optimize import nnls
@@ -431,13 +431,10 @@ def spurious_disagreement(rejected) -> np.ndarray:
     error); :func:`plenopiv.piv.uncertainty.rejected_neighbour_uncertainty` counts only
     what a real field's rejections hold beyond it, the flow the vectors do not resolve.
 
-    The reach is the median, not the rms: the disagreements are heavy-tailed. On the
-    41 x 61 camera (half-footprint voxels, 76 rejected test vectors) their quartiles are
-    0.02-0.20 voxel laterally and 0.8-1.7 voxel in depth, while a few peaks on ghost
-    particles 3-4 voxels off make the rms about 2 voxels along every axis; an rms would
-    discount the real field's lateral disagreements of 2 voxels where Hill's vortex reverses
-    within a window as if they were such peaks (its lateral coverage fell to 86.5 %,
-    docs/validation/uncertainty.md).
+    The reach is the median, not the rms: the disagreements are heavy-tailed. A few peaks
+    on ghost particles several voxels off dominate an rms, which would then discount a real
+    field's lateral disagreements where a vortex reverses within a window as if they were
+    such peaks (docs/validation/uncertainty.md).
     """
     rows = np.concatenate([np.zeros((0, 3))]
                           + [np.asarray(r, float).reshape(-1, 3) for r in rejected])

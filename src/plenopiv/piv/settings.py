@@ -100,13 +100,10 @@ class PIVSettings:
         Low-pass the predictor of every pass after the first with a [1, 2, 1]/4 filter per
         axis before deforming (the returned field is not smoothed). This keeps repeated
         deformation passes stable (Schrijer & Scarano 2008); a linear flow is not changed.
-        Filtering fewer predictors (only those before a smaller window, or none) or a weaker
-        [1, 6, 1]/8 filter before the passes at the final window was measured on six vortex
-        cases of the 41 x 61-lenslet camera: Hill's lateral error does not move (u rms
-        0.80 to 0.83 voxel on half-footprint voxels, gain 0.28: it comes from the vortex
-        core's window-scale structure, not the filter) while Oseen's random error grows (u rms by
-        up to 63 %, w by up to 19 %); so the filter stays on every pass
-        (docs/validation/uncertainty.md).
+        The filter acts on every pass: filtering fewer predictors (only those before a
+        smaller window, or none), or a weaker [1, 6, 1]/8 filter, leaves the lateral error of
+        a vortex core (window-scale structure, not the filter) where it is and raises the
+        random error elsewhere (docs/validation/uncertainty.md).
     subpixel : str
         Sub-voxel peak estimator, one of ``SUBPIXEL_METHODS``: ``"gaussian"`` (3-point
         Gaussian fit per axis, parabolic where a value is not positive) or ``"parabolic"``.

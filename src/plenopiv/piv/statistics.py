@@ -14,9 +14,9 @@ from plenopiv.piv.outliers import _extrapolated_neighbours
 
 #: Below this many window voxels (windows × voxels per window) of the last pass, the
 #: correlation statistics use the plain-NumPy twin of their kernel even with
-#: ``engine="numba"``: on a small field compiling the numba kernel (2-4 s of CPU on the first
-#: run) costs more than it saves, and the twin's arrays (about ten float64 arrays of this
-#: many values) stay under 200 MB. The two give the same statistics (tests).
+#: ``engine="numba"``: on a small field compiling the numba kernel on a first run costs more
+#: than it saves, and the twin's arrays (about ten float64 arrays of this many values) stay
+#: under 200 MB. The two give the same statistics (tests).
 NUMPY_STATISTICS_MAX_VOXELS = 2**21
 
 

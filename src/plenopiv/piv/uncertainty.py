@@ -1,95 +1,14 @@
-r"""Per-vector standard uncertainty of a plenoptic PIV field: statistics plus the chain's response.
+"""Per-vector standard uncertainty of a plenoptic PIV field: statistics plus the chain's response.
 
-The uncertainty is the correlation statistics plus the measured response of the whole chain to
-known displacements.
-
-The correlation statistics of :func:`plenopiv.piv.correlate_volumes` (Wieneke 2015) see what
-makes the two reconstructed volumes differ: image noise, particles leaving a window,
-unresolved motion. They cannot see an error that both reconstructions share, and a plenoptic
-camera has one: a particle near the focal plane lights about one lenslet wherever it lies
-inside the lenslet's footprint and inside about one depth resolution cell, so its
-reconstruction does not follow it there, and the measured displacement is pulled towards
-zero (docs/validation/uncertainty.md: depth displacements near focus are measured at 0.0-0.5
-of their true value). Both exposures are reconstructed the same way, the deformed windows
-match, and the correlation statistics stay small: on the vortex validations only 40-66 % of
-the true depth errors lie within their ±2σ (67-96 % with the last correction added).
-
-This module counts that error of the chain, measured by
-:func:`plenopiv.workflow.response.measure_response` (a type-B evaluation from a calibration of the
-measuring system). With the calibrated camera, the
-experiment's grid and every processing setting, it renders (ray tracing,
-:func:`plenopiv.synthetic.images.particle_image`) pairs of random particles moved by known
-uniform displacements ``s`` along the three axes at once, reconstructs and correlates them
-as it does the real pair, and tabulates for each layer of vectors (window-centre depth):
-
-- the gain ``g_k = mean(measured_k) / s_k`` per component ``k`` (averaged over the
-  layer's vectors and over the test displacements along that axis: 0.5, 1.25 and 1.75
-  lenslet footprints laterally with 0.1, 0.25 and 0.5 depth resolution cells in depth, so
-  that every fraction of the resolution cell is probed, and two more, 1.25 footprints
-  along x alone and 0.5 depth cells alone, that tell the shared error of the motion along
-  each axis apart);
-- the random error ``r_k``: the rms over the test displacements of the spread (standard
-  deviation) of the layer's vectors;
-- the rms uncertainty ``s_k`` the correlation statistics with the error the iteration left
-  (:func:`iteration_uncertainty`) gave those same test vectors;
-- where the reconstruction places the test particles relative to where they are, per axis
-  (:func:`plenopiv.workflow.response.placement_offset`);
-- the spread and statistics of the vectors on a layer's lateral edge apart from its interior
-  ones (:func:`plenopiv.piv.response.lateral_edge`);
-- the gain of each component for a displacement that varies sinusoidally along each axis
-  with a wavelength of four vector spacings (three more pairs; the chain's spatial
-  response, :func:`modulation_factor`).
-
-:func:`combine` then gives each vector of the real field, per component, the standard
-uncertainty
-
-.. math:: \sigma_k^2 = \sigma_{CS,k}^2 + r_{ex,k}^2
-          + \Big(\frac{|1 - g_k|}{\max(g_k, g_{min})}\, |d_k|\Big)^2 + b_k^2
-          + q_k^2 + l_k^2
-
-with :math:`\sigma_{CS}` the correlation statistics of :func:`plenopiv.piv.correlate_volumes`
-with the error the passes left (:func:`iteration_uncertainty`: the geometric tail
-:math:`\rho / (1 - \rho)` of the last correction, the predictor filter's offset
-:func:`filter_offset` and the correlation's own noise removed), ``d_k`` the vector's
-displacement and:
-
-- :math:`r_{ex,k}^2`, the part :math:`\max(0, r_k^2 - s_k^2)` of the test vectors' spread
-  the correlation statistics did not see, per test displacement, fitted per layer as
-  :math:`a_x t_x + a_y t_y + a_z t_z` in the motion along each axis measured in resolution
-  cells (0 at rest) and taken at the vector's own motion
-  (:meth:`plenopiv.piv.response.Response.excess`). The spread of the test vectors holds their
-  random error, which their own correlation statistics already estimate; adding all of ``r`` to
-  :math:`\sigma_{CS}` would count that part twice. What is left is the error both
-  reconstructions share (the plenoptic lock-in above), invisible to the statistics by
-  construction, and absent where nothing moved.
-- the error of a displacement measured with gain ``g_k`` (its true value is ``d_k / g_k``);
-  :math:`g_{min} = 0.1` bounds a vector the chain barely sees at nine times its own
-  magnitude.
-- :math:`b_k` the bias of a window average where the displacement curves inside the window
-  (:func:`unresolved_gradient_bias`), which a uniform test displacement cannot reproduce;
-  the curvature is the measured field's, which the windows have flattened, so it is scaled
-  by what the chain's measured loss of modulation says it misses (:func:`modulation_factor`);
-  the curvature at a vector of the grid's border is its own (a one-sided stencil), not its
-  neighbour's; the last correction no longer counts it (its filter offset is removed), so
-  it is added in full, less the part the vectors' random errors give a curvature estimated from them
-  (:func:`curvature_noise_factor`: the second differences of noise alone are as large as
-  the noise, which the other terms count already).
-- :math:`q_k` the range a rejected vector beside it leaves open
-  (:func:`rejected_neighbour_uncertainty`): where the median test rejected a measurement,
-  the displacement there lies somewhere between that measurement and its neighbours'
-  median, a rectangular distribution of standard deviation (range) / sqrt(12), less in
-  quadrature the reach of the spurious peaks the median test rejects on the test pairs
-  (their median disagreement), which is no unresolved flow.
-- :math:`l_k` the error of the vector's position (:func:`location_uncertainty`): the
-  reconstruction places particles off their true positions (by about 1 % of the distance
-  from the focal plane in depth on the Auburn optics), so a window reports the displacement
-  of particles from elsewhere; the offset per layer is measured on the test pairs
-  (:func:`plenopiv.workflow.response.placement_offset`), the error is it times the measured
-  field's gradient.
-
-The response depends on the camera, the grid, the seeding and the settings, not on the
-flow, so it is computed once per experiment and kept in the weights cache (a few more
-pairs' worth of work the first time).
+The correlation statistics cannot see an error both reconstructions share, and near the focal
+plane a plenoptic camera has one. :func:`combine` adds to each vector's correlation
+statistics (with the error the passes left, :func:`iteration_uncertainty`) what the chain's
+measured response to known displacements says (:class:`plenopiv.piv.response.Response`, from
+:func:`plenopiv.workflow.response.measure_response`): the excess random error, the error of
+the gain, the bias of curvature inside a window (:func:`unresolved_gradient_bias`), the range
+a rejected neighbour leaves open (:func:`rejected_neighbour_uncertainty`) and the error of the
+vector's position (:func:`location_uncertainty`). The response is computed once per
+experiment. See docs/methods.md#response-measurement for the terms and their reasons.
 """
 
 from __future__ import annotations
@@ -219,7 +138,7 @@ def unresolved_gradient_bias(disp, spacing, window, scale=None):
     predictor's curvature cancel, and only the mean error of the linear interpolation
     remains, :math:`-\sum_i (h_i^2/12)\, \partial_i^2 u` (half the one-window bias at 50 %
     overlap; ``tests/test_uncertainty.py`` iterates the fixed point). A few passes do not
-    reach it for curvature on the scale of the vector spacing (on Hill's vortex the errors
+    reach it for curvature on the scale of the vector spacing (the errors of a vortex core
     follow the one-window bias of the true field, docs/validation/uncertainty.md), so the
     one-window bias is kept as the bound.
 
@@ -228,9 +147,8 @@ def unresolved_gradient_bias(disp, spacing, window, scale=None):
     :math:`W = 2h` and the term is :math:`\Delta_i^2 u / 6` per axis), central inside and
     one-sided at the border (:func:`_second_difference`): a border window reaches half a
     window beyond the last vectors, where the flow may curve more than one spacing inwards
-    (on Hill's vortex 18 of the 21 misses of v on the 41 x 61 camera lay on the first and
-    last of four rows, which took their neighbour's curvature). A uniform or linear field
-    gives zero; a quadratic or cubic one the exact curvature at every vector.
+    (a central stencil there would take the neighbour's curvature). A uniform or linear
+    field gives zero; a quadratic or cubic one the exact curvature at every vector.
     """
     disp = np.asarray(disp, float)
     scale = np.ones((3, 3)) if scale is None else np.asarray(scale, float)
@@ -404,9 +322,9 @@ def convergence_ratio(last, previous, usable, noise=None) -> np.ndarray:
     alone, and their ratio tends to 1 (a tail of nine times the noise at the cap) although
     nothing is left to correct. The noise adds in quadrature to the systematic change, so
     its variance (the correlation statistics, counted in the uncertainty on their own) is
-    removed from both mean squares before the ratio is taken. On the vortex validations the
-    offset-free last corrections are 0.3-0.9 times the correlation statistics
-    (docs/validation/uncertainty.md): the passes have converged to their noise.
+    removed from both mean squares before the ratio is taken: a last correction within its
+    noise gives a ratio of 0, as the passes that have converged to their noise do on the
+    vortex validations (docs/validation/uncertainty.md).
     """
     out = np.full(3, DEFAULT_RATIO)
     if previous is None:
@@ -505,7 +423,7 @@ def rejected_neighbour_uncertainty(field, spurious=None) -> np.ndarray:
     The median test rejects a vector whose measurement :math:`m_j` disagrees with the median
     :math:`\tilde m_j` of its neighbours by more than their noise allows; it cannot tell a
     spurious correlation peak from a flow that changes faster than the vector spacing
-    resolves. On Hill's vortex the sphere's core reverses u within about one window: the
+    resolves. Where a flow reverses within about one window (the core of Hill's vortex) the
     rejected vectors are mostly the ones that saw the reversal, and their neighbours, whose
     windows overlap theirs by half, carry errors of the same order that no other term sees
     (docs/validation/uncertainty.md). Between the two readings the displacement near the
@@ -521,12 +439,12 @@ def rejected_neighbour_uncertainty(field, spurious=None) -> np.ndarray:
     theirs, which their spread counts already. The rejected vectors of the uniform test
     pairs, where no flow is left unresolved, give the reach :math:`S_k` of such peaks
     (:func:`plenopiv.piv.response.spurious_disagreement`, their median); only the part of a
-    disagreement beyond it, in quadrature, is counted as unresolved flow. On Hill's vortex
-    the rejected vectors' depth disagreements are no larger than the test pairs' (medians
-    0.7 and 1.1 depth voxels), their lateral ones 2-26 times larger (u 2.1 voxels against
-    0.08, v 0.2 against 0.09): its flow reverses laterally within a window, while its depth
-    readings beside the core are spurious peaks along the elongated depth axis, which made
-    this term 2-3 times the vectors' depth error (docs/validation/uncertainty.md).
+    disagreement beyond it, in quadrature, is counted as unresolved flow. Where a flow
+    reverses laterally within a window while its depth readings beside the core are spurious
+    peaks along the elongated depth axis, the rejected vectors' lateral disagreements stand
+    far above the test pairs' and their depth ones do not; counted in full, the depth
+    readings would overstate the vectors' depth error several times
+    (docs/validation/uncertainty.md).
     """
     parts = field.uncertainty_parts or {}
     jump = parts.get("rejected_disagreement")
@@ -566,9 +484,9 @@ def location_uncertainty(disp, spacing, offset) -> np.ndarray:
     ``c``. The error is the change of the displacement over δ, ``-δ · ∇d`` to first order
     (GUM 5.1.3: the sensitivity coefficient of the position, here the measured field's
     gradient, central differences between vectors). The uniform test displacements of the
-    response have no gradient and cannot show it; Oseen's u, which changes sign across the
-    vortex's depth, was covered at 80 % on a volume 0.5-8.5 mm beyond the focal plane
-    without it (docs/validation/uncertainty.md).
+    response have no gradient and cannot show it; a component that changes sign across the
+    depth of a volume beyond the focal plane is under-covered without it
+    (docs/validation/uncertainty.md).
     """
     disp = np.asarray(disp, float)
     offset = np.nan_to_num(np.asarray(offset, float))

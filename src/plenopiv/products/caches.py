@@ -1,4 +1,7 @@
-"""The on-disk caches and their keys: the chain's measured response."""
+"""The on-disk cache of the chain's response, with its key.
+
+The weights cache is in :mod:`plenopiv.reconstruction.select`.
+"""
 
 from __future__ import annotations
 

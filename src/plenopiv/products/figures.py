@@ -18,7 +18,7 @@ def _figure(*args, margins=None, **kw):
 
     ``margins`` (``Figure.subplots_adjust`` keywords, fractions of the figure) serve the
     figures drawn for every pair: the constrained layout measures every text of the figure
-    and draws it twice, which took half of their time.
+    and draws it twice, which is slow for figures drawn this often.
     """
     import matplotlib
 

@@ -1,20 +1,15 @@
 """The tracks product: HDF5 (DESIGN.md §7), a ``.vtp`` for ParaView, the binned field.
 
-``TRACKS.h5``
-    ``/position_a_m``, ``/position_b_m``, ``/displacement_m`` (N, 3: x, y, z, metres, the
-    volume's axes, depth corrections applied); ``/velocity_m_s`` (N, 3) when ``dt`` is known;
-    ``/uncertainty_m`` (N, 3), the standard uncertainty of the displacement;
-    ``/uncertainty_a_m``, ``/uncertainty_b_m`` of the positions; ``/quality`` (N,) the match
-    uniqueness 1 - d1/d2 (1 unique, 0 ambiguous); ``/residual_cells`` (N,) the distance of B
-    from its PIV prediction in resolution cells; ``/index_a``, ``/index_b`` the rows of the
-    volumes' particle tables; ``/n_lenslets_a``, ``/n_lenslets_b`` the lenslets that fixed each
-    position (1: in focus, lateral position known to a footprint only). Attributes:
-    ``n_tracks``, ``dt_s`` (NaN if unknown), the counts of the matching, the resolved config.
-``TRACKS.vtp``
-    VTK XML PolyData: one line A -> B per track, its data on both end points.
-``TRACKS_binned.h5``
-    the tracks averaged on the PIV grid, in the vectors product's schema (``snr`` holds the
-    number of tracks per cell).
+``TRACKS.h5``: ``/position_a_m``, ``/position_b_m``, ``/displacement_m`` (N, 3: x, y, z,
+metres, depth corrections applied), ``/velocity_m_s`` when ``dt`` is known, ``/uncertainty_m``
+(of the displacement), ``/uncertainty_a_m``, ``/uncertainty_b_m`` (of the positions),
+``/quality`` (match uniqueness 1 - d1/d2: 1 unique, 0 ambiguous), ``/residual_cells`` (distance
+of B from its PIV prediction, resolution cells), ``/index_a``, ``/index_b`` (rows of the
+volumes' particle tables), ``/n_lenslets_a``, ``/n_lenslets_b`` (lenslets that fixed each
+position; 1: in focus, lateral position known to a footprint only); attributes ``n_tracks``,
+``dt_s`` (NaN if unknown), the matching's counts, the resolved config. ``TRACKS.vtp``: VTK XML
+PolyData, one line A -> B per track. ``TRACKS_binned.h5``: the tracks averaged on the PIV grid
+in the vectors product's schema (``snr`` holds the number of tracks per cell).
 """
 
 from __future__ import annotations

@@ -1,17 +1,12 @@
 """What a projector is built from: one calibration's light field and one volume grid.
 
 :class:`ProjectionGeometry` is the start of every reconstruction: the calibration, the
-working grid, the f-number and the lit fraction that choose the rays. Its light field is
-built on first use and held, so the weights (:mod:`plenopiv.reconstruction.select`), the
-sub-cell line of sight (:mod:`plenopiv.reconstruction.sightline`) and the perspective blocks
-of one reconstruction share one; :meth:`ProjectionGeometry.on_grid` gives the geometry of
-another grid with the same light field. The module calls nothing downstream of it: the
-projectors, the weights cache and MART call into it, never the other way.
-
-The checks that depend on the geometry alone live here too: whether the grid lies in view
-(:func:`check_grid_in_view`), whether the rays are separable by sensor row and column
-(:func:`separable_axes`, the condition of the lattice projector), the lenslet footprint
-(:func:`footprint`) and the sub-cells of the line-of-sight mask (:func:`subcell_factors`).
+working grid, the f-number and the lit fraction that choose the rays. Its light field is built
+on first use and shared by the weights, the sub-cell line of sight and the perspective blocks
+(:meth:`ProjectionGeometry.on_grid`: another grid, the same light field). The checks that
+depend on the geometry alone live here too: :func:`check_grid_in_view`,
+:func:`separable_axes` (the condition of the lattice projector), :func:`footprint` and
+:func:`subcell_factors`. The module calls nothing downstream of it.
 """
 
 from __future__ import annotations
@@ -41,9 +36,9 @@ WEIGHTS_VERSION = 3
 #: Largest scatter of a line's rays, as a fraction of an aperture cell (u) and of a lenslet
 #: footprint (focal-plane x), that the lattice projector replaces by the line's mean. A
 #: calibrated light field takes u from each lenslet's measured focal spot, so u scatters by
-#: the spot noise: 0.02 cell at most on a 41 x 61 patch whose lattice fit leaves 0.014 px
-#: rms. 0.1 cell (spot centres within 0.1 px of their column's) moves a beam by a tenth of
-#: its width; a rotation of 0.1 mrad already exceeds it across 60 lenslets of 17 px.
+#: the spot noise, a few hundredths of a cell after a good lattice fit. 0.1 cell (spot
+#: centres within 0.1 px of their column's) moves a beam by a tenth of its width; a rotation
+#: of 0.1 mrad already exceeds it across 60 lenslets of 17 px.
 SEPARABLE_TOLERANCE = 0.1
 
 #: Sub-cells per lenslet footprint along each lateral axis (at least): cells of ≤ b/2.

@@ -1,28 +1,15 @@
 """A matrix-free projector for cameras with an axis-aligned square lenslet lattice.
 
-The explicit weights of a full 16 MP camera and a 287 × 193 × 200 volume hold ~1.2·10¹⁰
-non-zeros (~100 GB in CSR). :class:`LatticeProjector` computes the same weights on the fly
-from two small tables instead, using the structure of the lattice: where the lattice rows and
-columns run along the sensor's, a pixel's beam is, on every depth slice, the product of a
-profile along x that depends only on the pixel's sensor column and a profile along y that
-depends only on its sensor row (see :mod:`plenopiv.reconstruction._kernels.lattice`). A projection
-is then two thin contractions per slice; its memory is one (slices × voxel rows × sensor columns)
-float32 buffer plus tables of a few MB.
+:class:`LatticeProjector` computes the weights of :mod:`plenopiv.reconstruction.weights` on
+the fly from two small tables: where the lattice rows and columns run along the sensor's, a
+pixel's beam on every depth slice is the product of a profile along x that depends only on its
+sensor column and one along y that depends only on its row. It implements the
+:class:`~plenopiv.reconstruction.projector.Projector` protocol, enough for MLOS and SMART; it
+traces a pixel cut by the aperture's edge through its cell centre and drops no small weights,
+so it agrees with the explicit weights to float32 rounding when the light field is built with
+``edge_centroid=False``.
 
-It implements the :class:`~plenopiv.reconstruction.projector.Projector` protocol
-(``forward``, ``back``, ``row_sums``, ``column_sums``), which is all that MLOS and SMART
-need; row-action MART and the block variant walk explicit rows and stay with
-:class:`~plenopiv.reconstruction.projector.SparseProjector`.
-
-Differences from the explicit weights
-(:func:`plenopiv.reconstruction.weights.build_weights`), both small:
-
-- a pixel cut by the aperture's edge is traced through its cell centre, not through the
-  centroid of the cell's lit part (its weight still carries the lit fraction); set
-  ``edge_centroid=False`` in :func:`plenopiv.lightfield.light_field` to make the two agree;
-- weights are not dropped below ``min_weight``.
-
-With both aligned, the projections agree to float32 rounding (tests).
+See docs/methods.md#projectors.
 """
 
 from __future__ import annotations

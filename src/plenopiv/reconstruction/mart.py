@@ -1,62 +1,14 @@
-r"""Tomographic reconstruction of a particle volume from one plenoptic image: MLOS and MART.
+"""Tomographic reconstruction of a particle volume from one plenoptic image: MLOS and MART.
 
-The recorded intensity of pixel i is modelled as the weighted sum of the voxel intensities
-its beam crosses, ``I_i = sum_j w_ij E_j`` (see :mod:`plenopiv.reconstruction.projector`). This
-module inverts that relation with non-negative multiplicative iterations:
+The recorded intensity of pixel i is ``I_i = sum_j w_ij E_j``
+(:mod:`plenopiv.reconstruction.projector`); this module inverts it with non-negative
+multiplicative iterations: :func:`mlos` (the multiplicative line-of-sight first guess),
+:func:`reconstruct` (row-action MART, block-iterative MART or SMART) and
+:func:`reconstruction_quality` (the normalised correlation Q with a known volume). Volumes are
+flat ``(n_voxels,)`` float32 arrays in ``[z, y, x]`` C order unless a ``shape`` is given;
+images are ``(row, col)`` C order, in counts.
 
-- :func:`mlos` -- the multiplicative line-of-sight first guess;
-- :func:`reconstruct` -- MART (row action), block-iterative MART, or SMART;
-- :func:`reconstruction_quality` -- the normalised correlation Q with a known volume.
-
-Volumes are flat ``(n_voxels,)`` float32 arrays in ``[z, y, x]`` C order unless a ``shape``
-``(nz, ny, nx)`` is given; images are ``(n_pixels,)`` or any shape of that size, in
-``(row, col)`` C order. Intensities are in the image's units (counts); the volume comes out in
-counts per unit weight.
-
-The methods of :func:`reconstruct`
------------------------------------
-MART (multiplicative algebraic reconstruction technique; Herman & Lent 1976, applied to
-tomographic PIV by Elsinga et al. 2006, their Eq. 2). For each pixel i in turn,
-
-.. math:: E_j \leftarrow E_j \left(\frac{I_i}{\sum_k w_{ik} E_k}\right)^{\mu w_{ij}}
-          \quad \text{for all } j \text{ with } w_{ij} > 0,
-
-with I_i = ``image``, w = the projector's weights, mu = ``relaxation``. The pixels are
-visited in the order of :meth:`~plenopiv.reconstruction.projector.SparseProjector.row_schedule`:
-runs of 16 consecutive pixels ("chunks"), the chunks coloured so that no two of a colour share
-a voxel, colour after colour. The result is exactly that of the sequential sweep in this
-order, computed in parallel (chunks of a colour at once), and it does not depend on the
-number of threads. Any order is a valid MART; this one keeps neighbouring pixels
-together.
-
-Block-iterative multiplicative sweeps (``"block"``) update the pixels of a block
-simultaneously (a block-iterative SMART in the sense of Byrne 1996). For each block B:
-
-.. math:: E_j \leftarrow E_j \exp\left(\mu\,
-          \frac{\sum_{i \in B} w_{ij} \ln\left(I_i / \sum_k w_{ik} E_k\right)}
-               {\max\left(1, \sum_{i \in B} w_{ij}\right)}\right).
-
-Where a block puts a total weight of at most 1 on a voxel this is the product of the
-MART factors of its pixels, so a block of one pixel is MART exactly; where it puts more,
-the factor is the weighted geometric mean of the pixels' ratios (raised to mu), which
-cannot overshoot. ``"smart"`` is the same with one block of all pixels (simultaneous
-MART, Byrne 1993), computed through ``forward`` and ``back`` only.
-
-All three multiply by positive factors, so E stays >= 0 and a zero voxel stays zero. A
-dark pixel (I_i = 0) would multiply its voxels by ``0 ** (mu w_ij) = 0`` on the first
-sweep; this is done once, up front, and dark pixels are skipped afterwards. A pixel whose
-projection is zero leaves its voxels alone.
-
-References
-----------
-.. [1] G. E. Elsinga, F. Scarano, B. Wieneke, B. W. van Oudheusden, "Tomographic particle
-   image velocimetry", Exp. Fluids 41, 933-947 (2006), doi:10.1007/s00348-006-0212-z.
-.. [2] G. T. Herman, A. Lent, "Iterative reconstruction algorithms", Comput. Biol. Med.
-   6, 273-294 (1976).
-.. [3] C. L. Byrne, "Iterative image reconstruction algorithms based on cross-entropy
-   minimization", IEEE Trans. Image Process. 2, 96-103 (1993).
-.. [4] C. L. Byrne, "Block-iterative methods for image reconstruction from projections",
-   IEEE Trans. Image Process. 5, 792-794 (1996).
+See docs/methods.md#mlos-mart-and-smart for the updates, the pixel order and the references.
 """
 
 from __future__ import annotations
@@ -74,10 +26,9 @@ __all__ = ["METHODS", "INITIAL_GUESSES", "reconstruct", "mlos", "reconstruction_
 
 #: Bound on the log-ratio of a ceiling row (a dark pixel): it lowers its voxels by at most
 #: exp(-0.5 μ w_ij / Σ_i w_ij) per sweep, so that the few dark pixels among the ~200 that see
-#: a voxel trim it rather than outvote its lit pixels in one sweep. Measured on 0.3 particles
-#: per lenslet (benchmarks/grid_independence.py): bound 12 (unbounded in practice) gives
-#: detection 0.78, 0.5 gives 0.82 at the same ghost rate (0.18), and single particles keep
-#: their depth (docs/validation/depth_study.md).
+#: a voxel trim it rather than outvote its lit pixels in one sweep: more particles are found
+#: than without a bound, at the same ghost rate, and single particles keep their depth
+#: (benchmarks/grid_independence.py, docs/validation/depth_study.md).
 CEILING_LOG_BOUND = 0.5
 #: Valid values of ``reconstruct(method=...)``.
 METHODS = ("mart", "block", "smart")

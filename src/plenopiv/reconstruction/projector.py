@@ -1,28 +1,14 @@
 """The projector interface: the linear map W from a voxel volume to a sensor image.
 
-A projector relates the volume intensity E (one value per voxel, the volume flattened in
-``[z, y, x]`` C order) to the recorded pixel intensities I (one value per pixel, the image
-flattened in ``(row, col)`` C order) through the weights ``w_ij``, the fraction of pixel i's
-beam energy that passes through voxel j:
+``I_i = sum_j w_ij E_j`` (forward, I = W·E) and ``r_j = sum_i w_ij I_i`` (back, r = Wᵀ·I),
+with E flattened in ``[z, y, x]`` and I in ``(row, col)`` C order. :class:`Projector` is the
+protocol MLOS and SMART need; :class:`RowAccessProjector` adds the rows that row-action and
+block MART walk; :class:`SparseProjector` is the explicit implementation, W in CSR form
+(8 bytes per non-zero), whose row-scaled and row-selected views share the one CSR, with no
+transposed copy (the back projection scatters into one accumulator per thread) and a
+:class:`RowSchedule` for the parallel MART updates.
 
-    I_i = sum_j w_ij E_j            (forward projection, I = W·E)
-    r_j = sum_i w_ij I_i            (back projection, r = Wᵀ·I)
-
-:class:`Projector` is the protocol that :mod:`plenopiv.reconstruction.mart` needs for MLOS and
-SMART: any object with these six members will do, a matrix-free projector that exploits the regular
-lenslet grid included. Row-action MART and the block-iterative variant also walk the rows of
-W; :class:`RowAccessProjector` adds that. :class:`SparseProjector` is the explicit
-implementation, W held in CSR form (rows = pixels, columns = voxels).
-
-Memory of :class:`SparseProjector` (``nnz`` non-zeros): the CSR arrays take 8 bytes per
-non-zero (int32 voxel index + float32 weight) plus 4 or 8 bytes per row pointer. Its
-row-scaled and row-selected projectors (:meth:`SparseProjector.scale_rows`,
-:meth:`SparseProjector.select_rows`) are views that share the CSR and add 12 bytes per row
-(the CSR row of each of their pixels, int64, and its scale, float32), so W is held once. No
-transposed copy of W is made: the back projection scatters into one accumulator per thread
-(``n_threads * n_voxels * 8`` bytes of scratch), and the parallel MART updates follow a
-:class:`RowSchedule` (8 bytes per pixel; for blocks also 4 bytes per non-zero, the block
-column sums).
+See docs/methods.md#projectors.
 """
 
 from __future__ import annotations
@@ -218,9 +204,8 @@ class SparseProjector(CachedSums):
         non-zeros). Default True.
     transpose : bool, optional
         Keep a transposed copy of W (built on the first ``back``) and back-project by a
-        gather per voxel: about 2-3 times faster than the default scatter in
-        ``benchmarks/bench_mart.py``, for 8 bytes per non-zero more (the matrix's memory
-        doubles). Default False.
+        gather per voxel: faster than the default scatter (``benchmarks/bench_mart.py`` times
+        both), for 8 bytes per non-zero more (the matrix's memory doubles). Default False.
 
     Notes
     -----
@@ -628,9 +613,9 @@ _EMPTY_SCALE = np.zeros(0, np.float32)
 def _max_column_count(indices: np.ndarray, n_voxels: int) -> int:
     """Largest number of non-zeros of one voxel (column) of the CSR.
 
-    Counted by a kernel in one pass: no int64 copy of the indices, whole or in chunks (a
-    chunk of 4 Mi indices was 1.45 bytes per non-zero of the traced peak of a MART
-    reconstruction with 23 million non-zeros, ``benchmarks/bench_weights.py --reconstruct``).
+    Counted by a kernel in one pass: no int64 copy of the indices, whole or in chunks, which
+    would add to the peak memory of a reconstruction
+    (``benchmarks/bench_weights.py --reconstruct`` traces it).
     """
     counts = np.zeros(n_voxels, np.int64)
     _k.column_counts(indices, counts)

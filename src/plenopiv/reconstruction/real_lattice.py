@@ -1,28 +1,15 @@
 """A matrix-free projector for any lenslet lattice: rotated, hexagonal, jittered.
 
-:class:`~plenopiv.reconstruction.lattice.LatticeProjector` needs every ray's x to depend on its
-sensor column alone, which only an axis-aligned square lattice gives. A real array is rotated by a
-few mrad, may be hexagonal, and its calibrated centres scatter. One thing holds for all of them:
-under one lenslet the rays share X_f, and a pixel's aperture position ``u = -(pixel - spot) · cell``
-(:mod:`plenopiv.lightfield`) has its x fixed by the pixel's column and its y by its row. So within
-each lenslet the weights are separable, and
-:class:`LensletProjector` computes them on the fly, lenslet by lenslet and slice by slice
-(:mod:`plenopiv.reconstruction._kernels.real_lattice`), from a few numbers per lenslet: its
-micro-image lines' aperture coordinates and its X_f. Per-lens centres and focal spots of the
-calibration (jitter, distortion) enter as they are, with no lattice fit.
+Under one lenslet the rays share X_f, and a pixel's aperture position has its x fixed by the
+pixel's column and its y by its row, whatever the lattice; so within each lenslet the weights
+separate. :class:`LensletProjector` computes them on the fly, lenslet by lenslet and slice by
+slice (:mod:`plenopiv.reconstruction._kernels.real_lattice`), from a few numbers per lenslet;
+the calibrated centres and focal spots enter as they are. Like the lattice projector it
+serves MLOS and SMART and agrees with the explicit weights to float32 rounding when the light
+field is built with ``edge_centroid=False``. :func:`matrix_free_projector` picks the lattice or
+the per-lenslet projector; :func:`estimate_lenslet_gb` estimates the memory.
 
-It implements the :class:`~plenopiv.reconstruction.projector.Projector` protocol and what the
-pipeline uses besides (``row_max``, ``select_rows``, ``scale_rows``); like the lattice projector it
-serves MLOS and SMART, not the row-action MART variants.
-
-Against the explicit weights (:func:`plenopiv.reconstruction.weights.build_weights`) it differs as
-the lattice projector does: a pixel cut by the aperture's edge is traced through its cell centre,
-not through the centroid of the cell's lit part (its weight keeps the lit fraction), and no weight
-is dropped below ``min_weight``. With ``edge_centroid=False`` in
-:func:`plenopiv.lightfield.light_field` the two agree to float32 rounding (tests).
-
-Memory: 8 · (2 · box + 3) bytes per lenslet (box: the largest micro-image, ~20 px), the
-rays (~30 bytes each) and, per back projection, a float32 local image per lenslet.
+See docs/methods.md#projectors.
 """
 
 from __future__ import annotations

@@ -38,12 +38,9 @@ __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "cached_weights", "choose_projecto
 
 #: Bytes per explicit non-zero in a reconstruction: W's CSR (8: int32 voxel index, float32
 #: weight), held once (its row-normalised and row-selected projectors are views of it), and
-#: 2 for the row views, schedules, images and volumes. The traced peak of a whole
-#: reconstruction (benchmarks/bench_weights.py --reconstruct --depth-mm 1, 23 million
-#: non-zeros, 50 per row) is 9.9 bytes per non-zero with SMART and 9.8 with row-action MART
-#: (10.9 while the row schedule counted the non-zeros per voxel with an int64 copy of 4 Mi
-#: indices at a time; 22.3 and 24.9 while scaled and selected copies of W were made); method
-#: "block" adds 4 for its block column sums.
+#: 2 for the row views, schedules, images and volumes; the traced peak of a whole SMART or
+#: row-action MART reconstruction stays within it (benchmarks/bench_weights.py
+#: --reconstruct). Method "block" adds 4 for its block column sums.
 BYTES_PER_NONZERO = 10
 PROJECTORS = ("auto", "sparse", "lattice")
 
@@ -57,7 +54,7 @@ def estimate_nnz(lf: LightField, grid: VolumeGrid, *, min_weight: float = 1e-7,
 
 
 def memory_budget_gb() -> float:
-    """Default memory for explicit weights: 40 % of this machine's physical memory (GB)."""
+    """Default memory for explicit weights: 40 % of the physical memory (GB)."""
     try:
         total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
@@ -141,7 +138,7 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
     The file name carries the key, and the key stored inside is checked again, so weights of
     another camera, calibration or grid are never reused; a corrupt cache file is rebuilt.
     ``projector`` (see :func:`choose_projector`) may pick the matrix-free lattice projector
-    instead, which is built in seconds and never cached. ``load=False`` only fills the
+    instead, which is quick to build and never cached. ``load=False`` only fills the
     cache: a cached file is checked, not read; the lattice projector is not built; None
     comes back in place of the weights.
     ``geometry``, the :class:`~plenopiv.reconstruction.geometry.ProjectionGeometry` of

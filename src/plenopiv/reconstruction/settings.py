@@ -26,8 +26,7 @@ class ReconstructionSettings:
     iterations : sweeps after the MLOS first guess (10; see docs/validation/field_quality.md).
     relaxation : μ, dimensionless; default by method: 2.0 for "smart", 0.03 for "mart" and
         "block" (in a plenoptic W every voxel is seen by ~200 pixels, so one row-action sweep
-        at μ = 1 over-relaxes ~200-fold: Q 0.43 against 0.81 at μ = 0.03, 0.3 particles per
-        lenslet).
+        at μ = 1 over-relaxes ~200-fold).
     pixel_threshold : pixels at or below this fraction of the image's maximum are dark.
     dark_tolerance : a voxel is emptied before MART when, in every one of its lateral
         sub-cells (≤ half a footprint), more than this fraction of the weight falls on dark
@@ -48,8 +47,8 @@ class ReconstructionSettings:
         most 4):
         the depth of a particle is told by beams shifting sideways by a fraction of a
         footprint, which voxels a footprint wide cannot represent, so with them a particle
-        is reconstructed 10-20 voxels long and moves in depth by a third of its true
-        displacement (docs/validation/vortex.md). Costs k² in weights and MART time.
+        is reconstructed far too long in depth and its depth motion is under-measured
+        (docs/validation/vortex.md). Costs k² in weights and MART time.
     subdivision_kernel : how the working voxels return to the [volume] grid: "gaussian"
         (default): each voxel takes the working volume weighted by a Gaussian of σ = half a
         voxel about its centre, which keeps where a particle lies inside the voxel in the

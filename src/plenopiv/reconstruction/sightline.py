@@ -1,27 +1,13 @@
 """The soft line-of-sight mask, judged on sub-voxel cells so that no grid can empty a particle.
 
-Before MART, a voxel is emptied when most of the light that would reach the sensor from it
-falls on dark pixels. Judged on the whole voxel this depends on where the voxel edges fall:
-an in-focus particle lights one lenslet's pixels, and a voxel one footprint wide whose edges
-run through lenslet centres covers a quarter of that lenslet and three quarters of dark ones,
-so every voxel around the particle is emptied and the particle vanishes.
+Before MART a voxel is emptied when most of the light that would reach the sensor from it
+falls on dark pixels. Judged on the whole voxel this depends on where the voxel edges fall and
+can empty an in-focus particle; here a voxel is kept when the best-lit of its lateral sub-cells
+(no wider than half a lenslet footprint) is within the tolerance. The refined projector (the
+lattice projector, or the per-lenslet one in depth slabs) is built once per weights object and
+kept. :func:`subcell_sightline` is the entry point.
 
-Here a voxel is judged by the best-lit of its sub-cells: the voxel is split laterally into
-``kx × ky`` cells no wider than half a lenslet footprint (``k = ceil(2 v/b)``), each cell's
-dark fraction is computed with the same beam model (a projector onto the refined grid), and
-the voxel is kept when at least one cell's dark fraction is at or below the tolerance. A
-lenslet footprint (width b) always holds a whole cell of width ≤ b/2, so the pixels of an
-in-focus particle keep at least the voxel that holds that cell, wherever the grid lies. Depth
-is not refined: across one voxel depth (≤ 1.5 footprints) a beam moves by less than a tenth of
-a footprint.
-
-The refined projector depends on the camera and grid only; it is built once per weights
-object and kept (the last one) in memory. For an axis-aligned lattice it is the matrix-free
-:class:`~plenopiv.reconstruction.lattice.LatticeProjector` (seconds to build, a few MB); for
-any other lattice the per-lenslet
-:class:`~plenopiv.reconstruction.real_lattice.LensletProjector`, in depth slabs, also when the
-coarse weights are explicit: explicit refined weights would hold about twice the coarse
-non-zeros again, beyond what the memory estimate of the explicit weights allows for.
+See docs/methods.md#line-of-sight.
 """
 
 from __future__ import annotations

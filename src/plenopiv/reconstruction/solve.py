@@ -1,19 +1,12 @@
 """One image -> one volume on the weights' grid: row scaling, bright rows, line of sight, MART.
 
-The physics between a recorded image and :func:`plenopiv.reconstruction.mart.reconstruct`:
+:func:`solve_volume` scales the rows of W to a maximum weight of 1 (a view, no copy), leaves
+out the rows that barely touch the volume and the masked pixels, takes MLOS with the sub-cell
+line of sight as the first guess and runs :func:`plenopiv.reconstruction.mart.reconstruct`,
+SMART with the dark pixels that see the first guess's support as ceilings, row-action and
+block MART on the bright rows alone.
 
-1. the rows of W are scaled to a maximum weight of 1 (:attr:`Weights.normalised`, a view of
-   W), and the pixel values with them;
-2. rows that barely touch the volume (their beam mostly passes beside it) and masked pixels
-   are left out; pixels above the dark threshold are the bright rows;
-3. the first guess is the multiplicative line of sight judged on sub-voxel cells
-   (:mod:`plenopiv.reconstruction.sightline`);
-4. SMART keeps the dark pixels that see the first guess's support as ceilings (with the
-   per-lenslet projector it is handed all of them: those that miss the support project to
-   zero and change nothing, and no forward projection is spent to find them); row-action
-   and block MART take the bright rows alone.
-
-The projectors handed to MART are row views of the one W (no copy of its non-zeros).
+See docs/methods.md#from-image-to-volume.
 """
 
 from __future__ import annotations

@@ -41,11 +41,9 @@ def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
     :data:`~plenopiv.reconstruction.settings.MAX_SUBDIVISION`). Depth along a pixel's beam is told
     apart by
     the beams of the other views shifting sideways by a fraction of a footprint; voxels a
-    footprint wide hold those shifts in one voxel, and the reconstructed particle is 2-3
-    times longer in depth than with half-footprint voxels. On the CI camera (Oseen, 0.3
-    particles per lenslet, footprint voxels) the w gain is 0.73 with k = 2, 0.89 with 3 and
-    0.89 with 4 (w rms 0.60, 0.48, 0.40 voxel; without subdivision see
-    docs/validation/vortex.md).
+    footprint wide hold those shifts in one voxel, and the reconstructed particle comes out
+    much longer in depth. A third of a footprint is where the depth gain stops growing with
+    k (docs/validation/vortex.md; docs/methods.md#lateral-subdivision).
     """
     from plenopiv.reconstruction.settings import MAX_SUBDIVISION
 
@@ -158,7 +156,7 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
     ky, kx = lateral_subdivision(calibration, grid, settings)
     if projector == "auto" and (ky, kx) != (1, 1):
         # a subdivided grid has k² times the explicit weights; the matrix-free projector is
-        # built in seconds and projects it about ten times faster (docs/validation/vortex.md)
+        # quick to build and projects it much faster (docs/validation/vortex.md)
         work = geometry.on_grid(subdivided_grid(grid, ky, kx))
         if work.separable_axes is not None:
             work.check_in_view()

@@ -1,25 +1,13 @@
 """Voxel-pixel weights from the effective image distance: sparse, built in parallel, cached.
 
-Row i of the weight matrix W is the ray of lit pixel i of a
-:class:`~plenopiv.lightfield.LightField`;
-column j is voxel j of a :class:`~plenopiv.camera.grid.VolumeGrid` (flat ``[z, y, x]`` order).
-``W[i, j]`` is the fraction of the light of a particle spread uniformly over voxel j that
-reaches pixel i, in the simulator's units (a particle of energy 1 gives an image summing to 1),
-so that I = W E for a volume E of particle energies.
+Row i of W is the ray of lit pixel i of a :class:`~plenopiv.lightfield.LightField`, column j
+voxel j of a :class:`~plenopiv.camera.grid.VolumeGrid` (flat ``[z, y, x]`` order); ``W[i, j]``
+is the fraction of the light of a particle spread uniformly over voxel j that reaches pixel i
+(a particle of energy 1 gives an image summing to 1), so that I = W E. The beam of a pixel is
+the trapezoid profile of its aperture cell and lenslet footprint, integrated over each voxel,
+in effective (air-equivalent) coordinates. :func:`build_weights` builds them.
 
-Notes
------
-A pixel's beam is every line from its aperture cell (width a = p_p S_i/f̄ about u) to its
-lenslet footprint on the nominal focal plane (width b = p_m S_o/S_i about X_f). A point at
-depth Z lies on the line through aperture point u' and footprint point X_f' where
-X = (1 - t) u' + t X_f', t = (S_o + Z)/S_o; the fraction of the point's light (the aperture
-of area A sampled uniformly) that goes through the pixel is per axis
-
-    L(X) = |{u' in cell : (X - (1 - t) u')/t in footprint}| = a b t · f(X)
-
-where f is the density of X for independent uniform u', X_f' (a trapezoid). Averaged over the
-voxel, W = lit · (a b t)² / (A Δx Δy) · ΔF_x · ΔF_y with F the trapezoid's CDF, evaluated at
-the voxel's centre depth. Everything is in effective (air-equivalent) coordinates (DESIGN.md §4).
+See docs/methods.md#weights.
 """
 
 from __future__ import annotations

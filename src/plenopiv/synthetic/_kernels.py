@@ -1,26 +1,15 @@
 """Numba kernels of the ray tracer. Arrays and scalars only; see :mod:`.tracer` for the API.
 
 The camera enters as one float64 vector ``g`` whose slots are named by the ``G_*`` constants
-below (built by :func:`plenopiv.synthetic.tracer.geometry_vector`). The kernels the tests check
-have a plain-NumPy twin here, ``<kernel>_numpy`` (same arguments, same outputs, written for
-clarity and vectorised over rays), that the tests run against them.
+below (built by :func:`plenopiv.synthetic.tracer.geometry_vector`). Per ray, in image space
+(z towards the sensor, metres): exact vector Snell refraction into the substrate, the lenslet
+hit on the lenslet plane, the back side ("physical": refraction into air, then an ideal thin
+lenslet; "thesis": the thin lenslet on the in-glass direction, thesis Appendix B),
+propagation over f̄ and a bilinear or whole-pixel splat on the sensor. The kernels the tests
+check have a plain-NumPy twin here, ``<kernel>_numpy`` (same arguments and outputs,
+vectorised over rays).
 
-Optics, per ray (image space, z towards the sensor, metres):
-
-1. exact vector Snell refraction air -> glass at the substrate front (z = l3): the tangential
-   component of n·direction is conserved;
-2. the lenslet hit on the plane z_mla decides the lenslet (nearest centre of the square or
-   hexagonal lattice, with the MLA offset and rotation);
-3. "physical" back side: glass -> air refraction at the lenslet surface, then an ideal thin
-   lenslet; "thesis" back side: the ideal thin lenslet acts on the in-glass direction, which is
-   kept down to the sensor (thesis Appendix B);
-4. propagation over f̄ to the sensor and a splat: bilinear (the exact area overlap of a
-   one-pixel square footprint with the pixel grid, which keeps the spot's first moments;
-   the default) or "pixel" (the whole ray into the pixel it lands in, as a sensor integrates
-   over its pixels), with the image content shifted by a sub-pixel sensor offset.
-
-An ideal thin lens acts on ray slopes: ``m' = m - (h - c)/f`` for a ray meeting the lens at
-height h (lens centre c). This images every point perfectly (stigmatic), at any angle.
+See docs/methods.md#synthetic-images.
 """
 
 from __future__ import annotations

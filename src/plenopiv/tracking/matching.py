@@ -1,20 +1,14 @@
-r"""PIV-guided matching of particles between two exposures (hybrid PIV-PTV).
+"""PIV-guided matching of particles between two exposures (hybrid PIV-PTV).
 
 The correlation field predicts where each particle of exposure A went (Keane, Adrian & Zhang
-1995): the search for its partner in B shrinks from the whole displacement range to a small
-sphere around the prediction, so that tracking works at seeding densities where nearest-
-neighbour tracking without a predictor would confuse particles.
+1995), so the search for its partner in B shrinks to a small sphere around the prediction:
+:func:`predict_positions`, :func:`match_particles` (nearest candidate within the search
+radius, consistent both ways) and :func:`neighbour_median_test` (tracks that disagree with
+their neighbours). Distances are measured in resolution cells, ``(b, b, ΔZ)`` metres per unit
+(:func:`plenopiv.camera.resolution.resolution_cell`), so that one search radius suits the
+sharp lateral and the blurred depth direction.
 
-Distances are measured in resolution cells, ``scale = (b, b, ΔZ)`` metres per unit (lateral
-footprint and depth cell, :func:`plenopiv.camera.resolution.resolution_cell`), so that one search
-radius suits both the sharp lateral and the blurred depth direction.
-
-1. prediction: ``p_B = p_A + d(p_A + d(p_A)/2)``, d the correlation displacement interpolated
-   trilinearly (the PIV vector belongs to the material point half-way between the exposures);
-2. candidates: the nearest particle of B within ``search_radius_cells`` of the prediction;
-3. consistency both ways: that particle's nearest predicted A must be the same particle;
-4. neighbours: a track whose deviation from its prediction fails the normalised median test
-   against those of its neighbouring tracks (Westerweel & Scarano 2005) is rejected.
+See docs/methods.md#matching.
 """
 
 from __future__ import annotations

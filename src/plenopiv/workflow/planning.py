@@ -1,29 +1,14 @@
 """Plan a reconstruction before running it (``plenopiv plan``).
 
-From a camera and a box this module computes, without reconstructing anything:
-
-* the resolution cell: one lenslet footprint b = p_m S_o/S_i laterally and b S_o/D in depth
-  (:func:`plenopiv.camera.resolution.resolution_cell`), and the near-focus zone |Z| < b S_o/D, where
-  a particle's blur on the focal plane (D |Z|/S_o) is smaller than one footprint, so that it lights
-  one lenslet and its depth motion is under-measured (docs/validation/vortex.md);
-* the recommended voxel and PIV windows for this camera: the settings that met the vortex
-  targets in docs/validation/vortex.md (half-footprint lateral voxels; windows of
-  16 → 12 footprints laterally and about 3.6 → 2.7 depth cells in depth), scaled to the camera;
-* whether the windows fit the box, and how many vectors each pass gives;
-* the size of the reconstruction (voxels, rays, non-zero weights), its memory and its time on
-  this machine.
-
-The weight count is computed, not sampled from a full light field (which would take seconds and
-gigabytes for a 16 MP camera): the rays of one micro-image are traced once on a 3 × 3-lenslet
-patch and repeated at every lenslet, and a ray's beam crosses a depth slice as a box whose
-voxel count is separable in x and y (:mod:`plenopiv.reconstruction.weights`).
-
-Times come from rates: ``measure_rates`` times the reconstruction's own kernels (weight
-build, forward and back projection, the lattice projector) and the PIV on small samples in this
-process; :data:`BENCHMARK_RATES` are figures of the project's 2-core machine (see there),
-used when measuring is not wanted. ``Plan.time_model`` says which.
-
-Everything here is computation; printing belongs to :mod:`plenopiv.cli`.
+From a camera and a box, without reconstructing anything, :func:`plan` gives the resolution
+cell and the near-focus zone (docs/methods.md#resolution-cell), the recommended voxel and PIV
+windows scaled to the camera (:func:`recommended_voxel`, :func:`recommended_windows`),
+whether the windows fit the box and how many vectors each pass gives, and the size of the
+reconstruction (voxels, rays, non-zero weights, :func:`estimate_size`: the rays of one
+micro-image repeated at every lenslet, not a full light field), its memory and its time.
+Times come from rates: :func:`measure_rates` times the kernels on small samples in this
+process, :data:`BENCHMARK_RATES` stand in when measuring is not wanted; ``Plan.time_model``
+says which. Everything here is computation; printing belongs to :mod:`plenopiv.cli`.
 """
 
 from __future__ import annotations
@@ -43,7 +28,7 @@ from plenopiv.piv.settings import PIVSettings
 from plenopiv.reconstruction.settings import ReconstructionSettings
 
 #: Lateral voxel per lenslet footprint: half-footprint voxels remove the peak locking of
-#: footprint voxels (bias 0.000 instead of -0.10 footprint, docs/validation/vortex.md).
+#: footprint voxels (docs/validation/vortex.md).
 LATERAL_VOXEL_PER_FOOTPRINT = 0.5
 #: Depth voxel per depth cell (b S_o/D): the validated grid of docs/validation/vortex.md had a
 #: depth voxel of 1/4.4 cell; a particle then spans about four voxels in depth.
@@ -59,8 +44,8 @@ VALIDATED_PARTICLES_PER_LENSLET = 0.15
 #: Bytes of an explicit reconstruction per non-zero weight
 #: (:data:`plenopiv.reconstruction.select.BYTES_PER_NONZERO`).
 BYTES_PER_NONZERO = 20
-#: Bytes per ray while the light field is built (temporaries included; measured on the Auburn
-#: camera: 2.9 GB peak for 11.6 million rays).
+#: Bytes per ray while the light field is built (temporaries included; the traced peak of the
+#: Auburn camera's light field).
 BYTES_PER_RAY_LIGHT_FIELD = 250
 #: Bytes per voxel held by one reconstruction (volume, first guess, masks, MART corrections).
 BYTES_PER_VOXEL_RECONSTRUCT = 48
@@ -71,12 +56,11 @@ BYTES_PER_VOXEL_PIV = 160
 BASE_BYTES = 0.3e9
 #: Bytes per ray held by the particle table's positions from the light field (``[particles]
 #: position = "light_field"``, the default: the lit rays, their lenslet table and the rays
-#: each particle's fit selects), on top of what the reconstruction holds: 0.3 GB for the
-#: 11.6 million rays of the 16 MP camera at 0.36 particles per lenslet (measured: peak 3.85
-#: against 3.53 GB per volume, rotated array).
+#: each particle's fit selects), on top of what the reconstruction holds: the traced peak of
+#: the 16 MP camera at 0.36 particles per lenslet (rotated array).
 BYTES_PER_RAY_PARTICLE_FIT = 30
-#: Seconds per ray of that fit on two threads: 4.7 s for the 16 MP camera's 11.6 million
-#: rays and 27,500 particles (measured, idle machine).
+#: Seconds per ray of that fit on two threads, from the 16 MP camera at 0.36 particles per
+#: lenslet (``benchmarks/full_camera.py --track``).
 SECONDS_PER_RAY_PARTICLE_FIT = 4.1e-7
 
 
@@ -107,12 +91,11 @@ class Rates:
     threads: int = 2
 
 
-#: Rates used without measuring (``plenopiv plan --no-measure``), from the project's 2-core
-#: machine: the explicit weights and sweeps measured by :func:`measure_rates` on the box of
-#: ``configs/experiments/small_test.toml`` while the machine was shared with other work (load
-#: about 12; an idle machine is several times faster); the lattice projector and the PIV from
-#: ``benchmarks/full_camera.py`` (README "Full-camera scale": one 16 MP volume with 5 SMART
-#: sweeps in 17.1 s; PIV with 32³ → 16³ windows, 3 passes, in 8.6 s).
+#: Rates used without measuring (``plenopiv plan --no-measure``), on two threads: the explicit
+#: weights and sweeps timed by :func:`measure_rates` on the box of
+#: ``configs/experiments/small_test.toml``, the lattice projector and the PIV by
+#: ``benchmarks/full_camera.py`` (README "Full-camera scale"). The explicit weights' and
+#: sweeps' rates are conservative: they were timed on a computer shared with other work.
 BENCHMARK_RATES = Rates(build_s_per_nnz=1.2e-7, sweep_s_per_nnz=1.5e-8, sweep_s_per_call=0.07,
                         lattice_s_per_ray_slice=1.2e-9, piv_s_per_window_voxel=4e-8,
                         source="benchmark", threads=2)
@@ -380,7 +363,7 @@ def _best(fn, budget_s: float, min_reps: int = 2, max_reps: int = 10) -> float:
 def _slope(x1: float, t1: float, x2: float, t2: float) -> tuple[float, float]:
     """``(rate, fixed)`` with t = fixed + rate x through two timings.
 
-    The rate is kept at least a quarter of t2/x2 (timing noise on a busy machine).
+    The rate is kept at least a quarter of t2/x2 (timing noise on a busy computer).
     """
     rate = (t2 - t1) / (x2 - x1) if x2 > x1 else t2 / x2
     rate = max(rate, 0.25 * t2 / x2)
@@ -397,7 +380,7 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     rays built on ``grid`` (the kernels of :mod:`plenopiv.reconstruction.weights`) and projected
     forward and back; the lattice projector on two patches of the camera, on the grid's
     slices; the PIV of two random particle volumes of two and three first windows a side. The
-    first call on a machine also compiles the kernels (cached on disk), before any timing.
+    first call also compiles the kernels (cached on disk), before any timing.
     """
     import numba
 
@@ -527,7 +510,7 @@ def _measure_piv(cfg: PIVSettings, grid: VolumeGrid, budget_s: float) -> tuple[f
 
 
 def available_memory() -> float:
-    """Physical memory of this machine, bytes."""
+    """Physical memory of the computer, bytes."""
     try:
         return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
     except (ValueError, OSError, AttributeError):
@@ -540,10 +523,8 @@ def _snap_grid(grid: VolumeGrid, voxel) -> VolumeGrid:
 
 
 #: CPU time of a reconstruction with the per-lenslet projector (rotated or hexagonal arrays)
-#: over one with the separable lattice projector, the same grid moved off the footprints: 3.0
-#: (rotated 2 mrad) and 3.4 (hexagonal) per volume at full size on an idle machine, 135.6 and
-#: 153.2 s against 44.8 s of CPU (docs/validation/real_arrays.md; 5.2 and 5.7 before the first
-#: volume's one-time sums were derived from the line of sight's cells).
+#: over one with the separable lattice projector, the same grid moved off the footprints: the
+#: mean of the rotated and the hexagonal array at full size (docs/validation/real_arrays.md).
 LENSLET_COST_RATIO = 3.2
 
 
@@ -554,7 +535,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
 
     ``camera`` must know its image distance (from the camera file, or a calibration's
     ``effective_camera``). ``reconstruction`` and ``piv``: the experiment's tables (default:
-    the defaults). ``rates``: :func:`measure_rates` (this machine) or
+    the defaults). ``rates``: :func:`measure_rates` (in this process) or
     :data:`BENCHMARK_RATES` (default).
     """
     from plenopiv.reconstruction.select import memory_budget_gb

@@ -1,23 +1,15 @@
 """Compile a run's later numba kernels in background processes while it does other work.
 
-A first run on a machine spends most of its time compiling numba kernels (about 40 s of CPU
-for ``plenopiv demo``), one kernel after another on one core. Where a run has other work
-first (the demo renders its calibration images before it calibrates, and calibrates before
-it reconstructs), two child processes rehearse the later stages meanwhile, on small inputs of
-the run's own camera, voxels and settings: one the calibration's spot detection (an image of
-Gaussian focal spots on the camera's lenslet pitch) and then the PIV (the multi-pass
-correlation of two volumes of Gaussian blobs), the other the reconstruction (weights, SMART,
-particles and their light-field positions, from blobs projected into an image). Each calls
-the kernels of its stage with the argument types the run will pass, so numba compiles them
-and writes them to its cache (``$NUMBA_CACHE_DIR``, :func:`plenopiv.cache_dir`), and reports
-each stage it has rehearsed; the run, entering a stage (its progress report, see
-:data:`STAGE_AT_PROGRESS`), waits for that stage's rehearsal only, then loads the kernels
-from the cache. The children are forks of the run where that is safe (:func:`can_fork`:
-they start at once, without importing anything), new interpreters otherwise.
-
-Nothing depends on it. A rehearsal that fails, or has not finished when the run waits for it
-(``timeout``), leaves the run to compile what it still needs itself; the results are the same
-either way. It is not started where the kernels are in the cache already, nor on one core.
+A first run spends most of its time compiling numba kernels, one after another on one core.
+Where a run has other work first (the demo renders before it calibrates, and calibrates before
+it reconstructs), :class:`Rehearsals` starts two child processes that call the later stages'
+kernels on small inputs of the run's own camera, voxels and settings (:data:`REHEARSALS`:
+spot detection and PIV in one child, the reconstruction in the other), so that numba writes
+them to its cache (:func:`plenopiv.cache_dir`); the run, entering a stage
+(:data:`STAGE_AT_PROGRESS`), waits for that stage's rehearsal only. Children are forks where
+that is safe (:func:`can_fork`), new interpreters otherwise. Nothing depends on it: a
+rehearsal that fails or times out leaves the run to compile what it needs, with the same
+results; none is started where the kernels are cached already, nor on one core.
 """
 
 from __future__ import annotations
@@ -268,7 +260,7 @@ class Rehearsals:
 
         Not started (an empty set) on one core or where :func:`kernels_cached`, unless
         ``force``. ``fork``: fork this process (:func:`can_fork`; saves each child the
-        imports, 2 s of CPU) or start a new interpreter; None: fork where it can.
+        imports) or start a new interpreter; None: fork where it can.
         """
         for stage in (s for group in children for s in group):
             if stage not in REHEARSALS:

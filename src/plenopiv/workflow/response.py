@@ -1,7 +1,8 @@
-"""The chain's response, measured on synthetic pairs.
+"""The chain's response, measured on synthetic pairs through the experiment's own chain.
 
-Rendered through the experiment's own camera, grid and settings: the calibration of the
-per-vector uncertainty (:mod:`plenopiv.piv.uncertainty`).
+The pairs are rendered through the experiment's camera and reconstructed and correlated on
+its grid with its settings: the per-vector uncertainty's calibration
+(docs/methods.md#response-measurement).
 """
 
 from __future__ import annotations
@@ -197,10 +198,9 @@ def placement_offset(volume, positions, grid, correlate, blob_vox) -> np.ndarray
     and the vector measures the flow there. Correlating the true particles' volume with the
     reconstruction measures δ as the windows see it (the correlation peak of each window
     follows the bulk of its particles' reconstructed intensity, elongation and ghosts
-    included). On the 61 x 91-lenslet patch of the Auburn camera with its 10.4 mm substrate
-    and a volume from Z = 0.5 to 8.5 mm, δz runs from -0.4 to -1.1 depth voxels (-49 to
-    -135 µm, about 1.3 % of Z; the particles' own centroids agree), within 15 % whether the
-    Gaussians are half or twice the resolution cell (docs/validation/uncertainty.md).
+    included). Behind a thick substrate and beyond the focal plane δz grows with Z, the
+    particles' own centroids agree with it, and it depends little on the width of the
+    Gaussians (docs/validation/uncertainty.md).
     """
     from plenopiv.synthetic.truth import gaussian_truth_volume
 

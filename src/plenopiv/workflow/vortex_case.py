@@ -352,7 +352,7 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None,
 
     ``precompile``: while the case renders and calibrates, compile the reconstruction's and
     the PIV's kernels in two background processes (:mod:`plenopiv.workflow.precompile`; for a first
-    run on a machine).
+    run, before numba's cache holds them).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,8 @@
 """Kernels that sample a volume at positions moved by a displacement field.
 
-See :mod:`plenopiv.piv._kernels` for what each kernel computes.
+``deform_trilinear`` samples a volume at ``x + factor * d(x)`` by trilinear interpolation
+(zero outside); ``deform_cubic`` samples a cubic B-spline, given by its coefficients on a
+zero-padded grid, at ``x + factor * d(x)``. See docs/methods.md#window-deformation.
 """
 
 from __future__ import annotations

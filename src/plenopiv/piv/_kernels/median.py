@@ -1,6 +1,8 @@
 """Kernel of the normalised median test: neighbour medians of a vector field.
 
-See :mod:`plenopiv.piv._kernels` for what the kernel computes.
+``neighbour_median`` gives, for every vector of a field, the median of its usable 3x3x3
+neighbours (centre excluded) and the median of those neighbours' absolute residuals: the two
+ingredients of the normalised median test (docs/methods.md#outlier-test).
 """
 
 from __future__ import annotations

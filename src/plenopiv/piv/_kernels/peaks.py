@@ -1,6 +1,12 @@
 """Kernels that locate the correlation peak of each window pair to sub-voxel.
 
-See :mod:`plenopiv.piv._kernels` for what each kernel computes.
+For a batch of circular correlation planes, ``find_peaks`` gives the displacement (n, 3) of
+the highest peak refined by a 3-point fit per axis, the raw peak height, and the ratio of the
+primary peak to the highest other face-connected local maximum. ``refine_peaks`` refines the
+same peak on the correlation divided by the windows' overlap fraction (the loss of particle
+pairs across the window border, which pulls a fitted peak towards zero), with a
+least-squares Gaussian on five samples along an axis where the peak is broad and on seven
+where it is wide (:func:`_refine_axis_numba`). See docs/methods.md#peak-fit.
 """
 
 from __future__ import annotations
@@ -248,7 +254,7 @@ def _refine_axis_numba(v, lag0, w, gaussian, overlap, broad):
 
 @numba.njit(cache=True)
 def refine_peaks(corr, gaussian, overlap, broad):
-    # serial: about 10 microseconds a window, while parallel loops compile 2.5 s longer
+    # serial: little work per window, while parallel loops compile much longer
     n, wz, wy, wx = corr.shape
     disp = np.empty((n, 3), dtype=np.float64)
     for k in range(n):

@@ -1,6 +1,12 @@
 """Kernels that cut windows out of a volume and form their cross spectrum.
 
-See :mod:`plenopiv.piv._kernels` for what each kernel computes.
+``extract_windows`` copies interrogation windows at arbitrary start voxels out of a volume
+(zero outside it). ``cross_spectrum`` takes the real-FFT spectra ``A, B`` of ``p * q`` windows,
+laid out ``(kz, p, ky, q, kx)`` as the staged transform of :mod:`plenopiv.piv` leaves them
+(``nx`` the real window length along x), and writes the cross spectrum ``conj(A) B`` without
+its mean (DC) term into ``out`` shaped ``(p, q, kz, ky, kx)``; per window (Parseval) it returns
+the energies about the mean, ``sum((a - mean(a))**2)``, ``sum((b - mean(b))**2)``, and the
+total energies ``sum(a**2)``, ``sum(b**2)``, as the columns of an (n, 4) array.
 """
 
 from __future__ import annotations
@@ -53,9 +59,8 @@ def extract_windows_numpy(volume, starts, wz, wy, wx):
 def cross_spectrum(fa, fb, nx, out):
     kz, p, ky, q, kx = fa.shape
     size = kz * ky * nx
-    # loops follow the memory order of the inputs. Serial: a memory-bound pass of a few ms
-    # per batch beside its FFT, whose parallel loop took 4.0 s to compile against 1.7 s
-    # (3.9 against 2.6 ms per 2.5 M-voxel batch on two cores)
+    # loops follow the memory order of the inputs. Serial: a memory-bound pass, short beside
+    # its FFT, which a parallel loop speeds up little and compiles much longer
     partial = np.zeros((kz, p * q, 2), dtype=np.float64)
     for i in range(kz):
         for u in range(p):

@@ -1,6 +1,10 @@
 """Kernel of the correlation statistics: peak neighbours and their asymmetry variance.
 
-See :mod:`plenopiv.piv._kernels` for what the kernel computes.
+``peak_statistics``, for window pairs at given start voxels and their integer correlation
+peak, builds the peak value and its two neighbours along each axis from the products of the
+two windows' intensities, and the variance of the asymmetry of those neighbours (the
+correlation statistics of Wieneke 2015, in 3-D, with the covariance of neighbouring voxels'
+contributions). See docs/methods.md#per-vector-uncertainty.
 """
 
 from __future__ import annotations

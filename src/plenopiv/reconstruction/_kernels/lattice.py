@@ -1,16 +1,11 @@
 """Numba kernels of the lattice (matrix-free) projector of :mod:`plenopiv.reconstruction.lattice`.
 
-With an axis-aligned square lenslet lattice, a pixel's beam centre at depth slice k is
-``(1 - t_k) u + t_k X_f`` per axis, where the x part depends only on the pixel's sensor column
-and the y part only on its sensor row. Its weights on slice k are therefore the outer product
-of a column profile (a few voxels along x) and a row profile (a few voxels along y):
-
-    W[(row, col), (k, iy, ix)] = scale(row, col) · wy[k, row, iy] · wx[k, col, ix]
-
-The forward projection contracts x first (``T[k, iy, col]``), then y, slice after slice,
-into the pixel rows; the back projection is the same in reverse. The profiles are tables of
-the voxel-integrated trapezoid of :mod:`plenopiv.reconstruction._kernels.weights` (exactly the
-explicit weights' per-axis factors), so nothing of size (pixels × voxels) is ever held.
+With an axis-aligned square lattice a pixel's weights on depth slice k are the outer product
+of a column profile and a row profile, ``W[(row, col), (k, iy, ix)] = scale(row, col) ·
+wy[k, row, iy] · wx[k, col, ix]``, tables of the voxel-integrated trapezoid of
+:mod:`plenopiv.reconstruction._kernels.weights`. The forward projection contracts x first
+(``T[k, iy, col]``), then y, slice after slice; the back projection is the same in reverse.
+Nothing of size (pixels × voxels) is held. See docs/methods.md#projectors.
 """
 
 from __future__ import annotations

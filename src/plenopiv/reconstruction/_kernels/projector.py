@@ -1,16 +1,13 @@
 """numba kernels behind :mod:`plenopiv.reconstruction.projector` (private; arrays and scalars only).
 
-The weight matrix W (rows = pixels, columns = voxels) is held in CSR form as
-``indptr, indices, data``, read through a *row view*: row k of the view is CSR row
-``row_index[k]`` scaled by ``row_scale[k]`` (an empty ``row_index`` means row k is CSR row k,
-an empty ``row_scale`` means scale 1), so that row-normalised and row-selected projectors
-share the one CSR. The back projection Wᵀ·y scatters race-free into one accumulator per chunk
-of rows, or gathers from an optional transposed copy. The MART updates (in
-:mod:`plenopiv.reconstruction._kernels.mart`) follow a *row schedule*: chunks of consecutive
-rows, coloured here by :func:`colour_chunks` so that the chunks of one colour share no voxel.
-Every kernel ``k`` here has its plain-NumPy twin ``k_numpy`` below, with the same arguments
-and the same meaning (float64 sums, rounded once into float32 outputs); :data:`ENGINES` holds
-the two sets and the tests run both.
+W is held in CSR form (``indptr, indices, data``) and read through a *row view*: row k is CSR
+row ``row_index[k]`` scaled by ``row_scale[k]`` (empty arrays: the identity and scale 1), so
+that row-normalised and row-selected projectors share the one CSR. The back projection
+scatters race-free into one accumulator per chunk of rows, or gathers from an optional
+transposed copy; :func:`colour_chunks` colours the chunks of a row schedule so that the chunks
+of one colour share no voxel (the MART updates, :mod:`plenopiv.reconstruction._kernels.mart`,
+follow it). Every kernel ``k`` has its plain-NumPy twin ``k_numpy`` (float64 sums, rounded
+once into float32 outputs); :data:`ENGINES` holds the two sets and the tests run both.
 """
 
 from __future__ import annotations

@@ -2,8 +2,7 @@
 
 One pass over a depth slab of refined cells gives per coarse voxel what the NumPy
 expressions of :func:`pool_cells_numpy` give with a dozen temporary arrays of the refined
-slab's size (3.2 s of CPU on one core for a 90-slice slab of the 16 MP camera's 2 × 2-refined
-grid, every volume).
+slab's size, for every volume.
 """
 
 from __future__ import annotations
@@ -22,8 +21,8 @@ def pool_cells(seen, dark, used, log_sum, kx, ky, best, ratio, has_used, used_su
     with ``seen > 0`` (inf if none); ``ratio``, the largest ``log_sum / used`` of its cells
     with ``used > 0`` and ``has_used``, whether there is one; ``used_sum``, the sum of
     ``used`` over its cells (float32); ``lit``, whether some cell has ``used - dark > 0``.
-    All arithmetic in float32, as the NumPy twin. Serial: 0.19 s against 0.17 s in parallel
-    for a 17 M-cell slab on two cores, and 1.5 s to compile against 3.0 s.
+    All arithmetic in float32, as the NumPy twin. Serial: a parallel loop gains little on this
+    pass and compiles about twice as long.
     """
     nz, fy, fx = seen.shape
     ny = fy // ky

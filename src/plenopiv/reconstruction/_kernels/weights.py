@@ -102,8 +102,8 @@ def weight_rows(ux, uy, xfx, xfy, lit, so, a, b, area, zs, ox, oy, vx, vy, nx, n
 
     Returns the non-zeros of every row (int64, (n,)). Writing, row i goes to
     ``indices[indptr[i]:indptr[i + 1]]`` and ``data[...]``; counting, ``indptr`` is zeros and
-    nothing is written. One kernel for both passes: it compiles once (a parallel loop takes
-    seconds to compile), with one variant of :func:`_row`.
+    nothing is written. One kernel for both passes: it compiles once (a parallel loop is slow
+    to compile), with one variant of :func:`_row`.
     """
     n = ux.shape[0]
     counts = np.zeros(n, np.int64)
