@@ -109,9 +109,9 @@ def test_full_camera_uses_the_lattice_projector_and_its_memory(auburn_camera):
                                   (-26 * MM, 26 * MM), voxel=0.26 * MM)
     p = planning.plan(auburn_camera, grid, memory_total=24e9)
     assert p.projector == "lattice"
-    assert p.nnz > 1e10                        # README: 1.23e10 non-zeros, ~100 GB of CSR
+    assert p.nnz > 1e10               # docs/performance.md: 1.23e10 non-zeros, ~100 GB of CSR
     assert p.n_rays == pytest.approx(11.55e6, rel=0.03)
-    # README benchmark: 3.5 GB peak for the 16 MP pair, 58 s on 2 cores
+    # docs/performance.md benchmark: 3.5 GB peak for the 16 MP pair, 58 s on 2 cores
     assert 2.5e9 < p.memory["peak"] < 5e9
     assert 20 < p.time["pair"] < 200
     assert p.time_model.startswith("benchmark rates")
