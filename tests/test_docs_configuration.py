@@ -11,9 +11,8 @@ import re
 import types
 import typing
 
-from pydantic import BaseModel
-
 from conftest import REPO
+from plenopiv.settings import fields_of
 
 PAGE = REPO / "docs" / "configuration.md"
 
@@ -40,7 +39,7 @@ def _table_model(annotation):
         annotation = inner[0] if len(inner) == 1 else None
     if typing.get_origin(annotation) is list:
         (annotation,) = typing.get_args(annotation)
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+    if fields_of(annotation) is not None:
         return annotation
     return None
 
@@ -54,7 +53,7 @@ def model_keys() -> dict[str, set[str]]:
         stack = [("", root)]
         while stack:
             table, model = stack.pop()
-            for key, info in model.model_fields.items():
+            for key, info in fields_of(model).items():
                 path = f"{table}.{key}" if table else key
                 sub = dict_tables.get((file, path)) or _table_model(info.annotation)
                 if sub is not None and (file, path) not in leaves_only:

@@ -11,12 +11,15 @@ names the key as the user wrote it.
 from __future__ import annotations
 
 import dataclasses
+import typing
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 from pydantic.dataclasses import dataclass as _pydantic_dataclass
+from pydantic.fields import FieldInfo
+from pydantic_core import PydanticUndefined
 
-__all__ = ["STRICT", "StrictModel", "as_dict", "format_validation_error", "settings"]
+__all__ = ["STRICT", "StrictModel", "as_dict", "fields_of", "format_validation_error", "settings"]
 
 STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 """Unknown keys and NaN or infinite numbers are refused (frozen: see :func:`settings`)."""
@@ -72,13 +75,22 @@ def _branch_text(part: str) -> str | None:
     return None
 
 
-def _fields_of(model) -> dict | None:
-    """``{name: FieldInfo}`` of a TOML model or a settings dataclass; None for anything else."""
+def fields_of(model) -> dict[str, FieldInfo] | None:
+    """``{name: FieldInfo}`` of a TOML model or a settings dataclass; None for anything else.
+
+    A plain dataclass (``PIVSettings``) gets FieldInfos made from its annotations and defaults,
+    so that the documentation and the error messages read every table the same way.
+    """
+    if not isinstance(model, type):
+        return None
     fields = getattr(model, "model_fields", None)
     if fields is None:
         fields = getattr(model, "__pydantic_fields__", None)
-    if fields is None and isinstance(model, type) and dataclasses.is_dataclass(model):
-        fields = {f.name: f for f in dataclasses.fields(model)}
+    if fields is None and dataclasses.is_dataclass(model):
+        hints = typing.get_type_hints(model)
+        fields = {f.name: FieldInfo.from_annotated_attribute(
+            hints[f.name], PydanticUndefined if f.default is dataclasses.MISSING else f.default)
+            for f in dataclasses.fields(model)}
     return fields if isinstance(fields, dict) else None
 
 
@@ -86,20 +98,20 @@ def _submodel(model, loc: list[str]):
     """The model or settings class at ``loc`` inside ``model`` (None where none is)."""
     current: Any = model
     for part in loc:
-        fields = _fields_of(current)
+        fields = fields_of(current)
         if fields is None or part not in fields:
             return None
         ann = getattr(fields[part], "annotation", None)
         args = getattr(ann, "__args__", None)
         if args:
-            ann = next((a for a in args if _fields_of(a) is not None), ann)
+            ann = next((a for a in args if fields_of(a) is not None), ann)
         current = ann
-    return current if _fields_of(current) is not None else None
+    return current if fields_of(current) is not None else None
 
 
 def _valid_keys(model, loc: list[str]) -> list[str]:
     sub = _submodel(model, loc) if loc else model
-    return sorted(_fields_of(sub)) if sub is not None else []
+    return sorted(fields_of(sub)) if sub is not None else []
 
 
 def _location(raw) -> tuple[list[str], str | None, int]:

@@ -23,6 +23,9 @@ DEFORMATION_ORDERS = (1, 2, 3, 4, 5)
 MIN_WINDOW_VOX = 4
 """Smallest interrogation window edge, voxels: the 3-point peak fit needs distinct neighbours."""
 
+MAX_PASSES = 100
+"""Most passes a correlation may run."""
+
 MAX_WINDOW_VOX = 1024
 """Largest interrogation window edge, voxels (a 1024³ float32 window pair is 8 GB)."""
 
@@ -200,11 +203,11 @@ class PIVSettings:
         if (
             not isinstance(passes, (int, np.integer))
             or isinstance(passes, bool)
-            or passes < len(windows)
+            or not len(windows) <= passes <= MAX_PASSES
         ):
             raise ValueError(
-                f"passes = {self.passes!r}: expected an int >= len(windows) = {len(windows)} "
-                "(or None for exactly one pass per window)"
+                f"passes = {self.passes!r}: expected an int from len(windows) = {len(windows)} "
+                f"to {MAX_PASSES} (or None for exactly one pass per window)"
             )
         object.__setattr__(self, "passes", int(passes))
 
