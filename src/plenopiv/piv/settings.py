@@ -206,8 +206,8 @@ class PIVSettings:
             or not len(windows) <= passes <= MAX_PASSES
         ):
             raise ValueError(
-                f"passes = {self.passes!r}: expected an int from len(windows) = {len(windows)} "
-                f"to {MAX_PASSES} (or None for exactly one pass per window)"
+                f"passes = {self.passes!r}: expected an int >= len(windows) = {len(windows)} "
+                f"and <= {MAX_PASSES} (or None for exactly one pass per window)"
             )
         object.__setattr__(self, "passes", int(passes))
 
