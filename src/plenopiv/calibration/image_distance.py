@@ -450,7 +450,7 @@ def fit_pupil_correction(spot_scales, tube_lengths, *, base_image_distance=None
     -----
     Chief rays leave from the exit pupil, a distance D0 + Δ from the lenslets, so
     p/d - 1 = f̄/(D0 + Δ): the line y = 1/(p/d - 1) = Δ/f̄ + D0/f̄ has slope 1/f̄_eff and
-    intercept D0/f̄_eff (DESIGN.md §4).
+    intercept D0/f̄_eff (docs/design.md §4).
     """
     k = np.asarray(spot_scales, float)
     dl = np.asarray(tube_lengths, float)

@@ -3,7 +3,7 @@
 A :class:`Calibration` holds, for every lenslet, its centre, its focal spot and its lattice
 index, plus the effective image distance S_i,eff and how it was obtained. S_i,eff is kept in
 one place, the main lens of the calibration's camera (:attr:`Calibration.camera`). It is saved
-as the HDF5 product of DESIGN.md §7 (``/lenslets/centre_px``, ``/lenslets/focal_spot_px``,
+as the HDF5 product of docs/design.md §7 (``/lenslets/centre_px``, ``/lenslets/focal_spot_px``,
 ``/lenslets/grid_index``; attributes ``image_distance_m``, ``method``, ``offset_m``,
 ``rotation_rad``, ``rms_residual_px``, ``camera`` and ``camera_summary``); using it with
 another camera is an error naming both

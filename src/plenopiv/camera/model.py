@@ -3,7 +3,7 @@
 Frozen parameter objects in SI units (metres, radians), checked when they are made:
 :class:`Sensor`, :class:`Substrate`, :class:`MicrolensArray`, :class:`MainLens`,
 :class:`ExternalInterface` and :class:`CameraModel`. Camera files (TOML, ``_mm``/``_um`` keys,
-DESIGN.md §7) are converted once, at the boundary, by :func:`camera_from_dict` /
+docs/design.md §7) are converted once, at the boundary, by :func:`camera_from_dict` /
 :func:`load_camera`, which raise :class:`~plenopiv.errors.ConfigError` naming the key, the
 value found and what was expected. ``image_distance`` is the effective (air-equivalent)
 S_i,eff = l3 + t/n (thesis Eq. 4.4).
@@ -480,7 +480,7 @@ class CameraModel:
 
 
 # --------------------------------------------------------------------------------------------
-# TOML schema (DESIGN.md §7): validated here, converted to SI once
+# TOML schema (docs/design.md §7): validated here, converted to SI once
 # --------------------------------------------------------------------------------------------
 
 
@@ -530,7 +530,7 @@ class _CameraCfg(StrictModel):
 
 
 def camera_from_dict(cfg: dict, *, source: str = "camera config") -> CameraModel:
-    """Validate a camera config dictionary (TOML schema, DESIGN.md §7) and build the model.
+    """Validate a camera config dictionary (TOML schema, docs/design.md §7) and build the model.
 
     Raises
     ------

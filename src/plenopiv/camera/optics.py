@@ -4,7 +4,7 @@ Ray transfer matrices, thin-lens relations, effective (air-equivalent) distances
 relations and calibration uncertainties.
 
 All lengths in metres, angles in radians. Equation numbers refer to the thesis
-"Determination of the Image Distance in a Plenoptic Camera" (DESIGN.md), with the misprint of
+"Determination of the Image Distance in a Plenoptic Camera" (docs/design.md), with the misprint of
 its Eq. 4.9 corrected: the effective image distance is S_i,eff = l3 + t/n (Eq. 4.4, as the
 thesis's own §5.1 numbers confirm), not l3 + n t.
 """

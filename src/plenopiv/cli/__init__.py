@@ -1,4 +1,4 @@
-"""The ``plenopiv`` command (DESIGN.md §7). Every subcommand takes ``--json``.
+"""The ``plenopiv`` command (docs/cli.md). Every subcommand takes ``--json``.
 
 Orchestration only: parse, validate, call the library, write products atomically, report.
 One error path (:func:`main`, which lists the exit statuses): every failure is one line on

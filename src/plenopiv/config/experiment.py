@@ -1,7 +1,8 @@
-"""Experiment configuration (TOML, DESIGN.md §7): camera, volume and the processing options.
+"""Experiment configuration (TOML, docs/design.md §7): camera, volume and the processing options.
 
 Every table but the camera and the volume is optional, every key has a default, a unit and a
-meaning (README); an unknown key is an error that names it and the valid ones. A minimal file::
+meaning (docs/configuration.md); an unknown key is an error that names it and the valid ones. A
+minimal file::
 
     camera = "cameras/auburn_135mm.toml"     # relative to this file, or a preset name
 

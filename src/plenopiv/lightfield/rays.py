@@ -3,7 +3,7 @@
 :func:`light_field` turns a :class:`~plenopiv.calibration.model.Calibration` into a
 :class:`LightField`: per lit pixel its aperture-plane position u = -(x - x_c) · S_i,eff / f̄,
 its lenslet centre s and the lenslet's conjugate X_f = s/M on the nominal focal plane
-(DESIGN.md §4, thesis Eqs. 4.1/4.5), in effective coordinates, metres. Pixels whose aperture
+(docs/design.md §4, thesis Eqs. 4.1/4.5), in effective coordinates, metres. Pixels whose aperture
 cell lies mostly outside the aperture disc receive no light and are left out.
 
 See docs/methods.md#rays.

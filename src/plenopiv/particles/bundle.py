@@ -6,7 +6,7 @@ current estimate, the lit pixels whose rays pass within a beam width of it acros
 lenslet that sees it, and solves for the point of least intensity-weighted squared
 perpendicular distance to those rays (3 x 3 normal equations per particle), ``iterations``
 times from the volume centroid. Effective (air-equivalent) coordinates, metres
-(DESIGN.md §4); :class:`plenopiv.camera.corrections.DepthCorrection` applies as to centroids.
+(docs/design.md §4); :class:`plenopiv.camera.corrections.DepthCorrection` applies as to centroids.
 
 See docs/methods.md#ray-bundle-positions.
 """

@@ -1,4 +1,4 @@
-"""The tracks product: HDF5 (DESIGN.md §7), a ``.vtp`` for ParaView, the binned field.
+"""The tracks product: HDF5 (docs/design.md §7), a ``.vtp`` for ParaView, the binned field.
 
 ``TRACKS.h5``: ``/position_a_m``, ``/position_b_m``, ``/displacement_m`` (N, 3: x, y, z,
 metres, depth corrections applied), ``/velocity_m_s`` when ``dt`` is known, ``/uncertainty_m``

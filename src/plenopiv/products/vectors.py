@@ -1,7 +1,7 @@
 """The vectors product: a 3-D vector field with its quality and uncertainty, as HDF5 and VTK.
 
 ``/u, /v, /w`` (z, y, x) in metres or m/s, their uncertainties, per-vector quality
-(:data:`QUALITY`) and CF dimension scales ``/x, /y, /z`` (DESIGN.md §7); a ``.vti`` beside
+(:data:`QUALITY`) and CF dimension scales ``/x, /y, /z`` (docs/design.md §7); a ``.vti`` beside
 it for ParaView.
 """
 

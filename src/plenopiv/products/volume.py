@@ -1,7 +1,7 @@
 """The volume product: a reconstructed volume and its particles, written and read as HDF5.
 
 Datasets ``/volume`` (z, y, x), ``/x``, ``/y``, ``/z`` (corrected depth), ``/z_effective``
-and ``/particles/*``, in SI units with CF dimension scales (DESIGN.md §7).
+and ``/particles/*``, in SI units with CF dimension scales (docs/design.md §7).
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ class VolumeResult:
         return self.correction.depth(self.grid.z)
 
     def save(self, path: str | Path, *, config: dict | None = None, extra_attrs=None) -> Path:
-        """Write the volume product (DESIGN.md §7), atomically."""
+        """Write the volume product (docs/design.md §7), atomically."""
         ds = {"/volume": self.volume.astype(np.float32), "/x": self.grid.x, "/y": self.grid.y,
               "/z": self.z_corrected, "/z_effective": self.grid.z,
               "/particles/position_m": self.particle_position,

@@ -94,8 +94,8 @@ class Rates:
 #: Rates used without measuring (``plenopiv plan --no-measure``), on two threads: the explicit
 #: weights and sweeps timed by :func:`measure_rates` on the box of
 #: ``configs/experiments/small_test.toml``, the lattice projector and the PIV by
-#: ``benchmarks/full_camera.py`` (README "Full-camera scale"). The explicit weights' and
-#: sweeps' rates are conservative: they were timed on a computer shared with other work.
+#: ``benchmarks/full_camera.py`` (docs/performance.md, "Full-camera scale"). The explicit weights'
+#and : sweeps' rates are conservative: they were timed on a computer shared with other work.
 BENCHMARK_RATES = Rates(build_s_per_nnz=1.2e-7, sweep_s_per_nnz=1.5e-8, sweep_s_per_call=0.07,
                         lattice_s_per_ray_slice=1.2e-9, piv_s_per_window_voxel=4e-8,
                         source="benchmark", threads=2)
