@@ -1,28 +1,38 @@
-"""Rendering of the depth study (:mod:`plenopiv.validation.depth_study`): Figs 5.2-5.4 and Markdown.
+"""Rendering of the depth study (:mod:`pipelines.studies.depth`): Figs 5.2-5.4 and Markdown.
 
-The functions here draw and write what :func:`plenopiv.validation.depth_study.run` measured;
-the straight-line fits drawn through the points come from the study's own
-:func:`~plenopiv.validation.depth_study.linear_fit`, the curves from its paraxial model.
+The functions here draw and write what :func:`run` measured with the study's stage
+functions (this module imports the study, never the other way round); the straight-line fits
+drawn through the points come from the study's own
+:func:`~pipelines.studies.depth.linear_fit`, the curves from its paraxial model.
 """
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
 
-from plenopiv.validation.depth_study import (
+from pipelines.studies.depth import (
+    DEPTHS,
     HALF_XY,
     MARGIN,
+    STUDY_PARTICLES,
     THESIS_DISCONTINUITY,
     THESIS_TABLE_5_2,
     VOXEL,
     DepthCase,
     expected_effective_depth,
     focus_crossing_depth,
+    focus_region,
+    image_distance_of,
     linear_fit,
+    measure_depths,
+    study_cases,
+    table_5_1,
+    table_5_2,
 )
-from plenopiv.validation.report import (
+from pipelines.studies.output import (
     fmt,
     pyplot,
     savefig,
@@ -30,6 +40,8 @@ from plenopiv.validation.report import (
     table,
     table_header,
     table_row,
+    write_json,
+    write_text,
 )
 
 #: Colour and marker of each case in the figures.
@@ -357,3 +369,78 @@ def markdown(results: dict) -> str:
         lines += _per_depth_lines(results["cases"][name], m)
     lines += ["## Figures", ""] + [f"- `{Path(p).name}`" for p in results["figures"]]
     return "\n".join(lines) + "\n"
+
+
+def run(out: str | Path, *, depths=DEPTHS, rays_per_particle: int = 20000,
+        diagnostics: bool = True, cache_dir: str | Path | None = None,
+        progress=None) -> dict:
+    """Run the depth study; write JSON, Markdown and Figs 5.2-5.4 (PNG) to ``out``.
+
+    Files: ``depth_study.json``, ``depth_study.md``, ``fig_5_2_external.png``,
+    ``fig_5_3_internal.png``, ``fig_5_4_internal_focus.png``.
+
+    Parameters
+    ----------
+    out : path
+        Output folder (created).
+    depths : array_like
+        True depths, metres (default -10 … +10 mm in 1 mm steps).
+    rays_per_particle : int
+        Ray-tracer samples per image.
+    diagnostics : bool
+        Also run the "thesis" back side with the default light-field aperture.
+    cache_dir : path, optional
+        Weight cache folder (default: none, weights built in memory).
+    progress : callable, optional
+        ``progress(case_name, seconds)`` after each case.
+
+    Returns
+    -------
+    dict
+        A summary: output paths, the slopes per case and correction (±10 mm), Z* and seconds.
+    """
+    t0 = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cases = study_cases(diagnostics=diagnostics)
+    measured = {}
+    for case in cases:
+        measured[case.name] = measure_depths(case, depths, rays_per_particle=rays_per_particle,
+                                             cache_dir=cache_dir)
+        if progress is not None:
+            progress(case.name, measured[case.name]["seconds"])
+    by = {c.name: c for c in cases}
+    plate = by["plate_thesis"].camera
+    cam0 = by["none"].camera
+    geometry = {"f_number": cam0.main_lens.f_number, "si_eff_mm": cam0.image_distance * 1e3,
+                "so_eff_mm": cam0.object_distance * 1e3,
+                "lenslets": cam0.microlens_array.rows,
+                "l2_mm": by["external"].camera.interface_distance * 1e3,
+                "l3_mm": plate.l3 * 1e3, "z_star_mm": focus_crossing_depth(plate) * 1e3,
+                "si_at_7mm_mm": float(image_distance_of(plate, THESIS_DISCONTINUITY)) * 1e3,
+                "focus_region": dict(zip((np.asarray(depths) * 1e3).round(3).tolist(),
+                                         focus_region(plate, depths).tolist(), strict=True))}
+    results = {
+        "study": "thesis §5.1-5.2 depth study", "rays_per_particle": rays_per_particle,
+        "geometry": geometry,
+        "cases": {c.name: {"label": c.label, "note": c.note, "camera": c.camera.to_dict(),
+                           "reconstruction": c.settings.model_dump(),
+                           "particles": STUDY_PARTICLES.model_dump(),
+                           "corrections": {k: v.to_dict() for k, v in c.corrections.items()}}
+                  for c in cases},
+        "measured": measured,
+        "table_5_1": table_5_1(cases, measured),
+        "table_5_2": table_5_2(cases, measured),
+    }
+    results["figures"] = [str(p) for p in figures(cases, measured, out)]
+    results["seconds"] = time.perf_counter() - t0
+    write_json(out / "depth_study.json", results)
+    write_text(out / "depth_study.md", markdown(results))
+    slopes = {f"{r['case']} {r['correction']}": round(r["slope"], 4)
+              for r in results["table_5_1"] if r["fit_range"] == "±10 mm"}
+    return {"out": str(out), "figures": results["figures"],
+            "json": str(out / "depth_study.json"), "markdown": str(out / "depth_study.md"),
+            "slopes_10mm": slopes, "z_star_mm": round(geometry["z_star_mm"], 4),
+            "errors": {k: v["errors"] for k, v in measured.items() if v["errors"]},
+            "seconds": round(results["seconds"], 1)}
+

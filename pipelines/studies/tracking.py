@@ -239,7 +239,7 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
     depths : array_like
         True depths Z, metres.
     camera : CameraModel, optional
-        Default :func:`plenopiv.validation.depth_study.thesis_camera` (41 x 41 lenslets,
+        Default :func:`pipelines.studies.depth.thesis_camera` (41 x 41 lenslets,
         50 mm lens at M = -1, no interface).
     offset_vox : float
         Lateral position drawn uniformly within ± this many voxels of the axis, so that the
@@ -256,8 +256,8 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
         where no particle was found), ``bundle_sigma_m`` (N, 3), ``n_lenslets``; summaries
         ``rms_mm`` for centroid, bundle and refined per axis, ``within_2sigma`` (bundle).
     """
+    from pipelines.studies.depth import STUDY_PARTICLES, VOXEL, study_grid, thesis_camera
     from plenopiv.reconstruction.select import cached_weights
-    from plenopiv.validation.depth_study import STUDY_PARTICLES, VOXEL, study_grid, thesis_camera
 
     cam = thesis_camera() if camera is None else camera
     depths = np.asarray(depths, float)
