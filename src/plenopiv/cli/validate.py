@@ -96,7 +96,9 @@ def add_parser(sub) -> None:
                           "size and voxel; calibration: Figs 3.8, 3.9, 5.5; depth: Tables "
                           "5.1, 5.2; fields: particle-field quality; letters: light field on "
                           "the real plenoptomos image; uncertainty: coverage of the per-vector "
-                          "uncertainty on the vortex flows")
+                          "uncertainty on the vortex flows (all but oseen/hill are studies in "
+                          "a clone's pipelines/, found beside the source tree or under "
+                          "$PLENOPIV_REPO)")
     val.add_argument("--out", required=True, help="output folder")
     val.add_argument("--data", metavar="DIR",
                      help="letters: the third-party data folder holding "
