@@ -58,6 +58,10 @@ from pathlib import Path
 
 import numpy as np
 
+# the repository root, so that pipelines.studies imports from a clone without installing it
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipelines.studies import field_quality as fq
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import load_camera
@@ -72,7 +76,6 @@ from plenopiv.reconstruction.subdivision import lateral_subdivision, weights_for
 from plenopiv.resources import prefer_small_pages
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.synthetic.truth import gaussian_truth_volume
-from plenopiv.validation import field_quality as fq
 from plenopiv.workflow.pair import correlate
 from plenopiv.workflow.volume import reconstruct_volume
 from plenopiv.workflow.vortex_case import VortexCase, _flow, aligned_grid, compare_with_truth
@@ -252,8 +255,8 @@ def track_study(cal, ia, ib, vols, vec, pa, pb, grid, settings, log, lf=None) ->
     """Particle tracks of the pair (bundle fits, refinement, matching; the light field ``lf``
     of the reconstruction's weights reused): the time it adds to the pair and the tracks'
     errors against the truth."""
+    from pipelines.studies.tracking import associate_tracks, rms_per_axis
     from plenopiv.camera.resolution import resolution_cell
-    from plenopiv.validation.tracking_study import associate_tracks, rms_per_axis
     from plenopiv.workflow.tracking import track_pair
 
     with stage("track", log):

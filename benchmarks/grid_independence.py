@@ -13,7 +13,7 @@ f/2.2) records one particle field; it is reconstructed with the library's defaul
 (``ReconstructionSettings()``, matrix-free lattice projector) on two grids of the same voxels
 (0.125 × 0.125 × 0.25 mm):
 
-- ``aligned``: :func:`plenopiv.validation.field_quality.study_grid`, voxel edges on the
+- ``aligned``: :func:`pipelines.studies.field_quality.study_grid`, voxel edges on the
   lenslet boundaries (each voxel column is one lenslet's footprint);
 - ``typed``: ``x_mm = [-5.5, 5.5]``, ``y_mm = [-3.75, 3.75]``, ``z_mm = [-6, 6]``: with an
   odd lenslet count a lenslet sits on the axis, so these voxel edges run through the lenslet
@@ -28,22 +28,27 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
+# the repository root, so that pipelines.studies imports from a clone without installing it
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipelines.studies import field_quality as fq
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import resolution_cell
 from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.validation import field_quality as fq
 from plenopiv.workflow.volume import reconstruct_volume
 
 
 def single_particles() -> dict:
+    from pipelines.studies.depth import STUDY_PARTICLES, thesis_camera
     from plenopiv.synthetic.images import particle_image
-    from plenopiv.validation.depth_study import STUDY_PARTICLES, thesis_camera
 
     cam = thesis_camera(lenslets=61, sensor_px=1040)
     cal = Calibration.from_camera(cam)
@@ -86,9 +91,9 @@ def spread_study(grids_per_size: int = 4, seed: int = 20261202) -> list[dict]:
     """
     import math
 
+    from pipelines.studies.depth import thesis_camera
     from plenopiv.camera.resolution import footprint
     from plenopiv.synthetic.images import particle_image
-    from plenopiv.validation.depth_study import thesis_camera
 
     rng = np.random.default_rng(seed)
     rows = []

@@ -6,8 +6,13 @@ Fig 5.5) with the project's ray tracer; writes tables and PNG figures.
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
-from plenopiv.validation.calibration_study import run
+# the repository root, so that pipelines.studies imports from a clone without installing it
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipelines.studies.calibration import run
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -9,8 +9,12 @@ About 15 minutes on two cores (5 cases × 21 depths, a few seconds per reconstru
 import argparse
 import json
 import sys
+from pathlib import Path
 
-from plenopiv.validation.depth_study import run
+# the repository root, so that pipelines.studies imports from a clone without installing it
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipelines.studies.depth_report import run
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

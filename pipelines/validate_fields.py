@@ -10,8 +10,13 @@ camera in about a minute.
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
-from plenopiv.validation.field_quality import run
+# the repository root, so that pipelines.studies imports from a clone without installing it
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipelines.studies.field_quality_report import run
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -9,10 +9,14 @@ $PLENOPIV_DATA, else ../shared/data beside the current folder or the repository)
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
-from plenopiv.validation.letters import run
-from plenopiv.validation.letters_data import find_data_dir
+# the repository root, so that pipelines.studies imports from a clone without installing it
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipelines.studies.letters_data import find_data_dir
+from pipelines.studies.letters_report import run
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

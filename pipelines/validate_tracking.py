@@ -10,8 +10,13 @@ one seed; ``--densities 0.15`` runs the listed densities only (three seeds at 0.
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
-from plenopiv.validation.tracking_report import run
+# the repository root, so that pipelines.studies imports from a clone without installing it
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipelines.studies.tracking_report import run
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

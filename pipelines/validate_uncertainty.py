@@ -9,8 +9,13 @@ About 14 minutes on two idle cores (ten cases, then nine more realisations).
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
-from plenopiv.validation.uncertainty_study import CASES, run
+# the repository root, so that pipelines.studies imports from a clone without installing it
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipelines.studies.uncertainty import CASES, run
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -11,8 +11,13 @@ their depth near the focal plane (33 reconstructions).
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
-from plenopiv.validation.vortex_study import run
+# the repository root, so that pipelines.studies imports from a clone without installing it
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipelines.studies.vortex import run
 
 SERIES = ("depth_response", "causes", "flows", "depth_shifts", "lateral_shifts")
 

@@ -1,8 +1,14 @@
-"""Shared fixtures: seeded generators, the small test camera, the third-party data folder."""
+"""Shared fixtures: seeded generators, the small test camera, the third-party data folder.
+
+The repository root goes on ``sys.path`` here, so that the validation studies, which live in
+``pipelines/studies/`` and are not installed, import as ``pipelines.studies`` from a plain
+clone; the tests that exercise them carry the ``study`` marker.
+"""
 
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +17,8 @@ import pytest
 from plenopiv.camera.model import load_camera
 
 REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
 SHARED_DATA = Path(os.environ.get("PLENOPIV_DATA") or REPO.parent / "shared" / "data")
 
 

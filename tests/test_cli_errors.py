@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -447,6 +448,102 @@ def test_bad_invocations_as_real_processes(argv, words, inputs):
     if "--json" in args:
         assert "error" in json.loads(res.stdout)
     assert tree(inputs) == before
+
+
+# ---- validate: the studies kept in the repository's pipelines/ ------------------------------
+
+STUDY_CASES = ("vortex", "calibration", "depth", "fields", "letters", "uncertainty")
+
+
+@pytest.mark.parametrize("case", STUDY_CASES)
+def test_validate_a_study_without_the_repository_is_one_clear_error(case, tmp_path, monkeypatch,
+                                                                     capsys):
+    """An installed package does not carry pipelines/: exit 2, the script to run instead."""
+    from plenopiv.cli import validate
+
+    monkeypatch.setattr(validate, "studies_root", lambda: None)
+    code = main(["validate", case, "--out", str(tmp_path / "val"), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 2 and "Traceback" not in out + err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: validate {case} runs a study kept ")
+    assert f"python pipelines/{validate.STUDIES[case][1]} --out DIR" in lines[0]
+    assert json.loads(out)["exit_status"] == 2
+    assert not (tmp_path / "val").exists()
+
+
+def test_studies_are_found_under_plenopiv_repo_or_beside_the_source_tree(tmp_path, monkeypatch):
+    import plenopiv
+    from plenopiv.cli import validate
+
+    monkeypatch.delenv("PLENOPIV_REPO", raising=False)
+    # an installed package: site-packages/plenopiv/, no pipelines/ two folders up
+    monkeypatch.setattr(plenopiv, "__file__", str(tmp_path / "lib" / "plenopiv" / "__init__.py"))
+    assert validate.studies_root() is None
+    monkeypatch.setenv("PLENOPIV_REPO", str(tmp_path))              # not a clone: still none
+    assert validate.studies_root() is None
+    monkeypatch.setenv("PLENOPIV_REPO", str(REPO))
+    assert validate.studies_root() == REPO
+    # a clone's source tree: src/plenopiv/ beside pipelines/
+    monkeypatch.delenv("PLENOPIV_REPO")
+    monkeypatch.setattr(plenopiv, "__file__", str(REPO / "src" / "plenopiv" / "__init__.py"))
+    assert validate.studies_root() == REPO
+
+
+@pytest.mark.study
+def test_validate_a_study_from_a_clone_runs_it(tmp_path, monkeypatch, capsys):
+    """Found under $PLENOPIV_REPO, the study is imported by file location (sys.path unchanged)
+    and its ``run`` called with the output folder."""
+    from pipelines.studies import depth_report
+
+    calls = []
+
+    def run(out, **kw):
+        calls.append((out, kw))
+        return {"slopes_10mm": {"none corrected": 1.0}}
+
+    monkeypatch.setenv("PLENOPIV_REPO", str(REPO))
+    monkeypatch.setattr(depth_report, "run", run)
+    path = list(sys.path)
+    code = main(["validate", "depth", "--out", str(tmp_path / "val"), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert calls == [(str(tmp_path / "val"), {})]
+    summary = json.loads(out)
+    assert summary["command"] == "validate depth" and summary["slopes_10mm"]
+    assert sys.path == path
+
+
+@pytest.mark.study
+def test_a_study_loads_by_file_location_in_a_fresh_process(tmp_path):
+    """Without the repository on sys.path: pipelines.studies comes from $PLENOPIV_REPO."""
+    code = ("import importlib.util, sys; from plenopiv.cli.validate import load_study, "
+            "studies_root; path = list(sys.path); "
+            "print(importlib.util.find_spec('pipelines') is None); "
+            "print(load_study(studies_root(), 'letters_data').__file__); print(sys.path == path)")
+    env = dict(os.environ, PYTHONPATH=str(REPO / "src"), PLENOPIV_REPO=str(REPO))
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         cwd=tmp_path, check=True, timeout=120)
+    not_on_path, file, path_kept = res.stdout.split()
+    assert not_on_path == "True" and path_kept == "True"
+    assert Path(file) == REPO / "pipelines" / "studies" / "letters_data.py"
+
+
+def test_validate_a_study_from_an_installed_package_as_a_real_process(tmp_path):
+    """The package copied out of the clone, as a wheel installs it: validate depth refuses
+    with the script to run; validate oseen's parser still answers."""
+    shutil.copytree(REPO / "src" / "plenopiv", tmp_path / "site" / "plenopiv",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    env = {k: v for k, v in os.environ.items() if k != "PLENOPIV_REPO"}
+    env["PYTHONPATH"] = str(tmp_path / "site")
+    res = subprocess.run([sys.executable, "-m", "plenopiv.cli", "validate", "depth", "--out",
+                          str(tmp_path / "val")], capture_output=True, text=True, env=env,
+                         cwd=tmp_path, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert res.stderr.startswith("error: validate depth runs a study kept in the repository's "
+                                 "pipelines/ folder")
+    assert "python pipelines/validate_depth.py --out DIR" in res.stderr
+    assert not (tmp_path / "val").exists()
 
 
 def test_a_rerun_removes_the_temporaries_of_a_killed_write(inputs, tmp_path, capsys):

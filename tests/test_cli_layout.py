@@ -1,7 +1,10 @@
-"""The command's layout: one module per subcommand, heavy libraries loaded only by commands."""
+"""The command's layout: one module per subcommand, heavy libraries loaded only by commands;
+the installed package never imports the studies kept in pipelines/."""
 
 from __future__ import annotations
 
+import ast
+import importlib.util
 import subprocess
 import sys
 
@@ -31,3 +34,17 @@ def test_every_subcommand_comes_from_its_own_module():
             kinds = next(a for a in sub.choices[name]._actions if a.dest == "kind").choices
             func = next(iter(kinds.values())).get_default("func")
         assert func.__module__ == module.__name__ and func.__name__ == f"cmd_{name}"
+
+
+def test_the_package_never_imports_the_studies_of_pipelines():
+    """The validation studies live in the repository's pipelines/, not in the wheel: no module
+    of src/plenopiv imports them (``plenopiv validate`` loads them by file location)."""
+    offenders = []
+    for path in sorted((REPO / "src" / "plenopiv").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            offenders += [f"{path.relative_to(REPO)}:{node.lineno} {n}" for n in names
+                          if n.split(".")[0] == "pipelines"]
+    assert offenders == []
+    assert importlib.util.find_spec("plenopiv.validation") is None

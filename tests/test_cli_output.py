@@ -151,7 +151,9 @@ def test_pair_progress_names_each_volume_and_pass():
     assert last == 100
 
 
-def test_validate_letters_names_a_missing_data_folder(tmp_path, capsys):
+@pytest.mark.study
+def test_validate_letters_names_a_missing_data_folder(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("PLENOPIV_REPO", str(conftest.REPO))     # the study is in pipelines/
     missing = tmp_path / "no_data"
     code = main(["validate", "letters", "--out", str(tmp_path / "out"), "--data", str(missing)])
     err = capsys.readouterr().err
@@ -160,8 +162,9 @@ def test_validate_letters_names_a_missing_data_folder(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.study
 def test_letters_data_folder_may_be_the_parent_or_the_set(monkeypatch):
-    from plenopiv.validation import letters
+    from pipelines.studies import letters_data as letters
 
     # skipped on a clone without the data, a failure under CI (conftest.shared_data_path)
     parent = conftest.shared_data_path(letters.DATA_NAME).parent

@@ -15,9 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plenopiv.camera.corrections import DepthCorrection
-from plenopiv.synthetic.images import particle_image
-from plenopiv.validation.depth_study import (
+from pipelines.studies.depth import (
     corrected_depths,
     exact_thesis_inverse,
     expected_effective_depth,
@@ -29,6 +27,10 @@ from plenopiv.validation.depth_study import (
     micro_image_f_number,
     study_cases,
 )
+from plenopiv.camera.corrections import DepthCorrection
+from plenopiv.synthetic.images import particle_image
+
+pytestmark = pytest.mark.study
 
 DEPTHS = np.array([-10.0, -6.0, 6.0, 10.0]) * 1e-3
 N_PLATE = 1.46

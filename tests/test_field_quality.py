@@ -1,4 +1,4 @@
-"""Reconstruction quality of particle fields (plenopiv.validation.field_quality).
+"""Reconstruction quality of particle fields (pipelines.studies.field_quality).
 
 A 41 × 61-lenslet patch of the 50 mm / M = -1 camera, particles in |Z| <= 3 mm, seeded at a
 sparse (0.05 ppl) and a dense (0.3 ppl) density, reconstructed on voxels of half a lenslet
@@ -15,9 +15,11 @@ import math
 import numpy as np
 import pytest
 
+from pipelines.studies import field_quality as fq
 from plenopiv.calibration.model import Calibration
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.validation import field_quality as fq
+
+pytestmark = pytest.mark.study
 
 DEPTH = 3e-3          # particles in |Z| <= 3 mm, grid ±3.5 mm: a small, fast volume
 SPARSE, DENSE = 0.05, 0.3

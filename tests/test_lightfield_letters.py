@@ -15,11 +15,7 @@ import pytest
 from scipy import ndimage as ndi
 
 from conftest import shared_data_path
-from plenopiv.calibration.model import Calibration
-from plenopiv.camera.model import load_camera
-from plenopiv.lightfield import light_field, perspective_view, refocus
-from plenopiv.synthetic.images import particle_image
-from plenopiv.validation.letters import (
+from pipelines.studies.letters import (
     LETTERS_ROI,
     SOURCE_ALPHA,
     alpha_geometry,
@@ -32,7 +28,13 @@ from plenopiv.validation.letters import (
     sharpness,
     source_alpha,
 )
-from plenopiv.validation.letters_data import load_letters
+from pipelines.studies.letters_data import load_letters
+from plenopiv.calibration.model import Calibration
+from plenopiv.camera.model import load_camera
+from plenopiv.lightfield import light_field, perspective_view, refocus
+from plenopiv.synthetic.images import particle_image
+
+pytestmark = pytest.mark.study
 
 LETTERS = "plenoptomos_letters_ULF"
 

@@ -19,6 +19,7 @@ import math
 import numpy as np
 import pytest
 
+from pipelines.studies.depth import thesis_camera
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import footprint, resolution_cell
@@ -26,7 +27,6 @@ from plenopiv.reconstruction.geometry import subcell_factors
 from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.sightline import pool_min, refined_grid, subcell_line_of_sight
 from plenopiv.synthetic.images import particle_image
-from plenopiv.validation.depth_study import thesis_camera
 from plenopiv.workflow.volume import reconstruct_volume
 
 
@@ -109,6 +109,7 @@ def test_pool_cells_kernel_equals_its_numpy_twin(kx, ky):
 
 
 
+@pytest.mark.study
 def test_in_focus_particle_keeps_its_voxels_when_voxel_edges_cross_its_lenslet(odd):
     """Voxel edges through the lenslet centre: every voxel around an in-focus particle covers
     a quarter of the lit lenslet, so ~3/4 of its weight is dark and the whole-voxel rule
@@ -143,6 +144,7 @@ def test_in_focus_particle_keeps_its_voxels_when_voxel_edges_cross_its_lenslet(o
     (16, (0.3 * 0.125e-3 + 62.5e-6, -0.2 * 0.125e-3 - 62.5e-6, 0.0)),
     (16, (62.5e-6, 62.5e-6, 0.4e-3)),
     (16, (0.3 * 0.125e-3 + 62.5e-6, 62.5e-6, 0.4e-3))])
+@pytest.mark.study
 def test_particle_is_found_whatever_the_grid(lenslets, position):
     """Random sub-voxel grids, voxels of 0.5-1.5 footprints: always found, and the position
     (from the light field, seeded by each grid's centroid) the same on every grid: within
@@ -182,6 +184,7 @@ def test_particle_is_found_whatever_the_grid(lenslets, position):
     assert spread[2] <= 0.25 * cell, spread[2] / cell
 
 
+@pytest.mark.study
 def test_volume_positions_keep_the_centroid(odd):
     """``position = "volume"`` gives the voxels' centroid; the light field's positions keep
     it as ``particle_centroid_effective``; a fully masked image leaves every seed."""

@@ -10,6 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
+from pipelines.studies.depth import thesis_camera
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.resolution import resolution_cell
 from plenopiv.cli import main
@@ -34,7 +35,6 @@ from plenopiv.tracking.matching import (
     predict_positions,
 )
 from plenopiv.tracking.tracks import TrackResult, bin_tracks
-from plenopiv.validation.depth_study import thesis_camera
 
 # ---- least-squares point of a ray bundle ----------------------------------------------------
 
@@ -75,6 +75,7 @@ def thesis_light_field():
 
 @pytest.mark.parametrize("engine", ["numba", "numpy"])
 @pytest.mark.parametrize("depth", [-3e-3, 2.5e-3])
+@pytest.mark.study
 def test_bundle_position_of_a_rendered_particle(thesis_light_field, depth, engine):
     """One particle off focus, seeded half a depth cell and a third of a footprint away.
 
@@ -111,6 +112,7 @@ def seeded_particles(thesis_light_field, rng, n, *, rays, seed):
     return truth, img, seeds, resolution_cell(cal.effective_camera)[1]
 
 
+@pytest.mark.study
 def test_numba_kernels_match_their_numpy_twin(thesis_light_field, rng):
     """Several overlapping particles (shared rays), seeded off: both engines agree."""
     _, _, lf = thesis_light_field
@@ -127,6 +129,7 @@ def test_numba_kernels_match_their_numpy_twin(thesis_light_field, rng):
         bundle_positions(lf, img, seeds, engine="cuda")
 
 
+@pytest.mark.study
 def test_ray_selection_matches_its_numpy_twin(thesis_light_field, rng):
     """The rays one solve selects once (numba, threads over blocks of particles) are those
     of the NumPy selection that carry weight, with the same cone shares, particle by
@@ -155,6 +158,7 @@ def test_ray_selection_matches_its_numpy_twin(thesis_light_field, rng):
                                    np.maximum(share[pid == p][twin], 0.0), rtol=0, atol=1e-12)
 
 
+@pytest.mark.study
 def test_bundle_positions_do_not_depend_on_the_particles_order(thesis_light_field, rng):
     """The kernels take the particles in spatial order: given in another order, each
     particle gets the same fit (to rounding: the rays' shared sums add in another order)."""
@@ -174,6 +178,7 @@ def test_bundle_positions_do_not_depend_on_the_particles_order(thesis_light_fiel
 
 
 @pytest.mark.parametrize("engine", ["numba", "numpy"])
+@pytest.mark.study
 def test_bundle_on_the_lit_rays_alone_is_the_same_fit(thesis_light_field, rng, engine):
     """Rays at or below the floor carry no weight: a light field of the lit rays only
     (``LightField.subset``, what the particle table fits on) gives the same positions, with
@@ -205,6 +210,7 @@ def test_bundle_on_the_lit_rays_alone_is_the_same_fit(thesis_light_field, rng, e
         lf.subset(np.ones(3))
 
 
+@pytest.mark.study
 def test_bundle_rejects_a_wrong_image_and_bad_settings(thesis_light_field):
     _, _, lf = thesis_light_field
     with pytest.raises(Exception, match="sensor"):
@@ -218,6 +224,7 @@ def test_bundle_rejects_a_wrong_image_and_bad_settings(thesis_light_field):
 
 
 @pytest.mark.parametrize("engine", ["numba", "numpy"])
+@pytest.mark.study
 def test_bundle_of_a_dark_image_does_not_converge(thesis_light_field, engine):
     _, _, lf = thesis_light_field
     res = bundle_positions(lf, np.zeros(lf.shape), np.array([[0.0, 0.0, 1e-3]]), engine=engine)
@@ -252,6 +259,7 @@ def test_beam_fraction_is_the_share_of_lines_through_the_aperture_cell(rng):
         assert abs(f - mc) < 0.015, (p, f, mc)
 
 
+@pytest.mark.study
 def test_a_particle_seen_through_two_by_two_lenslets_has_no_depth_in_the_image(
         thesis_light_field):
     """The reason for ``[tracking] min_lenslets = 6``.
@@ -283,6 +291,7 @@ def test_a_particle_seen_through_two_by_two_lenslets_has_no_depth_in_the_image(
 
 
 @pytest.mark.parametrize(("neighbour_offset_b", "neighbour_dz"), [(1.0, -2e-3), (1.0, 1e-3)])
+@pytest.mark.study
 def test_refined_position_is_not_pulled_by_a_missed_neighbour(thesis_light_field,
                                                               neighbour_offset_b, neighbour_dz):
     """A neighbour the reconstruction missed, one footprint aside, its rays crossing the beam.
@@ -309,6 +318,7 @@ def test_refined_position_is_not_pulled_by_a_missed_neighbour(thesis_light_field
 
 @pytest.mark.parametrize(("depth", "near"), [(1e-3, np.inf), (-1.5e-3, np.inf),
                                              (-1.5e-3, 0.0), (2.5e-3, 0.0)])
+@pytest.mark.study
 def test_refined_position_of_an_isolated_particle(thesis_light_field, depth, near):
     """Started from a bundle seeded off (0.1 b, 0.1 b, 0.3 cell): the isolated tolerances,
     by the grid searches (``near_focus = inf``) and by the local steps (``0``)."""
@@ -327,6 +337,7 @@ def test_refined_position_of_an_isolated_particle(thesis_light_field, depth, nea
 
 
 @pytest.mark.parametrize("near", ["grid", "local", "both"])
+@pytest.mark.study
 def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng, near):
     """Several particles with crossing beams, started off the truth: both engines agree,
     by the grid searches, the local steps and both (``near_focus`` between the starts)."""
@@ -360,6 +371,7 @@ def test_refinement_kernel_matches_its_numpy_twin(thesis_light_field, rng, near)
         refine_positions(lf, img, start, depth_cell=cell, engine="cuda")
 
 
+@pytest.mark.study
 def test_misfit_gradient_is_the_derivative_of_the_misfit(thesis_light_field):
     """The local steps' Jacobian: 2 J^T r equals the central difference of the misfit.
 
@@ -393,6 +405,7 @@ def test_misfit_gradient_is_the_derivative_of_the_misfit(thesis_light_field):
         assert numeric == pytest.approx(2 * g[0, k], rel=1e-2, abs=1e-6 * abs(g).max())
 
 
+@pytest.mark.study
 def test_amplitude_kernel_matches_its_numpy_twin(thesis_light_field, rng):
     """Median of value / fraction over the half-lit pixels, per particle; none lit: 0."""
     from plenopiv.particles.bundle import ray_table
@@ -432,6 +445,7 @@ def test_kth_smallest_by_quickselect_is_that_of_the_sorted_values(rng):
                 assert _select_kth(buf, n, k) == np.sort(values)[k]
 
 
+@pytest.mark.study
 def test_gathered_pixels_are_those_of_the_selection(thesis_light_field, rng):
     """The selection's gathered values and rays are those of its rows (lenslet order)."""
     from plenopiv.particles.bundle import ray_table
@@ -450,6 +464,7 @@ def test_gathered_pixels_are_those_of_the_selection(thesis_light_field, rng):
     np.testing.assert_array_equal(xf, table.focal_sorted[row])
 
 
+@pytest.mark.study
 def test_refinement_of_a_dark_image_keeps_the_start(thesis_light_field):
     _, _, lf = thesis_light_field
     start = np.array([[0.0, 0.0, 1e-3], [1e-4, 0.0, -2e-3]])
@@ -689,6 +704,7 @@ def test_tracking_in_a_batch_pair_and_its_config(tmp_path):
 
 
 
+@pytest.mark.study
 def test_bundle_does_not_depend_on_the_order_of_the_light_fields_rays(thesis_light_field, rng):
     """The kernels find a lenslet's first candidate ray by bisection on aperture y: a light
     field whose rays come in another order (pixels shuffled) is grouped with each lenslet's

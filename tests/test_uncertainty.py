@@ -865,11 +865,12 @@ def test_three_modulation_pairs_give_every_component_along_every_axis():
     assert np.all(np.isnan(_modulation(grid_field, voxel, lambda d: None)))
 
 
+@pytest.mark.study
 def test_the_coverage_report_states_its_sampling_error():
     """uncertainty.md gives the binomial standard error of its coverages: 95 % over 100
     vectors is known to 2.2 points, 90 % over 400 to 1.5; cases without vectors are left
     out."""
-    from plenopiv.validation.uncertainty_study import _sampling_error
+    from pipelines.studies.uncertainty import _sampling_error
 
     cases = [{"n_vectors": 100, "coverage": {"response": [0.95, 0.95, 0.95]}},
              {"n_vectors": 400, "coverage": {"response": [0.90, 0.96, 0.98]}},
@@ -879,6 +880,7 @@ def test_the_coverage_report_states_its_sampling_error():
     assert _sampling_error(cases[2:]) == ""
 
 
+@pytest.mark.study
 def test_the_chance_that_a_right_sigma_leaves_the_band_matches_sampling(rng):
     """A σ exactly right puts each error within ±2σ with probability erf(sqrt 2) = 95.45 %;
     the share over n independent vectors is outside 90-98 % with the binomial chance the
@@ -887,7 +889,7 @@ def test_the_chance_that_a_right_sigma_leaves_the_band_matches_sampling(rng):
     (n = 50: 45 and 49 of 50 are inside, 44 and 50 outside)."""
     from math import erf, sqrt
 
-    from plenopiv.validation.uncertainty_study import GAUSSIAN_2SIGMA, chance_outside_band
+    from pipelines.studies.uncertainty import GAUSSIAN_2SIGMA, chance_outside_band
 
     assert GAUSSIAN_2SIGMA == pytest.approx(erf(sqrt(2.0)), rel=1e-12)
     for n in (50, 161, 473):
@@ -931,11 +933,12 @@ def test_the_modulation_gain_does_not_depend_on_where_the_vector_grid_starts(rng
     np.testing.assert_allclose(gains[1], gains[0], atol=tol * np.sqrt(2))
 
 
+@pytest.mark.study
 def test_coverage_is_split_beside_a_rejected_vector_and_elsewhere():
     """The study's split: a rejected vector's 3 x 3 x 3 neighbourhood (27 vectors inside the
     grid, 8 at a corner, itself included) and the rest; per region the share within ±2σ and
     the median |error| / σ, which for errors of exactly ±k σ is k."""
-    from plenopiv.validation.uncertainty_study import beside_rejection, region_coverage
+    from pipelines.studies.uncertainty import beside_rejection, region_coverage
 
     valid = np.ones((5, 6, 7), bool)
     valid[2, 3, 3] = False
@@ -960,10 +963,11 @@ def test_coverage_is_split_beside_a_rejected_vector_and_elsewhere():
     assert empty["n"] == 0 and np.all(np.isnan(empty["coverage"]))
 
 
+@pytest.mark.study
 def test_realisations_pool_by_vectors_and_compare_their_scatter_with_the_binomial_error():
     """Pooled share = all realisations' vectors together; the scatter of independent
     realisations of n independent vectors matches the binomial error sqrt(p (1 - p) / n)."""
-    from plenopiv.validation.uncertainty_study import realisation_summary
+    from pipelines.studies.uncertainty import realisation_summary
 
     r = realisation_summary([[0.9, 1.0, 0.95], [0.96, 0.8, 0.95]], [100, 300])
     np.testing.assert_allclose(r["pooled"], [(90 + 288) / 400, (100 + 240) / 400, 0.95])

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from plenopiv.validation.vortex_study import (
+from pipelines.studies.vortex import (
     FROZEN_RESPONSE,
     RESPONSE_BANDS_MM,
     column_depth,
     response_by_band,
 )
+
+pytestmark = pytest.mark.study
 
 
 def test_column_depth_is_the_intensity_weighted_depth_of_the_column():

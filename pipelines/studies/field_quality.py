@@ -15,7 +15,8 @@ and compared with the truth:
   particles within the camera's resolution cell (:func:`resolution_cell`).
 
 The stage functions take arrays and small parameter objects and return arrays or dicts;
-:func:`run` does the I/O (JSON, Markdown, PNG).
+:func:`pipelines.studies.field_quality_report.run` runs them in order and does the I/O (JSON,
+Markdown, PNG).
 
 Conventions: positions are ``(x, y, z)`` metres, volumes ``[z, y, x]``; densities are
 particles per lenslet (ppl), i.e. per lenslet footprint on the nominal focal plane, seeded
@@ -26,8 +27,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -43,10 +43,10 @@ from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import Weights
+from plenopiv.settings import as_dict
 from plenopiv.synthetic.images import finish_image, particle_image
 from plenopiv.synthetic.seeding import SeedingBox, random_particles
 from plenopiv.synthetic.truth import gaussian_truth_volume
-from plenopiv.validation.report import write_json, write_text
 from plenopiv.workflow.volume import reconstruct_volume
 
 #: Densities of the main table, particles per lenslet.
@@ -64,7 +64,7 @@ DEPTH_VOXEL = 0.25e-3
 RAYS_PER_PARTICLE = 4096
 
 
-def _study_settings(**kw) -> ReconstructionSettings:
+def study_settings(**kw) -> ReconstructionSettings:
     """Reconstruction settings as this study ran them: 5 sweeps and relaxation 1 by default.
 
     A case may say otherwise. These were the library's defaults at the time; they are now 10
@@ -109,7 +109,7 @@ def study_grid(camera: CameraModel, *, depth: float = GRID_DEPTH,
 def study_weights(calibration: Calibration, grid: VolumeGrid,
                   settings: ReconstructionSettings | None = None) -> Weights:
     """Build the voxel-pixel weights of ``grid`` in memory (no disk cache)."""
-    s = _study_settings() if settings is None else settings
+    s = study_settings() if settings is None else settings
     w, _ = cached_weights(calibration, grid, cache_dir=None, f_number=s.f_number,
                           min_lit=s.min_lit)
     return w
@@ -451,7 +451,7 @@ def settings_label(s: ReconstructionSettings) -> str:
         parts = [s.method, f"{s.iterations} it"]
         if s.relaxation != 1.0:
             parts.append(f"relaxation {s.relaxation:g}")
-    default = _study_settings()
+    default = study_settings()
     for key in ("pixel_threshold", "dark_tolerance"):
         if getattr(s, key) != getattr(default, key):
             parts.append(f"{key} {getattr(s, key):g}")
@@ -460,7 +460,7 @@ def settings_label(s: ReconstructionSettings) -> str:
 
 def _row(case: str, density: float, settings: ReconstructionSettings, row: dict,
          **extra) -> dict:
-    return {"case": case, "density_ppl": density, "settings": settings.model_dump(),
+    return {"case": case, "density_ppl": density, "settings": as_dict(settings),
             "label": settings_label(settings), **extra, **row}
 
 
@@ -534,7 +534,7 @@ def isolated_study(setup: StudySetup, rng: np.random.Generator, *, seed: int):
     iso_img = [render(cam, p, seed=seed + k) for k, p in enumerate(iso_pos)]
     isolated, iso_vol = {}, {}
     for name, kw in ISOLATED_CASES.items():
-        s = _study_settings(**kw)
+        s = study_settings(**kw)
         try:
             vols = [reconstruct_volume(setup.calibration, img, grid, settings=s,
                                        particles=setup.particles,
@@ -560,7 +560,7 @@ def truth_sigmas(setup: StudySetup, isolated: dict) -> dict:
 def _kept_at_max_density(s: ReconstructionSettings) -> bool:
     """Whether the volume of a main-table case at the highest density goes into the figures."""
     return (s.iterations == 0 or (s.method == "mart" and s.iterations == 5)
-            or s == _study_settings())
+            or s == study_settings())
 
 
 def density_study(setup: StudySetup, fields: dict, sigmas: dict):
@@ -572,8 +572,8 @@ def density_study(setup: StudySetup, fields: dict, sigmas: dict):
     dmax = max(fields)
     main, kept = [], {}
     for d, (pos, img) in fields.items():
-        cases = [_study_settings(iterations=0)]
-        cases += [_study_settings(method=m, iterations=n) for m in METHODS
+        cases = [study_settings(iterations=0)]
+        cases += [study_settings(method=m, iterations=n) for m in METHODS
                   for n in ITERATIONS]
         for s in cases:
             row, vol = setup.score(img, pos, s, sigmas)
@@ -593,19 +593,19 @@ def remedy_study(setup: StudySetup, fields: dict, sigmas: dict, rng: np.random.G
     rem = []
     pos, img = fields[dmax]
     for group, kw in REMEDIES:
-        s = _study_settings(**kw)
+        s = study_settings(**kw)
         row, vol = setup.score(img, pos, s, sigmas)
         rem.append(_row(group, dmax, s, row))
         if kw == RECOMMENDED:
             kept[settings_label(s)] = vol
     noisy = render(setup.camera, pos, seed=seed + 200, noise=True, rng=rng)
-    for s in (_study_settings(), _study_settings(**RECOMMENDED)):
+    for s in (study_settings(), study_settings(**RECOMMENDED)):
         row, _ = setup.score(noisy, pos, s, sigmas)
         rem.append(_row("photon noise (20,000 e- full well, 16 bit)", dmax, s, row))
     for d, (p2, i2) in fields.items():
         if d == dmax:
             continue
-        s = _study_settings(**RECOMMENDED)
+        s = study_settings(**RECOMMENDED)
         row, _ = setup.score(i2, p2, s, sigmas)
         rem.append(_row("recommended", d, s, row))
     return rem
@@ -632,96 +632,10 @@ def headline(results: dict) -> dict:
               and r["density_ppl"] == dmax and "noise" not in r["case"]]
     best = max(at_max, key=lambda r: r["q"]["matched"]) if at_max else None
     default = next((r for r in at_max if r["case"] == "main"
-                    and r["settings"] == _study_settings().model_dump()), None)
+                    and r["settings"] == study_settings().model_dump()), None)
     return {"q_default_at_max_density": None if default is None else default["q"]["matched"],
             "q_best_at_max_density": None if best is None else best["q"]["matched"],
             "best": None if best is None else best["label"]}
-
-
-def run(out: str | Path, *, rows: int = 61, cols: int = 91, densities=DENSITIES,
-        seed: int = 20261122, remedies: bool = True, voxel_study: bool = True) -> dict:
-    """Run the study and write ``field_quality.json``, ``field_quality.md`` and PNG figures.
-
-    Parameters
-    ----------
-    out : path
-        Output folder (created).
-    rows, cols : int
-        Lenslets of the camera patch.
-    densities : sequence of float
-        Particles per lenslet of the main table; remedies run at the largest.
-    seed : int
-        Seed of the particle positions and of the ray tracer.
-    remedies, voxel_study : bool
-        Also run the remedies at the highest density / the voxel-size study (on a 31 × 45
-        patch: a half-footprint grid of the full patch needs about 14 GB).
-
-    Returns
-    -------
-    dict
-        Paths written and headline numbers.
-    """
-    t_start = time.perf_counter()
-    timings = {}
-
-    def lap(name):
-        timings[name] = time.perf_counter() - t_start - sum(timings.values())
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    setup = study_setup(rows, cols)
-    cam, grid = setup.camera, setup.grid
-    lap("weights_s")
-
-    # 1. isolated particles: the blob a reconstruction makes of a single point particle
-    isolated, iso_vol, iso_pos = isolated_study(setup, rng, seed=seed)
-    lap("isolated_s")
-    sigmas = truth_sigmas(setup, isolated)
-    for name, vols in iso_vol.items():
-        isolated[name]["q_at"] = {k: field_q(vols, grid, iso_pos, sg, setup.region)
-                                  for k, sg in sigmas.items()}
-
-    # 2. densities × methods × iterations; 3. remedies, the recommendation at every density
-    fields = {}
-    for k, d in enumerate(densities):
-        pos = seed_field(grid, cam, d, rng)
-        fields[d] = (pos, render(cam, pos, seed=seed + 100 + k))
-    dmax = max(densities)
-    main, kept = density_study(setup, fields, sigmas)
-    lap("main_s")
-    rem = remedy_study(setup, fields, sigmas, rng, seed=seed, kept=kept) if remedies else []
-    lap("remedies_s")
-    setup = replace(setup, weights=None)
-
-    # 4. voxel size, on a smaller patch
-    vox = voxel_size_study(rng, seed=seed + 300, density=dmax) if voxel_study else []
-    lap("voxel_size_s")
-
-    pos = fields[dmax][0]
-    sigma_scan = sigma_scans(setup, isolated, iso_vol, kept, pos, dmax)
-    lap("figures_s")
-    timings["total_s"] = time.perf_counter() - t_start
-
-    lat, dep = setup.tolerance[0], setup.tolerance[2]
-    results = {
-        "camera": cam.to_dict(), "grid": grid.to_dict(), "voxel_m": list(grid.voxel),
-        "footprint_m": footprint(cam), "resolution_cell_m": [lat, dep],
-        "match_tolerance_m": list(setup.tolerance), "evaluation_margin_m": setup.region.margin,
-        "particle_depth_m": PARTICLE_DEPTH, "rays_per_particle": RAYS_PER_PARTICLE,
-        "particle_settings": setup.particles.model_dump(),
-        "default_reconstruction": _study_settings().model_dump(),
-        "library_defaults": ReconstructionSettings().model_dump(),
-        "truth_sigma_vox": sigmas, "seed": seed, "isolated": isolated, "main": main,
-        "remedies": rem, "voxel_size": vox, "sigma_scan": sigma_scan, "timings_s": timings}
-    # the renderer imports this module's constants, hence imported here
-    from plenopiv.validation import field_quality_report as report
-
-    write_json(out / "field_quality.json", results)
-    write_text(out / "field_quality.md", report.markdown(results))
-    figures = report.figures(results, slice_panels(kept, grid, pos, sigmas), grid, pos, out)
-    return {"out": str(out), "figures": [str(p) for p in figures],
-            "truth_sigma_vox": sigmas, **headline(results), "total_s": timings["total_s"]}
 
 
 def slice_panels(volumes: dict, grid: VolumeGrid, positions, sigmas: dict) -> list[tuple]:
@@ -758,8 +672,8 @@ def voxel_size_study(rng: np.random.Generator, *, seed: int, density: float = 0.
         region = Region(grid, interior_margin(cam))
         weights = study_weights(cal, grid)
         sig = {"cell": cell_sigma(grid, cam)}
-        for s in (_study_settings(iterations=0), _study_settings(),
-                  _study_settings(**RECOMMENDED)):
+        for s in (study_settings(iterations=0), study_settings(),
+                  study_settings(**RECOMMENDED)):
             row, vol = reconstruct_and_score(cal, img, weights, pos, settings=s,
                                              particles=particle_settings(grid, cam),
                                              tolerance=(lat, lat, dep), sigmas=sig,
@@ -776,3 +690,4 @@ def voxel_size_study(rng: np.random.Generator, *, seed: int, density: float = 0.
                             voxel_mm=[v * 1e3 for v in grid.voxel], nnz=weights.nnz))
         del weights
     return out
+

@@ -2,7 +2,7 @@
 
 The data (``shared/data/plenoptomos_letters_ULF``, from cicwi/plenoptomos, GPL-3.0) are never
 copied into this repository; :func:`find_data_dir` looks for them in the places
-:func:`data_candidates` lists. :mod:`plenopiv.validation.letters` analyses them.
+:func:`data_candidates` lists. :mod:`pipelines.studies.letters` analyses them.
 """
 
 from __future__ import annotations
@@ -14,6 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.products.images import read_image
+
+#: The repository root (this file is pipelines/studies/letters_data.py).
+_REPO = Path(__file__).resolve().parents[2]
 
 DATA_NAME = "plenoptomos_letters_ULF"
 FILES = {"raw": "letters_ULF_M1.png", "white": "letters_ULF_M1_white.png",
@@ -29,7 +32,7 @@ def data_candidates() -> list[Path]:
     """Third-party data folders looked in, in order.
 
     ``$PLENOPIV_DATA``, ``../shared/data`` beside the current folder, and ``../shared/data``
-    beside the source tree (a clone installed in editable mode).
+    beside the repository that holds this study.
     """
     import os
 
@@ -37,7 +40,7 @@ def data_candidates() -> list[Path]:
     if os.environ.get("PLENOPIV_DATA"):
         out.append(Path(os.environ["PLENOPIV_DATA"]))
     out.append(Path.cwd().parent / "shared" / "data")
-    out.append(Path(__file__).resolve().parents[3].parent / "shared" / "data")
+    out.append(_REPO.parent / "shared" / "data")
     seen, unique = set(), []
     for p in out:
         key = str(p.resolve()) if p.exists() else str(p)
@@ -77,12 +80,12 @@ def find_data_dir(data: str | Path | None = None) -> Path:
 def default_data_dir() -> Path:
     """The letters folder found by :func:`find_data_dir`, or where the repository expects it.
 
-    Where it is expected: ``../shared/data/plenoptomos_letters_ULF`` beside the source tree.
+    Where it is expected: ``../shared/data/plenoptomos_letters_ULF`` beside the repository.
     """
     try:
         return find_data_dir()
     except FileNotFoundError:
-        return Path(__file__).resolve().parents[3].parent / "shared" / "data" / DATA_NAME
+        return _REPO.parent / "shared" / "data" / DATA_NAME
 
 
 # --------------------------------------------------------------------------------------------

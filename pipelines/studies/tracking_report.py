@@ -1,6 +1,6 @@
 """Report of the tracking study: ``tracking.json``, ``tracking.md`` and figures.
 
-Runs :mod:`plenopiv.validation.tracking_study` and writes its numbers (I/O only).
+Runs :mod:`pipelines.studies.tracking` and writes its numbers (I/O only).
 
 ``python pipelines/validate_tracking.py --out docs/validation``.
 """
@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.validation.report import write_json, write_text
-from plenopiv.validation.tracking_study import measure_case, measure_single_particles
+from pipelines.studies.output import write_json, write_text
+from pipelines.studies.tracking import measure_case, measure_single_particles
 from plenopiv.workflow.vortex_case import VortexCase
 
 #: Seeding densities of the sweep, particles per lenslet.

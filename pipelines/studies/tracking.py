@@ -18,6 +18,7 @@ Two measurements (stage functions: cases in, dicts of numbers out; no files):
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import replace
 
@@ -27,16 +28,11 @@ from scipy.spatial import cKDTree
 from plenopiv.calibration.calibrate import calibrate
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.resolution import resolution_cell
-from plenopiv.config.experiment import (
-    Experiment,
-    ImagesConfig,
-    OutputConfig,
-    PIVConfig,
-    TrackingConfig,
-)
+from plenopiv.config.experiment import Experiment, ImagesConfig, OutputConfig
 from plenopiv.lightfield import light_field
 from plenopiv.particles.bundle import bundle_positions
 from plenopiv.particles.forward import refine_positions
+from plenopiv.piv.settings import PIVSettings
 from plenopiv.synthetic.images import (
     Ruler,
     alignment_image,
@@ -48,6 +44,7 @@ from plenopiv.synthetic.images import (
 )
 from plenopiv.synthetic.seeding import SeedingBox, particle_count, simulate_pair
 from plenopiv.tracking.matching import interpolate_displacement
+from plenopiv.tracking.settings import TrackingSettings
 from plenopiv.tracking.tracks import bin_tracks
 from plenopiv.workflow.pair import process_pair
 from plenopiv.workflow.tracking import track_pair
@@ -160,7 +157,7 @@ def measure_case(case: VortexCase) -> dict:
     cam, cal = _calibration(case, rng)
     grid, flow, pair, ia, ib = _simulate(case, cam, cal, rng)
     exp = Experiment(camera=cal.camera, volume=grid,
-                     piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5, passes=3),
+                     piv=PIVSettings(windows=tuple(case.windows_vox), overlap=0.5, passes=3),
                      images=ImagesConfig(dt_s=case.dt), output=OutputConfig(weights_cache=""))
     t1 = time.perf_counter()
     res = process_pair(cal, ia, ib, exp)
@@ -239,7 +236,7 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
     depths : array_like
         True depths Z, metres.
     camera : CameraModel, optional
-        Default :func:`plenopiv.validation.depth_study.thesis_camera` (41 x 41 lenslets,
+        Default :func:`pipelines.studies.depth.thesis_camera` (41 x 41 lenslets,
         50 mm lens at M = -1, no interface).
     offset_vox : float
         Lateral position drawn uniformly within ± this many voxels of the axis, so that the
@@ -256,8 +253,8 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
         where no particle was found), ``bundle_sigma_m`` (N, 3), ``n_lenslets``; summaries
         ``rms_mm`` for centroid, bundle and refined per axis, ``within_2sigma`` (bundle).
     """
+    from pipelines.studies.depth import STUDY_PARTICLES, VOXEL, study_grid, thesis_camera
     from plenopiv.reconstruction.select import cached_weights
-    from plenopiv.validation.depth_study import STUDY_PARTICLES, VOXEL, study_grid, thesis_camera
 
     cam = thesis_camera() if camera is None else camera
     depths = np.asarray(depths, float)
@@ -269,9 +266,9 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
     nan3 = np.full((len(depths), 3), np.nan)
     cen, bun, sig, ref = nan3.copy(), nan3.copy(), nan3.copy(), nan3.copy()
     n_lens = np.zeros(len(depths), int)
-    seen = max(2, TrackingConfig().min_lenslets)
+    seen = max(2, TrackingSettings().min_lenslets)
     # the volume's centroid, the bundle's seed here, is this study's reference
-    volume_positions = STUDY_PARTICLES.model_copy(update={"position": "volume"})
+    volume_positions = dataclasses.replace(STUDY_PARTICLES, position="volume")
     for i, z in enumerate(depths):
         x, y = rng.uniform(-offset_vox, offset_vox, 2) * VOXEL
         truth = np.array([x, y, z])

@@ -21,19 +21,20 @@ focused distance z0, its "cone" geometry, with its own nominal camera, S = z1 = 
 :func:`source_alpha` for the mapping, through the one quantity both describe, the parallax in
 lenslets per sensor pixel of the micro-image.
 
-Stage functions take arrays and return arrays or small frozen results; :func:`run` does the
-I/O (PNG figures, JSON and Markdown summary).
+Stage functions take arrays and return arrays or small frozen results;
+:func:`pipelines.studies.letters_report.run` runs them and does the I/O (PNG figures, JSON and
+Markdown summary).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from scipy import ndimage as ndi
 
+from pipelines.studies.letters_data import DATA_NAME, LettersData
 from plenopiv.calibration.lattice_fit import fit_lattice
 from plenopiv.calibration.lenslets import micro_image_diameter as _micro_image_diameter
 from plenopiv.calibration.model import Calibration
@@ -43,8 +44,6 @@ from plenopiv.camera.model import camera_from_dict
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
 from plenopiv.lightfield import LightField, light_field, perspective_view, refocus
-from plenopiv.validation.letters_data import DATA_NAME, LettersData, load_letters
-from plenopiv.validation.report import write_json, write_text
 
 #: Lattice rows and columns (of this calibration's grid index) holding the two "ab" words,
 #: clear of the page edges at columns ~7 and ~21, which lie at other depths.
@@ -530,7 +529,8 @@ def focus_sweep(image, lf: LightField, grid_index, alphas=ALPHAS, *, region=LETT
 def analyse(data: LettersData, *, alphas=ALPHAS, with_splat: bool = True) -> dict:
     """Calibrate, build the light field, views, parallax and focus sweeps (no I/O).
 
-    Returns a dict of arrays and numbers; :func:`run` turns it into files.
+    Returns a dict of arrays and numbers; :func:`pipelines.studies.letters_report.run` turns it
+    into files.
     """
     wcal = calibrate_white(data)
     cal = wcal.calibration
@@ -636,26 +636,3 @@ def refocused_planes(res: dict) -> list[tuple[str, np.ndarray]]:
     return [(title, refocus(res["image"], lf, al, method="fourier", grid_index=gi))
             for al, title in show]
 
-
-def run(out_dir: str | Path, *, data_dir: str | Path | None = None, alphas=ALPHAS) -> dict:
-    """Run the study; write ``letters.json``, ``letters.md`` and PNG figures to ``out_dir``.
-
-    Returns a short summary (paths and the headline numbers).
-    """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    data = load_letters(data_dir)
-    res = analyse(data, alphas=alphas)
-    summ = summary(res, data.optics)
-    # the renderer imports this module's constants and α conversions, hence imported here
-    from plenopiv.validation import letters_report as report
-
-    write_json(out / "letters.json", summ)
-    write_text(out / "letters.md", report.markdown(summ))
-    figures = report.figures(res, summ, refocused_planes(res), out)
-    return {"out": str(out), "figures": [str(p) for p in figures],
-            "pitch_px": summ["calibration"]["pitch_px"],
-            "image_distance_from_pitch_mm": summ["calibration"]["image_distance_from_pitch_mm"],
-            "peak_alpha": summ["focus"]["peak"]["gradient"],
-            "peak_alpha_source": summ["focus"]["peak_alpha_source"]["gradient"],
-            "parallax_alpha": summ["parallax"]["alpha_mean"]}

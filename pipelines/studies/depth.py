@@ -30,8 +30,9 @@ side also makes the micro-images n times smaller than the light field assumes; t
 reconstructed with the light-field aperture set to n N (:func:`micro_image_f_number`), and
 once more with the default aperture as a diagnostic.
 
-Stage functions take cameras, grids and arrays and return arrays or dicts; :func:`run` does the
-I/O (JSON, Markdown, PNG figures).
+Stage functions take cameras, grids and arrays and return arrays or dicts;
+:func:`pipelines.studies.depth_report.run` runs the cases and does the I/O (JSON, Markdown, PNG
+figures).
 """
 
 from __future__ import annotations
@@ -52,7 +53,6 @@ from plenopiv.particles.settings import ParticleSettings
 from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.synthetic.images import particle_image
-from plenopiv.validation.report import write_json, write_text
 from plenopiv.workflow.volume import reconstruct_volume
 
 #: Particle extraction of this study (fixed, so that its tables stay reproducible): the
@@ -532,79 +532,3 @@ def table_5_2(cases: list[DepthCase], measured: dict) -> list[dict]:
                            for k, v in THESIS_TABLE_5_2.items()}})
     return rows
 
-
-def run(out: str | Path, *, depths=DEPTHS, rays_per_particle: int = 20000,
-        diagnostics: bool = True, cache_dir: str | Path | None = None,
-        progress=None) -> dict:
-    """Run the depth study; write JSON, Markdown and Figs 5.2-5.4 (PNG) to ``out``.
-
-    Files: ``depth_study.json``, ``depth_study.md``, ``fig_5_2_external.png``,
-    ``fig_5_3_internal.png``, ``fig_5_4_internal_focus.png``.
-
-    Parameters
-    ----------
-    out : path
-        Output folder (created).
-    depths : array_like
-        True depths, metres (default -10 … +10 mm in 1 mm steps).
-    rays_per_particle : int
-        Ray-tracer samples per image.
-    diagnostics : bool
-        Also run the "thesis" back side with the default light-field aperture.
-    cache_dir : path, optional
-        Weight cache folder (default: none, weights built in memory).
-    progress : callable, optional
-        ``progress(case_name, seconds)`` after each case.
-
-    Returns
-    -------
-    dict
-        A summary: output paths, the slopes per case and correction (±10 mm), Z* and seconds.
-    """
-    t0 = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    cases = study_cases(diagnostics=diagnostics)
-    measured = {}
-    for case in cases:
-        measured[case.name] = measure_depths(case, depths, rays_per_particle=rays_per_particle,
-                                             cache_dir=cache_dir)
-        if progress is not None:
-            progress(case.name, measured[case.name]["seconds"])
-    by = {c.name: c for c in cases}
-    plate = by["plate_thesis"].camera
-    cam0 = by["none"].camera
-    geometry = {"f_number": cam0.main_lens.f_number, "si_eff_mm": cam0.image_distance * 1e3,
-                "so_eff_mm": cam0.object_distance * 1e3,
-                "lenslets": cam0.microlens_array.rows,
-                "l2_mm": by["external"].camera.interface_distance * 1e3,
-                "l3_mm": plate.l3 * 1e3, "z_star_mm": focus_crossing_depth(plate) * 1e3,
-                "si_at_7mm_mm": float(image_distance_of(plate, THESIS_DISCONTINUITY)) * 1e3,
-                "focus_region": dict(zip((np.asarray(depths) * 1e3).round(3).tolist(),
-                                         focus_region(plate, depths).tolist(), strict=True))}
-    results = {
-        "study": "thesis §5.1-5.2 depth study", "rays_per_particle": rays_per_particle,
-        "geometry": geometry,
-        "cases": {c.name: {"label": c.label, "note": c.note, "camera": c.camera.to_dict(),
-                           "reconstruction": c.settings.model_dump(),
-                           "particles": STUDY_PARTICLES.model_dump(),
-                           "corrections": {k: v.to_dict() for k, v in c.corrections.items()}}
-                  for c in cases},
-        "measured": measured,
-        "table_5_1": table_5_1(cases, measured),
-        "table_5_2": table_5_2(cases, measured),
-    }
-    # the renderer imports this module's constants and fits, hence imported here
-    from plenopiv.validation import depth_study_report as report
-
-    results["figures"] = [str(p) for p in report.figures(cases, measured, out)]
-    results["seconds"] = time.perf_counter() - t0
-    write_json(out / "depth_study.json", results)
-    write_text(out / "depth_study.md", report.markdown(results))
-    slopes = {f"{r['case']} {r['correction']}": round(r["slope"], 4)
-              for r in results["table_5_1"] if r["fit_range"] == "±10 mm"}
-    return {"out": str(out), "figures": results["figures"],
-            "json": str(out / "depth_study.json"), "markdown": str(out / "depth_study.md"),
-            "slopes_10mm": slopes, "z_star_mm": round(geometry["z_star_mm"], 4),
-            "errors": {k: v["errors"] for k, v in measured.items() if v["errors"]},
-            "seconds": round(results["seconds"], 1)}

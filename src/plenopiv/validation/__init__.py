@@ -1,1 +1,0 @@
-"""Validation studies: the thesis's figures and tables reproduced with the project's simulator."""
