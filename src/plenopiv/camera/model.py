@@ -21,7 +21,6 @@ S_o,eff = l2 + (n2/n1) l1 (Eq. 4.3).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -32,6 +31,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from plenopiv.errors import ConfigError
+from plenopiv.products.jsonio import dumps
 
 GRIDS = ("square", "hexagonal")
 BACK_SIDES = ("physical", "thesis")
@@ -482,7 +482,7 @@ class CameraModel:
 
     def to_json(self) -> str:
         """The resolved camera config as JSON (stored with every product)."""
-        return json.dumps(self.to_dict(), sort_keys=True)
+        return dumps(self.to_dict(), sort_keys=True)
 
 
 # --------------------------------------------------------------------------------------------
