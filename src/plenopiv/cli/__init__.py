@@ -25,6 +25,7 @@ import warnings
 from plenopiv import __version__
 from plenopiv.cli import (
     calibrate,
+    compare,
     demo,
     piv,
     plan,
@@ -52,7 +53,8 @@ from plenopiv.resources import prefer_small_pages
 __all__ = ["build_parser", "main"]
 
 #: The subcommands in the order ``plenopiv --help`` lists them; each adds its own parser.
-COMMANDS = (demo, calibrate, reconstruct, piv, track, plan, run, validate, simulate, presets)
+COMMANDS = (demo, calibrate, reconstruct, piv, track, compare, plan, run, validate, simulate,
+            presets)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -53,6 +53,20 @@ def cmd_demo(args) -> dict:
                                             "rms_vox")} for b in e["by_depth"]],
             "uncertainty": (f"response, {DEMO_RESPONSE_DISPLACEMENTS} test displacement "
                             "(a run's default: 3)"),
-            "seconds": s["timings_s"]["total_s"],
+            "accuracy": s["accuracy"], "seconds": s["timings_s"]["total_s"],
             "stage_seconds": {k.removesuffix("_s"): v for k, v in s["timings_s"].items()},
             "products": s["products"]}
+
+
+def print_summary(s: dict) -> None:
+    """``plenopiv demo``: the run's lines, then its accuracy as ``plenopiv compare`` prints it."""
+    from plenopiv.cli._output import _print_lines
+    from plenopiv.cli.compare import accuracy_lines
+
+    _print_lines({k: v for k, v in s.items() if k != "accuracy"})
+    acc = s.get("accuracy")
+    if acc:
+        vox = " x ".join(f"{v * 1e3:.4g}" for v in acc["voxel_m"])
+        print(f"accuracy against the truth (voxel {vox} mm; as plenopiv compare prints it):")
+        for line in accuracy_lines(acc):
+            print(f"  {line}")

@@ -65,7 +65,8 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
     if measured is not None:
         field = combine(field, measured)
         method = "response"
-    return VectorResult.from_field(field, result_a.correction, dt, uncertainty_method=method)
+    return VectorResult.from_field(field, result_a.correction, dt, uncertainty_method=method,
+                                   grid=result_a.grid)
 
 
 @dataclass(frozen=True)
