@@ -251,7 +251,7 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
                                                 particles=va.particle_position_effective,
                                                 title=f"pair {name}: volume A"))
         paths["png_vectors"] = str(vector_slices(result.vectors, out / f"{name}_vectors.png",
-                                                 title=f"pair {name}: vectors"))
+                                                 title=f"pair {name}"))
     files = result.vectors.save(out / f"{name}_vectors.h5", config=cfg, vtk=experiment.output.vtk,
                                 extra_attrs={"complete": True, **(extra_attrs or {})})
     paths["vectors"] = str(files[0])
