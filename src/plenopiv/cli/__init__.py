@@ -36,7 +36,7 @@ from plenopiv.cli import (
     track,
     validate,
 )
-from plenopiv.cli._common import _Parser
+from plenopiv.cli._common import _add_example, _Parser
 from plenopiv.cli._output import _fmt as _fmt
 from plenopiv.cli._output import _print_lines
 from plenopiv.cli._progress import _StageBar as _StageBar
@@ -63,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="plenopiv", description="Tomographic plenoptic PIV: simulate, calibrate, "
         "reconstruct and correlate.")
     parser.add_argument("--version", action="version", version=f"plenopiv {__version__}")
+    _add_example(parser, "plenopiv demo --out demo_out")
     sub = parser.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
         command.add_parser(sub)

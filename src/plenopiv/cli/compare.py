@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from plenopiv.cli._common import _add_common, _integer
+from plenopiv.cli._common import _add_common, _add_example, _integer
 
 #: Most depth bands ``--bands`` takes.
 MAX_BANDS = 100
@@ -28,6 +28,7 @@ def add_parser(sub) -> None:
     p.add_argument("--bands", type=int, default=3,
                    help="equal bands of depth Z for the figures per depth (default 3)")
     _add_common(p)
+    _add_example(p, "plenopiv compare vectors.h5 pair.h5 --bands 3")
     p.set_defaults(func=cmd_compare)
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from plenopiv.cli._common import _add_common, _add_precompile, _seed
+from plenopiv.cli._common import _add_common, _add_example, _add_precompile, _seed
 from plenopiv.cli._progress import _StageBar
 from plenopiv.products.files import check_output_path
 
@@ -24,6 +24,7 @@ def add_parser(sub) -> None:
     demo.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     _add_precompile(demo, "the demo")
     _add_common(demo)
+    _add_example(demo, "plenopiv demo --out demo_out")
     demo.set_defaults(func=cmd_demo)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from plenopiv.cli._common import _add_common
+from plenopiv.cli._common import _add_common, _add_example
 from plenopiv.cli._output import _fmt
 from plenopiv.cli._progress import _StageBar
 
@@ -37,6 +37,7 @@ def add_parser(sub) -> None:
                       help="estimate times from the benchmark figures instead of timing the "
                            "kernels here (no numba compilation)")
     _add_common(plan)
+    _add_example(plan, "plenopiv plan experiment.toml")
     plan.set_defaults(func=cmd_plan)
 
 

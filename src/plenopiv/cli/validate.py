@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import time
 
-from plenopiv.cli._common import _add_common, _add_precompile, _integer, _number, _seed
+from plenopiv.cli._common import (
+    _add_common,
+    _add_example,
+    _add_precompile,
+    _integer,
+    _number,
+    _seed,
+)
 from plenopiv.errors import ConfigError
 from plenopiv.products.files import check_output_path
 
@@ -40,6 +47,7 @@ def add_parser(sub) -> None:
     val.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     _add_precompile(val, "the oseen/hill case")
     _add_common(val)
+    _add_example(val, "plenopiv validate oseen --out validation_oseen")
     val.set_defaults(func=cmd_validate)
 
 
