@@ -277,7 +277,6 @@ def chain(tmp_path_factory):
     return d
 
 
-@pytest.mark.slow
 def test_against_the_simulated_pair_flow(chain, capsys):
     d = chain
     capsys.readouterr()
@@ -296,7 +295,6 @@ def test_against_the_simulated_pair_flow(chain, capsys):
         assert s["overall"][c]["rms"] < s["overall"][c]["true_rms"]
 
 
-@pytest.mark.slow
 def test_window_mean_where_the_flow_cannot_be_rebuilt(chain, tmp_path, capsys):
     d = chain
     capsys.readouterr()
@@ -309,9 +307,12 @@ def test_window_mean_where_the_flow_cannot_be_rebuilt(chain, tmp_path, capsys):
     code, s, _ = compare(capsys, d / "vectors.h5", pair)
     assert code == 0 and s["truth_at_vectors"] == "window mean"
     assert "not the recorded flow: its flow 'tornado' is not one of" in s["notes"][0]
+    assert s["overall"]["v"]["gain"] is None
     _, by_flow, _ = compare(capsys, d / "vectors.h5", d / "pair.h5")
     for c in "uw":
-        # the particles' mean displacement in a window is near the flow at its centre
-        assert s["overall"][c]["gain"] == pytest.approx(by_flow["overall"][c]["gain"], abs=0.3)
-        assert s["overall"][c]["true_rms"] == pytest.approx(by_flow["overall"][c]["true_rms"],
-                                                            rel=0.3)
+        # the window mean is the vortex smoothed over 1.5 mm windows: smaller than the flow at
+        # the centres (0.75 against 0.98 voxel here), and nearer what PIV measures, a window
+        # average too (gain 0.97 and 0.69 against 0.73 and 0.51)
+        win, flow = s["overall"][c], by_flow["overall"][c]
+        assert 0.5 * flow["true_rms"] < win["true_rms"] < flow["true_rms"]
+        assert flow["gain"] < win["gain"] < 1.3 and win["correlation"] > 0.7
