@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import json
 import os
 import sys
 import time
@@ -37,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from full_camera import full_case, render_pair  # noqa: E402
 
 from plenopiv.particles.settings import ParticleSettings
+from plenopiv.products.jsonio import dumps
 from plenopiv.reconstruction.real_lattice import LensletProjector
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.subdivision import weights_for
@@ -186,7 +186,7 @@ def main(argv=None) -> dict:
                                                        / out["aligned"][f"{key}_cpu_s"], 2)
         print(f"aligned: {out['aligned']}", file=sys.stderr)
     if args.json:
-        print(json.dumps(out))
+        print(dumps(out))
     return out
 
 

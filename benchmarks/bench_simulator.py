@@ -9,7 +9,6 @@ on the same rays in the same process.
 from __future__ import annotations
 
 import argparse
-import json
 import resource
 import sys
 import time
@@ -17,6 +16,7 @@ import time
 import numpy as np
 
 from plenopiv.camera.model import load_camera
+from plenopiv.products.jsonio import dumps
 from plenopiv.synthetic import _kernels as K
 from plenopiv.synthetic.images import focal_point_image, particle_image
 from plenopiv.synthetic.tracer import geometry_vector
@@ -87,7 +87,7 @@ def main(argv=None):
     res["particle_image_shape"] = list(img.shape)
 
     if args.json:
-        print(json.dumps(res))
+        print(dumps(res))
     else:
         for k, v in res.items():
             print(f"{k:32s} {v:.4g}" if isinstance(v, float) else f"{k:32s} {v}")

@@ -15,7 +15,6 @@ Prints figures; not a test.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numpy as np
@@ -23,6 +22,7 @@ import numpy as np
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.model import load_camera
 from plenopiv.lightfield import light_field
+from plenopiv.products.jsonio import dumps
 from plenopiv.reconstruction.mart import reconstruct
 from plenopiv.reconstruction.weights import build_weights
 from plenopiv.workflow.vortex_case import VortexCase, aligned_grid
@@ -148,7 +148,7 @@ def main(argv=None):
         for method in a.reconstruct or ["smart", "mart"]:
             r = reconstruction_footprint(a.camera, a.depth_mm, method,
                                          peak_site=a.peak_site)
-            print(json.dumps(r) if a.json else
+            print(dumps(r) if a.json else
                   "  ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
                             for k, v in r.items()), flush=True)
         return
@@ -191,7 +191,7 @@ def main(argv=None):
     res["block_over_scipy"] = res["block_pass_ms_per_mnnz"] / res["scipy_forward_back_ms_per_mnnz"]
     res["mart_over_scipy"] = res["mart_pass_ms_per_mnnz"] / res["scipy_forward_back_ms_per_mnnz"]
     if a.json:
-        print(json.dumps(res))
+        print(dumps(res))
     else:
         for k, v in res.items():
             print(f"{k:34s} {v:.4g}" if isinstance(v, float) else f"{k:34s} {v}")

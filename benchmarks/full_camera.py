@@ -47,7 +47,6 @@ import argparse
 import contextlib
 import dataclasses
 import hashlib
-import json
 import math
 import os
 import resource
@@ -69,6 +68,7 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.piv import PIVSettings
 from plenopiv.products.files import atomic_path
+from plenopiv.products.jsonio import dumps
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
@@ -165,7 +165,7 @@ def full_case(args) -> tuple:
 
 
 def render_pair(cam, flow, case, box, n, rays):
-    key = hashlib.sha256(json.dumps([cam.to_dict(), repr(flow), case.dt, box.x, box.y, box.z,
+    key = hashlib.sha256(dumps([cam.to_dict(), repr(flow), case.dt, box.x, box.y, box.z,
                                      n, rays, case.seed], sort_keys=True,
                                     default=str).encode()).hexdigest()[:16]
     path = CACHE / f"full_pair_{key}.npz"
@@ -326,7 +326,7 @@ def main(argv=None) -> dict:
             _ = w.normalised
     except ReconstructionError as exc:
         result = {"geometry": args.geometry, "refused": str(exc), "stages": log}
-        print(json.dumps(result, default=_json_default))
+        print(dumps(result, default=_json_default))
         return result
     with stage("render pair", log):
         ia, ib, pa, pb, cached = render_pair(cam, flow, case, box, args.particles, args.rays)
@@ -354,7 +354,7 @@ def main(argv=None) -> dict:
         print(f"  {log[f'reconstruct {name}']['timings']}", file=sys.stderr)
         if calls is not None:
             log[f"reconstruct {name}"]["projector_calls"] = calls.table()
-            print(json.dumps(calls.table()), file=sys.stderr)
+            print(dumps(calls.table()), file=sys.stderr)
     if calls is not None:
         calls.uninstall()
         calls.last.clear()
@@ -402,9 +402,9 @@ def main(argv=None) -> dict:
     if not args.skip_patch:
         result["patch"] = patch_study(args, log)
     if args.json:
-        print(json.dumps(result, default=_json_default))
+        print(dumps(result, default=_json_default))
     else:
-        print(json.dumps(result, indent=1, default=_json_default))
+        print(dumps(result, indent=1, default=_json_default))
     return result
 
 

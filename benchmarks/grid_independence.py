@@ -27,7 +27,6 @@ each grid's interior (the blur radius of the deepest particle from its lateral e
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -41,6 +40,7 @@ from pipelines.studies import field_quality as fq
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import resolution_cell
+from plenopiv.products.jsonio import dumps
 from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow.volume import reconstruct_volume
@@ -153,12 +153,12 @@ def main(argv=None) -> dict:
     if a.spread:
         rows = spread_study()
         if a.json:
-            print(json.dumps(rows))
+            print(dumps(rows))
         return {"spread": rows}
     if a.single:
         out = single_particles()
         if a.json:
-            print(json.dumps(out))
+            print(dumps(out))
         return out
     cam = fq.study_camera()
     cal = Calibration.from_camera(cam)
@@ -195,7 +195,7 @@ def main(argv=None) -> dict:
               f"{v['depth_median']:.3f} / {v['depth_p90']:.3f} cells ({v['n']} pairs)"
               for k, v in out["moved"].items()), flush=True)
     if a.json:
-        print(json.dumps(out))
+        print(dumps(out))
     return out
 
 

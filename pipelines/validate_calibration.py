@@ -5,7 +5,6 @@ Fig 5.5) with the project's ray tracer; writes tables and PNG figures.
 """
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -13,10 +12,11 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipelines.studies.calibration import run
+from plenopiv.products.jsonio import dumps
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="docs/validation")
     ap.add_argument("--repeats", type=int, default=20, help="noise realisations per case")
     a = ap.parse_args()
-    print(json.dumps(run(a.out, repeats=a.repeats)))
+    print(dumps(run(a.out, repeats=a.repeats)))

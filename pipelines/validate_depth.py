@@ -7,7 +7,6 @@ About 15 minutes on two cores (5 cases × 21 depths, a few seconds per reconstru
 """
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -15,6 +14,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipelines.studies.depth_report import run
+from plenopiv.products.jsonio import dumps
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -27,5 +27,5 @@ if __name__ == "__main__":
     def progress(case, seconds):
         print(f"{case}: {seconds:.0f} s", file=sys.stderr, flush=True)
 
-    print(json.dumps(run(a.out, rays_per_particle=a.rays, diagnostics=not a.no_diagnostics,
+    print(dumps(run(a.out, rays_per_particle=a.rays, diagnostics=not a.no_diagnostics,
                          progress=progress)))

@@ -9,7 +9,6 @@ camera in about a minute.
 """
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -17,6 +16,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipelines.studies.field_quality_report import run
+from plenopiv.products.jsonio import dumps
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -30,4 +30,4 @@ if __name__ == "__main__":
                       voxel_study=False)
     else:
         summary = run(a.out, seed=a.seed)
-    print(json.dumps(summary))
+    print(dumps(summary))

@@ -8,7 +8,6 @@ $PLENOPIV_DATA, else ../shared/data beside the current folder or the repository)
 """
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -17,6 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipelines.studies.letters_data import find_data_dir
 from pipelines.studies.letters_report import run
+from plenopiv.products.jsonio import dumps
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -25,4 +25,4 @@ if __name__ == "__main__":
                                           / "data"),
                     help="third-party data folder holding plenoptomos_letters_ULF/")
     a = ap.parse_args()
-    print(json.dumps(run(a.out, data_dir=find_data_dir(a.data))))
+    print(dumps(run(a.out, data_dir=find_data_dir(a.data))))

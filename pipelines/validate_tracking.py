@@ -9,7 +9,6 @@ one seed; ``--densities 0.15`` runs the listed densities only (three seeds at 0.
 """
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -17,6 +16,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipelines.studies.tracking_report import run
+from plenopiv.products.jsonio import dumps
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -31,4 +31,4 @@ if __name__ == "__main__":
         summary = run(a.out, densities=tuple(a.densities))
     else:
         summary = run(a.out)
-    print(json.dumps(summary))
+    print(dumps(summary))

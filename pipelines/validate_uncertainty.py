@@ -8,7 +8,6 @@ About 14 minutes on two idle cores (ten cases, then nine more realisations).
 """
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipelines.studies.uncertainty import CASES, run
+from plenopiv.products.jsonio import dumps
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -26,4 +26,4 @@ if __name__ == "__main__":
     a = ap.parse_args()
     summary = run(a.out, work=a.work, cases=CASES[:2] if a.quick else CASES,
                   **({"realisations": ()} if a.quick else {}))
-    print(json.dumps(summary))
+    print(dumps(summary))

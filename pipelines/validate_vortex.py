@@ -10,7 +10,6 @@ their depth near the focal plane (33 reconstructions).
 """
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -18,6 +17,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipelines.studies.vortex import run
+from plenopiv.products.jsonio import dumps
 
 SERIES = ("depth_response", "causes", "flows", "depth_shifts", "lateral_shifts")
 
@@ -28,4 +28,4 @@ if __name__ == "__main__":
     ap.add_argument("--series", nargs="+", choices=SERIES, default=list(SERIES))
     ap.add_argument("--seed", type=int, default=1)
     a = ap.parse_args()
-    print(json.dumps(run(a.out, work=a.work, seed=a.seed, series=tuple(a.series))))
+    print(dumps(run(a.out, work=a.work, seed=a.seed, series=tuple(a.series))))

@@ -293,6 +293,11 @@ CASES = [
     ("piv-volume-missing", "piv {d}/va.h5 {d}/none.h5 --out {d}/w.h5", 2, "not found"),
     ("piv-volume-is-calibration", "piv {d}/va.h5 {d}/cal.h5 --out {d}/w.h5", 2,
      "not a plenopiv volume"),
+    # ---- compare ----
+    ("compare-vectors-missing", "compare {d}/none.h5 {d}/va.h5", 2, "VECTORS file"),
+    ("compare-vectors-is-volume", "compare {d}/va.h5 {d}/vb.h5 --json", 2,
+     "is a plenopiv volume file: expected a vectors product"),
+    ("compare-bands-0", "compare {d}/va.h5 {d}/vb.h5 --bands 0", 2, "--bands 0"),
     # ---- validate, demo ----
     ("lateral-oversampling-0", "validate oseen --lateral-oversampling 0 --out {d}/val", 2,
      "--lateral-oversampling 0"),

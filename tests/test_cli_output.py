@@ -82,6 +82,29 @@ def test_every_option_has_help():
     assert not missing, missing
 
 
+def _parsers(parser, name="plenopiv"):
+    """Every parser of the command, with its name ("plenopiv simulate pair")."""
+    yield name, parser
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for sub, sp in a.choices.items():
+                yield from _parsers(sp, f"{name} {sub}")
+
+
+def test_every_help_ends_with_one_example_that_parses(capsys):
+    names = []
+    for name, parser in _parsers(build_parser()):
+        names.append(name)
+        lines = [ln for ln in parser.format_help().splitlines() if ln.strip()]
+        assert lines[-1].startswith(f"example: {name} "), (name, lines[-1])
+        assert sum("example:" in ln for ln in lines) == 1, name
+        words = lines[-1].split()[2:]
+        args = build_parser().parse_args(words)             # the example is a valid command
+        assert args.func is not None
+    assert {"plenopiv compare", "plenopiv piv", "plenopiv simulate pair",
+            "plenopiv simulate"} <= set(names) and len(names) >= 17
+
+
 class _Terminal(io.StringIO):
     def isatty(self):
         return True

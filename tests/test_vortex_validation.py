@@ -149,7 +149,7 @@ def test_a_window_touching_the_volume_s_face_counts_as_inside_wherever_the_grid_
     from types import SimpleNamespace
 
     from plenopiv.camera.grid import VolumeGrid
-    from plenopiv.workflow.vortex_case import inner_vectors
+    from plenopiv.workflow.compare import inner_vectors
 
     rng = np.random.default_rng(11)
     window = (12, 24, 24)                                  # (z, y, x) voxels

@@ -6,14 +6,13 @@ the figure format, the JSON dialect and the Markdown tables are the same in all 
 - figures: PNG at 110 dpi, tight bounding box, drawn with the non-interactive Agg backend and
   closed once written;
 - JSON: indented by one space, NaN and ±inf written as ``null``
-  (:func:`plenopiv.products.jsonio.finite_json`), never the bare ``NaN`` that JSON parsers reject;
+  (:func:`plenopiv.products.jsonio.dumps`), never the bare ``NaN`` that JSON parsers reject;
 - every file is written atomically (:func:`plenopiv.products.files.atomic_path`): a reader never
   sees half a report.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -21,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from plenopiv.products.files import atomic_path
-from plenopiv.products.jsonio import finite_json
+from plenopiv.products.jsonio import dumps
 
 #: Resolution of every validation figure, dots per inch.
 FIGURE_DPI = 110
@@ -70,7 +69,7 @@ def write_json(path: str | Path, obj: Any, *,
         Converts what JSON cannot hold otherwise (``str`` for paths and the like); without it
         such an object raises ``TypeError``.
     """
-    return write_text(path, json.dumps(finite_json(obj), indent=1, default=default))
+    return write_text(path, dumps(obj, indent=1, default=default))
 
 
 def fmt(value, spec: str, missing: str = "–") -> str:

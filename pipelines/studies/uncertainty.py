@@ -36,14 +36,8 @@ from plenopiv.piv.settings import PIVSettings
 from plenopiv.products.hdf5 import open_product
 from plenopiv.products.vectors import VectorResult
 from plenopiv.workflow.accuracy import gain_bias_rms
-from plenopiv.workflow.vortex_case import (
-    VortexCase,
-    case_flow,
-    coverage,
-    inner_vectors,
-    run_case,
-    true_displacement,
-)
+from plenopiv.workflow.compare import inner_vectors, true_displacement
+from plenopiv.workflow.vortex_case import VortexCase, case_flow, coverage, run_case
 
 #: (label, case keywords): both flows, two lateral voxels, two seedings, two patches, two seeds.
 CASES = (
@@ -731,7 +725,7 @@ METHOD = [
     "figure, 1.3 points below the band's top: that σ is conservative there, as the split "
     "above says, and about half of Hill's realisations go over on u or v.",
     "- This table counts a window touching a face of the volume as inside (a millionth "
-    "of a voxel of rounding allowed, `plenopiv.workflow.vortex_case.inner_vectors`); before, "
+    "of a voxel of rounding allowed, `plenopiv.workflow.compare.inner_vectors`); before, "
     "the patch's outer layers, exactly half a window in, were kept or dropped by float "
     "rounding (Hill's patch 396 vectors instead of 473, its w 98.7 % instead of 97.5 %; the "
     "counts of the item on term 4's border and term 5's reach above are on 473).",

@@ -44,6 +44,10 @@ class PIVError(PlenopivError):
     """Cross-correlation inputs are inconsistent (volumes of different grids ...)."""
 
 
+class ComparisonError(PlenopivError):
+    """The inputs of a comparison do not fit: not the products expected, or different grids."""
+
+
 class ResourceError(PlenopivError):
     """A size beyond what this machine can do (memory, voxel count), refused before work."""
 

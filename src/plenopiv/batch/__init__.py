@@ -53,7 +53,7 @@ from plenopiv.batch.jobs import (
 )
 from plenopiv.errors import EXIT_INTERRUPTED, ConfigError, PlenopivError
 from plenopiv.products.files import atomic_path
-from plenopiv.products.jsonio import finite_json, to_json
+from plenopiv.products.jsonio import dumps, to_json
 
 __all__ = [
     "COMPLETE_ATTR",
@@ -196,7 +196,7 @@ class BatchSummary:
              "n_workers": self.n_workers, "threads_per_worker": self.threads_per_worker,
              "removed_parts": list(self.removed_parts), "summary_path": self.summary_path,
              "results": [r.to_dict(tracebacks=tracebacks) for r in self.results]}
-        return finite_json(json.loads(json.dumps(d, default=_json_default)))
+        return json.loads(dumps(d, default=_json_default))
 
 
 def _run_job(process: Callable[[PairJob], Any], job: PairJob,
@@ -488,8 +488,7 @@ def _write_summary(ordered: tuple[JobResult, ...], summary_file: Path, **fields
         results=ordered, summary_path=str(summary_file),
         interrupted=tuple(r.name for r in ordered if r.status == "interrupted"), **fields)
     with atomic_path(summary_file) as tmp:
-        tmp.write_text(json.dumps(summary.to_dict(tracebacks=True), indent=1,
-                                  allow_nan=False) + "\n")
+        tmp.write_text(dumps(summary.to_dict(tracebacks=True), indent=1) + "\n")
     return summary
 
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from plenopiv.errors import ConfigError
+from plenopiv.products.jsonio import dumps
 
 #: Root attribute of a product that marks it complete (the last thing ``process`` writes).
 COMPLETE_ATTR = "complete"
@@ -285,7 +286,7 @@ def mark_complete(path: str | Path, identity: Mapping[str, str] | None = None) -
 
     with h5py.File(path, "r+") as fh:
         if identity is not None:
-            fh.attrs[IDENTITY_ATTR] = json.dumps(dict(identity), sort_keys=True)
+            fh.attrs[IDENTITY_ATTR] = dumps(dict(identity), sort_keys=True)
         fh.flush()
         fh.attrs[COMPLETE_ATTR] = True
 

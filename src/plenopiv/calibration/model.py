@@ -25,6 +25,7 @@ from plenopiv.camera.model import CameraModel, camera_from_dict
 from plenopiv.conventions import sensor_to_pixel
 from plenopiv.errors import CalibrationError
 from plenopiv.products.hdf5 import open_product, write_h5
+from plenopiv.products.jsonio import dumps
 
 
 @dataclass(frozen=True)
@@ -151,7 +152,7 @@ class Calibration:
                  "image_distance_m": self.image_distance, "method": self.method,
                  "offset_m": np.asarray(self.offset, float), "rotation_rad": self.rotation,
                  "rms_residual_px": self.rms_residual_px, "n_lenslets": self.n_lenslets,
-                 "extra": json.dumps(self.extra, default=float)}
+                 "extra": dumps(self.extra, default=float)}
         return write_h5(path, {"/lenslets/centre_px": np.asarray(self.centre_px, float),
                                "/lenslets/focal_spot_px": np.asarray(self.focal_spot_px, float),
                                "/lenslets/grid_index": np.asarray(self.grid_index, np.int32)},

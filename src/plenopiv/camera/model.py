@@ -14,7 +14,6 @@ See docs/methods.md#camera-geometry for the geometry along the optical axis.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -25,6 +24,7 @@ import numpy as np
 from pydantic import Field, ValidationError
 
 from plenopiv.errors import ConfigError
+from plenopiv.products.jsonio import dumps
 from plenopiv.settings import StrictModel, format_validation_error
 
 GRIDS = ("square", "hexagonal")
@@ -476,7 +476,7 @@ class CameraModel:
 
     def to_json(self) -> str:
         """The resolved camera config as JSON (stored with every product)."""
-        return json.dumps(self.to_dict(), sort_keys=True)
+        return dumps(self.to_dict(), sort_keys=True)
 
 
 # --------------------------------------------------------------------------------------------

@@ -21,6 +21,7 @@ import warnings
 from plenopiv import __version__
 from plenopiv.cli import (
     calibrate,
+    compare,
     demo,
     piv,
     plan,
@@ -31,7 +32,7 @@ from plenopiv.cli import (
     track,
     validate,
 )
-from plenopiv.cli._common import _Parser
+from plenopiv.cli._common import _add_example, _Parser
 from plenopiv.cli._output import _fmt as _fmt
 from plenopiv.cli._output import _print_lines
 from plenopiv.cli._progress import _StageBar as _StageBar
@@ -48,7 +49,8 @@ from plenopiv.resources import prefer_small_pages
 __all__ = ["build_parser", "main"]
 
 #: The subcommands in the order ``plenopiv --help`` lists them; each adds its own parser.
-COMMANDS = (demo, calibrate, reconstruct, piv, track, plan, run, validate, simulate, presets)
+COMMANDS = (demo, calibrate, reconstruct, piv, track, compare, plan, run, validate, simulate,
+            presets)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -57,6 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="plenopiv", description="Tomographic plenoptic PIV: simulate, calibrate, "
         "reconstruct and correlate.")
     parser.add_argument("--version", action="version", version=f"plenopiv {__version__}")
+    _add_example(parser, "plenopiv demo --out demo_out")
     sub = parser.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
         command.add_parser(sub)

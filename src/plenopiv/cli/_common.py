@@ -44,6 +44,28 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog}: {message} (see {self.prog} --help)")
 
 
+#: How the last line of every command's ``--help`` begins (:func:`_add_example`).
+EXAMPLE_PREFIX = "example: "
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """argparse's help, its example line (the epilog, :func:`_add_example`) as written.
+
+    argparse would wrap a long example across lines; the description is wrapped as usual.
+    """
+
+    def _fill_text(self, text, width, indent):
+        if text.startswith(EXAMPLE_PREFIX):
+            return indent + text
+        return super()._fill_text(text, width, indent)
+
+
+def _add_example(p: argparse.ArgumentParser, example: str) -> None:
+    """End ``p``'s ``--help`` with one line, ``example: EXAMPLE`` (a command to copy)."""
+    p.epilog = EXAMPLE_PREFIX + example
+    p.formatter_class = _HelpFormatter
+
+
 def _add_common(p: argparse.ArgumentParser):
     p.add_argument("--json", action="store_true", help="print a one-object JSON summary")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from plenopiv.cli._common import _add_common, _check_out, _input_files, _number
+from plenopiv.cli._common import _add_common, _add_example, _check_out, _input_files, _number
 from plenopiv.cli._progress import _StageBar
 from plenopiv.errors import ConfigError
 
@@ -44,6 +44,8 @@ def add_parser(sub) -> None:
     cal.add_argument("--no-report", action="store_true", help="no PNG report beside --out")
     cal.add_argument("--out", required=True, help="calibration product (.h5)")
     _add_common(cal)
+    _add_example(cal, "plenopiv calibrate camera.toml --focal-point fp.tif --alignment al.tif "
+                      "--out cal.h5")
     cal.set_defaults(func=cmd_calibrate)
 
 

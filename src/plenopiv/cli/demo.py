@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from plenopiv.cli._common import _add_common, _add_precompile, _seed
+from plenopiv.cli._common import _add_common, _add_example, _add_precompile, _seed
 from plenopiv.cli._progress import _StageBar
 from plenopiv.products.files import check_output_path
 
@@ -24,6 +24,7 @@ def add_parser(sub) -> None:
     demo.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     _add_precompile(demo, "the demo")
     _add_common(demo)
+    _add_example(demo, "plenopiv demo --out demo_out")
     demo.set_defaults(func=cmd_demo)
 
 
@@ -53,6 +54,20 @@ def cmd_demo(args) -> dict:
                                             "rms_vox")} for b in e["by_depth"]],
             "uncertainty": (f"response, {DEMO_RESPONSE_DISPLACEMENTS} test displacement "
                             "(a run's default: 3)"),
-            "seconds": s["timings_s"]["total_s"],
+            "accuracy": s["accuracy"], "seconds": s["timings_s"]["total_s"],
             "stage_seconds": {k.removesuffix("_s"): v for k, v in s["timings_s"].items()},
             "products": s["products"]}
+
+
+def print_summary(s: dict) -> None:
+    """``plenopiv demo``: the run's lines, then its accuracy as ``plenopiv compare`` prints it."""
+    from plenopiv.cli._output import _print_lines
+    from plenopiv.cli.compare import accuracy_lines
+
+    _print_lines({k: v for k, v in s.items() if k != "accuracy"})
+    acc = s.get("accuracy")
+    if acc:
+        vox = " x ".join(f"{v * 1e3:.4g}" for v in acc["voxel_m"])
+        print(f"accuracy against the truth (voxel {vox} mm; as plenopiv compare prints it):")
+        for line in accuracy_lines(acc):
+            print(f"  {line}")

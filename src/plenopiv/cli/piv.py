@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plenopiv.cli._common import _add_common, _check_out, _input_files, _number
+from plenopiv.cli._common import _add_common, _add_example, _check_out, _input_files, _number
 from plenopiv.cli._progress import _StageBar
 from plenopiv.errors import ConfigError
 
@@ -30,6 +30,7 @@ def add_parser(sub) -> None:
     piv.add_argument("--no-vtk", action="store_true", help="no .vti file for ParaView")
     piv.add_argument("--no-png", action="store_true", help="no PNG of vector slices")
     _add_common(piv)
+    _add_example(piv, "plenopiv piv vol_a.h5 vol_b.h5 --out vectors.h5 --dt 1e-3")
     piv.set_defaults(func=cmd_piv)
 
 

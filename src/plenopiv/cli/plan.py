@@ -6,7 +6,7 @@ import dataclasses
 import time
 from pathlib import Path
 
-from plenopiv.cli._common import _add_common
+from plenopiv.cli._common import _add_common, _add_example
 from plenopiv.cli._output import _fmt
 from plenopiv.cli._progress import _StageBar
 
@@ -38,6 +38,7 @@ def add_parser(sub) -> None:
                       help="estimate times from the benchmark figures instead of timing the "
                            "kernels here (no numba compilation)")
     _add_common(plan)
+    _add_example(plan, "plenopiv plan experiment.toml")
     plan.set_defaults(func=cmd_plan)
 
 

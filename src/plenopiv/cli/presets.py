@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from plenopiv.cli._common import _add_common, _check_out
+from plenopiv.cli._common import _add_common, _add_example, _check_out
 from plenopiv.cli._output import _print_lines
 from plenopiv.errors import ConfigError
 
@@ -22,6 +22,7 @@ def add_parser(sub) -> None:
     p.add_argument("--out", metavar="FILE.toml",
                    help="write a copy of preset NAME, a camera TOML file to edit")
     _add_common(p)
+    _add_example(p, "plenopiv presets small_m1 --out my_camera.toml")
     p.set_defaults(func=cmd_presets)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from plenopiv.cli._common import _add_common, _check_out, _input_files
+from plenopiv.cli._common import _add_common, _add_example, _check_out, _input_files
 from plenopiv.cli._progress import _StageBar
 
 
@@ -17,6 +17,8 @@ def add_parser(sub) -> None:
     rec.add_argument("--config", required=True, help="experiment TOML ([volume], ...)")
     rec.add_argument("--out", required=True, help="volume product (.h5)")
     _add_common(rec)
+    _add_example(rec, "plenopiv reconstruct cal.h5 image_A.tif --config experiment.toml --out "
+                      "vol_a.h5")
     rec.set_defaults(func=cmd_reconstruct)
 
 

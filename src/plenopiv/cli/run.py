@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from plenopiv.cli._common import _add_common, _integer
+from plenopiv.cli._common import _add_common, _add_example, _integer
 from plenopiv.errors import ConfigError
 from plenopiv.products.files import check_output_path
 
@@ -19,6 +19,7 @@ def add_parser(sub) -> None:
     run.add_argument("--cluster", help="local | slurm | tcp://scheduler:8786 (default [batch])")
     run.add_argument("--workers", type=int, help="worker processes (default: [batch] or cores)")
     _add_common(run)
+    _add_example(run, "plenopiv run experiment.toml --workers 4")
     run.set_defaults(func=cmd_run)
 
 

@@ -11,6 +11,7 @@ import numpy as np
 from plenopiv import __version__
 from plenopiv.cli._common import (
     _add_common,
+    _add_example,
     _add_image_options,
     _camera_from_args,
     _check_out,
@@ -34,12 +35,20 @@ KINDS = (("focal-point", "white sheet through the stopped-down lens"),
          ("particles", "random point particles"),
          ("pair", "a particle image pair moved by a flow, with ground truth"))
 
+#: The example line of each kind's ``--help``.
+EXAMPLES = {"focal-point": "plenopiv simulate focal-point small_m1 --f-number 16 --out fp.tif",
+            "alignment": "plenopiv simulate alignment small_m1 --out al.tif",
+            "ruler": "plenopiv simulate ruler small_m1 --spacing-mm 1 --out ruler.tif",
+            "particles": "plenopiv simulate particles small_m1 --n-particles 500 --out p.tif",
+            "pair": "plenopiv simulate pair small_m1 --flow oseen --dt 1e-3 --out pair.h5"}
+
 
 def add_parser(sub) -> None:
     """Add ``simulate`` and its kinds (:data:`KINDS`) to the subcommands ``sub``."""
     from plenopiv.camera.model import preset_names
 
     sim = sub.add_parser("simulate", help="render synthetic plenoptic images by ray tracing")
+    _add_example(sim, EXAMPLES["pair"])
     simsub = sim.add_subparsers(dest="kind", required=True)
     presets = ", ".join(preset_names())
     for kind, helptext in KINDS:
@@ -54,6 +63,7 @@ def add_parser(sub) -> None:
             _add_render_options(p)
         _add_image_options(p)
         _add_common(p)
+        _add_example(p, EXAMPLES[kind])
         p.set_defaults(func=cmd_simulate)
         if kind == "ruler":
             _add_ruler_options(p)

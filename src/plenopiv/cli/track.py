@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from plenopiv.cli._common import _add_common, _check_out
+from plenopiv.cli._common import _add_common, _add_example, _check_out
 
 
 def add_parser(sub) -> None:
@@ -22,6 +22,8 @@ def add_parser(sub) -> None:
     trk.add_argument("--volume-b", help="reuse this volume product of image B (.h5)")
     trk.add_argument("--vectors", help="reuse this vectors product of the pair (.h5)")
     _add_common(trk)
+    _add_example(trk, "plenopiv track cal.h5 image_A.tif image_B.tif --config experiment.toml "
+                      "--out tracks.h5")
     trk.set_defaults(func=cmd_track)
 
 

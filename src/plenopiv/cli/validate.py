@@ -17,7 +17,14 @@ import sys
 import time
 from pathlib import Path
 
-from plenopiv.cli._common import _add_common, _add_precompile, _integer, _number, _seed
+from plenopiv.cli._common import (
+    _add_common,
+    _add_example,
+    _add_precompile,
+    _integer,
+    _number,
+    _seed,
+)
 from plenopiv.errors import ConfigError
 from plenopiv.products.files import check_output_path
 
@@ -120,6 +127,7 @@ def add_parser(sub) -> None:
     val.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     _add_precompile(val, "the oseen/hill case")
     _add_common(val)
+    _add_example(val, "plenopiv validate oseen --out validation_oseen")
     val.set_defaults(func=cmd_validate)
 
 

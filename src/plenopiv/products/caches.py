@@ -10,12 +10,13 @@ import json
 from pathlib import Path
 
 from plenopiv.piv.response import RESPONSE_VERSION, Response
+from plenopiv.products.jsonio import dumps
 
 
 def response_key(*parts) -> str:
     """A stable hash of what a response depends on (any JSON-able parts)."""
     h = hashlib.sha256()
-    h.update(json.dumps([RESPONSE_VERSION, *parts], sort_keys=True, default=str).encode())
+    h.update(dumps([RESPONSE_VERSION, *parts], sort_keys=True, default=str).encode())
     return h.hexdigest()
 
 
@@ -37,6 +38,6 @@ def cached_response(path: Path | None, key: str, compute) -> tuple[Response | No
         from plenopiv.products.files import atomic_path
 
         with atomic_path(path) as tmp:
-            tmp.write_text(json.dumps({"key": key, **resp.to_dict()}))
+            tmp.write_text(dumps({"key": key, **resp.to_dict()}))
     return resp, False
 

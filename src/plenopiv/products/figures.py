@@ -53,11 +53,39 @@ def calibration_report(report, image, path) -> Path:
     _residual_map(fig, fig.add_subplot(2, 2, 1), report)
     _residual_histogram(fig.add_subplot(2, 2, 2), report)
     _lattice_detail(fig.add_subplot(2, 2, 3), report, image)
-    ax = fig.add_subplot(2, 2, 4)
-    ax.axis("off")
-    ax.text(0.0, 1.0, "\n".join(_calibration_lines(report)), va="top", family="monospace",
-            fontsize=9)
+    _text_panel(fig, fig.add_subplot(2, 2, 4), _calibration_lines(report))
     return _save(plt, fig, path)
+
+
+def _text_panel(fig, ax, lines, *, fontsize: float = 9.0, margin_pt: float = 6.0):
+    """Monospace ``lines`` from the top-left corner of ``ax`` (axis off), wrapped to fit.
+
+    The panel's width is measured once the figure is laid out: from the axes' left edge to
+    the figure's right edge, less ``margin_pt`` (the text takes no part in the layout, which
+    therefore stays as measured). A line too long for it wraps at spaces,
+    its continuation indented two characters past the line's own indent.
+    """
+    import textwrap
+
+    from matplotlib.font_manager import FontProperties
+
+    ax.axis("off")
+    fig.draw_without_rendering()          # the layout, so that the box is final
+    renderer = fig.canvas.get_renderer()
+    x0 = ax.get_window_extent(renderer).x0
+    room = fig.bbox.width - x0 - margin_pt * fig.dpi / 72.0
+    font = FontProperties(family="monospace", size=fontsize)
+    char = renderer.get_text_width_height_descent("M" * 20, font, ismath=False)[0] / 20
+    width = max(20, int(room // char))
+    out = []
+    for line in lines:
+        indent = " " * (len(line) - len(line.lstrip(" ")) + 2)
+        out += textwrap.wrap(line, width=width, subsequent_indent=indent,
+                             break_on_hyphens=False) or [""]
+    text = ax.text(0.0, 1.0, "\n".join(out), va="top", family="monospace", fontsize=fontsize,
+                   transform=ax.transAxes)
+    text.set_in_layout(False)     # the layout stays the one measured
+    return text
 
 
 def _residual_map(fig, ax, report) -> None:
@@ -185,7 +213,7 @@ def volume_slices(volume, x, y, z, path, *, particles=None, title="") -> Path:
     ax.set_xlabel("X (mm)")
     ax.set_ylabel("Z (mm), + away from camera")
     if title:
-        fig.suptitle(title)
+        fig.suptitle(title_text(title))
     return _save(plt, fig, path)
 
 
@@ -201,13 +229,22 @@ def _nice(value: float) -> float:
 def vector_slices(vectors, path, *, title="") -> Path:
     """Plot in-plane vectors on the x-y plane nearest Z = 0 and the x-z plane through the middle.
 
-    The vectors are coloured by the out-of-plane component, with an arrow scale.
     ``vectors`` is a :class:`~plenopiv.products.vectors.VectorResult`: displacements in
     metres, shown in mm, or velocities in m/s when it has ``dt``. Rejected vectors are drawn
     grey where they were replaced and left out where they are NaN. ``title`` names the pair.
+
+    The x-y arrows are coloured by the depth component w, which they cannot show, on a
+    diverging map centred at 0 (red away from the camera, blue towards it); the x-z arrows,
+    which show the depth motion themselves, by the speed ``|(u, v, w)|`` on a perceptual
+    map (viridis): the out-of-plane v of the flows the chain is validated on (vortices about
+    y) is zero, and colouring by it showed noise near the grey centre of a diverging map.
+    Both colour scales end at the 98th percentile of the valid vectors (symmetric about 0
+    for w), so that a few outliers do not wash the colours out. The arrow scale (a round
+    number near the 90th percentile of the speed) sits above each panel's top-left corner,
+    outside the frame.
     """
     plt, fig = _figure(figsize=(14, 6), margins=dict(left=0.06, right=0.97, bottom=0.1,
-                                                     top=0.84, wspace=0.25))
+                                                     top=0.82, wspace=0.25))
     x, y, z = (np.asarray(a) * 1e3 for a in (vectors.x, vectors.y, vectors.z))
     ok = np.asarray(vectors.valid, bool)
     iz = int(np.argmin(np.abs(z)))
@@ -218,38 +255,91 @@ def vector_slices(vectors, path, *, title="") -> Path:
         scale, unit, quantity = 1.0 / vectors.dt, "m/s", "velocity"
     u, v, w = (np.asarray(c, float) * scale for c in (vectors.u, vectors.v, vectors.w))
     finite = np.isfinite(u) & np.isfinite(v) & np.isfinite(w)
-    speed = np.sqrt(u**2 + v**2 + w**2)[finite & ok]
-    key = _nice(float(np.percentile(speed, 90))) if speed.size else 1.0
-    lim = float(np.nanmax(np.abs(np.where(ok, w, np.nan)))) if (ok & finite).any() else 1.0
+    speed = np.sqrt(u**2 + v**2 + w**2)
+    good_speed = speed[finite & ok]
+    key = _nice(float(np.percentile(good_speed, 90))) if good_speed.size else 1.0
+    w_lim = _robust_limit(np.abs(w[finite & ok]))
     panels = (
-        (1, "x-y", f"Z = {z[iz]:.2f} mm", x, y, (u[iz], v[iz]), w[iz], ok[iz], "w", "Y (mm)"),
-        (2, "x-z", f"Y = {y[iy]:.2f} mm", x, z, (u[:, iy], w[:, iy]), v[:, iy], ok[:, iy], "v",
-         "Z (mm), + away from camera"),
+        (1, "x-y", f"Z = {z[iz]:.2f} mm", x, y, (u[iz], v[iz]), w[iz], ok[iz],
+         dict(cmap="RdBu_r", clim=(-w_lim, w_lim)),
+         f"w, out-of-plane {quantity} ({unit})", "Y (mm)"),
+        (2, "x-z", f"Y = {y[iy]:.2f} mm", x, z, (u[:, iy], w[:, iy]), speed[:, iy], ok[:, iy],
+         dict(cmap="viridis", clim=(0.0, _robust_limit(good_speed))),
+         f"speed |(u, v, w)| ({unit})", "Z (mm), + away from camera"),
     )
-    for pos, plane, where, ha, va, (pu, pv), colour, good, cname, ylabel in panels:
+    for pos, plane, where, ha, va, (pu, pv), colour, good, cmap, clabel, ylabel in panels:
         ax = fig.add_subplot(1, 2, pos)
         H, V = np.meshgrid(ha, va, indexing="xy")
-        lim_c = lim if cname == "w" else (float(np.nanmax(np.abs(np.where(ok, v, np.nan))))
-                                          if (ok & finite).any() else 1.0)
-        lim_c = lim_c if lim_c > 0 else 1.0
-        q = ax.quiver(H[good], V[good], pu[good], pv[good], colour[good], cmap="coolwarm",
-                      angles="xy", scale_units="xy", scale=key / (0.8 * _spacing(ha)),
-                      clim=(-lim_c, lim_c))
+        q = ax.quiver(H[good], V[good], pu[good], pv[good], colour[good], angles="xy",
+                      scale_units="xy", scale=key / (0.8 * _spacing(ha)), **cmap)
         bad = ~good & np.isfinite(pu) & np.isfinite(pv)
         if bad.any():
             ax.quiver(H[bad], V[bad], pu[bad], pv[bad], color="0.6", angles="xy",
                       scale_units="xy", scale=key / (0.8 * _spacing(ha)))
-        ax.quiverkey(q, 0.7, 1.015, key, f"{key:g} {unit}", labelpos="E", coordinates="axes")
-        fig.colorbar(q, ax=ax, label=f"{cname}, out-of-plane {quantity} ({unit})")
+        fig.colorbar(q, ax=ax, label=clabel)
         ax.set_title(f"{plane} plane at {where}" + (" (grey: replaced)" if bad.any() else ""),
-                     loc="left", pad=16)
+                     loc="left", pad=KEY_BAND_PT)
         ax.set_xlabel("X (mm)")
         ax.set_ylabel(ylabel)
         ax.invert_yaxis()
         if plane == "x-y":
             ax.set_aspect("equal")
-    fig.suptitle((title + ": " if title else "") + f"{quantity} ({unit})")
+        _arrow_key(fig, ax, q, key, 0.8 * _spacing(ha), f"{key:g} {unit}")
+    fig.suptitle(title_text(title, f"{quantity} ({unit})"))
     return _save(plt, fig, path)
+
+
+#: Points between a panel's frame and its title, where the arrow scale sits.
+KEY_BAND_PT = 24.0
+#: Points from the frame's top edge to the arrow scale's centre line.
+KEY_GAP_PT = 9.0
+
+
+def _arrow_key(fig, ax, q, key: float, length: float, label: str):
+    """The arrow scale of ``q`` above the top-left corner of ``ax``, outside its frame.
+
+    ``length``: the arrow's length in data units along x. The key is placed in figure
+    coordinates once the axes has its final box (after its aspect), its tail over the
+    frame's left edge and its label to the right, clearing the frame by the same few points
+    on every panel shape.
+    """
+    ax.autoscale_view()
+    ax.apply_aspect()
+    box = ax.get_position()
+    (x0, _), (x1, _) = ax.transData.transform([(0.0, 0.0), (length, 0.0)])
+    dx = abs(x1 - x0) / fig.bbox.width            # the key's tip is at X (labelpos "E")
+    dy = KEY_GAP_PT / 72.0 / fig.get_figheight()
+    return ax.quiverkey(q, box.x0 + dx, box.y1 + dy, key, label, labelpos="E",
+                        coordinates="figure")
+
+
+def _robust_limit(values) -> float:
+    """The 98th percentile of ``values`` (ignoring NaN), or 1 where there is none or it is 0."""
+    a = np.asarray(values, float)
+    a = a[np.isfinite(a)]
+    lim = float(np.percentile(a, 98)) if a.size else 0.0
+    return lim if lim > 0 else (float(a.max()) if a.size and a.max() > 0 else 1.0)
+
+
+def title_text(*parts: str, sep: str = ": ") -> str:
+    """A title of ``parts`` (empty ones left out) in which no word follows itself.
+
+    ``title_text("pair pair", "velocity (m/s)")`` is ``"pair: velocity (m/s)"``: a pair
+    named "pair" is not the "pair pair" of ``f"pair {name}"``. Words compare without case;
+    a word with punctuation after it ("pair:") ends the run.
+
+    >>> title_text("pair pair: vectors")
+    'pair: vectors'
+    """
+    text = sep.join(p for p in parts if p)
+    out: list[str] = []
+    for word in text.split(" "):
+        bare = word.rstrip(":;,.")
+        if out and out[-1].isalpha() and bare.isalpha() and bare.lower() == out[-1].lower():
+            out[-1] = word
+        else:
+            out.append(word)
+    return " ".join(out)
 
 
 def _spacing(a) -> float:
@@ -293,6 +383,6 @@ def vector_comparison(x, y, z, measured, truth, valid, path, *, voxel, title="")
             ax.set_ylabel("Z (mm), + away from camera")
             ax.invert_yaxis()
     if title:
-        fig.suptitle(f"{title}\nvoxel {voxel[0] * 1e3:.3f} x {voxel[1] * 1e3:.3f} x "
+        fig.suptitle(f"{title_text(title)}\nvoxel {voxel[0] * 1e3:.3f} x {voxel[1] * 1e3:.3f} x "
                      f"{voxel[2] * 1e3:.3f} mm")
     return _save(plt, fig, path)

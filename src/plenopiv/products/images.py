@@ -5,7 +5,6 @@ Images are returned as the sensor reads out, ``image[row, col]``, never flipped.
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from pathlib import Path
@@ -15,7 +14,7 @@ import numpy as np
 
 from plenopiv.errors import ImageError, OutputError, PlenopivWarning
 from plenopiv.products.files import atomic_path, split_dataset_spec
-from plenopiv.products.jsonio import json_default
+from plenopiv.products.jsonio import dumps
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".h5", ".hdf5")
 
@@ -198,7 +197,7 @@ def write_image(path: str | Path, image: np.ndarray, *, metadata: dict | None = 
             import tifffile
 
             tifffile.imwrite(tmp, image, metadata=None,
-                             description=json.dumps(metadata or {}, default=json_default))
+                             description=dumps(metadata or {}))
         elif suffix == ".png":
             import skimage.io
 

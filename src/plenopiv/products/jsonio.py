@@ -1,13 +1,25 @@
-"""JSON text of summaries and configs: numpy values allowed, NaN and infinities as null."""
+"""JSON text of summaries, configs and keys: strict JSON, numpy values allowed, NaN as null.
+
+Every JSON that plenopiv writes or prints goes through :func:`dumps` (or :func:`to_json`,
+:func:`dump`): command summaries (``--json``), the batch's ``summary.json``, the resolved
+configs stored in products, caches and the validation reports. Non-finite floats (NaN,
+±inf) become ``null``, so that the text is strict JSON (RFC 8259), never holding the bare
+``NaN`` or ``Infinity`` tokens that strict parsers (JavaScript's ``JSON.parse``, jq, Go)
+reject. Text of finite values is what :func:`json.dumps` writes with the same options, so
+keys hashed from it do not change.
+"""
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
+
+__all__ = ["dump", "dumps", "finite_json", "json_default", "to_json"]
 
 
 def json_default(o: Any):
@@ -36,9 +48,48 @@ def finite_json(obj: Any) -> Any:
     return obj
 
 
-def to_json(obj: Any) -> str:
-    """Valid JSON text of ``obj``: numpy arrays and scalars allowed, NaN and ±inf as null.
+def dumps(obj: Any, *, indent: int | str | None = None, sort_keys: bool = False,
+          default: Callable[[Any], Any] | None = None,
+          separators: tuple[str, str] | None = None) -> str:
+    """Strict JSON text of ``obj``: :func:`json.dumps` with NaN and ±inf as ``null``.
 
-    Never the bare ``NaN`` that JSON parsers reject.
+    Parameters
+    ----------
+    obj : object
+        Dicts, lists, tuples, numbers, strings, None, NumPy arrays and scalars, paths.
+    indent, sort_keys, separators
+        As for :func:`json.dumps`.
+    default : callable, optional
+        Converts what JSON cannot hold otherwise (``str``, say), after numpy values and paths
+        (:func:`json_default`); its result is made finite too. Without it such an object
+        raises ``TypeError``.
+
+    Examples
+    --------
+    >>> dumps({"gain": float("nan"), "rms": np.float32(0.5), "n": np.int64(3)})
+    '{"gain": null, "rms": 0.5, "n": 3}'
     """
-    return json.dumps(finite_json(obj), default=json_default, sort_keys=True, allow_nan=False)
+    def convert(o):
+        try:
+            return finite_json(json_default(o))
+        except TypeError:
+            if default is None:
+                raise
+            return finite_json(default(o))
+
+    return json.dumps(finite_json(obj), default=convert, sort_keys=sort_keys, indent=indent,
+                      separators=separators, allow_nan=False)
+
+
+def dump(obj: Any, fh: IO[str], **kwargs) -> None:
+    """Write :func:`dumps` of ``obj`` to the open text file ``fh`` (same keywords)."""
+    fh.write(dumps(obj, **kwargs))
+
+
+def to_json(obj: Any) -> str:
+    """Strict JSON text of ``obj`` with sorted keys (the ``--json`` summaries, configs).
+
+    Numpy arrays and scalars allowed, NaN and ±inf as null: never the bare ``NaN`` that
+    JSON parsers reject.
+    """
+    return dumps(obj, sort_keys=True)

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.camera.corrections import DepthCorrection
+from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ConfigError, ReconstructionError
 from plenopiv.products.files import atomic_path
 from plenopiv.products.hdf5 import cf_axes, open_product, write_h5
@@ -73,6 +74,12 @@ class VectorResult:
         Standard uncertainty of u, v, w, metres (w's in physical depth).
     uncertainty_method : str
         ``"response"`` or ``"correlation"`` (see :mod:`plenopiv.piv.uncertainty`).
+    grid : VolumeGrid or None
+        The voxel grid the volumes were correlated on, in physical coordinates (its depth
+        corrected like ``z``); None where unknown. Its voxel is the unit of the field's
+        figures in voxels (``plenopiv compare``).
+    window_vox : (wz, wy, wx) or None
+        The interrogation window of the last pass, voxels; None where unknown.
     """
 
     x: np.ndarray
@@ -92,6 +99,8 @@ class VectorResult:
     v_uncertainty: np.ndarray | None = None
     w_uncertainty: np.ndarray | None = None
     uncertainty_method: str = "correlation"
+    grid: VolumeGrid | None = None
+    window_vox: tuple[int, int, int] | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "dt", check_dt(self.dt, "VectorResult dt"))
@@ -114,9 +123,15 @@ class VectorResult:
 
     @classmethod
     def from_field(cls, field, correction: DepthCorrection, dt=None, *,
-                   uncertainty_method: str = "correlation") -> VectorResult:
-        """Convert a :class:`plenopiv.piv.VectorField` of effective coordinates."""
+                   uncertainty_method: str = "correlation",
+                   grid: VolumeGrid | None = None) -> VectorResult:
+        """Convert a :class:`plenopiv.piv.VectorField` of effective coordinates.
+
+        ``grid``: the effective grid the volumes were reconstructed on (kept with its depth
+        corrected, :attr:`grid`).
+        """
         scale = abs(correction.scale)
+        physical = None if grid is None else physical_grid(grid, correction)
         return cls(np.asarray(field.x), np.asarray(field.y), correction.depth(field.z),
                    np.asarray(field.u), np.asarray(field.v), correction.depth(field.w),
                    np.asarray(field.valid), np.asarray(field.snr), dt, int(field.n_replaced),
@@ -125,7 +140,8 @@ class VectorResult:
                    u_uncertainty=np.asarray(field.u_uncertainty),
                    v_uncertainty=np.asarray(field.v_uncertainty),
                    w_uncertainty=np.asarray(field.w_uncertainty) * scale,
-                   uncertainty_method=uncertainty_method)
+                   uncertainty_method=uncertainty_method, grid=physical,
+                   window_vox=tuple(int(n) for n in field.settings.windows[-1]))
 
     def _quality(self) -> dict:
         return {"valid": self.valid, "flag": self.flag, "replaced": self.replaced,
@@ -157,13 +173,24 @@ class VectorResult:
                  "quantity": "displacement" if self.dt is None else "velocity",
                  "n_replaced": self.n_replaced, "Conventions": "CF-1.8",
                  "uncertainty_method": self.uncertainty_method,
-                 **(extra_attrs or {})}
+                 **self._grid_attrs(), **(extra_attrs or {})}
         # the .vti first, then the HDF5 file: its `complete` mark (extra_attrs) is the last
         # thing written, inside its temporary, so a failed write leaves nothing marked
         vti = self.save_vtk(Path(path).with_suffix("")) if vtk else None
         p = write_h5(path, ds, attrs=attrs, units=units, config=config, kind="vectors",
                      finalize=lambda fh: _cf_dimensions(fh, names))
         return [p] if vti is None else [p, vti]
+
+    def _grid_attrs(self) -> dict:
+        """The attributes of :attr:`grid` and :attr:`window_vox` (:data:`GRID_ATTRS`)."""
+        out = {}
+        if self.grid is not None:
+            out.update(voxel_m=np.array(self.grid.voxel, float),
+                       volume_origin_m=np.array(self.grid.origin, float),
+                       volume_shape=np.array(self.grid.shape, np.int64))
+        if self.window_vox is not None:
+            out["window_vox"] = np.array(self.window_vox, np.int64)
+        return out
 
     def save_vtk(self, stem: Path) -> Path:
         """Write ``stem.vti`` (ParaView image data) atomically and return its path.
@@ -196,19 +223,69 @@ class VectorResult:
         return final
 
 
+#: Root attributes of the vectors product that hold :attr:`VectorResult.grid` (``voxel_m``
+#: (dx, dy, dz), ``volume_origin_m`` (x, y, z of the centre of voxel [0, 0, 0]),
+#: ``volume_shape`` (nz, ny, nx); metres, depth corrected) and :attr:`VectorResult.window_vox`
+#: (``window_vox``, (wz, wy, wx) voxels).
+GRID_ATTRS = ("voxel_m", "volume_origin_m", "volume_shape", "window_vox")
+
+
+def physical_grid(grid: VolumeGrid, correction: DepthCorrection) -> VolumeGrid:
+    """The effective ``grid`` with its depth (origin and voxel) corrected by ``correction``."""
+    s = correction.scale
+    return VolumeGrid((grid.origin[0], grid.origin[1], float(grid.origin[2] * s)),
+                      (grid.voxel[0], grid.voxel[1], float(grid.voxel[2] * s)), grid.shape)
+
+
 def load_vectors(path: str | Path) -> VectorResult:
     """Read a vectors product (:meth:`VectorResult.save`) as a VectorResult of displacements.
 
     Velocity products (``dt_s`` set) are turned back into displacements (metres), ``dt`` kept.
+    The grid and window (:data:`GRID_ATTRS`) come from the product's attributes, or, in a
+    product written without them, from the ``[volume]`` and ``[piv] windows`` of its config
+    (effective depth, as the experiment gave it); None where neither holds them.
     """
     with open_product(path, "vectors", ReconstructionError) as fh:
         dt = float(fh.attrs.get("dt_s", np.nan))
         f = 1.0 if not np.isfinite(dt) else dt
         arrays = {k: fh[f"/{k}"][()] for k in ("x", "y", "z", "u", "v", "w", "valid", "snr")}
+        grid, window = _stored_grid(dict(fh.attrs))
     return VectorResult(arrays["x"], arrays["y"], arrays["z"],
                         arrays["u"].astype(float) * f, arrays["v"].astype(float) * f,
                         arrays["w"].astype(float) * f, arrays["valid"].astype(bool),
-                        arrays["snr"].astype(float), dt if np.isfinite(dt) else None)
+                        arrays["snr"].astype(float), dt if np.isfinite(dt) else None,
+                        grid=grid, window_vox=window)
+
+
+def _stored_grid(attrs: dict) -> tuple[VolumeGrid | None, tuple | None]:
+    """``(grid, window_vox)`` of a vectors product's root attributes (see :func:`load_vectors`)."""
+    import json
+
+    from plenopiv.camera.grid import volume_from_dict
+    from plenopiv.errors import ConfigError
+
+    grid = window = None
+    if all(k in attrs for k in ("voxel_m", "volume_origin_m", "volume_shape")):
+        grid = VolumeGrid(tuple(float(v) for v in attrs["volume_origin_m"]),
+                          tuple(float(v) for v in attrs["voxel_m"]),
+                          tuple(int(n) for n in attrs["volume_shape"]))
+    if "window_vox" in attrs:
+        window = tuple(int(n) for n in attrs["window_vox"])
+    if grid is not None and window is not None:
+        return grid, window
+    try:
+        config = json.loads(attrs.get("config", "{}"))
+    except (TypeError, ValueError):
+        return grid, window
+    if grid is None and isinstance(config.get("volume"), dict):
+        try:
+            grid = volume_from_dict(config["volume"])
+        except ConfigError:
+            grid = None
+    windows = (config.get("piv") or {}).get("windows") if isinstance(config, dict) else None
+    if window is None and windows:
+        window = tuple(int(n) for n in windows[-1])
+    return grid, window
 
 
 def _cf_dimensions(fh, names) -> None:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import math
 from dataclasses import dataclass, field
 
@@ -24,6 +23,7 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import footprint
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField, light_field
+from plenopiv.products.jsonio import dumps
 
 __all__ = ["CELLS_PER_FOOTPRINT", "SEPARABLE_TOLERANCE", "SLAB_VOXELS", "WEIGHTS_VERSION",
            "ProjectionGeometry", "check_grid_in_view", "separable_axes",
@@ -67,7 +67,7 @@ def weights_key(calibration: Calibration, grid: VolumeGrid, *, f_number: float |
                 min_lit: float, min_weight: float) -> str:
     """SHA-256 of everything the weights depend on."""
     h = hashlib.sha256()
-    h.update(json.dumps({"v": WEIGHTS_VERSION, "camera": calibration.camera.to_dict(),
+    h.update(dumps({"v": WEIGHTS_VERSION, "camera": calibration.camera.to_dict(),
                          "si": round(calibration.image_distance, 15), "grid": grid.key(),
                          "f_number": f_number, "min_lit": min_lit, "min_weight": min_weight},
                         sort_keys=True).encode())

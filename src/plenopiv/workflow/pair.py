@@ -62,7 +62,8 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
     if measured is not None:
         field = combine(field, measured)
         method = "response"
-    return VectorResult.from_field(field, result_a.correction, dt, uncertainty_method=method)
+    return VectorResult.from_field(field, result_a.correction, dt, uncertainty_method=method,
+                                   grid=result_a.grid)
 
 
 @dataclass(frozen=True)
@@ -247,7 +248,7 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
                                                 particles=va.particle_position_effective,
                                                 title=f"pair {name}: volume A"))
         paths["png_vectors"] = str(vector_slices(result.vectors, out / f"{name}_vectors.png",
-                                                 title=f"pair {name}: vectors"))
+                                                 title=f"pair {name}"))
     files = result.vectors.save(out / f"{name}_vectors.h5", config=cfg, vtk=experiment.output.vtk,
                                 extra_attrs={"complete": True, **(extra_attrs or {})})
     paths["vectors"] = str(files[0])

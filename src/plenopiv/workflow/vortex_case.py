@@ -9,7 +9,6 @@ oseen|hill`` are thin wrappers around it.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -24,10 +23,11 @@ from plenopiv.config.experiment import Experiment, ImagesConfig, OutputConfig
 from plenopiv.piv.settings import PIVSettings
 from plenopiv.products.figures import vector_comparison
 from plenopiv.products.files import atomic_path
+from plenopiv.products.jsonio import dumps
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.subdivision import lateral_subdivision
 from plenopiv.settings import as_dict
-from plenopiv.synthetic.flows import HillVortex, LambOseen, Uniform, advect
+from plenopiv.synthetic.flows import HillVortex, LambOseen, Uniform
 from plenopiv.synthetic.images import (
     Ruler,
     alignment_image,
@@ -38,6 +38,7 @@ from plenopiv.synthetic.images import (
 )
 from plenopiv.synthetic.seeding import SeedingBox, particle_count, simulate_pair
 from plenopiv.workflow.accuracy import gain_bias_rms
+from plenopiv.workflow.compare import field_accuracy, inner_vectors, true_displacement
 from plenopiv.workflow.pair import process_pair, save_pair
 
 #: The flows a case can run.
@@ -177,18 +178,6 @@ def aligned_grid(camera: CameraModel, case: VortexCase) -> VolumeGrid:
                                   voxel=(lat, lat, dz))
 
 
-def true_displacement(vectors, flow, dt) -> np.ndarray:
-    """The flow's displacement at the window centres, (3, nz, ny, nx), metres.
-
-    PIV measures the displacement of the particles around a window centre between the
-    exposures, i.e. of the material point that sits at the centre half-way between them.
-    """
-    Z, Y, X = np.meshgrid(vectors.z, vectors.y, vectors.x, indexing="ij")
-    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
-    d = advect(flow, pts, dt / 2) - advect(flow, pts, -dt / 2)
-    return d.T.reshape((3,) + X.shape)
-
-
 def coverage(error, sigma) -> np.ndarray:
     """Share of ``|error| <= 2 sigma`` per column (component); NaN sigma counts as a miss."""
     e, s = np.asarray(error, float), np.asarray(sigma, float)
@@ -202,23 +191,6 @@ def _band(meas: np.ndarray, truth: np.ndarray, vox: np.ndarray) -> dict:
     return {"n_vectors": g["n"], "gain": g["gain"], "gain_se": g["gain_se"],
             "correlation": g["correlation"],
             "bias_vox": g["bias"], "rms_vox": g["rms"], "true_rms_vox": g["true_rms"]}
-
-
-def inner_vectors(vectors, grid: VolumeGrid, window_vox) -> np.ndarray:
-    """Vectors whose window lies inside the volume, bool ``(nz, ny, nx)``.
-
-    A vector counts when its centre is at least half a window ``window_vox`` ``(z, y, x)``
-    from every face of ``grid``; a window that touches a face is inside (a millionth of a
-    voxel of rounding allowed, so that the answer does not depend on how the grid's origin
-    rounds).
-    """
-    zz, yy, xx = np.meshgrid(vectors.z, vectors.y, vectors.x, indexing="ij")
-    inner = np.ones(xx.shape, bool)
-    for c, (lo, hi), w, d in zip((xx, yy, zz), grid.bounds, window_vox[::-1], grid.voxel,
-                                 strict=True):
-        margin = (0.5 * w - 1e-6) * d
-        inner &= (c >= lo + margin) & (c <= hi - margin)
-    return inner
 
 
 def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
@@ -383,6 +355,13 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None,
     disp = replace(res.vectors, dt=None)
     truth = true_displacement(disp, flow, case.dt)
     err = compare_with_truth(disp, flow, case.dt, grid, case.windows_vox[-1], truth=truth)
+    used = np.asarray(disp.valid, bool) & inner_vectors(disp, grid, case.windows_vox[-1])
+    acc = field_accuracy(np.stack([disp.u, disp.v, disp.w]), truth,
+                         np.broadcast_to(np.asarray(disp.z)[:, None, None], used.shape),
+                         grid.voxel, mask=used)
+    accuracy = {"truth_kind": "simulated pair", "truth_at_vectors": "flow", **acc,
+                "notes": [f"truth: the case's {case.flow} flow, evaluated at each window "
+                          "centre half-way between the exposures", *acc["notes"]]}
     vox = np.asarray(grid.voxel)[:, None, None, None]
     measured = np.stack([disp.u, disp.v, disp.w]) / vox
     paths["png_truth"] = str(vector_comparison(
@@ -393,8 +372,8 @@ def run_case(case: VortexCase, out: str | Path, *, progress=None,
     summary = {"case": case_dict, "n_particles": n, "n_found_a": found,
                "lateral_subdivision": list(lateral_subdivision(cal, grid, case.reconstruction)),
                "calibration": cal_summary, "grid_shape": list(grid.shape),
-               "voxel_mm": [v * 1e3 for v in grid.voxel], "errors": err,
+               "voxel_mm": [v * 1e3 for v in grid.voxel], "errors": err, "accuracy": accuracy,
                "timings_s": {k: round(v, 2) for k, v in timings.items()}, "products": paths}
     with atomic_path(out / "summary.json") as tmp:
-        tmp.write_text(json.dumps(summary, indent=1, default=str))
+        tmp.write_text(dumps(summary, indent=1, default=str))
     return summary

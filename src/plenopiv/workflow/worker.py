@@ -33,9 +33,8 @@ class ExperimentPairProcess:
 
     def __call__(self, job) -> dict:
         """Process one :class:`plenopiv.batch.PairJob`; returns a small summary."""
-        import json
-
         from plenopiv.products.images import read_image
+        from plenopiv.products.jsonio import dumps
 
         processor = worker_processor(self.experiment_path, self.calibration_path)
         exp, cal = processor.experiment, processor.calibration
@@ -43,7 +42,7 @@ class ExperimentPairProcess:
         res = processor(ia, ib)
         extra = {"image_a": str(job.image_a), "image_b": str(job.image_b)}
         if getattr(job, "identity", None) is not None:
-            extra["identity"] = json.dumps(dict(job.identity), sort_keys=True)
+            extra["identity"] = dumps(dict(job.identity), sort_keys=True)
         tracked = {}
         if exp.tracking.enabled:  # before the vectors file, which marks the pair complete
             from plenopiv.workflow.tracking import track_and_save
