@@ -92,7 +92,8 @@ def spot_lattice(image, camera: CameraModel, what: str, *, max_missing_fraction,
     return spots, lattice
 
 
-def lenslet_centres(camera: CameraModel, alignment_image=None, **lattice_options):
+def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None,
+                    **lattice_options):
     """The lenslets of ``camera``: from its alignment image, or its nominal lattice.
 
     Parameters
@@ -102,6 +103,9 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, **lattice_options
         centres when there is no alignment image.
     alignment_image : ndarray, optional
         Collimated light, main lens removed: one spot on each lenslet's axis.
+    dark : DarkFrame, optional
+        The dark frame (:class:`~plenopiv.calibration.defects.DarkFrame`) subtracted from
+        the alignment image once checked.
     **lattice_options
         Passed to :func:`spot_lattice` (limits, ``phase_harmonics``, ``threshold``,
         ``method``).
@@ -118,6 +122,8 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, **lattice_options
         return LensletCentres(sensor_to_pixel(mla.centres(), shape, pp), mla.grid_index(),
                               "nominal lattice", camera.pitch_px)
     image = check_image(alignment_image, shape=camera.sensor.shape, name="alignment image")
+    if dark is not None:
+        image = dark.subtract(image)
     # collimated light focuses to (almost) one pixel: accept one-pixel spots here; a hot
     # pixel is then rejected by the lattice fit as off-lattice instead
     spots, lat = spot_lattice(image, camera, "the alignment image", min_area_px=0.9,
@@ -270,8 +276,8 @@ def micro_image_diameter(image, centres_px, pitch_px):
     return float(np.mean(out))
 
 
-def measure_white_image(camera: CameraModel, white_image, image_distance: float,
-                        **limits) -> dict:
+def measure_white_image(camera: CameraModel, white_image, image_distance: float, *,
+                        dark=None, **limits) -> dict:
     """Measure the micro-image diameter of a white image and model it from the f-number.
 
     Parameters
@@ -282,8 +288,11 @@ def measure_white_image(camera: CameraModel, white_image, image_distance: float,
         A white image at the working aperture.
     image_distance : float
         The calibrated S_i, m.
+    dark : DarkFrame, optional
+        The dark frame (:class:`~plenopiv.calibration.defects.DarkFrame`) subtracted from
+        the white image once checked; its hot pixels are patched.
     **limits
-        ``max_missing_fraction`` and ``max_rms_residual_pitch`` of the lattice check.
+        The limits of the lattice check and ``bad_pixels`` (:func:`spot_lattice`).
 
     Returns
     -------
@@ -294,6 +303,8 @@ def measure_white_image(camera: CameraModel, white_image, image_distance: float,
     """
     shape = camera.sensor.shape
     wh = check_image(white_image, shape=shape, name="white image").astype(float)
+    if dark is not None:
+        wh = dark.subtract(wh, patch=True).astype(float)
     _spots, w_lat = spot_lattice(wh, camera, "the white image", **limits)
     complete = (w_lat.flags & SpotFlag.EDGE) == 0
     black = float(np.percentile(wh, 1.0))

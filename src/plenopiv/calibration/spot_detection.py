@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtri
 
 from plenopiv.calibration import _spot_kernels as _k
+from plenopiv.calibration.defects import fixed_pattern, isolated_pixels, patch_pixels
 from plenopiv.calibration.spot_types import (
     BACKGROUNDS,
     GRIDS,
@@ -219,7 +220,7 @@ def _local_background(work, pitch):
 def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
                  detection_threshold=0.15, method="auto", window_radius_px=None,
                  moment_radius_px=None, background="local", min_area_px=1.5, dim_fraction=0.5,
-                 max_saturated_fraction=0.02):
+                 max_saturated_fraction=0.02, bad_pixels=None):
     """Find one sub-pixel spot centre per lenslet in a calibration image.
 
     Parameters
@@ -251,9 +252,10 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     moment_radius_px : float, optional
         ``"window"`` method only: radius of its window, px; default measured from the spots.
     background : {"local", "none"}
-        ``"local"``: subtract a smooth background (box minimum over 1.25 pitch, box mean, less
-        the noise bias of that minimum); heights count from the gaps between spots.
-        ``"none"``: use the image as is.
+        ``"local"``: subtract the black level's fixed pattern per column and row, measured on
+        the dark gaps (:func:`~plenopiv.calibration.defects.fixed_pattern`), and a smooth
+        background (box minimum over 1.25 pitch, box mean, less the noise bias of that
+        minimum); heights count from the gaps between spots. ``"none"``: use the image as is.
     min_area_px : float
         Candidates whose light sits in less than this effective area (px) are rejected as hot
         pixels (a single bright pixel has area 1).
@@ -262,6 +264,13 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
         flagged ``DIM``.
     max_saturated_fraction : float, 0 <= max_saturated_fraction <= 1
         Largest allowed fraction of pixels at the integer dtype's maximum.
+    bad_pixels : array_like of bool, shape (R, C), optional
+        Pixels to ignore (the hot pixels of a dark frame,
+        :func:`~plenopiv.calibration.defects.hot_pixels_from_dark`): replaced by the median of
+        their good neighbours before anything else. Without them, when the spots are broader
+        than a pixel (rms radius >= 1 px), hot pixels are found by their shape
+        (:func:`~plenopiv.calibration.defects.isolated_pixels`), replaced alike and the spots
+        detected again, so that no hot pixel hides or pulls a spot.
 
     Returns
     -------
@@ -284,13 +293,24 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
                             min_area_px, dim_fraction, max_saturated_fraction)
     raw, sat_level = _validate_image(image, opts["max_saturated_fraction"])
     work = raw.astype(np.float32)
+    if bad_pixels is not None:
+        work = patch_pixels(work, bad_pixels)
     pitch, radius = _pitch_and_radius(work, expected_pitch_px, window_radius_px)
     if background == "local":
+        work = work - fixed_pattern(work, pitch)
         work = work - _local_background(work, pitch)
-    cand, work = _candidates(work, pitch, background, opts["detection_threshold"])
+    cand, work, noise = _candidates(work, pitch, background, opts["detection_threshold"])
     centres, intensity, area, rejected = _first_centroids(work, cand, radius, pitch, opts)
     interior = ~_edge_mask(centres, radius, work.shape)
     spot_r, spot_rms = _spot_size(work, centres[interior], pitch)
+    hot = isolated_pixels(work, noise) if spot_rms >= 1.0 else None
+    if hot is not None and hot.any():
+        work = patch_pixels(work, hot)
+        cand, work, _ = _candidates(work, pitch, background, opts["detection_threshold"])
+        centres, intensity, area, rejected = _first_centroids(work, cand, radius, pitch, opts)
+        rejected = np.concatenate([rejected, np.argwhere(hot).astype(np.float64)])
+        interior = ~_edge_mask(centres, radius, work.shape)
+        spot_r, spot_rms = _spot_size(work, centres[interior], pitch)
     if method == "auto":
         method = "window" if _window_fits(spot_r, pitch) else "centroid"
     centres, flags, moment_r, annulus = _refine(work, centres, area, method, pitch, radius,
@@ -359,9 +379,10 @@ def _pitch_and_radius(work, expected_pitch_px, window_radius_px):
 
 
 def _candidates(work, pitch, background, detection_threshold):
-    """Candidate spot positions ``(row, col)`` px, and the image less its noise pedestal.
+    """Candidate spot positions ``(row, col)`` px, the image less its pedestal, the gaps' noise.
 
-    Local maxima of the smoothed image at least half a pitch apart. With a local
+    The noise is a standard deviation in image units (0 without a local background).
+    Candidates are the local maxima of the smoothed image at least half a pitch apart. With a local
     background, candidate heights are measured from the typical level of the smoothed
     image's local minima (the gaps between spots), so noise bumps on that pedestal do not
     pass as spots; of the pedestal, the expected noise bias of the box minimum (the expected
@@ -401,7 +422,7 @@ def _candidates(work, pitch, background, detection_threshold):
         & (height >= _NOISE_FLOOR * sigma_smooth)
         & (height >= 0.1 * detection_threshold * np.percentile(height, 95))
     )
-    return cand[strong].astype(np.float64), work
+    return cand[strong].astype(np.float64), work, noise
 
 
 def _first_centroids(work, cand, radius, pitch, opts):
