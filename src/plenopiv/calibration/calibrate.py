@@ -27,7 +27,11 @@ from plenopiv.calibration.image_distance import (
     lenslet_integral_image,
     magnification_from_ticks,
 )
-from plenopiv.calibration.lattice_quality import MAX_MISSING_FRACTION, MAX_RMS_RESIDUAL_PITCH
+from plenopiv.calibration.lattice_quality import (
+    MAX_MISSING_FRACTION,
+    MAX_RMS_RESIDUAL_PITCH,
+    MIN_ON_LATTICE_FRACTION,
+)
 from plenopiv.calibration.lenslets import (
     LensletCentres,
     focal_spot_scale,
@@ -127,10 +131,12 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
               ruler_image=None, ruler_spacing: float | None = None, ruler_axis: str = "x",
               method: str = "focal-point", fit_misplacement: bool = True,
               max_missing_fraction: float = MAX_MISSING_FRACTION, spot_threshold: float = 0.1,
-              max_rms_residual_pitch: float = MAX_RMS_RESIDUAL_PITCH,
+              max_rms_residual_pitch: float | None = MAX_RMS_RESIDUAL_PITCH,
               spot_method: str = "auto", white_image=None,
               focal_point_f_number: float | None = None,
-              phase_harmonics: int = PHASE_HARMONICS, dark=None) -> CalibrationReport:
+              phase_harmonics: int = PHASE_HARMONICS, dark=None,
+              min_on_lattice_fraction: float | None = MIN_ON_LATTICE_FRACTION
+              ) -> CalibrationReport:
     """Calibrate ``camera`` from its images.
 
     Parameters
@@ -154,10 +160,14 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
         focal spot. Fewer are filled from the fitted model and reported.
     spot_threshold : float
         Threshold of the first, thresholded centroid of every spot (detect_spots).
-    max_rms_residual_pitch : float
+    max_rms_residual_pitch : float, optional
         A focal-point or alignment image whose spots fit their lattice worse than this
-        fraction of the pitch (rms, default 1.5 %) is refused: not a calibration image, or
-        not of this camera (:func:`~plenopiv.calibration.lattice_quality.check_lattice`).
+        fraction of the pitch (rms) is refused; default no limit, real arrays scatter
+        (:func:`~plenopiv.calibration.lattice_quality.check_lattice`).
+    min_on_lattice_fraction : float, optional
+        An image fewer of whose complete spots than this fraction (default 90 %) lie within
+        0.15 pitch of their lattice node is refused: no lenslet lattice (a scene, a ruler, a
+        particle image; :func:`~plenopiv.calibration.lattice_quality.check_lattice`).
     spot_method : str
         Spot-centre estimator (:func:`~plenopiv.calibration.spot_detection.detect_spots`); the
         default ``"auto"`` takes the window centroid for focal-point and alignment spots.
@@ -192,6 +202,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     dark_frame = DarkFrame.of(dark, shape)
     limits = {"max_missing_fraction": max_missing_fraction,
               "max_rms_residual_pitch": max_rms_residual_pitch,
+              "min_on_lattice_fraction": min_on_lattice_fraction,
               "bad_pixels": dark_frame.hot}
     options = {"threshold": spot_threshold, "method": spot_method,
                "phase_harmonics": phase_harmonics, **limits}

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plenopiv.calibration.lattice_fit import fit_lattice
-from plenopiv.calibration.lattice_quality import check_lattice
+from plenopiv.calibration.lattice_quality import MIN_ON_LATTICE_FRACTION, check_lattice
 from plenopiv.calibration.spot_detection import detect_spots
 from plenopiv.calibration.spot_types import Lattice, SpotFlag, SpotSet
 from plenopiv.camera.model import CameraModel
@@ -61,7 +61,8 @@ class LensletCentres:
 
 
 def spot_lattice(image, camera: CameraModel, what: str, *, max_missing_fraction,
-                 max_rms_residual_pitch, phase_harmonics=0, **detect_options):
+                 max_rms_residual_pitch=None, min_on_lattice_fraction=MIN_ON_LATTICE_FRACTION,
+                 phase_harmonics=0, **detect_options):
     """Detect the spots of one calibration image, fit their lattice and check it.
 
     Parameters
@@ -72,7 +73,7 @@ def spot_lattice(image, camera: CameraModel, what: str, *, max_missing_fraction,
         Gives the grid type and the sensor shape, px.
     what : str
         How an error names the image (e.g. ``"the focal-point image"``).
-    max_missing_fraction, max_rms_residual_pitch : float
+    max_missing_fraction, max_rms_residual_pitch, min_on_lattice_fraction : float or None
         The limits of :func:`~plenopiv.calibration.lattice_quality.check_lattice`.
     phase_harmonics : int
         Passed to :func:`~plenopiv.calibration.lattice_fit.fit_lattice`.
@@ -88,7 +89,8 @@ def spot_lattice(image, camera: CameraModel, what: str, *, max_missing_fraction,
     lattice = fit_lattice(spots, grid=grid, image_shape=camera.sensor.shape,
                           phase_harmonics=phase_harmonics)
     check_lattice(lattice, what=what, max_missing_fraction=max_missing_fraction,
-                  max_rms_residual_pitch=max_rms_residual_pitch)
+                  max_rms_residual_pitch=max_rms_residual_pitch,
+                  min_on_lattice_fraction=min_on_lattice_fraction)
     return spots, lattice
 
 
