@@ -402,14 +402,16 @@ class Lattice:
     def lenslet_contrast(self):
         """How unevenly the lenslets are lit, a fraction.
 
-        The 90th percentile over the complete inliers of ``|I / I_n - 1|``, I a spot's light
-        and I_n the median of its 4 nearest such spots'. A calibration image lights its
+        The 90th percentile over the complete spots on the lattice (dim ones and outliers
+        included) of ``|I / I_n - 1|``, I a spot's light and I_n the median of its 4 nearest
+        such spots'. A calibration image lights its
         lenslets alike but for a smooth vignetting and a spread of their throughput (±10 %
         gives 0.11-0.13, a corner vignetted down to 4 % 0.04); a scene modulates them (a
         ruler 0.35-0.45, the plenoptomos letters 0.24). 0 with fewer than 5 such spots or
         without intensities.
         """
-        use = self.inlier & ((self.flags & SpotFlag.EDGE) == 0) & np.isfinite(self.intensity)
+        skip = SpotFlag.EDGE | SpotFlag.OFF_LATTICE | SpotFlag.DUPLICATE
+        use = ((self.flags & skip) == 0) & np.isfinite(self.intensity)
         if np.count_nonzero(use) < 5:
             return 0.0
         pts, light = self.centres_px[use], self.intensity[use]
