@@ -19,7 +19,7 @@ from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.reconstruction.weights import Weights
 from plenopiv.settings import as_dict
-from plenopiv.workflow.volume import Progress, reconstruct_volume
+from plenopiv.workflow.volume import Progress, check_lattice, reconstruct_volume
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
     pass
@@ -83,7 +83,10 @@ class PairProcessor:
     corrects the depths and correlates them, with the experiment's settings
     (:class:`~plenopiv.config.experiment.Experiment`). The weights (explicit, from the weights
     cache, or the matrix-free projector) and the image and volume masks are made on first use
-    and kept for every later pair.
+    and kept for every later pair. Before the weights are made, the first pair's mean is
+    checked against the calibration (``[reconstruction] lattice_check``,
+    :func:`~plenopiv.workflow.volume.check_lattice`), and a corrected calibration replaces
+    :attr:`calibration`.
     """
 
     def __init__(self, experiment, calibration: Calibration, *,
@@ -92,6 +95,7 @@ class PairProcessor:
         self.calibration = calibration
         self._weights = weights
         self._masks = None
+        self._checked = False
 
     def weights(self, progress: Progress = None) -> Weights:
         """The projector of every pair (built, or loaded from the weights cache, once)."""
@@ -119,6 +123,11 @@ class PairProcessor:
                  workers=None) -> PairResult:
         """Images A and B -> two volumes -> particles -> corrections -> vectors."""
         t0 = time.perf_counter()
+        if self._weights is None and not self._checked:
+            # the first pair's mean against the calibration, before the weights are made
+            self.calibration = check_lattice(self.calibration, [image_a, image_b],
+                                             self.experiment.reconstruction)
+            self._checked = True
         exp, calibration = self.experiment, self.calibration
         weights = self.weights(progress)
         img_mask, vol_mask = self.masks()

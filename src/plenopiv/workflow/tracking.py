@@ -152,13 +152,15 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
 
     from plenopiv.reconstruction.subdivision import weights_for
     from plenopiv.workflow.pair import correlate
-    from plenopiv.workflow.volume import reconstruct_volume
+    from plenopiv.workflow.volume import check_lattice, reconstruct_volume
 
     t = {}
     t0 = time.perf_counter()
     rec = experiment.reconstruction
     lf = None
     if volume_a is None or volume_b is None:
+        # the pair's micro-images against the calibration's, before the weights are made
+        calibration = check_lattice(calibration, [image_a, image_b], rec)
         cache = experiment.output.weights_cache
         weights, _ = weights_for(calibration, experiment.volume, rec,
                                  cache_dir=experiment.path(cache) if cache else None)
