@@ -73,10 +73,10 @@ def spots_px(camera, si):
     return sensor_to_pixel(spots, shape, pp), sensor_to_pixel(mla.centres(), shape, pp)
 
 
-def lenslet_effects(irr, camera, rng, *, throughput=0.0, vignetting=0.0):
+def lenslet_effects(irr, camera, rng, *, throughput=0.0, vignetting=0.0, si=SI):
     """Irradiance with each lenslet's throughput (uniform within ±``throughput``) and the
     micro-images falling off to ``1 - vignetting`` at half a pitch from their centres."""
-    spots, _ = spots_px(camera, SI)
+    spots, _ = spots_px(camera, si)
     rr, cc = np.indices(irr.shape)
     _, owner = cKDTree(spots).query(np.column_stack([rr.ravel(), cc.ravel()]))
     owner = owner.reshape(irr.shape)
@@ -243,3 +243,24 @@ def test_isolated_pixels_are_hot_and_spot_peaks_are_not(rng):
     img[10, 10] = 300.0
     found = defects.isolated_pixels(img, 2.0)
     assert np.argwhere(found).tolist() == [[10, 10]]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset, si", [("auburn_135mm", 0.202), ("auburn_50mm", 0.101)])
+def test_full_presets_with_every_effect(preset, si):
+    """The whole 193 x 287-lenslet camera, every effect at once, with and without the dark
+    frame: S_i within 4 standard deviations of the photon-noise bound (2-6 µm), far inside
+    0.05 mm."""
+    cam = load_camera(preset)
+    irr = focal_point_image(cam.with_image_distance(si), f_number=16, psf_px=0.5)
+    ideal = irr * (PEAK * FULL / irr.max())
+    sensor_kw, lens_kw = CASES["all"]
+    rng = np.random.default_rng(13)
+    counts = lenslet_effects(ideal, cam, rng, si=si, **lens_kw)
+    sensor = Sensor.make(ideal.shape, rng, read=4.0, **sensor_kw)
+    image = sensor.record(counts, rng)
+    for dark, noise in ((None, np.hypot(4.0, 3.0)), (sensor.dark(rng), 4.0 * np.sqrt(2))):
+        rep = calibrate(cam, image, dark=dark)
+        bound = photon_bound(counts, cam, si, rep.focal_spots.moment_radius_px, noise)
+        err = rep.focal_fit.image_distance - si
+        assert abs(err) <= min(4 * bound, 0.05e-3), (err * 1e3, bound * 1e3)

@@ -69,6 +69,9 @@ class LatticeCheck:
         Whether the calibration was moved onto the recording.
     note : str
         Why nothing was measured, or empty.
+    calibration : Calibration or None
+        The calibration to reconstruct the recording with: the one checked, or, corrected,
+        that one moved onto the recording.
     """
 
     measured: bool
@@ -80,6 +83,7 @@ class LatticeCheck:
     tolerance_px: float
     corrected: bool = False
     note: str = ""
+    calibration: object = dataclasses.field(default=None, repr=False, compare=False)
 
     @property
     def beyond_tolerance(self) -> bool:
@@ -117,8 +121,10 @@ def check_recording(calibration, images, *, tolerance_px: float = TOLERANCE_PX,
 
     Returns
     -------
-    LatticeCheck, Calibration
-        The check, and the calibration to reconstruct with (``calibration`` itself unless
+    LatticeCheck
+        The measured shift (``shift_px``, ``(d_row, d_col)``) and rotation
+        (``rotation_rad``), the largest displacement of a micro-image and its standard error;
+        its ``calibration`` is the one to reconstruct with (``calibration`` itself unless
         corrected).
 
     Raises
@@ -174,9 +180,9 @@ def check_recording(calibration, images, *, tolerance_px: float = TOLERANCE_PX,
     else:
         shift, theta, max_disp, sigma = np.full(2, np.nan), math.nan, math.nan, math.nan
     check = LatticeCheck(measured, shift, float(theta), max_disp, float(sigma), n_tiles, tol,
-                         note=note)
+                         note=note, calibration=calibration)
     if not check.beyond_tolerance:
-        return check, calibration
+        return check
     figure = (f"the recording's micro-images lie up to {max_disp:.2f} ± {sigma:.2f} px from "
               f"the calibration's (shift {shift[0]:+.2f}, {shift[1]:+.2f} px (row, col), "
               f"rotation {theta * 1e3:+.3f} mrad about the sensor's centre, {n_tiles} tiles)")
@@ -195,7 +201,7 @@ def check_recording(calibration, images, *, tolerance_px: float = TOLERANCE_PX,
         centre_px=_transform(np.asarray(calibration.centre_px, float), shift, theta, centre),
         focal_spot_px=_transform(spots, shift, theta, centre),
         extra={**calibration.extra, "lattice_check": check.summary() | {"corrected": True}})
-    return dataclasses.replace(check, corrected=True), moved
+    return dataclasses.replace(check, corrected=True, calibration=moved)
 
 
 def _mean_image(images, shape):

@@ -162,11 +162,9 @@ def check_lattice(calibration: Calibration, images, settings: ReconstructionSett
     """
     if settings.lattice_check == "off":
         return calibration
-    _check, calibration = check_recording(calibration, images,
-                                          tolerance_px=settings.lattice_tolerance_px,
-                                          correct=settings.lattice_check == "correct",
-                                          f_number=settings.f_number)
-    return calibration
+    return check_recording(calibration, images, tolerance_px=settings.lattice_tolerance_px,
+                           correct=settings.lattice_check == "correct",
+                           f_number=settings.f_number).calibration
 
 
 def _particles_of(vol: np.ndarray, grid: VolumeGrid, calibration: Calibration,
