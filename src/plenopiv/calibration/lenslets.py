@@ -115,8 +115,10 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None,
     Returns
     -------
     LensletCentres
-        From the alignment image: its complete lattice inliers, centres less their fitted
-        sub-pixel phase bias.
+        From the alignment image: its complete lattice inliers, each at its best centre
+        (:attr:`~plenopiv.calibration.spot_types.Lattice.best_centres_px`: the measured
+        centre, less its sub-pixel phase bias, where the array scatters more than it is
+        measured, its lattice node where not).
     """
     if alignment_image is None:
         shape, pp = camera.sensor.shape, camera.sensor.pixel_pitch
@@ -131,7 +133,7 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None,
     spots, lat = spot_lattice(image, camera, "the alignment image", min_area_px=0.9,
                               **lattice_options)
     ok = lat.inlier & ((lat.flags & SpotFlag.EDGE) == 0)
-    return LensletCentres(lat.corrected_centres_px[ok], lat.grid_index[ok], "alignment image",
+    return LensletCentres(lat.best_centres_px[ok], lat.grid_index[ok], "alignment image",
                           float(np.mean(lat.pitch_px)), lat, spots)
 
 

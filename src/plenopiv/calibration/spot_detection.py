@@ -325,7 +325,8 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
                                                 spot_r, moment_radius_px)
     if method == "disc":
         centres, method = _better_disc_centres(work, centres, pitch, radius, spot_r)
-    std = _centre_std(work, centres, flags, method, pitch, radius, spot_r)
+    std = _centre_std(work, centres, flags, intensity, method,
+                      (pitch, radius, moment_r, spot_r), noise, spot_rms)
     order = np.lexsort((centres[:, 1], centres[:, 0]))
     centres, intensity, area, flags = centres[order], intensity[order], area[order], flags[order]
     std = std[order]
@@ -567,19 +568,40 @@ def _fill_factor(work, centres, pitch, radius):
     return float(2.0 * r[np.argmax(below)] / pitch) if below.any() else 1.5
 
 
-def _centre_std(work, centres, flags, method, pitch, radius, spot_r):
+def _centre_std(work, centres, flags, intensity, method, geometry, gap_noise, spot_rms):
     """Standard error of each refined centre per axis, px, shape (N, 2).
 
-    From the fit of the spots' mean shape at the centres
-    (:func:`~plenopiv.calibration.spot_shape.shape_uncertainty`), the complete spots building
-    the shape; it holds the noise and whatever of a spot differs from the others.
+    The fit of the spots' mean shape at the centres
+    (:func:`~plenopiv.calibration.spot_shape.shape_uncertainty`, the complete spots building
+    the shape) gives the standard error of a shape fit (``"shape"``, ``"gaussian"``). A first
+    moment over a disc of radius R (the window, or the thresholded centroid's; ``"window"``,
+    ``"centroid"``) moves with the noise by
+
+        var = s^2 pi R^4 / (4 F^2) + g sigma^2 / F
+
+    per axis: s the noise of the gaps (``gap_noise``), F the spot's light, sigma^2 its
+    variance per axis (``spot_rms``^2 / 2), g the image units per photon, from how much
+    more the shape fits' residual is than the gaps' noise (the median over the spots).
     """
+    pitch, radius, moment_r, spot_r = geometry
     if centres.shape[0] == 0:
         return np.zeros((0, 2))
     use = ~_edge_mask(centres, radius, work.shape) & (flags == 0)
     if not use.any():
         use = np.ones(centres.shape[0], dtype=bool)
-    return shape_uncertainty(work, centres, pitch, fit_radius(pitch, spot_r), use=use)
+    fit_r = fit_radius(pitch, spot_r)
+    std, noise = shape_uncertainty(work, centres, pitch, fit_r, use=use)
+    if method not in ("window", "centroid"):
+        return std
+    r = moment_r if method == "window" else radius
+    light = np.abs(np.asarray(intensity, dtype=np.float64))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_photon = (noise ** 2 - gap_noise ** 2) * math.pi * fit_r ** 2 / light
+        g = float(np.nanmedian(np.clip(per_photon[use], 0.0, None))) if use.any() else 0.0
+        sigma2 = (spot_rms ** 2 / 2.0) if np.isfinite(spot_rms) else 0.0
+        var = gap_noise ** 2 * math.pi * r ** 4 / (4.0 * light ** 2) + g * sigma2 / light
+    one = np.sqrt(var)
+    return np.column_stack([one, one])
 
 
 def _image_flags(raw, sat_level, centres, intensity, flags, radius, opts):

@@ -210,17 +210,18 @@ def shape_uncertainty(work, centres, pitch_px: float, radius_px: float, *, use=N
     """Standard error per axis (N, 2) px of given centres, from the mean-shape fit's residual.
 
     The centres are not moved: the template is built on them and each spot's fit is
-    evaluated there (:func:`shape_refine` for the details).
+    evaluated there (:func:`shape_refine` for the details). Also returns each fit's residual
+    standard deviation per pixel (N,), image units: the noise about the spot.
     """
     img = np.asarray(work, dtype=np.float64)
     c = np.asarray(centres, dtype=np.float64)
     if len(c) == 0:
-        return np.zeros((0, 2))
+        return np.zeros((0, 2)), np.zeros(0)
     use = np.ones(len(c), bool) if use is None else np.asarray(use, bool)
     rows, cols, ok = _window(c, radius_px, img.shape, pitch_px)
     values = img[rows, cols]
     u_r, u_c = rows - c[:, :1], cols - c[:, 1:]
     tpl = _template(values[use], u_r[use], u_c[use], ok[use], radius_px + 1.0)
     t, g_r, g_c = _sample(tpl[:3], u_r, u_c, tpl[3], ok)
-    _, std, _, _ = _fit(values, t, g_r, g_c, ok)
-    return std
+    _, std, _, noise = _fit(values, t, g_r, g_c, ok)
+    return std, noise
