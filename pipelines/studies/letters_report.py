@@ -212,7 +212,7 @@ def markdown(s: dict) -> str:
                   f"α = {top:.3f}, on a kink: at α = 1 all rays of a lenslet land on one point, "
                   "so its resampling changes character there and pulls the peak onto α = 1 "
                   "whatever the depth (see `plenopiv.lightfield.refocus`; the ray-traced "
-                  "particle test in `tests/test_lightfield_letters.py` shows the Fourier "
+                  "particle test in `tests/studies/test_letters.py` shows the Fourier "
                   "refocus returning a known plane to 0.001 in α)."]
     return "\n".join(lines) + "\n"
 

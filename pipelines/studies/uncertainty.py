@@ -497,7 +497,7 @@ METHOD = [
     "overlap the term is the second difference / 6 per axis). Deformation passes remove "
     "part of this bias: at their fixed point (trilinear predictor) the window averages of "
     "the flow's and of the predictor's curvature cancel and -(h²/12) ∂²d/∂x² remains, half "
-    "of it at 50 % overlap (`tests/test_uncertainty.py` iterates the fixed point), but three "
+    "of it at 50 % overlap (`tests/piv/test_uncertainty.py` iterates the fixed point), but three "
     "passes do not reach it for curvature on the scale of the vector spacing (Hill, below), "
     "so the one-window bias is kept as the bound. The curvature is the measured field's, "
     "which the windows have already flattened: where the flow curves on the scale of a "

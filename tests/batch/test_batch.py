@@ -546,7 +546,7 @@ def test_ctrl_c_stops_cleanly_writes_the_summary_and_resumes(tmp_path, rng):
     make_pairs(tmp_path / "images", 6, rng)
     out = tmp_path / "out"
     env = dict(os.environ)
-    src = str(Path(__file__).resolve().parents[1] / "src")
+    src = str(Path(__file__).resolve().parents[2] / "src")
     env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
     code = INTERRUPTED_BATCH.format(tests=str(Path(__file__).parent), root=str(tmp_path))
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,

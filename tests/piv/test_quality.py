@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import scipy.fft
 
+from piv.test_piv import render, seed_particles, volume_pair
 from plenopiv import PIVError
 from plenopiv.piv import (
     FLAG_EMPTY,
@@ -21,7 +22,6 @@ from plenopiv.piv import (
 )
 from plenopiv.piv._kernels import ENGINES
 from plenopiv.piv.statistics import NUMPY_STATISTICS_MAX_VOXELS, _statistics_kernel
-from test_piv import render, seed_particles, volume_pair
 
 ENGINE_NAMES = tuple(ENGINES)
 GRID = SimpleNamespace(origin=(0.0, 0.0, 0.0), voxel_size=1.0)

@@ -15,7 +15,7 @@ import pytest
 from plenopiv.cli import main
 from plenopiv.products.jsonio import dump, dumps, to_json
 
-SRC = Path(__file__).resolve().parents[1] / "src" / "plenopiv"
+SRC = Path(__file__).resolve().parents[2] / "src" / "plenopiv"
 
 
 def strict_loads(text: str):

@@ -62,7 +62,7 @@ def reflection_scene():
     "with half of the target's light masked, SMART with dark-pixel ceilings finds the target "
     "(Z = +0.67 mm) at Z = -0.05 mm, 0.72 mm (1.3 depth cells) towards focus: no particle is "
     "made by the reflection, but the target falls outside the 0.6 mm match; the same "
-    "pull towards focus as the depth study's ±6 mm case (tests/test_depth_study.py)"))
+    "pull towards focus as the depth study's ±6 mm case (tests/studies/test_depth.py)"))
 def test_masked_reflection_creates_no_particles(reflection_scene):
     s = reflection_scene
     pos, disk, target = s["pos"], s["disk"], s["pos"][s["target"]]

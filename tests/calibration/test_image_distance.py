@@ -23,7 +23,7 @@ from plenopiv.camera.model import Substrate
 from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import CalibrationError
 from plenopiv.synthetic.images import Ruler, focal_point_image, ruler_image
-from test_synthetic import predicted_spots, spot_centroids
+from synthetic.test_images import predicted_spots, spot_centroids
 
 OFFSET, ROTATION = (3e-6, -2e-6), 2e-4
 

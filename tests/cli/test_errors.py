@@ -29,7 +29,7 @@ from plenopiv.camera.model import load_camera
 from plenopiv.cli import main
 from plenopiv.products.volume import VolumeResult
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SHAPE = (700, 1040)          # the small cameras' sensor
 
 EXPERIMENT = """camera = "small_m1"
