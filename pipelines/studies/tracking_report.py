@@ -246,7 +246,8 @@ READING = ["## Reading", "",
           "fractions (`tests/tracking/test_tracking.py`, to 1e-13 over 0.2 mm). Only a "
           "particle whose blur spans three lenslets along an axis, two edges in one "
           "micro-image, has a depth in the image: at f/2.2 beyond b S_o / D = 0.55 mm from "
-          "focus, seen through 6 or more lenslets. Tracks with an end seen through fewer are dropped (`[tracking] "
+          "focus, seen through 6 or more lenslets. Tracks with an end seen through fewer are "
+          "dropped (`[tracking] "
           "min_lenslets = 6`, counted as `rejected_few_lenslets`), the standard PTV gate on "
           "a track's own measurability; it keeps 0.54-0.61 of the true particles tracked at "
           "0.15 particles per lenslet (0.60-0.73 with every track).",
