@@ -11,6 +11,7 @@ names the key as the user wrote it.
 from __future__ import annotations
 
 import dataclasses
+import json
 import typing
 from typing import Any
 
@@ -19,10 +20,18 @@ from pydantic.dataclasses import dataclass as _pydantic_dataclass
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
 
-__all__ = ["STRICT", "StrictModel", "as_dict", "fields_of", "format_validation_error", "settings"]
+from plenopiv.errors import ConfigError
 
-STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
-"""Unknown keys and NaN or infinite numbers are refused (frozen: see :func:`settings`)."""
+__all__ = ["STRICT", "StrictModel", "as_dict", "fields_of", "format_validation_error", "settings",
+           "validate_table"]
+
+STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
+"""Unknown keys, NaN or infinite numbers and values of another type are refused.
+
+Strict types: a boolean is not a number, a number is not a text and a text is not a number;
+an integer is a number. TOML tables are validated as JSON (:func:`validate_table`), where an
+array stands for a tuple. Frozen: see :func:`settings`.
+"""
 
 
 class StrictModel(BaseModel):
@@ -38,6 +47,21 @@ def settings(cls):
     fields go in ``__post_init__`` and raise ``ValueError`` naming the field.
     """
     return _pydantic_dataclass(frozen=True, config=STRICT)(cls)
+
+
+def validate_table(model, table: dict, what: str):
+    """Validate a TOML table (a dict of TOML values) against ``model``, types strictly.
+
+    The table is validated as JSON, so that arrays stand for tuples while a boolean stays no
+    number. A TOML date or time, which no key takes, is a :class:`~plenopiv.errors.ConfigError`;
+    a value of the wrong type or range raises pydantic's ``ValidationError`` (the caller names
+    the file with :func:`format_validation_error`).
+    """
+    try:
+        text = json.dumps(table, allow_nan=True)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{what}: {exc}; no key takes a TOML date or time") from None
+    return model.model_validate_json(text)
 
 
 def as_dict(obj) -> dict:

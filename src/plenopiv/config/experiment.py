@@ -28,7 +28,7 @@ from plenopiv.errors import ConfigError
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.piv.settings import PIVSettings
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.settings import StrictModel, as_dict, format_validation_error
+from plenopiv.settings import StrictModel, as_dict, format_validation_error, validate_table
 from plenopiv.tracking.settings import TrackingSettings
 
 __all__ = ["Experiment", "experiment_from_dict", "load_experiment"]
@@ -209,7 +209,7 @@ def experiment_from_dict(cfg: dict, *, base_dir: Path = Path("."),
                          source: str = "experiment config") -> Experiment:
     """Validate an experiment config dictionary and resolve the camera and the grid."""
     try:
-        c = _ExperimentCfg.model_validate(cfg)
+        c = validate_table(_ExperimentCfg, cfg, source)
     except ValidationError as exc:
         raise ConfigError(format_validation_error(exc, source, _ExperimentCfg)) from None
     if isinstance(c.camera, dict):

@@ -35,6 +35,12 @@ UNCERTAINTY_METHODS = ("response", "correlation")
 RESPONSE_DISPLACEMENTS = (1, 3)
 """Valid values of :attr:`PIVSettings.response_displacements`."""
 
+def _is_number(value) -> bool:
+    """A real number that is not a boolean (``True`` is no threshold)."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_))
+
+
 def _as_window(value, name):
     """Return one window as a ``(wz, wy, wx)`` tuple of int, or raise ValueError."""
     if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
@@ -211,7 +217,7 @@ class PIVSettings:
             )
         object.__setattr__(self, "passes", int(passes))
 
-        if not (isinstance(self.overlap, (int, float)) and 0.0 <= self.overlap < 1.0):
+        if not (_is_number(self.overlap) and 0.0 <= self.overlap < 1.0):
             raise ValueError(
                 f"overlap = {self.overlap!r}: expected a fraction with 0 <= overlap < 1"
             )
@@ -225,13 +231,13 @@ class PIVSettings:
                 f"deformation_order = {self.deformation_order!r}: "
                 f"expected one of {DEFORMATION_ORDERS}"
             )
-        if not (isinstance(self.median_threshold, (int, float)) and self.median_threshold > 0):
+        if not (_is_number(self.median_threshold) and self.median_threshold > 0):
             raise ValueError(
                 f"median_threshold = {self.median_threshold!r}: expected a number > 0 "
                 "(2.0 is the usual value)"
             )
         eps = self.median_epsilon_vox
-        if not (isinstance(eps, (int, float)) and math.isfinite(eps) and eps >= 0):
+        if not (_is_number(eps) and math.isfinite(eps) and eps >= 0):
             raise ValueError(
                 f"median_epsilon_vox = {eps!r}: expected a finite number of voxels >= 0 (e.g. 0.1)"
             )
