@@ -57,17 +57,22 @@ def _frames(instance, irradiance, n, rng, *, noise="poisson", exposure=1.0):
                                   sensor=instance).astype(float) for _ in range(n)])
 
 
-def _lenslet_of_pixels(camera):
-    """Each pixel's lenslet (nearest micro-image centre) and its distance from the lenslet's
-    axis in half pitches, found independently of the simulator's kernel."""
+def _lenslet_of_pixels(camera, centre="micro-image"):
+    """Each pixel's lenslet (nearest micro-image centre) and its distance from the micro-
+    image's centre in half micro-image pitches (``centre="lenslet"``: from the lenslet's
+    axis in half lenslet pitches), found independently of the simulator's kernel."""
     mla = camera.microlens_array
     centres = mla.centres()
     spots = focal_spot_exact(centres, camera.image_distance, mla.sensor_distance)
     rows, cols = np.indices(camera.sensor.shape)
     pix = pixel_to_sensor(np.stack([rows, cols], axis=-1), camera.sensor.shape,
-                          camera.sensor.pixel_pitch)
-    _, k = cKDTree(spots).query(pix.reshape(-1, 2))
-    rho = np.hypot(*(pix.reshape(-1, 2) - centres[k]).T) / (0.5 * mla.pitch)
+                          camera.sensor.pixel_pitch).reshape(-1, 2)
+    _, k = cKDTree(spots).query(pix)
+    if centre == "lenslet":
+        rho = np.hypot(*(pix - centres[k]).T) / (0.5 * mla.pitch)
+    else:
+        scale = 1 + mla.sensor_distance / camera.image_distance
+        rho = np.hypot(*(pix - spots[k]).T) / (0.5 * mla.pitch * scale)
     return k.reshape(camera.sensor.shape), rho.reshape(camera.sensor.shape)
 
 
@@ -213,11 +218,13 @@ def test_optical_gain_kernel_matches_its_numpy_twin(auburn_camera, shift):
                               offset=(3e-6, -2e-6))
     for cam in (auburn_camera.patch(5, 7), auburn_camera.replace(microlens_array=mla)
                 .patch(5, 7)):
-        inst = camera_instance(cam, RecordingSettings(throughput_spread=0.1, vignetting=0.2),
-                               seed=4)
-        a = optical_gain(cam, inst, sensor_shift_px=shift)
-        b = optical_gain(cam, inst, sensor_shift_px=shift, engine="numpy")
-        assert np.allclose(a, b, rtol=0, atol=1e-12)
+        for centre in ("micro-image", "lenslet"):
+            s = RecordingSettings(throughput_spread=0.1, vignetting=0.2,
+                                  vignetting_centre=centre)
+            inst = camera_instance(cam, s, seed=4)
+            a = optical_gain(cam, inst, sensor_shift_px=shift)
+            b = optical_gain(cam, inst, sensor_shift_px=shift, engine="numpy")
+            assert np.allclose(a, b, rtol=0, atol=1e-12)
 
 
 def test_the_throughput_spread_over_lenslets_of_a_white_frame(small_camera, rng):
@@ -255,13 +262,28 @@ def test_the_throughput_spread_over_lenslets_of_a_white_frame(small_camera, rng)
     assert np.allclose(sums / sums0, inst.throughput, rtol=1e-9)
 
 
-def test_the_vignetting_profile_inside_a_micro_image(patch):
-    """20 % lost at the rim, half a pitch from the lenslet's axis, falling as (1 + a ρ²)^-2."""
-    inst = camera_instance(patch, RecordingSettings(vignetting=0.2))
+def test_a_white_image_of_the_same_camera_is_its_flat_field(patch):
+    """The optical gain multiplies every render of one camera alike: a focal-point image
+    divided by the white image is the ideal one divided by the ideal white."""
+    inst = camera_instance(patch, RecordingSettings(throughput_spread=0.1, vignetting=0.2),
+                           seed=6)
+    ideal_white = white_image(patch, f_number=4)
+    lit = ideal_white > 0.05 * ideal_white.max()
+    flat = white_image(patch, f_number=4, instance=inst)[lit]
+    for render in (lambda **kw: focal_point_image(patch, f_number=16, **kw),
+                   lambda **kw: alignment_image(patch, **kw)):
+        assert np.allclose(render(instance=inst)[lit] / flat,
+                           render()[lit] / ideal_white[lit], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("centre", ["micro-image", "lenslet"])
+def test_the_vignetting_profile_inside_a_micro_image(patch, centre):
+    """20 % lost at the rim, half a pitch from the centre, falling as (1 + a ρ²)^-2."""
+    inst = camera_instance(patch, RecordingSettings(vignetting=0.2, vignetting_centre=centre))
     ideal = white_image(patch)
     ratio = white_image(patch, instance=inst) / np.where(ideal > 0, ideal, 1.0)
     lit = ideal > 0.5 * ideal.max()
-    _, rho = _lenslet_of_pixels(patch)
+    _, rho = _lenslet_of_pixels(patch, centre)
     a = vignetting_coefficient(0.2)
     assert np.allclose(ratio[lit], (1 + a * rho[lit] ** 2) ** -2, rtol=1e-9)
     # measured: the coefficient fitted on the lit pixels gives 80 % at the rim

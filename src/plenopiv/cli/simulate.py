@@ -81,9 +81,15 @@ OPTICS_OPTIONS = (
      "each lenslet passes a factor uniform in 1 +- S of the light (default 0; 0.1 with "
      "--realistic)"),
     ("--vignetting", "vignetting", float, "V",
-     "fraction of the light lost at the rim of a micro-image, half a pitch from the "
-     "lenslet's axis; cos^4-like fall-off (default 0; 0.2 with --realistic)"),
+     "fraction of the light lost at the rim of a micro-image, half a pitch from its centre; "
+     "cos^4-like fall-off (default 0; 0.2 with --realistic)"),
+    ("--vignetting-centre", "vignetting_centre", str, None,
+     "centre of the fall-off: each micro-image's centre, or its lenslet's axis (the point "
+     "under the lenslet's centre; pulls focal spots towards it) (default micro-image)"),
 )
+#: The recording options that take one of a few words.
+CHOICES = {"sheet_profile": ("none", "gaussian", "tophat"),
+           "vignetting_centre": ("micro-image", "lenslet")}
 LIGHT_OPTIONS = (
     ("--glow", "glow", float, "G",
      "smooth background glow, its peak G times the irradiance of an in-focus particle of "
@@ -178,9 +184,9 @@ def _add_recording_options(p, kind: str) -> None:
     if kind == "pair":
         options += PAIR_OPTIONS
     for flag, field, kind_, metavar, helptext in options:
-        if field == "sheet_profile":
-            g.add_argument(flag, dest=field, choices=("none", "gaussian", "tophat"),
-                           default=None, help=helptext)
+        if field in CHOICES:
+            g.add_argument(flag, dest=field, choices=CHOICES[field], default=None,
+                           help=helptext)
         else:
             g.add_argument(flag, dest=field, type=kind_, metavar=metavar, default=None,
                            help=helptext)

@@ -37,7 +37,7 @@ from pydantic import Field, StrictInt
 
 from plenopiv._threads import run_slices
 from plenopiv.camera.model import CameraModel
-from plenopiv.camera.optics import focal_spot_scale
+from plenopiv.camera.optics import focal_spot_exact, focal_spot_scale
 from plenopiv.errors import ConfigError
 from plenopiv.settings import settings
 
@@ -77,9 +77,16 @@ class RecordingSettings:
 
     throughput_spread : each lenslet passes a factor drawn once, uniform in
         1 ± throughput_spread, of the light.
-    vignetting : fraction of the light lost at the rim of a micro-image, half a lenslet pitch
-        from the lenslet's axis; the gain falls as ``(1 + a ρ²)^-2`` (cos⁴-like, ρ in half
-        pitches) and goes on falling beyond the rim.
+    vignetting : fraction of the light lost at the rim of a micro-image; the gain falls as
+        ``(1 + a ρ²)^-2`` (cos⁴-like) with ρ the distance from the centre of the fall-off over
+        half the pitch (of the micro-images, or of the lenslets), and goes on falling beyond
+        the rim.
+    vignetting_centre : "micro-image" (default: the fall-off is centred on each micro-image,
+        where the chief ray from the exit pupil through the lenslet's centre lands) |
+        "lenslet" (centred on the lenslet's axis, the point under its centre: a response
+        that falls with the angle of the light through the lenslet, which dims the outer
+        side of a micro-image off the main lens's axis and pulls a focal spot's centroid
+        towards its lenslet's axis).
     glow : a smooth additive background light, its peak this fraction of the irradiance of an
         in-focus particle of unit brightness (:func:`particle_peak_irradiance`); particle
         images only, fixed for a camera instance (the set-up), scaled by the pulse energy.
@@ -103,6 +110,7 @@ class RecordingSettings:
     dead_pixel_fraction: float = Field(0.0, ge=0, le=0.1)
     throughput_spread: float = Field(0.0, ge=0, lt=1)
     vignetting: float = Field(0.0, ge=0, lt=1)
+    vignetting_centre: Literal["micro-image", "lenslet"] = "micro-image"
     glow: float = Field(0.0, ge=0, le=100)
     brightness_sigma_ln: float = Field(0.0, ge=0, le=3)
     sheet_profile: Literal["none", "gaussian", "tophat"] = "none"
@@ -297,11 +305,13 @@ def optical_gain(camera: CameraModel, instance: CameraInstance, *,
     Notes
     -----
     A pixel belongs to the micro-image it lies in, the image of the aperture through one
-    lenslet, centred near the point where the chief ray through that lenslet meets the
-    sensor; the micro-images form the lenslet lattice magnified by ``p/d`` (Eq. 3.11,
-    :func:`~plenopiv.camera.optics.focal_spot_scale`). The fall-off is radial about the
-    lenslet's axis, the point of the sensor under its centre: a micro-image off the axis of
-    the main lens is dimmed more on its outer side.
+    lenslet, centred where the chief ray from the exit pupil through that lenslet's centre
+    meets the sensor (:func:`~plenopiv.camera.optics.focal_spot_exact`); the micro-images
+    form the lenslet lattice magnified by ``p/d`` (Eq. 3.11,
+    :func:`~plenopiv.camera.optics.focal_spot_scale`). The fall-off is radial about that
+    centre with ρ = 1 at half the micro-images' pitch, or (``vignetting_centre =
+    "lenslet"``) about the lenslet's axis, the point of the sensor under its centre, with
+    ρ = 1 at half the lenslets' pitch.
     """
     from plenopiv.synthetic import _sensor_kernels as SK
     from plenopiv.synthetic.tracer import check_render_options, geometry_vector
@@ -325,12 +335,22 @@ def optical_gain(camera: CameraModel, instance: CameraInstance, *,
                                    refractive_index=camera.plate_index,
                                    pupil_offset=camera.main_lens.exit_pupil_offset))
     a = vignetting_coefficient(s.vignetting)
-    rim = 0.5 * mla.pitch
+    centres = mla.centres()
+    if s.vignetting_centre == "lenslet":
+        rim = 0.5 * mla.pitch
+    else:
+        rim = 0.5 * mla.pitch * scale
+        centres = focal_spot_exact(centres, camera.image_distance, mla.sensor_distance,
+                                   back_side=mla.back_side, thickness=camera.plate_thickness,
+                                   refractive_index=camera.plate_index,
+                                   pupil_offset=camera.main_lens.exit_pupil_offset)
+    centres = np.ascontiguousarray(centres, dtype=np.float64)
     tp = np.ascontiguousarray(instance.throughput, dtype=np.float64)
     if engine == "numpy":
-        return SK.optical_gain_numpy(g, scale, d_row, d_col, tp, a, rim)
+        return SK.optical_gain_numpy(g, scale, d_row, d_col, tp, centres, a, rim)
     out = np.empty(camera.sensor.shape)
-    run_slices(SK.optical_gain, out.shape[0], g, scale, d_row, d_col, tp, a, rim, out)
+    run_slices(SK.optical_gain, out.shape[0], g, scale, d_row, d_col, tp, centres, a, rim,
+               out)
     return out
 
 
