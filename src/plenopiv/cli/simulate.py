@@ -240,6 +240,8 @@ def cmd_simulate(args) -> dict:
     recording = _recording_settings(args)
     cam = _camera_from_args(args)
     rec = _Recording(cam, args, recording)
+    # the resolved values, as the files' config records them
+    args.noise, args.read_noise = rec.noise, recording.read_noise_counts
     rng = np.random.default_rng(args.seed)
     kind = args.kind
     t0 = time.perf_counter()
@@ -353,7 +355,7 @@ class _Recording:
         if self.instance is None:
             return finish_image(irradiance, blur_px=a.blur_px, noise=self.noise,
                                 bit_depth=self.bits, full_well=a.full_well,
-                                read_noise=a.read_noise or 0.0, rng=rng)
+                                read_noise=self.settings.read_noise_counts, rng=rng)
         if self.exposure is None:
             self.fix_exposure(irradiance)
         return finish_image(irradiance, exposure=self.exposure,
