@@ -42,8 +42,9 @@ from plenopiv.errors import ConfigError
 from plenopiv.settings import settings
 
 __all__ = ["REALISTIC", "SHEET_PROFILES", "CameraInstance", "RecordingSettings",
-           "camera_instance", "glow_field", "optical_gain", "particle_peak_irradiance",
-           "record", "sheet_illumination"]
+           "adc_full_scale", "camera_instance", "describe", "glow_field", "optical_gain",
+           "particle_brightness", "particle_peak_irradiance", "record", "sheet_illumination",
+           "vignetting_coefficient"]
 
 SHEET_PROFILES = ("none", "gaussian", "tophat")
 
@@ -135,10 +136,6 @@ class RecordingSettings:
     def has_optics(self) -> bool:
         """A lenslet throughput spread or a micro-image vignetting."""
         return self.throughput_spread > 0 or self.vignetting > 0
-
-    def __post_init__(self):
-        if self.hot_pixel_fraction + self.dead_pixel_fraction >= 0.2:
-            raise ValueError("hot_pixel_fraction + dead_pixel_fraction: expected < 0.2")
 
 
 #: A typical real recording: black level 100 counts with a 3-count fixed pattern (1.5 per
