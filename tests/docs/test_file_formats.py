@@ -137,6 +137,16 @@ def test_synthetic_products(tmp_path, kind, capsys):
     assert_documented(section, *h5_names(out))
 
 
+@pytest.mark.parametrize("kind", ["dark", "white"])
+def test_synthetic_frames(tmp_path, kind, capsys):
+    from plenopiv.cli import main
+
+    out = tmp_path / f"{kind}.h5"
+    assert main(["simulate", kind, "small_test", "--lenslets", "5", "7", "--realistic",
+                 "--frames", "2", "--out", str(out), "--quiet"]) == 0, capsys.readouterr().err
+    assert_documented("Synthetic dark and white frames", *h5_names(out))
+
+
 def test_weights_cache(tmp_path, small_camera):
     from plenopiv.calibration.model import Calibration
     from plenopiv.reconstruction.select import cached_weights

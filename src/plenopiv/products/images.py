@@ -205,3 +205,23 @@ def write_image(path: str | Path, image: np.ndarray, *, metadata: dict | None = 
         else:
             raise ImageError(f"output {str(p)!r}: expected a .tif/.tiff or .png file name")
     return p
+
+
+def write_image_stack(path: str | Path, frames: np.ndarray, *,
+                      metadata: dict | None = None) -> Path:
+    """Write frames ``(n, rows, cols)`` atomically as one multi-page TIFF; return the path.
+
+    Each frame is one page; ``metadata`` is JSON in the first page's description.
+    """
+    p = Path(path)
+    stack = np.asarray(frames)
+    if p.suffix.lower() not in (".tif", ".tiff"):
+        raise OutputError(f"output {str(p)!r}: a stack of frames is written as .tif/.tiff")
+    if stack.ndim != 3:
+        raise ImageError(f"frames of shape {stack.shape}: expected (n, rows, cols)")
+    with atomic_path(p) as tmp:
+        import tifffile
+
+        tifffile.imwrite(tmp, stack, photometric="minisblack", metadata=None,
+                         description=dumps(metadata or {}))
+    return p
