@@ -596,7 +596,7 @@ def ray_selection(lf: LightField, index, rays, centre, radius,
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from plenopiv.particles.peaks import _bundle_kernels as _k
+    from plenopiv.particles import _bundle_kernels as _k
 
     ptr = index[1].astype(np.int64)
     lptr, lidx = _candidates(lf, index, centre, radius)
@@ -648,7 +648,7 @@ def _numba_normal_equations(lf, index, rays, centre, radius, bright, total, pool
     buffers (:func:`ray_selection`). Returns ``(selection, normal (N, 3, 3), rhs (N, 3),
     rays with weight (N,))``.
     """
-    from plenopiv.particles.peaks import _bundle_kernels as _k
+    from plenopiv.particles import _bundle_kernels as _k
 
     sel = ray_selection(lf, index, rays, centre, radius, pool)
     u, xf, w = rays
@@ -665,7 +665,7 @@ def _numba_normal_equations(lf, index, rays, centre, radius, bright, total, pool
 
 def _numba_covariance(lf, rays, sel, bright, total, point, normal, ok):
     """Return :func:`_covariance` by the numba path (same estimator, the last solve's rays)."""
-    from plenopiv.particles.peaks import _bundle_kernels as _k
+    from plenopiv.particles import _bundle_kernels as _k
 
     n = len(point)
     u, xf, w = rays

@@ -489,7 +489,7 @@ def _descend(ptr, u, xf, v, amp, first, lo, hi, geom, excess, scale, iterations)
 def _local_fit_numba(ptr, u, xf, v, amp, start, geom, excess, scale, bounds, offsets,
                      iterations):
     """Return :func:`_local_fit` by the compiled kernel."""
-    from plenopiv.particles.peaks import _bundle_kernels as _k
+    from plenopiv.particles import _bundle_kernels as _k
 
     pos = np.empty_like(start)
     c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, amp, start)]
@@ -557,7 +557,7 @@ def _best_offset(ptr, u, xf, v, amp, pos, depth, lateral, geom, excess):
 
 def _best_offset_numba(ptr, u, xf, v, amp, pos, depth, lateral, geom, excess):
     """Return :func:`_best_offset` by the compiled kernel."""
-    from plenopiv.particles.peaks import _bundle_kernels as _k
+    from plenopiv.particles import _bundle_kernels as _k
 
     choice = np.zeros((len(pos), 3))
     c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, amp, pos, depth, lateral)]
@@ -573,7 +573,7 @@ def _amplitude_at(ptr, pid, u, xf, v, pos, geom):
 
 def _amplitude_at_numba(ptr, pid, u, xf, v, pos, geom):
     """Return :func:`_amplitude_at` by the compiled kernel (one pass, no fraction array)."""
-    from plenopiv.particles.peaks import _bundle_kernels as _k
+    from plenopiv.particles import _bundle_kernels as _k
 
     out = np.empty(len(ptr) - 1)
     c = [np.ascontiguousarray(a, np.float64) for a in (u, xf, v, pos)]
@@ -661,7 +661,7 @@ def _near_pixels(lf: LightField, index, start, margin, depth_range, values):
     Rows of the lenslet-sorted arrays; ``gathered`` is ``(value, u, X_f)`` of those rows when
     ``values`` (lenslet order) is given, else None.
     """
-    from plenopiv.particles.peaks import _bundle_kernels as _k
+    from plenopiv.particles import _bundle_kernels as _k
 
     _, ptr, lens_ids, tree, _, u_s, xf_s = index
     t, radius, reach = _reach(lf, start, margin, depth_range)
