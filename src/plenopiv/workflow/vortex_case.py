@@ -29,7 +29,7 @@ from plenopiv.config.experiment import (
 )
 from plenopiv.products.figures import vector_comparison
 from plenopiv.products.files import atomic_path
-from plenopiv.reconstruction.subdivision import lateral_subdivision
+from plenopiv.reconstruction.choose import lateral_subdivision
 from plenopiv.synthetic.flows import HillVortex, LambOseen, Uniform, advect
 from plenopiv.synthetic.images import (
     Ruler,
