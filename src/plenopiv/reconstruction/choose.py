@@ -210,11 +210,13 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
             work.check_in_view()
             fit = fit_projector(work.light_field, work.grid, projector="lattice",
                                 budget_gb=math.inf, separable=True)
+            over = (f", above the {budget:.3g} GB of max_weights_gb, which this path does "
+                    "not hold it to" if fit.memory_gb > budget else "")
             return ReconstructionChoice(
                 "lattice", (ky, kx), work.grid, fit.memory_gb * 1e9, budget * 1e9,
-                f"a {ky} x {kx} subdivided grid on an axis-aligned square lattice: the "
-                "matrix-free lattice projector (k² times the explicit weights otherwise)",
-                n_rays=n_rays)
+                f"{why}: a {ky} x {kx} subdivided grid on an axis-aligned square lattice "
+                "takes the matrix-free lattice projector (k² times the explicit weights "
+                f"otherwise), ~{fit.memory_gb:.3g} GB{over}", n_rays=n_rays)
     fallbacks: list[str] = []
     while True:
         work = geometry.on_grid(subdivided_grid(grid, ky, kx))
