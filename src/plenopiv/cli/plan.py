@@ -188,6 +188,10 @@ def print_summary(p: dict) -> None:
                          f"{_fmt(t['volume'])} s, PIV {_fmt(t['piv'])} s; a pair "
                          f"{_fmt(t['pair'])} s ({_fmt(t['pair_cached_weights'])} s with cached "
                          "weights)"))
+    if p.get("response_s"):
+        rows.append(("response", f"the chain's response, once per experiment before its pairs "
+                                 f"([piv] uncertainty = \"response\"): about "
+                                 f"{_fmt(p['response_s'])} s (none when cached)"))
     rows.append(("", f"time model: {p['time_model']}"))
     width = max(len(k) for k, _ in rows)
     for k, v in rows:

@@ -31,6 +31,7 @@ from plenopiv.camera.model import (
     read_toml,
 )
 from plenopiv.errors import ConfigError
+from plenopiv.piv.response import RESPONSE_PARTICLES_PER_LENSLET
 from plenopiv.piv.settings import (
     DEFORMATION_ORDERS,
     MIN_WINDOW_VOX,
@@ -180,6 +181,12 @@ class PIVConfig(_Strict):
         response to known displacements, once per experiment: two more reconstructions per
         test displacement) | "correlation" (correlation statistics only, faster,
         under-estimates the depth uncertainty near focus; see docs/validation/uncertainty.md).
+    response_particles_per_lenslet : seeding of the ``"response"`` uncertainty's test pairs,
+        particles per lenslet of the field of view (0.15, the validated density): set it to
+        the experiment's nominal seeding. The response is measured once per experiment and
+        shared by all its pairs, so it follows the experiment's settings, not a pair's count:
+        the test pairs seed ``response_particles_per_lenslet`` × lenslets × (box area / field
+        of view at the focal plane) particles through the whole box.
     response_displacements : test displacements of the ``"response"`` uncertainty, 3
         (default: 0.5, 1.25 and 1.75 lenslet footprints laterally with 0.1, 0.25 and 0.5
         depth resolution cells, plus 1.25 footprints along x alone and 0.5 depth cells
@@ -206,12 +213,15 @@ class PIVConfig(_Strict):
     replacement: Literal[*REPLACEMENT_METHODS] = _PIV.replacement
     uncertainty: Literal["response", "correlation"] = "response"
     response_displacements: Literal[1, 3] = 3
+    response_particles_per_lenslet: float = Field(RESPONSE_PARTICLES_PER_LENSLET, gt=0,
+                                                  le=10, allow_inf_nan=False)
     overlap_correction: bool = _PIV.overlap_correction
     broad_peaks: bool = _PIV.broad_peaks
 
     def settings(self) -> PIVSettings:
         """The :class:`plenopiv.piv.PIVSettings` of this table (every key but the uncertainty's)."""
-        return PIVSettings(**self.model_dump(exclude={"uncertainty", "response_displacements"}))
+        return PIVSettings(**self.model_dump(exclude={"uncertainty", "response_displacements",
+                                                      "response_particles_per_lenslet"}))
 
     @field_validator("windows")
     @classmethod

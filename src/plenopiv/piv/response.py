@@ -16,6 +16,7 @@ __all__ = [
     "DEPTH_SHIFTS",
     "LATERAL_SHIFTS",
     "RESPONSE_DISPLACEMENTS",
+    "RESPONSE_PARTICLES_PER_LENSLET",
     "RESPONSE_VERSION",
     "SEPARATING_SHIFTS",
     "Response",
@@ -60,6 +61,12 @@ and ``w`` vary: three pairs give every component along every axis."""
 
 
 RESPONSE_VERSION = 10
+
+
+RESPONSE_PARTICLES_PER_LENSLET = 0.15
+"""Default seeding of the response's test pairs, particles per lenslet (``[piv]
+response_particles_per_lenslet``): the density the validations were run at
+(docs/validation/vortex.md, uncertainty.md)."""
 
 
 def lateral_edge(shape) -> np.ndarray:

@@ -161,6 +161,7 @@ class Plan:
     advice: tuple[str, ...] = ()
     particles_per_lenslet: float = VALIDATED_PARTICLES_PER_LENSLET
     decision: ReconstructionChoice | None = None
+    response_s: float = 0.0
 
     @property
     def fits(self) -> bool:
@@ -223,6 +224,7 @@ class Plan:
             "memory_gb": {k: v / 1e9 for k, v in self.memory.items()},
             "available_memory_gb": self.available_memory / 1e9,
             "time_s": dict(self.time),
+            "response_s": self.response_s,
             "time_model": self.time_model,
             "warnings": list(self.warnings),
             "advice": list(self.advice),
@@ -577,6 +579,10 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     decision (:func:`plenopiv.reconstruction.choose.choose_reconstruction`, on the light field
     of the calibration: seconds and ~250 bytes per ray for a 16 MP camera), so memory and
     time are those of what ``plenopiv reconstruct`` will run.
+
+    With ``[piv] uncertainty = "response"`` the chain's response is measured once per
+    experiment, before its pairs: ``response_s`` estimates that time
+    (:func:`plenopiv.workflow.response.response_seconds`), s.
     """
     from plenopiv.calibration.model import Calibration
     from plenopiv.reconstruction.choose import choose_reconstruction
@@ -610,6 +616,13 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     memory = _memory(choice, grid, nnz)
     times = _times(choice, grid, nnz, rates, reconstruction.iterations, windows, piv.overlap,
                    passes, memory["weights_cache_file"])
+    response_s = 0.0
+    if piv.uncertainty == "response":
+        from plenopiv.workflow.response import response_particle_count, response_seconds
+
+        n = response_particle_count(cal, grid, piv.response_particles_per_lenslet)
+        response_s = response_seconds(times["volume"], times["piv"], n,
+                                      piv.response_displacements)
     model = ("rates measured in this process" if rates.source == "measured"
              else "benchmark rates of the project's 2-core machine (planning.BENCHMARK_RATES)")
     model = f"{model}, {rates.threads} threads"
@@ -625,7 +638,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
                 recommended_vectors=rec_vectors, n_rays=n_rays, nnz=nnz,
                 projector=choice.settings_projector, memory=memory, time=times,
                 time_model=model, available_memory=total_mem, warnings=tuple(warnings),
-                advice=tuple(advice), decision=choice)
+                advice=tuple(advice), decision=choice, response_s=response_s)
 
 
 def _memory(choice, grid: VolumeGrid, nnz: int) -> dict:

@@ -282,6 +282,7 @@ def case_experiment(case: VortexCase, calibration, out: Path) -> Experiment:
                       piv=PIVConfig(windows=list(case.windows_vox), overlap=0.5,
                                     passes=case.passes, uncertainty=case.uncertainty,
                                     response_displacements=case.response_displacements,
+                                    response_particles_per_lenslet=case.particles_per_lenslet,
                                     overlap_correction=case.overlap_correction,
                                     broad_peaks=case.broad_peaks),
                       images=ImagesConfig(dt_s=case.dt),
