@@ -236,15 +236,15 @@ def test_piv_cli_leaves_rejected_vectors_nan(pair_products, tmp_path, capsys):
 def test_a_worker_keeps_one_processor_and_its_projector(tmp_path, monkeypatch):
     """`plenopiv run`'s per-pair work: the experiment, calibration and projector are made with
     a worker's first pair and reused; a changed experiment file makes a new processor."""
-    from plenopiv.workflow import worker
     from plenopiv.camera.model import load_camera
+    from plenopiv.workflow import pair, worker
 
     Calibration.from_camera(load_camera("small_m1")).save(tmp_path / "cal.h5")
     exp = tmp_path / "exp.toml"
     exp.write_text('camera = "small_m1"\n[volume]\nx_mm = [-1.0625, 1.0625]\n'
                    'y_mm = [-1.0625, 1.0625]\nz_mm = [-1.5, 1.5]\nvoxel_mm = 0.125\n')
     built = []
-    monkeypatch.setattr(pipeline, "weights_for",
+    monkeypatch.setattr(pair, "weights_for",
                         lambda *a, **k: (built.append(a) or object(), False))
     first = worker.worker_processor(exp, tmp_path / "cal.h5")
     assert worker.worker_processor(exp, tmp_path / "cal.h5") is first

@@ -403,8 +403,9 @@ def test_every_setting_is_a_piv_key_with_the_one_default():
 
     names = {f.name for f in fields(PIVSettings)}
     assert names <= set(PIVConfig.model_fields)
-    # the two keys beyond the correlation's settings choose the pipeline's uncertainty step
-    assert set(PIVConfig.model_fields) - names == {"uncertainty", "response_displacements"}
+    # the keys beyond the correlation's settings choose the pipeline's uncertainty step
+    assert set(PIVConfig.model_fields) - names == {"uncertainty", "response_displacements",
+                                                   "response_particles_per_lenslet"}
     assert piv_settings(PIVConfig()) == PIVSettings()
 
 

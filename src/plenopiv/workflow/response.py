@@ -51,7 +51,7 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     correlate : callable
         ``correlate(volume_a, volume_b) -> VectorField``, the correlation of the real volumes.
     n_particles : int
-        Particles per test pair (the real pair's seeding).
+        Particles per test pair (the experiment's seeding: :func:`response_particle_count`).
     f_number : float, optional
         Aperture of the recording (default: the camera's).
     rays_per_particle : int
