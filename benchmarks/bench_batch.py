@@ -24,8 +24,8 @@ cores: 2.0 is perfect; the goal is at least 1.8. Other work on the machine lower
 well below 1. Nothing is asserted; figures are printed.
 
 ``--pipeline N`` instead runs N simulated pairs of the small camera through ``plenopiv run``'s
-per-pair work (:class:`plenopiv.workflow.worker.ExperimentPairProcess`) on one worker and prints each
-pair's time: the first pair of a worker loads the experiment, the calibration and builds its
+per-pair work (:class:`plenopiv.workflow.worker.ExperimentPairProcess`) on one worker and prints
+each pair's time: the first pair of a worker loads the experiment, the calibration and builds its
 projector (and compiles the kernels), the later ones reuse them.
 
 ``--camera auburn_135mm`` runs the pairs on the full-size benchmark camera instead (3280 × 4904

@@ -77,8 +77,9 @@ def reconstruction_footprint(camera: str, depth_mm: float, method: str, repeats:
     """Bytes held per explicit non-zero while a volume is reconstructed, and its CPU time.
 
     The weights are built once into a temporary cache; then, under ``tracemalloc``, they are
-    loaded from it and one image is reconstructed (:func:`plenopiv.workflow.volume.reconstruct_volume`,
-    ``method``, no lateral subdivision, explicit weights). The traced peak is everything held
+    loaded from it and one image is reconstructed
+    (:func:`plenopiv.workflow.volume.reconstruct_volume`, ``method``, no lateral subdivision,
+    explicit weights). The traced peak is everything held
     by NumPy at once: W, any scaled or row-selected copies of it, volumes and images
     (arrays allocated inside numba kernels are not traced: the colouring of MART's row
     schedule, a few bytes per voxel). The CPU time is the best of ``repeats`` reconstructions

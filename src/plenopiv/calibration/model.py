@@ -15,8 +15,8 @@ reading, the product's ``image_distance_m`` attribute gives it.
 The product records the camera it was made for: the root attribute ``camera`` (the camera's
 config as JSON: sensor, lattice, main lens with the calibrated S_i) and ``camera_summary``
 (one line: lens focal length, S_i, lattice, sensor). Using it with another camera is an error
-naming both (:func:`plenopiv.workflow.experiment.experiment_calibration`). Files written before these
-attributes existed are read from the camera in their ``config`` attribute.
+naming both (:func:`plenopiv.workflow.experiment.experiment_calibration`). Files written before
+these attributes existed are read from the camera in their ``config`` attribute.
 """
 
 from __future__ import annotations

@@ -1,5 +1,7 @@
-"""The camera: the frozen model (sensor, microlens array, main lens, interfaces), its optics,
-its resolution cell, the volume grid and the depth corrections of its refractive interfaces.
+"""The camera: its frozen model, optics, resolution cell, volume grid and depth corrections.
+
+The model holds the sensor, microlens array, main lens and interfaces; the depth corrections
+are those of its refractive interfaces.
 
 See docs/methods.md for the physics.
 """

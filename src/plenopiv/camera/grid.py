@@ -2,7 +2,8 @@
 
 Volumes are indexed ``[z, y, x]``; voxel ``[k, j, i]`` has its centre at
 ``(x[i], y[j], z[k])``. Z is measured from the nominal focal plane, + away from the camera;
-the reconstruction works in effective (air-equivalent) depth, see :mod:`plenopiv.camera.corrections`.
+the reconstruction works in effective (air-equivalent) depth, see
+:mod:`plenopiv.camera.corrections`.
 """
 
 from __future__ import annotations

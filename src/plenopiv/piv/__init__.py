@@ -30,8 +30,8 @@ Modules, in the order the data moves:
 
 The settings and the result are imported with the package; the functions that need numba and
 scipy are imported on first use, so that the experiment configuration
-(:mod:`plenopiv.config.experiment`) can take its ``[piv]`` defaults from :class:`PIVSettings` without
-loading them.
+(:mod:`plenopiv.config.experiment`) can take its ``[piv]`` defaults from :class:`PIVSettings`
+without loading them.
 """
 
 import importlib

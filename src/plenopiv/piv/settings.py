@@ -131,7 +131,8 @@ class PIVSettings:
     Notes
     -----
     The defaults here are the only ones: the ``[piv]`` table of an experiment file
-    (:class:`plenopiv.config.experiment.PIVConfig`) reads them from this class and offers every field.
+    (:class:`plenopiv.config.experiment.PIVConfig`) reads them from this class and offers every
+    field.
 
     Examples
     --------

@@ -1,4 +1,7 @@
-"""The on-disk caches (the chain's response; the weights cache is in this module too), with their keys."""
+"""The on-disk cache of the chain's response, with its key.
+
+The weights cache is :func:`plenopiv.reconstruction.select.cached_weights`.
+"""
 
 from __future__ import annotations
 

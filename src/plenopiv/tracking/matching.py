@@ -6,8 +6,8 @@ sphere around the prediction, so that tracking works at seeding densities where 
 neighbour tracking without a predictor would confuse particles.
 
 Distances are measured in resolution cells, ``scale = (b, b, ΔZ)`` metres per unit (lateral
-footprint and depth cell, :func:`plenopiv.camera.resolution.resolution_cell`), so that one search radius
-suits both the sharp lateral and the blurred depth direction.
+footprint and depth cell, :func:`plenopiv.camera.resolution.resolution_cell`), so that one search
+radius suits both the sharp lateral and the blurred depth direction.
 
 1. prediction: ``p_B = p_A + d(p_A + d(p_A)/2)``, d the correlation displacement interpolated
    trilinearly (the PIV vector belongs to the material point half-way between the exposures);

@@ -1,4 +1,7 @@
-"""One image -> one volume and its particles (reconstruction, particle finding, light-field positions, depth corrections)."""
+"""One image -> one volume and its particles.
+
+Reconstruction, particle finding, light-field positions, depth corrections.
+"""
 
 from __future__ import annotations
 
