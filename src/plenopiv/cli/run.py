@@ -72,8 +72,8 @@ def cmd_run(args) -> dict:
     response, response_info = None, None
     if pending_jobs(jobs, resume=args.resume):
         estimate = {}
-        response = prepare_response(exp, cal, announce=lambda: _announce_response(
-            exp, cal, estimate, quiet=args.quiet or args.json))
+        response = prepare_response(exp, cal, announce=lambda weights: _announce_response(
+            exp, cal, weights, estimate, quiet=args.quiet or args.json))
         if response is not None:
             response_info = {**response.summary(), **estimate}
     process = ExperimentPairProcess(str(Path(args.experiment).resolve()), str(cal_path.resolve()),
@@ -98,14 +98,18 @@ def cmd_run(args) -> dict:
     return result
 
 
-def _announce_response(exp, cal, estimate: dict, *, quiet: bool) -> None:
-    """Estimate the response's measurement (into ``estimate``) and say it is starting."""
+def _announce_response(exp, cal, weights, estimate: dict, *, quiet: bool) -> None:
+    """Estimate the response's measurement (into ``estimate``) and say it is starting.
+
+    The estimate is :func:`plenopiv.workflow.planning.plan`'s, on the light field the
+    ``weights`` were built from.
+    """
     import sys
 
     from plenopiv.workflow import planning
 
     seconds = planning.plan(cal.camera, exp.volume, reconstruction=exp.reconstruction,
-                            piv=exp.piv, calibration=cal).response_s
+                            piv=exp.piv, calibration=cal, geometry=weights.geometry).response_s
     estimate["estimate_s"] = round(seconds, 1)
     if not quiet:
         print(f"measuring the chain's response: once per experiment, about {seconds:.0f} s "

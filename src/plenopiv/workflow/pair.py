@@ -126,7 +126,7 @@ class PairProcessor:
         """The chain's response shared by every pair (None unless ``uncertainty = "response"``).
 
         :func:`plenopiv.workflow.response.experiment_response`: from the response cache, or
-        measured once (``announce()`` is called first), then kept.
+        measured once (``announce(weights)`` is called first), then kept.
         """
         if self.experiment.piv.uncertainty != "response":
             return None

@@ -566,7 +566,7 @@ LENSLET_COST_RATIO = 3.2
 def plan(camera: CameraModel, grid: VolumeGrid, *,
          reconstruction: ReconstructionSettings | None = None, piv: PIVConfig | None = None,
          rates: Rates | None = None, memory_total: float | None = None,
-         calibration=None) -> Plan:
+         calibration=None, geometry=None) -> Plan:
     """Plan the reconstruction of ``grid`` (effective coordinates) with ``camera``.
 
     ``camera`` must know its image distance (from the camera file, or a calibration's
@@ -574,6 +574,8 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     the defaults). ``rates``: :func:`measure_rates` (this machine) or
     :data:`BENCHMARK_RATES` (default). ``calibration``: the experiment's calibration product
     (:class:`~plenopiv.calibration.model.Calibration`; default: the camera's exact one).
+    ``geometry``: a :class:`~plenopiv.reconstruction.geometry.ProjectionGeometry` of that
+    calibration and these settings whose light field is built already (a reconstruction's).
 
     The projector, the lateral subdivision and the working grid are the reconstruction's own
     decision (:func:`plenopiv.reconstruction.choose.choose_reconstruction`, on the light field
@@ -607,7 +609,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     rec_vectors = vectors_per_pass(rec_grid.shape, rec_win, piv.overlap, len(rec_win))[-1]
 
     cal = Calibration.from_camera(camera) if calibration is None else calibration
-    choice = choose_reconstruction(cal, grid, reconstruction)
+    choice = choose_reconstruction(cal, grid, reconstruction, geometry=geometry)
     n_rays = choice.n_rays
     nnz = choice.nnz
     if nnz is None:                  # not needed by the decision: counted for the report

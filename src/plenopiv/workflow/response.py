@@ -298,7 +298,8 @@ class ExperimentResponse:
 
 def experiment_response(experiment, calibration, weights, settings, *, image_mask=None,
                         volume_mask=None, workers=None,
-                        announce: Callable[[], None] | None = None) -> ExperimentResponse:
+                        announce: Callable[[object], None] | None = None
+                        ) -> ExperimentResponse:
     """The chain's response of ``experiment``: from the cache, or measured and cached.
 
     Parameters
@@ -316,7 +317,8 @@ def experiment_response(experiment, calibration, weights, settings, *, image_mas
     workers : int, optional
         Threads of the correlation.
     announce : callable, optional
-        Called once just before a measurement starts (not when the cache has it).
+        ``announce(weights)``, called once just before a measurement starts (not when the
+        cache has it).
     """
     from plenopiv.camera.corrections import DepthCorrection
     from plenopiv.piv import correlate_volumes
@@ -343,7 +345,7 @@ def experiment_response(experiment, calibration, weights, settings, *, image_mas
 
     def measure():
         if announce is not None:
-            announce()
+            announce(weights)
         return measure_response(calibration, grid, correction, reconstruct=reconstruct,
                                 correlate=correlate, n_particles=n,
                                 f_number=experiment.reconstruction.f_number,

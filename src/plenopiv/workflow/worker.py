@@ -131,8 +131,8 @@ def prepare_response(experiment, calibration: Calibration, *,
                      announce=None) -> ExperimentResponse | None:
     """The chain's response of the experiment, once, before a batch's pairs fan out.
 
-    From the response cache, or measured here (``announce()`` is called first) with the
-    projector every pair uses, then cached (``[output] weights_cache``). None unless
+    From the response cache, or measured here (``announce(weights)`` is called first) with
+    the projector every pair uses, then cached (``[output] weights_cache``). None unless
     ``[piv] uncertainty = "response"``. The projector built for it is dropped on return.
     """
     if experiment.piv.uncertainty != "response":
