@@ -55,6 +55,7 @@ UNITS = {
     "experiment:particles.threshold": "fraction of the reference",
     "experiment:piv.windows": "voxels [z, y, x]",
     "experiment:piv.overlap": "fraction",
+    "experiment:piv.response_particles_per_lenslet": "particles per lenslet",
     "experiment:tracking.bundle_radius": "half beam widths",
     "experiment:tracking.min_lenslets": "lenslets",
     "experiment:mask.image": "path", "experiment:mask.volume": "path",
@@ -101,6 +102,8 @@ ALLOWED.update({
     "experiment:piv.uncertainty": " \\| ".join(f'`"{m}"`' for m in _piv.UNCERTAINTY_METHODS),
     "experiment:piv.response_displacements": " \\| ".join(
         f"`{n}`" for n in _piv.RESPONSE_DISPLACEMENTS),
+    "experiment:piv.response_particles_per_lenslet": "number > 0, ≤ "
+                                                     f"{_piv.MAX_RESPONSE_PARTICLES_PER_LENSLET:g}",
     "experiment:piv.windows": f"list of [wz, wy, wx], edges {_piv.MIN_WINDOW_VOX}–"
                               f"{_piv.MAX_WINDOW_VOX}",
 })
@@ -236,6 +239,11 @@ MEANINGS = {
                                   'only, blind to the near-focus depth error',
     "experiment:piv.response_displacements": "test displacements of the response uncertainty: "
                                              "3 (sixteen more reconstructions) or 1 (two)",
+    "experiment:piv.response_particles_per_lenslet": "seeding of the response's test pairs "
+                                                     "through the whole box; measured once per "
+                                                     "experiment and shared by its pairs, so it "
+                                                     "follows this, never a pair's own count: "
+                                                     "set the experiment's nominal seeding",
     "experiment:piv.overlap_correction": "fit the peak on the correlation divided by the "
                                          "windows' overlap fraction",
     "experiment:piv.broad_peaks": "5-point Gaussian fit along broad peaks (σ ≥ 1 voxel), "

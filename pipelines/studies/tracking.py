@@ -157,7 +157,8 @@ def measure_case(case: VortexCase) -> dict:
     cam, cal = _calibration(case, rng)
     grid, flow, pair, ia, ib = _simulate(case, cam, cal, rng)
     exp = Experiment(camera=cal.camera, volume=grid,
-                     piv=PIVSettings(windows=tuple(case.windows_vox), overlap=0.5, passes=3),
+                     piv=PIVSettings(windows=tuple(case.windows_vox), overlap=0.5, passes=3,
+                                     response_particles_per_lenslet=case.particles_per_lenslet),
                      images=ImagesConfig(dt_s=case.dt), output=OutputConfig(weights_cache=""))
     t1 = time.perf_counter()
     res = process_pair(cal, ia, ib, exp)

@@ -19,7 +19,7 @@ U32 = 2.0**-24
 
 #: The options these tests were written for: the 3-point Gaussian fit and 2-voxel boxes
 #: (the pipeline's own come from ``[particles]``,
-#:func:`plenopiv.workflow.volume.particle_options`).
+#: :func:`plenopiv.workflow.volume.particle_options`).
 GAUSSIAN_3POINT = dict(method="gaussian", min_separation_vox=2.0, box_vox=(2, 2, 2),
                        fit_spacing_vox=(1, 1, 1))
 

@@ -108,11 +108,11 @@ def test_one_reconstruction_builds_one_light_field_and_walks_its_modules_one_way
     assert calls[LIGHT_FIELD] == 1, (f"light_field built {calls[LIGHT_FIELD]} times; module "
                                      f"order {order}")
     assert order[0] == "plenopiv.workflow.volume", f"module order {order}"
-    flow_order = ["plenopiv.workflow.volume", "plenopiv.reconstruction.subdivision",
-                  "plenopiv.reconstruction.select", "plenopiv.reconstruction.geometry",
-                  "plenopiv.lightfield.rays"]
-    flow = [m for m in order if m in flow_order]
-    assert flow == sorted(flow, key=flow_order.index), f"module order {order}"
+    modules = ["plenopiv.workflow.volume", "plenopiv.reconstruction.subdivision",
+               "plenopiv.reconstruction.choose", "plenopiv.reconstruction.select",
+               "plenopiv.reconstruction.geometry", "plenopiv.lightfield.rays"]
+    flow = [m for m in order if m in modules]
+    assert flow == sorted(flow, key=modules.index), f"module order {order}"
 
 
 def test_given_weights_lend_their_light_field_to_the_line_of_sight(case):

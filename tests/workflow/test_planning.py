@@ -18,6 +18,7 @@ from plenopiv.cli import main
 from plenopiv.lightfield import light_field
 from plenopiv.piv.settings import PIVSettings
 from plenopiv.reconstruction.select import estimate_nnz
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow import planning
 
 MM = 1e-3
@@ -107,14 +108,22 @@ def test_box_outside_the_field_of_view(small_camera):
 def test_full_camera_uses_the_lattice_projector_and_its_memory(auburn_camera):
     grid = VolumeGrid.from_bounds((-37 * MM, 37 * MM), (-25 * MM, 25 * MM),
                                   (-26 * MM, 26 * MM), voxel=0.26 * MM)
-    p = planning.plan(auburn_camera, grid, memory_total=24e9)
-    assert p.projector == "lattice"
+    # footprint voxels without subdivision: docs/performance.md, 3.5 GB peak for the 16 MP
+    # pair
+    p = planning.plan(auburn_camera, grid, memory_total=24e9,
+                      reconstruction=ReconstructionSettings(lateral_subdivision=1))
+    assert p.projector == "lattice" and p.decision.subdivision == (1, 1)
     assert p.nnz > 1e10               # docs/performance.md: 1.23e10 non-zeros, ~100 GB of CSR
     assert p.n_rays == pytest.approx(11.55e6, rel=0.03)
-    # docs/performance.md benchmark: 3.5 GB peak for the 16 MP pair, 58 s on 2 cores
     assert 2.5e9 < p.memory["peak"] < 5e9
     assert 20 < p.time["pair"] < 200
     assert p.time_model.startswith("benchmark rates")
+    # the default 3 x 3 subdivision: README, 7.1 GB peak and 385 s for the pair on a shared
+    # 2-core machine (the reconstruction's own estimate of its memory is 11 GB)
+    p = planning.plan(auburn_camera, grid, memory_total=24e9)
+    assert p.projector == "lattice" and p.decision.subdivision == (3, 3)
+    assert 6e9 < p.memory["peak"] < 15e9
+    assert 200 < p.time["pair"] < 1000
 
 
 def test_measured_rates_are_positive(small_camera):

@@ -70,6 +70,7 @@ __all__ = [
     "discover_pairs",
     "is_complete",
     "mark_complete",
+    "pending_jobs",
     "product_identity",
     "run_batch",
     "slurm_cluster_kwargs",
@@ -528,6 +529,14 @@ def _remove_temporaries(jobs: Sequence[PairJob], summary_file: Path) -> list[Pat
             p.unlink()
             removed.append(p)
     return removed
+
+
+def pending_jobs(jobs: Sequence[PairJob], *, resume: bool = True) -> list[PairJob]:
+    """The jobs :func:`run_batch` would run now: what a command prepares for beforehand.
+
+    With ``resume``, those without a complete product made with their identity; else all.
+    """
+    return _jobs_to_run(_check_jobs(jobs), resume)[2]
 
 
 def _jobs_to_run(jobs: Sequence[PairJob], resume: bool) -> tuple[dict, list, list]:

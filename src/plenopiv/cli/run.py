@@ -25,14 +25,18 @@ def add_parser(sub) -> None:
 
 def cmd_run(args) -> dict:
     """Many pairs end to end on dask (local processes, SLURM, or a running scheduler)."""
-    from plenopiv.batch import BatchInterrupted, check_batch_options, run_batch
+    from plenopiv.batch import BatchInterrupted, check_batch_options, pending_jobs, run_batch
     from plenopiv.batch.cluster import batch_options
     from plenopiv.batch.jobs import discover_pairs
     from plenopiv.config.experiment import load_experiment
     from plenopiv.errors import ComputationError
     from plenopiv.resources import check_grid
     from plenopiv.workflow.experiment import experiment_calibration
-    from plenopiv.workflow.worker import ExperimentPairProcess, prepare_weights
+    from plenopiv.workflow.worker import (
+        ExperimentPairProcess,
+        prepare_response,
+        prepare_weights,
+    )
 
     _integer("--workers", args.workers, minimum=1, maximum=4096)
     exp = load_experiment(args.experiment)
@@ -65,9 +69,18 @@ def cmd_run(args) -> dict:
     # explicit weights go into the weights cache once, before the workers start; each worker
     # then makes its projector once, for all its pairs
     hit, weights_s = prepare_weights(exp, cal)
+    # the chain's response, once per experiment, before the pairs fan out to the workers
+    response, response_info = None, None
+    if pending_jobs(jobs, resume=args.resume):
+        estimate = {}
+        response = prepare_response(exp, cal, announce=lambda weights: _announce_response(
+            exp, cal, weights, estimate, quiet=args.quiet or args.json))
+        if response is not None:
+            response_info = {**response.summary(), **estimate}
     process = ExperimentPairProcess(str(Path(args.experiment).resolve()), str(cal_path.resolve()),
-                                    str(out_dir))
-    head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit}
+                                    str(out_dir), response=response)
+    head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit,
+            "response": response_info}
     try:
         summary = run_batch(jobs, process, resume=args.resume,
                             progress=not (args.quiet or args.json), **opts)
@@ -84,6 +97,25 @@ def cmd_run(args) -> dict:
         err.summary = result
         raise err
     return result
+
+
+def _announce_response(exp, cal, weights, estimate: dict, *, quiet: bool) -> None:
+    """Estimate the response's measurement (into ``estimate``) and say it is starting.
+
+    The estimate is :func:`plenopiv.workflow.planning.plan`'s, on the light field the
+    ``weights`` were built from.
+    """
+    import sys
+
+    from plenopiv.workflow import planning
+
+    seconds = planning.plan(cal.camera, exp.volume, reconstruction=exp.reconstruction,
+                            piv=exp.piv, calibration=cal, geometry=weights.geometry).response_s
+    estimate["estimate_s"] = round(seconds, 1)
+    if not quiet:
+        print(f"measuring the chain's response: once per experiment, about {seconds:.0f} s "
+              "([piv] uncertainty = \"response\"; the pairs start after it)", file=sys.stderr,
+              flush=True)
 
 
 def _check_products_spare_inputs(jobs, others) -> None:
@@ -147,4 +179,11 @@ def print_summary(s: dict) -> None:
     weights = ("from the cache" if s.get("weights_from_cache")
                else f"built in {s.get('weights_s', 0.0):.1f} s")
     print(f"weights: {weights}")
+    r = s.get("response")
+    if r:
+        how = ("from the cache" if r.get("from_cache") else
+               f"measured once in {r['seconds']:.1f} s"
+               + (f" (estimated {r['estimate_s']:.0f} s)" if "estimate_s" in r else ""))
+        print(f"response: {how}, {r['n_particles']} particles per test pair, shared by every "
+              "pair")
     print(f"products: {s['out']}  (summary: {s.get('summary_path')})")

@@ -35,6 +35,13 @@ UNCERTAINTY_METHODS = ("response", "correlation")
 RESPONSE_DISPLACEMENTS = (1, 3)
 """Valid values of :attr:`PIVSettings.response_displacements`."""
 
+RESPONSE_PARTICLES_PER_LENSLET = 0.15
+"""Default seeding of the response's test pairs, particles per lenslet: the density the
+validations were run at (docs/validation/vortex.md, uncertainty.md)."""
+
+MAX_RESPONSE_PARTICLES_PER_LENSLET = 10.0
+"""Largest seeding of the response's test pairs, particles per lenslet."""
+
 def _is_number(value) -> bool:
     """A real number that is not a boolean (``True`` is no threshold)."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
@@ -152,6 +159,12 @@ class PIVSettings:
         ``RESPONSE_DISPLACEMENTS``: 3 (fractions 0.5, 1.25 and 1.75 of a lenslet footprint
         laterally with 0.1, 0.25 and 0.5 depth resolution cells, the two axes apart, and the
         modulated pairs of the curvature term) or 1 (the middle one alone).
+    response_particles_per_lenslet : float
+        Seeding of the ``"response"`` uncertainty's test pairs, particles per lenslet of the
+        field of view: this density times the lenslets the box covers, through the whole box.
+        The response is measured once per experiment and shared by all its pairs, so it
+        follows this setting, never a pair's own particle count: set it to the experiment's
+        nominal seeding (default :data:`RESPONSE_PARTICLES_PER_LENSLET`).
 
     Raises
     ------
@@ -188,6 +201,7 @@ class PIVSettings:
     broad_peaks: bool = True
     uncertainty: str = "response"
     response_displacements: int = 3
+    response_particles_per_lenslet: float = RESPONSE_PARTICLES_PER_LENSLET
 
     def __post_init__(self):
         w = self.windows
@@ -258,6 +272,13 @@ class PIVSettings:
         if isinstance(n, bool) or n not in RESPONSE_DISPLACEMENTS:
             raise ValueError(
                 f"response_displacements = {n!r}: expected one of {RESPONSE_DISPLACEMENTS}"
+            )
+        ppl = self.response_particles_per_lenslet
+        if not (_is_number(ppl) and 0 < ppl <= MAX_RESPONSE_PARTICLES_PER_LENSLET):
+            raise ValueError(
+                f"response_particles_per_lenslet = {ppl!r}: expected particles per lenslet "
+                f"> 0 and <= {MAX_RESPONSE_PARTICLES_PER_LENSLET:g} (the experiment's nominal "
+                "seeding)"
             )
 
     def window_vox(self, pass_index):

@@ -1,6 +1,6 @@
 """The on-disk cache of the chain's response, with its key.
 
-The weights cache is in :mod:`plenopiv.reconstruction.select`.
+The weights cache is :func:`plenopiv.reconstruction.select.cached_weights`.
 """
 
 from __future__ import annotations

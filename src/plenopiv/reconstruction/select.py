@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -32,8 +33,9 @@ from plenopiv.reconstruction.projector import SparseProjector
 from plenopiv.reconstruction.real_lattice import estimate_lenslet_gb, matrix_free_projector
 from plenopiv.reconstruction.weights import Weights, _kernel_args, build_weights
 
-__all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "cached_weights", "choose_projector",
-           "estimate_matrix_free_gb", "estimate_nnz", "memory_budget_gb", "weights_key"]
+__all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "ProjectorFit", "cached_weights",
+           "choose_projector", "estimate_matrix_free_gb", "estimate_nnz", "fit_projector",
+           "memory_budget_gb", "weights_key"]
 
 
 #: Bytes per explicit non-zero in a reconstruction: W's CSR (8: int32 voxel index, float32
@@ -62,6 +64,68 @@ def memory_budget_gb() -> float:
     return 0.4 * total / 1e9
 
 
+@dataclass(frozen=True)
+class ProjectorFit:
+    """The projector a memory budget allows on one grid, and the estimate that decided it.
+
+    Attributes
+    ----------
+    kind : {"sparse", "lattice", "lenslet"}
+        Explicit CSR weights, the separable matrix-free lattice projector (axis-aligned
+        square lattice) or the per-lenslet matrix-free projector (any other lattice).
+    memory_gb : float
+        Estimated peak memory of a reconstruction with it, GB: :data:`BYTES_PER_NONZERO` ×
+        ``nnz`` for explicit weights, :func:`estimate_matrix_free_gb` or
+        :func:`~plenopiv.reconstruction.real_lattice.estimate_lenslet_gb` otherwise.
+    nnz : int or None
+        Estimated non-zeros of the explicit weights (None where not estimated).
+    refusal : str or None
+        Why nothing allowed fits the budget (the reconstruction's error message), else None.
+    """
+
+    kind: str
+    memory_gb: float
+    nnz: int | None = None
+    refusal: str | None = None
+
+
+def fit_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto",
+                  budget_gb: float, min_weight: float = 1e-7,
+                  separable: bool | None = None) -> ProjectorFit:
+    """The projector :func:`choose_projector` takes, with its estimate; refusals are returned.
+
+    ``budget_gb`` is the memory allowed, GB. ``separable``: whether ``lf``'s rays are
+    separable (:func:`~plenopiv.reconstruction.geometry.separable_axes`), where the caller
+    knows it; computed here otherwise.
+    """
+    if projector not in PROJECTORS:
+        raise ValueError(f"projector = {projector!r}: expected one of {PROJECTORS}")
+    nnz = None
+    if projector in ("auto", "sparse"):
+        nnz = estimate_nnz(lf, grid, min_weight=min_weight)
+        need = BYTES_PER_NONZERO * nnz / 1e9
+        if need <= budget_gb:
+            return ProjectorFit("sparse", need, nnz)
+        if projector == "sparse":
+            return ProjectorFit("sparse", need, nnz, refusal=(
+                f"the explicit weights need ~{need:.3g} GB, more than the {budget_gb:.3g} GB "
+                "allowed ([reconstruction] max_weights_gb): set projector = \"auto\" (the "
+                "matrix-free projector), use fewer or larger voxels, or raise max_weights_gb"))
+    if separable is None:
+        separable = separable_axes(lf) is not None
+    need = estimate_matrix_free_gb(lf, grid) if separable else estimate_lenslet_gb(lf, grid)
+    kind = "lattice" if separable else "lenslet"
+    if need <= budget_gb:
+        return ProjectorFit(kind, need, nnz)
+    return ProjectorFit(kind, need, nnz, refusal=(
+        f"the matrix-free reconstruction of a {grid.shape[0]} × {grid.shape[1]} × "
+        f"{grid.shape[2]}-voxel volume needs ~{need:.3g} GB ("
+        + ("projection buffers of depth slices × voxel rows × sensor columns, "
+           if separable else "") + "volumes, rays), more than the "
+        f"{budget_gb:.3g} GB allowed ([reconstruction] max_weights_gb): use fewer or larger "
+        "voxels, or raise max_weights_gb"))
+
+
 def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto",
                      max_weights_gb: float | None = None, min_weight: float = 1e-7) -> str:
     """``"sparse"`` or ``"lattice"`` for a reconstruction of ``grid`` from ``lf``.
@@ -72,7 +136,8 @@ def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto
     (:func:`plenopiv.reconstruction.real_lattice.matrix_free_projector`: the separable lattice
     projector for an axis-aligned square lattice, the per-lenslet one for any other).
 
-    Both estimates are checked against the same budget before anything large is allocated.
+    Both estimates are checked against the same budget before anything large is allocated
+    (:func:`fit_projector`, which also says which matrix-free projector and what memory).
 
     Raises
     ------
@@ -82,29 +147,11 @@ def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto
         :func:`plenopiv.reconstruction.real_lattice.estimate_lenslet_gb` for a lattice that is
         not axis-aligned) exceeds the budget.
     """
-    if projector not in PROJECTORS:
-        raise ValueError(f"projector = {projector!r}: expected one of {PROJECTORS}")
     budget = memory_budget_gb() if max_weights_gb is None else float(max_weights_gb)
-    if projector in ("auto", "sparse"):
-        need = BYTES_PER_NONZERO * estimate_nnz(lf, grid, min_weight=min_weight) / 1e9
-        if need <= budget:
-            return "sparse"
-        if projector == "sparse":
-            raise ReconstructionError(
-                f"the explicit weights need ~{need:.3g} GB, more than the {budget:.3g} GB "
-                "allowed ([reconstruction] max_weights_gb): set projector = \"auto\" (the "
-                "matrix-free projector), use fewer or larger voxels, or raise max_weights_gb")
-    separable = separable_axes(lf) is not None
-    need = estimate_matrix_free_gb(lf, grid) if separable else estimate_lenslet_gb(lf, grid)
-    if need > budget:
-        raise ReconstructionError(
-            f"the matrix-free reconstruction of a {grid.shape[0]} × {grid.shape[1]} × "
-            f"{grid.shape[2]}-voxel volume needs ~{need:.3g} GB ("
-            + ("projection buffers of depth slices × voxel rows × sensor columns, "
-               if separable else "") + "volumes, rays), more than the "
-            f"{budget:.3g} GB allowed ([reconstruction] max_weights_gb): use fewer or larger "
-            "voxels, or raise max_weights_gb")
-    return "lattice"
+    fit = fit_projector(lf, grid, projector=projector, budget_gb=budget, min_weight=min_weight)
+    if fit.refusal is not None:
+        raise ReconstructionError(fit.refusal)
+    return "sparse" if fit.kind == "sparse" else "lattice"
 
 
 def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:

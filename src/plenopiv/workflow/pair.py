@@ -10,15 +10,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from plenopiv.calibration.model import Calibration
 from plenopiv.errors import PIVError, ReconstructionError
 from plenopiv.products.vectors import VectorResult, check_dt
 from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.reconstruction.weights import Weights
-from plenopiv.settings import as_dict
+from plenopiv.workflow.response import ExperimentResponse, experiment_response
 from plenopiv.workflow.volume import Progress, reconstruct_volume
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
@@ -82,16 +80,18 @@ class PairProcessor:
     ``processor(image_a, image_b)`` reconstructs both exposures, finds their particles,
     corrects the depths and correlates them, with the experiment's settings
     (:class:`~plenopiv.config.experiment.Experiment`). The weights (explicit, from the weights
-    cache, or the matrix-free projector) and the image and volume masks are made on first use
-    and kept for every later pair.
+    cache, or the matrix-free projector), the image and volume masks and the chain's response
+    (``[piv] uncertainty = "response"``, :meth:`response`) are made on first use and kept for
+    every later pair; a response measured before (``response``) is used as it is.
     """
 
     def __init__(self, experiment, calibration: Calibration, *,
-                 weights: Weights | None = None):
+                 weights: Weights | None = None, response: ExperimentResponse | None = None):
         self.experiment = experiment
         self.calibration = calibration
         self._weights = weights
         self._masks = None
+        self._response = response
 
     def weights(self, progress: Progress = None) -> Weights:
         """The projector of every pair (built, or loaded from the weights cache, once)."""
@@ -115,9 +115,37 @@ class PairProcessor:
                            volume_mask(exp.mask, exp.volume, exp.base_dir))
         return self._masks
 
+    def response(self, *, workers=None, progress: Progress = None,
+                 announce=None) -> ExperimentResponse | None:
+        """The chain's response shared by every pair (None unless ``uncertainty = "response"``).
+
+        :func:`plenopiv.workflow.response.experiment_response`: from the response cache, or
+        measured once (``announce(weights)`` is called first), then kept.
+        """
+        if self.experiment.piv.uncertainty != "response":
+            return None
+        if self._response is None:
+            if progress is not None:
+                progress("response", 0.0)
+            img_mask, vol_mask = self.masks()
+            self._response = experiment_response(
+                self.experiment, self.calibration, self.weights(progress),
+                self.experiment.piv, image_mask=img_mask, volume_mask=vol_mask,
+                workers=workers, announce=announce)
+        return self._response
+
+    def share_response(self, response: ExperimentResponse | None) -> None:
+        """Use ``response``, measured before (e.g. by the batch), unless one is kept already."""
+        if self._response is None:
+            self._response = response
+
     def __call__(self, image_a, image_b, *, progress: Progress = None,
                  workers=None) -> PairResult:
-        """Images A and B -> two volumes -> particles -> corrections -> vectors."""
+        """Images A and B -> two volumes -> particles -> corrections -> vectors.
+
+        ``timings``: ``reconstruct_s``, ``piv_s`` and, when this pair got the chain's response
+        (measured or read from the cache), ``response_s``.
+        """
         t0 = time.perf_counter()
         exp, calibration = self.experiment, self.calibration
         weights = self.weights(progress)
@@ -129,17 +157,18 @@ class PairProcessor:
         vb = reconstruct_volume(calibration, image_b, exp.volume, **kw,
                                 progress=_volume_progress(progress, "B"))
         t1 = time.perf_counter()
+        had_response = self._response is not None
+        measured = self.response(workers=workers, progress=progress)
+        t2 = time.perf_counter()
         if progress is not None:
             progress("piv", 0.0)
-        settings = exp.piv
-        response = None
-        if exp.piv.uncertainty == "response":
-            response = _response_of(calibration, weights, va, exp, settings, workers,
-                                    img_mask, vol_mask)
-        vec = correlate(va, vb, settings, dt=exp.images.dt_s, workers=workers,
+        response = None if measured is None else (lambda _field: measured.response)
+        vec = correlate(va, vb, exp.piv, dt=exp.images.dt_s, workers=workers,
                         mask=vol_mask, response=response, progress=_piv_progress(progress))
-        t2 = time.perf_counter()
-        return PairResult(va, vb, vec, {"reconstruct_s": t1 - t0, "piv_s": t2 - t1})
+        timings = {"reconstruct_s": t1 - t0, "piv_s": time.perf_counter() - t2}
+        if measured is not None and not had_response:
+            timings["response_s"] = t2 - t1
+        return PairResult(va, vb, vec, timings)
 
 
 def _piv_progress(progress: Progress):
@@ -176,56 +205,6 @@ def _volume_progress(progress: Progress, tag: str) -> Progress:
         share = {"mart": 0.9 * fraction, "particles": 0.95}.get(stage, 0.0)
         progress(f"volume {tag}: {stage}", share)
     return report
-
-
-def _response_of(calibration, weights, volume_a: VolumeResult, experiment, settings, workers,
-                 img_mask, vol_mask):
-    """``response(field)`` for :func:`correlate`: the chain's measured response.
-
-    :func:`plenopiv.workflow.response.measure_response` for this experiment, kept in the weights
-    cache (``[output] weights_cache``) under a key of everything it depends on.
-    """
-    from plenopiv.piv import correlate_volumes
-    from plenopiv.products.caches import cached_response, response_key
-    from plenopiv.workflow.response import measure_response
-
-    grid = volume_a.grid
-    # the seeding of the real pair, rounded to a power of two so that pairs share a response
-    n_found = max(len(volume_a.particle_position), 1)
-    n_particles = int(2 ** round(np.log2(n_found)))
-
-    def reconstruct(image):
-        return reconstruct_volume(calibration, image, grid, settings=experiment.reconstruction,
-                                  particles=experiment.particles, weights=weights,
-                                  image_mask=img_mask).volume
-
-    def correlate_pair(a, b):
-        return correlate_volumes(a, b, grid, settings=settings, workers=workers, mask=vol_mask)
-
-    def response(field):
-        key = response_key(weights.key, grid.key(), as_dict(experiment.reconstruction),
-                           as_dict(experiment.piv), n_particles,
-                           calibration.point_spread_sigma_px,
-                           None if img_mask is None else hashlib_of(img_mask),
-                           None if vol_mask is None else hashlib_of(vol_mask))
-        cache = experiment.output.weights_cache
-        path = experiment.path(cache) / f"response-{key[:24]}.json" if cache else None
-        resp, _ = cached_response(path, key, lambda: measure_response(
-            calibration, grid, volume_a.correction, reconstruct=reconstruct,
-            correlate=correlate_pair, n_particles=n_particles,
-            f_number=experiment.reconstruction.f_number,
-            displacements=experiment.piv.response_displacements))
-        return resp
-
-    return response
-
-
-def hashlib_of(array) -> str:
-    """A short hash of an array's bytes and shape (for cache keys)."""
-    import hashlib
-
-    a = np.ascontiguousarray(array)
-    return hashlib.sha256(a.tobytes() + str(a.shape).encode()).hexdigest()[:16]
 
 
 def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,

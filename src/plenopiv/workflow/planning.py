@@ -1,14 +1,35 @@
 """Plan a reconstruction before running it (``plenopiv plan``).
 
-From a camera and a box, without reconstructing anything, :func:`plan` gives the resolution
-cell and the near-focus zone (docs/methods.md#resolution-cell), the recommended voxel and PIV
-windows scaled to the camera (:func:`recommended_voxel`, :func:`recommended_windows`),
-whether the windows fit the box and how many vectors each pass gives, and the size of the
-reconstruction (voxels, rays, non-zero weights, :func:`estimate_size`: the rays of one
-micro-image repeated at every lenslet, not a full light field), its memory and its time.
-Times come from rates: :func:`measure_rates` times the kernels on small samples in this
-process, :data:`BENCHMARK_RATES` stand in when measuring is not wanted; ``Plan.time_model``
-says which. Everything here is computation; printing belongs to :mod:`plenopiv.cli`.
+From a camera and a box this module computes, without reconstructing anything:
+
+* the resolution cell: one lenslet footprint b = p_m S_o/S_i laterally and b S_o/D in depth
+  (:func:`plenopiv.camera.resolution.resolution_cell`), and the near-focus zone
+  |Z| < b S_o/D, where a particle's blur on the focal plane (D |Z|/S_o) is smaller than one
+  footprint, so that it lights one lenslet and its depth motion is under-measured
+  (docs/validation/vortex.md);
+* the recommended voxel and PIV windows for this camera: the settings that met the vortex
+  targets in docs/validation/vortex.md (half-footprint lateral voxels; windows of
+  16 → 12 footprints laterally and about 3.6 → 2.7 depth cells in depth), scaled to the camera;
+* whether the windows fit the box, and how many vectors each pass gives;
+* what the reconstruction will run: its projector, lateral subdivision and working grid,
+  decided by the reconstruction's own function
+  (:func:`plenopiv.reconstruction.choose.choose_reconstruction`), with its memory estimate;
+* the size of the reconstruction (voxels, rays, non-zero weights), its memory and its time on
+  this machine.
+
+The decision builds the calibration's light field (seconds and ~250 bytes per ray for a 16 MP
+camera). Where it does not count the explicit weights (a subdivided grid on the lattice
+projector), their count for the report is computed, not sampled: the rays of one micro-image
+are traced once on a 3 × 3-lenslet patch and repeated at every lenslet, and a ray's beam
+crosses a depth slice as a box whose voxel count is separable in x and y
+(:mod:`plenopiv.reconstruction.weights`).
+
+Times come from rates: ``measure_rates`` times the reconstruction's own kernels (weight
+build, forward and back projection, the lattice projector) and the PIV on small samples in this
+process; :data:`BENCHMARK_RATES` are figures measured once (docs/performance.md),
+used when measuring is not wanted. ``Plan.time_model`` says which.
+
+Everything here is computation; printing belongs to :mod:`plenopiv.cli`.
 """
 
 from __future__ import annotations
@@ -18,6 +39,7 @@ import math
 import os
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +48,9 @@ from plenopiv.camera.model import CameraModel
 from plenopiv.errors import ConfigError
 from plenopiv.piv.settings import PIVSettings
 from plenopiv.reconstruction.settings import ReconstructionSettings
+
+if TYPE_CHECKING:
+    from plenopiv.reconstruction.choose import ReconstructionChoice
 
 #: Lateral voxel per lenslet footprint: half-footprint voxels remove the peak locking of
 #: footprint voxels (docs/validation/vortex.md).
@@ -41,14 +66,9 @@ WINDOW_DEPTH_CELLS = (3.6, 2.7)
 #: Seeding density of the validated runs, particles per lenslet.
 VALIDATED_PARTICLES_PER_LENSLET = 0.15
 
-#: Bytes of an explicit reconstruction per non-zero weight
-#: (:data:`plenopiv.reconstruction.select.BYTES_PER_NONZERO`).
-BYTES_PER_NONZERO = 20
 #: Bytes per ray while the light field is built (temporaries included; the traced peak of the
 #: Auburn camera's light field).
 BYTES_PER_RAY_LIGHT_FIELD = 250
-#: Bytes per voxel held by one reconstruction (volume, first guess, masks, MART corrections).
-BYTES_PER_VOXEL_RECONSTRUCT = 48
 #: Bytes per voxel held by the PIV of a pair (two volumes, deformed copies, spline
 #: coefficients, window spectra).
 BYTES_PER_VOXEL_PIV = 160
@@ -140,6 +160,8 @@ class Plan:
     warnings: tuple[str, ...] = ()
     advice: tuple[str, ...] = ()
     particles_per_lenslet: float = VALIDATED_PARTICLES_PER_LENSLET
+    decision: ReconstructionChoice | None = None
+    response_s: float = 0.0
 
     @property
     def fits(self) -> bool:
@@ -160,6 +182,14 @@ class Plan:
                 f"voxel_mm = [{vox}]\n\n"
                 "[piv]\n"
                 f"windows = [{win}]\n")
+
+    def _decision_dict(self) -> dict:
+        """The reconstruction's decision (:class:`ReconstructionChoice`) as plan reports it."""
+        d = self.decision
+        if d is None:
+            return {}
+        return {"decision": d.to_dict(), "lateral_subdivision": list(d.subdivision),
+                "working_shape": list(d.working_shape), "projector_kind": d.projector}
 
     def to_dict(self) -> dict:
         """Plain JSON values; lengths in mm, memory in GB, times in s."""
@@ -190,9 +220,11 @@ class Plan:
             "n_rays": self.n_rays,
             "nnz": self.nnz,
             "projector": self.projector,
+            **self._decision_dict(),
             "memory_gb": {k: v / 1e9 for k, v in self.memory.items()},
             "available_memory_gb": self.available_memory / 1e9,
             "time_s": dict(self.time),
+            "response_s": self.response_s,
             "time_model": self.time_model,
             "warnings": list(self.warnings),
             "advice": list(self.advice),
@@ -530,15 +562,29 @@ LENSLET_COST_RATIO = 3.2
 
 def plan(camera: CameraModel, grid: VolumeGrid, *,
          reconstruction: ReconstructionSettings | None = None, piv: PIVSettings | None = None,
-         rates: Rates | None = None, memory_total: float | None = None) -> Plan:
+         rates: Rates | None = None, memory_total: float | None = None,
+         calibration=None, geometry=None) -> Plan:
     """Plan the reconstruction of ``grid`` (effective coordinates) with ``camera``.
 
     ``camera`` must know its image distance (from the camera file, or a calibration's
     ``effective_camera``). ``reconstruction`` and ``piv``: the experiment's tables (default:
     the defaults). ``rates``: :func:`measure_rates` (in this process) or
-    :data:`BENCHMARK_RATES` (default).
+    :data:`BENCHMARK_RATES` (default). ``calibration``: the experiment's calibration product
+    (:class:`~plenopiv.calibration.model.Calibration`; default: the camera's exact one).
+    ``geometry``: a :class:`~plenopiv.reconstruction.geometry.ProjectionGeometry` of that
+    calibration and these settings whose light field is built already (a reconstruction's).
+
+    The projector, the lateral subdivision and the working grid are the reconstruction's own
+    decision (:func:`plenopiv.reconstruction.choose.choose_reconstruction`, on the light field
+    of the calibration: seconds and ~250 bytes per ray for a 16 MP camera), so memory and
+    time are those of what ``plenopiv reconstruct`` will run.
+
+    With ``[piv] uncertainty = "response"`` the chain's response is measured once per
+    experiment, before its pairs: ``response_s`` estimates that time
+    (:func:`plenopiv.workflow.response.response_seconds`), s.
     """
-    from plenopiv.reconstruction.select import memory_budget_gb
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.reconstruction.choose import choose_reconstruction
 
     reconstruction = reconstruction or ReconstructionSettings()
     piv = piv or PIVSettings()
@@ -559,69 +605,91 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     rec_win = recommended_windows(cam, rec_grid.voxel, rec_grid.shape)
     rec_vectors = vectors_per_pass(rec_grid.shape, rec_win, piv.overlap, len(rec_win))[-1]
 
-    n_rays, nnz = estimate_size(camera, grid, f_number=reconstruction.f_number,
-                                min_lit=reconstruction.min_lit)
-    budget = (memory_budget_gb() if reconstruction.max_weights_gb is None
-              else reconstruction.max_weights_gb) * 1e9
-    projector = reconstruction.projector
-    square = (camera.microlens_array.grid == "square"
-              and camera.microlens_array.rotation == 0.0)
-    if projector == "auto":
-        if reconstruction.method != "smart" or BYTES_PER_NONZERO * nnz <= budget:
-            projector = "sparse"
-        else:
-            projector = "lattice"
-    n_vox = grid.n_voxels
-    lf_bytes = BYTES_PER_RAY_LIGHT_FIELD * n_rays
-    vol_bytes = BYTES_PER_VOXEL_RECONSTRUCT * n_vox
-    if projector == "sparse":
-        w_bytes = BYTES_PER_NONZERO * nnz
-        build = BASE_BYTES + lf_bytes + 8.0 * nnz
-        recon = BASE_BYTES + w_bytes + vol_bytes + 8 * n_rays
-    else:
-        nz, ny, _ = grid.shape
-        # the lattice projector's per-call buffer; the per-lenslet one (any other lattice,
-        # plenopiv.reconstruction.real_lattice) has none but holds ~120 bytes per ray in its views
-        buf = 4.0 * nz * ny * camera.sensor.cols if square else 0.0
-        w_bytes = 0.0
-        build = BASE_BYTES + lf_bytes
-        recon = BASE_BYTES + (16 if square else 120) * n_rays + buf + vol_bytes
-    recon += BYTES_PER_RAY_PARTICLE_FIT * n_rays  # the particles' fit, after the iterations
-    piv_bytes = BASE_BYTES + BYTES_PER_VOXEL_PIV * n_vox
-    cache_file = 8.0 * nnz + 16.0 * n_rays if projector == "sparse" else 0.0
-    memory = {"weights": w_bytes, "weights_build_peak": build, "reconstruct_peak": recon,
-              "piv_peak": piv_bytes, "peak": max(build, recon, piv_bytes),
-              "weights_cache_file": cache_file}
+    cal = Calibration.from_camera(camera) if calibration is None else calibration
+    choice = choose_reconstruction(cal, grid, reconstruction, geometry=geometry)
+    n_rays = choice.n_rays
+    nnz = choice.nnz
+    if nnz is None:                  # not needed by the decision: counted for the report
+        nnz = estimate_size(camera, choice.grid, f_number=reconstruction.f_number,
+                            min_lit=reconstruction.min_lit)[1]
+    memory = _memory(choice, grid, nnz)
+    times = _times(choice, grid, nnz, rates, reconstruction.iterations, windows, piv.overlap,
+                   passes, memory["weights_cache_file"])
+    response_s = 0.0
+    if piv.uncertainty == "response":
+        from plenopiv.workflow.response import response_particle_count, response_seconds
 
-    memory_cache = memory["weights_cache_file"]
-    sweeps = reconstruction.iterations + 3      # MLOS, masks and row scaling: ~3 sweeps
-    if projector == "sparse":
-        # light field, weights, and the cache file written at ~250 MB/s
-        t_weights = 2e-7 * n_rays + rates.build_s_per_nnz * nnz + memory_cache / 250e6
-        t_volume = (rates.sweep_s_per_nnz * nnz + rates.sweep_s_per_call) * sweeps
-    else:
-        t_weights = 2e-7 * n_rays                # light field and tables
-        ray_slice = rates.lattice_s_per_ray_slice * (1.0 if square else LENSLET_COST_RATIO)
-        t_volume = (ray_slice * n_rays * grid.shape[0] + rates.lattice_s_per_call) * sweeps
-    t_volume += 5e-8 * n_vox                     # particle detection
-    t_volume += SECONDS_PER_RAY_PARTICLE_FIT * n_rays   # their positions from the light field
-    t_piv = rates.piv_s_per_call + rates.piv_s_per_window_voxel * _window_voxels(
-        grid.shape, windows, piv.overlap, passes)
-    times = {"weights": t_weights, "volume": t_volume, "piv": t_piv,
-             "pair": t_weights + 2 * t_volume + t_piv,
-             "pair_cached_weights": 2 * t_volume + t_piv}
+        n = response_particle_count(cal, grid, piv.response_particles_per_lenslet)
+        response_s = response_seconds(times["volume"], times["piv"], n,
+                                      piv.response_displacements)
     model = ("rates measured in this process" if rates.source == "measured"
-             else "benchmark rates of the project's 2-core machine (planning.BENCHMARK_RATES)")
+             else "benchmark rates (planning.BENCHMARK_RATES, docs/performance.md)")
     model = f"{model}, {rates.threads} threads"
 
     warnings, advice = _advise(cam, grid, windows, vectors, piv.overlap, rec_grid, rec_win,
-                               memory, total_mem, projector, camera)
+                               memory, total_mem, choice.settings_projector, camera)
+    warnings = list(choice.fallbacks) + warnings
+    if choice.refusal is not None:
+        warnings.insert(0, f"plenopiv reconstruct refuses this box: {choice.refusal}")
     return Plan(camera=cam, grid=grid, windows=windows, passes=passes, overlap=piv.overlap,
                 vectors=vectors, recommended_voxel=tuple(rec_grid.voxel),
                 recommended_windows=rec_win, recommended_grid=rec_grid,
                 recommended_vectors=rec_vectors, n_rays=n_rays, nnz=nnz,
-                projector=projector, memory=memory, time=times, time_model=model,
-                available_memory=total_mem, warnings=tuple(warnings), advice=tuple(advice))
+                projector=choice.settings_projector, memory=memory, time=times,
+                time_model=model, available_memory=total_mem, warnings=tuple(warnings),
+                advice=tuple(advice), decision=choice, response_s=response_s)
+
+
+def _memory(choice, grid: VolumeGrid, nnz: int) -> dict:
+    """Memory of the chosen reconstruction, bytes per stage (:class:`Plan` ``memory``).
+
+    ``projector``: the decision's own estimate (explicit weights with the arrays of their
+    reconstruction, or the matrix-free reconstruction's), which it checked against the
+    budget; ``weights``: the same for explicit weights, 0 for a matrix-free projector.
+    """
+    n_rays = choice.n_rays
+    build = BASE_BYTES + BYTES_PER_RAY_LIGHT_FIELD * n_rays
+    cache_file = 0.0
+    if choice.projector == "sparse":
+        build += 8.0 * nnz
+        cache_file = 8.0 * nnz + 16.0 * n_rays
+    # the particles' fit, after the iterations
+    recon = BASE_BYTES + choice.memory_bytes + BYTES_PER_RAY_PARTICLE_FIT * n_rays
+    piv_bytes = BASE_BYTES + BYTES_PER_VOXEL_PIV * grid.n_voxels
+    return {"weights": choice.memory_bytes if choice.projector == "sparse" else 0.0,
+            "projector": choice.memory_bytes, "weights_build_peak": build,
+            "reconstruct_peak": recon, "piv_peak": piv_bytes,
+            "peak": max(build, recon, piv_bytes), "weights_cache_file": cache_file}
+
+
+def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, windows,
+           overlap: float, passes: int, cache_file: float) -> dict:
+    """Seconds per stage of the chosen reconstruction and the PIV (:class:`Plan` ``time``).
+
+    A matrix-free sweep costs ``ky kx`` times the volume grid's: each beam crosses that many
+    more working voxels (one 16 MP volume on the 3 × 3 subdivided grid: 173 s against 17 s
+    on footprint voxels, README "Full-camera scale").
+    """
+    n_rays = choice.n_rays
+    sweeps = iterations + 3      # MLOS, masks and row scaling: ~3 sweeps
+    if choice.projector == "sparse":
+        # light field, weights, and the cache file written at ~250 MB/s
+        t_weights = 2e-7 * n_rays + rates.build_s_per_nnz * nnz + cache_file / 250e6
+        t_volume = (rates.sweep_s_per_nnz * nnz + rates.sweep_s_per_call) * sweeps
+    else:
+        t_weights = 2e-7 * n_rays                # light field and tables
+        ray_slice = rates.lattice_s_per_ray_slice * (
+            LENSLET_COST_RATIO if choice.projector == "lenslet" else 1.0)
+        ky, kx = choice.subdivision
+        t_volume = (ray_slice * n_rays * grid.shape[0] * ky * kx
+                    + rates.lattice_s_per_call) * sweeps
+    t_volume += 5e-8 * grid.n_voxels             # particle detection
+    t_volume += SECONDS_PER_RAY_PARTICLE_FIT * n_rays   # their positions from the light field
+    t_piv = rates.piv_s_per_call + rates.piv_s_per_window_voxel * _window_voxels(
+        grid.shape, windows, overlap, passes)
+    return {"weights": t_weights, "volume": t_volume, "piv": t_piv,
+            "pair": t_weights + 2 * t_volume + t_piv,
+            "pair_cached_weights": 2 * t_volume + t_piv}
 
 
 def _window_warnings(grid: VolumeGrid, windows, vectors) -> list[str]:

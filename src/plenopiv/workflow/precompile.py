@@ -167,8 +167,10 @@ def kernels_cached() -> bool:
 
 #: The progress stages of a run (:func:`plenopiv.workflow.pair.process_pair`,
 #: :func:`plenopiv.workflow.vortex_case.run_case`) at which it calls the kernels of a rehearsed
-#: stage first: :meth:`Rehearsals.paced` waits there for that stage's rehearsal.
-STAGE_AT_PROGRESS = {"calibrate": "calibration", "weights": "reconstruction", "piv": "piv"}
+#: stage first: :meth:`Rehearsals.paced` waits there for that stage's rehearsal. The chain's
+#: response correlates its test pairs before the pair's own PIV.
+STAGE_AT_PROGRESS = {"calibrate": "calibration", "weights": "reconstruction",
+                     "response": "piv", "piv": "piv"}
 
 
 class _Forked:

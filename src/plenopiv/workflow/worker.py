@@ -14,6 +14,7 @@ from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.resources import prefer_small_pages
 from plenopiv.workflow.experiment import experiment_calibration
 from plenopiv.workflow.pair import PairProcessor, save_pair
+from plenopiv.workflow.response import ExperimentResponse
 
 
 @dataclass(frozen=True)
@@ -25,11 +26,16 @@ class ExperimentPairProcess:
     loads the experiment and the calibration and builds or loads the projector, its later
     pairs reuse them. Each call reads the pair's images, processes them and writes the
     products; the vectors file is written last, marked complete.
+
+    ``response``: the chain's response measured once before the pairs fan out
+    (:func:`prepare_response`); every pair uses it. None: each worker gets it from the
+    response cache, or measures it (``[piv] uncertainty = "response"``).
     """
 
     experiment_path: str
     calibration_path: str
     out_dir: str
+    response: ExperimentResponse | None = None
 
     def __call__(self, job) -> dict:
         """Process one :class:`plenopiv.batch.PairJob`; returns a small summary."""
@@ -37,6 +43,7 @@ class ExperimentPairProcess:
         from plenopiv.products.jsonio import dumps
 
         processor = worker_processor(self.experiment_path, self.calibration_path)
+        processor.share_response(self.response)
         exp, cal = processor.experiment, processor.calibration
         ia, ib = read_image(job.image_a), read_image(job.image_b)
         res = processor(ia, ib)
@@ -117,3 +124,16 @@ def prepare_weights(experiment, calibration: Calibration) -> tuple[bool, float]:
                          cache_dir=experiment.path(cache), load=False)
     return hit, time.perf_counter() - t0
 
+
+
+def prepare_response(experiment, calibration: Calibration, *,
+                     announce=None) -> ExperimentResponse | None:
+    """The chain's response of the experiment, once, before a batch's pairs fan out.
+
+    From the response cache, or measured here (``announce(weights)`` is called first) with
+    the projector every pair uses, then cached (``[output] weights_cache``). None unless
+    ``[piv] uncertainty = "response"``. The projector built for it is dropped on return.
+    """
+    if experiment.piv.uncertainty != "response":
+        return None
+    return PairProcessor(experiment, calibration).response(announce=announce)
