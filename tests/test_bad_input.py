@@ -189,7 +189,7 @@ def test_grids_beyond_memory_are_refused_before_estimating(monkeypatch):
     with pytest.raises(ResourceError, match=r"5\.12e\+08 voxels needs about 15\.3 GiB of "
                                             r"memory but this machine has 1 GiB available"):
         resources.check_grid(grid)
-    from plenopiv.reconstruction.subdivision import weights_for
+    from plenopiv.reconstruction.build import weights_for
 
     cal = Calibration.from_camera(load_camera("small_test"))
     with pytest.raises(ResourceError, match="voxels needs about"):

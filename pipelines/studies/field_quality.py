@@ -40,7 +40,7 @@ from plenopiv.conventions import world_to_voxel
 from plenopiv.errors import ReconstructionError
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.products.volume import VolumeResult
-from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.build import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import Weights
 from plenopiv.settings import as_dict

@@ -255,7 +255,7 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
         ``rms_mm`` for centroid, bundle and refined per axis, ``within_2sigma`` (bundle).
     """
     from pipelines.studies.depth import STUDY_PARTICLES, VOXEL, study_grid, thesis_camera
-    from plenopiv.reconstruction.select import cached_weights
+    from plenopiv.reconstruction.build import cached_weights
 
     cam = thesis_camera() if camera is None else camera
     depths = np.asarray(depths, float)

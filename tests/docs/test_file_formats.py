@@ -149,7 +149,7 @@ def test_synthetic_frames(tmp_path, kind, capsys):
 
 def test_weights_cache(tmp_path, small_camera):
     from plenopiv.calibration.model import Calibration
-    from plenopiv.reconstruction.select import cached_weights
+    from plenopiv.reconstruction.build import cached_weights
 
     cached_weights(Calibration.from_camera(small_camera), _grid(), cache_dir=tmp_path,
                    projector="sparse")

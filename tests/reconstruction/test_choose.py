@@ -12,13 +12,13 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import load_camera
 from plenopiv.camera.resolution import footprint
-from plenopiv.config.experiment import ReconstructionSettings
 from plenopiv.errors import ReconstructionError
+from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.choose import choose_reconstruction, subdivided_grid
 from plenopiv.reconstruction.lattice import LatticeProjector
 from plenopiv.reconstruction.projector import SparseProjector
 from plenopiv.reconstruction.real_lattice import LensletProjector
-from plenopiv.reconstruction.subdivision import weights_for
+from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow import planning
 
 KINDS = {SparseProjector: "sparse", LatticeProjector: "lattice", LensletProjector: "lenslet"}

@@ -14,10 +14,9 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction import sightline
+from plenopiv.reconstruction.build import cached_weights, weights_for
 from plenopiv.reconstruction.geometry import ProjectionGeometry, weights_key
-from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.synthetic.images import particle_image
 from plenopiv.workflow.volume import reconstruct_volume
 
@@ -108,9 +107,9 @@ def test_one_reconstruction_builds_one_light_field_and_walks_its_modules_one_way
     assert calls[LIGHT_FIELD] == 1, (f"light_field built {calls[LIGHT_FIELD]} times; module "
                                      f"order {order}")
     assert order[0] == "plenopiv.workflow.volume", f"module order {order}"
-    modules = ["plenopiv.workflow.volume", "plenopiv.reconstruction.subdivision",
-               "plenopiv.reconstruction.choose", "plenopiv.reconstruction.select",
-               "plenopiv.reconstruction.geometry", "plenopiv.lightfield.rays"]
+    modules = ["plenopiv.workflow.volume", "plenopiv.reconstruction.build",
+               "plenopiv.reconstruction.choose", "plenopiv.reconstruction.geometry",
+               "plenopiv.lightfield.rays"]
     flow = [m for m in order if m in modules]
     assert flow == sorted(flow, key=modules.index), f"module order {order}"
 

@@ -19,16 +19,16 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
-from plenopiv.reconstruction.geometry import separable_axes
-from plenopiv.reconstruction.lattice import LatticeProjector
-from plenopiv.reconstruction.mart import reconstruction_quality
-from plenopiv.reconstruction.select import (
+from plenopiv.reconstruction.build import cached_weights
+from plenopiv.reconstruction.choose import (
     BYTES_PER_NONZERO,
-    cached_weights,
     choose_projector,
     estimate_matrix_free_gb,
     estimate_nnz,
 )
+from plenopiv.reconstruction.geometry import separable_axes
+from plenopiv.reconstruction.lattice import LatticeProjector
+from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import build_weights
 from plenopiv.synthetic.images import particle_image

@@ -23,6 +23,8 @@ from plenopiv.cli import main
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction._kernels import real_lattice as rk
+from plenopiv.reconstruction.build import cached_weights
+from plenopiv.reconstruction.choose import choose_projector
 from plenopiv.reconstruction.geometry import separable_axes
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.real_lattice import (
@@ -31,7 +33,6 @@ from plenopiv.reconstruction.real_lattice import (
     lenslet_weights_reference,
     matrix_free_projector,
 )
-from plenopiv.reconstruction.select import cached_weights, choose_projector
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import build_weights
 from plenopiv.synthetic.images import particle_image

@@ -23,8 +23,8 @@ from pipelines.studies.depth import thesis_camera
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import footprint, resolution_cell
+from plenopiv.reconstruction.build import cached_weights
 from plenopiv.reconstruction.geometry import subcell_factors
-from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.sightline import pool_min, refined_grid, subcell_line_of_sight
 from plenopiv.synthetic.images import particle_image
 from plenopiv.workflow.volume import reconstruct_volume

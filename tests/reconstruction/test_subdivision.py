@@ -11,9 +11,10 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import load_camera
 from plenopiv.camera.resolution import footprint
 from plenopiv.errors import ReconstructionError
+from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.choose import lateral_subdivision, subdivided_grid
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of, weights_for
+from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of
 from plenopiv.synthetic.images import particle_image
 from plenopiv.workflow.volume import reconstruct_volume
 

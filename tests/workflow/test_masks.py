@@ -12,8 +12,8 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import load_camera
 from plenopiv.config.experiment import experiment_from_dict
 from plenopiv.errors import ConfigError, ReconstructionError
+from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.synthetic.images import particle_image
 from plenopiv.synthetic.seeding import SeedingBox, random_particles
 from plenopiv.workflow.masks import cylinder_mask, image_mask, read_mask, volume_mask

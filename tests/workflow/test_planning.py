@@ -17,7 +17,7 @@ from plenopiv.camera.resolution import footprint
 from plenopiv.cli import main
 from plenopiv.lightfield import light_field
 from plenopiv.piv.settings import PIVSettings
-from plenopiv.reconstruction.select import estimate_nnz
+from plenopiv.reconstruction.choose import estimate_nnz
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow import planning
 

@@ -32,11 +32,7 @@ def cmd_run(args) -> dict:
     from plenopiv.errors import ComputationError
     from plenopiv.resources import check_grid
     from plenopiv.workflow.experiment import experiment_calibration
-    from plenopiv.workflow.worker import (
-        ExperimentPairProcess,
-        prepare_response,
-        prepare_weights,
-    )
+    from plenopiv.workflow.worker import ExperimentPairProcess, prepare_response, prepare_weights
 
     _integer("--workers", args.workers, minimum=1, maximum=4096)
     exp = load_experiment(args.experiment)

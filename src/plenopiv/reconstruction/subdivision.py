@@ -1,29 +1,21 @@
-"""The weights of a reconstruction's working grid, and the way back to the volume's grid.
+"""The way back from a reconstruction's working grid to the volume's grid.
 
-A reconstruction on a ``[volume]`` grid runs on voxels ``ky × kx`` times finer laterally,
-with the projector :func:`plenopiv.reconstruction.choose.choose_reconstruction` decides
-(:func:`weights_for` builds it: explicit and cached, or matrix-free), and its volume returns
-to the ``[volume]`` grid by :func:`merge_subdivided`.
+A reconstruction on a ``[volume]`` grid runs on voxels ``ky × kx`` times finer laterally
+(:func:`plenopiv.reconstruction.choose.lateral_subdivision`); :func:`merge_subdivided` returns
+its volume to the ``[volume]`` grid, :func:`subdivision_of` finds the subdivision of given
+weights.
 """
 
 from __future__ import annotations
 
-import warnings
-from pathlib import Path
-
 import numpy as np
 
-from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
-from plenopiv.reconstruction.choose import choose_reconstruction, subdivided_grid
-from plenopiv.reconstruction.geometry import ProjectionGeometry
-from plenopiv.reconstruction.real_lattice import matrix_free_projector
-from plenopiv.reconstruction.select import cached_weights
-from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.reconstruction.weights import Weights
+from plenopiv.reconstruction.choose import subdivided_grid
 
-__all__ = ["merge_subdivided", "subdivision_of", "weights_for"]
+__all__ = ["merge_subdivided", "subdivision_of"]
+
 
 
 def merge_subdivided(volume, ky: int, kx: int, *, kernel: str = "gaussian") -> np.ndarray:
@@ -63,6 +55,7 @@ def merge_subdivided(volume, ky: int, kx: int, *, kernel: str = "gaussian") -> n
     return v
 
 
+
 def subdivision_of(work: VolumeGrid, grid: VolumeGrid) -> tuple[int, int]:
     """``(ky, kx)`` when ``work`` is ``grid`` subdivided laterally, else ReconstructionError."""
     nz, ny, nx = grid.shape
@@ -77,53 +70,3 @@ def subdivision_of(work: VolumeGrid, grid: VolumeGrid) -> tuple[int, int]:
     raise ReconstructionError("the given weights were built for another volume grid (neither "
                               "the volume's grid nor a lateral subdivision of it)")
 
-
-def weights_for(calibration: Calibration, grid: VolumeGrid, settings: ReconstructionSettings,
-                cache_dir: str | Path | None = None, *, load: bool = True,
-                geometry: ProjectionGeometry | None = None) -> tuple[Weights | None, bool]:
-    """The weights a reconstruction on ``grid`` with ``settings`` uses: ``(weights, from_cache)``.
-
-    What :func:`~plenopiv.reconstruction.choose.choose_reconstruction` decides, built: the
-    explicit weights (cached in ``cache_dir``) or a matrix-free projector, on the laterally
-    subdivided working grid. Row-action and block MART walk explicit rows, so ``"auto"``
-    keeps them explicit; SMART on a subdivided grid takes the matrix-free projector where the
-    lattice allows. With ``lateral_subdivision = "auto"``, weights that would not fit in
-    memory on a lattice the matrix-free projector cannot take (rotated or hexagonal) fall
-    back to a coarser subdivision, with a warning, instead of failing. A grid whose arrays
-    cannot fit in memory is refused before anything is estimated. ``load=False`` only fills
-    the cache: explicit weights are built and saved unless cached, the matrix-free projector
-    is not built, and None comes back in place of the weights.
-
-    ``geometry`` (:class:`~plenopiv.reconstruction.geometry.ProjectionGeometry` of
-    ``calibration`` with ``settings.f_number`` and ``settings.min_lit``, on any grid) lends
-    its light field; by default one is made here. Either way the weights carry the geometry
-    of their working grid, so the light field is built at most once per reconstruction.
-
-    Raises
-    ------
-    ReconstructionError
-        Nothing the settings allow fits ``max_weights_gb`` (the choice's ``refusal``), or the
-        grid lies out of view.
-    """
-    from plenopiv.resources import check_grid
-
-    check_grid(grid)
-    if geometry is None:
-        geometry = ProjectionGeometry.for_settings(calibration, grid, settings)
-    choice = choose_reconstruction(calibration, grid, settings, geometry=geometry)
-    for text in choice.fallbacks:
-        warnings.warn(text, stacklevel=2)
-    if choice.refusal is not None:
-        raise ReconstructionError(choice.refusal)
-    work = geometry.on_grid(choice.grid)
-    if choice.projector == "sparse":
-        return cached_weights(calibration, work.grid, cache_dir=cache_dir,
-                              f_number=settings.f_number, min_lit=settings.min_lit,
-                              projector="sparse", max_weights_gb=choice.budget_bytes / 1e9,
-                              load=load, geometry=geometry)
-    work.check_in_view()
-    if not load:
-        return None, False
-    lf = work.light_field
-    return Weights(matrix_free_projector(lf, work.grid), lf.pixel, work.grid, work.key(1e-7),
-                   work), False

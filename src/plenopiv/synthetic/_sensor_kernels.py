@@ -17,13 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from plenopiv.synthetic._kernels import (
-    G_NCOLS,
-    G_NROWS,
-    G_PIX,
-    lenslet_at,
-    lenslet_at_numpy,
-)
+from plenopiv.synthetic._kernels import G_NCOLS, G_NROWS, G_PIX, lenslet_at, lenslet_at_numpy
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

@@ -14,7 +14,7 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.errors import PIVError, ReconstructionError
 from plenopiv.products.vectors import VectorResult, check_dt
 from plenopiv.products.volume import VolumeResult
-from plenopiv.reconstruction.subdivision import weights_for
+from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.weights import Weights
 from plenopiv.workflow.response import ExperimentResponse, experiment_response
 from plenopiv.workflow.volume import Progress, reconstruct_volume

@@ -150,7 +150,7 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     """
     import time
 
-    from plenopiv.reconstruction.subdivision import weights_for
+    from plenopiv.reconstruction.build import weights_for
     from plenopiv.workflow.pair import correlate
     from plenopiv.workflow.volume import reconstruct_volume
 

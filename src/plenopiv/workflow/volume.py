@@ -21,10 +21,11 @@ from plenopiv.particles.peaks import find_particles
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.products.images import check_image
 from plenopiv.products.volume import VolumeResult
+from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.geometry import ProjectionGeometry
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.solve import solve_volume
-from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of, weights_for
+from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of
 from plenopiv.reconstruction.weights import Weights
 
 Progress = Callable[[str, float], None] | None

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.reconstruction.subdivision import weights_for
+from plenopiv.reconstruction.build import weights_for
 from plenopiv.resources import prefer_small_pages
 from plenopiv.workflow.experiment import experiment_calibration
 from plenopiv.workflow.pair import PairProcessor, save_pair
