@@ -355,8 +355,8 @@ def experiment_response(experiment, calibration, weights, settings, *, image_mas
     return ExperimentResponse(resp, key, hit, time.perf_counter() - t0, n)
 
 
-#: Seconds per ray the tracer renders (:func:`plenopiv.synthetic.images.particle_image`;
-#: small test camera, 400 particles of 1024 rays in 0.075 s, the project's 2-core machine).
+#: Seconds per ray the tracer renders (:func:`plenopiv.synthetic.images.particle_image`), for
+#: the response's time estimate; measured in docs/performance.md.
 SECONDS_PER_RENDERED_RAY = 2e-7
 
 
