@@ -19,7 +19,7 @@ from plenopiv.lightfield import light_field
 from plenopiv.piv.settings import PIVSettings
 from plenopiv.reconstruction.choose import estimate_nnz
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.workflow import planning
+from plenopiv.workflow import planning, rates
 
 MM = 1e-3
 
@@ -130,7 +130,7 @@ def test_measured_rates_are_positive(small_camera):
     grid = VolumeGrid.from_bounds((-2 * MM, 2 * MM), (-2 * MM, 2 * MM), (-3 * MM, 3 * MM),
                                   voxel=(0.13 * MM, 0.13 * MM, 0.556 * MM))
     cfg = PIVSettings(windows=[(6, 16, 16)], passes=2)
-    r = planning.measure_rates(small_camera, grid, piv=cfg, budget_s=0.5)
+    r = rates.measure_rates(small_camera, grid, piv=cfg, budget_s=0.5)
     assert r.source == "measured" and r.threads >= 1
     for v in (r.build_s_per_nnz, r.sweep_s_per_nnz, r.lattice_s_per_ray_slice,
               r.piv_s_per_window_voxel):

@@ -396,48 +396,9 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
 
     Notes
     -----
-    The completeness contract of ``process``. ``process(job) -> dict`` is a picklable,
-    top-level function (dask sends it by reference to the worker processes, so it must be
-    importable there). It
-
-    1. reads ``job.image_a`` and ``job.image_b`` (e.g. with
-       :func:`plenopiv.products.images.read_image`);
-    2. writes ``job.output`` **atomically** (:func:`plenopiv.products.hdf5.write_h5` or
-       :func:`plenopiv.products.files.atomic_path`), so that a half-written file never exists
-       under the final name: a killed run leaves at most a hidden ``.NAME.XXXX.part``
-       temporary, which the next :func:`run_batch` deletes;
-    3. marks the product complete as its **last** write: ``mark_complete(job.output)`` after
-       the file is written, or ``mark_complete(tmp)`` inside an ``atomic_path`` block, or
-       ``write_h5(job.output, ..., attrs={"complete": True})`` when one atomic write holds
-       everything. The mark is the root attribute ``complete = True`` (:data:`COMPLETE_ATTR`);
-    4. returns a small JSON-friendly dict (numbers, strings, short lists): it travels back to
-       the client and into ``batch_summary.json``. ``None`` counts as ``{}``.
-
-    A product is complete when :func:`is_complete` says so: it opens as HDF5 and its root
-    attribute ``complete`` is true. Only complete products are skipped on resume; a product
-    without the mark (a process that died between its writes, or a file from elsewhere) is
-    recomputed and replaced.
-
-    Resume is keyed on what made each product. A job may carry an ``identity``: a mapping of
-    content hashes (``plenopiv run``: the experiment's settings, the calibration file, the two
-    images). ``process`` stores it in the product (root attribute ``identity``, JSON;
-    ``mark_complete(path, identity=job.identity)`` does both). A complete product whose
-    stored identity differs from the job's (other settings, another calibration, other
-    images, or another pair's product copied over the name) is recomputed, and the summary
-    lists it under ``recomputed`` with what changed. When ``process`` returns but its product
-    is not complete (or does not record the job's identity), the job is recorded as failed
-    (a resume would otherwise redo it forever).
-
-    An exception raised by ``process`` is deterministic for a given input (a corrupt image, a
-    bad config): it is caught on the worker, recorded (type, message, traceback) and not
-    retried. A worker process that dies while running a job (segfault, ``os._exit``, killed
-    for memory) is a different matter: dask gives the job to another worker, up to
-    ``retries`` more times, then records it as failed (``KilledWorker``). Dask counts a death
-    against every job assigned to the dead worker, the one it was running and any waiting
-    behind it; so that an innocent pair is not charged, no more pairs are submitted than the
-    cluster has worker slots. A pair that dask re-assigns after a death, while the other
-    workers are busy or restarting, can still wait behind a crashing one and share its
-    count: give ``retries`` ≥ 2 where pairs crash.
+    The contract of ``process`` (atomic writes, the completeness mark, the identity that
+    resume checks) and how failures and worker deaths are retried are in docs/batch.md
+    ("The contract of a batch's work").
     """
     jobs = _check_jobs(jobs)
     _check_process(process)

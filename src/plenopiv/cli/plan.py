@@ -72,6 +72,7 @@ def cmd_plan(args) -> dict:
     from plenopiv.piv.settings import PIVSettings
     from plenopiv.reconstruction.settings import ReconstructionSettings
     from plenopiv.workflow import planning
+    from plenopiv.workflow import rates as rates_module
 
     path = Path(args.config)
     table = _config_table(path)
@@ -121,11 +122,11 @@ def cmd_plan(args) -> dict:
                 piv_cfg, windows=tuple(planning.recommended_windows(cam, grid.voxel)))
     t0 = time.perf_counter()
     if args.no_measure:
-        rates = planning.BENCHMARK_RATES
+        rates = rates_module.BENCHMARK_RATES
     else:
         with _StageBar("plan", {"measure": 1}, args.quiet or args.json) as bar:
             bar("measure rates on this machine")
-            rates = planning.measure_rates(camera, grid, f_number=recon.f_number,
+            rates = rates_module.measure_rates(camera, grid, f_number=recon.f_number,
                                            min_lit=recon.min_lit, piv=piv_cfg)
     result = planning.plan(camera, grid, reconstruction=recon, piv=piv_cfg, rates=rates,
                            calibration=cal)
