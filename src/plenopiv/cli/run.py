@@ -61,12 +61,15 @@ def cmd_run(args) -> dict:
     _check_products_spare_inputs(jobs, [args.experiment, cal_path])
     cal = experiment_calibration(exp, cal_path)
     check_grid(exp.volume)
-    jobs = _with_identities(jobs, exp, cal_path)
+    background, n_background = _batch_background(exp, jobs, cal, out_dir)
+    jobs = _with_identities(jobs, exp, cal_path, background)
     # explicit weights go into the weights cache once, before the workers start; each worker
     # then makes its projector once, for all its pairs
     hit, weights_s = prepare_weights(exp, cal)
     process = ExperimentPairProcess(str(Path(args.experiment).resolve()), str(cal_path.resolve()),
-                                    str(out_dir))
+                                    str(out_dir),
+                                    background=None if background is None else str(background),
+                                    background_images=n_background)
     head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit}
     try:
         summary = run_batch(jobs, process, resume=args.resume,
@@ -106,11 +109,44 @@ def _check_products_spare_inputs(jobs, others) -> None:
                                   "batch's inputs; choose another [output] directory")
 
 
-def _with_identities(jobs, exp, cal_path):
+def _batch_background(exp, jobs, calibration, out_dir):
+    """The batch's background of ``[preprocess] background = "minimum"`` or ``"mean"``.
+
+    Formed once over every image of the batch (both exposures of each pair) before the pairs
+    fan out, and written as ``OUT/background_KIND.tif`` (float32 counts) for the workers;
+    returns ``(its path, the number of images)``, or ``(None, 0)``. The ``[preprocess]``
+    files are read and checked here either way, so that a bad dark or white is refused
+    before any pair runs.
+    """
+    import numpy as np
+
+    from plenopiv.products.images import write_image
+    from plenopiv.workflow.preprocess import ImagePreparation, form_batch_background
+
+    pre = exp.preprocess
+    if pre is None:
+        return None, 0
+    kind = pre.background_kind
+    background, n, path = None, 0, None
+    if kind in ("minimum", "mean"):
+        specs = [s for j in jobs for s in (j.image_a, j.image_b)]
+        background, n = form_batch_background(specs, kind)
+    ImagePreparation(exp, calibration, batch_background=background)
+    if background is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        path = write_image(out_dir / f"background_{kind}.tif", background.astype(np.float32),
+                           metadata={"product": "batch background", "kind": kind,
+                                     "images": n})
+    return path, n
+
+
+def _with_identities(jobs, exp, cal_path, background=None):
     """Give each job the identity of what makes its product.
 
     The identity holds the experiment's settings, the calibration file and the two images
-    (content hashes); resume recomputes a product made from anything else.
+    (content hashes), and with a ``[preprocess]`` table its dark, white and background
+    (content hashes; the batch's own background, ``background``, too); resume recomputes a
+    product made from anything else.
     """
     from dataclasses import replace
 
@@ -118,6 +154,13 @@ def _with_identities(jobs, exp, cal_path):
     from plenopiv.workflow.experiment import settings_identity
 
     common = {"settings": settings_identity(exp), "calibration": file_identity(cal_path)}
+    pre = exp.preprocess
+    if pre is not None:
+        files = {"dark": pre.dark, "white": pre.white, "background": pre.background_path}
+        ids = {k: file_identity(exp.path(v)) for k, v in files.items() if v is not None}
+        if background is not None:
+            ids["background"] = file_identity(background)
+        common["preprocess"] = ids
     return [replace(j, identity={**common, "image_a": file_identity(j.image_a),
                                  "image_b": file_identity(j.image_b)}) for j in jobs]
 

@@ -37,8 +37,9 @@ class ImageCondition:
         Its brightest pixel, counts.
     saturated_fraction : float
         The share of its pixels at the recording's ceiling.
-    hot_pixels : int
-        Its hot pixels (:func:`~plenopiv.preprocess.pixels.isolated_pixels`) left unrepaired.
+    hot_pixels : int or None
+        Its hot pixels (:func:`~plenopiv.preprocess.pixels.isolated_pixels`) left unrepaired;
+        None where they were not counted.
     noise : float
         The robust spread of its gap pixels, counts.
     """
@@ -46,14 +47,16 @@ class ImageCondition:
     black_level: float
     peak: float
     saturated_fraction: float
-    hot_pixels: int
+    hot_pixels: int | None
     noise: float
 
     def to_dict(self) -> dict:
-        """The figures, JSON-ready."""
-        return {"black_level_counts": self.black_level, "peak_counts": self.peak,
-                "saturated_fraction": self.saturated_fraction, "hot_pixels": self.hot_pixels,
-                "noise_counts": self.noise}
+        """The figures, JSON-ready (``hot_pixels`` only where they were counted)."""
+        out = {"black_level_counts": self.black_level, "peak_counts": self.peak,
+               "saturated_fraction": self.saturated_fraction, "noise_counts": self.noise}
+        if self.hot_pixels is not None:
+            out["hot_pixels"] = self.hot_pixels
+        return out
 
 
 def image_condition(image, micro: MicroImages, *, saturated_fraction: float = 0.0,
@@ -67,7 +70,7 @@ def image_condition(image, micro: MicroImages, *, saturated_fraction: float = 0.
     level = gap_level(img, micro)
     gap = micro.gap
     noise = robust_sigma(img[gap]) if gap.any() else 0.0
-    hot = 0
+    hot = None
     if count_hot:
         hot = int(isolated_pixels(img, micro.label, noise=noise, exclude=exclude).sum())
     return ImageCondition(float(level), float(img.max()), float(saturated_fraction), hot,
@@ -99,7 +102,7 @@ def advice(condition: ImageCondition, *, dark_fraction: float = DEFAULT_DARK_FRA
     """
     c = condition
     level_off = c.black_level > 0 and c.black_level > dark_fraction * c.peak
-    hot_off = c.hot_pixels > 0
+    hot_off = bool(c.hot_pixels)
     sat_off = c.saturated_fraction > SATURATED_REPORT
     if not (level_off or hot_off or sat_off):
         return None
@@ -107,7 +110,7 @@ def advice(condition: ImageCondition, *, dark_fraction: float = DEFAULT_DARK_FRA
     figures = (f"black level {c.black_level:.4g} counts (median of the darkest micro-image "
                f"gaps; {share:.2%} of the brightest pixel, the reconstruction's dark threshold "
                f"is {dark_fraction:.2%}), {c.saturated_fraction:.2%} of the pixels saturated, "
-               f"{c.hot_pixels} hot pixels")
+               f"{c.hot_pixels or 0} hot pixels")
     keys = []
     if level_off:
         keys.append('[preprocess] background = "BACKGROUND.tif" (or "minimum" over a batch): '

@@ -52,11 +52,12 @@ class Frames:
     background : (rows, cols) float64 or None
         The background in light counts (its dark taken off).
     bad : (rows, cols) bool
-        Pixels repaired in every image: hot and cold in the dark, stuck in the white,
-        bright in every image of the batch (with ``hot_pixels = "auto"``).
+        Pixels repaired in every image: hot and cold in the dark, stuck and dead in the
+        white, isolated and bright in the background (bright in every image of a batch),
+        with ``hot_pixels = "auto"``.
     counts : dict
         How many of each: ``dark_hot``, ``dark_cold``, ``white_stuck``, ``white_dead``,
-        ``batch_hot``.
+        ``background_hot``.
     """
 
     micro: MicroImages
@@ -103,7 +104,7 @@ def _shape_check(a: np.ndarray, shape, name: str) -> None:
 
 
 def prepare_frames(micro: MicroImages, *, dark: MasterDark | None = None, white=None,
-                   background=None, batch_minimum=None, hot_pixels: str = "auto",
+                   background=None, hot_pixels: str = "auto",
                    names: dict | None = None) -> Frames:
     """The frames every image shares, from arrays.
 
@@ -116,10 +117,9 @@ def prepare_frames(micro: MicroImages, *, dark: MasterDark | None = None, white=
         The mean white, raw counts (the dark is taken off here).
     background : (rows, cols) array_like, optional
         The background, raw counts as recorded (a background image, or a batch's minimum or
-        mean); the dark is taken off here.
-    batch_minimum : (rows, cols) array_like, optional
-        The per-pixel minimum of a batch's images, raw counts: its isolated bright pixels are
-        bright in every image (hot) with ``hot_pixels = "auto"``.
+        mean); the dark is taken off here. With ``hot_pixels = "auto"`` its isolated bright
+        pixels (:func:`~plenopiv.preprocess.pixels.isolated_pixels`) are bright in every
+        image: hot.
     hot_pixels : {"auto", "none"}
     names : dict, optional
         ``{"dark": ..., "white": ..., "background": ...}``: how messages name them.
@@ -157,15 +157,12 @@ def prepare_frames(micro: MicroImages, *, dark: MasterDark | None = None, white=
         b = np.asarray(background, dtype=np.float64)
         _shape_check(b, shape, names["background"])
         bg = b - offset
-    if batch_minimum is not None and hot_pixels == "auto":
-        m = np.asarray(batch_minimum, dtype=np.float64)
-        _shape_check(m, shape, "the batch's minimum")
-        light = m - offset
-        noise = dark.noise if dark is not None and dark.noise is not None else (
-            robust_sigma(light[micro.gap]) if micro.gap.any() else 0.0)
-        persistent = isolated_pixels(light, label, noise=noise, exclude=bad)
-        bad |= persistent
-        counts["batch_hot"] = int(persistent.sum())
+        if hot_pixels == "auto":
+            noise = dark.noise if dark is not None and dark.noise is not None else (
+                robust_sigma(bg[micro.gap]) if micro.gap.any() else 0.0)
+            persistent = isolated_pixels(bg, label, noise=noise, exclude=bad)
+            bad |= persistent
+            counts["background_hot"] = int(persistent.sum())
     return Frames(micro, hot_pixels, dark, flat, bg, bad, counts)
 
 
