@@ -167,16 +167,16 @@ def flat_field(white, micro: MicroImages, *, bad=None, name: str = "white") -> F
     typical = float(np.median(peak[found])) if found.any() else float("nan")
     gap = micro.gap & ~bad
     noise = float(1.4826 * np.median(np.abs(w[gap] - np.median(w[gap])))) if gap.any() else 0.0
+    if black > 0 and not black < MAX_GAP_RATIO * (typical + black):
+        raise ImageError(f"{name} shows no micro-image structure: the gaps between the "
+                         f"micro-images are at {black:.4g} counts, "
+                         f"{black / (typical + black):.0%} of the micro-images' plateau "
+                         f"(expected below {MAX_GAP_RATIO:.0%}): expected a white image through "
+                         "this camera's lenslets, not a uniform frame")
     if not (np.isfinite(typical) and typical > max(10.0 * noise, 0.0)):
         raise ImageError(f"{name} shows no lit micro-images: the typical micro-image's peak is "
                          f"{typical:.4g} counts above the gaps (noise {noise:.3g}): expected a "
                          "white image (a diffuser or a white sheet) at the recording's aperture")
-    if black > MAX_GAP_RATIO * (typical + black) and black > 0:
-        raise ImageError(f"{name} shows no micro-image structure: the gaps between the "
-                         f"micro-images are at {black:.4g} counts, {black / (typical + black):.0%} "
-                         f"of the micro-images' plateau (expected below {MAX_GAP_RATIO:.0%}): "
-                         "expected a white image through this camera's lenslets, not a "
-                         "uniform frame")
     share = float(np.mean((peak[found] > 0.25 * typical) & (peak[found] < 4.0 * typical)))
     if share < MIN_TYPICAL_SHARE:
         raise ImageError(f"{name} is not a white: only {share:.0%} of its micro-images are "
