@@ -354,12 +354,22 @@ def test_a_hot_pixel_at_a_border_is_repaired_from_its_own_micro_image(micro):
     # across the border the dark neighbours would have pulled it down
     across, _ = repair_pixels(img, bad)
     assert across[r, c] < 1000.0
-    # a hot pixel in the dark micro-image beside it is isolated within its own micro-image
+    # found: a hot pixel at the rim of a lit micro-image (a disc), and one in the gap of the
+    # dark micro-image beside it, next to the border
+    img = np.where((micro.label == k) & (micro.distance_px <= micro.radius_px), 1000.0, 0.0)
+    rim = np.argwhere((micro.label == k) & (micro.distance_px <= micro.radius_px)
+                      & (micro.distance_px > micro.radius_px - 1))[0]
     q = next((rr, cc) for rr, cc in [(r + a, c + b) for a in (-1, 0, 1) for b in (-1, 0, 1)]
              if micro.label[rr, cc] != k)
-    img[q] = 6000.0
+    img[tuple(rim)] = img[q] = 6000.0
     found = isolated_pixels(img, micro.label)
-    assert found[q] and found[r, c] and found.sum() == 2
+    assert found[tuple(rim)] and found[q] and found.sum() == 2
+    # a lit pixel whose light spills over the border into the next cell is no hot pixel
+    spill = img.copy()
+    spill[tuple(rim)] = 1000.0
+    spill[q] = 300.0
+    spill[r, c] = 1000.0
+    assert not isolated_pixels(spill, micro.label)[q]
 
 
 # ---- background ---------------------------------------------------------------------------------

@@ -15,13 +15,17 @@ import numpy as np
 from plenopiv.preprocess.microimages import MicroImages, gap_level
 from plenopiv.preprocess.pixels import isolated_pixels, robust_sigma
 
-__all__ = ["DEFAULT_DARK_FRACTION", "ImageCondition", "advice", "image_condition"]
+__all__ = ["DEFAULT_DARK_FRACTION", "HOT_REPORT", "ImageCondition", "advice",
+           "image_condition"]
 
 #: The reconstruction's default dark threshold, a fraction of the brightest pixel
 #: (``[reconstruction] pixel_threshold``).
 DEFAULT_DARK_FRACTION = 0.003
 #: A saturated share above this is reported (the image check warns from the same share).
 SATURATED_REPORT = 1e-3
+#: Hot pixels are reported above this share of the pixels (a sensor has 1e-4 to 1e-3 of
+#: them; a few single-pixel spots of a sparse ray-traced render are not reported).
+HOT_REPORT = 1e-5
 
 
 @dataclass(frozen=True)
@@ -42,6 +46,8 @@ class ImageCondition:
         None where they were not counted.
     noise : float
         The robust spread of its gap pixels, counts.
+    n_pixels : int
+        Its size.
     """
 
     black_level: float
@@ -49,6 +55,7 @@ class ImageCondition:
     saturated_fraction: float
     hot_pixels: int | None
     noise: float
+    n_pixels: int = 1
 
     def to_dict(self) -> dict:
         """The figures, JSON-ready (``hot_pixels`` only where they were counted)."""
@@ -74,7 +81,7 @@ def image_condition(image, micro: MicroImages, *, saturated_fraction: float = 0.
     if count_hot:
         hot = int(isolated_pixels(img, micro.label, noise=noise, exclude=exclude).sum())
     return ImageCondition(float(level), float(img.max()), float(saturated_fraction), hot,
-                          float(noise))
+                          float(noise), int(img.size))
 
 
 def advice(condition: ImageCondition, *, dark_fraction: float = DEFAULT_DARK_FRACTION,
@@ -98,11 +105,12 @@ def advice(condition: ImageCondition, *, dark_fraction: float = DEFAULT_DARK_FRA
     Notes
     -----
     Off: a black level above ``dark_fraction`` of the brightest pixel (no pixel would be
-    dark), any hot pixel left unrepaired, or more than 0.1 % of the pixels saturated.
+    dark), hot pixels left unrepaired on more than :data:`HOT_REPORT` of the pixels, or more
+    than 0.1 % of the pixels saturated.
     """
     c = condition
     level_off = c.black_level > 0 and c.black_level > dark_fraction * c.peak
-    hot_off = bool(c.hot_pixels)
+    hot_off = bool(c.hot_pixels) and c.hot_pixels > HOT_REPORT * c.n_pixels
     sat_off = c.saturated_fraction > SATURATED_REPORT
     if not (level_off or hot_off or sat_off):
         return None

@@ -249,8 +249,9 @@ def isolated_pixels(image, labels=None, *, noise: float = 0.0, exclude=None,
     A pixel is hot when, against the neighbours in its own micro-image (3 × 3, the pixel
     left out), its excess e = v − median exceeds the median itself,
     :data:`SPILL_SIGMA` / (:data:`SPOT_SPILL` − :data:`ISOLATION`) × ``noise`` and
-    :data:`HOT_MIN_FRACTION` of the image's bright level (its 99.9th percentile), and the
-    brightest neighbour rises less than :data:`ISOLATION` × e + :data:`SPILL_SIGMA` ×
+    :data:`HOT_MIN_FRACTION` of the image's bright level (its 99.9th percentile), and its
+    brightest neighbour (in any micro-image: light crosses a cell's border, a neighbour's
+    rim reaches into the gap) rises less than :data:`ISOLATION` × e + :data:`SPILL_SIGMA` ×
     ``noise`` above the median. See the module's notes for why a light spot never does that.
     """
     img = _image(image)
@@ -262,8 +263,10 @@ def isolated_pixels(image, labels=None, *, noise: float = 0.0, exclude=None,
     which = use & (img > base + floor)
     if not which.any():
         return np.zeros(img.shape, bool)
-    maximum, median, count = neighbour_stats(img, labels, use=use, which=which,
-                                             engine=engine)
+    _, median, count = neighbour_stats(img, labels, use=use, which=which, engine=engine)
+    # light crosses a micro-image's border (a neighbour's rim spills into the gap): the
+    # spill is looked for in every neighbour, the level in the pixel's own micro-image
+    maximum, _, _ = neighbour_stats(img, None, use=use, which=which, engine=engine)
     ok = which & (count >= 2)
     excess = np.where(ok, img - median, 0.0)
     spill = np.where(ok, maximum - median, np.inf)

@@ -301,9 +301,12 @@ def calibration_dark(spec: str | Path, shape) -> tuple[MasterDark, np.ndarray, d
     ImageError
         The file is missing, unreadable or of another shape than the sensor.
     """
-    from plenopiv.products.files import file_identity
+    from plenopiv.products.files import file_identity, split_dataset_spec
     from plenopiv.products.images import read_frames
 
+    if not split_dataset_spec(spec)[0].exists():
+        raise ImageError(f"--dark {str(spec)!r}: file not found: expected a dark frame or "
+                         f"stack at the calibration images' exposure ({FRAME_FILES})")
     frames = read_frames(spec, what=f"--dark {str(spec)!r}")
     if tuple(frames.shape[1:]) != tuple(shape):
         raise ImageError(f"--dark {str(spec)!r} is {frames.shape[1]} × {frames.shape[2]} pixels: "
