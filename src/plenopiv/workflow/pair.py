@@ -167,8 +167,9 @@ class PairProcessor:
         settings = exp.piv
         response = None
         if exp.piv.uncertainty == "response":
+            # the test pairs leave out what every real image leaves out (the white's mask)
             response = _response_of(calibration, weights, va, exp, settings, workers,
-                                    img_mask, vol_mask)
+                                    union(img_mask, preparation.static_mask), vol_mask)
         vec = correlate(va, vb, settings, dt=exp.images.dt_s, workers=workers,
                         mask=vol_mask, response=response, progress=_piv_progress(progress))
         t2 = time.perf_counter()

@@ -154,6 +154,12 @@ class ImagePreparation:
         self.frames = prepare_frames(self.micro, dark=dark, white=white, background=background,
                                      hot_pixels=s.hot_pixels, names=names)
 
+    @property
+    def static_mask(self) -> np.ndarray | None:
+        """The pixels every image leaves out (the white's mask), or None."""
+        f = self.frames
+        return None if f is None or f.flat is None else f.flat.mask
+
     @staticmethod
     def refuse_batch_background(experiment) -> None:
         """Refuse ``background = "minimum"`` or ``"mean"`` where there is no batch.
