@@ -672,3 +672,21 @@ def test_run_forms_the_batch_background_once_and_records_it(contract, capsys):
     s = json.loads(capsys.readouterr().out)
     assert s["n_recomputed"] == 2
     assert {r["reason"] for r in s["recomputed"]} == {"made with other preprocessing frames"}
+
+
+def test_a_batch_pair_returns_the_warnings_its_images_got(contract, tmp_path):
+    """In a batch the warnings arise in the workers: each pair returns its images' own."""
+    from plenopiv.batch.jobs import PairJob
+    from plenopiv.workflow.worker import ExperimentPairProcess, drop_worker_processor
+
+    d = contract
+    job = PairJob("p1", str(d / "pairs" / "p1_A.tif"), str(d / "pairs" / "p1_B.tif"),
+                  tmp_path / "p1_vectors.h5")
+    try:
+        out = ExperimentPairProcess(str(d / "raw.toml"), str(d / "cal.h5"), str(tmp_path))(job)
+    finally:
+        drop_worker_processor()
+    assert len(out["warnings"]) == 2
+    assert all("black level" in w and "[preprocess] dark" in w for w in out["warnings"])
+    assert out["warnings"][0].startswith(f"image {str(d / 'pairs' / 'p1_A.tif')!r}: ")
+    assert _attr(tmp_path / "p1_vectors.h5")["applied"] is False

@@ -79,6 +79,7 @@ def cmd_run(args) -> dict:
         raise
     result = {**head, "weights_s": round(weights_s, 3) if not hit else 0.0,
               **summary.to_dict()}
+    _repeat_image_warnings(summary)
     if summary.failed:
         names = ", ".join(f"{n} ({e})" for n, e in summary.failed[:3])
         more = "" if len(summary.failed) <= 3 else f" and {len(summary.failed) - 3} more"
@@ -87,6 +88,30 @@ def cmd_run(args) -> dict:
         err.summary = result
         raise err
     return result
+
+
+#: Image warnings of a batch's pairs repeated at the command line; the others are counted.
+SHOWN_IMAGE_WARNINGS = 5
+
+
+def _repeat_image_warnings(summary) -> None:
+    """Repeat the warnings the pairs' images got (in the workers) as this command's own.
+
+    The first :data:`SHOWN_IMAGE_WARNINGS`, then one line counting the rest; every one stays
+    in ``batch_summary.json`` (``results[].result.warnings``).
+    """
+    import warnings
+
+    from plenopiv.errors import PlenopivWarning
+
+    said = [(r.name, w) for r in summary.results if r.result
+            for w in r.result.get("warnings", ())]
+    for name, w in said[:SHOWN_IMAGE_WARNINGS]:
+        warnings.warn(f"pair {name}: {w}", PlenopivWarning, stacklevel=3)
+    if len(said) > SHOWN_IMAGE_WARNINGS:
+        warnings.warn(f"{len(said) - SHOWN_IMAGE_WARNINGS} more warnings about the batch's "
+                      f"images; see {summary.summary_path} (results[].result.warnings)",
+                      PlenopivWarning, stacklevel=3)
 
 
 def _check_products_spare_inputs(jobs, others) -> None:

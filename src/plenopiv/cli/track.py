@@ -48,8 +48,9 @@ def cmd_track(args) -> dict:
     va = load_volume(args.volume_a) if args.volume_a else None
     vb = load_volume(args.volume_b) if args.volume_b else None
     vec = load_vectors(args.vectors) if args.vectors else None
-    tracks, va, vb, vec, timings, pre = track_images(cal, ia, ib, exp, volume_a=va,
-                                                     volume_b=vb, vectors=vec)
+    tracks, va, vb, vec, timings, pre = track_images(
+        cal, ia, ib, exp, volume_a=va, volume_b=vb, vectors=vec,
+        names=(f"image {str(args.image_a)!r}", f"image {str(args.image_b)!r}"))
     cfg = {**exp.to_dict(), "calibration": str(args.calibration),
            "image_a": str(args.image_a), "image_b": str(args.image_b)}
     paths = save_track_products(tracks, vec, out, config=cfg, vtk=exp.output.vtk,

@@ -139,17 +139,18 @@ class PairProcessor:
         return self._masks
 
     def __call__(self, image_a, image_b, *, progress: Progress = None,
-                 workers=None) -> PairResult:
+                 workers=None, names=("image A", "image B")) -> PairResult:
         """Images A and B -> preprocessing -> two volumes -> particles -> corrections -> vectors.
 
-        ``image_a``, ``image_b``: the exposures as recorded (counts).
+        ``image_a``, ``image_b``: the exposures as recorded (counts); ``names``: how
+        warnings about them name them.
         """
         from plenopiv.workflow.preprocess import union
 
         t0 = time.perf_counter()
         exp, calibration = self.experiment, self.calibration
         preparation = self.preparation()
-        pa, pb, norm = preparation.pair(image_a, image_b)
+        pa, pb, norm = preparation.pair(image_a, image_b, names=names)
         record = preparation.record({"A": pa.figures, "B": pb.figures}, norm)
         weights = self.weights(progress)
         img_mask, vol_mask = self.masks()

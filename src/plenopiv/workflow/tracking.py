@@ -142,13 +142,15 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
 
 def track_images(calibration: Calibration, image_a, image_b, experiment, *,
                  volume_a: VolumeResult | None = None, volume_b: VolumeResult | None = None,
-                 vectors: VectorResult | None = None, progress=None) -> tuple:
+                 vectors: VectorResult | None = None, progress=None,
+                 names=("image A", "image B")) -> tuple:
     """Tracks of one pair with an experiment's settings, reusing what is given.
 
     The images (as recorded) are preprocessed first (``[preprocess]``,
     :class:`~plenopiv.workflow.preprocess.ImagePreparation`, which also judges them); volumes
     not given are reconstructed from them (weights built once, the ``[mask] image`` and the
-    preprocessing's mask left out), vectors not given are correlated. Returns ``(TrackResult,
+    preprocessing's mask left out), vectors not given are correlated. ``names``: how warnings
+    about the images name them. Returns ``(TrackResult,
     volume_a, volume_b, vectors, timings, preprocess)``, the last what was applied (the
     products' ``preprocess`` attribute).
     """
@@ -164,7 +166,7 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     t0 = time.perf_counter()
     rec = experiment.reconstruction
     preparation = ImagePreparation(experiment, calibration)
-    pa, pb, norm = preparation.pair(image_a, image_b)
+    pa, pb, norm = preparation.pair(image_a, image_b, names=names)
     record = preparation.record({"A": pa.figures, "B": pb.figures}, norm)
     image_a, image_b = pa.image, pb.image
     lf = None

@@ -37,7 +37,14 @@ class ExperimentPairProcess:
     background_images: int = 0
 
     def __call__(self, job) -> dict:
-        """Process one :class:`plenopiv.batch.PairJob`; returns a small summary."""
+        """Process one :class:`plenopiv.batch.PairJob`; returns a small summary.
+
+        The warnings about its images (:class:`~plenopiv.errors.PlenopivWarning`: the image
+        check, the preprocessing's one per image) are returned under ``warnings``.
+        """
+        import warnings
+
+        from plenopiv.errors import PlenopivWarning
         from plenopiv.products.images import read_image
         from plenopiv.products.jsonio import dumps
 
@@ -45,7 +52,14 @@ class ExperimentPairProcess:
                                      self.background, self.background_images)
         exp, cal = processor.experiment, processor.calibration
         ia, ib = read_image(job.image_a), read_image(job.image_b)
-        res = processor(ia, ib)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", PlenopivWarning)
+            res = processor(ia, ib, names=(f"image {str(job.image_a)!r}",
+                                           f"image {str(job.image_b)!r}"))
+        said = [str(w.message) for w in caught if issubclass(w.category, PlenopivWarning)]
+        for w in caught:
+            if not issubclass(w.category, PlenopivWarning):
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         extra = {"image_a": str(job.image_a), "image_b": str(job.image_b)}
         if getattr(job, "identity", None) is not None:
             extra["identity"] = dumps(dict(job.identity), sort_keys=True)
@@ -59,7 +73,8 @@ class ExperimentPairProcess:
         vec = res.vectors
         return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),
                 "n_particles_a": len(res.volume_a.particle_position),
-                **{k: round(v, 3) for k, v in res.timings.items()}, **tracked}
+                **{k: round(v, 3) for k, v in res.timings.items()}, **tracked,
+                **({"warnings": said} if said else {})}
 
 
 #: The :class:`PairProcessor` this process keeps, with its key (:func:`worker_processor`).
