@@ -85,6 +85,7 @@ def inputs(tmp_path_factory):
     tifffile.imwrite(d / "clipped.tif", clip)
     tifffile.imwrite(d / "negative.tif", (good / good.max() - 0.05).astype(np.float32))
     tifffile.imwrite(d / "small.tif", np.ones((10, 10), np.uint16))
+    tifffile.imwrite(d / "uniform.tif", rng.normal(1000, 3, SHAPE).astype(np.uint16))
     with h5py.File(d / "complex.h5", "w") as fh:
         fh["image"] = good + 1j * good
     with h5py.File(d / "img.h5", "w") as fh:
@@ -121,6 +122,14 @@ def inputs(tmp_path_factory):
         "clash": experiment(extra="[images]\npairs = \"clash/*.h5\"\ncalibration = "
                             "\"cal.h5\"\n[output]\ndirectory = \"clash\""),
         "unknown_key": experiment(extra="[piv]\nwindow = [[16, 16, 16]]"),
+        "pre_missing": experiment(extra='[preprocess]\ndark = "none.tif"'),
+        "pre_small": experiment(extra='[preprocess]\ndark = "small.tif"'),
+        "pre_uniform": experiment(extra='[preprocess]\nwhite = "uniform.tif"'),
+        "pre_minimum": experiment(extra='[preprocess]\nbackground = "minimum"'),
+        "pre_unknown": experiment(extra='[preprocess]\nflat = "uniform.tif"'),
+        "pre_hot": experiment(extra='[preprocess]\nhot_pixels = "some"'),
+        "run_pre_missing": experiment(extra='[images]\npairs = "img.h5"\ncalibration = '
+                                      '"cal.h5"\n[preprocess]\nwhite = "none.tif"'),
     }
     for name, text in variants.items():
         (d / f"{name}.toml").write_text(text)
@@ -270,6 +279,28 @@ CASES = [
      "{d}/v.h5", 2, "not a plenopiv calibration"),
     ("reconstruct-out-folder", "reconstruct {d}/cal.h5 {d}/a.tif --config {d}/exp.toml --out "
      "{d}/folder.h5", 2, "is a folder"),
+    # ---- preprocessing ----
+    ("preprocess-dark-missing", "reconstruct {d}/cal.h5 {d}/a.tif --config {d}/pre_missing.toml "
+     "--out {d}/v.h5", 2, "[preprocess] dark = 'none.tif': file"),
+    ("preprocess-dark-wrong-shape", "reconstruct {d}/cal.h5 {d}/a.tif --config "
+     "{d}/pre_small.toml --out {d}/v.h5 --json", 2,
+     "[preprocess] dark 'small.tif' is 10 × 10 pixels: expected the sensor's 700 × 1040"),
+    ("preprocess-white-not-a-white", "reconstruct {d}/cal.h5 {d}/a.tif --config "
+     "{d}/pre_uniform.toml --out {d}/v.h5", 2, "'uniform.tif' shows no micro-image structure"),
+    ("preprocess-minimum-for-one-image", "reconstruct {d}/cal.h5 {d}/a.tif --config "
+     "{d}/pre_minimum.toml --out {d}/v.h5", 2, '[preprocess] background = "minimum" is the'),
+    ("preprocess-minimum-for-one-pair", "track {d}/cal.h5 {d}/a.tif {d}/a.tif --config "
+     "{d}/pre_minimum.toml --out {d}/t.h5 --json", 2, "give the path of a background image"),
+    ("preprocess-unknown-key", "reconstruct {d}/cal.h5 {d}/a.tif --config {d}/pre_unknown.toml "
+     "--out {d}/v.h5", 2, "unknown key [preprocess] flat"),
+    ("preprocess-hot-pixels-word", "reconstruct {d}/cal.h5 {d}/a.tif --config {d}/pre_hot.toml "
+     "--out {d}/v.h5", 2, "hot_pixels = 'some'"),
+    ("run-preprocess-white-missing", "run {d}/run_pre_missing.toml", 2,
+     "[preprocess] white = 'none.tif': file"),
+    ("calibrate-dark-missing", "calibrate small_m1 --focal-point {d}/a.tif --dark {d}/none.tif "
+     "--out {d}/c.h5", 2, "none.tif': file not found: expected a dark frame"),
+    ("calibrate-dark-wrong-shape", "calibrate small_m1 --focal-point {d}/a.tif --dark "
+     "{d}/small.tif --out {d}/c.h5", 2, "small.tif' is 10 × 10 pixels: expected the sensor's"),
     # ---- piv ----
     ("windows-0", "piv {d}/va.h5 {d}/vb.h5 --windows 0 0 0 --out {d}/w.h5 --json", 2,
      "--windows 0 0 0"),

@@ -373,7 +373,7 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
         2). Exceptions raised by ``process`` are deterministic and are not retried. With a
         scheduler address the scheduler's own ``allowed-failures`` applies instead.
     progress : bool
-        Show a progress bar (and one line per failure) on stderr.
+        A progress bar (and one line per failure) on stderr.
     cluster_options : mapping, optional
         Local: ``memory_limit``, ``dashboard_address`` (default ":0", a free port),
         ``local_directory``. SLURM: see :func:`slurm_cluster_kwargs` (the ``[batch]`` table;
@@ -404,8 +404,7 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
     _check_process(process)
     kind, n_workers, threads, retries, options, slots = _cluster_plan(
         cluster, n_workers, threads_per_worker, retries, cluster_options)
-    summary_file = Path(summary_path) if summary_path is not None else \
-        _default_summary_path(jobs)
+    summary_file = Path(summary_path) if summary_path else _default_summary_path(jobs)
 
     t0 = time.perf_counter()
     removed = _remove_temporaries(jobs, summary_file)

@@ -27,6 +27,38 @@ def read_image(spec: str | Path) -> np.ndarray:
     ImageError
         When the file is missing, unreadable, truncated or corrupt, or not a 2-D image.
     """
+    img = _read_array(spec)
+    if img.ndim != 2:
+        raise ImageError(f"image {str(spec)!r} has shape {img.shape}: expected a 2-D "
+                         "(rows, cols) image")
+    return img
+
+
+def read_frames(spec: str | Path, *, what: str = "frames") -> np.ndarray:
+    """Read one frame or a stack as ``(n, rows, cols)``, in the file's own dtype.
+
+    A TIFF (a multi-page TIFF is a stack), a PNG, or ``file.h5:/dataset`` holding a 2-D or
+    3-D array (frames along the first axis). ``what`` names the file in messages.
+
+    Raises
+    ------
+    ImageError
+        When the file is missing, unreadable, corrupt, or holds no 2-D or 3-D array.
+    """
+    try:
+        a = _read_array(spec)
+    except ImageError as exc:
+        raise ImageError(f"{what}: {exc}") from None
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3 or 0 in a.shape:
+        raise ImageError(f"{what} {str(spec)!r} has shape {a.shape}: expected one frame "
+                         "(rows, cols) or a stack (frames, rows, cols)")
+    return a
+
+
+def _read_array(spec: str | Path) -> np.ndarray:
+    """The array of an image file (TIFF pages stacked; a colour PNG averaged), checked real."""
     path, dataset = split_dataset_spec(spec)
     if not path.exists():
         raise ImageError(f"image file {str(path)!r} not found")
@@ -59,9 +91,6 @@ def read_image(spec: str | Path) -> np.ndarray:
     _refuse_non_real(img, repr(str(spec)))
     if img.ndim == 3 and img.shape[-1] in (3, 4) and suffix == ".png":
         img = img[..., :3].mean(axis=-1)   # a colour PNG of a monochrome sensor
-    if img.ndim != 2:
-        raise ImageError(f"image {str(spec)!r} has shape {img.shape}: expected a 2-D "
-                         "(rows, cols) image")
     return img
 
 

@@ -1,28 +1,12 @@
 """What a real recording adds to the ideal render: the sensor, the lenslets and the light.
 
-The ray tracer (:mod:`.tracer`, :mod:`.images`) renders ideal irradiance. A real plenoptic
-recording also carries
-
-- the **optics**: a throughput that differs from lenslet to lenslet, and a radial fall-off
-  inside every micro-image (:func:`optical_gain`);
-- the **light**: a smooth background glow (:func:`glow_field`), particles of unequal
-  brightness, a laser sheet or volume whose intensity varies with depth
-  (:func:`sheet_illumination`), and a second pulse of another energy than the first;
-- the **sensor**: a black level with its fixed pattern (per column and per pixel), read
-  noise, a gain in counts per photo-electron, an ADC of a given bit depth that saturates,
-  hot pixels (a large dark current: bright in every frame, dark frames too) and dead pixels
-  (no response to light) (:func:`record`).
-
-:class:`RecordingSettings` describes them; its defaults are the ideal render, everything off,
-and :data:`REALISTIC` is a typical set. The randomness of one physical camera (its fixed
-pattern, its hot and dead pixels, its lenslets' throughput, the glow of its set-up) is drawn
-once from a camera seed into a :class:`CameraInstance` (:func:`camera_instance`), apart from
-the noise of each frame, so that a dark frame, a white frame and a particle pair of one
-camera share them. Each effect draws from its own stream of that seed: turning one effect on
-or off leaves the others' maps unchanged.
-
-Units: counts are digital numbers of the ADC, electrons are photo-electrons; lengths in the
-settings are millimetres (``_mm``), as in the files a user writes.
+:class:`RecordingSettings` describes the optics (lenslet throughput, vignetting), the light
+(glow, particle brightness, a sheet's depth profile, the second pulse's energy) and the
+sensor (black level and its fixed pattern, read noise, gain, ADC bits, hot and dead pixels);
+its defaults are the ideal render and :data:`REALISTIC` is a typical set. One physical
+camera's randomness is drawn once from a camera seed (:func:`camera_instance`), apart from
+each frame's noise, so a dark, a white and a particle frame of one camera share it. Counts
+are ADC numbers; lengths in millimetres. See docs/methods.md#a-real-recording.
 """
 
 from __future__ import annotations

@@ -66,12 +66,19 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
 
 @dataclass(frozen=True)
 class PairResult:
-    """Everything one pair produced."""
+    """Everything one pair produced.
+
+    ``images``: the two exposures as the reconstruction saw them (preprocessed, B on A's
+    scale; :class:`~plenopiv.workflow.preprocess.PreparedImage`); ``preprocess``: what was
+    applied (the products' ``preprocess`` attribute).
+    """
 
     volume_a: VolumeResult
     volume_b: VolumeResult
     vectors: VectorResult
     timings: dict
+    images: tuple | None = None
+    preprocess: dict | None = None
 
 
 class PairProcessor:
@@ -80,18 +87,35 @@ class PairProcessor:
     ``processor(image_a, image_b)`` reconstructs both exposures, finds their particles,
     corrects the depths and correlates them, with the experiment's settings
     (:class:`~plenopiv.config.experiment.Experiment`). The weights (explicit, from the weights
-    cache, or the matrix-free projector), the image and volume masks and the chain's response
-    (``[piv] uncertainty = "response"``, :meth:`response`) are made on first use and kept for
-    every later pair; a response measured before (``response``) is used as it is.
+    cache, or the matrix-free projector), the image and volume masks, the preprocessing's
+    frames (``[preprocess]``, :class:`~plenopiv.workflow.preprocess.ImagePreparation`) and the
+    chain's response (``[piv] uncertainty = "response"``, :meth:`response`) are made on first
+    use and kept for every later pair; a response measured before (``response``) is used as it
+    is. ``batch_background``, ``batch_record``: the batch's minimum or mean background and
+    what to record of it (``plenopiv run``).
     """
 
     def __init__(self, experiment, calibration: Calibration, *,
-                 weights: Weights | None = None, response: ExperimentResponse | None = None):
+                 weights: Weights | None = None, response: ExperimentResponse | None = None,
+                 batch_background=None, batch_record: dict | None = None):
         self.experiment = experiment
         self.calibration = calibration
         self._weights = weights
         self._masks = None
         self._response = response
+        self._preparation = None
+        self._batch = (batch_background, batch_record)
+
+    def preparation(self):
+        """The experiment's :class:`~plenopiv.workflow.preprocess.ImagePreparation` (made once)."""
+        if self._preparation is None:
+            from plenopiv.workflow.preprocess import ImagePreparation
+
+            background, record = self._batch
+            self._preparation = ImagePreparation(self.experiment, self.calibration,
+                                                 batch_background=background,
+                                                 batch_record=record)
+        return self._preparation
 
     def weights(self, progress: Progress = None) -> Weights:
         """The projector of every pair (built, or loaded from the weights cache, once)."""
@@ -127,7 +151,11 @@ class PairProcessor:
         if self._response is None:
             if progress is not None:
                 progress("response", 0.0)
+            from plenopiv.workflow.preprocess import union
+
             img_mask, vol_mask = self.masks()
+            # the test pairs leave out what every real image leaves out (the white's mask)
+            img_mask = union(img_mask, self.preparation().static_mask)
             self._response = experiment_response(
                 self.experiment, self.calibration, self.weights(progress),
                 self.experiment.piv, image_mask=img_mask, volume_mask=vol_mask,
@@ -140,21 +168,28 @@ class PairProcessor:
             self._response = response
 
     def __call__(self, image_a, image_b, *, progress: Progress = None,
-                 workers=None) -> PairResult:
-        """Images A and B -> two volumes -> particles -> corrections -> vectors.
+                 workers=None, names=("image A", "image B")) -> PairResult:
+        """Images A and B -> preprocessing -> two volumes -> particles -> corrections -> vectors.
 
-        ``timings``: ``reconstruct_s``, ``piv_s`` and, when this pair got the chain's response
-        (measured or read from the cache), ``response_s``.
+        ``image_a``, ``image_b``: the exposures as recorded (counts); ``names``: how
+        warnings about them name them. ``timings``: ``reconstruct_s``, ``piv_s`` and, when
+        this pair got the chain's response (measured or read from the cache), ``response_s``.
         """
+        from plenopiv.workflow.preprocess import union
         t0 = time.perf_counter()
         exp, calibration = self.experiment, self.calibration
+        preparation = self.preparation()
+        pa, pb, norm = preparation.pair(image_a, image_b, names=names)
+        record = preparation.record({"A": pa.figures, "B": pb.figures}, norm)
         weights = self.weights(progress)
         img_mask, vol_mask = self.masks()
         kw = dict(settings=exp.reconstruction, particles=exp.particles, weights=weights,
-                  image_mask=img_mask)
-        va = reconstruct_volume(calibration, image_a, exp.volume, **kw,
+                  checked=True)
+        va = reconstruct_volume(calibration, pa.image, exp.volume, **kw,
+                                image_mask=union(img_mask, pa.mask),
                                 progress=_volume_progress(progress, "A"))
-        vb = reconstruct_volume(calibration, image_b, exp.volume, **kw,
+        vb = reconstruct_volume(calibration, pb.image, exp.volume, **kw,
+                                image_mask=union(img_mask, pb.mask),
                                 progress=_volume_progress(progress, "B"))
         t1 = time.perf_counter()
         had_response = self._response is not None
@@ -168,7 +203,7 @@ class PairProcessor:
         timings = {"reconstruct_s": t1 - t0, "piv_s": time.perf_counter() - t2}
         if measured is not None and not had_response:
             timings["response_s"] = t2 - t1
-        return PairResult(va, vb, vec, timings)
+        return PairResult(va, vb, vec, timings, images=(pa, pb), preprocess=record)
 
 
 def _piv_progress(progress: Progress):
@@ -213,11 +248,16 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
 
     The vectors file is written last and marked complete, so that a batch can resume.
     """
+    from plenopiv.products.jsonio import dumps
+    from plenopiv.workflow.preprocess import ATTRIBUTE
+
     out = Path(out_dir)
     cfg = experiment.to_dict()
+    pre = {} if result.preprocess is None else {ATTRIBUTE: dumps(result.preprocess)}
     paths = {}
     for tag, vol in (("A", result.volume_a), ("B", result.volume_b)):
-        paths[f"volume_{tag}"] = str(vol.save(out / f"{name}_volume_{tag}.h5", config=cfg))
+        paths[f"volume_{tag}"] = str(vol.save(out / f"{name}_volume_{tag}.h5", config=cfg,
+                                              extra_attrs=pre))
     if experiment.output.png:
         from plenopiv.products.figures import vector_slices, volume_slices
 
@@ -229,7 +269,8 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
         paths["png_vectors"] = str(vector_slices(result.vectors, out / f"{name}_vectors.png",
                                                  title=f"pair {name}"))
     files = result.vectors.save(out / f"{name}_vectors.h5", config=cfg, vtk=experiment.output.vtk,
-                                extra_attrs={"complete": True, **(extra_attrs or {})})
+                                extra_attrs={"complete": True, **pre,
+                                             **(extra_attrs or {})})
     paths["vectors"] = str(files[0])
     if len(files) > 1:
         paths["vtk"] = str(files[1])

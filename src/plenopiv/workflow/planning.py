@@ -1,35 +1,12 @@
-"""Plan a reconstruction before running it (``plenopiv plan``).
+"""What a box costs before anything is reconstructed: ``plenopiv plan``.
 
-From a camera and a box this module computes, without reconstructing anything:
-
-* the resolution cell: one lenslet footprint b = p_m S_o/S_i laterally and b S_o/D in depth
-  (:func:`plenopiv.camera.resolution.resolution_cell`), and the near-focus zone
-  |Z| < b S_o/D, where a particle's blur on the focal plane (D |Z|/S_o) is smaller than one
-  footprint, so that it lights one lenslet and its depth motion is under-measured
-  (docs/validation/vortex.md);
-* the recommended voxel and PIV windows for this camera: the settings that met the vortex
-  targets in docs/validation/vortex.md (half-footprint lateral voxels; windows of
-  16 → 12 footprints laterally and about 3.6 → 2.7 depth cells in depth), scaled to the camera;
-* whether the windows fit the box, and how many vectors each pass gives;
-* what the reconstruction will run: its projector, lateral subdivision and working grid,
-  decided by the reconstruction's own function
-  (:func:`plenopiv.reconstruction.choose.choose_reconstruction`), with its memory estimate;
-* the size of the reconstruction (voxels, rays, non-zero weights), its memory and its time on
-  this machine.
-
-The decision builds the calibration's light field (seconds and ~250 bytes per ray for a 16 MP
-camera). Where it does not count the explicit weights (a subdivided grid on the lattice
-projector), their count for the report is computed, not sampled: the rays of one micro-image
-are traced once on a 3 × 3-lenslet patch and repeated at every lenslet, and a ray's beam
-crosses a depth slice as a box whose voxel count is separable in x and y
-(:mod:`plenopiv.reconstruction.weights`).
-
-Times come from rates: ``measure_rates`` times the reconstruction's own kernels (weight
-build, forward and back projection, the lattice projector) and the PIV on small samples in this
-process; :data:`BENCHMARK_RATES` are figures measured once (docs/performance.md),
-used when measuring is not wanted. ``Plan.time_model`` says which.
-
-Everything here is computation; printing belongs to :mod:`plenopiv.cli`.
+From a camera and a box, :func:`plan` gives the resolution cell and the near-focus zone
+(docs/methods.md#resolution-cell), the recommended voxel and PIV windows scaled to the camera
+(:func:`recommended_voxel`, :func:`recommended_windows`), whether the windows fit the box and
+how many vectors each pass gives, what the reconstruction will run (the reconstruction's own
+decision, :func:`plenopiv.reconstruction.choose.choose_reconstruction`), its memory and its
+time from :mod:`plenopiv.workflow.rates`, and the chain's response time. Everything here is
+computation; printing belongs to :mod:`plenopiv.cli`.
 """
 
 from __future__ import annotations

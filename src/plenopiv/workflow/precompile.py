@@ -117,9 +117,13 @@ def rehearse_reconstruction(calibration, experiment) -> None:
     """Reconstruct a tiny volume of the run's voxels with the run's settings.
 
     The image is a volume of Gaussian blobs projected by the run's own kind of projector, so
-    the reconstruction finds particles and fits their light-field positions.
+    the reconstruction finds particles and fits their light-field positions; it is judged
+    first as a run judges its images (the preprocessing's micro-image and neighbour kernels).
     """
+    import warnings
+
     from plenopiv.workflow.pair import PairProcessor
+    from plenopiv.workflow.preprocess import ImagePreparation
     from plenopiv.workflow.volume import reconstruct_volume
 
     grid = rehearsal_grid(experiment.volume, (RECONSTRUCTION_EDGE,) * 3)
@@ -129,6 +133,9 @@ def rehearse_reconstruction(calibration, experiment) -> None:
     shape = calibration.camera.sensor.shape
     image = weights.forward_image(blob_volume(weights.grid.shape, rng), shape)
     image *= np.float32(1000.0 / max(float(image.max()), 1e-12))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ImagePreparation(tiny, calibration).image(image)
     reconstruct_volume(calibration, image, grid, settings=tiny.reconstruction,
                        particles=tiny.particles, weights=weights)
 

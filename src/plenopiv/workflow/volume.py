@@ -70,7 +70,8 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
                        settings: ReconstructionSettings = _DEFAULT_RECONSTRUCTION,
                        particles: ParticleSettings = _DEFAULT_PARTICLES,
                        weights: Weights | None = None, cache_dir: str | Path | None = None,
-                       progress: Progress = None, image_mask=None) -> VolumeResult:
+                       progress: Progress = None, image_mask=None,
+                       checked: bool = False) -> VolumeResult:
     """Reconstruct one image into a volume and extract its particles.
 
     Parameters
@@ -92,14 +93,25 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         Pixels to ignore (True): their rows of the system are dropped, so they count neither
         as light nor as dark (a reflection, a model in the view). The dark threshold is taken
         from the unmasked pixels. See :mod:`plenopiv.workflow.masks`.
+    checked : bool
+        The image was checked and preprocessed already
+        (:class:`plenopiv.workflow.preprocess.ImagePreparation`: counts ≥ 0, the sensor's
+        shape), so :func:`~plenopiv.products.images.check_image` is not run again (its
+        warnings were given once, for the image as recorded).
     """
     from plenopiv.resources import check_grid
 
     t = {}
     t0 = time.perf_counter()
     check_grid(grid)
-    img = check_image(image, shape=calibration.camera.sensor.shape, name="particle image",
-                      particles=True)
+    if checked:
+        img = np.asarray(image, dtype=np.float64)
+        if img.shape != tuple(calibration.camera.sensor.shape):
+            raise ReconstructionError(f"the prepared image has shape {img.shape}: expected the "
+                                      f"sensor's {calibration.camera.sensor.shape}")
+    else:
+        img = check_image(image, shape=calibration.camera.sensor.shape,
+                          name="particle image", particles=True)
     if weights is None:
         if progress is not None:
             progress("weights", 0.0)
