@@ -11,14 +11,13 @@ names the key as the user wrote it.
 from __future__ import annotations
 
 import dataclasses
-import json
 import typing
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 from pydantic.dataclasses import dataclass as _pydantic_dataclass
 from pydantic.fields import FieldInfo
-from pydantic_core import PydanticUndefined
+from pydantic_core import PydanticUndefined, to_json
 
 from plenopiv.errors import ConfigError
 
@@ -53,14 +52,14 @@ def validate_table(model, table: dict, what: str):
     """Validate a TOML table (a dict of TOML values) against ``model``, types strictly.
 
     The table is validated as JSON, so that arrays stand for tuples while a boolean stays no
-    number. A TOML date or time, which no key takes, is a :class:`~plenopiv.errors.ConfigError`;
-    a value of the wrong type or range raises pydantic's ``ValidationError`` (the caller names
-    the file with :func:`format_validation_error`).
+    number (a TOML date becomes a text, which no number key takes). A value of the wrong type
+    or range raises pydantic's ``ValidationError`` (the caller names the file with
+    :func:`format_validation_error`).
     """
     try:
-        text = json.dumps(table, allow_nan=True)
+        text = to_json(table, inf_nan_mode="constants")   # NaN stays NaN: refused by name
     except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{what}: {exc}; no key takes a TOML date or time") from None
+        raise ConfigError(f"{what}: {exc}") from None
     return model.model_validate_json(text)
 
 
