@@ -86,3 +86,23 @@ def test_products_are_checked_for_kind_and_completeness(tmp_path):
         load_volume(tmp_path / "t.h5")
     with pytest.raises(ReconstructionError, match="not found"):
         load_volume(tmp_path / "missing.h5")
+
+
+@pytest.mark.parametrize("inside", ["presets/small_test.toml", "camera/model.py", "new.h5"])
+def test_nothing_is_written_inside_the_installed_package(inside):
+    from plenopiv.errors import OutputError
+    from plenopiv.products.files import PACKAGE_DIR, check_output_path
+
+    with pytest.raises(OutputError, match="inside the installed plenopiv package"):
+        check_output_path(PACKAGE_DIR / inside)
+
+
+def test_presets_out_refuses_the_package_s_own_preset(capsys):
+    from plenopiv.cli import main
+    from plenopiv.products.files import PACKAGE_DIR
+
+    preset = PACKAGE_DIR / "presets" / "small_test.toml"
+    before = preset.read_bytes()
+    assert main(["presets", "small_test", "--out", str(preset)]) == 2
+    assert "inside the installed plenopiv package" in capsys.readouterr().err
+    assert preset.read_bytes() == before
