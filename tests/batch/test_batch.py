@@ -527,18 +527,24 @@ signal.signal(signal.SIGINT, signal.default_int_handler)
 sys.path.insert(0, {tests!r})
 from test_batch import slow_mean_difference, with_identity
 from plenopiv.batch import BatchInterrupted, discover_pairs, run_batch
+from plenopiv.cli import sigterm_as_interrupt
 jobs = with_identity(discover_pairs("images/*_A.tif", "images/*_B.tif", out_dir="out",
                                     root={root!r}))
 try:
-    run_batch(jobs, slow_mean_difference, n_workers=1, progress=False)
+    with sigterm_as_interrupt():
+        run_batch(jobs, slow_mean_difference, n_workers=1, progress=False)
 except BatchInterrupted as exc:
     print("INTERRUPTED", exc, flush=True)
-    sys.exit(130)
+    sys.exit(exc.exit_status)
 print("FINISHED", flush=True)
 """
 
 
-def test_ctrl_c_stops_cleanly_writes_the_summary_and_resumes(tmp_path, rng):
+@pytest.mark.parametrize(("stop", "status", "said"), [
+    ("SIGINT", 130, "interrupted (Ctrl-C)"), ("SIGTERM", 143, "terminated (SIGTERM)")])
+def test_ctrl_c_and_sigterm_stop_cleanly_write_the_summary_and_resume(tmp_path, rng, stop,
+                                                                      status, said):
+    """Ctrl-C, and SIGTERM (SLURM's cancel and wall time) the same way: exit 130 or 143."""
     import signal
     import subprocess
     import time
@@ -556,10 +562,10 @@ def test_ctrl_c_stops_cleanly_writes_the_summary_and_resumes(tmp_path, rng):
         time.sleep(0.1)
     assert (out / "pair_01.h5").exists(), proc.communicate(timeout=30)
     time.sleep(0.5)                               # pair_00 is reported done by now
-    os.killpg(proc.pid, signal.SIGINT)          # Ctrl-C reaches the whole process group
+    os.killpg(proc.pid, getattr(signal, stop))  # reaches the whole process group
     stdout, stderr = proc.communicate(timeout=120)
-    assert proc.returncode == 130, (stdout, stderr)
-    assert "INTERRUPTED interrupted (Ctrl-C)" in stdout and "Traceback" not in stderr
+    assert proc.returncode == status, (stdout, stderr)
+    assert f"INTERRUPTED {said}" in stdout and "Traceback" not in stderr
     summary = json.loads((out / batch.SUMMARY_NAME).read_text())
     assert summary["n_done"] >= 1 and summary["n_interrupted"] >= 1
     assert summary["n_done"] + summary["n_interrupted"] + summary["n_failed"] == 6

@@ -106,3 +106,23 @@ def test_console_script_runs():
     res = subprocess.run([sys.executable, "-m", "plenopiv.cli", "--version"],
                          capture_output=True, text=True, check=True)
     assert res.stdout.startswith("plenopiv ")
+
+
+def test_sigterm_ends_a_verb_as_ctrl_c_does_with_its_own_status(monkeypatch, capsys):
+    """A SIGTERM delivered while a verb runs: one line, exit 143, the handler put back."""
+    import os
+    import signal
+
+    from plenopiv.cli import main, presets
+
+    before = signal.getsignal(signal.SIGTERM)
+
+    def slow(args):
+        os.kill(os.getpid(), signal.SIGTERM)
+        raise AssertionError("SIGTERM did not stop the verb")
+
+    monkeypatch.setattr(presets, "cmd_presets", slow)
+    assert main(["presets"]) == 143
+    err = capsys.readouterr().err
+    assert "terminated (SIGTERM)" in err and "Traceback" not in err
+    assert signal.getsignal(signal.SIGTERM) is before

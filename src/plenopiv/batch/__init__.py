@@ -51,7 +51,13 @@ from plenopiv.batch.jobs import (
     mark_complete,
     product_identity,
 )
-from plenopiv.errors import EXIT_INTERRUPTED, ConfigError, PlenopivError
+from plenopiv.errors import (
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    ConfigError,
+    PlenopivError,
+    Terminated,
+)
 from plenopiv.products.files import atomic_path
 from plenopiv.products.jsonio import dumps, to_json
 
@@ -87,16 +93,18 @@ class BatchError(PlenopivError):
 
 
 class BatchInterrupted(PlenopivError):
-    """The batch was stopped by Ctrl-C; its summary was written and a rerun resumes it.
+    """The batch was stopped by Ctrl-C or SIGTERM; its summary was written, a rerun resumes.
 
     ``summary`` holds :meth:`BatchSummary.to_dict` of the pairs finished before the stop.
     """
 
     exit_status = EXIT_INTERRUPTED
 
-    def __init__(self, message: str, summary: dict):
+    def __init__(self, message: str, summary: dict, *, terminated: bool = False):
         super().__init__(message)
         self.summary = summary
+        if terminated:
+            self.exit_status = EXIT_TERMINATED
 
 
 # ---- results -------------------------------------------------------------------------------
@@ -409,7 +417,7 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
     t0 = time.perf_counter()
     removed = _remove_temporaries(jobs, summary_file)
     results, recomputed, todo = _jobs_to_run(jobs, resume)
-    interrupted = False
+    interrupted = None
     try:
         if todo:
             with _open_client(kind, cluster, n_workers, threads, retries, options) as client:
@@ -418,8 +426,8 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
                                     slots=slots, retries=retries, progress=progress,
                                     total=len(jobs), skipped=len(jobs) - len(todo),
                                     known_retries=kind != "address")
-    except KeyboardInterrupt:
-        interrupted = True
+    except KeyboardInterrupt as exc:       # Ctrl-C, or SIGTERM (errors.Terminated)
+        interrupted = exc
     for job in jobs:
         if job.name not in results:
             results[job.name] = JobResult(job.name, "interrupted", str(job.output))
@@ -429,12 +437,14 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
         tuple(results[j.name] for j in jobs), summary_file, seconds=time.perf_counter() - t0,
         cluster=cluster, n_workers=n_workers, threads_per_worker=threads,
         removed_parts=tuple(str(p) for p in removed), recomputed=tuple(recomputed))
-    if interrupted:
+    if interrupted is not None:
+        by = "terminated (SIGTERM)" if isinstance(interrupted, Terminated) else \
+            "interrupted (Ctrl-C)"
         raise BatchInterrupted(
-            f"interrupted (Ctrl-C) after {len(summary.done)} of {summary.n_jobs} pairs "
+            f"{by} after {len(summary.done)} of {summary.n_jobs} pairs "
             f"({len(summary.interrupted)} not finished, {len(summary.failed)} failed); "
             f"summary written to {summary_file}; run the same command again to resume",
-            summary.to_dict())
+            summary.to_dict(), terminated=isinstance(interrupted, Terminated))
     return summary
 
 
