@@ -438,14 +438,19 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
         cluster=cluster, n_workers=n_workers, threads_per_worker=threads,
         removed_parts=tuple(str(p) for p in removed), recomputed=tuple(recomputed))
     if interrupted is not None:
-        by = "terminated (SIGTERM)" if isinstance(interrupted, Terminated) else \
-            "interrupted (Ctrl-C)"
-        raise BatchInterrupted(
-            f"{by} after {len(summary.done)} of {summary.n_jobs} pairs "
-            f"({len(summary.interrupted)} not finished, {len(summary.failed)} failed); "
-            f"summary written to {summary_file}; run the same command again to resume",
-            summary.to_dict(), terminated=isinstance(interrupted, Terminated))
+        raise _interruption(interrupted, summary, summary_file)
     return summary
+
+
+def _interruption(stop: KeyboardInterrupt, summary, summary_file) -> BatchInterrupted:
+    """The :class:`BatchInterrupted` of a batch stopped by Ctrl-C or SIGTERM."""
+    terminated = isinstance(stop, Terminated)
+    by = "terminated (SIGTERM)" if terminated else "interrupted (Ctrl-C)"
+    return BatchInterrupted(
+        f"{by} after {len(summary.done)} of {summary.n_jobs} pairs "
+        f"({len(summary.interrupted)} not finished, {len(summary.failed)} failed); "
+        f"summary written to {summary_file}; run the same command again to resume",
+        summary.to_dict(), terminated=terminated)
 
 
 def _write_summary(ordered: tuple[JobResult, ...], summary_file: Path, **fields
