@@ -180,6 +180,26 @@ def file_identity(spec: str | Path) -> str:
     return h.hexdigest() + ("" if dataset is None else f":{dataset}")
 
 
+def check_input_file(path: str | Path, what: str, error=None) -> Path:
+    """``path`` as an existing regular file, else ``error`` (a PlenopivError class) naming it.
+
+    A folder, a named pipe, a socket or a device is refused before it is opened: reading a
+    pipe would wait for a writer that never comes.
+    """
+    from plenopiv.errors import ImageError
+
+    error = ImageError if error is None else error
+    p = Path(path)
+    if not p.exists():
+        raise error(f"{what} file {str(p)!r} not found")
+    if p.is_dir():
+        raise error(f"{what} file {str(p)!r} is a folder: expected a file")
+    if not p.is_file():
+        raise error(f"{what} file {str(p)!r} is not a regular file (a pipe, socket or "
+                    "device): expected a file")
+    return p
+
+
 def split_dataset_spec(spec: str | Path) -> tuple[Path, str | None]:
     """Split ``file.h5:/path`` into the file and the dataset path (None for other files)."""
     s = str(spec)

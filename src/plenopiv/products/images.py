@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 
 from plenopiv.errors import ImageError, OutputError, PlenopivWarning
-from plenopiv.products.files import atomic_path, split_dataset_spec
+from plenopiv.products.files import atomic_path, check_input_file, split_dataset_spec
 from plenopiv.products.jsonio import dumps
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".h5", ".hdf5")
@@ -60,8 +60,7 @@ def read_frames(spec: str | Path, *, what: str = "frames") -> np.ndarray:
 def _read_array(spec: str | Path) -> np.ndarray:
     """The array of an image file (TIFF pages stacked; a colour PNG averaged), checked real."""
     path, dataset = split_dataset_spec(spec)
-    if not path.exists():
-        raise ImageError(f"image file {str(path)!r} not found")
+    check_input_file(path, "image", ImageError)
     suffix = path.suffix.lower()
     try:
         if dataset is not None or suffix in (".h5", ".hdf5"):
