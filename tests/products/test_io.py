@@ -106,3 +106,14 @@ def test_presets_out_refuses_the_package_s_own_preset(capsys):
     assert main(["presets", "small_test", "--out", str(preset)]) == 2
     assert "inside the installed plenopiv package" in capsys.readouterr().err
     assert preset.read_bytes() == before
+
+
+@pytest.mark.parametrize("dt", [1e-250, 1e-300])
+def test_a_dt_that_overflows_the_velocities_is_refused_by_name(dt):
+    from plenopiv.errors import ConfigError
+    from plenopiv.products.vectors import VectorResult
+
+    n = (2, 2, 2)
+    with pytest.raises(ConfigError, match=r"dt = .* velocities of"):
+        VectorResult(np.arange(2.0), np.arange(2.0), np.arange(2.0), *(np.full(n, 1e-3),) * 3,
+                     np.ones(n, bool), np.ones(n), dt=dt)
