@@ -256,3 +256,20 @@ def test_a_worker_keeps_one_processor_and_its_projector(tmp_path, monkeypatch):
     assert second is not first and second.experiment.piv.passes == 2
     worker.drop_worker_processor()           # dropped: the same files make a new one
     assert worker.worker_processor(exp, tmp_path / "cal.h5") is not second
+
+
+def test_a_volume_correlated_with_itself_is_warned_about(rng):
+    """``plenopiv piv A.h5 A.h5``: a zero field by construction, said so."""
+    from plenopiv.camera.grid import VolumeGrid
+    from plenopiv.camera.corrections import DepthCorrection
+    from plenopiv.errors import PlenopivWarning
+    from plenopiv.piv import PIVSettings
+    from plenopiv.products.volume import VolumeResult
+    from plenopiv.workflow.pair import correlate
+
+    grid = VolumeGrid((0.0, 0.0, 0.0), (1e-4, 1e-4, 1e-4), (16, 16, 16))
+    vol = rng.random(grid.shape).astype(np.float32)
+    res = VolumeResult(vol, grid, DepthCorrection(), np.zeros((0, 3)), np.zeros((0, 3)),
+                       np.zeros(0), np.zeros((0, 3)))
+    with pytest.warns(PlenopivWarning, match="identical"):
+        correlate(res, res, PIVSettings(windows=((8, 8, 8),), passes=1))

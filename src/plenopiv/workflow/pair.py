@@ -6,12 +6,15 @@ Two volumes, their correlation, the per-vector uncertainty and the pair's produc
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from plenopiv.calibration.model import Calibration
-from plenopiv.errors import PIVError, ReconstructionError
+from plenopiv.errors import PIVError, PlenopivWarning, ReconstructionError
 from plenopiv.products.vectors import VectorResult, check_dt
 from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.build import weights_for
@@ -53,6 +56,10 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
         raise ReconstructionError("the two volumes were reconstructed on different grids "
                                   f"(A: {text(result_a.grid)}; B: {text(result_b.grid)}): "
                                   "expected the same [volume] for both exposures")
+    if np.array_equal(result_a.volume, result_b.volume):
+        warnings.warn("the two volumes are identical (the same file or image twice?): the "
+                      "field is zero by construction and says nothing of the flow",
+                      PlenopivWarning, stacklevel=2)
     field = correlate_volumes(result_a.volume, result_b.volume, result_a.grid,
                               settings=settings, workers=workers, progress=progress, mask=mask)
     method = "correlation"
