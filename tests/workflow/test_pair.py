@@ -260,8 +260,8 @@ def test_a_worker_keeps_one_processor_and_its_projector(tmp_path, monkeypatch):
 
 def test_a_volume_correlated_with_itself_is_warned_about(rng):
     """``plenopiv piv A.h5 A.h5``: a zero field by construction, said so."""
-    from plenopiv.camera.grid import VolumeGrid
     from plenopiv.camera.corrections import DepthCorrection
+    from plenopiv.camera.grid import VolumeGrid
     from plenopiv.errors import PlenopivWarning
     from plenopiv.piv import PIVSettings
     from plenopiv.products.volume import VolumeResult
