@@ -133,7 +133,7 @@ def test_pair_products_title_the_pair_once(tmp_path, monkeypatch):
             self.volume = np.zeros((2, 2, 2))
             self.particle_position_effective = np.zeros((0, 3))
 
-        def save(self, path, config=None):
+        def save(self, path, config=None, **kw):
             return path
 
     class Vec:
