@@ -322,6 +322,6 @@ def rms_figure(run: dict, path: Path) -> Path:
         ax.axhline(rows[0]["raw"]["rms_vox"][k], color="k", lw=0.8, ls="--", label="ideal")
         ax.set_xticks(x, names, rotation=60, ha="right", fontsize=8)
         ax.set_title(f"rms error of {'uvw'[k]} (voxels), seed {run['seed']}")
-        ax.set_yscale("log")
+        ax.set_ylim(0, None)
     axes[0].legend(fontsize=8)
     return savefig(fig, path)
