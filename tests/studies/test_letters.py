@@ -20,11 +20,11 @@ from pipelines.studies.letters import (
     SOURCE_ALPHA,
     alpha_geometry,
     calibrate_white,
-    flat_field,
     focus_sweep,
     ncc,
     parallax,
     plenopiv_alpha,
+    preprocessed_image,
     sharpness,
     source_alpha,
 )
@@ -45,7 +45,7 @@ def letters():
     data = load_letters(shared_data_path(LETTERS))
     wcal = calibrate_white(data)
     lf = light_field(wcal.calibration)
-    image = flat_field(data.raw, data.white, data.dark)
+    image, _ = preprocessed_image(data, wcal)
     return SimpleNamespace(data=data, wcal=wcal, lf=lf, image=image,
                            gi=wcal.calibration.grid_index,
                            geometry=alpha_geometry(wcal, data.optics))
