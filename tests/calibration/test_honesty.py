@@ -227,7 +227,7 @@ def test_cli_calibrate_reports_quality_and_refuses_a_ruler(tmp_path, capsys, sma
                  "--out", str(tmp_path / "bad.h5")])
     err = capsys.readouterr().err
     assert code == 2
-    assert "max_rms_residual_pitch" in err and "not a scene or a ruler" in err
+    assert "max_missing_fraction" in err and "not a scene, a ruler" in err
     assert not (tmp_path / "bad.h5").exists()
 
 

@@ -459,7 +459,7 @@ def test_random_points_are_not_a_lattice(rng):
     "kwargs, message",
     [
         (dict(method="peak"),
-         r"method must be one of 'auto', 'window', 'centroid', 'gaussian'; got 'peak'"),
+         r"method must be one of 'auto', 'window', 'shape', 'centroid', 'gaussian'; got 'peak'"),
         (dict(background="median"), r"background must be one of 'local', 'none'"),
         (dict(grid="triangular"), r"grid must be one of 'square', 'hexagonal'"),
         (dict(threshold=1.5), r"threshold must satisfy 0 <= threshold < 1"),

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from plenopiv.calibration.defects import DarkFrame
 from plenopiv.calibration.image_distance import (
     FocalPointFit,
     MagnificationResult,
@@ -26,7 +27,11 @@ from plenopiv.calibration.image_distance import (
     lenslet_integral_image,
     magnification_from_ticks,
 )
-from plenopiv.calibration.lattice_quality import MAX_MISSING_FRACTION, MAX_RMS_RESIDUAL_PITCH
+from plenopiv.calibration.lattice_quality import (
+    MAX_MISSING_FRACTION,
+    MAX_RMS_RESIDUAL_PITCH,
+    MIN_ON_LATTICE_FRACTION,
+)
 from plenopiv.calibration.lenslets import (
     LensletCentres,
     focal_spot_scale,
@@ -126,10 +131,12 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
               ruler_image=None, ruler_spacing: float | None = None, ruler_axis: str = "x",
               method: str = "focal-point", fit_misplacement: bool = True,
               max_missing_fraction: float = MAX_MISSING_FRACTION, spot_threshold: float = 0.1,
-              max_rms_residual_pitch: float = MAX_RMS_RESIDUAL_PITCH,
+              max_rms_residual_pitch: float | None = MAX_RMS_RESIDUAL_PITCH,
               spot_method: str = "auto", white_image=None,
               focal_point_f_number: float | None = None,
-              phase_harmonics: int = PHASE_HARMONICS) -> CalibrationReport:
+              phase_harmonics: int = PHASE_HARMONICS, dark=None,
+              min_on_lattice_fraction: float | None = MIN_ON_LATTICE_FRACTION
+              ) -> CalibrationReport:
     """Calibrate ``camera`` from its images.
 
     Parameters
@@ -153,10 +160,14 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
         focal spot. Fewer are filled from the fitted model and reported.
     spot_threshold : float
         Threshold of the first, thresholded centroid of every spot (detect_spots).
-    max_rms_residual_pitch : float
+    max_rms_residual_pitch : float, optional
         A focal-point or alignment image whose spots fit their lattice worse than this
-        fraction of the pitch (rms, default 1.5 %) is refused: not a calibration image, or
-        not of this camera (:func:`~plenopiv.calibration.lattice_quality.check_lattice`).
+        fraction of the pitch (rms) is refused; default no limit, real arrays scatter
+        (:func:`~plenopiv.calibration.lattice_quality.check_lattice`).
+    min_on_lattice_fraction : float, optional
+        An image fewer of whose complete spots than this fraction (default 90 %) lie within
+        0.15 pitch of their lattice node is refused: no lenslet lattice (a scene, a ruler, a
+        particle image; :func:`~plenopiv.calibration.lattice_quality.check_lattice`).
     spot_method : str
         Spot-centre estimator (:func:`~plenopiv.calibration.spot_detection.detect_spots`); the
         default ``"auto"`` takes the window centroid for focal-point and alignment spots.
@@ -173,6 +184,12 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
         diameter is measured and stored (``extra["micro_image_diameter_px"]``), and a
         camera f-number that models it more than 1.25 times larger or smaller is noted in
         the report; :func:`~plenopiv.lightfield.light_field` warns on the same comparison.
+    dark : ndarray, optional
+        A dark frame of the sensor (no light, the images' exposure), counts: subtracted from
+        every image, and its hot pixels
+        (:func:`~plenopiv.calibration.defects.hot_pixels_from_dark`) ignored by the spot
+        detection. Without it the black level, its fixed pattern per column and row, and the
+        hot pixels are estimated on each image (docs/methods.md#sensor-defects).
 
     Notes
     -----
@@ -182,15 +199,19 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     """
     _check_method(method, ruler_image, ruler_spacing)
     shape, pp = camera.sensor.shape, camera.sensor.pixel_pitch
+    dark_frame = DarkFrame.of(dark, shape)
     limits = {"max_missing_fraction": max_missing_fraction,
-              "max_rms_residual_pitch": max_rms_residual_pitch}
+              "max_rms_residual_pitch": max_rms_residual_pitch,
+              "min_on_lattice_fraction": min_on_lattice_fraction,
+              "bad_pixels": dark_frame.hot}
     options = {"threshold": spot_threshold, "method": spot_method,
                "phase_harmonics": phase_harmonics, **limits}
-    fp = check_image(focal_point_image, shape=shape, name="focal-point image")
+    fp = dark_frame.subtract(check_image(focal_point_image, shape=shape,
+                                         name="focal-point image"))
 
     # 1. focal spots; 2. the lenslets (alignment image or nominal), each with its focal spot
     spots, lat = spot_lattice(fp, camera, "the focal-point image", **options)
-    lenslets = lenslet_centres(camera, alignment_image, **options)
+    lenslets = lenslet_centres(camera, alignment_image, dark=dark_frame, **options)
     scale = focal_spot_scale(float(np.mean(lat.pitch_px)), lenslets.pitch_px)
     lenslets = lenslets_on_sensor(lenslets, scale, shape, spots.window_radius_px + 1)
     focal_px = lat.corrected_centres_px
@@ -205,8 +226,8 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
                            fit_misplacement=fit_misplacement)
 
     # 4. the micro-image size at the working aperture; 5. the magnification method
-    white, notes = _white(camera, white_image, fit.image_distance, limits)
-    mag = _magnification(camera, ruler_image, lat, ruler_spacing, ruler_axis)
+    white, notes = _white(camera, white_image, fit.image_distance, dark_frame, limits)
+    mag = _magnification(camera, ruler_image, lat, ruler_spacing, ruler_axis, dark_frame)
 
     spots_px, missing_notes = _every_focal_spot(focal_px, spot_of, lenslets, fit, spot_model,
                                                 camera)
@@ -285,11 +306,12 @@ def _extra(spot_of, fit: FocalPointFit, mag, meth, spots: SpotSet, white, psf) -
                {"micro_image_diameter_px": white["micro_image_diameter_px"]})}
 
 
-def _white(camera: CameraModel, white_image, image_distance, limits):
+def _white(camera: CameraModel, white_image, image_distance, dark_frame: DarkFrame, limits):
     """The white-image record (or None without one) and a note when the f-number is off."""
     if white_image is None:
         return None, []
-    white = measure_white_image(camera, white_image, image_distance, **limits)
+    white = measure_white_image(camera, white_image, image_distance, dark=dark_frame,
+                                **limits)
     if 1 / MICRO_IMAGE_TOLERANCE <= white["model_over_measured"] <= MICRO_IMAGE_TOLERANCE:
         return white, []
     return white, [
@@ -299,15 +321,16 @@ def _white(camera: CameraModel, white_image, image_distance, limits):
         f"{white['implied_f_number']:.3g}): set f_number to the recording's aperture"]
 
 
-def _magnification(camera, ruler_image, lat: Lattice, spacing,
-                   axis) -> MagnificationResult | None:
+def _magnification(camera, ruler_image, lat: Lattice, spacing, axis,
+                   dark_frame: DarkFrame) -> MagnificationResult | None:
     """The magnification method on a ruler image (None without the image or its spacing)."""
     if ruler_image is None or spacing is None:
         return None
     if axis not in ("x", "y"):
         raise ValueError(f"ruler_axis = {axis!r}: expected 'x' or 'y'")
     shape = camera.sensor.shape
-    img = check_image(ruler_image, shape=shape, name="ruler image")
+    img = dark_frame.subtract(check_image(ruler_image, shape=shape, name="ruler image"),
+                              patch=True)
     pitch_px = float(np.mean(lat.pitch_px))
     integ = lenslet_integral_image(img, lat.centres_px, lat.grid_index, pitch_px)
     if axis == "y":

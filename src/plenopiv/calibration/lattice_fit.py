@@ -15,10 +15,15 @@ import math
 import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
-from plenopiv.calibration.lattice_quality import check_lattice_shape
+from plenopiv.calibration.lattice_quality import (
+    MIN_ON_LATTICE_FRACTION,
+    check_lattice_shape,
+    not_a_lattice,
+)
 from plenopiv.calibration.spot_types import (
     _NOT_FITTED,
     GRIDS,
+    ON_LATTICE_RADIUS,
     Lattice,
     SpotFlag,
     SpotSet,
@@ -195,6 +200,8 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
         grid, min_size, max_missing_fraction, phase_harmonics)
     pts, flags, image_shape, window_radius_px, grid = _spot_input(
         spots, grid, image_shape, window_radius_px, min_size)
+    centre_std = spots.centre_std_px if isinstance(spots, SpotSet) else None
+    intensity = spots.intensity if isinstance(spots, SpotSet) else None
     flags, window_radius_px = _flag_cut_spots(pts, flags, image_shape, window_radius_px)
     usable = _enough_clean_spots(flags, min_size)
     vec, d0, n_neighbours = _neighbour_vectors(pts[usable])
@@ -211,7 +218,7 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
     coef, res, cov_scale, bias = fit
     origin, basis, shift = coef[0], np.stack([coef[1], coef[2]]), _shift(coef, grid)
     if max_shape_error is not None:
-        check_lattice_shape(grid, basis, shift, float(max_shape_error))
+        _check_shape(grid, basis, shift, float(max_shape_error), res, flags)
     _check_extent(index[fitted], min_size)
     missing = _missing(
         index, flags, origin, basis, shift, image_shape, window_radius_px, pts[fitted]
@@ -224,6 +231,7 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
         rms_residual_px=float(np.sqrt(np.mean(np.sum(res[fitted] ** 2, axis=1)))),
         missing_index=missing, basis_std_px=np.stack([std[1], std[2]]), origin_std_px=std[0],
         odd_row_shift_px=shift, image_shape=image_shape, phase_bias_px=bias,
+        centre_std_px=centre_std, intensity=intensity,
     )
 
 
@@ -357,6 +365,28 @@ def _robust_fit(index, pts, grid, flags, d0, outlier_threshold_px, phase_harmoni
             )
         fit = _offset_fit(index, pts, grid, fitted, phase_harmonics)
     return fit, fitted, flags
+
+
+def _check_shape(grid, basis, shift, tol, res, flags):
+    """:func:`check_lattice_shape`, adding how many spots sit on the lattice when few do.
+
+    When the shape is wrong and fewer than :data:`MIN_ON_LATTICE_FRACTION` of the complete
+    spots lie near a node, the image may hold no lattice at all (a scene, a particle image),
+    and the error says so beside the grid type it blames.
+    """
+    try:
+        check_lattice_shape(grid, basis, shift, tol)
+    except CalibrationError as err:
+        complete = (flags & SpotFlag.EDGE) == 0
+        pitch = float(np.mean(np.hypot(basis[:, 0], basis[:, 1])))
+        r = np.hypot(*res[complete].T)
+        fraction = float(np.mean(r <= ON_LATTICE_RADIUS * pitch)) if r.size else 1.0
+        if fraction < MIN_ON_LATTICE_FRACTION:
+            rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
+            raise CalibrationError(
+                f"{err} Or no lenslet lattice at all: "
+                f"{not_a_lattice('the spots', fraction, r.size, grid, pitch, rms)}") from err
+        raise
 
 
 def _check_extent(index, min_size):

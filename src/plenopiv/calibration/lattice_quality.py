@@ -2,7 +2,10 @@
 
 :func:`check_lattice_shape` (used by :func:`~plenopiv.calibration.lattice_fit.fit_lattice`)
 refuses a lattice whose shape is not that of its grid type; :func:`check_lattice` one whose
-rms residual or missing positions say the image is not a calibration image of this camera.
+spots do not sit on it (no lenslet lattice: a scene, a ruler, a particle image) or whose
+missing positions say the image is not a calibration image of this camera.
+
+See docs/methods.md#lattice-fit.
 """
 
 from __future__ import annotations
@@ -11,14 +14,25 @@ import math
 
 import numpy as np
 
+from plenopiv.calibration.spot_types import ON_LATTICE_RADIUS
 from plenopiv.errors import CalibrationError
 
-MAX_RMS_RESIDUAL_PITCH = 0.015
+#: The fewest of the complete spots that must lie within ON_LATTICE_RADIUS pitch of a node
+MIN_ON_LATTICE_FRACTION = 0.9
 MAX_MISSING_FRACTION = 0.05
+#: The most uneven lighting of the lenslets (Lattice.lenslet_contrast) of a calibration image
+MAX_LENSLET_CONTRAST = 0.2
+#: No limit on the rms lattice residual by default: real arrays scatter about their lattice
+MAX_RMS_RESIDUAL_PITCH = None
+
+_HINT = ("is it a focal-point, alignment or white image of this camera, not a scene, a ruler "
+         "or a particle image?")
 
 
 def check_lattice(lattice, *, what="the image", max_rms_residual_pitch=MAX_RMS_RESIDUAL_PITCH,
-                  max_missing_fraction=MAX_MISSING_FRACTION):
+                  max_missing_fraction=MAX_MISSING_FRACTION,
+                  min_on_lattice_fraction=MIN_ON_LATTICE_FRACTION,
+                  max_lenslet_contrast=MAX_LENSLET_CONTRAST):
     """Refuse a lattice that says its image is not a calibration image of this camera.
 
     Parameters
@@ -27,12 +41,27 @@ def check_lattice(lattice, *, what="the image", max_rms_residual_pitch=MAX_RMS_R
     what : str
         How the error names the image (e.g. ``"the focal-point image"``).
     max_rms_residual_pitch : float or None
-        Largest rms lattice residual as a fraction of the pitch (default 1.5 %: 0.25 px at a
-        17 px pitch; focal-point and white images reach 0.001-0.01 of the pitch, a scene or
-        ruler image 0.02 and more). None skips the check.
+        Largest rms lattice residual as a fraction of the pitch; None (default) sets no
+        limit: a real array's lenslets scatter about their lattice (2 % of the pitch in a
+        light-field microscope), which :attr:`~plenopiv.calibration.spot_types.Lattice.
+        best_centres_px` keeps, and the periodicity test below tells a lattice from none.
     max_missing_fraction : float or None
         Largest fraction of the lattice positions inside the image that hold no spot
-        (default 5 %). None skips the check.
+        (default 5 %). Partial lenslets at the image's edges are not counted. None skips
+        the check.
+    min_on_lattice_fraction : float or None
+        The fewest of the complete spots that must lie within 0.15 of the pitch of their
+        lattice node (default 90 %,
+        :attr:`~plenopiv.calibration.spot_types.Lattice.on_lattice_fraction`). A lenslet
+        array with a scatter of up to 5 % of its pitch per axis keeps 98.9 % of its spots
+        there; the spots of a scene, a particle image or of noise fall there by area alone,
+        about 7 %. None skips the check.
+    max_lenslet_contrast : float or None
+        The most uneven lighting of the lenslets
+        (:attr:`~plenopiv.calibration.spot_types.Lattice.lenslet_contrast`, default 0.2): a
+        calibration image lights its lenslets alike up to a smooth vignetting and their
+        throughput (±10 % gives 0.11-0.13); a ruler or a scene, whose micro-images form a
+        lattice too, modulates them (0.24-0.45). None skips the check.
 
     Returns
     -------
@@ -42,17 +71,20 @@ def check_lattice(lattice, *, what="the image", max_rms_residual_pitch=MAX_RMS_R
     Raises
     ------
     CalibrationError
-        Naming the figure, its value and the threshold.
+        Naming what was found, its value and the threshold.
     """
     q = lattice.quality
-    hint = ("is it a focal-point, alignment or white image of this camera, not a scene or a "
-            "ruler?")
+    pitch = float(np.mean(q["pitch_px"]))
+    if min_on_lattice_fraction is not None and \
+            q["on_lattice_fraction"] < min_on_lattice_fraction:
+        raise not_a_lattice(what, q["on_lattice_fraction"], q["n_spots"] - q["n_edge"],
+                            q["grid"], pitch, q["rms_residual_px"], min_on_lattice_fraction)
     if max_rms_residual_pitch is not None and q["rms_residual_pitch"] > max_rms_residual_pitch:
         raise CalibrationError(
             f"{what}: the spots fit a regular {q['grid']} lattice only to "
             f"{q['rms_residual_px']:.3f} px rms, {100 * q['rms_residual_pitch']:.2f} % of its "
-            f"pitch {float(np.mean(q['pitch_px'])):.2f} px (at most "
-            f"{100 * max_rms_residual_pitch:g} %, max_rms_residual_pitch); {hint}"
+            f"pitch {pitch:.2f} px (at most {100 * max_rms_residual_pitch:g} %, "
+            f"max_rms_residual_pitch); {_HINT}"
         )
     if max_missing_fraction is not None and q["missing_fraction"] > max_missing_fraction:
         shown = ", ".join(f"({i}, {j})" for i, j in lattice.missing_index[:6])
@@ -61,10 +93,28 @@ def check_lattice(lattice, *, what="the image", max_rms_residual_pitch=MAX_RMS_R
             f"{what}: {q['n_missing']} lattice positions inside the image hold no spot, "
             f"{100 * q['missing_fraction']:.1f} % of them (at most "
             f"{100 * max_missing_fraction:g} %, max_missing_fraction); grid indices "
-            f"{shown}{more}; {hint} (dark corners outside the lens's image circle: raise "
+            f"{shown}{more}; {_HINT} (dark corners outside the lens's image circle: raise "
             "max_missing_fraction)"
         )
+    if max_lenslet_contrast is not None and q["lenslet_contrast"] > max_lenslet_contrast:
+        raise CalibrationError(
+            f"{what}: a lattice of {q['n_spots']} micro-images, but unevenly lit: one in ten "
+            f"differs from its neighbours by more than {100 * q['lenslet_contrast']:.0f} % "
+            f"(lenslet_contrast; a calibration image at most {100 * max_lenslet_contrast:g} "
+            f"%, max_lenslet_contrast): the micro-images of a scene or a ruler; {_HINT}"
+        )
     return q
+
+
+def not_a_lattice(what, fraction, n_complete, grid, pitch_px, rms_px,
+                  minimum=MIN_ON_LATTICE_FRACTION) -> CalibrationError:
+    """The error that says an image's spots do not sit on a lattice, with what was found."""
+    return CalibrationError(
+        f"{what}: not a lenslet lattice: only {100 * fraction:.0f} % of its {n_complete} "
+        f"complete spots lie within {ON_LATTICE_RADIUS:g} of a pitch of a node of the "
+        f"best-fitting {grid} lattice (pitch {pitch_px:.2f} px, rms residual {rms_px:.2f} px); "
+        f"a lenslet array puts at least {100 * minimum:g} % there (min_on_lattice_fraction), "
+        f"spots with no lattice about {100 * math.pi * ON_LATTICE_RADIUS ** 2:.0f} %; {_HINT}")
 
 
 def check_lattice_shape(grid, basis, shift, tol):

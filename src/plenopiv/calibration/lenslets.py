@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plenopiv.calibration.lattice_fit import fit_lattice
-from plenopiv.calibration.lattice_quality import check_lattice
+from plenopiv.calibration.lattice_quality import MIN_ON_LATTICE_FRACTION, check_lattice
 from plenopiv.calibration.spot_detection import detect_spots
 from plenopiv.calibration.spot_types import Lattice, SpotFlag, SpotSet
 from plenopiv.camera.model import CameraModel
@@ -61,7 +61,8 @@ class LensletCentres:
 
 
 def spot_lattice(image, camera: CameraModel, what: str, *, max_missing_fraction,
-                 max_rms_residual_pitch, phase_harmonics=0, **detect_options):
+                 max_rms_residual_pitch=None, min_on_lattice_fraction=MIN_ON_LATTICE_FRACTION,
+                 phase_harmonics=0, **detect_options):
     """Detect the spots of one calibration image, fit their lattice and check it.
 
     Parameters
@@ -72,7 +73,7 @@ def spot_lattice(image, camera: CameraModel, what: str, *, max_missing_fraction,
         Gives the grid type and the sensor shape, px.
     what : str
         How an error names the image (e.g. ``"the focal-point image"``).
-    max_missing_fraction, max_rms_residual_pitch : float
+    max_missing_fraction, max_rms_residual_pitch, min_on_lattice_fraction : float or None
         The limits of :func:`~plenopiv.calibration.lattice_quality.check_lattice`.
     phase_harmonics : int
         Passed to :func:`~plenopiv.calibration.lattice_fit.fit_lattice`.
@@ -88,11 +89,13 @@ def spot_lattice(image, camera: CameraModel, what: str, *, max_missing_fraction,
     lattice = fit_lattice(spots, grid=grid, image_shape=camera.sensor.shape,
                           phase_harmonics=phase_harmonics)
     check_lattice(lattice, what=what, max_missing_fraction=max_missing_fraction,
-                  max_rms_residual_pitch=max_rms_residual_pitch)
+                  max_rms_residual_pitch=max_rms_residual_pitch,
+                  min_on_lattice_fraction=min_on_lattice_fraction)
     return spots, lattice
 
 
-def lenslet_centres(camera: CameraModel, alignment_image=None, **lattice_options):
+def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None,
+                    **lattice_options):
     """The lenslets of ``camera``: from its alignment image, or its nominal lattice.
 
     Parameters
@@ -102,6 +105,9 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, **lattice_options
         centres when there is no alignment image.
     alignment_image : ndarray, optional
         Collimated light, main lens removed: one spot on each lenslet's axis.
+    dark : DarkFrame, optional
+        The dark frame (:class:`~plenopiv.calibration.defects.DarkFrame`) subtracted from
+        the alignment image once checked.
     **lattice_options
         Passed to :func:`spot_lattice` (limits, ``phase_harmonics``, ``threshold``,
         ``method``).
@@ -118,6 +124,8 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, **lattice_options
         return LensletCentres(sensor_to_pixel(mla.centres(), shape, pp), mla.grid_index(),
                               "nominal lattice", camera.pitch_px)
     image = check_image(alignment_image, shape=camera.sensor.shape, name="alignment image")
+    if dark is not None:
+        image = dark.subtract(image)
     # collimated light focuses to (almost) one pixel: accept one-pixel spots here; a hot
     # pixel is then rejected by the lattice fit as off-lattice instead
     spots, lat = spot_lattice(image, camera, "the alignment image", min_area_px=0.9,
@@ -270,8 +278,8 @@ def micro_image_diameter(image, centres_px, pitch_px):
     return float(np.mean(out))
 
 
-def measure_white_image(camera: CameraModel, white_image, image_distance: float,
-                        **limits) -> dict:
+def measure_white_image(camera: CameraModel, white_image, image_distance: float, *,
+                        dark=None, **limits) -> dict:
     """Measure the micro-image diameter of a white image and model it from the f-number.
 
     Parameters
@@ -282,8 +290,11 @@ def measure_white_image(camera: CameraModel, white_image, image_distance: float,
         A white image at the working aperture.
     image_distance : float
         The calibrated S_i, m.
+    dark : DarkFrame, optional
+        The dark frame (:class:`~plenopiv.calibration.defects.DarkFrame`) subtracted from
+        the white image once checked; its hot pixels are patched.
     **limits
-        ``max_missing_fraction`` and ``max_rms_residual_pitch`` of the lattice check.
+        The limits of the lattice check and ``bad_pixels`` (:func:`spot_lattice`).
 
     Returns
     -------
@@ -294,6 +305,8 @@ def measure_white_image(camera: CameraModel, white_image, image_distance: float,
     """
     shape = camera.sensor.shape
     wh = check_image(white_image, shape=shape, name="white image").astype(float)
+    if dark is not None:
+        wh = dark.subtract(wh, patch=True).astype(float)
     _spots, w_lat = spot_lattice(wh, camera, "the white image", **limits)
     complete = (w_lat.flags & SpotFlag.EDGE) == 0
     black = float(np.percentile(wh, 1.0))

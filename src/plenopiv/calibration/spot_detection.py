@@ -19,6 +19,8 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtri
 
 from plenopiv.calibration import _spot_kernels as _k
+from plenopiv.calibration.defects import fixed_pattern, isolated_pixels, patch_pixels
+from plenopiv.calibration.spot_shape import fit_radius, shape_refine, shape_uncertainty
 from plenopiv.calibration.spot_types import (
     BACKGROUNDS,
     GRIDS,
@@ -48,6 +50,9 @@ _WINDOW_MARGIN_PX = 1.0
 _ANNULUS_PX = 2.0
 # ----------------------------------------------------------------------------------------------
 
+# Micro-images whose stacked diameter at half height reaches this fraction of the pitch fill
+# their cells: their centres come from their mean shape, not a thresholded centroid
+_FILL_FOR_SHAPE = 0.85
 # Candidate spots: the local reference is taken over cells of this many pitches, and a spot
 # must stand this many standard deviations of the smoothed image's noise above the gaps
 _REFERENCE_CELL = 4.0
@@ -219,7 +224,7 @@ def _local_background(work, pitch):
 def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
                  detection_threshold=0.15, method="auto", window_radius_px=None,
                  moment_radius_px=None, background="local", min_area_px=1.5, dim_fraction=0.5,
-                 max_saturated_fraction=0.02):
+                 max_saturated_fraction=0.02, bad_pixels=None):
     """Find one sub-pixel spot centre per lenslet in a calibration image.
 
     Parameters
@@ -238,22 +243,27 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
         the bright spots around it (the 90th percentile of the maxima within about 4 x 4 to
         12 x 12 pitches), stands 8 noise standard deviations above the gaps between spots,
         and reaches a tenth of this fraction of the image's typical spot (95th percentile).
-    method : {"auto", "window", "centroid", "gaussian"}
+    method : {"auto", "window", "shape", "centroid", "gaussian"}
         Sub-pixel estimator (module docstring). ``"window"``: the first moment in a
-        soft-edged window above a plane fitted to an annulus, no threshold. ``"centroid"``:
-        the iterative thresholded centroid. ``"gaussian"``: a least-squares circular
-        Gaussian plus offset. ``"auto"``: ``"window"`` when the window and its annulus fit
-        between neighbours (``2 r99 + 4 <= pitch`` and ``r99 <= 0.35 pitch``, r99 the radius
-        holding 99 % of a spot's light), else ``"centroid"`` (white images).
+        soft-edged window above a plane fitted to an annulus, no threshold. ``"shape"``: the
+        spots' mean shape fitted to each (:func:`~plenopiv.calibration.spot_shape.
+        shape_refine`; micro-images that fill their cells). ``"centroid"``: the iterative
+        thresholded centroid. ``"gaussian"``: a least-squares circular Gaussian plus offset.
+        ``"auto"``: ``"window"`` when the window and its annulus fit between neighbours
+        (``2 r99 + 4 <= pitch`` and ``r99 <= 0.35 pitch``, r99 the radius holding 99 % of a
+        spot's light), else (white images) ``"centroid"`` where the micro-images have dark
+        gaps between them and ``"shape"`` where they fill their cells (their diameter at half
+        height at least 0.85 of the pitch; :func:`_better_disc_centres`).
     window_radius_px : float, optional
         Radius of the thresholded centroid's window, which also decides ``EDGE``, px;
         default half the pitch.
     moment_radius_px : float, optional
         ``"window"`` method only: radius of its window, px; default measured from the spots.
     background : {"local", "none"}
-        ``"local"``: subtract a smooth background (box minimum over 1.25 pitch, box mean, less
-        the noise bias of that minimum); heights count from the gaps between spots.
-        ``"none"``: use the image as is.
+        ``"local"``: subtract the black level's fixed pattern per column and row, measured on
+        the dark gaps (:func:`~plenopiv.calibration.defects.fixed_pattern`), and a smooth
+        background (box minimum over 1.25 pitch, box mean, less the noise bias of that
+        minimum); heights count from the gaps between spots. ``"none"``: use the image as is.
     min_area_px : float
         Candidates whose light sits in less than this effective area (px) are rejected as hot
         pixels (a single bright pixel has area 1).
@@ -262,6 +272,13 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
         flagged ``DIM``.
     max_saturated_fraction : float, 0 <= max_saturated_fraction <= 1
         Largest allowed fraction of pixels at the integer dtype's maximum.
+    bad_pixels : array_like of bool, shape (R, C), optional
+        Pixels to ignore (the hot pixels of a dark frame,
+        :func:`~plenopiv.calibration.defects.hot_pixels_from_dark`): replaced by the median of
+        their good neighbours before anything else. Without them, when the spots are broader
+        than a pixel (rms radius >= 1 px), hot pixels are found by their shape
+        (:func:`~plenopiv.calibration.defects.isolated_pixels`), replaced alike and the spots
+        detected again, so that no hot pixel hides or pulls a spot.
 
     Returns
     -------
@@ -284,25 +301,40 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
                             min_area_px, dim_fraction, max_saturated_fraction)
     raw, sat_level = _validate_image(image, opts["max_saturated_fraction"])
     work = raw.astype(np.float32)
+    if bad_pixels is not None:
+        work = patch_pixels(work, bad_pixels)
     pitch, radius = _pitch_and_radius(work, expected_pitch_px, window_radius_px)
     if background == "local":
+        work = work - fixed_pattern(work, pitch)
         work = work - _local_background(work, pitch)
-    cand, work = _candidates(work, pitch, background, opts["detection_threshold"])
+    cand, work, noise = _candidates(work, pitch, background, opts["detection_threshold"])
     centres, intensity, area, rejected = _first_centroids(work, cand, radius, pitch, opts)
     interior = ~_edge_mask(centres, radius, work.shape)
     spot_r, spot_rms = _spot_size(work, centres[interior], pitch)
+    hot = isolated_pixels(work, noise) if spot_rms >= 1.0 else None
+    if hot is not None and hot.any():
+        work = patch_pixels(work, hot)
+        cand, work, _ = _candidates(work, pitch, background, opts["detection_threshold"])
+        centres, intensity, area, rejected = _first_centroids(work, cand, radius, pitch, opts)
+        rejected = np.concatenate([rejected, np.argwhere(hot).astype(np.float64)])
+        interior = ~_edge_mask(centres, radius, work.shape)
+        spot_r, spot_rms = _spot_size(work, centres[interior], pitch)
     if method == "auto":
-        method = "window" if _window_fits(spot_r, pitch) else "centroid"
+        method = "window" if _window_fits(spot_r, pitch) else "disc"
     centres, flags, moment_r, annulus = _refine(work, centres, area, method, pitch, radius,
                                                 spot_r, moment_radius_px)
+    if method == "disc":
+        centres, method = _better_disc_centres(work, centres, pitch, radius, spot_r)
+    std = _centre_std(work, centres, flags, method, pitch, radius, spot_r)
     order = np.lexsort((centres[:, 1], centres[:, 0]))
     centres, intensity, area, flags = centres[order], intensity[order], area[order], flags[order]
+    std = std[order]
     flags |= _image_flags(raw, sat_level, centres, intensity, flags, radius, opts)
     return SpotSet(
         centres_px=centres, intensity=intensity, area_px=area, flags=flags,
         image_shape=work.shape, pitch_px=pitch, window_radius_px=radius, method=method,
         grid=grid, rejected_px=rejected, spot_radius_px=spot_r, spot_rms_radius_px=spot_rms,
-        moment_radius_px=moment_r, annulus_px=annulus,
+        moment_radius_px=moment_r, annulus_px=annulus, centre_std_px=std,
     )
 
 
@@ -359,9 +391,10 @@ def _pitch_and_radius(work, expected_pitch_px, window_radius_px):
 
 
 def _candidates(work, pitch, background, detection_threshold):
-    """Candidate spot positions ``(row, col)`` px, and the image less its noise pedestal.
+    """Candidate spot positions ``(row, col)`` px, the image less its pedestal, the gaps' noise.
 
-    Local maxima of the smoothed image at least half a pitch apart. With a local
+    The noise is a standard deviation in image units (0 without a local background).
+    Candidates are the local maxima of the smoothed image at least half a pitch apart. With a local
     background, candidate heights are measured from the typical level of the smoothed
     image's local minima (the gaps between spots), so noise bumps on that pedestal do not
     pass as spots; of the pedestal, the expected noise bias of the box minimum (the expected
@@ -375,8 +408,8 @@ def _candidates(work, pitch, background, detection_threshold):
     smooth = ndi.gaussian_filter(work, max(pitch / 6.0, 0.7), mode="constant")
     size = 2 * int(pitch // 2) + 1
     is_max = smooth == ndi.maximum_filter(smooth, size=size, mode="nearest")
-    cand = np.argwhere(is_max)
-    height = smooth[is_max]
+    cand = _holes_filled(np.argwhere(is_max), smooth, pitch)
+    height = smooth[cand[:, 0], cand[:, 1]]
     noise = 0.0
     if background == "local":
         is_min = smooth == ndi.minimum_filter(smooth, size=size, mode="nearest")
@@ -401,7 +434,33 @@ def _candidates(work, pitch, background, detection_threshold):
         & (height >= _NOISE_FLOOR * sigma_smooth)
         & (height >= 0.1 * detection_threshold * np.percentile(height, 95))
     )
-    return cand[strong].astype(np.float64), work
+    return cand[strong].astype(np.float64), work, noise
+
+
+def _holes_filled(cand, smooth, pitch):
+    """The maxima ``cand`` of a pitch-wide filter, and a half-pitch filter's in their holes.
+
+    The half-pitch filter's maxima count when farther than 0.6 pitch from all of ``cand``,
+    taken by height, each 0.6 pitch from the others. A micro-image that fills its cell has a
+    flat top whose maximum wanders with the noise; its neighbour's brighter shoulder, within
+    the pitch-wide filter, can then hide it. The half-pitch filter finds it again, and a
+    focal spot's gaps (0.71 pitch from the spots at the cell corners) give only noise
+    candidates, which the heights then refuse.
+    """
+    small = smooth == ndi.maximum_filter(smooth, size=2 * int(pitch // 4) + 1, mode="nearest")
+    extra = np.argwhere(small)
+    if not len(cand) or not len(extra):
+        return cand
+    dist, _ = cKDTree(cand).query(extra, distance_upper_bound=0.6 * pitch)
+    extra = extra[~np.isfinite(dist)]
+    if not len(extra):
+        return cand
+    extra = extra[np.argsort(-smooth[extra[:, 0], extra[:, 1]], kind="stable")]
+    keep = np.ones(len(extra), dtype=bool)
+    for a_, b_ in sorted(cKDTree(extra).query_pairs(0.6 * pitch)):
+        if keep[a_]:
+            keep[b_] = False
+    return np.concatenate([cand, extra[keep]])
 
 
 def _first_centroids(work, cand, radius, pitch, opts):
@@ -452,6 +511,10 @@ def _refine(work, centres, area, method, pitch, radius, spot_r, moment_radius_px
         good[good] = np.hypot(*(refined[good] - centres[good]).T) < 0.25 * pitch
         centres[good] = refined[good]
         flags[~good] |= np.uint8(SpotFlag.FIT_FAILED)
+    if method == "shape" and centres.shape[0]:
+        use = ~_edge_mask(centres, radius, work.shape)
+        refined, _std = shape_refine(work, centres, pitch, fit_radius(pitch, spot_r), use=use)
+        centres = refined
     if method == "gaussian" and centres.shape[0]:
         sigma0 = np.clip(np.sqrt(area / 4.0), 0.5, radius / 2.0)
         params = _k.gaussian_fit_numba(
@@ -461,6 +524,62 @@ def _refine(work, centres, area, method, pitch, radius, spot_r, moment_radius_px
         centres[good] = params[good, 1:3]
         flags[~good] |= np.uint8(SpotFlag.FIT_FAILED)
     return centres, flags, moment_r, annulus
+
+
+def _better_disc_centres(work, centres, pitch, radius, spot_r):
+    """The centres of micro-images too large for the window: centroid or mean-shape fit.
+
+    ``centres`` are the thresholded centroids. A micro-image separated from its neighbours
+    by a dark gap has its centroid exact (its whole edge lies inside the window); one that
+    fills its cell does not (a window inside a uniform plateau has its centroid at its own
+    centre wherever that is), and the fit of the spots' mean shape
+    (:func:`~plenopiv.calibration.spot_shape.shape_refine`) takes over: when the stacked
+    micro-image's diameter at half its height is at least :data:`_FILL_FOR_SHAPE` of the
+    pitch (:func:`_fill_factor`). Returns the centres and the method's name.
+    """
+    if centres.shape[0] < 3 or _fill_factor(work, centres, pitch, radius) < _FILL_FOR_SHAPE:
+        return centres, "centroid"
+    use = ~_edge_mask(centres, radius, work.shape)
+    shaped, _ = shape_refine(work, centres, pitch, fit_radius(pitch, spot_r), use=use)
+    return shaped, "shape"
+
+
+def _fill_factor(work, centres, pitch, radius):
+    """The stacked micro-image's diameter at half its height over the pitch.
+
+    Half height above its darkest ring within 0.75 pitch: about 0.6-0.7 for discs with dark
+    gaps between them, 0.9-1 for cells they fill.
+    """
+    inner = centres[~_edge_mask(centres, 0.75 * pitch, work.shape)]
+    if inner.shape[0] == 0:
+        inner = centres
+    energy, count = _k.radial_energy_numba(work, np.ascontiguousarray(inner, np.float64),
+                                           0.75 * pitch, 0.25)
+    have = count > 0
+    if not have.any():
+        return 0.0
+    prof = np.where(have, energy / np.maximum(count, 1.0), np.nan)
+    r = (np.arange(prof.size) + 0.5) * 0.25
+    plateau = float(np.nanmedian(prof[have & (r < 0.2 * pitch)])) if np.any(
+        have & (r < 0.2 * pitch)) else float(np.nanmax(prof))
+    low = float(np.nanmin(prof))
+    below = have & (prof < low + 0.5 * (plateau - low))
+    return float(2.0 * r[np.argmax(below)] / pitch) if below.any() else 1.5
+
+
+def _centre_std(work, centres, flags, method, pitch, radius, spot_r):
+    """Standard error of each refined centre per axis, px, shape (N, 2).
+
+    From the fit of the spots' mean shape at the centres
+    (:func:`~plenopiv.calibration.spot_shape.shape_uncertainty`), the complete spots building
+    the shape; it holds the noise and whatever of a spot differs from the others.
+    """
+    if centres.shape[0] == 0:
+        return np.zeros((0, 2))
+    use = ~_edge_mask(centres, radius, work.shape) & (flags == 0)
+    if not use.any():
+        use = np.ones(centres.shape[0], dtype=bool)
+    return shape_uncertainty(work, centres, pitch, fit_radius(pitch, spot_r), use=use)
 
 
 def _image_flags(raw, sat_level, centres, intensity, flags, radius, opts):

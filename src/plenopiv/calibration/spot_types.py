@@ -12,10 +12,13 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 GRIDS = ("square", "hexagonal")
-METHODS = ("auto", "window", "centroid", "gaussian")
-RESOLVED_METHODS = ("window", "centroid", "gaussian")
+# a spot is on its lattice when within this fraction of the pitch of its node
+ON_LATTICE_RADIUS = 0.15
+METHODS = ("auto", "window", "shape", "centroid", "gaussian")
+RESOLVED_METHODS = ("window", "shape", "centroid", "gaussian")
 BACKGROUNDS = ("local", "none")
 
 
@@ -116,8 +119,8 @@ class SpotSet:
     window_radius_px : float
         Radius of the circular window of each centre, px.
     method : str
-        The estimator that gave the centres: ``"window"``, ``"centroid"`` or ``"gaussian"``
-        (``"auto"`` is resolved to one of them).
+        The estimator that gave the centres: ``"window"``, ``"shape"``, ``"centroid"`` or
+        ``"gaussian"`` (``"auto"`` is resolved to one of them).
     grid : str or None
         The grid type the caller gave (``"square"``, ``"hexagonal"``), or None.
     rejected_px : ndarray of float64, shape (K, 2)
@@ -134,6 +137,10 @@ class SpotSet:
     annulus_px : tuple of float
         Inner and outer radius of the background annulus of the ``"window"`` method, px
         (``(nan, nan)`` without one).
+    centre_std_px : ndarray of float64, shape (N, 2)
+        Standard error of each centre per axis ``(row, col)``, px: the residual of a fit of
+        the spots' mean shape to the spot
+        (:func:`~plenopiv.calibration.spot_shape.shape_uncertainty`); NaN when not measured.
     """
 
     centres_px: np.ndarray
@@ -150,11 +157,22 @@ class SpotSet:
     spot_rms_radius_px: float = float("nan")
     moment_radius_px: float = float("nan")
     annulus_px: tuple = (float("nan"), float("nan"))
+    centre_std_px: np.ndarray | None = None
 
     def __post_init__(self):
         c = _frozen(self.centres_px, np.float64).reshape(-1, 2)
         n = c.shape[0]
         object.__setattr__(self, "centres_px", c)
+        std = np.full((n, 2), np.nan) if self.centre_std_px is None else self.centre_std_px
+        std = _frozen(std, np.float64).reshape(-1, 2)
+        if std.shape[0] != n:
+            raise ValueError(f"SpotSet.centre_std_px has {std.shape[0]} rows; expected {n}")
+        object.__setattr__(self, "centre_std_px", std)
+        light = np.full(n, np.nan) if self.intensity is None else self.intensity
+        light = _frozen(light, np.float64).reshape(-1)
+        if light.shape[0] != n:
+            raise ValueError(f"Lattice.intensity has {light.shape[0]} entries; expected {n}")
+        object.__setattr__(self, "intensity", light)
         for name, dtype in (
             ("intensity", np.float64),
             ("area_px", np.float64),
@@ -238,6 +256,14 @@ class Lattice:
         (``fit_lattice(phase_harmonics=...)``), ``(row, col)`` px; zero when not fitted.
         ``residual_px`` is measured minus fitted minus this bias;
         :attr:`corrected_centres_px` removes it from the measured centres.
+    centre_std_px : ndarray, shape (N, 2)
+        Standard error of each measured centre per axis, px (the spot set's; NaN when not
+        known). With it the lattice tells how far its lenslets scatter about their nodes
+        (:attr:`scatter_px`) and keeps each lenslet's own centre where that is the better
+        estimate (:attr:`best_centres_px`).
+    intensity : ndarray, shape (N,)
+        Each spot's light (the spot set's; NaN when not known), for
+        :attr:`lenslet_contrast`.
     """
 
     grid: str
@@ -255,6 +281,8 @@ class Lattice:
     odd_row_shift_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
     image_shape: tuple | None = None
     phase_bias_px: np.ndarray | None = None
+    centre_std_px: np.ndarray | None = None
+    intensity: np.ndarray | None = None
 
     def __post_init__(self):
         _check_choice("Lattice.grid", self.grid, GRIDS)
@@ -287,6 +315,11 @@ class Lattice:
         if bias.shape[0] != n:
             raise ValueError(f"Lattice.phase_bias_px has {bias.shape[0]} rows; expected {n}")
         object.__setattr__(self, "phase_bias_px", bias)
+        std = np.full((n, 2), np.nan) if self.centre_std_px is None else self.centre_std_px
+        std = _frozen(std, np.float64).reshape(-1, 2)
+        if std.shape[0] != n:
+            raise ValueError(f"Lattice.centre_std_px has {std.shape[0]} rows; expected {n}")
+        object.__setattr__(self, "centre_std_px", std)
         object.__setattr__(
             self, "missing_index", _frozen(self.missing_index, np.int64).reshape(-1, 2)
         )
@@ -299,6 +332,95 @@ class Lattice:
     def corrected_centres_px(self):
         """Measured centres less their fitted phase bias, ``(row, col)`` px, shape (N, 2)."""
         return self.centres_px - self.phase_bias_px
+
+    @property
+    def scatter_px(self):
+        """How far the lenslets scatter about their lattice nodes, per axis ``(row, col)``, px.
+
+        The robust variance of the inliers' residuals (1.4826 MAD, squared) less their
+        centres' own mean squared standard error (:attr:`centre_std_px`), at least 0: the
+        real array's irregularity, what the measurement noise does not explain. Where the
+        standard errors are unknown, the residuals' whole spread.
+        """
+        res = self.residual_px[self.inlier]
+        if res.shape[0] < 2:
+            return np.zeros(2)
+        mad = 1.4826 * np.median(np.abs(res - np.median(res, axis=0)), axis=0)
+        std = self.centre_std_px[self.inlier]
+        noise = np.nanmean(std * std, axis=0) if np.isfinite(std).any() else np.zeros(2)
+        return np.sqrt(np.maximum(mad * mad - np.nan_to_num(noise), 0.0))
+
+    @property
+    def best_centres_px(self):
+        """Each lenslet's best centre, ``(row, col)`` px, shape (N, 2).
+
+        Its measured centre where that is better than the lattice, its node where not, a
+        weighted mean between. The node stands for the lenslet to within the array's scatter tau
+        (:attr:`scatter_px`), the measured centre (less its phase bias) to within its standard
+        error sigma (:attr:`centre_std_px`); their inverse-variance mean, the weight of the
+        measurement tau^2 / (tau^2 + sigma^2), is the best linear estimate. So a regular
+        array (tau ~ 0) keeps its nodes, a scattered one (tau >> sigma) its measured centres,
+        per axis. Spots left out of the fit (partial, outliers, duplicates, off the lattice)
+        and spots of unknown error take their node.
+        """
+        node = self.predict(self.grid_index)
+        w = self._measurement_weight()
+        return node + w * (self.corrected_centres_px - node)
+
+    @property
+    def best_centres_std_px(self):
+        """Standard error of :attr:`best_centres_px` per axis, px, shape (N, 2)."""
+        tau2 = self.scatter_px[None, :] ** 2
+        w = self._measurement_weight()
+        return np.sqrt((1.0 - w) * tau2)
+
+    def _measurement_weight(self):
+        """tau^2 / (tau^2 + sigma^2) per spot and axis (0 where not fitted or unknown)."""
+        tau2 = self.scatter_px[None, :] ** 2
+        sigma2 = self.centre_std_px ** 2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = np.where(tau2 + sigma2 > 0, tau2 / (tau2 + sigma2), 0.0)
+        w = np.where(np.isfinite(w), w, 0.0)
+        return np.where(self.inlier[:, None], w, 0.0)
+
+    @property
+    def on_lattice_fraction(self):
+        """Fraction of the complete spots within :data:`ON_LATTICE_RADIUS` pitch of their node.
+
+        A lenslet array puts all of them there, even one whose lenslets scatter by 5 % of its
+        pitch per axis (98.9 %); spots of a scene, a particle image or of noise, with no
+        lattice, fall there by the area alone, pi 0.15^2 = 7 % of a cell. 1.0 when no spot is
+        complete.
+        """
+        complete = (self.flags & SpotFlag.EDGE) == 0
+        if not complete.any():
+            return 1.0
+        r = np.hypot(*self.residual_px[complete].T)
+        return float(np.mean(r <= ON_LATTICE_RADIUS * float(np.mean(self.pitch_px))))
+
+    @property
+    def lenslet_contrast(self):
+        """How unevenly the lenslets are lit, a fraction.
+
+        The 90th percentile over the complete spots on the lattice (dim ones and outliers
+        included) of ``|I / I_n - 1|``, I a spot's light and I_n the median of its 4 nearest
+        such spots'. A calibration image lights its
+        lenslets alike but for a smooth vignetting and a spread of their throughput (±10 %
+        gives 0.11-0.13, a corner vignetted down to 4 % 0.04); a scene modulates them (a
+        ruler 0.35-0.45, the plenoptomos letters 0.24). 0 with fewer than 5 such spots or
+        without intensities.
+        """
+        skip = SpotFlag.EDGE | SpotFlag.OFF_LATTICE | SpotFlag.DUPLICATE
+        use = ((self.flags & skip) == 0) & np.isfinite(self.intensity)
+        if np.count_nonzero(use) < 5:
+            return 0.0
+        pts, light = self.centres_px[use], self.intensity[use]
+        _, nb = cKDTree(pts).query(pts, k=5)
+        ref = np.median(light[nb[:, 1:]], axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rel = np.abs(light / ref - 1.0)
+        rel = rel[np.isfinite(rel)]
+        return float(np.percentile(rel, 90)) if rel.size else 0.0
 
     @property
     def pitch_px(self):
@@ -359,7 +481,10 @@ class Lattice:
         step's departure from perpendicular); ``rms_residual_px`` and ``rms_residual_pitch``
         (the same over the mean pitch); ``n_spots``, ``n_fitted`` (inliers), ``n_edge``,
         ``n_off_lattice``, ``n_outliers``; ``n_missing`` and ``missing_fraction``;
-        ``phase_bias_px``, the largest fitted sub-pixel phase bias (0 when none was fitted).
+        ``phase_bias_px``, the largest fitted sub-pixel phase bias (0 when none was fitted);
+        ``on_lattice_fraction`` (:attr:`on_lattice_fraction`), ``scatter_px``, the lenslets'
+        scatter about their nodes (:attr:`scatter_px`, both axes together), and
+        ``lenslet_contrast`` (:attr:`lenslet_contrast`).
         :func:`~plenopiv.calibration.lattice_quality.check_lattice` refuses a lattice by these
         figures.
         """
@@ -380,6 +505,9 @@ class Lattice:
             "n_missing": self.n_missing,
             "missing_fraction": self.missing_fraction,
             "phase_bias_px": float(np.abs(self.phase_bias_px).max()) if len(f) else 0.0,
+            "on_lattice_fraction": self.on_lattice_fraction,
+            "scatter_px": float(np.hypot(*self.scatter_px)),
+            "lenslet_contrast": self.lenslet_contrast,
         }
 
     @property

@@ -16,6 +16,7 @@ from plenopiv.calibration.lattice_fit import fit_lattice
 from plenopiv.calibration.lattice_quality import (
     MAX_MISSING_FRACTION,
     MAX_RMS_RESIDUAL_PITCH,
+    MIN_ON_LATTICE_FRACTION,
     check_lattice,
 )
 from plenopiv.calibration.lenslets import micro_image_diameter
@@ -28,6 +29,7 @@ __all__ = [
     "BACKGROUNDS",
     "MAX_MISSING_FRACTION",
     "MAX_RMS_RESIDUAL_PITCH",
+    "MIN_ON_LATTICE_FRACTION",
     "SpotFlag",
     "SpotSet",
     "Lattice",

@@ -39,10 +39,12 @@ def add_parser(sub) -> None:
     cal.add_argument("--max-missing-fraction", type=float, default=0.05,
                      help="more missing spots than this fraction of the lattice is an error "
                           "(default 0.05)")
-    cal.add_argument("--max-rms-residual-pitch", type=float, default=0.015,
+    cal.add_argument("--max-rms-residual-pitch", type=float, default=None,
                      help="refuse an image whose spots fit their lattice worse than this "
-                          "fraction of the pitch, rms (default 0.015)")
-    cal.add_argument("--spot-method", choices=("auto", "window", "centroid", "gaussian"),
+                          "fraction of the pitch, rms (default: no limit; an image whose "
+                          "spots sit on no lattice is refused whatever its residual)")
+    cal.add_argument("--spot-method", choices=("auto", "window", "shape", "centroid",
+                                                "gaussian"),
                      default="auto", help="spot-centre estimator (default auto: the window "
                      "centroid for focal-point and alignment spots)")
     cal.add_argument("--no-report", action="store_true", help="no PNG report beside --out")
