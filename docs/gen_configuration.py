@@ -203,6 +203,18 @@ MEANINGS = {
                                                     "about each voxel's centre, keeps where a "
                                                     'particle lies inside the voxel; `"box"`: '
                                                     'the plain sum',
+    "experiment:reconstruction.lattice_check": "the recording's micro-images (the pair's "
+                                               "mean) against the calibration's before the "
+                                               'reconstruction: `"refuse"`: a shift or '
+                                               "rotation moving one more than "
+                                               "`lattice_tolerance_px` is an error giving "
+                                               'the figure; `"correct"`: the calibration '
+                                               "is moved onto the recording, with a "
+                                               'warning; `"off"`: no check',
+    "experiment:reconstruction.lattice_tolerance_px": "the largest displacement of a "
+                                                      "micro-image from the calibration's "
+                                                      "accepted (a quarter pixel: every ray "
+                                                      "off by it)",
     "experiment:particles.threshold": "a particle's peak must exceed it",
     "experiment:particles.threshold_reference": '`"bright"`: the 99.9th percentile of the '
                                                 'positive voxels; `"maximum"`: the volume\'s '

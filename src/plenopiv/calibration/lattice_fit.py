@@ -160,7 +160,7 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
         Residual length above which a spot is an outlier, px. Default: 6 times the robust
         (median-absolute-deviation) residual scale per axis, at least 2 % of the pitch.
     min_size : int
-        Smallest accepted lattice, ``min_size x min_size`` lenslets.
+        Smallest accepted lattice, ``min_size`` lenslets a side.
     phase_harmonics : int
         Harmonics ``n = 1 .. phase_harmonics`` of the periodic bias of each coordinate
         against its own sub-pixel phase, fitted with the lattice and removed from it
@@ -179,11 +179,7 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
         Too few spots, no square or hexagonal order, a spacing far from
         ``expected_pitch_px``, or more missing positions than ``max_missing_fraction``.
     ValueError
-        An option is outside its valid set.
-
-    Notes
-    -----
-    The steps of the fit and the lattice convention are in docs/methods.md#lattice-fit.
+        An option is outside its valid set. (The steps: docs/methods.md#lattice-fit.)
 
     Examples
     --------

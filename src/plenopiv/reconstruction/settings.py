@@ -54,6 +54,13 @@ class ReconstructionSettings:
         voxel about its centre, which keeps where a particle lies inside the voxel in the
         ratio of neighbouring voxels (anti-aliasing; against the peak locking of voxels as
         wide as a footprint) | "box": the sum of the voxel's own working voxels.
+    lattice_check : the recording's micro-images checked against the calibration's before the
+        reconstruction (:func:`plenopiv.calibration.recording.check_recording`, on the pair's
+        mean): "refuse" (default): a shift or rotation that moves a micro-image more than
+        lattice_tolerance_px is an error with the figure | "correct": the calibration's
+        lenslet centres and focal spots are moved onto the recording, with a warning |
+        "off": no check.
+    lattice_tolerance_px : the largest displacement of a micro-image accepted, px (0.25).
     """
 
     method: Literal["mart", "block", "smart"] = "smart"
@@ -67,6 +74,8 @@ class ReconstructionSettings:
     max_weights_gb: float | None = Field(None, gt=0, allow_inf_nan=False)
     lateral_subdivision: Literal["auto"] | StrictInt = Field("auto", union_mode="left_to_right")
     subdivision_kernel: Literal["gaussian", "box"] = "gaussian"
+    lattice_check: Literal["refuse", "correct", "off"] = "refuse"
+    lattice_tolerance_px: float = Field(0.25, gt=0, allow_inf_nan=False)
 
     @field_validator("lateral_subdivision")
     @classmethod

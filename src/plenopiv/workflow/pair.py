@@ -20,7 +20,7 @@ from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.weights import Weights
 from plenopiv.workflow.response import ExperimentResponse, experiment_response
-from plenopiv.workflow.volume import Progress, reconstruct_volume
+from plenopiv.workflow.volume import Progress, check_lattice, reconstruct_volume
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
     pass
@@ -99,7 +99,10 @@ class PairProcessor:
     chain's response (``[piv] uncertainty = "response"``, :meth:`response`) are made on first
     use and kept for every later pair; a response measured before (``response``) is used as it
     is. ``batch_background``, ``batch_record``: the batch's minimum or mean background and
-    what to record of it (``plenopiv run``).
+    what to record of it (``plenopiv run``). Before the weights are made, the first pair's
+    mean is checked against the calibration (``[reconstruction] lattice_check``,
+    :func:`~plenopiv.workflow.volume.check_lattice`), and a corrected calibration replaces
+    :attr:`calibration`.
     """
 
     def __init__(self, experiment, calibration: Calibration, *,
@@ -123,6 +126,7 @@ class PairProcessor:
                                                  batch_background=background,
                                                  batch_record=record)
         return self._preparation
+        self._checked = False
 
     def weights(self, progress: Progress = None) -> Weights:
         """The projector of every pair (built, or loaded from the weights cache, once)."""
@@ -183,7 +187,13 @@ class PairProcessor:
         this pair got the chain's response (measured or read from the cache), ``response_s``.
         """
         from plenopiv.workflow.preprocess import union
+
         t0 = time.perf_counter()
+        if self._weights is None and not self._checked:
+            # the first pair's mean against the calibration, before the weights are made
+            self.calibration = check_lattice(self.calibration, [image_a, image_b],
+                                             self.experiment.reconstruction)
+            self._checked = True
         exp, calibration = self.experiment, self.calibration
         preparation = self.preparation()
         pa, pb, norm = preparation.pair(image_a, image_b, names=names)

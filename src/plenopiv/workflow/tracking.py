@@ -160,7 +160,7 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     from plenopiv.workflow.masks import image_mask
     from plenopiv.workflow.pair import correlate
     from plenopiv.workflow.preprocess import ImagePreparation, union
-    from plenopiv.workflow.volume import reconstruct_volume
+    from plenopiv.workflow.volume import check_lattice, reconstruct_volume
 
     t = {}
     t0 = time.perf_counter()
@@ -171,6 +171,8 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     image_a, image_b = pa.image, pb.image
     lf = None
     if volume_a is None or volume_b is None:
+        # the pair's micro-images against the calibration's, before the weights are made
+        calibration = check_lattice(calibration, [image_a, image_b], rec)
         cache = experiment.output.weights_cache
         weights, _ = weights_for(calibration, experiment.volume, rec,
                                  cache_dir=experiment.path(cache) if cache else None)

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
+from plenopiv.calibration.recording import check_recording
 from plenopiv.camera.corrections import DepthCorrection
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import footprint, resolution_cell
@@ -98,6 +99,13 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         (:class:`plenopiv.workflow.preprocess.ImagePreparation`: counts ≥ 0, the sensor's
         shape), so :func:`~plenopiv.products.images.check_image` is not run again (its
         warnings were given once, for the image as recorded).
+
+    Notes
+    -----
+    Without ``weights``, the image's micro-images are first checked against the
+    calibration's (``settings.lattice_check``, :func:`check_lattice`); given weights were
+    made for a calibration the caller has checked (:class:`~plenopiv.workflow.pair.
+    PairProcessor` checks a pair's mean once).
     """
     from plenopiv.resources import check_grid
 
@@ -113,6 +121,7 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         img = check_image(image, shape=calibration.camera.sensor.shape,
                           name="particle image", particles=True)
     if weights is None:
+        calibration = check_lattice(calibration, [img], settings)
         if progress is not None:
             progress("weights", 0.0)
         weights, _ = weights_for(calibration, grid, settings, cache_dir=cache_dir)
@@ -151,6 +160,26 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t["particles_s"] = time.perf_counter() - t2
     return VolumeResult(vol, grid, corr, eff, pos, intensity, size, t,
                         particle_centroid_effective=centroid)
+
+
+def check_lattice(calibration: Calibration, images, settings: ReconstructionSettings
+                  ) -> Calibration:
+    """The calibration to reconstruct ``images`` with, after checking their micro-images.
+
+    ``settings.lattice_check``: "refuse" raises
+    :class:`~plenopiv.errors.CalibrationError` when their mean's micro-images lie more than
+    ``settings.lattice_tolerance_px`` from the calibration's; "correct" returns the
+    calibration moved onto them (with a warning); "off" returns it unchecked
+    (:func:`plenopiv.calibration.recording.check_recording`). A recording with too little
+    light to measure is not refused.
+    """
+    if settings.lattice_check == "off":
+        return calibration
+    _check, calibration = check_recording(calibration, images,
+                                          tolerance_px=settings.lattice_tolerance_px,
+                                          correct=settings.lattice_check == "correct",
+                                          f_number=settings.f_number)
+    return calibration
 
 
 def _particles_of(vol: np.ndarray, grid: VolumeGrid, calibration: Calibration,
