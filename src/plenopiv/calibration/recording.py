@@ -7,11 +7,9 @@ measures the micro-image lattice of the recording itself (the mean of a pair or 
 shows the micro-images: particle light falls only inside them) against the calibration's:
 the shift and rotation that best lay the calibration's micro-image discs over the recorded
 light. Beyond a tolerance it refuses with the figure, or, when allowed, moves the
-calibration onto the recording and warns. Pixels are ``(row, col)``
-(:mod:`plenopiv.conventions`); the rotation is counter-clockwise in ``(x = col, y = row)``,
-as the lattice's, about the sensor's centre.
-
-See docs/methods.md#recording-against-calibration.
+calibration onto the recording and warns. Pixels are ``(row, col)``; the rotation is
+counter-clockwise in ``(x = col, y = row)`` about the sensor's centre, as the lattice's. See
+docs/methods.md#recording-against-calibration.
 """
 
 from __future__ import annotations

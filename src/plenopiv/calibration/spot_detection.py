@@ -232,7 +232,7 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     image : array_like, shape (R, C)
         Focal-point, alignment or white image, integer or floating point, ``image[row, col]``.
     expected_pitch_px : float, optional
-        Lenslet pitch (nearest-neighbour distance), px; default :func:`estimate_pitch`.
+        Lenslet pitch, px (default :func:`estimate_pitch`).
     grid : {"square", "hexagonal"} or None
         Grid type if known (recorded for ``fit_lattice``).
     threshold : float, 0 <= threshold < 1
@@ -270,7 +270,7 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     Returns
     -------
     SpotSet
-        Centres ``(row, col)`` px with intensity, effective area and flags.
+        Centres ``(row, col)`` px, intensity, effective area, flags.
 
     Raises
     ------
@@ -287,8 +287,7 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
                             min_area_px, dim_fraction, max_saturated_fraction)
     raw, sat_level = _validate_image(image, opts["max_saturated_fraction"])
     work = raw.astype(np.float32)
-    if bad_pixels is not None:
-        work = patch_pixels(work, bad_pixels)
+    work = work if bad_pixels is None else patch_pixels(work, bad_pixels)
     pitch, radius = _pitch_and_radius(work, expected_pitch_px, window_radius_px)
     if background == "local":
         work = work - fixed_pattern(work, pitch)
@@ -313,8 +312,8 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
         centres, method = _better_disc_centres(work, centres, pitch, radius, spot_r)
     std = _centre_std(work, centres, flags, method, pitch, radius, spot_r)
     order = np.lexsort((centres[:, 1], centres[:, 0]))
-    centres, intensity, area, flags = centres[order], intensity[order], area[order], flags[order]
-    std = std[order]
+    centres, intensity, area, flags, std = (a[order] for a in (centres, intensity, area, flags,
+                                                                std))
     flags |= _image_flags(raw, sat_level, centres, intensity, flags, radius, opts)
     return SpotSet(
         centres_px=centres, intensity=intensity, area_px=area, flags=flags,
