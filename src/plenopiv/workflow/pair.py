@@ -115,6 +115,7 @@ class PairProcessor:
         self._response = response
         self._preparation = None
         self._batch = (batch_background, batch_record)
+        self._checked = False
 
     def preparation(self):
         """The experiment's :class:`~plenopiv.workflow.preprocess.ImagePreparation` (made once)."""
@@ -126,7 +127,6 @@ class PairProcessor:
                                                  batch_background=background,
                                                  batch_record=record)
         return self._preparation
-        self._checked = False
 
     def weights(self, progress: Progress = None) -> Weights:
         """The projector of every pair (built, or loaded from the weights cache, once)."""
