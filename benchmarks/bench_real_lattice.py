@@ -37,9 +37,9 @@ from full_camera import full_case, render_pair  # noqa: E402
 
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.products.jsonio import dumps
+from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.real_lattice import LensletProjector
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.reconstruction.subdivision import weights_for
 from plenopiv.workflow.volume import reconstruct_volume
 
 

@@ -87,8 +87,8 @@ def reconstruction_footprint(camera: str, depth_mm: float, method: str, repeats:
     import tempfile
     import tracemalloc
 
+    from plenopiv.reconstruction.build import weights_for
     from plenopiv.reconstruction.settings import ReconstructionSettings
-    from plenopiv.reconstruction.subdivision import weights_for
     from plenopiv.workflow.volume import reconstruct_volume
 
     cam = load_camera(camera)

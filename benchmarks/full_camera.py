@@ -69,10 +69,10 @@ from plenopiv.particles.settings import ParticleSettings
 from plenopiv.piv import PIVSettings
 from plenopiv.products.files import atomic_path
 from plenopiv.products.jsonio import dumps
+from plenopiv.reconstruction.build import cached_weights, weights_for
+from plenopiv.reconstruction.choose import lateral_subdivision
 from plenopiv.reconstruction.mart import reconstruction_quality
-from plenopiv.reconstruction.select import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.reconstruction.subdivision import lateral_subdivision, weights_for
 from plenopiv.resources import prefer_small_pages
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.synthetic.truth import gaussian_truth_volume

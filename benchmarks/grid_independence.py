@@ -41,7 +41,7 @@ from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import resolution_cell
 from plenopiv.products.jsonio import dumps
-from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.build import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow.volume import reconstruct_volume
 

@@ -55,6 +55,7 @@ UNITS = {
     "experiment:particles.threshold": "fraction of the reference",
     "experiment:piv.windows": "voxels [z, y, x]",
     "experiment:piv.overlap": "fraction",
+    "experiment:piv.response_particles_per_lenslet": "particles per lenslet",
     "experiment:tracking.bundle_radius": "half beam widths",
     "experiment:tracking.min_lenslets": "lenslets",
     "experiment:mask.image": "path", "experiment:mask.volume": "path",
@@ -62,6 +63,7 @@ UNITS = {
     "experiment:output.weights_cache": "path",
     "experiment:images.a": "glob", "experiment:images.b": "glob",
     "experiment:images.pairs": "glob",
+    "experiment:preprocess.dark": "path", "experiment:preprocess.white": "path",
 }
 
 #: Allowed values where the type alone says too little.
@@ -84,6 +86,9 @@ ALLOWED = {
     "experiment:batch.cluster": '`"local"`, `"slurm"` or a scheduler address',
     "experiment:batch.memory": 'text, e.g. `"64GB"`',
     "experiment:batch.walltime": 'text, e.g. `"02:00:00"`',
+    "experiment:preprocess.dark": "TIFF, multi-page TIFF, PNG or `file.h5:/path` (2-D or 3-D)",
+    "experiment:preprocess.white": "TIFF, multi-page TIFF, PNG or `file.h5:/path` (2-D or 3-D)",
+    "experiment:preprocess.background": '`"none"` \\| `"minimum"` \\| `"mean"` \\| a path',
 }
 
 #: The [piv] table is PIVSettings, which checks its values itself: its allowed values, from
@@ -101,6 +106,8 @@ ALLOWED.update({
     "experiment:piv.uncertainty": " \\| ".join(f'`"{m}"`' for m in _piv.UNCERTAINTY_METHODS),
     "experiment:piv.response_displacements": " \\| ".join(
         f"`{n}`" for n in _piv.RESPONSE_DISPLACEMENTS),
+    "experiment:piv.response_particles_per_lenslet": "number > 0, ≤ "
+                                                     f"{_piv.MAX_RESPONSE_PARTICLES_PER_LENSLET:g}",
     "experiment:piv.windows": f"list of [wz, wy, wx], edges {_piv.MIN_WINDOW_VOX}–"
                               f"{_piv.MAX_WINDOW_VOX}",
 })
@@ -115,6 +122,8 @@ DEFAULTS = {
     "experiment:batch.workers": "cores",
     "experiment:batch.threads_per_worker": "cores / workers",
     "experiment:mask.cylinder.length_mm": "unbounded",
+    "experiment:preprocess.dark": "none",
+    "experiment:preprocess.white": "none",
 }
 
 #: Meaning of every key ("file:table.key"; top-level keys "file:key").
@@ -248,6 +257,11 @@ MEANINGS = {
                                   'only, blind to the near-focus depth error',
     "experiment:piv.response_displacements": "test displacements of the response uncertainty: "
                                              "3 (sixteen more reconstructions) or 1 (two)",
+    "experiment:piv.response_particles_per_lenslet": "seeding of the response's test pairs "
+                                                     "through the whole box; measured once per "
+                                                     "experiment and shared by its pairs, so it "
+                                                     "follows this, never a pair's own count: "
+                                                     "set the experiment's nominal seeding",
     "experiment:piv.overlap_correction": "fit the peak on the correlation divided by the "
                                          "windows' overlap fraction",
     "experiment:piv.broad_peaks": "5-point Gaussian fit along broad peaks (σ ≥ 1 voxel), "
@@ -303,6 +317,21 @@ MEANINGS = {
     "experiment:mask.cylinder.length_mm": "extent along the axis",
     "experiment:mask.cylinder.masked": '`"inside"`: a body in the flow; `"outside"`: a pipe, '
                                        'the flow is inside',
+    "experiment:preprocess.dark": "dark frame or stack at the images' exposure, relative to "
+                                  "the experiment file: its mean is subtracted from every "
+                                  "image (and from the white and the background), its hot "
+                                  "and cold pixels are repaired",
+    "experiment:preprocess.white": "white frame or stack at the recording's aperture (a "
+                                   "diffuser or a white sheet): each micro-image's throughput "
+                                   "is divided out; outside the micro-images, the rim below "
+                                   "0.2 of the white's local peak and dead pixels are masked",
+    "experiment:preprocess.hot_pixels": '`"auto"`: hot and dead pixels of the dark, the white '
+                                        'and the images repaired from neighbours in their own '
+                                        'micro-image; `"none"`: no repair',
+    "experiment:preprocess.background": '`"minimum"` or `"mean"`: the per-pixel minimum or '
+                                        'mean of the batch\'s images (`plenopiv run` only), '
+                                        'or a background image (a recording without '
+                                        'particles), subtracted from every image',
 }
 
 #: Tables described in one line above their key table.
@@ -325,6 +354,9 @@ TABLE_NOTES = {
     "experiment:mask": "What to leave out; volume masks are or'ed together.",
     "experiment:mask.box": "Any number of boxes.",
     "experiment:mask.cylinder": "Any number of circular cylinders.",
+    "experiment:preprocess": "What is done to each recorded image before the reconstruction "
+                             "(see [below](#preprocessing)); without the table the images are "
+                             "used as recorded.",
 }
 
 

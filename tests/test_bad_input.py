@@ -189,7 +189,7 @@ def test_grids_beyond_memory_are_refused_before_estimating(monkeypatch):
     with pytest.raises(ResourceError, match=r"5\.12e\+08 voxels needs about 15\.3 GiB of "
                                             r"memory but this machine has 1 GiB available"):
         resources.check_grid(grid)
-    from plenopiv.reconstruction.subdivision import weights_for
+    from plenopiv.reconstruction.build import weights_for
 
     cal = Calibration.from_camera(load_camera("small_test"))
     with pytest.raises(ResourceError, match="voxels needs about"):
@@ -341,3 +341,19 @@ def test_prefer_small_pages_turns_numpy_huge_pages_off_unless_the_user_chose(mon
         assert _set_madvise_hugepage(True) is True             # left on
     finally:
         _set_madvise_hugepage(before)
+
+
+@pytest.mark.parametrize("dataset", ["/lenslets/centre_px", "/lenslets/focal_spot_px"])
+def test_a_nan_in_a_calibration_product_is_refused_naming_the_dataset(tmp_path, dataset):
+    import h5py
+
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.camera.model import load_camera
+    from plenopiv.errors import CalibrationError
+
+    path = tmp_path / "cal.h5"
+    Calibration.from_camera(load_camera("small_test")).save(path)
+    with h5py.File(path, "r+") as fh:
+        fh[dataset][3, 1] = np.nan
+    with pytest.raises(CalibrationError, match=f"{dataset} holds 1 NaN"):
+        Calibration.load(path)

@@ -119,3 +119,46 @@ def test_imports_inside_functions_and_relative_imports_are_seen(tmp_path):
                      "    from plenopiv.workflow.pair import correlate\n")
     assert imported(probe, modules, name="plenopiv.camera.probe") == {
         "plenopiv.camera", "plenopiv.camera.grid", "plenopiv.workflow.pair"}
+
+
+# ---- the source reads as reference, not as a notebook --------------------------------------
+
+#: A module's docstring says what it is for and links the methods page; the physics is there.
+MAX_MODULE_DOCSTRING_LINES = 13
+MAX_MODULE_LINES = 800
+MAX_FUNCTION_LINES = 100
+#: Dated figures, machine loads and history belong to docs/performance.md and the commit log.
+NOTEBOOK = (r"\b20\d\d-\d\d-\d\d\b", r"\btwo cores\b", r"\b2-core\b", r"\bidle machine\b",
+            r"\bprevious defaults?\b", r"\bissue #?\d+", r"\bthis project's\b")
+
+
+def source_files():
+    return sorted(PACKAGE.rglob("*.py"))
+
+
+def test_no_lab_notebook_lines_in_the_source():
+    import re
+
+    found = [f"{p.relative_to(PACKAGE)}:{i}: {line.strip()}" for p in source_files()
+             for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1)
+             for pattern in NOTEBOOK if re.search(pattern, line, re.IGNORECASE)]
+    assert not found, "\n".join(found)
+
+
+def test_modules_and_functions_stay_small_and_module_docstrings_short():
+    long = []
+    for p in source_files():
+        text = p.read_text(encoding="utf-8")
+        tree = ast.parse(text)
+        if len(text.splitlines()) > MAX_MODULE_LINES:
+            long.append(f"{p.relative_to(PACKAGE)}: {len(text.splitlines())} lines")
+        doc = ast.get_docstring(tree, clean=False)
+        if doc and len(doc.splitlines()) > MAX_MODULE_DOCSTRING_LINES:
+            long.append(f"{p.relative_to(PACKAGE)}: module docstring of "
+                        f"{len(doc.splitlines())} lines")
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    long.append(f"{p.relative_to(PACKAGE)}: {node.name} has {n} lines")
+    assert not long, "\n".join(long)

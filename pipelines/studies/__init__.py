@@ -12,6 +12,8 @@ draws figures, renders in a ``*_report`` module that imports it (never the other
   reconstruction quality of particle fields;
 - :mod:`~pipelines.studies.letters_data`, :mod:`~pipelines.studies.letters`,
   :mod:`~pipelines.studies.letters_report`: the light field of the real plenoptomos image;
+- :mod:`~pipelines.studies.realcam`, :mod:`~pipelines.studies.realcam_report`: the chain on
+  renders through a modelled real camera, as recorded and preprocessed;
 - :mod:`~pipelines.studies.tracking`, :mod:`~pipelines.studies.tracking_report`: particle
   tracking against correlation;
 - :mod:`~pipelines.studies.uncertainty`: coverage of the per-vector uncertainty;

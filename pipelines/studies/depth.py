@@ -50,7 +50,7 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import CameraModel, ExternalInterface, Sensor, Substrate, load_camera
 from plenopiv.errors import ReconstructionError
 from plenopiv.particles.settings import ParticleSettings
-from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.build import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.synthetic.images import particle_image
 from plenopiv.workflow.volume import reconstruct_volume

@@ -4,8 +4,8 @@ A 61 × 91-lenslet patch of the Auburn camera with the 50 mm lens at M = -1 (S_i
 100 mm, f/2.2: the micro-images nearly fill the lenslets, no substrate) records random
 particles seeded over its field of view and ±5 mm in depth, rendered by the ray tracer
 (:func:`~plenopiv.synthetic.images.particle_image`). Each image is reconstructed by
-:func:`~plenopiv.workflow.volume.reconstruct_volume` on a grid aligned with the lenslet footprints
-and compared with the truth:
+:func:`~plenopiv.workflow.volume.reconstruct_volume` on a grid aligned with the lenslet
+footprints and compared with the truth:
 
 - Q = Σ E E* / sqrt(Σ E² Σ E*²) against Gaussian blobs at the true positions
   (:func:`~plenopiv.synthetic.truth.gaussian_truth_volume`), for several blob sizes, one of them
@@ -40,7 +40,7 @@ from plenopiv.conventions import world_to_voxel
 from plenopiv.errors import ReconstructionError
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.products.volume import VolumeResult
-from plenopiv.reconstruction.select import cached_weights
+from plenopiv.reconstruction.build import cached_weights
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import Weights
 from plenopiv.settings import as_dict

@@ -10,8 +10,10 @@ f_l = 18.6 mm, 18.6 mm in front of a 6.45 µm sensor) behind a 200 mm lens. The 
    :func:`~plenopiv.calibration.spots.fit_lattice` give the micro-image centres (the focal
    spots x_c), their pitch gives S from the focal-point relation p = k d, k = 1 + f̄/S
    (thesis Eq. 3.11), and the lenslet centres follow as d = p/k about the optical axis;
-2. builds the light field (:func:`~plenopiv.lightfield.light_field`) of the dark-subtracted,
-   flat-fielded image and its perspective views, and measures the parallax between views;
+2. builds the light field (:func:`~plenopiv.lightfield.light_field`) of the image through
+   the preprocess stage (:func:`preprocessed_image`: dark subtracted, hot pixels repaired,
+   the white's flat field) and its perspective views, and measures the parallax between
+   views;
 3. refocuses over α (:func:`~plenopiv.lightfield.refocus`) and finds the α of the sharpest
    letters, which the source's example puts at its α = 0.95.
 
@@ -44,6 +46,7 @@ from plenopiv.camera.model import camera_from_dict
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
 from plenopiv.lightfield import LightField, light_field, perspective_view, refocus
+from plenopiv.preprocess import master_dark, micro_images, prepare_frames, prepare_image
 
 #: Lattice rows and columns (of this calibration's grid index) holding the two "ab" words,
 #: clear of the page edges at columns ~7 and ~21, which lie at other depths.
@@ -56,27 +59,35 @@ SOURCE_ALPHA = 0.95
 ALPHAS = tuple(np.round(np.arange(0.85, 1.10 + 1e-9, 0.005), 4))
 
 
-def flat_field(raw, white, dark, *, min_white: float = 0.25) -> np.ndarray:
-    """Dark-subtracted, flat-fielded image ``(raw - dark) / (white - dark)``.
+def preprocessed_image(data: LettersData, wcal: WhiteCalibration) -> tuple[np.ndarray, dict]:
+    """The raw image through the preprocess stage, as ``[preprocess]`` dark and white would.
 
-    Parameters
-    ----------
-    raw, white, dark : ndarray
-        Images, counts.
-    min_white : float
-        Pixels whose white level (after the dark frame) is below this fraction of the white
-        image's 99th percentile are NaN (gaps between micro-images, dust): the light-field
-        code leaves them out.
+    :func:`~plenopiv.preprocess.prepare_frames` with the master dark of the dark frame (its
+    hot and cold pixels repaired), the white's flat field (each micro-image's throughput
+    divided out, over the median plateau, so a typical micro-image keeps its counts) and
+    ``hot_pixels = "auto"``, on the micro-images of the white calibration at the aperture its
+    micro-images measure (``f_m`` over :attr:`WhiteCalibration.pupil_diameter`, f/25.8: the
+    .ini's 6.6 mm stop, f/30.3, would model them 38 px across where they are 44.5 px, and
+    leave the lit rims among the gaps the stage takes the black level and the noise from); then
+    :func:`~plenopiv.preprocess.prepare_image`. The pixels the stage masks (gaps between
+    micro-images, the rims below 0.2 of the white's plateau, dark micro-images) are NaN:
+    the light-field code leaves them out.
 
-    Returns
-    -------
-    ndarray, float64
-        Relative reflectance (1 for a scene as bright as the white target).
+    Returns ``(image, figures)``: counts of the dark subtracted, flat-fielded image, float64;
+    what the stage found and did (bad pixels, masked pixels, the flat's figures).
     """
-    w = np.asarray(white, float) - np.asarray(dark, float)
-    r = np.asarray(raw, float) - np.asarray(dark, float)
-    bright = w >= min_white * np.percentile(w, 99)
-    return np.where(bright, r / np.where(bright, w, 1.0), np.nan)
+    f_number = data.optics["main_focal_length"] / wcal.pupil_diameter
+    micro = micro_images(wcal.calibration, f_number=f_number)
+    frames = prepare_frames(micro, dark=master_dark(data.dark, name="letters dark"),
+                            white=data.white, hot_pixels="auto",
+                            names={"dark": "letters dark", "white": "letters white"})
+    prep = prepare_image(data.raw, frames, name="letters image")
+    img = prep.image.copy()
+    if prep.mask is not None:
+        img[prep.mask] = np.nan
+    figures = {**prep.figures, **frames.counts, "flat": frames.flat.to_dict(),
+               "f_number": f_number, "micro_image_radius_px": micro.radius_px}
+    return img, figures
 
 
 def camera_config(optics: dict, shape, lattice_shape, *, image_distance: float,
@@ -536,7 +547,7 @@ def analyse(data: LettersData, *, alphas=ALPHAS, with_splat: bool = True) -> dic
     cal = wcal.calibration
     lf = light_field(cal)
     gi = cal.grid_index
-    img = flat_field(data.raw, data.white, data.dark)
+    img, prep = preprocessed_image(data, wcal)
     r = lf.aperture_radius
     view_u = {"centre": (0.0, 0.0), "left": (-0.7 * r, 0.0), "right": (0.7 * r, 0.0),
               "top": (0.0, -0.7 * r), "bottom": (0.0, 0.7 * r)}
@@ -547,7 +558,8 @@ def analyse(data: LettersData, *, alphas=ALPHAS, with_splat: bool = True) -> dic
     splat = focus_sweep(img, lf, gi, alphas, method="splat") if with_splat else None
     geo = alpha_geometry(wcal, data.optics)
     peak = sweep["peak"]["gradient"]
-    return {"wcal": wcal, "lf": lf, "image": img, "views": views, "view_u": view_u,
+    return {"wcal": wcal, "lf": lf, "image": img, "preprocess": prep, "views": views,
+            "view_u": view_u,
             "parallax": par, "sweep": sweep, "splat": splat, "geometry": geo, "peak": peak,
             "lattice_pitch": _lattice_pitch(lf, gi)}
 
@@ -589,6 +601,7 @@ def summary(res: dict, optics: dict) -> dict:
             "pupil_diameter_from_micro_images_mm": wcal.pupil_diameter * 1e3,
             "f_number_used": cam.main_lens.f_number,
         },
+        "preprocess": res["preprocess"],
         "light_field": {"n_rays": lf.n_rays, "aperture_radius_mm": lf.aperture_radius * 1e3,
                         "cell_um": lf.cell * 1e6, "views_shape": list(c.shape)},
         "views": {

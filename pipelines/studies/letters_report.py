@@ -157,6 +157,26 @@ def figures(res: dict, summ: dict, planes: list[tuple], out: Path) -> list[Path]
             refocused_figure(planes, out / "letters_refocused.png")]
 
 
+def _preprocess_lines(p: dict | None) -> list[str]:
+    """What the preprocess stage did to the raw image (:func:`~pipelines.studies.letters.
+    preprocessed_image`)."""
+    if not p:
+        return []
+    fl = p["flat"]
+    return [f"- the raw image through `plenopiv.preprocess` as `[preprocess]` dark, white and "
+            f"`hot_pixels = \"auto\"` would: the dark frame subtracted, {p['dark_hot']} hot and "
+            f"{p['dark_cold']} cold pixels of the dark, {p['white_dead']} dead and "
+            f"{p['white_stuck']} stuck pixels of the white and {p['hot_pixels_in_image']} of "
+            f"the image repaired within their micro-images",
+            f"- flat field of the white on micro-images of {2 * p['micro_image_radius_px']:.1f} px "
+            f"(f/{p['f_number']:.1f}, the pupil the micro-images measure): each micro-image's "
+            f"plateau over the median, {fl['reference_counts']:.1f} counts (throughput rms "
+            f"{fl['throughput_rms']:.2%}), the white's gap level {fl['black_level_counts']:.0f} "
+            f"counts taken off; {fl['masked_pixels']} pixels masked (gaps, rims below "
+            f"{fl['rim_fraction']:.0%} of the plateau), left out of the light field; the "
+            "image keeps its counts", ""]
+
+
 def markdown(s: dict) -> str:
     """The study's Markdown report from its :func:`~pipelines.studies.letters.summary`."""
     c, f, p = s["calibration"], s["focus"], s["parallax"]
@@ -179,6 +199,8 @@ def markdown(s: dict) -> str:
         f"S would make {c['micro_image_diameter_px_if_6p6mm_stop']:.1f} px: the effective pupil "
         f"is {c['pupil_diameter_from_micro_images_mm']:.2f} mm. The light field uses "
         f"f/{c['f_number_used']:.1f} (6.6 mm), i.e. the well-lit inner pixels.", "",
+        "## Preprocessing", "",
+        *_preprocess_lines(s.get("preprocess")),
         "## Views and parallax", "",
         f"- views {s['light_field']['views_shape'][0]} × {s['light_field']['views_shape'][1]} "
         f"lenslets; letters ROI rows {s['views']['roi'][0]}, cols {s['views']['roi'][1]}",
@@ -212,7 +234,7 @@ def markdown(s: dict) -> str:
                   f"α = {top:.3f}, on a kink: at α = 1 all rays of a lenslet land on one point, "
                   "so its resampling changes character there and pulls the peak onto α = 1 "
                   "whatever the depth (see `plenopiv.lightfield.refocus`; the ray-traced "
-                  "particle test in `tests/test_lightfield_letters.py` shows the Fourier "
+                  "particle test in `tests/studies/test_letters.py` shows the Fourier "
                   "refocus returning a known plane to 0.001 in α)."]
     return "\n".join(lines) + "\n"
 

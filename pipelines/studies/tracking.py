@@ -157,7 +157,8 @@ def measure_case(case: VortexCase) -> dict:
     cam, cal = _calibration(case, rng)
     grid, flow, pair, ia, ib = _simulate(case, cam, cal, rng)
     exp = Experiment(camera=cal.camera, volume=grid,
-                     piv=PIVSettings(windows=tuple(case.windows_vox), overlap=0.5, passes=3),
+                     piv=PIVSettings(windows=tuple(case.windows_vox), overlap=0.5, passes=3,
+                                     response_particles_per_lenslet=case.particles_per_lenslet),
                      images=ImagesConfig(dt_s=case.dt), output=OutputConfig(weights_cache=""))
     t1 = time.perf_counter()
     res = process_pair(cal, ia, ib, exp)
@@ -254,7 +255,7 @@ def measure_single_particles(depths, *, camera=None, rays_per_particle: int = 20
         ``rms_mm`` for centroid, bundle and refined per axis, ``within_2sigma`` (bundle).
     """
     from pipelines.studies.depth import STUDY_PARTICLES, VOXEL, study_grid, thesis_camera
-    from plenopiv.reconstruction.select import cached_weights
+    from plenopiv.reconstruction.build import cached_weights
 
     cam = thesis_camera() if camera is None else camera
     depths = np.asarray(depths, float)

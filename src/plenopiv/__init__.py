@@ -14,6 +14,15 @@ import os
 import sys
 from importlib.metadata import PackageNotFoundError, version
 
+from plenopiv.errors import (
+    CalibrationError,
+    ConfigError,
+    ImageError,
+    PIVError,
+    PlenopivError,
+    ReconstructionError,
+)
+
 
 def cache_dir() -> str:
     """Return plenopiv's cache folder.
@@ -58,15 +67,6 @@ try:
     __version__ = version("plenopiv")
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
-
-from plenopiv.errors import (  # noqa: E402
-    CalibrationError,
-    ConfigError,
-    ImageError,
-    PIVError,
-    PlenopivError,
-    ReconstructionError,
-)
 
 __all__ = [
     "__version__",

@@ -16,6 +16,13 @@ EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 #: Stopped by Ctrl-C (SIGINT); a batch leaves its summary and a resumable state.
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
+"""Exit status after SIGTERM (128 + 15, what SLURM sends on a cancel or at the wall time)."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the process is, so that it ends the way Ctrl-C ends it."""
+
 
 
 class PlenopivError(Exception):

@@ -17,12 +17,20 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, ValidationError
 from pydantic.dataclasses import dataclass as _pydantic_dataclass
 from pydantic.fields import FieldInfo
-from pydantic_core import PydanticUndefined
+from pydantic_core import PydanticUndefined, to_json
 
-__all__ = ["STRICT", "StrictModel", "as_dict", "fields_of", "format_validation_error", "settings"]
+from plenopiv.errors import ConfigError
 
-STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
-"""Unknown keys and NaN or infinite numbers are refused (frozen: see :func:`settings`)."""
+__all__ = ["STRICT", "StrictModel", "as_dict", "fields_of", "format_validation_error", "settings",
+           "validate_table"]
+
+STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
+"""Unknown keys, NaN or infinite numbers and values of another type are refused.
+
+Strict types: a boolean is not a number, a number is not a text and a text is not a number;
+an integer is a number. TOML tables are validated as JSON (:func:`validate_table`), where an
+array stands for a tuple. Frozen: see :func:`settings`.
+"""
 
 
 class StrictModel(BaseModel):
@@ -38,6 +46,21 @@ def settings(cls):
     fields go in ``__post_init__`` and raise ``ValueError`` naming the field.
     """
     return _pydantic_dataclass(frozen=True, config=STRICT)(cls)
+
+
+def validate_table(model, table: dict, what: str):
+    """Validate a TOML table (a dict of TOML values) against ``model``, types strictly.
+
+    The table is validated as JSON, so that arrays stand for tuples while a boolean stays no
+    number (a TOML date becomes a text, which no number key takes). A value of the wrong type
+    or range raises pydantic's ``ValidationError`` (the caller names the file with
+    :func:`format_validation_error`).
+    """
+    try:
+        text = to_json(table, inf_nan_mode="constants")   # NaN stays NaN: refused by name
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{what}: {exc}") from None
+    return model.model_validate_json(text)
 
 
 def as_dict(obj) -> dict:

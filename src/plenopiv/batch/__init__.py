@@ -51,7 +51,13 @@ from plenopiv.batch.jobs import (
     mark_complete,
     product_identity,
 )
-from plenopiv.errors import EXIT_INTERRUPTED, ConfigError, PlenopivError
+from plenopiv.errors import (
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    ConfigError,
+    PlenopivError,
+    Terminated,
+)
 from plenopiv.products.files import atomic_path
 from plenopiv.products.jsonio import dumps, to_json
 
@@ -70,6 +76,7 @@ __all__ = [
     "discover_pairs",
     "is_complete",
     "mark_complete",
+    "pending_jobs",
     "product_identity",
     "run_batch",
     "slurm_cluster_kwargs",
@@ -86,16 +93,18 @@ class BatchError(PlenopivError):
 
 
 class BatchInterrupted(PlenopivError):
-    """The batch was stopped by Ctrl-C; its summary was written and a rerun resumes it.
+    """The batch was stopped by Ctrl-C or SIGTERM; its summary was written, a rerun resumes.
 
     ``summary`` holds :meth:`BatchSummary.to_dict` of the pairs finished before the stop.
     """
 
     exit_status = EXIT_INTERRUPTED
 
-    def __init__(self, message: str, summary: dict):
+    def __init__(self, message: str, summary: dict, *, terminated: bool = False):
         super().__init__(message)
         self.summary = summary
+        if terminated:
+            self.exit_status = EXIT_TERMINATED
 
 
 # ---- results -------------------------------------------------------------------------------
@@ -372,7 +381,7 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
         2). Exceptions raised by ``process`` are deterministic and are not retried. With a
         scheduler address the scheduler's own ``allowed-failures`` applies instead.
     progress : bool
-        Show a progress bar (and one line per failure) on stderr.
+        A progress bar (and one line per failure) on stderr.
     cluster_options : mapping, optional
         Local: ``memory_limit``, ``dashboard_address`` (default ":0", a free port),
         ``local_directory``. SLURM: see :func:`slurm_cluster_kwargs` (the ``[batch]`` table;
@@ -395,60 +404,20 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
 
     Notes
     -----
-    The completeness contract of ``process``. ``process(job) -> dict`` is a picklable,
-    top-level function (dask sends it by reference to the worker processes, so it must be
-    importable there). It
-
-    1. reads ``job.image_a`` and ``job.image_b`` (e.g. with
-       :func:`plenopiv.products.images.read_image`);
-    2. writes ``job.output`` **atomically** (:func:`plenopiv.products.hdf5.write_h5` or
-       :func:`plenopiv.products.files.atomic_path`), so that a half-written file never exists
-       under the final name: a killed run leaves at most a hidden ``.NAME.XXXX.part``
-       temporary, which the next :func:`run_batch` deletes;
-    3. marks the product complete as its **last** write: ``mark_complete(job.output)`` after
-       the file is written, or ``mark_complete(tmp)`` inside an ``atomic_path`` block, or
-       ``write_h5(job.output, ..., attrs={"complete": True})`` when one atomic write holds
-       everything. The mark is the root attribute ``complete = True`` (:data:`COMPLETE_ATTR`);
-    4. returns a small JSON-friendly dict (numbers, strings, short lists): it travels back to
-       the client and into ``batch_summary.json``. ``None`` counts as ``{}``.
-
-    A product is complete when :func:`is_complete` says so: it opens as HDF5 and its root
-    attribute ``complete`` is true. Only complete products are skipped on resume; a product
-    without the mark (a process that died between its writes, or a file from elsewhere) is
-    recomputed and replaced.
-
-    Resume is keyed on what made each product. A job may carry an ``identity``: a mapping of
-    content hashes (``plenopiv run``: the experiment's settings, the calibration file, the two
-    images). ``process`` stores it in the product (root attribute ``identity``, JSON;
-    ``mark_complete(path, identity=job.identity)`` does both). A complete product whose
-    stored identity differs from the job's (other settings, another calibration, other
-    images, or another pair's product copied over the name) is recomputed, and the summary
-    lists it under ``recomputed`` with what changed. When ``process`` returns but its product
-    is not complete (or does not record the job's identity), the job is recorded as failed
-    (a resume would otherwise redo it forever).
-
-    An exception raised by ``process`` is deterministic for a given input (a corrupt image, a
-    bad config): it is caught on the worker, recorded (type, message, traceback) and not
-    retried. A worker process that dies while running a job (segfault, ``os._exit``, killed
-    for memory) is a different matter: dask gives the job to another worker, up to
-    ``retries`` more times, then records it as failed (``KilledWorker``). Dask counts a death
-    against every job assigned to the dead worker, the one it was running and any waiting
-    behind it; so that an innocent pair is not charged, no more pairs are submitted than the
-    cluster has worker slots. A pair that dask re-assigns after a death, while the other
-    workers are busy or restarting, can still wait behind a crashing one and share its
-    count: give ``retries`` ≥ 2 where pairs crash.
+    The contract of ``process`` (atomic writes, the completeness mark, the identity that
+    resume checks) and how failures and worker deaths are retried are in docs/batch.md
+    ("The contract of a batch's work").
     """
     jobs = _check_jobs(jobs)
     _check_process(process)
     kind, n_workers, threads, retries, options, slots = _cluster_plan(
         cluster, n_workers, threads_per_worker, retries, cluster_options)
-    summary_file = Path(summary_path) if summary_path is not None else \
-        _default_summary_path(jobs)
+    summary_file = Path(summary_path) if summary_path else _default_summary_path(jobs)
 
     t0 = time.perf_counter()
     removed = _remove_temporaries(jobs, summary_file)
     results, recomputed, todo = _jobs_to_run(jobs, resume)
-    interrupted = False
+    interrupted = None
     try:
         if todo:
             with _open_client(kind, cluster, n_workers, threads, retries, options) as client:
@@ -457,8 +426,8 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
                                     slots=slots, retries=retries, progress=progress,
                                     total=len(jobs), skipped=len(jobs) - len(todo),
                                     known_retries=kind != "address")
-    except KeyboardInterrupt:
-        interrupted = True
+    except KeyboardInterrupt as exc:       # Ctrl-C, or SIGTERM (errors.Terminated)
+        interrupted = exc
     for job in jobs:
         if job.name not in results:
             results[job.name] = JobResult(job.name, "interrupted", str(job.output))
@@ -468,13 +437,20 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
         tuple(results[j.name] for j in jobs), summary_file, seconds=time.perf_counter() - t0,
         cluster=cluster, n_workers=n_workers, threads_per_worker=threads,
         removed_parts=tuple(str(p) for p in removed), recomputed=tuple(recomputed))
-    if interrupted:
-        raise BatchInterrupted(
-            f"interrupted (Ctrl-C) after {len(summary.done)} of {summary.n_jobs} pairs "
-            f"({len(summary.interrupted)} not finished, {len(summary.failed)} failed); "
-            f"summary written to {summary_file}; run the same command again to resume",
-            summary.to_dict())
+    if interrupted is not None:
+        raise _interruption(interrupted, summary, summary_file)
     return summary
+
+
+def _interruption(stop: KeyboardInterrupt, summary, summary_file) -> BatchInterrupted:
+    """The :class:`BatchInterrupted` of a batch stopped by Ctrl-C or SIGTERM."""
+    terminated = isinstance(stop, Terminated)
+    by = "terminated (SIGTERM)" if terminated else "interrupted (Ctrl-C)"
+    return BatchInterrupted(
+        f"{by} after {len(summary.done)} of {summary.n_jobs} pairs "
+        f"({len(summary.interrupted)} not finished, {len(summary.failed)} failed); "
+        f"summary written to {summary_file}; run the same command again to resume",
+        summary.to_dict(), terminated=terminated)
 
 
 def _write_summary(ordered: tuple[JobResult, ...], summary_file: Path, **fields
@@ -528,6 +504,14 @@ def _remove_temporaries(jobs: Sequence[PairJob], summary_file: Path) -> list[Pat
             p.unlink()
             removed.append(p)
     return removed
+
+
+def pending_jobs(jobs: Sequence[PairJob], *, resume: bool = True) -> list[PairJob]:
+    """The jobs :func:`run_batch` would run now: what a command prepares for beforehand.
+
+    With ``resume``, those without a complete product made with their identity; else all.
+    """
+    return _jobs_to_run(_check_jobs(jobs), resume)[2]
 
 
 def _jobs_to_run(jobs: Sequence[PairJob], resume: bool) -> tuple[dict, list, list]:

@@ -310,7 +310,8 @@ def product_identity(path: str | Path) -> dict | None:
 
 
 _IDENTITY_WORDS = {"settings": "the settings", "calibration": "the calibration",
-                   "image_a": "the first image", "image_b": "the second image"}
+                   "image_a": "the first image", "image_b": "the second image",
+                   "preprocess": "the preprocessing frames"}
 
 
 def _stale_reason(job: PairJob) -> str | None:

@@ -142,60 +142,44 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     Parameters
     ----------
     camera : CameraModel
-        The camera description; its ``image_distance`` may be unset.
+        The camera description (its ``image_distance`` may be unset).
     focal_point_image : ndarray
-        White sheet through the stopped-down lens (or a full-aperture white image).
+        White sheet through the stopped-down lens (or a full-aperture white).
     alignment_image : ndarray, optional
-        Collimated light, lens removed: gives the lenslet centres. Without it the camera's
-        nominal lattice is used.
+        Collimated light, lens removed: the lenslet centres (else the nominal lattice).
     ruler_image : ndarray, optional
-        A ruler on the nominal focal plane, ticks ``ruler_spacing`` metres apart along
-        ``ruler_axis`` ("x": ticks are lines across x, i.e. along the sensor columns).
+        A ruler on the focal plane, ticks ``ruler_spacing`` m apart along ``ruler_axis``.
     method : {"focal-point", "magnification", "both"}
-        Which S_i the calibration keeps. "both" keeps the focal-point value and reports the
-        magnification value beside it.
+        Which S_i is kept; "both" keeps the focal-point one, the other reported beside it.
     max_missing_fraction : float
-        More missing spots than this fraction (default 5 %) is an error: of the lattice
-        positions inside the focal-point (or alignment) image, and of the lenslets without a
-        focal spot. Fewer are filled from the fitted model and reported.
+        More missing lattice positions or focal spots than this (default 5 %) is an error;
+        fewer are filled from the fitted model and reported.
     spot_threshold : float
-        Threshold of the first, thresholded centroid of every spot (detect_spots).
-    max_rms_residual_pitch : float, optional
-        A focal-point or alignment image whose spots fit their lattice worse than this
-        fraction of the pitch (rms) is refused; default no limit, real arrays scatter
-        (:func:`~plenopiv.calibration.lattice_quality.check_lattice`).
-    min_on_lattice_fraction : float, optional
-        An image fewer of whose complete spots than this fraction (default 90 %) lie within
-        0.15 pitch of their lattice node is refused: no lenslet lattice (a scene, a ruler, a
-        particle image; :func:`~plenopiv.calibration.lattice_quality.check_lattice`).
+        Threshold of every spot's first, thresholded centroid (detect_spots).
+    max_rms_residual_pitch, min_on_lattice_fraction : float, optional
+        An image whose spots fit their lattice worse than this fraction of the pitch (rms;
+        default no limit: real arrays scatter), or fewer of whose complete spots than this
+        fraction (default 90 %) lie within 0.15 pitch of a node, holds no lenslet lattice
+        and is refused (:func:`~plenopiv.calibration.lattice_quality.check_lattice`).
     spot_method : str
-        Spot-centre estimator (:func:`~plenopiv.calibration.spot_detection.detect_spots`); the
-        default ``"auto"`` takes the window centroid for focal-point and alignment spots.
+        Spot-centre estimator (:func:`~plenopiv.calibration.spot_detection.detect_spots`).
     focal_point_f_number : float, optional
         The stop of the focal-point image (f/16 in the thesis). Given, the focal-point fit
         predicts each spot's centroid over that stop instead of its chief ray: through a
         plate they differ (with the "thesis" back side by 0.03 mm of S_i at 145 mm, f/16).
         Also measures the sensor's point spread (``extra["point_spread_sigma_px"]``).
     phase_harmonics : int
-        Harmonics of the sub-pixel phase bias fitted with each lattice (default 2; 0: none),
-        see :func:`~plenopiv.calibration.lattice_fit.fit_lattice`.
+        Harmonics of each lattice's sub-pixel phase bias (default 2; 0: none; fit_lattice).
     white_image : ndarray, optional
-        A white image at the working aperture (the camera's ``f_number``): its micro-image
-        diameter is measured and stored (``extra["micro_image_diameter_px"]``), and a
-        camera f-number that models it more than 1.25 times larger or smaller is noted in
-        the report; :func:`~plenopiv.lightfield.light_field` warns on the same comparison.
+        A white at the working aperture: its micro-image diameter is stored
+        (``extra["micro_image_diameter_px"]``), a camera f-number that models it 1.25 times
+        off is noted (:func:`~plenopiv.lightfield.light_field` warns on the same).
     dark : ndarray, optional
         A dark frame of the sensor (no light, the images' exposure), counts: subtracted from
         every image, and its hot pixels
         (:func:`~plenopiv.calibration.defects.hot_pixels_from_dark`) ignored by the spot
         detection. Without it the black level, its fixed pattern per column and row, and the
         hot pixels are estimated on each image (docs/methods.md#sensor-defects).
-
-    Notes
-    -----
-    Each lattice is fitted together with its spots' sub-pixel phase bias (pixel-locking,
-    ``fit_lattice(phase_harmonics=2)``), which is removed from the spot centres when it
-    stands out of the noise; the lattice quality of both images goes into the summary.
     """
     _check_method(method, ruler_image, ruler_spacing)
     shape, pp = camera.sensor.shape, camera.sensor.pixel_pitch

@@ -144,8 +144,7 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
         Grid type; ``"auto"`` (default) classifies it from the directions between neighbouring
         spots (90 degree vs 60 degree symmetry), unless the SpotSet names one.
     expected_pitch_px : float, optional
-        Not needed (the median nearest-neighbour distance is used); when given, a measured
-        spacing more than 20 % away raises :class:`CalibrationError`.
+        When given, a measured spacing more than 20 % away raises CalibrationError.
     image_shape : tuple of int, optional
         ``(n_rows, n_cols)`` px; taken from the SpotSet when not given. With it, a spot is
         partial (``EDGE``) when the window of radius ``window_radius_px`` around its measured
@@ -153,8 +152,7 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
         inwards and can look complete), and missing positions are counted inside the image;
         without it, inside the convex hull of the spots.
     window_radius_px : float, optional
-        Window radius that decides whether a spot is complete, px; default the SpotSet's, or
-        half the spacing.
+        Radius deciding whether a spot is complete, px (the SpotSet's, or half the spacing).
     max_missing_fraction : float, optional
         Largest accepted fraction of missing lattice positions; None (default) accepts any
         and reports them in ``missing_index``.
@@ -162,15 +160,14 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
         Residual length above which a spot is an outlier, px. Default: 6 times the robust
         (median-absolute-deviation) residual scale per axis, at least 2 % of the pitch.
     min_size : int
-        Smallest accepted lattice, ``min_size x min_size`` lenslets.
+        Smallest accepted lattice, ``min_size`` lenslets a side.
     phase_harmonics : int
         Harmonics ``n = 1 .. phase_harmonics`` of the periodic bias of each coordinate
         against its own sub-pixel phase, fitted with the lattice and removed from it
         (``phase_bias_px``; module docstring, step 4); 0 (default): none.
     max_shape_error : float or None
-        Largest departure of the fitted lattice from the shape of its grid type (default 5 %;
-        an angle counts in radians; :func:`~plenopiv.calibration.lattice_quality.
-        check_lattice_shape`), else :class:`CalibrationError`. None skips the check.
+        Largest departure from the grid type's shape (default 5 %, angles in radians;
+        ``lattice_quality.check_lattice_shape``), else CalibrationError; None: no check.
 
     Returns
     -------
@@ -182,23 +179,14 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
         Too few spots, no square or hexagonal order, a spacing far from
         ``expected_pitch_px``, or more missing positions than ``max_missing_fraction``.
     ValueError
-        An option is outside its valid set.
-
-    Notes
-    -----
-    The steps of the fit and the lattice convention are in docs/methods.md#lattice-fit.
+        An option is outside its valid set. (The steps: docs/methods.md#lattice-fit.)
 
     Examples
     --------
     >>> import numpy as np
     >>> from plenopiv.calibration.spots import detect_spots, fit_lattice
-    >>> rr, cc = np.mgrid[0:120, 0:120]
-    >>> image = np.zeros((120, 120))
-    >>> for r in range(10, 120, 20):
-    ...     for c in range(10, 120, 20):
-    ...         image += np.exp(-((rr - r - 0.3) ** 2 + (cc - c + 0.2) ** 2) / 2.0)
-    >>> spots = detect_spots(image, expected_pitch_px=20.0)
-    >>> lattice = fit_lattice(spots)
+    >>> rr, cc = np.mgrid[0:120, 0:120] % 20 - np.array([10.3, 9.8])[:, None, None]
+    >>> lattice = fit_lattice(detect_spots(np.exp(-(rr**2 + cc**2) / 2), expected_pitch_px=20.0))
     >>> lattice.grid, np.round(lattice.pitch_px, 2).tolist()
     ('square', [20.0, 20.0])
     >>> np.round(lattice.origin_px, 1).tolist()

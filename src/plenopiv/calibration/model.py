@@ -174,12 +174,37 @@ class Calibration:
                                           source=f"{path}:config")
             # the product's S_i is its image_distance_m attribute (the camera's copy went
             # through mm, and older files' config may not hold it)
-            camera = camera.with_image_distance(float(a["image_distance_m"]))
+            camera = camera.with_image_distance(_finite_positive(a["image_distance_m"],
+                                                                 "image_distance_m", path))
             return cls(camera=camera,
-                       centre_px=fh["/lenslets/centre_px"][()],
-                       focal_spot_px=fh["/lenslets/focal_spot_px"][()],
+                       centre_px=_finite(fh["/lenslets/centre_px"][()], "/lenslets/centre_px",
+                                         path),
+                       focal_spot_px=_finite(fh["/lenslets/focal_spot_px"][()],
+                                             "/lenslets/focal_spot_px", path),
                        grid_index=fh["/lenslets/grid_index"][()].astype(int),
                        method=str(a["method"]), offset=tuple(a["offset_m"]),
                        rotation=float(a["rotation_rad"]),
                        rms_residual_px=float(a["rms_residual_px"]),
                        extra=json.loads(a.get("extra", "{}")))
+
+
+def _finite(values, name: str, path) -> np.ndarray:
+    """``values`` of a calibration product, refused where any is NaN or infinite."""
+    a = np.asarray(values, float)
+    bad = ~np.isfinite(a)
+    if bad.any():
+        rows = np.flatnonzero(bad.any(axis=-1) if a.ndim > 1 else bad)
+        raise CalibrationError(f"calibration {str(path)!r}: {name} holds {int(bad.sum())} NaN "
+                               f"or infinite values (rows {', '.join(map(str, rows[:5]))}"
+                               f"{', ...' if len(rows) > 5 else ''}): the product is damaged; "
+                               "calibrate again")
+    return a
+
+
+def _finite_positive(value, name: str, path) -> float:
+    """A calibrated length of the product, refused unless finite and > 0."""
+    v = float(value)
+    if not (np.isfinite(v) and v > 0):
+        raise CalibrationError(f"calibration {str(path)!r}: {name} = {v!r}: expected a "
+                               "finite length > 0; the product is damaged, calibrate again")
+    return v

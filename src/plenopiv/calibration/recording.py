@@ -7,11 +7,9 @@ measures the micro-image lattice of the recording itself (the mean of a pair or 
 shows the micro-images: particle light falls only inside them) against the calibration's:
 the shift and rotation that best lay the calibration's micro-image discs over the recorded
 light. Beyond a tolerance it refuses with the figure, or, when allowed, moves the
-calibration onto the recording and warns. Pixels are ``(row, col)``
-(:mod:`plenopiv.conventions`); the rotation is counter-clockwise in ``(x = col, y = row)``,
-as the lattice's, about the sensor's centre.
-
-See docs/methods.md#recording-against-calibration.
+calibration onto the recording and warns. Pixels are ``(row, col)``; the rotation is
+counter-clockwise in ``(x = col, y = row)`` about the sensor's centre, as the lattice's. See
+docs/methods.md#recording-against-calibration.
 """
 
 from __future__ import annotations
@@ -39,6 +37,12 @@ _MIN_LIGHT = 0.1
 # about the fitted ones, a fraction of the pitch (an image with no micro-images scatters
 # across the whole cell)
 _MIN_TILES = 4
+
+#: A recording is refused (or corrected) only when its micro-images lie beyond the tolerance
+#: by this many standard errors of the measurement: a sparse pair's mean shows its
+#: micro-images faintly, and its estimate scatters (at 2 standard errors an exact calibration
+#: of a 30-particle pair was refused).
+SIGNIFICANCE = 3.0
 _MAX_TILE_SPREAD = 0.1
 # a soft disc's edge, px (the correlation surface is then smooth enough for a parabola)
 _EDGE_PX = 1.0
@@ -87,9 +91,10 @@ class LatticeCheck:
 
     @property
     def beyond_tolerance(self) -> bool:
-        """Measured, and beyond the tolerance by more than twice its standard error."""
+        """Measured, and beyond the tolerance by more than :data:`SIGNIFICANCE` standard errors."""
         return bool(self.measured and self.max_displacement_px > self.tolerance_px
-                    and self.max_displacement_px - self.tolerance_px > 2.0 * self.sigma_px)
+                    and self.max_displacement_px - self.tolerance_px
+                    > SIGNIFICANCE * self.sigma_px)
 
     def summary(self) -> dict:
         """The check as a JSON-ready dict."""

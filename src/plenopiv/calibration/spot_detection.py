@@ -232,64 +232,50 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     image : array_like, shape (R, C)
         Focal-point, alignment or white image, integer or floating point, ``image[row, col]``.
     expected_pitch_px : float, optional
-        Lenslet pitch (nearest-neighbour distance), px; default :func:`estimate_pitch`.
+        Lenslet pitch, px (default :func:`estimate_pitch`).
     grid : {"square", "hexagonal"} or None
-        Grid type if known; recorded for :func:`~plenopiv.calibration.lattice_fit.fit_lattice`.
+        Grid type if known (recorded for ``fit_lattice``).
     threshold : float, 0 <= threshold < 1
-        Centroid threshold: inside each window, pixels count with weight
-        ``max(I - threshold * P, 0)``, ``P`` the spot's peak height above background.
+        Centroid weights ``max(I - threshold * P, 0)``, P the spot's peak over background.
     detection_threshold : float, 0 < detection_threshold < 1
-        A local maximum of the smoothed image is a candidate when it reaches this fraction of
-        the bright spots around it (the 90th percentile of the maxima within about 4 x 4 to
-        12 x 12 pitches), stands 8 noise standard deviations above the gaps between spots,
-        and reaches a tenth of this fraction of the image's typical spot (95th percentile).
+        A local maximum is a candidate when it reaches this fraction of the bright spots
+        around it, stands 8 noise levels above the gaps, and a tenth of it of the image's
+        typical spot (docs/methods.md#focal-spots).
     method : {"auto", "window", "shape", "centroid", "gaussian"}
-        Sub-pixel estimator (module docstring). ``"window"``: the first moment in a
-        soft-edged window above a plane fitted to an annulus, no threshold. ``"shape"``: the
-        spots' mean shape fitted to each (:func:`~plenopiv.calibration.spot_shape.
-        shape_refine`; micro-images that fill their cells). ``"centroid"``: the iterative
-        thresholded centroid. ``"gaussian"``: a least-squares circular Gaussian plus offset.
-        ``"auto"``: ``"window"`` when the window and its annulus fit between neighbours
-        (``2 r99 + 4 <= pitch`` and ``r99 <= 0.35 pitch``, r99 the radius holding 99 % of a
-        spot's light), else (white images) ``"centroid"`` where the micro-images have dark
-        gaps between them and ``"shape"`` where they fill their cells (their diameter at half
-        height at least 0.85 of the pitch; :func:`_better_disc_centres`).
+        Sub-pixel estimator: ``"window"`` (first moment in a soft window above an annulus
+        plane), ``"shape"`` (the spots' mean shape fitted to each, for micro-images that
+        fill their cells), ``"centroid"`` (iterative thresholded), ``"gaussian"``; ``"auto"``
+        takes ``"window"`` where the window fits between neighbours, else ``"centroid"`` or,
+        where the micro-images fill their cells, ``"shape"`` (docs/methods.md#focal-spots).
     window_radius_px : float, optional
-        Radius of the thresholded centroid's window, which also decides ``EDGE``, px;
-        default half the pitch.
+        Radius of the centroid's window, which decides ``EDGE``, px (default pitch / 2).
     moment_radius_px : float, optional
-        ``"window"`` method only: radius of its window, px; default measured from the spots.
+        ``"window"`` only: its window's radius, px (default measured from the spots).
     background : {"local", "none"}
-        ``"local"``: subtract the black level's fixed pattern per column and row, measured on
-        the dark gaps (:func:`~plenopiv.calibration.defects.fixed_pattern`), and a smooth
-        background (box minimum over 1.25 pitch, box mean, less the noise bias of that
-        minimum); heights count from the gaps between spots. ``"none"``: use the image as is.
+        ``"local"``: subtract the black level's fixed pattern per column and row measured on
+        the gaps (:func:`~plenopiv.calibration.defects.fixed_pattern`) and a smooth
+        background; ``"none"``: the image as is.
     min_area_px : float
-        Candidates whose light sits in less than this effective area (px) are rejected as hot
-        pixels (a single bright pixel has area 1).
+        Candidates of a smaller effective area (px) are hot pixels (one pixel: area 1).
     dim_fraction : float, 0 < dim_fraction <= 1
-        A spot fainter than this fraction of the median of its eight nearest neighbours is
-        flagged ``DIM``.
+        A spot below this fraction of its eight nearest neighbours' median is ``DIM``.
     max_saturated_fraction : float, 0 <= max_saturated_fraction <= 1
-        Largest allowed fraction of pixels at the integer dtype's maximum.
+        Largest fraction of pixels at the integer dtype's maximum.
     bad_pixels : array_like of bool, shape (R, C), optional
-        Pixels to ignore (the hot pixels of a dark frame,
-        :func:`~plenopiv.calibration.defects.hot_pixels_from_dark`): replaced by the median of
-        their good neighbours before anything else. Without them, when the spots are broader
-        than a pixel (rms radius >= 1 px), hot pixels are found by their shape
-        (:func:`~plenopiv.calibration.defects.isolated_pixels`), replaced alike and the spots
-        detected again, so that no hot pixel hides or pulls a spot.
+        Pixels to ignore (a dark frame's hot pixels), replaced by their good neighbours'
+        median first. Without them, where spots are broader than a pixel, hot pixels are
+        found by their shape (:func:`~plenopiv.calibration.defects.isolated_pixels`),
+        replaced alike and the spots detected again.
 
     Returns
     -------
     SpotSet
-        Centres ``(row, col)`` px with intensity, effective area and flags.
+        Centres ``(row, col)`` px, intensity, effective area, flags.
 
     Raises
     ------
     ImageError
-        The image is not 2-D, not real, holds NaN/inf, is all dark, constant, saturated, or has
-        no periodic spot pattern.
+        Not 2-D, not real, NaN/inf, dark, constant, saturated, or no periodic spots.
     ValueError
         An option is outside its valid set.
 
@@ -301,8 +287,7 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
                             min_area_px, dim_fraction, max_saturated_fraction)
     raw, sat_level = _validate_image(image, opts["max_saturated_fraction"])
     work = raw.astype(np.float32)
-    if bad_pixels is not None:
-        work = patch_pixels(work, bad_pixels)
+    work = work if bad_pixels is None else patch_pixels(work, bad_pixels)
     pitch, radius = _pitch_and_radius(work, expected_pitch_px, window_radius_px)
     if background == "local":
         work = work - fixed_pattern(work, pitch)
@@ -328,8 +313,8 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     std = _centre_std(work, centres, flags, intensity, method,
                       (pitch, radius, moment_r, spot_r), noise, spot_rms)
     order = np.lexsort((centres[:, 1], centres[:, 0]))
-    centres, intensity, area, flags = centres[order], intensity[order], area[order], flags[order]
-    std = std[order]
+    centres, intensity, area, flags, std = (a[order] for a in (centres, intensity, area, flags,
+                                                                std))
     flags |= _image_flags(raw, sat_level, centres, intensity, flags, radius, opts)
     return SpotSet(
         centres_px=centres, intensity=intensity, area_px=area, flags=flags,

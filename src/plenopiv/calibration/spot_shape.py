@@ -8,9 +8,7 @@ instead: the mean of all the spots, aligned on their current centres and made
 point-symmetric, is the template T; each spot is fitted as ``a T(x - c) + b`` by
 Gauss-Newton, which weighs every pixel by the template's gradient there (the edges), and the
 template is rebuilt on the new centres. :func:`shape_uncertainty` gives the standard
-error of any centre from the same fit's residual. Pixels are ``(row, col)``
-(:mod:`plenopiv.conventions`); lengths in px.
-
+error of any centre from the same fit's residual. Pixels are ``(row, col)``; lengths in px.
 See docs/methods.md#focal-spots.
 """
 

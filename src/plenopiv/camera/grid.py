@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import Field, ValidationError, model_validator
 
 from plenopiv.errors import ConfigError
-from plenopiv.settings import StrictModel, format_validation_error
+from plenopiv.settings import StrictModel, format_validation_error, validate_table
 
 #: More voxels than this is refused at once: the voxel-pixel weights index voxels with
 #: 32-bit integers, and a float32 volume of 2^31 voxels alone is 8.6 GB.
@@ -179,7 +179,7 @@ def volume_from_dict(cfg: dict, *, source: str = "[volume]") -> VolumeGrid:
         raise ConfigError(f"{source}: [volume] shape = {shp!r}: expected a list of 3 voxel "
                           "counts [nz, ny, nx]")
     try:
-        c = _VolumeCfg.model_validate(cfg)
+        c = validate_table(_VolumeCfg, cfg, source)
     except ValidationError as exc:
         raise ConfigError(format_validation_error(exc, source, _VolumeCfg)
                           .replace(f"{source}: ", f"{source}: [volume] ") + VOLUME_FORM) from None

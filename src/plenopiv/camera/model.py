@@ -25,7 +25,7 @@ from pydantic import Field, ValidationError
 
 from plenopiv.errors import ConfigError
 from plenopiv.products.jsonio import dumps
-from plenopiv.settings import StrictModel, format_validation_error
+from plenopiv.settings import StrictModel, format_validation_error, validate_table
 
 GRIDS = ("square", "hexagonal")
 BACK_SIDES = ("physical", "thesis")
@@ -540,7 +540,7 @@ def camera_from_dict(cfg: dict, *, source: str = "camera config") -> CameraModel
     if not isinstance(cfg, dict):
         raise ConfigError(f"{source}: expected a table of sections, got {type(cfg).__name__}")
     try:
-        c = _CameraCfg.model_validate(cfg)
+        c = validate_table(_CameraCfg, cfg, source)
     except ValidationError as exc:
         raise ConfigError(format_validation_error(exc, source, _CameraCfg)) from None
     um, mm = 1e-6, 1e-3
@@ -603,9 +603,12 @@ def camera_to_dict(camera: CameraModel) -> dict[str, Any]:
 def read_toml(path: str | Path, what: str = "config") -> dict:
     """Read a TOML file, turning I/O and syntax errors into :class:`ConfigError`."""
     p = Path(path)
+    if p.exists() and not p.is_file() and not p.is_dir():
+        raise ConfigError(f"{what} file {str(p)!r} is not a regular file (a pipe, socket or "
+                          "device): expected a TOML file")
     try:
-        with p.open("rb") as fh:
-            return tomllib.load(fh)
+        text = p.read_bytes().decode("utf-8")
+        return tomllib.loads(text.removeprefix("\ufeff"))   # a byte-order mark is no key
     except FileNotFoundError:
         raise ConfigError(f"{what} file {str(p)!r} not found") from None
     except IsADirectoryError:

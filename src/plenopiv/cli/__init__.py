@@ -14,8 +14,11 @@ are imported inside the commands.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
 import warnings
 
 from plenopiv import __version__
@@ -39,9 +42,11 @@ from plenopiv.cli._progress import _StageBar as _StageBar
 from plenopiv.errors import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
     PlenopivError,
     PlenopivWarning,
     ResourceError,
+    Terminated,
 )
 from plenopiv.products.jsonio import to_json
 from plenopiv.resources import prefer_small_pages
@@ -101,11 +106,34 @@ def _report_failure(exc: BaseException, status: int, command: str | None, as_jso
     return status
 
 
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """While inside, SIGTERM raises :class:`~plenopiv.errors.Terminated` (a KeyboardInterrupt).
+
+    Every verb then stops on SIGTERM as on Ctrl-C. Only in the main thread, where Python
+    runs signal handlers; the previous handler comes back on leaving.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``plenopiv`` command; returns the exit status.
 
     0: done. 1: a computation or a write failed (a full disk, failed pairs of ``run``, an
     unexpected error). 2: bad input, refused before any work. 130: interrupted (Ctrl-C).
+    143: terminated (SIGTERM, as SLURM sends on a cancel or at the wall time), handled as
+    Ctrl-C is: finished products kept, a batch's summary written.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     prefer_small_pages()            # the command owns its process (resources.prefer_small_pages)
@@ -119,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"warning: {text}", file=sys.stderr)
 
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), sigterm_as_interrupt():
             warnings.simplefilter("always", PlenopivWarning)
             warnings.showwarning = show
             try:
@@ -131,10 +159,13 @@ def main(argv: list[str] | None = None) -> int:
             summary = args.func(args)
     except PlenopivError as exc:
         return _report_failure(exc, exc.exit_status, command, as_json, warned)
-    except KeyboardInterrupt:
-        exc = PlenopivError("interrupted (Ctrl-C); products written so far are complete, "
-                            "temporaries are removed on the next run")
-        return _report_failure(exc, EXIT_INTERRUPTED, command, as_json, warned)
+    except KeyboardInterrupt as stop:
+        terminated = isinstance(stop, Terminated)
+        exc = PlenopivError(f"{'terminated (SIGTERM)' if terminated else 'interrupted (Ctrl-C)'}"
+                            "; products written so far are complete, temporaries are removed "
+                            "on the next run")
+        return _report_failure(exc, EXIT_TERMINATED if terminated else EXIT_INTERRUPTED,
+                               command, as_json, warned)
     except OSError as exc:             # a read or write outside plenopiv's own checks
         where = f" ({exc.filename})" if exc.filename else ""
         err = PlenopivError(f"a file operation failed{where}: {type(exc).__name__}: "

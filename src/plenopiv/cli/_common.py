@@ -81,15 +81,17 @@ def _add_precompile(p: argparse.ArgumentParser, what: str):
 
 
 def _add_image_options(p: argparse.ArgumentParser):
-    p.add_argument("--noise", choices=("none", "poisson"), default="none",
-                   help="photon (Poisson) noise, default none")
+    p.add_argument("--noise", choices=("none", "poisson"), default=None,
+                   help="photon (Poisson) noise, default none (poisson with --realistic)")
     p.add_argument("--bit-depth", type=int, choices=(0, 8, 16), default=16,
                    help="integer quantisation; 0 writes float32 irradiance (default 16)")
     p.add_argument("--blur-px", type=float, default=0.0,
                    help="Gaussian blur sigma in pixels (default 0)")
     p.add_argument("--full-well", type=float, default=20000.0,
                    help="electrons at full scale, for photon noise (default 20000)")
-    p.add_argument("--read-noise", type=float, default=0.0, help="read noise, counts (default 0)")
+    p.add_argument("--read-noise", type=float, default=None,
+                   help="rms read noise, counts, with or without photon noise (default 0; 3 "
+                        "with --realistic)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
 
 

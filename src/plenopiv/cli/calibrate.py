@@ -25,6 +25,10 @@ def add_parser(sub) -> None:
     cal.add_argument("--white", metavar="IMG",
                      help="white image at the working aperture: checks the camera's f_number "
                           "against its micro-image size")
+    cal.add_argument("--dark", metavar="PATH",
+                     help="dark frame or stack (TIFF, multi-page TIFF, PNG, file.h5:/path 2-D "
+                          "or 3-D): its mean is subtracted from every calibration image and its "
+                          "hot pixels are repaired before spot detection")
     cal.add_argument("--ruler-spacing-mm", type=float, help="ruler tick spacing (mm)")
     cal.add_argument("--ruler-axis", choices=("x", "y"), default="x",
                      help="direction along which the ticks repeat (default x, along columns)")
@@ -71,17 +75,33 @@ def cmd_calibrate(args) -> dict:
     cam = load_camera(args.camera)
     check_sensor(cam)
     inputs = _input_files(args.camera, args.focal_point, args.alignment, args.ruler,
-                          args.white)
+                          args.white, args.dark)
     out = _check_out(args.out, (".h5",), inputs=inputs,
                      beside=() if args.no_report else (".png",))
     t0 = time.perf_counter()
     progress = _StageBar("calibrate", {"read images": 5, "spots and S_i": 75, "report": 20},
                          args.quiet or args.json)
     progress("read images")
-    fp = read_image(args.focal_point)
-    al = None if args.alignment is None else read_image(args.alignment)
-    ru = None if args.ruler is None else read_image(args.ruler)
-    wh = None if args.white is None else read_image(args.white)
+    dark = bad = dark_record = None
+    if args.dark is not None:
+        from plenopiv.workflow.preprocess import calibration_dark
+
+        dark, bad, dark_record = calibration_dark(args.dark, cam.sensor.shape)
+
+    def read(flag, spec):
+        if spec is None:
+            return None
+        img = read_image(spec)
+        if dark is None:
+            return img
+        from plenopiv.workflow.preprocess import subtract_calibration_dark
+
+        return subtract_calibration_dark(img, dark, bad, name=f"{flag} {spec!r}")
+
+    fp = read("--focal-point", args.focal_point)
+    al = read("--alignment", args.alignment)
+    ru = read("--ruler", args.ruler)
+    wh = read("--white", args.white)
     progress("spots and S_i")
     report = calibrate(cam, fp, alignment_image=al, ruler_image=ru, white_image=wh,
                        ruler_spacing=(None if args.ruler_spacing_mm is None
@@ -95,10 +115,12 @@ def cmd_calibrate(args) -> dict:
     progress("report")
     inputs = {"focal_point": args.focal_point, "alignment": args.alignment,
               "ruler": args.ruler, "ruler_spacing_mm": args.ruler_spacing_mm,
-              "white": args.white,
+              "white": args.white, "dark": args.dark,
               "method": args.method}
     report.calibration.save(out, config={"inputs": inputs, "summary": report.summary()})
     summary = {"command": "calibrate", "out": str(out), **report.summary()}
+    if dark_record is not None:
+        summary["dark"] = dark_record
     if not args.no_report:
         from plenopiv.products.figures import calibration_report
 

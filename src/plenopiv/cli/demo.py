@@ -39,7 +39,7 @@ def cmd_demo(args) -> dict:
     _seed(args.seed)
     check_output_path(args.out, what="--out", folder=True)
     stages = {"calibration images": 12, "calibrate": 10, "simulate pair": 6, "weights": 14,
-              "volume A": 12, "volume B": 12, "piv": 12, "products": 22}
+              "volume A": 12, "volume B": 12, "response": 10, "piv": 2, "products": 22}
     with _StageBar("demo", stages, args.quiet or args.json) as progress:
         s = run_case(VortexCase(flow="oseen", seed=args.seed,
                                 response_displacements=DEMO_RESPONSE_DISPLACEMENTS),

@@ -72,6 +72,7 @@ def cmd_plan(args) -> dict:
     from plenopiv.piv.settings import PIVSettings
     from plenopiv.reconstruction.settings import ReconstructionSettings
     from plenopiv.workflow import planning
+    from plenopiv.workflow import rates as rates_module
 
     path = Path(args.config)
     table = _config_table(path)
@@ -101,12 +102,14 @@ def cmd_plan(args) -> dict:
         recon = dataclasses.replace(recon, f_number=args.f_number)
     if args.windows:
         piv_cfg = dataclasses.replace(piv_cfg, windows=tuple(tuple(w) for w in args.windows))
+    cal = None
     if args.image_distance_mm is not None:
         camera = camera.with_image_distance(args.image_distance_mm * 1e-3)
     elif calibration is not None:
         from plenopiv.calibration.model import Calibration
 
-        camera = Calibration.load(calibration).with_camera(camera).camera
+        cal = Calibration.load(calibration).with_camera(camera)
+        camera = cal.camera
     if grid is None:
         cam = planning.camera_resolution(camera, recon.f_number)
         fx, fy = (0.9 * v * 1e3 for v in cam.field_of_view)
@@ -119,13 +122,14 @@ def cmd_plan(args) -> dict:
                 piv_cfg, windows=tuple(planning.recommended_windows(cam, grid.voxel)))
     t0 = time.perf_counter()
     if args.no_measure:
-        rates = planning.BENCHMARK_RATES
+        rates = rates_module.BENCHMARK_RATES
     else:
         with _StageBar("plan", {"measure": 1}, args.quiet or args.json) as bar:
             bar("measure rates on this machine")
-            rates = planning.measure_rates(camera, grid, f_number=recon.f_number,
+            rates = rates_module.measure_rates(camera, grid, f_number=recon.f_number,
                                            min_lit=recon.min_lit, piv=piv_cfg)
-    result = planning.plan(camera, grid, reconstruction=recon, piv=piv_cfg, rates=rates)
+    result = planning.plan(camera, grid, reconstruction=recon, piv=piv_cfg, rates=rates,
+                           calibration=cal)
     return {"command": "plan", "config": str(args.config),
             "kind": "experiment" if is_experiment else "camera", **result.to_dict(),
             "seconds": round(time.perf_counter() - t0, 3)}
@@ -176,13 +180,11 @@ def print_summary(p: dict) -> None:
         return f"{n / 1e9:.3g} billion" if n >= 1e9 else f"{n / 1e6:.3g} million"
 
     sparse = p["projector"] == "sparse"
-    rows.append(("size", f"{count(p['n_rays'])} rays, {count(p['nnz'])} non-zero weights; "
-                         + ("explicit (sparse) weights" if sparse else
-                            "matrix-free lattice projector (the explicit weights would not "
-                            "fit)")))
+    rows += _decision_rows(p, count)
     mem = p["memory_gb"]
     rows.append(("memory", (f"weights {_fmt(mem['weights'])} GB (a cache file of "
-                            f"{_fmt(mem['weights_cache_file'])} GB on disk), " if sparse else "")
+                            f"{_fmt(mem['weights_cache_file'])} GB on disk), " if sparse else
+                            f"projector {_fmt(mem['projector'])} GB, ")
                  + f"peak {_fmt(mem['peak'])} GB of this machine's "
                    f"{_fmt(p['available_memory_gb'])} GB"))
     t = p["time_s"]
@@ -191,6 +193,10 @@ def print_summary(p: dict) -> None:
                          f"{_fmt(t['volume'])} s, PIV {_fmt(t['piv'])} s; a pair "
                          f"{_fmt(t['pair'])} s ({_fmt(t['pair_cached_weights'])} s with cached "
                          "weights)"))
+    if p.get("response_s"):
+        rows.append(("response", f"the chain's response, once per experiment before its pairs "
+                                 f"([piv] uncertainty = \"response\"): about "
+                                 f"{_fmt(p['response_s'])} s (none when cached)"))
     rows.append(("", f"time model: {p['time_model']}"))
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
@@ -204,3 +210,22 @@ def print_summary(p: dict) -> None:
         print("recommended [volume] and [piv] for this box:")
         for line in rec["toml"].splitlines():
             print(f"  {line}" if line else "")
+
+
+_PROJECTOR_NAMES = {"sparse": "explicit (sparse) weights",
+                    "lattice": "matrix-free lattice projector",
+                    "lenslet": "matrix-free per-lenslet projector"}
+
+
+def _decision_rows(p: dict, count) -> list[tuple[str, str]]:
+    """The reconstruction's decision (``p["decision"]``) and the size, as summary rows."""
+    d = p["decision"]
+    ky, kx = d["lateral_subdivision"]
+    nz, ny, nx = d["working_shape"]
+    return [("projector", f"{_PROJECTOR_NAMES[d['projector']]}, lateral subdivision "
+                          f"{ky} x {kx}: {nx} x {ny} x {nz} working voxels (x, y, z), "
+                          f"~{_fmt(d['memory_gb'])} GB (what plenopiv reconstruct runs)"),
+            ("", f"why: {d['reason']}"),
+            ("size", f"{count(p['n_rays'])} rays; explicit weights on the working grid "
+                     + ("hold " if d["projector"] == "sparse" else "would hold ")
+                     + f"{count(p['nnz'])} non-zeros")]

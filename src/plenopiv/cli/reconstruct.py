@@ -26,8 +26,10 @@ def cmd_reconstruct(args) -> dict:
     """Reconstruct one image into a volume with its particle table."""
     from plenopiv.config.experiment import load_experiment
     from plenopiv.products.images import read_image
+    from plenopiv.products.jsonio import dumps
     from plenopiv.resources import check_grid
     from plenopiv.workflow.experiment import experiment_calibration
+    from plenopiv.workflow.preprocess import ATTRIBUTE, ImagePreparation, union
     from plenopiv.workflow.volume import reconstruct_volume
 
     exp = load_experiment(args.config)
@@ -36,24 +38,29 @@ def cmd_reconstruct(args) -> dict:
                      beside=(".png",) if exp.output.png else ())
     cal = experiment_calibration(exp, args.calibration)
     check_grid(exp.volume)
+    ImagePreparation.refuse_batch_background(exp)
     img = read_image(args.image)
     t0 = time.perf_counter()
     from plenopiv.workflow.masks import image_mask
 
+    preparation = ImagePreparation(exp, cal)
+    prepared = preparation.image(img, name=f"image {str(args.image)!r}")
+    record = preparation.record({"image": prepared.figures})
     stages = {"weights": 30, "mart": 60, "particles": 10}
     with _StageBar("reconstruct", stages, args.quiet or args.json) as progress:
         cache = exp.output.weights_cache
-        res = reconstruct_volume(cal, img, exp.volume, settings=exp.reconstruction,
+        res = reconstruct_volume(cal, prepared.image, exp.volume, settings=exp.reconstruction,
                                  particles=exp.particles, progress=progress,
                                  cache_dir=(exp.path(cache) if cache else None),
-                                 image_mask=image_mask(exp.mask, cal.camera.sensor.shape,
-                                                       exp.base_dir))
+                                 image_mask=union(image_mask(exp.mask, cal.camera.sensor.shape,
+                                                             exp.base_dir), prepared.mask),
+                                 checked=True)
     res.save(out, config={**exp.to_dict(), "calibration": str(args.calibration),
-                          "image": str(args.image)})
+                          "image": str(args.image)}, extra_attrs={ATTRIBUTE: dumps(record)})
     summary = {"command": "reconstruct", "out": str(out), "shape": list(res.volume.shape),
                "n_particles": len(res.particle_position),
                "depth_correction": res.correction.to_dict(),
-               "image_distance_mm": cal.image_distance * 1e3,
+               "image_distance_mm": cal.image_distance * 1e3, "preprocess": record,
                "timings_s": {k: round(v, 3) for k, v in res.timings.items()}}
     if exp.output.png:
         from plenopiv.products.figures import volume_slices

@@ -25,14 +25,14 @@ def add_parser(sub) -> None:
 
 def cmd_run(args) -> dict:
     """Many pairs end to end on dask (local processes, SLURM, or a running scheduler)."""
-    from plenopiv.batch import BatchInterrupted, check_batch_options, run_batch
+    from plenopiv.batch import BatchInterrupted, check_batch_options, pending_jobs, run_batch
     from plenopiv.batch.cluster import batch_options
     from plenopiv.batch.jobs import discover_pairs
     from plenopiv.config.experiment import load_experiment
     from plenopiv.errors import ComputationError
     from plenopiv.resources import check_grid
     from plenopiv.workflow.experiment import experiment_calibration
-    from plenopiv.workflow.worker import ExperimentPairProcess, prepare_weights
+    from plenopiv.workflow.worker import ExperimentPairProcess, prepare_response, prepare_weights
 
     _integer("--workers", args.workers, minimum=1, maximum=4096)
     exp = load_experiment(args.experiment)
@@ -61,13 +61,25 @@ def cmd_run(args) -> dict:
     _check_products_spare_inputs(jobs, [args.experiment, cal_path])
     cal = experiment_calibration(exp, cal_path)
     check_grid(exp.volume)
-    jobs = _with_identities(jobs, exp, cal_path)
+    background, n_background = _batch_background(exp, jobs, cal, out_dir)
+    jobs = _with_identities(jobs, exp, cal_path, background)
     # explicit weights go into the weights cache once, before the workers start; each worker
     # then makes its projector once, for all its pairs
     hit, weights_s = prepare_weights(exp, cal)
+    # the chain's response, once per experiment, before the pairs fan out to the workers
+    response, response_info = None, None
+    if pending_jobs(jobs, resume=args.resume):
+        estimate = {}
+        response = prepare_response(exp, cal, announce=lambda weights: _announce_response(
+            exp, cal, weights, estimate, quiet=args.quiet or args.json))
+        if response is not None:
+            response_info = {**response.summary(), **estimate}
     process = ExperimentPairProcess(str(Path(args.experiment).resolve()), str(cal_path.resolve()),
-                                    str(out_dir))
-    head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit}
+                                    str(out_dir), response=response,
+                                    background=None if background is None else str(background),
+                                    background_images=n_background)
+    head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit,
+            "response": response_info}
     try:
         summary = run_batch(jobs, process, resume=args.resume,
                             progress=not (args.quiet or args.json), **opts)
@@ -76,6 +88,7 @@ def cmd_run(args) -> dict:
         raise
     result = {**head, "weights_s": round(weights_s, 3) if not hit else 0.0,
               **summary.to_dict()}
+    _repeat_image_warnings(summary)
     if summary.failed:
         names = ", ".join(f"{n} ({e})" for n, e in summary.failed[:3])
         more = "" if len(summary.failed) <= 3 else f" and {len(summary.failed) - 3} more"
@@ -84,6 +97,47 @@ def cmd_run(args) -> dict:
         err.summary = result
         raise err
     return result
+
+
+def _announce_response(exp, cal, weights, estimate: dict, *, quiet: bool) -> None:
+    """Estimate the response's measurement (into ``estimate``) and say it is starting.
+
+    The estimate is :func:`plenopiv.workflow.planning.plan`'s, on the light field the
+    ``weights`` were built from.
+    """
+    import sys
+
+    from plenopiv.workflow import planning
+
+    seconds = planning.plan(cal.camera, exp.volume, reconstruction=exp.reconstruction,
+                            piv=exp.piv, calibration=cal, geometry=weights.geometry).response_s
+    estimate["estimate_s"] = round(seconds, 1)
+    if not quiet:
+        print(f"measuring the chain's response: once per experiment, about {seconds:.0f} s "
+              "([piv] uncertainty = \"response\"; the pairs start after it)", file=sys.stderr,
+              flush=True)
+#: Image warnings of a batch's pairs repeated at the command line; the others are counted.
+SHOWN_IMAGE_WARNINGS = 5
+
+
+def _repeat_image_warnings(summary) -> None:
+    """Repeat the warnings the pairs' images got (in the workers) as this command's own.
+
+    The first :data:`SHOWN_IMAGE_WARNINGS`, then one line counting the rest; every one stays
+    in ``batch_summary.json`` (``results[].result.warnings``).
+    """
+    import warnings
+
+    from plenopiv.errors import PlenopivWarning
+
+    said = [(r.name, w) for r in summary.results if r.result
+            for w in r.result.get("warnings", ())]
+    for name, w in said[:SHOWN_IMAGE_WARNINGS]:
+        warnings.warn(f"pair {name}: {w}", PlenopivWarning, stacklevel=3)
+    if len(said) > SHOWN_IMAGE_WARNINGS:
+        warnings.warn(f"{len(said) - SHOWN_IMAGE_WARNINGS} more warnings about the batch's "
+                      f"images; see {summary.summary_path} (results[].result.warnings)",
+                      PlenopivWarning, stacklevel=3)
 
 
 def _check_products_spare_inputs(jobs, others) -> None:
@@ -106,11 +160,44 @@ def _check_products_spare_inputs(jobs, others) -> None:
                                   "batch's inputs; choose another [output] directory")
 
 
-def _with_identities(jobs, exp, cal_path):
+def _batch_background(exp, jobs, calibration, out_dir):
+    """The batch's background of ``[preprocess] background = "minimum"`` or ``"mean"``.
+
+    Formed once over every image of the batch (both exposures of each pair) before the pairs
+    fan out, and written as ``OUT/background_KIND.tif`` (float32 counts) for the workers;
+    returns ``(its path, the number of images)``, or ``(None, 0)``. The ``[preprocess]``
+    files are read and checked here either way, so that a bad dark or white is refused
+    before any pair runs.
+    """
+    import numpy as np
+
+    from plenopiv.products.images import write_image
+    from plenopiv.workflow.preprocess import ImagePreparation, form_batch_background
+
+    pre = exp.preprocess
+    if pre is None:
+        return None, 0
+    kind = pre.background_kind
+    background, n, path = None, 0, None
+    if kind in ("minimum", "mean"):
+        specs = [s for j in jobs for s in (j.image_a, j.image_b)]
+        background, n = form_batch_background(specs, kind)
+    ImagePreparation(exp, calibration, batch_background=background)
+    if background is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        path = write_image(out_dir / f"background_{kind}.tif", background.astype(np.float32),
+                           metadata={"product": "batch background", "kind": kind,
+                                     "images": n})
+    return path, n
+
+
+def _with_identities(jobs, exp, cal_path, background=None):
     """Give each job the identity of what makes its product.
 
     The identity holds the experiment's settings, the calibration file and the two images
-    (content hashes); resume recomputes a product made from anything else.
+    (content hashes), and with a ``[preprocess]`` table its dark, white and background
+    (content hashes; the batch's own background, ``background``, too); resume recomputes a
+    product made from anything else.
     """
     from dataclasses import replace
 
@@ -118,6 +205,13 @@ def _with_identities(jobs, exp, cal_path):
     from plenopiv.workflow.experiment import settings_identity
 
     common = {"settings": settings_identity(exp), "calibration": file_identity(cal_path)}
+    pre = exp.preprocess
+    if pre is not None:
+        files = {"dark": pre.dark, "white": pre.white, "background": pre.background_path}
+        ids = {k: file_identity(exp.path(v)) for k, v in files.items() if v is not None}
+        if background is not None:
+            ids["background"] = file_identity(background)
+        common["preprocess"] = ids
     return [replace(j, identity={**common, "image_a": file_identity(j.image_a),
                                  "image_b": file_identity(j.image_b)}) for j in jobs]
 
@@ -147,4 +241,11 @@ def print_summary(s: dict) -> None:
     weights = ("from the cache" if s.get("weights_from_cache")
                else f"built in {s.get('weights_s', 0.0):.1f} s")
     print(f"weights: {weights}")
+    r = s.get("response")
+    if r:
+        how = ("from the cache" if r.get("from_cache") else
+               f"measured once in {r['seconds']:.1f} s"
+               + (f" (estimated {r['estimate_s']:.0f} s)" if "estimate_s" in r else ""))
+        print(f"response: {how}, {r['n_particles']} particles per test pair, shared by every "
+              "pair")
     print(f"products: {s['out']}  (summary: {s.get('summary_path')})")

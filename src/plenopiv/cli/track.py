@@ -31,25 +31,30 @@ def cmd_track(args) -> dict:
     """Particle tracks of one pair: ray-bundle positions matched with the PIV predictor."""
     from plenopiv.config.experiment import load_experiment
     from plenopiv.products.images import read_image
+    from plenopiv.products.jsonio import dumps
     from plenopiv.products.tracks import save_track_products
     from plenopiv.products.vectors import load_vectors
     from plenopiv.products.volume import load_volume
     from plenopiv.workflow.experiment import experiment_calibration
+    from plenopiv.workflow.preprocess import ATTRIBUTE, ImagePreparation
     from plenopiv.workflow.tracking import track_images
 
     out = _check_out(args.out, (".h5",))
     exp = load_experiment(args.config)
     cal = experiment_calibration(exp, args.calibration)
+    ImagePreparation.refuse_batch_background(exp)
     ia, ib = read_image(args.image_a), read_image(args.image_b)
     t0 = time.perf_counter()
     va = load_volume(args.volume_a) if args.volume_a else None
     vb = load_volume(args.volume_b) if args.volume_b else None
     vec = load_vectors(args.vectors) if args.vectors else None
-    tracks, va, vb, vec, timings = track_images(cal, ia, ib, exp, volume_a=va, volume_b=vb,
-                                                vectors=vec)
+    tracks, va, vb, vec, timings, pre = track_images(
+        cal, ia, ib, exp, volume_a=va, volume_b=vb, vectors=vec,
+        names=(f"image {str(args.image_a)!r}", f"image {str(args.image_b)!r}"))
     cfg = {**exp.to_dict(), "calibration": str(args.calibration),
            "image_a": str(args.image_a), "image_b": str(args.image_b)}
-    paths = save_track_products(tracks, vec, out, config=cfg, vtk=exp.output.vtk)
+    paths = save_track_products(tracks, vec, out, config=cfg, vtk=exp.output.vtk,
+                                extra_attrs={ATTRIBUTE: dumps(pre)})
     d = tracks.displacement
     return {"command": "track", "out": str(out), "n_tracks": len(tracks),
             "n_particles_a": len(va.particle_position), "n_particles_b": len(vb.particle_position),
@@ -58,4 +63,5 @@ def cmd_track(args) -> dict:
                                      if len(tracks) else None),
             "max_displacement_m": np.abs(d).max(axis=0).tolist() if len(d) else None,
             "files": paths, "timings_s": {k: round(v, 3) for k, v in timings.items()},
+            "preprocess": pre,
             "seconds": round(time.perf_counter() - t0, 3)}

@@ -27,8 +27,9 @@ from plenopiv.camera.model import CameraModel, camera_from_dict, load_camera, re
 from plenopiv.errors import ConfigError
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.piv.settings import PIVSettings
+from plenopiv.preprocess.settings import PreprocessSettings
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.settings import StrictModel, as_dict, format_validation_error
+from plenopiv.settings import StrictModel, as_dict, format_validation_error, validate_table
 from plenopiv.tracking.settings import TrackingSettings
 
 __all__ = ["Experiment", "experiment_from_dict", "load_experiment"]
@@ -171,6 +172,7 @@ class _ExperimentCfg(StrictModel):
     output: OutputConfig = OutputConfig()
     tracking: TrackingSettings = TrackingSettings()
     mask: MaskConfig = MaskConfig()
+    preprocess: PreprocessSettings | None = None
 
 
 @dataclass(frozen=True)
@@ -189,6 +191,7 @@ class Experiment:
     source: dict = field(default_factory=dict, compare=False, repr=False)
     tracking: TrackingSettings = TrackingSettings()
     mask: MaskConfig = MaskConfig()
+    preprocess: PreprocessSettings | None = None
 
     def path(self, relative: str | None) -> Path | None:
         """Return a path of the config, resolved against the experiment file's folder."""
@@ -202,14 +205,15 @@ class Experiment:
         tables = ("reconstruction", "particles", "piv", "images", "batch", "output",
                   "tracking", "mask")
         return {"camera": self.camera.to_dict(), "volume": self.volume.to_dict(),
-                **{name: as_dict(getattr(self, name)) for name in tables}}
+                **{name: as_dict(getattr(self, name)) for name in tables},
+                "preprocess": None if self.preprocess is None else as_dict(self.preprocess)}
 
 
 def experiment_from_dict(cfg: dict, *, base_dir: Path = Path("."),
                          source: str = "experiment config") -> Experiment:
     """Validate an experiment config dictionary and resolve the camera and the grid."""
     try:
-        c = _ExperimentCfg.model_validate(cfg)
+        c = validate_table(_ExperimentCfg, cfg, source)
     except ValidationError as exc:
         raise ConfigError(format_validation_error(exc, source, _ExperimentCfg)) from None
     if isinstance(c.camera, dict):
@@ -220,7 +224,8 @@ def experiment_from_dict(cfg: dict, *, base_dir: Path = Path("."),
         camera = load_camera(cand if cand.exists() else c.camera)
     grid = volume_from_dict(c.volume, source=source)
     return Experiment(camera, grid, c.reconstruction, c.particles, c.piv, c.images, c.batch,
-                      c.output, base_dir, cfg, tracking=c.tracking, mask=c.mask)
+                      c.output, base_dir, cfg, tracking=c.tracking, mask=c.mask,
+                      preprocess=c.preprocess)
 
 
 def load_experiment(path: str | Path) -> Experiment:

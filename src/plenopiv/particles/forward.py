@@ -394,8 +394,8 @@ def _local_fit(ptr, u, xf, v, amp, start, geom, excess, scale, bounds, offsets, 
 
     Twin of ``plenopiv.particles._bundle_kernels.local_fit``: from each of
     ``start + (0, 0, offset)`` (``offsets`` metres), in the parameters scaled by
-    ``scale = (sx, sz)`` metres, damped
-    Gauss-Newton steps ``(J^T J + lam diag J^T J) d = -J^T r`` clipped to one unit per axis,
+    ``scale = (sx, sz)`` metres, damped Gauss-Newton steps
+    ``(J^T J + lam diag J^T J) d = -J^T r`` clipped to one unit per axis,
     the position kept within ``start +- bounds`` (lateral, depth; metres); a step is taken
     when the misfit drops (lam / 3, done once the step is below 1e-3 units), refused
     otherwise (lam x 4, done beyond 1e6), at most ``iterations`` times. Returns the end of

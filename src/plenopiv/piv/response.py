@@ -12,12 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plenopiv.piv.settings import RESPONSE_DISPLACEMENTS
+from plenopiv.piv.settings import RESPONSE_DISPLACEMENTS, RESPONSE_PARTICLES_PER_LENSLET
 
 __all__ = [
     "DEPTH_SHIFTS",
     "LATERAL_SHIFTS",
     "RESPONSE_DISPLACEMENTS",
+    "RESPONSE_PARTICLES_PER_LENSLET",
     "RESPONSE_VERSION",
     "SEPARATING_SHIFTS",
     "Response",
@@ -62,6 +63,7 @@ and ``w`` vary: three pairs give every component along every axis."""
 
 
 RESPONSE_VERSION = 10
+
 
 
 def lateral_edge(shape) -> np.ndarray:

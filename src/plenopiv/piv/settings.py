@@ -35,6 +35,19 @@ UNCERTAINTY_METHODS = ("response", "correlation")
 RESPONSE_DISPLACEMENTS = (1, 3)
 """Valid values of :attr:`PIVSettings.response_displacements`."""
 
+RESPONSE_PARTICLES_PER_LENSLET = 0.15
+"""Default seeding of the response's test pairs, particles per lenslet: the density the
+validations were run at (docs/validation/vortex.md, uncertainty.md)."""
+
+MAX_RESPONSE_PARTICLES_PER_LENSLET = 10.0
+"""Largest seeding of the response's test pairs, particles per lenslet."""
+
+def _is_number(value) -> bool:
+    """A real number that is not a boolean (``True`` is no threshold)."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_))
+
+
 def _as_window(value, name):
     """Return one window as a ``(wz, wy, wx)`` tuple of int, or raise ValueError."""
     if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
@@ -146,6 +159,12 @@ class PIVSettings:
         ``RESPONSE_DISPLACEMENTS``: 3 (fractions 0.5, 1.25 and 1.75 of a lenslet footprint
         laterally with 0.1, 0.25 and 0.5 depth resolution cells, the two axes apart, and the
         modulated pairs of the curvature term) or 1 (the middle one alone).
+    response_particles_per_lenslet : float
+        Seeding of the ``"response"`` uncertainty's test pairs, particles per lenslet of the
+        field of view: this density times the lenslets the box covers, through the whole box.
+        The response is measured once per experiment and shared by all its pairs, so it
+        follows this setting, never a pair's own particle count: set it to the experiment's
+        nominal seeding (default :data:`RESPONSE_PARTICLES_PER_LENSLET`).
 
     Raises
     ------
@@ -182,6 +201,7 @@ class PIVSettings:
     broad_peaks: bool = True
     uncertainty: str = "response"
     response_displacements: int = 3
+    response_particles_per_lenslet: float = RESPONSE_PARTICLES_PER_LENSLET
 
     def __post_init__(self):
         w = self.windows
@@ -211,7 +231,7 @@ class PIVSettings:
             )
         object.__setattr__(self, "passes", int(passes))
 
-        if not (isinstance(self.overlap, (int, float)) and 0.0 <= self.overlap < 1.0):
+        if not (_is_number(self.overlap) and 0.0 <= self.overlap < 1.0):
             raise ValueError(
                 f"overlap = {self.overlap!r}: expected a fraction with 0 <= overlap < 1"
             )
@@ -225,13 +245,13 @@ class PIVSettings:
                 f"deformation_order = {self.deformation_order!r}: "
                 f"expected one of {DEFORMATION_ORDERS}"
             )
-        if not (isinstance(self.median_threshold, (int, float)) and self.median_threshold > 0):
+        if not (_is_number(self.median_threshold) and self.median_threshold > 0):
             raise ValueError(
                 f"median_threshold = {self.median_threshold!r}: expected a number > 0 "
                 "(2.0 is the usual value)"
             )
         eps = self.median_epsilon_vox
-        if not (isinstance(eps, (int, float)) and math.isfinite(eps) and eps >= 0):
+        if not (_is_number(eps) and math.isfinite(eps) and eps >= 0):
             raise ValueError(
                 f"median_epsilon_vox = {eps!r}: expected a finite number of voxels >= 0 (e.g. 0.1)"
             )
@@ -252,6 +272,13 @@ class PIVSettings:
         if isinstance(n, bool) or n not in RESPONSE_DISPLACEMENTS:
             raise ValueError(
                 f"response_displacements = {n!r}: expected one of {RESPONSE_DISPLACEMENTS}"
+            )
+        ppl = self.response_particles_per_lenslet
+        if not (_is_number(ppl) and 0 < ppl <= MAX_RESPONSE_PARTICLES_PER_LENSLET):
+            raise ValueError(
+                f"response_particles_per_lenslet = {ppl!r}: expected particles per lenslet "
+                f"> 0 and <= {MAX_RESPONSE_PARTICLES_PER_LENSLET:g} (the experiment's nominal "
+                "seeding)"
             )
 
     def window_vox(self, pass_index):

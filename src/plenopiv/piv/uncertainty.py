@@ -137,7 +137,7 @@ def unresolved_gradient_bias(disp, spacing, window, scale=None):
     fixed point :math:`d = P + \overline{u - P}`: the window averages of the flow's and of the
     predictor's curvature cancel, and only the mean error of the linear interpolation
     remains, :math:`-\sum_i (h_i^2/12)\, \partial_i^2 u` (half the one-window bias at 50 %
-    overlap; ``tests/test_uncertainty.py`` iterates the fixed point). A few passes do not
+    overlap; ``tests/piv/test_uncertainty.py`` iterates the fixed point). A few passes do not
     reach it for curvature on the scale of the vector spacing (the errors of a vortex core
     follow the one-window bias of the true field, docs/validation/uncertainty.md), so the
     one-window bias is kept as the bound.

@@ -97,11 +97,16 @@ def check_output_path(path: str | Path, *, suffixes: tuple[str, ...] | None = No
     regular file (a device), one of the command's ``inputs`` (same resolved path or the same
     file through a link), a parent that is a file, and a folder where no file can be created
     (probed by creating and deleting a temporary file: read-only mounts, /proc, /sys, no
-    permission). Nothing is left behind.
+    permission), and anything inside the installed package (its presets and sources are
+    never written). Nothing is left behind.
     """
     p = Path(path)
     if not str(path).strip():
         raise OutputError(f"{what} {str(path)!r}: expected a file name")
+    if _inside_package(p):
+        raise OutputError(f"{what} {str(path)!r} lies inside the installed plenopiv package "
+                          f"({PACKAGE_DIR}): write it elsewhere (e.g. a copy of a preset to "
+                          "edit: plenopiv presets NAME --out cam.toml)")
     if suffixes is not None and not folder and p.suffix.lower() not in suffixes:
         raise OutputError(f"{what} {str(path)!r}: expected a file ending in "
                           f"{' or '.join(suffixes)}")
@@ -128,6 +133,18 @@ def check_output_path(path: str | Path, *, suffixes: tuple[str, ...] | None = No
                               "overwritten; choose another output name")
     _probe_writable(p if folder else p.parent, what, str(path))
     return p
+
+
+#: The installed package's folder: nothing is ever written inside it.
+PACKAGE_DIR = Path(__file__).resolve().parents[1]
+
+
+def _inside_package(path: Path) -> bool:
+    """Whether ``path`` (resolved through links) lies inside :data:`PACKAGE_DIR`."""
+    try:
+        return path.resolve().is_relative_to(PACKAGE_DIR)
+    except (OSError, RuntimeError):
+        return False
 
 
 def _probe_writable(folder: Path, what: str, shown: str) -> None:
@@ -161,6 +178,26 @@ def file_identity(spec: str | Path) -> str:
     except OSError as exc:
         raise ImageError(f"input {str(path)!r} cannot be read: {_reason(exc)}") from None
     return h.hexdigest() + ("" if dataset is None else f":{dataset}")
+
+
+def check_input_file(path: str | Path, what: str, error=None) -> Path:
+    """``path`` as an existing regular file, else ``error`` (a PlenopivError class) naming it.
+
+    A folder, a named pipe, a socket or a device is refused before it is opened: reading a
+    pipe would wait for a writer that never comes.
+    """
+    from plenopiv.errors import ImageError
+
+    error = ImageError if error is None else error
+    p = Path(path)
+    if not p.exists():
+        raise error(f"{what} file {str(p)!r} not found")
+    if p.is_dir():
+        raise error(f"{what} file {str(p)!r} is a folder: expected a file")
+    if not p.is_file():
+        raise error(f"{what} file {str(p)!r} is not a regular file (a pipe, socket or "
+                    "device): expected a file")
+    return p
 
 
 def split_dataset_spec(spec: str | Path) -> tuple[Path, str | None]:

@@ -17,7 +17,7 @@ import numpy as np
 
 from plenopiv import __version__
 from plenopiv.errors import WriteError
-from plenopiv.products.files import atomic_path, write_failure
+from plenopiv.products.files import atomic_path, check_input_file, write_failure
 from plenopiv.products.jsonio import to_json
 
 CONVENTIONS = ("SI units; pixels (row, col) with the top-left pixel centre at (0, 0); "
@@ -32,9 +32,7 @@ def open_product(path: str | Path, product: str, error: type[Exception]) -> Iter
     ``KeyError``, ``ValueError``: a truncated file, a missing dataset or attribute) all raise
     ``error`` naming the file; an ``error`` raised inside the block passes unchanged.
     """
-    p = Path(path)
-    if not p.exists():
-        raise error(f"{product} file {str(p)!r} not found")
+    p = check_input_file(path, product, error)
     try:
         with h5py.File(p, "r") as fh:
             if fh.attrs.get("product") != product:

@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 
 from plenopiv.errors import ImageError, OutputError, PlenopivWarning
-from plenopiv.products.files import atomic_path, split_dataset_spec
+from plenopiv.products.files import atomic_path, check_input_file, split_dataset_spec
 from plenopiv.products.jsonio import dumps
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".h5", ".hdf5")
@@ -27,9 +27,40 @@ def read_image(spec: str | Path) -> np.ndarray:
     ImageError
         When the file is missing, unreadable, truncated or corrupt, or not a 2-D image.
     """
+    img = _read_array(spec)
+    if img.ndim != 2:
+        raise ImageError(f"image {str(spec)!r} has shape {img.shape}: expected a 2-D "
+                         "(rows, cols) image")
+    return img
+
+
+def read_frames(spec: str | Path, *, what: str = "frames") -> np.ndarray:
+    """Read one frame or a stack as ``(n, rows, cols)``, in the file's own dtype.
+
+    A TIFF (a multi-page TIFF is a stack), a PNG, or ``file.h5:/dataset`` holding a 2-D or
+    3-D array (frames along the first axis). ``what`` names the file in messages.
+
+    Raises
+    ------
+    ImageError
+        When the file is missing, unreadable, corrupt, or holds no 2-D or 3-D array.
+    """
+    try:
+        a = _read_array(spec)
+    except ImageError as exc:
+        raise ImageError(f"{what}: {exc}") from None
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3 or 0 in a.shape:
+        raise ImageError(f"{what} {str(spec)!r} has shape {a.shape}: expected one frame "
+                         "(rows, cols) or a stack (frames, rows, cols)")
+    return a
+
+
+def _read_array(spec: str | Path) -> np.ndarray:
+    """The array of an image file (TIFF pages stacked; a colour PNG averaged), checked real."""
     path, dataset = split_dataset_spec(spec)
-    if not path.exists():
-        raise ImageError(f"image file {str(path)!r} not found")
+    check_input_file(path, "image", ImageError)
     suffix = path.suffix.lower()
     try:
         if dataset is not None or suffix in (".h5", ".hdf5"):
@@ -59,9 +90,6 @@ def read_image(spec: str | Path) -> np.ndarray:
     _refuse_non_real(img, repr(str(spec)))
     if img.ndim == 3 and img.shape[-1] in (3, 4) and suffix == ".png":
         img = img[..., :3].mean(axis=-1)   # a colour PNG of a monochrome sensor
-    if img.ndim != 2:
-        raise ImageError(f"image {str(spec)!r} has shape {img.shape}: expected a 2-D "
-                         "(rows, cols) image")
     return img
 
 
@@ -204,4 +232,24 @@ def write_image(path: str | Path, image: np.ndarray, *, metadata: dict | None = 
             skimage.io.imsave(tmp, image, check_contrast=False, extension=".png")
         else:
             raise ImageError(f"output {str(p)!r}: expected a .tif/.tiff or .png file name")
+    return p
+
+
+def write_image_stack(path: str | Path, frames: np.ndarray, *,
+                      metadata: dict | None = None) -> Path:
+    """Write frames ``(n, rows, cols)`` atomically as one multi-page TIFF; return the path.
+
+    Each frame is one page; ``metadata`` is JSON in the first page's description.
+    """
+    p = Path(path)
+    stack = np.asarray(frames)
+    if p.suffix.lower() not in (".tif", ".tiff"):
+        raise OutputError(f"output {str(p)!r}: a stack of frames is written as .tif/.tiff")
+    if stack.ndim != 3:
+        raise ImageError(f"frames of shape {stack.shape}: expected (n, rows, cols)")
+    with atomic_path(p) as tmp:
+        import tifffile
+
+        tifffile.imwrite(tmp, stack, photometric="minisblack", metadata=None,
+                         description=dumps(metadata or {}))
     return p

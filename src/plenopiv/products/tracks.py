@@ -118,6 +118,6 @@ def save_track_products(tracks: TrackResult, vectors, out: str | Path, *,
     binned = bin_tracks(tracks, vectors)
     bfiles = binned.save(out.with_name(out.stem + "_binned.h5"), config=config, vtk=vtk,
                          extra_attrs={"source": "particle tracks binned on the PIV grid",
-                                      "snr_meaning": "tracks per cell"})
+                                      "snr_meaning": "tracks per cell", **(extra_attrs or {})})
     paths["binned"] = str(bfiles[0])
     return paths

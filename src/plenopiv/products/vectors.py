@@ -35,6 +35,24 @@ def check_dt(dt, what: str = "dt") -> float | None:
     return float(dt)
 
 
+#: Largest velocity a product holds, m/s: a dt that makes more of a displacement is wrong.
+MAX_VELOCITY_M_S = 1e12
+
+
+def check_velocity(u, v, w, dt) -> None:
+    """Refuse a ``dt`` that makes velocities beyond :data:`MAX_VELOCITY_M_S`, naming both."""
+    if dt is None:
+        return
+    with np.errstate(invalid="ignore"):
+        largest = max((float(np.nanmax(np.abs(np.asarray(c, float)), initial=0.0))
+                       for c in (u, v, w)), default=0.0)
+    if largest / dt > MAX_VELOCITY_M_S:
+        raise ConfigError(f"dt = {dt!r} s turns displacements of up to {largest:.3g} m into "
+                          f"velocities of {largest / dt:.3g} m/s (more than "
+                          f"{MAX_VELOCITY_M_S:.0e}): expected the time between the exposures "
+                          "in seconds")
+
+
 #: Per-vector quality arrays of the vectors product: name -> (dtype, units, long name).
 QUALITY = {
     "valid": (np.int8, "1", "1: valid vector; 0: rejected (see flag)"),
@@ -104,6 +122,7 @@ class VectorResult:
 
     def __post_init__(self):
         object.__setattr__(self, "dt", check_dt(self.dt, "VectorResult dt"))
+        check_velocity(self.u, self.v, self.w, self.dt)
         shape = np.shape(self.u)
         valid = np.asarray(self.valid, bool)
         defaults = {"peak_height": np.full(shape, np.nan),

@@ -1,73 +1,21 @@
-"""The working grid of a reconstruction: lateral subdivision, its weights, and the way back.
+"""The way back from a reconstruction's working grid to the volume's grid.
 
 A reconstruction on a ``[volume]`` grid runs on voxels ``ky × kx`` times finer laterally
-(:func:`lateral_subdivision`, :func:`subdivided_grid`), with the weights of that working grid
-(:func:`weights_for`: explicit and cached, or the matrix-free lattice projector), and its
-volume returns to the ``[volume]`` grid by :func:`merge_subdivided`.
+(:func:`plenopiv.reconstruction.choose.lateral_subdivision`); :func:`merge_subdivided` returns
+its volume to the ``[volume]`` grid, :func:`subdivision_of` finds the subdivision of given
+weights.
 """
 
 from __future__ import annotations
 
-import math
-import warnings
-from pathlib import Path
-
 import numpy as np
 
-from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
-from plenopiv.camera.resolution import footprint
 from plenopiv.errors import ReconstructionError
-from plenopiv.reconstruction.geometry import ProjectionGeometry
-from plenopiv.reconstruction.lattice import LatticeProjector
-from plenopiv.reconstruction.select import cached_weights
-from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.reconstruction.weights import Weights
+from plenopiv.reconstruction.choose import subdivided_grid
 
-__all__ = ["SUBDIVIDED_VOXEL_FOOTPRINTS", "footprint", "lateral_subdivision", "merge_subdivided",
-           "reconstruction_grid", "subdivided_grid", "subdivision_of", "weights_for"]
+__all__ = ["merge_subdivided", "subdivision_of"]
 
-
-#: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
-SUBDIVIDED_VOXEL_FOOTPRINTS = 1 / 3
-
-
-def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
-                        settings: ReconstructionSettings) -> tuple[int, int]:
-    """Subdivision ``(ky, kx)`` of the lateral voxels during the reconstruction.
-
-    ``settings.lateral_subdivision`` as given, or for ``"auto"`` the smallest k per axis for
-    which the working voxel is at most a third of a lenslet footprint (5 % slack, at most
-    :data:`~plenopiv.reconstruction.settings.MAX_SUBDIVISION`). Depth along a pixel's beam is told
-    apart by
-    the beams of the other views shifting sideways by a fraction of a footprint; voxels a
-    footprint wide hold those shifts in one voxel, and the reconstructed particle comes out
-    much longer in depth. A third of a footprint is where the depth gain stops growing with
-    k (docs/validation/vortex.md; docs/methods.md#lateral-subdivision).
-    """
-    from plenopiv.reconstruction.settings import MAX_SUBDIVISION
-
-    k = settings.lateral_subdivision
-    if k != "auto":
-        return int(k), int(k)
-    half = SUBDIVIDED_VOXEL_FOOTPRINTS * footprint(calibration.effective_camera)
-    return tuple(int(min(MAX_SUBDIVISION, max(1, math.ceil(d / half - 0.05))))
-                 for d in (grid.voxel[1], grid.voxel[0]))
-
-
-def subdivided_grid(grid: VolumeGrid, ky: int, kx: int) -> VolumeGrid:
-    """``grid`` with every voxel cut into ``ky × kx`` laterally (same box, same depth)."""
-    dx, dy, dz = grid.voxel
-    ox, oy, oz = grid.origin
-    nz, ny, nx = grid.shape
-    return VolumeGrid((ox - 0.5 * dx + 0.5 * dx / kx, oy - 0.5 * dy + 0.5 * dy / ky, oz),
-                      (dx / kx, dy / ky, dz), (nz, ny * ky, nx * kx))
-
-
-def reconstruction_grid(calibration: Calibration, grid: VolumeGrid,
-                        settings: ReconstructionSettings) -> VolumeGrid:
-    """The working grid of a reconstruction on ``grid`` (:func:`lateral_subdivision`)."""
-    return subdivided_grid(grid, *lateral_subdivision(calibration, grid, settings))
 
 
 def merge_subdivided(volume, ky: int, kx: int, *, kernel: str = "gaussian") -> np.ndarray:
@@ -107,6 +55,7 @@ def merge_subdivided(volume, ky: int, kx: int, *, kernel: str = "gaussian") -> n
     return v
 
 
+
 def subdivision_of(work: VolumeGrid, grid: VolumeGrid) -> tuple[int, int]:
     """``(ky, kx)`` when ``work`` is ``grid`` subdivided laterally, else ReconstructionError."""
     nz, ny, nx = grid.shape
@@ -121,62 +70,3 @@ def subdivision_of(work: VolumeGrid, grid: VolumeGrid) -> tuple[int, int]:
     raise ReconstructionError("the given weights were built for another volume grid (neither "
                               "the volume's grid nor a lateral subdivision of it)")
 
-
-def weights_for(calibration: Calibration, grid: VolumeGrid, settings: ReconstructionSettings,
-                cache_dir: str | Path | None = None, *, load: bool = True,
-                geometry: ProjectionGeometry | None = None) -> tuple[Weights | None, bool]:
-    """The weights a reconstruction on ``grid`` with ``settings`` uses: ``(weights, from_cache)``.
-
-    Explicit (cached in ``cache_dir``) or the matrix-free lattice projector, by
-    ``settings.projector``, on the laterally subdivided working grid
-    (:func:`reconstruction_grid`).
-
-    Row-action and block MART walk explicit rows, so ``"auto"`` keeps them explicit; SMART
-    on a subdivided grid takes the matrix-free projector where the lattice allows. With
-    ``lateral_subdivision = "auto"``, weights that would not fit in memory on a lattice the
-    matrix-free projector cannot take (rotated or hexagonal) fall back to a coarser
-    subdivision, with a warning, instead of failing. A grid whose arrays cannot fit in memory
-    is refused before anything is estimated. ``load=False`` only fills the cache: explicit
-    weights are built and saved unless cached, the matrix-free projector is not built, and
-    None comes back in place of the weights.
-
-    ``geometry`` (:class:`~plenopiv.reconstruction.geometry.ProjectionGeometry` of
-    ``calibration`` with ``settings.f_number`` and ``settings.min_lit``, on any grid) lends
-    its light field; by default one is made here. Either way the weights carry the geometry
-    of their working grid, so the light field is built at most once per reconstruction.
-    """
-    from plenopiv.resources import check_grid
-
-    check_grid(grid)
-    if geometry is None:
-        geometry = ProjectionGeometry.for_settings(calibration, grid, settings)
-    projector = settings.projector
-    if projector == "auto" and settings.method != "smart":
-        projector = "sparse"
-    ky, kx = lateral_subdivision(calibration, grid, settings)
-    if projector == "auto" and (ky, kx) != (1, 1):
-        # a subdivided grid has k² times the explicit weights; the matrix-free projector is
-        # quick to build and projects it much faster (docs/validation/vortex.md)
-        work = geometry.on_grid(subdivided_grid(grid, ky, kx))
-        if work.separable_axes is not None:
-            work.check_in_view()
-            if not load:
-                return None, False
-            lf = work.light_field
-            return Weights(LatticeProjector.from_light_field(lf, work.grid), lf.pixel,
-                           work.grid, work.key(1e-7), work), False
-    while True:
-        try:
-            return cached_weights(calibration, subdivided_grid(grid, ky, kx),
-                                  cache_dir=cache_dir, f_number=settings.f_number,
-                                  min_lit=settings.min_lit, projector=projector,
-                                  max_weights_gb=settings.max_weights_gb, load=load,
-                                  geometry=geometry)
-        except ReconstructionError as exc:
-            if (settings.lateral_subdivision != "auto" or max(ky, kx) == 1
-                    or "max_weights_gb" not in str(exc)):
-                raise
-            warnings.warn(f"lateral_subdivision = \"auto\": the weights of a {ky} x {kx} "
-                          f"subdivision do not fit ({exc}); trying "
-                          f"{max(1, ky - 1)} x {max(1, kx - 1)}", stacklevel=2)
-            ky, kx = max(1, ky - 1), max(1, kx - 1)

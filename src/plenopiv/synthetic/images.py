@@ -3,6 +3,12 @@
 Every function returns irradiance (float64, arbitrary units) with exactly the camera's sensor
 shape, ``image[row, col]`` as the sensor reads out. :func:`finish_image` turns irradiance into
 a recorded image (blur, photon noise, quantisation).
+
+Given a :class:`~plenopiv.synthetic.sensor.CameraInstance` (``instance=``), a render also
+carries that camera's lenslet throughputs and micro-image vignetting (applied to the traced
+irradiance), a particle image its light (depth profile, pulse energy, glow), and
+:func:`finish_image` records through its sensor (:mod:`plenopiv.synthetic.sensor`). Without
+one, or with one whose settings are all off, the images are the ideal ones, bit for bit.
 """
 
 from __future__ import annotations
@@ -14,6 +20,15 @@ from scipy import ndimage
 
 from plenopiv.camera.model import CameraModel
 from plenopiv.errors import ConfigError
+from plenopiv.synthetic.sensor import (
+    CameraInstance,
+    adc_full_scale,
+    glow_field,
+    optical_gain,
+    particle_peak_irradiance,
+    record,
+    sheet_illumination,
+)
 from plenopiv.synthetic.tracer import (
     Progress,
     render_lenslet_bundles,
@@ -25,7 +40,8 @@ from plenopiv.synthetic.tracer import (
 def focal_point_image(camera: CameraModel, *, f_number: float | None = None,
                       pupil_across: int = 15, cell_across: int = 2,
                       progress: Progress = None, splat: str = "bilinear", psf_px: float = 0.0,
-                      sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
+                      sensor_shift_px=(0.0, 0.0),
+                      instance: CameraInstance | None = None) -> np.ndarray:
     """Focal-point calibration image: a white sheet seen through the stopped-down lens.
 
     Parameters
@@ -50,6 +66,9 @@ def focal_point_image(camera: CameraModel, *, f_number: float | None = None,
     sensor_shift_px : (2,) float
         The sensor sits shifted so that the image content moves by ``(d_row, d_col)``
         pixels (default none).
+    instance : CameraInstance, optional
+        A real camera: its lenslet throughputs and micro-image vignetting
+        (:func:`~plenopiv.synthetic.sensor.optical_gain`) scale the irradiance.
 
     Notes
     -----
@@ -63,23 +82,66 @@ def focal_point_image(camera: CameraModel, *, f_number: float | None = None,
                           "for the camera's)")
     radius = camera.main_lens.focal_length / (f_number or camera.main_lens.f_number) / 2
     pupil = symmetric_disc_points(radius, pupil_across)
-    return render_lenslet_bundles(camera, pupil_points=pupil, cell_across=cell_across,
-                                  collimated=False, f_number=f_number, progress=progress,
-                                  splat=splat, psf_px=psf_px, sensor_shift_px=sensor_shift_px)
+    irr = render_lenslet_bundles(camera, pupil_points=pupil, cell_across=cell_across,
+                                 collimated=False, f_number=f_number, progress=progress,
+                                 splat=splat, psf_px=psf_px, sensor_shift_px=sensor_shift_px)
+    return _through_optics(camera, irr, instance, sensor_shift_px)
+
+
+def _through_optics(camera: CameraModel, irr: np.ndarray, instance: CameraInstance | None,
+                    sensor_shift_px) -> np.ndarray:
+    """``irr`` times the instance's optical gain (throughput, vignetting); as is without."""
+    if instance is None:
+        return irr
+    gain = optical_gain(camera, instance, sensor_shift_px=sensor_shift_px)
+    if gain is None:
+        return irr
+    irr *= gain
+    return irr
+
+
+#: Pupil samples per pixel across a micro-image in a white image (the splat of a regular
+#: grid of rays spaced 1/3 pixel ripples by less than 1 %).
+WHITE_SAMPLES_PER_PIXEL = 3.0
+
+
+def white_image(camera: CameraModel, *, f_number: float | None = None,
+                instance: CameraInstance | None = None, progress: Progress = None,
+                splat: str = "bilinear", psf_px: float = 0.0,
+                sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
+    """A white image for a flat field: a uniform white sheet seen at the recording's aperture.
+
+    The focal-point image (:func:`focal_point_image`) at ``f_number`` (default: the
+    camera's), its stop sampled finely enough (:data:`WHITE_SAMPLES_PER_PIXEL`) that every
+    micro-image is evenly lit: the micro-images of the recording with the natural vignetting
+    of the main lens and, given ``instance``, its lenslets' throughputs and vignetting.
+    """
+    n = camera.main_lens.f_number if f_number is None else f_number
+    if not (np.isfinite(n) and n > 0):
+        raise ConfigError(f"f_number = {f_number!r}: expected a finite number > 0 (or None "
+                          "for the camera's)")
+    diameter_px = (camera.microlens_array.sensor_distance * camera.main_lens.focal_length / n
+                   / camera.image_distance / camera.sensor.pixel_pitch)
+    across = max(15, int(np.ceil(WHITE_SAMPLES_PER_PIXEL * diameter_px)))
+    return focal_point_image(camera, f_number=n, pupil_across=across, progress=progress,
+                             splat=splat, psf_px=psf_px, sensor_shift_px=sensor_shift_px,
+                             instance=instance)
 
 
 def alignment_image(camera: CameraModel, *, cell_across: int = 8,
                     progress: Progress = None, splat: str = "bilinear", psf_px: float = 0.0,
-                    sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
+                    sensor_shift_px=(0.0, 0.0),
+                    instance: CameraInstance | None = None) -> np.ndarray:
     """Alignment image: collimated light along the axis, main lens removed (thesis §2.5).
 
     Each lenslet focuses its share a distance f_l behind it, under its own centre (an ideal
     lenslet makes that a point: give ``psf_px`` for the diffraction spot of a real one).
-    ``splat``, ``psf_px``, ``sensor_shift_px``: as in :func:`focal_point_image`.
+    ``splat``, ``psf_px``, ``sensor_shift_px``, ``instance``: as in :func:`focal_point_image`.
     """
-    return render_lenslet_bundles(camera, pupil_points=None, cell_across=cell_across,
-                                  collimated=True, progress=progress, splat=splat,
-                                  psf_px=psf_px, sensor_shift_px=sensor_shift_px)
+    irr = render_lenslet_bundles(camera, pupil_points=None, cell_across=cell_across,
+                                 collimated=True, progress=progress, splat=splat,
+                                 psf_px=psf_px, sensor_shift_px=sensor_shift_px)
+    return _through_optics(camera, irr, instance, sensor_shift_px)
 
 
 def field_of_view(camera: CameraModel, depth: float = 0.0) -> tuple[float, float]:
@@ -127,10 +189,12 @@ class Ruler:
 def ruler_image(camera: CameraModel, ruler: Ruler = Ruler(), *, rays_per_lenslet: int = 2000,
                 emitters_per_lenslet: int = 4, f_number: float | None = None, seed: int = 0,
                 progress: Progress = None, splat: str = "bilinear", psf_px: float = 0.0,
-                sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
+                sensor_shift_px=(0.0, 0.0),
+                instance: CameraInstance | None = None) -> np.ndarray:
     """Image of a ruler (:class:`Ruler`) filling the field of view at ``ruler.depth``.
 
-    ``splat``, ``psf_px``, ``sensor_shift_px``: as in :func:`focal_point_image`.
+    ``splat``, ``psf_px``, ``sensor_shift_px``, ``instance``: as in
+    :func:`focal_point_image`.
 
     The ruler plane is tiled with small square emitting cells (``emitters_per_lenslet`` per
     lenslet footprint along each axis); each ray starts at a random point of its cell, so the
@@ -149,17 +213,19 @@ def ruler_image(camera: CameraModel, ruler: Ruler = Ruler(), *, rays_per_lenslet
     src = camera.volume_to_camera(pts)
     samples = max(1, int(round(rays_per_lenslet / max(1, emitters_per_lenslet) ** 2)))
     weights = np.full(len(src), 1.0 / max(1, emitters_per_lenslet) ** 2)
-    return render_sources(camera, src, weights, samples=samples, seed=seed,
-                          half_size=(cell / 2, cell / 2),
-                          ruler=(ruler.spacing, ruler.tick_width, ruler.tick_reflectance),
-                          f_number=f_number, progress=progress, splat=splat, psf_px=psf_px,
-                          sensor_shift_px=sensor_shift_px)
+    irr = render_sources(camera, src, weights, samples=samples, seed=seed,
+                         half_size=(cell / 2, cell / 2),
+                         ruler=(ruler.spacing, ruler.tick_width, ruler.tick_reflectance),
+                         f_number=f_number, progress=progress, splat=splat, psf_px=psf_px,
+                         sensor_shift_px=sensor_shift_px)
+    return _through_optics(camera, irr, instance, sensor_shift_px)
 
 
 def particle_image(camera: CameraModel, positions, intensities=None, *,
                    rays_per_particle: int = 4096, f_number: float | None = None, seed: int = 0,
                    progress: Progress = None, splat: str = "bilinear", psf_px: float = 0.0,
-                   sensor_shift_px=(0.0, 0.0)) -> np.ndarray:
+                   sensor_shift_px=(0.0, 0.0), instance: CameraInstance | None = None,
+                   pulse_energy: float = 1.0) -> np.ndarray:
     """Image of point particles.
 
     Parameters
@@ -178,6 +244,14 @@ def particle_image(camera: CameraModel, positions, intensities=None, *,
         Fixes the aperture jitter; the image does not depend on the thread count.
     splat, psf_px, sensor_shift_px
         Rendering choices, as in :func:`focal_point_image`.
+    instance : CameraInstance, optional
+        A real camera and its light: each particle's intensity times the depth profile of
+        the light at its Z (:func:`~plenopiv.synthetic.sensor.sheet_illumination`), the
+        glow added (:func:`~plenopiv.synthetic.sensor.glow_field`), then the lenslets'
+        throughputs and vignetting.
+    pulse_energy : float
+        Energy of the light pulse relative to the first of a pair: scales the particles and
+        the glow (default 1).
 
     Notes
     -----
@@ -200,13 +274,23 @@ def particle_image(camera: CameraModel, positions, intensities=None, *,
     if w.shape != (len(pos),) or (w < 0).any() or not np.isfinite(w).all():
         raise ConfigError(f"particle intensities have shape {w.shape}: expected ({len(pos)},) "
                           "finite values >= 0")
+    if not (np.isfinite(pulse_energy) and pulse_energy > 0):
+        raise ConfigError(f"pulse_energy = {pulse_energy!r}: expected a finite number > 0")
     src = camera.volume_to_camera(pos)
     if (src[:, 2] >= -camera.main_lens.focal_length).any():
         raise ConfigError("a particle lies within one focal length of the main lens "
                           f"(Z <= {(-camera.main_lens.focal_length - camera.focal_plane_z):.4g} m)")
-    return render_sources(camera, src, w, samples=rays_per_particle, seed=seed,
-                          f_number=f_number, progress=progress, splat=splat, psf_px=psf_px,
-                          sensor_shift_px=sensor_shift_px)
+    if instance is not None and instance.settings.sheet_profile != "none":
+        w = w * sheet_illumination(pos[:, 2], instance.settings)
+    if pulse_energy != 1.0:
+        w = w * pulse_energy
+    irr = render_sources(camera, src, w, samples=rays_per_particle, seed=seed,
+                         f_number=f_number, progress=progress, splat=splat, psf_px=psf_px,
+                         sensor_shift_px=sensor_shift_px)
+    if instance is not None and instance.settings.glow > 0:
+        irr += (instance.settings.glow * pulse_energy
+                * particle_peak_irradiance(camera, f_number)) * glow_field(instance)
+    return _through_optics(camera, irr, instance, sensor_shift_px)
 
 
 NOISE_MODELS = ("none", "poisson")
@@ -236,10 +320,30 @@ def blurred(image, sigma_px: float) -> np.ndarray:
     return img
 
 
+def auto_exposure(irradiance, *, bit_depth: int | None = 16, peak_fraction: float = 0.8,
+                  blur_px: float = 0.0, sensor: CameraInstance | None = None) -> float:
+    """The exposure :func:`finish_image` chooses: counts per irradiance unit.
+
+    The brightest pixel (after the blur) maps to ``peak_fraction`` of the full scale: of the
+    file's (1.0 for float output), or with a sensor model of the ADC's above the black
+    level. Fix it from the first frame of a pair, so that the second's pulse energy shows.
+    """
+    img = np.asarray(irradiance, dtype=np.float64)
+    if blur_px > 0:
+        img = ndimage.gaussian_filter(img, blur_px, mode="constant")
+    if sensor is not None and sensor.settings.has_sensor:
+        full = adc_full_scale(sensor.settings, bit_depth) - sensor.settings.black_level_counts
+    else:
+        full = 1.0 if bit_depth is None else float(2 ** bit_depth - 1)
+    peak = img.max()
+    return peak_fraction * full / peak if peak > 0 else 1.0
+
+
 def finish_image(irradiance, *, exposure: float | None = None, blur_px: float = 0.0,
                  noise: str = "none", full_well: float = 20000.0, read_noise: float = 0.0,
                  bit_depth: int | None = 16, peak_fraction: float = 0.8,
-                 rng: np.random.Generator | None = None) -> np.ndarray:
+                 rng: np.random.Generator | None = None,
+                 sensor: CameraInstance | None = None) -> np.ndarray:
     """Turn irradiance into a recorded image.
 
     Parameters
@@ -258,6 +362,13 @@ def finish_image(irradiance, *, exposure: float | None = None, blur_px: float = 
         Integer quantisation (uint8/uint16, clipped at full scale), or None for float32.
     rng : numpy.random.Generator, optional
         Required for noise; pass a seeded generator for reproducible images.
+    sensor : CameraInstance, optional
+        A real camera whose settings have a sensor effect: the exposed signal is recorded by
+        :func:`~plenopiv.synthetic.sensor.record` (black level, fixed pattern, gain, shot
+        noise, hot and dead pixels, read noise ``sensor.settings.read_noise_counts``, ADC
+        saturation); the default exposure then maps the peak to ``peak_fraction`` of the
+        ADC's range above the black level. ``read_noise`` must then be 0. Without sensor
+        effects, as without ``sensor``.
     """
     if noise not in NOISE_MODELS:
         raise ConfigError(f"noise = {noise!r}: expected one of {NOISE_MODELS}")
@@ -272,6 +383,17 @@ def finish_image(irradiance, *, exposure: float | None = None, blur_px: float = 
     if exposure is not None and not (np.isfinite(exposure) and exposure > 0):
         raise ConfigError(f"exposure = {exposure!r}: expected a finite number > 0")
     img = np.asarray(irradiance, dtype=np.float64)
+    if sensor is not None and sensor.settings.has_sensor:
+        if read_noise > 0:
+            raise ConfigError("read_noise: give a sensor model's read noise as its "
+                              "read_noise_counts, not here")
+        if exposure is None:
+            exposure = auto_exposure(img, bit_depth=bit_depth, peak_fraction=peak_fraction,
+                                     blur_px=blur_px, sensor=sensor)
+        if blur_px > 0:
+            img = ndimage.gaussian_filter(img, blur_px, mode="constant")
+        return record(img * exposure, sensor, noise=noise, full_well=full_well,
+                      bit_depth=bit_depth, rng=rng)
     if blur_px > 0:
         img = ndimage.gaussian_filter(img, blur_px, mode="constant")
     full = 1.0 if bit_depth is None else float(2 ** bit_depth - 1)

@@ -10,6 +10,7 @@ from plenopiv.camera.model import CameraModel
 from plenopiv.errors import ConfigError
 from plenopiv.synthetic.flows import advect
 from plenopiv.synthetic.images import field_of_view, particle_image
+from plenopiv.synthetic.sensor import CameraInstance, particle_brightness
 from plenopiv.synthetic.tracer import Progress
 
 
@@ -94,23 +95,33 @@ class SyntheticPair:
 def simulate_pair(camera: CameraModel, flow, *, dt: float, box: SeedingBox, n_particles: int,
                   rng: np.random.Generator, rays_per_particle: int = 2048,
                   f_number: float | None = None, intensity_spread: float = 0.0,
-                  progress: Progress = None) -> SyntheticPair:
+                  progress: Progress = None,
+                  instance: CameraInstance | None = None) -> SyntheticPair:
     """Seed ``box``, move the particles with ``flow`` over ``dt`` and render both exposures.
 
-    ``intensity_spread`` is the relative standard deviation of particle brightness
-    (log-normal); 0 makes every particle equally bright.
+    ``intensity_spread`` is the standard deviation of the logarithm of particle brightness
+    (log-normal, median 1); 0 makes every particle equally bright. ``instance``: a real
+    camera and its light (:mod:`plenopiv.synthetic.sensor`): the brightness spread of its
+    settings (when ``intensity_spread`` is 0), its depth profile and glow, the second
+    exposure lit by ``pulse_ratio`` times the first's energy, its lenslets' throughputs and
+    vignetting.
     """
     if not (np.isfinite(dt) and dt > 0):
         raise ConfigError(f"dt = {dt!r} s: expected a finite time > 0")
     pa = random_particles(box, n_particles, rng)
     pb = advect(flow, pa, dt)
+    w = None
     if intensity_spread > 0:
         w = rng.lognormal(0.0, intensity_spread, len(pa))
-    else:
+    elif instance is not None:
+        w = particle_brightness(len(pa), instance.settings, rng)
+    if w is None:
         w = np.ones(len(pa))
     seed = int(rng.integers(2 ** 31))
+    pulse = 1.0 if instance is None else instance.settings.pulse_ratio
     ia = particle_image(camera, pa, w, rays_per_particle=rays_per_particle, f_number=f_number,
-                        seed=seed, progress=progress)
+                        seed=seed, progress=progress, instance=instance)
     ib = particle_image(camera, pb, w, rays_per_particle=rays_per_particle, f_number=f_number,
-                        seed=seed + 1, progress=progress)
+                        seed=seed + 1, progress=progress, instance=instance,
+                        pulse_energy=pulse)
     return SyntheticPair(ia, ib, pa, pb, w, dt)

@@ -1,19 +1,11 @@
 """A measured vector field against the truth: gain, bias, rms and correlation per component.
 
-One implementation serves ``plenopiv compare`` and the synthetic cases (``plenopiv demo``,
-``plenopiv validate``, :mod:`plenopiv.workflow.vortex_case`):
-
-- the truth at the vectors: a known flow evaluated at the window centres half-way between the
-  exposures (:func:`true_displacement`), or, where the flow is not known, the mean true
-  displacement of the particles inside each vector's interrogation window
-  (:func:`window_mean_displacement`), or another vectors product on the same grid;
-- the vectors used: valid, finite, their window inside the volume (:func:`inner_vectors`);
-- the figures (:func:`field_accuracy`): per component u, v, w the gain (least-squares slope
-  of measured on true, :func:`plenopiv.workflow.accuracy.gain_bias_rms`), bias, rms error,
-  correlation coefficient and true rms, in voxels of the field's grid (metres beside), over
-  all vectors and in equal bands of depth Z.
-
-:func:`compare_products` reads the two files of ``plenopiv compare``.
+One implementation serves ``plenopiv compare`` (:func:`compare_products`) and the synthetic
+cases (``plenopiv demo``, ``plenopiv validate``): the truth at the vectors
+(:func:`true_displacement` of a known flow, or :func:`window_mean_displacement` of the true
+particles, or another vectors product), the vectors used (:func:`inner_vectors`) and the
+figures per component, overall and in depth bands (:func:`field_accuracy`, on
+:func:`plenopiv.workflow.accuracy.gain_bias_rms`).
 """
 
 from __future__ import annotations

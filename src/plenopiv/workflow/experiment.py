@@ -55,14 +55,17 @@ def _describe(camera: CameraModel, image_distance: float | None) -> str:
 def product_settings(experiment) -> dict:
     """The settings of an experiment that shape a pair's products.
 
-    The camera, the grid, the reconstruction, particle, PIV and tracking tables, dt and the
-    side products (vtk, png). Not the image patterns, the batch, the folders or the weight cache.
+    The camera, the grid, the reconstruction, particle, PIV, tracking and preprocessing tables,
+    dt and the side products (vtk, png). Not the image patterns, the batch, the folders or the
+    weight cache (the preprocessing's files count by their content, in the batch's identities).
     """
     d = experiment.to_dict()
     return {"camera": d["camera"], "volume": d["volume"],
             "reconstruction": d["reconstruction"], "particles": d["particles"],
             "piv": d["piv"], "tracking": d.get("tracking"), "dt_s": d["images"].get("dt_s"),
-            "vtk": d["output"].get("vtk"), "png": d["output"].get("png")}
+            "vtk": d["output"].get("vtk"), "png": d["output"].get("png"),
+            # only with a [preprocess] table: experiments without one keep their identity
+            **({"preprocess": d["preprocess"]} if d.get("preprocess") is not None else {})}
 
 
 def settings_identity(experiment) -> str:

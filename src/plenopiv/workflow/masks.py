@@ -33,12 +33,11 @@ def read_mask(spec: str | Path, *, name: str = "mask") -> np.ndarray:
     ConfigError
         When the file is missing, unreadable or not numeric.
     """
-    from plenopiv.products.files import split_dataset_spec
+    from plenopiv.products.files import check_input_file, split_dataset_spec
     from plenopiv.products.images import read_image
 
     path, dataset = split_dataset_spec(spec)
-    if not path.exists():
-        raise ConfigError(f"{name} file {str(path)!r} not found")
+    check_input_file(path, name, ConfigError)
     suffix = path.suffix.lower()
     try:
         if suffix == ".npy":

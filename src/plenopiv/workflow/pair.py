@@ -6,6 +6,7 @@ Two volumes, their correlation, the per-vector uncertainty and the pair's produc
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -13,12 +14,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.errors import PIVError, ReconstructionError
+from plenopiv.errors import PIVError, PlenopivWarning, ReconstructionError
 from plenopiv.products.vectors import VectorResult, check_dt
 from plenopiv.products.volume import VolumeResult
-from plenopiv.reconstruction.subdivision import weights_for
+from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.weights import Weights
-from plenopiv.settings import as_dict
+from plenopiv.workflow.response import ExperimentResponse, experiment_response
 from plenopiv.workflow.volume import Progress, check_lattice, reconstruct_volume
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
@@ -55,6 +56,10 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
         raise ReconstructionError("the two volumes were reconstructed on different grids "
                                   f"(A: {text(result_a.grid)}; B: {text(result_b.grid)}): "
                                   "expected the same [volume] for both exposures")
+    if np.array_equal(result_a.volume, result_b.volume):
+        warnings.warn("the two volumes are identical (the same file or image twice?): the "
+                      "field is zero by construction and says nothing of the flow",
+                      PlenopivWarning, stacklevel=2)
     field = correlate_volumes(result_a.volume, result_b.volume, result_a.grid,
                               settings=settings, workers=workers, progress=progress, mask=mask)
     method = "correlation"
@@ -68,12 +73,19 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
 
 @dataclass(frozen=True)
 class PairResult:
-    """Everything one pair produced."""
+    """Everything one pair produced.
+
+    ``images``: the two exposures as the reconstruction saw them (preprocessed, B on A's
+    scale; :class:`~plenopiv.workflow.preprocess.PreparedImage`); ``preprocess``: what was
+    applied (the products' ``preprocess`` attribute).
+    """
 
     volume_a: VolumeResult
     volume_b: VolumeResult
     vectors: VectorResult
     timings: dict
+    images: tuple | None = None
+    preprocess: dict | None = None
 
 
 class PairProcessor:
@@ -82,20 +94,39 @@ class PairProcessor:
     ``processor(image_a, image_b)`` reconstructs both exposures, finds their particles,
     corrects the depths and correlates them, with the experiment's settings
     (:class:`~plenopiv.config.experiment.Experiment`). The weights (explicit, from the weights
-    cache, or the matrix-free projector) and the image and volume masks are made on first use
-    and kept for every later pair. Before the weights are made, the first pair's mean is
-    checked against the calibration (``[reconstruction] lattice_check``,
+    cache, or the matrix-free projector), the image and volume masks, the preprocessing's
+    frames (``[preprocess]``, :class:`~plenopiv.workflow.preprocess.ImagePreparation`) and the
+    chain's response (``[piv] uncertainty = "response"``, :meth:`response`) are made on first
+    use and kept for every later pair; a response measured before (``response``) is used as it
+    is. ``batch_background``, ``batch_record``: the batch's minimum or mean background and
+    what to record of it (``plenopiv run``). Before the weights are made, the first pair's
+    mean is checked against the calibration (``[reconstruction] lattice_check``,
     :func:`~plenopiv.workflow.volume.check_lattice`), and a corrected calibration replaces
     :attr:`calibration`.
     """
 
     def __init__(self, experiment, calibration: Calibration, *,
-                 weights: Weights | None = None):
+                 weights: Weights | None = None, response: ExperimentResponse | None = None,
+                 batch_background=None, batch_record: dict | None = None):
         self.experiment = experiment
         self.calibration = calibration
         self._weights = weights
         self._masks = None
+        self._response = response
+        self._preparation = None
+        self._batch = (batch_background, batch_record)
         self._checked = False
+
+    def preparation(self):
+        """The experiment's :class:`~plenopiv.workflow.preprocess.ImagePreparation` (made once)."""
+        if self._preparation is None:
+            from plenopiv.workflow.preprocess import ImagePreparation
+
+            background, record = self._batch
+            self._preparation = ImagePreparation(self.experiment, self.calibration,
+                                                 batch_background=background,
+                                                 batch_record=record)
+        return self._preparation
 
     def weights(self, progress: Progress = None) -> Weights:
         """The projector of every pair (built, or loaded from the weights cache, once)."""
@@ -119,9 +150,44 @@ class PairProcessor:
                            volume_mask(exp.mask, exp.volume, exp.base_dir))
         return self._masks
 
+    def response(self, *, workers=None, progress: Progress = None,
+                 announce=None) -> ExperimentResponse | None:
+        """The chain's response shared by every pair (None unless ``uncertainty = "response"``).
+
+        :func:`plenopiv.workflow.response.experiment_response`: from the response cache, or
+        measured once (``announce(weights)`` is called first), then kept.
+        """
+        if self.experiment.piv.uncertainty != "response":
+            return None
+        if self._response is None:
+            if progress is not None:
+                progress("response", 0.0)
+            from plenopiv.workflow.preprocess import union
+
+            img_mask, vol_mask = self.masks()
+            # the test pairs leave out what every real image leaves out (the white's mask)
+            img_mask = union(img_mask, self.preparation().static_mask)
+            self._response = experiment_response(
+                self.experiment, self.calibration, self.weights(progress),
+                self.experiment.piv, image_mask=img_mask, volume_mask=vol_mask,
+                workers=workers, announce=announce)
+        return self._response
+
+    def share_response(self, response: ExperimentResponse | None) -> None:
+        """Use ``response``, measured before (e.g. by the batch), unless one is kept already."""
+        if self._response is None:
+            self._response = response
+
     def __call__(self, image_a, image_b, *, progress: Progress = None,
-                 workers=None) -> PairResult:
-        """Images A and B -> two volumes -> particles -> corrections -> vectors."""
+                 workers=None, names=("image A", "image B")) -> PairResult:
+        """Images A and B -> preprocessing -> two volumes -> particles -> corrections -> vectors.
+
+        ``image_a``, ``image_b``: the exposures as recorded (counts); ``names``: how
+        warnings about them name them. ``timings``: ``reconstruct_s``, ``piv_s`` and, when
+        this pair got the chain's response (measured or read from the cache), ``response_s``.
+        """
+        from plenopiv.workflow.preprocess import union
+
         t0 = time.perf_counter()
         if self._weights is None and not self._checked:
             # the first pair's mean against the calibration, before the weights are made
@@ -129,26 +195,32 @@ class PairProcessor:
                                              self.experiment.reconstruction)
             self._checked = True
         exp, calibration = self.experiment, self.calibration
+        preparation = self.preparation()
+        pa, pb, norm = preparation.pair(image_a, image_b, names=names)
+        record = preparation.record({"A": pa.figures, "B": pb.figures}, norm)
         weights = self.weights(progress)
         img_mask, vol_mask = self.masks()
         kw = dict(settings=exp.reconstruction, particles=exp.particles, weights=weights,
-                  image_mask=img_mask)
-        va = reconstruct_volume(calibration, image_a, exp.volume, **kw,
+                  checked=True)
+        va = reconstruct_volume(calibration, pa.image, exp.volume, **kw,
+                                image_mask=union(img_mask, pa.mask),
                                 progress=_volume_progress(progress, "A"))
-        vb = reconstruct_volume(calibration, image_b, exp.volume, **kw,
+        vb = reconstruct_volume(calibration, pb.image, exp.volume, **kw,
+                                image_mask=union(img_mask, pb.mask),
                                 progress=_volume_progress(progress, "B"))
         t1 = time.perf_counter()
+        had_response = self._response is not None
+        measured = self.response(workers=workers, progress=progress)
+        t2 = time.perf_counter()
         if progress is not None:
             progress("piv", 0.0)
-        settings = exp.piv
-        response = None
-        if exp.piv.uncertainty == "response":
-            response = _response_of(calibration, weights, va, exp, settings, workers,
-                                    img_mask, vol_mask)
-        vec = correlate(va, vb, settings, dt=exp.images.dt_s, workers=workers,
+        response = None if measured is None else (lambda _field: measured.response)
+        vec = correlate(va, vb, exp.piv, dt=exp.images.dt_s, workers=workers,
                         mask=vol_mask, response=response, progress=_piv_progress(progress))
-        t2 = time.perf_counter()
-        return PairResult(va, vb, vec, {"reconstruct_s": t1 - t0, "piv_s": t2 - t1})
+        timings = {"reconstruct_s": t1 - t0, "piv_s": time.perf_counter() - t2}
+        if measured is not None and not had_response:
+            timings["response_s"] = t2 - t1
+        return PairResult(va, vb, vec, timings, images=(pa, pb), preprocess=record)
 
 
 def _piv_progress(progress: Progress):
@@ -187,67 +259,22 @@ def _volume_progress(progress: Progress, tag: str) -> Progress:
     return report
 
 
-def _response_of(calibration, weights, volume_a: VolumeResult, experiment, settings, workers,
-                 img_mask, vol_mask):
-    """``response(field)`` for :func:`correlate`: the chain's measured response.
-
-    :func:`plenopiv.workflow.response.measure_response` for this experiment, kept in the weights
-    cache (``[output] weights_cache``) under a key of everything it depends on.
-    """
-    from plenopiv.piv import correlate_volumes
-    from plenopiv.products.caches import cached_response, response_key
-    from plenopiv.workflow.response import measure_response
-
-    grid = volume_a.grid
-    # the seeding of the real pair, rounded to a power of two so that pairs share a response
-    n_found = max(len(volume_a.particle_position), 1)
-    n_particles = int(2 ** round(np.log2(n_found)))
-
-    def reconstruct(image):
-        return reconstruct_volume(calibration, image, grid, settings=experiment.reconstruction,
-                                  particles=experiment.particles, weights=weights,
-                                  image_mask=img_mask).volume
-
-    def correlate_pair(a, b):
-        return correlate_volumes(a, b, grid, settings=settings, workers=workers, mask=vol_mask)
-
-    def response(field):
-        key = response_key(weights.key, grid.key(), as_dict(experiment.reconstruction),
-                           as_dict(experiment.piv), n_particles,
-                           calibration.point_spread_sigma_px,
-                           None if img_mask is None else hashlib_of(img_mask),
-                           None if vol_mask is None else hashlib_of(vol_mask))
-        cache = experiment.output.weights_cache
-        path = experiment.path(cache) / f"response-{key[:24]}.json" if cache else None
-        resp, _ = cached_response(path, key, lambda: measure_response(
-            calibration, grid, volume_a.correction, reconstruct=reconstruct,
-            correlate=correlate_pair, n_particles=n_particles,
-            f_number=experiment.reconstruction.f_number,
-            displacements=experiment.piv.response_displacements))
-        return resp
-
-    return response
-
-
-def hashlib_of(array) -> str:
-    """A short hash of an array's bytes and shape (for cache keys)."""
-    import hashlib
-
-    a = np.ascontiguousarray(array)
-    return hashlib.sha256(a.tobytes() + str(a.shape).encode()).hexdigest()[:16]
-
-
 def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
               extra_attrs=None) -> dict:
     """Write a pair's products: ``NAME_vectors.h5`` (+ ``.vti``), the two volumes, PNGs.
 
     The vectors file is written last and marked complete, so that a batch can resume.
     """
+    from plenopiv.products.jsonio import dumps
+    from plenopiv.workflow.preprocess import ATTRIBUTE
+
     out = Path(out_dir)
     cfg = experiment.to_dict()
+    pre = {} if result.preprocess is None else {ATTRIBUTE: dumps(result.preprocess)}
     paths = {}
     for tag, vol in (("A", result.volume_a), ("B", result.volume_b)):
-        paths[f"volume_{tag}"] = str(vol.save(out / f"{name}_volume_{tag}.h5", config=cfg))
+        paths[f"volume_{tag}"] = str(vol.save(out / f"{name}_volume_{tag}.h5", config=cfg,
+                                              extra_attrs=pre))
     if experiment.output.png:
         from plenopiv.products.figures import vector_slices, volume_slices
 
@@ -259,7 +286,8 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
         paths["png_vectors"] = str(vector_slices(result.vectors, out / f"{name}_vectors.png",
                                                  title=f"pair {name}"))
     files = result.vectors.save(out / f"{name}_vectors.h5", config=cfg, vtk=experiment.output.vtk,
-                                extra_attrs={"complete": True, **(extra_attrs or {})})
+                                extra_attrs={"complete": True, **pre,
+                                             **(extra_attrs or {})})
     paths["vectors"] = str(files[0])
     if len(files) > 1:
         paths["vtk"] = str(files[1])

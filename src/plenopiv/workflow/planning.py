@@ -1,23 +1,20 @@
-"""Plan a reconstruction before running it (``plenopiv plan``).
+"""What a box costs before anything is reconstructed: ``plenopiv plan``.
 
-From a camera and a box, without reconstructing anything, :func:`plan` gives the resolution
-cell and the near-focus zone (docs/methods.md#resolution-cell), the recommended voxel and PIV
-windows scaled to the camera (:func:`recommended_voxel`, :func:`recommended_windows`),
-whether the windows fit the box and how many vectors each pass gives, and the size of the
-reconstruction (voxels, rays, non-zero weights, :func:`estimate_size`: the rays of one
-micro-image repeated at every lenslet, not a full light field), its memory and its time.
-Times come from rates: :func:`measure_rates` times the kernels on small samples in this
-process, :data:`BENCHMARK_RATES` stand in when measuring is not wanted; ``Plan.time_model``
-says which. Everything here is computation; printing belongs to :mod:`plenopiv.cli`.
+From a camera and a box, :func:`plan` gives the resolution cell and the near-focus zone
+(docs/methods.md#resolution-cell), the recommended voxel and PIV windows scaled to the camera
+(:func:`recommended_voxel`, :func:`recommended_windows`), whether the windows fit the box and
+how many vectors each pass gives, what the reconstruction will run (the reconstruction's own
+decision, :func:`plenopiv.reconstruction.choose.choose_reconstruction`), its memory and its
+time from :mod:`plenopiv.workflow.rates`, and the chain's response time. Everything here is
+computation; printing belongs to :mod:`plenopiv.cli`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
-import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,79 +23,65 @@ from plenopiv.camera.model import CameraModel
 from plenopiv.errors import ConfigError
 from plenopiv.piv.settings import PIVSettings
 from plenopiv.reconstruction.settings import ReconstructionSettings
+from plenopiv.workflow.rates import (
+    BENCHMARK_RATES,
+    Rates,
+    _ray_pattern,
+    _window_voxels,
+    vectors_per_pass,
+)
+
+if TYPE_CHECKING:
+    from plenopiv.reconstruction.choose import ReconstructionChoice
+
 
 #: Lateral voxel per lenslet footprint: half-footprint voxels remove the peak locking of
 #: footprint voxels (docs/validation/vortex.md).
 LATERAL_VOXEL_PER_FOOTPRINT = 0.5
+
+
 #: Depth voxel per depth cell (b S_o/D): the validated grid of docs/validation/vortex.md had a
 #: depth voxel of 1/4.4 cell; a particle then spans about four voxels in depth.
 DEPTH_VOXEL_PER_CELL = 0.25
+
+
 #: Windows (first pass, last pass) of the validated vortex runs, in lenslet footprints
 #: laterally and in depth cells in depth: 32 → 24 half-footprint voxels, 16 → 12 voxels of
 #: 1/4.4 cell in depth.
 WINDOW_FOOTPRINTS = (16.0, 12.0)
+
+
 WINDOW_DEPTH_CELLS = (3.6, 2.7)
+
+
 #: Seeding density of the validated runs, particles per lenslet.
 VALIDATED_PARTICLES_PER_LENSLET = 0.15
 
-#: Bytes of an explicit reconstruction per non-zero weight
-#: (:data:`plenopiv.reconstruction.select.BYTES_PER_NONZERO`).
-BYTES_PER_NONZERO = 20
+
 #: Bytes per ray while the light field is built (temporaries included; the traced peak of the
 #: Auburn camera's light field).
 BYTES_PER_RAY_LIGHT_FIELD = 250
-#: Bytes per voxel held by one reconstruction (volume, first guess, masks, MART corrections).
-BYTES_PER_VOXEL_RECONSTRUCT = 48
+
+
 #: Bytes per voxel held by the PIV of a pair (two volumes, deformed copies, spline
 #: coefficients, window spectra).
 BYTES_PER_VOXEL_PIV = 160
+
+
 #: The interpreter with numpy, scipy and numba loaded, bytes.
 BASE_BYTES = 0.3e9
+
+
 #: Bytes per ray held by the particle table's positions from the light field (``[particles]
 #: position = "light_field"``, the default: the lit rays, their lenslet table and the rays
 #: each particle's fit selects), on top of what the reconstruction holds: the traced peak of
 #: the 16 MP camera at 0.36 particles per lenslet (rotated array).
 BYTES_PER_RAY_PARTICLE_FIT = 30
+
+
 #: Seconds per ray of that fit on two threads, from the 16 MP camera at 0.36 particles per
 #: lenslet (``benchmarks/full_camera.py --track``).
 SECONDS_PER_RAY_PARTICLE_FIT = 4.1e-7
-
-
-@dataclass(frozen=True)
-class Rates:
-    """Seconds per unit of work, and where they come from.
-
-    build_s_per_nnz : building explicit weights (count + fill), per non-zero.
-    sweep_s_per_nnz : one forward plus one back projection with explicit weights, per non-zero.
-    sweep_s_per_call : the same, per sweep, whatever the non-zeros (the grid's voxels).
-    lattice_s_per_call, piv_s_per_call : the fixed cost of a lattice sweep, of a PIV.
-    lattice_s_per_ray_slice : one forward plus one back projection with the lattice projector,
-        per ray and depth slice.
-    piv_s_per_window_voxel : 3-D PIV, per window voxel correlated (summed over the windows of
-        every pass; the deformation of the volumes between passes included).
-    source : "measured" (in this process) or "benchmark".
-    threads : numba threads the rates were measured with.
-    """
-
-    build_s_per_nnz: float
-    sweep_s_per_nnz: float
-    lattice_s_per_ray_slice: float
-    piv_s_per_window_voxel: float
-    source: str
-    sweep_s_per_call: float = 0.0
-    lattice_s_per_call: float = 0.0
-    piv_s_per_call: float = 0.0
-    threads: int = 2
-
-
-#: Rates used without measuring (``plenopiv plan --no-measure``), on two threads: the explicit
-#: weights and sweeps timed by :func:`measure_rates` on the box of
-#: ``configs/experiments/small_test.toml``, the lattice projector and the PIV by
-#: ``benchmarks/full_camera.py`` (docs/performance.md, "Full-camera scale"). The explicit weights'
-#and : sweeps' rates are conservative: they were timed on a computer shared with other work.
-BENCHMARK_RATES = Rates(build_s_per_nnz=1.2e-7, sweep_s_per_nnz=1.5e-8, sweep_s_per_call=0.07,
-                        lattice_s_per_ray_slice=1.2e-9, piv_s_per_window_voxel=4e-8,
-                        source="benchmark", threads=2)
 
 
 @dataclass(frozen=True)
@@ -140,6 +123,8 @@ class Plan:
     warnings: tuple[str, ...] = ()
     advice: tuple[str, ...] = ()
     particles_per_lenslet: float = VALIDATED_PARTICLES_PER_LENSLET
+    decision: ReconstructionChoice | None = None
+    response_s: float = 0.0
 
     @property
     def fits(self) -> bool:
@@ -160,6 +145,14 @@ class Plan:
                 f"voxel_mm = [{vox}]\n\n"
                 "[piv]\n"
                 f"windows = [{win}]\n")
+
+    def _decision_dict(self) -> dict:
+        """The reconstruction's decision (:class:`ReconstructionChoice`) as plan reports it."""
+        d = self.decision
+        if d is None:
+            return {}
+        return {"decision": d.to_dict(), "lateral_subdivision": list(d.subdivision),
+                "working_shape": list(d.working_shape), "projector_kind": d.projector}
 
     def to_dict(self) -> dict:
         """Plain JSON values; lengths in mm, memory in GB, times in s."""
@@ -190,9 +183,11 @@ class Plan:
             "n_rays": self.n_rays,
             "nnz": self.nnz,
             "projector": self.projector,
+            **self._decision_dict(),
             "memory_gb": {k: v / 1e9 for k, v in self.memory.items()},
             "available_memory_gb": self.available_memory / 1e9,
             "time_s": dict(self.time),
+            "response_s": self.response_s,
             "time_model": self.time_model,
             "warnings": list(self.warnings),
             "advice": list(self.advice),
@@ -207,9 +202,6 @@ def _mm(mm: float) -> str:
     """Return a length in mm, short: 3 decimals at most, no trailing zeros."""
     s = f"{mm:.3f}".rstrip("0").rstrip(".")
     return "0" if s in ("-0", "") else s
-
-
-# ---- the camera ------------------------------------------------------------------------------
 
 
 def camera_resolution(camera: CameraModel, f_number: float | None = None) -> Camera:
@@ -267,39 +259,6 @@ def recommended_windows(cam: Camera, voxel, shape=None) -> tuple[tuple[int, int,
     return (tuple(first), tuple(last))
 
 
-def vectors_per_pass(shape, windows, overlap: float, passes: int):
-    """Vectors ``(nz, ny, nx)`` of every pass (0 along an axis the window does not fit)."""
-    out = []
-    for k in range(passes):
-        w = windows[min(k, len(windows) - 1)]
-        counts = []
-        for n, wk in zip(shape, w, strict=True):
-            step = max(1, int(round(wk * (1 - overlap))))
-            counts.append(0 if wk > n else (n - wk) // step + 1)
-        out.append(tuple(counts))
-    return tuple(out)
-
-
-# ---- size of the weights -----------------------------------------------------------------------
-
-
-def _ray_pattern(camera: CameraModel, f_number, min_lit):
-    """Aperture positions ``u`` (R, 2) and ``lit`` (R,) of the rays of the lenslet on the axis.
-
-    Returned with the light field's cell, footprint, aperture radius and S_o.
-    """
-    from plenopiv.calibration.model import Calibration
-    from plenopiv.lightfield import light_field
-
-    mla = camera.microlens_array
-    patch = camera.patch(min(3, mla.rows), min(3, mla.cols))
-    lf = light_field(Calibration.from_camera(patch), f_number=f_number, min_lit=min_lit)
-    if not lf.n_rays:
-        raise ConfigError(f"camera {camera.name!r}: no pixel is lit at this f-number")
-    sel = lf.lenslet == lf.lenslet[int(np.argmin(np.hypot(*lf.s.T)))]
-    return lf.u[sel], lf.lit[sel], lf
-
-
 def _axis_counts(u, pos, t, al, be, origin, vox, n):
     """Voxels that each pattern ray's beam overlaps along one axis on every slice: (R, nz).
 
@@ -346,169 +305,6 @@ def estimate_size(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     return int(len(u) * mla.count), int(nnz)
 
 
-# ---- rates -----------------------------------------------------------------------------------
-
-
-def _best(fn, budget_s: float, min_reps: int = 2, max_reps: int = 10) -> float:
-    """Shortest time of a few calls of ``fn`` (the least disturbed by other work)."""
-    best, start, reps = math.inf, time.perf_counter(), 0
-    while reps < min_reps or (time.perf_counter() - start < budget_s and reps < max_reps):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-        reps += 1
-    return best
-
-
-def _slope(x1: float, t1: float, x2: float, t2: float) -> tuple[float, float]:
-    """``(rate, fixed)`` with t = fixed + rate x through two timings.
-
-    The rate is kept at least a quarter of t2/x2 (timing noise on a busy computer).
-    """
-    rate = (t2 - t1) / (x2 - x1) if x2 > x1 else t2 / x2
-    rate = max(rate, 0.25 * t2 / x2)
-    return rate, max(t2 - rate * x2, 0.0)
-
-
-def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
-                  min_lit: float = 0.5, piv: PIVSettings | None = None,
-                  budget_s: float = 2.0) -> Rates:
-    """Time the reconstruction's kernels and the PIV on samples of this plan.
-
-    Each is timed at two sample sizes (the shortest of a few calls), which separates the rate
-    per unit of work from the fixed cost per call: the weights of a few hundred lenslets'
-    rays built on ``grid`` (the kernels of :mod:`plenopiv.reconstruction.weights`) and projected
-    forward and back; the lattice projector on two patches of the camera, on the grid's
-    slices; the PIV of two random particle volumes of two and three first windows a side. The
-    first call also compiles the kernels (cached on disk), before any timing.
-    """
-    import numba
-
-    from plenopiv.calibration.model import Calibration
-    from plenopiv.lightfield import light_field
-    from plenopiv.reconstruction._kernels import weights as K
-    from plenopiv.reconstruction.lattice import LatticeProjector
-    from plenopiv.reconstruction.projector import SparseProjector
-
-    u, lit, lf = _ray_pattern(camera, f_number, min_lit)
-    mla = camera.microlens_array
-    centres = mla.nominal_centres() / camera.magnification
-    b = grid.bounds
-    inside = np.flatnonzero((centres[:, 0] >= b[0, 0]) & (centres[:, 0] <= b[0, 1])
-                            & (centres[:, 1] >= b[1, 0]) & (centres[:, 1] <= b[1, 1]))
-    if not len(inside):
-        inside = np.array([int(np.argmin(np.hypot(*centres.T)))])
-    rng = np.random.default_rng(0)
-    pick = rng.choice(inside, size=min(len(inside), 128), replace=False)
-    xf = np.repeat(centres[pick], len(u), axis=0)
-    uu = np.tile(u, (len(pick), 1))
-    ll = np.tile(lit, len(pick)).astype(np.float64)
-    area = math.pi * lf.aperture_radius ** 2
-
-    def args(n):
-        return (np.ascontiguousarray(uu[:n, 0]), np.ascontiguousarray(uu[:n, 1]),
-                np.ascontiguousarray(xf[:n, 0]), np.ascontiguousarray(xf[:n, 1]),
-                np.ascontiguousarray(ll[:n]), lf.object_distance, lf.cell, lf.footprint, area,
-                np.ascontiguousarray(grid.z, dtype=np.float64), grid.origin[0], grid.origin[1],
-                grid.voxel[0], grid.voxel[1], grid.shape[2], grid.shape[1], 1e-7)
-
-    def build(a):
-        counts = K.count_nnz(*a)
-        indptr = np.zeros(len(counts) + 1, np.int64)
-        np.cumsum(counts, out=indptr[1:])
-        idx = np.empty(indptr[-1], np.int32)
-        data = np.empty(indptr[-1], np.float32)
-        K.fill_rows(indptr, *a, idx, data)
-        return indptr, idx, data
-
-    build(args(1))                                   # compile (or load) the kernels
-    vol = np.ones(grid.n_voxels, np.float32)
-    samples = []
-    for n in (max(len(uu) // 4, 1), len(uu)):
-        a = args(n)
-        t_build = _best(lambda a=a: build(a), 0.1 * budget_s)
-        indptr, idx, data = build(a)
-        proj = SparseProjector(indptr, idx, data, n_voxels=grid.n_voxels, check=False)
-        img = np.ones(proj.n_pixels, np.float32)
-        proj.back(proj.forward(vol))                 # compile, allocate the scratch
-        t_sweep = _best(lambda p=proj, i=img: (p.back(i), p.forward(vol)), 0.1 * budget_s)
-        samples.append((max(int(indptr[-1]), 1), t_build, t_sweep))
-    (n1, b1, s1), (n2, b2, s2) = samples
-    build_rate, _ = _slope(n1, b1, n2, b2)
-    sweep_rate, sweep_call = _slope(n1, s1, n2, s2)
-
-    # the lattice projector on two patches, the grid's slices
-    lattice_rate, lattice_call = BENCHMARK_RATES.lattice_s_per_ray_slice, 0.0
-    if mla.grid == "square":
-        points = []
-        for k in sorted({min(7, mla.rows, mla.cols), min(19, mla.rows, mla.cols)}):
-            patch = camera.patch(k, k)
-            plf = light_field(Calibration.from_camera(patch), f_number=f_number,
-                              min_lit=min_lit, edge_centroid=False)
-            half = np.abs(plf.focal_plane_position).max(axis=0) + plf.footprint
-            sub = VolumeGrid.from_bounds((-half[0], half[0]), (-half[1], half[1]),
-                                         tuple(grid.bounds[2]), voxel=grid.voxel)
-            lp = LatticeProjector.from_light_field(plf, sub)
-            vs = np.ones(sub.n_voxels, np.float32)
-            ones = np.ones(lp.n_pixels, np.float32)
-            lp.back(lp.forward(vs))
-            t = _best(lambda lp=lp, o=ones, v=vs: (lp.back(o), lp.forward(v)), 0.15 * budget_s)
-            points.append((lp.n_pixels * sub.shape[0], t))
-        if len(points) == 2:
-            lattice_rate, lattice_call = _slope(*points[0], *points[1])
-        else:
-            lattice_rate = points[0][1] / points[0][0]
-
-    piv_rate, piv_call = _measure_piv(piv or PIVSettings(), grid, 0.2 * budget_s)
-    return Rates(build_s_per_nnz=build_rate, sweep_s_per_nnz=sweep_rate,
-                 sweep_s_per_call=sweep_call, lattice_s_per_ray_slice=lattice_rate,
-                 lattice_s_per_call=lattice_call, piv_s_per_window_voxel=piv_rate,
-                 piv_s_per_call=piv_call, source="measured", threads=numba.get_num_threads())
-
-
-def _window_voxels(shape, windows, overlap, passes) -> float:
-    """Window voxels correlated over all passes (the PIV's work)."""
-    total = 0.0
-    for k, n in enumerate(vectors_per_pass(shape, windows, overlap, passes)):
-        w = windows[min(k, len(windows) - 1)]
-        total += float(np.prod(n)) * float(np.prod(w))
-    return total
-
-
-def _measure_piv(cfg: PIVSettings, grid: VolumeGrid, budget_s: float) -> tuple[float, float]:
-    """``(seconds per window voxel, seconds per call)`` of this plan's PIV.
-
-    Correlations of two random particle volumes of two and three first windows a side (the
-    grid where smaller), after a small run that compiles the kernels.
-    """
-    from plenopiv.piv import correlate_volumes
-
-    rng = np.random.default_rng(1)
-    points = []
-    for scale in (0.0, 2.0, 3.0):            # the first, tiny run compiles the kernels
-        shape = tuple(int(min(n, max(8, scale * w))) for n, w in
-                      zip(grid.shape, cfg.windows[0], strict=True))
-        windows = [tuple(min(w, n) for w, n in zip(ws, shape, strict=True))
-                   for ws in cfg.windows]
-        run = dataclasses.replace(cfg, windows=windows)
-        a = np.zeros(shape, np.float32)
-        idx = tuple(rng.integers(0, n, max(8, int(np.prod(shape) / 300))) for n in shape)
-        a[idx] = 1.0
-        bb = np.roll(a, 1, axis=2)
-        g = VolumeGrid((0.0, 0.0, 0.0), tuple(float(v) for v in grid.voxel), shape)
-        t = _best(lambda a=a, bb=bb, g=g, run=run: correlate_volumes(a, bb, g, settings=run),
-                  budget_s / 2, min_reps=1, max_reps=3)
-        if scale:
-            points.append((_window_voxels(shape, windows, cfg.overlap, run.passes), t))
-    (x1, t1), (x2, t2) = points
-    if x2 <= x1:
-        return t2 / max(x2, 1.0), 0.0
-    return _slope(x1, t1, x2, t2)
-
-
-# ---- the plan --------------------------------------------------------------------------------
-
-
 def available_memory() -> float:
     """Physical memory of the computer, bytes."""
     try:
@@ -530,15 +326,29 @@ LENSLET_COST_RATIO = 3.2
 
 def plan(camera: CameraModel, grid: VolumeGrid, *,
          reconstruction: ReconstructionSettings | None = None, piv: PIVSettings | None = None,
-         rates: Rates | None = None, memory_total: float | None = None) -> Plan:
+         rates: Rates | None = None, memory_total: float | None = None,
+         calibration=None, geometry=None) -> Plan:
     """Plan the reconstruction of ``grid`` (effective coordinates) with ``camera``.
 
     ``camera`` must know its image distance (from the camera file, or a calibration's
     ``effective_camera``). ``reconstruction`` and ``piv``: the experiment's tables (default:
     the defaults). ``rates``: :func:`measure_rates` (in this process) or
-    :data:`BENCHMARK_RATES` (default).
+    :data:`BENCHMARK_RATES` (default). ``calibration``: the experiment's calibration product
+    (:class:`~plenopiv.calibration.model.Calibration`; default: the camera's exact one).
+    ``geometry``: a :class:`~plenopiv.reconstruction.geometry.ProjectionGeometry` of that
+    calibration and these settings whose light field is built already (a reconstruction's).
+
+    The projector, the lateral subdivision and the working grid are the reconstruction's own
+    decision (:func:`plenopiv.reconstruction.choose.choose_reconstruction`, on the light field
+    of the calibration: seconds and ~250 bytes per ray for a 16 MP camera), so memory and
+    time are those of what ``plenopiv reconstruct`` will run.
+
+    With ``[piv] uncertainty = "response"`` the chain's response is measured once per
+    experiment, before its pairs: ``response_s`` estimates that time
+    (:func:`plenopiv.workflow.response.response_seconds`), s.
     """
-    from plenopiv.reconstruction.select import memory_budget_gb
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.reconstruction.choose import choose_reconstruction
 
     reconstruction = reconstruction or ReconstructionSettings()
     piv = piv or PIVSettings()
@@ -559,69 +369,91 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     rec_win = recommended_windows(cam, rec_grid.voxel, rec_grid.shape)
     rec_vectors = vectors_per_pass(rec_grid.shape, rec_win, piv.overlap, len(rec_win))[-1]
 
-    n_rays, nnz = estimate_size(camera, grid, f_number=reconstruction.f_number,
-                                min_lit=reconstruction.min_lit)
-    budget = (memory_budget_gb() if reconstruction.max_weights_gb is None
-              else reconstruction.max_weights_gb) * 1e9
-    projector = reconstruction.projector
-    square = (camera.microlens_array.grid == "square"
-              and camera.microlens_array.rotation == 0.0)
-    if projector == "auto":
-        if reconstruction.method != "smart" or BYTES_PER_NONZERO * nnz <= budget:
-            projector = "sparse"
-        else:
-            projector = "lattice"
-    n_vox = grid.n_voxels
-    lf_bytes = BYTES_PER_RAY_LIGHT_FIELD * n_rays
-    vol_bytes = BYTES_PER_VOXEL_RECONSTRUCT * n_vox
-    if projector == "sparse":
-        w_bytes = BYTES_PER_NONZERO * nnz
-        build = BASE_BYTES + lf_bytes + 8.0 * nnz
-        recon = BASE_BYTES + w_bytes + vol_bytes + 8 * n_rays
-    else:
-        nz, ny, _ = grid.shape
-        # the lattice projector's per-call buffer; the per-lenslet one (any other lattice,
-        # plenopiv.reconstruction.real_lattice) has none but holds ~120 bytes per ray in its views
-        buf = 4.0 * nz * ny * camera.sensor.cols if square else 0.0
-        w_bytes = 0.0
-        build = BASE_BYTES + lf_bytes
-        recon = BASE_BYTES + (16 if square else 120) * n_rays + buf + vol_bytes
-    recon += BYTES_PER_RAY_PARTICLE_FIT * n_rays  # the particles' fit, after the iterations
-    piv_bytes = BASE_BYTES + BYTES_PER_VOXEL_PIV * n_vox
-    cache_file = 8.0 * nnz + 16.0 * n_rays if projector == "sparse" else 0.0
-    memory = {"weights": w_bytes, "weights_build_peak": build, "reconstruct_peak": recon,
-              "piv_peak": piv_bytes, "peak": max(build, recon, piv_bytes),
-              "weights_cache_file": cache_file}
+    cal = Calibration.from_camera(camera) if calibration is None else calibration
+    choice = choose_reconstruction(cal, grid, reconstruction, geometry=geometry)
+    n_rays = choice.n_rays
+    nnz = choice.nnz
+    if nnz is None:                  # not needed by the decision: counted for the report
+        nnz = estimate_size(camera, choice.grid, f_number=reconstruction.f_number,
+                            min_lit=reconstruction.min_lit)[1]
+    memory = _memory(choice, grid, nnz)
+    times = _times(choice, grid, nnz, rates, reconstruction.iterations, windows, piv.overlap,
+                   passes, memory["weights_cache_file"])
+    response_s = 0.0
+    if piv.uncertainty == "response":
+        from plenopiv.workflow.response import response_particle_count, response_seconds
 
-    memory_cache = memory["weights_cache_file"]
-    sweeps = reconstruction.iterations + 3      # MLOS, masks and row scaling: ~3 sweeps
-    if projector == "sparse":
-        # light field, weights, and the cache file written at ~250 MB/s
-        t_weights = 2e-7 * n_rays + rates.build_s_per_nnz * nnz + memory_cache / 250e6
-        t_volume = (rates.sweep_s_per_nnz * nnz + rates.sweep_s_per_call) * sweeps
-    else:
-        t_weights = 2e-7 * n_rays                # light field and tables
-        ray_slice = rates.lattice_s_per_ray_slice * (1.0 if square else LENSLET_COST_RATIO)
-        t_volume = (ray_slice * n_rays * grid.shape[0] + rates.lattice_s_per_call) * sweeps
-    t_volume += 5e-8 * n_vox                     # particle detection
-    t_volume += SECONDS_PER_RAY_PARTICLE_FIT * n_rays   # their positions from the light field
-    t_piv = rates.piv_s_per_call + rates.piv_s_per_window_voxel * _window_voxels(
-        grid.shape, windows, piv.overlap, passes)
-    times = {"weights": t_weights, "volume": t_volume, "piv": t_piv,
-             "pair": t_weights + 2 * t_volume + t_piv,
-             "pair_cached_weights": 2 * t_volume + t_piv}
+        n = response_particle_count(cal, grid, piv.response_particles_per_lenslet)
+        response_s = response_seconds(times["volume"], times["piv"], n,
+                                      piv.response_displacements)
     model = ("rates measured in this process" if rates.source == "measured"
-             else "benchmark rates of the project's 2-core machine (planning.BENCHMARK_RATES)")
+             else "benchmark rates (rates.BENCHMARK_RATES, docs/performance.md)")
     model = f"{model}, {rates.threads} threads"
 
     warnings, advice = _advise(cam, grid, windows, vectors, piv.overlap, rec_grid, rec_win,
-                               memory, total_mem, projector, camera)
+                               memory, total_mem, choice.settings_projector, camera)
+    warnings = list(choice.fallbacks) + warnings
+    if choice.refusal is not None:
+        warnings.insert(0, f"plenopiv reconstruct refuses this box: {choice.refusal}")
     return Plan(camera=cam, grid=grid, windows=windows, passes=passes, overlap=piv.overlap,
                 vectors=vectors, recommended_voxel=tuple(rec_grid.voxel),
                 recommended_windows=rec_win, recommended_grid=rec_grid,
                 recommended_vectors=rec_vectors, n_rays=n_rays, nnz=nnz,
-                projector=projector, memory=memory, time=times, time_model=model,
-                available_memory=total_mem, warnings=tuple(warnings), advice=tuple(advice))
+                projector=choice.settings_projector, memory=memory, time=times,
+                time_model=model, available_memory=total_mem, warnings=tuple(warnings),
+                advice=tuple(advice), decision=choice, response_s=response_s)
+
+
+def _memory(choice, grid: VolumeGrid, nnz: int) -> dict:
+    """Memory of the chosen reconstruction, bytes per stage (:class:`Plan` ``memory``).
+
+    ``projector``: the decision's own estimate (explicit weights with the arrays of their
+    reconstruction, or the matrix-free reconstruction's), which it checked against the
+    budget; ``weights``: the same for explicit weights, 0 for a matrix-free projector.
+    """
+    n_rays = choice.n_rays
+    build = BASE_BYTES + BYTES_PER_RAY_LIGHT_FIELD * n_rays
+    cache_file = 0.0
+    if choice.projector == "sparse":
+        build += 8.0 * nnz
+        cache_file = 8.0 * nnz + 16.0 * n_rays
+    # the particles' fit, after the iterations
+    recon = BASE_BYTES + choice.memory_bytes + BYTES_PER_RAY_PARTICLE_FIT * n_rays
+    piv_bytes = BASE_BYTES + BYTES_PER_VOXEL_PIV * grid.n_voxels
+    return {"weights": choice.memory_bytes if choice.projector == "sparse" else 0.0,
+            "projector": choice.memory_bytes, "weights_build_peak": build,
+            "reconstruct_peak": recon, "piv_peak": piv_bytes,
+            "peak": max(build, recon, piv_bytes), "weights_cache_file": cache_file}
+
+
+def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, windows,
+           overlap: float, passes: int, cache_file: float) -> dict:
+    """Seconds per stage of the chosen reconstruction and the PIV (:class:`Plan` ``time``).
+
+    A matrix-free sweep costs ``ky kx`` times the volume grid's: each beam crosses that many
+    more working voxels (one 16 MP volume on the 3 × 3 subdivided grid: 173 s against 17 s
+    on footprint voxels, README "Full-camera scale").
+    """
+    n_rays = choice.n_rays
+    sweeps = iterations + 3      # MLOS, masks and row scaling: ~3 sweeps
+    if choice.projector == "sparse":
+        # light field, weights, and the cache file written at ~250 MB/s
+        t_weights = 2e-7 * n_rays + rates.build_s_per_nnz * nnz + cache_file / 250e6
+        t_volume = (rates.sweep_s_per_nnz * nnz + rates.sweep_s_per_call) * sweeps
+    else:
+        t_weights = 2e-7 * n_rays                # light field and tables
+        ray_slice = rates.lattice_s_per_ray_slice * (
+            LENSLET_COST_RATIO if choice.projector == "lenslet" else 1.0)
+        ky, kx = choice.subdivision
+        t_volume = (ray_slice * n_rays * grid.shape[0] * ky * kx
+                    + rates.lattice_s_per_call) * sweeps
+    t_volume += 5e-8 * grid.n_voxels             # particle detection
+    t_volume += SECONDS_PER_RAY_PARTICLE_FIT * n_rays   # their positions from the light field
+    t_piv = rates.piv_s_per_call + rates.piv_s_per_window_voxel * _window_voxels(
+        grid.shape, windows, overlap, passes)
+    return {"weights": t_weights, "volume": t_volume, "piv": t_piv,
+            "pair": t_weights + 2 * t_volume + t_piv,
+            "pair_cached_weights": 2 * t_volume + t_piv}
 
 
 def _window_warnings(grid: VolumeGrid, windows, vectors) -> list[str]:
@@ -747,3 +579,4 @@ def _advise(cam: Camera, grid: VolumeGrid, windows, vectors, overlap, rec_grid, 
                         + ("" if projector == "lattice" else
                            ", or [reconstruction] projector = \"lattice\""))
     return warnings, advice
+

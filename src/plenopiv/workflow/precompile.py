@@ -117,9 +117,13 @@ def rehearse_reconstruction(calibration, experiment) -> None:
     """Reconstruct a tiny volume of the run's voxels with the run's settings.
 
     The image is a volume of Gaussian blobs projected by the run's own kind of projector, so
-    the reconstruction finds particles and fits their light-field positions.
+    the reconstruction finds particles and fits their light-field positions; it is judged
+    first as a run judges its images (the preprocessing's micro-image and neighbour kernels).
     """
+    import warnings
+
     from plenopiv.workflow.pair import PairProcessor
+    from plenopiv.workflow.preprocess import ImagePreparation
     from plenopiv.workflow.volume import reconstruct_volume
 
     grid = rehearsal_grid(experiment.volume, (RECONSTRUCTION_EDGE,) * 3)
@@ -129,6 +133,9 @@ def rehearse_reconstruction(calibration, experiment) -> None:
     shape = calibration.camera.sensor.shape
     image = weights.forward_image(blob_volume(weights.grid.shape, rng), shape)
     image *= np.float32(1000.0 / max(float(image.max()), 1e-12))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ImagePreparation(tiny, calibration).image(image)
     reconstruct_volume(calibration, image, grid, settings=tiny.reconstruction,
                        particles=tiny.particles, weights=weights)
 
@@ -167,8 +174,10 @@ def kernels_cached() -> bool:
 
 #: The progress stages of a run (:func:`plenopiv.workflow.pair.process_pair`,
 #: :func:`plenopiv.workflow.vortex_case.run_case`) at which it calls the kernels of a rehearsed
-#: stage first: :meth:`Rehearsals.paced` waits there for that stage's rehearsal.
-STAGE_AT_PROGRESS = {"calibrate": "calibration", "weights": "reconstruction", "piv": "piv"}
+#: stage first: :meth:`Rehearsals.paced` waits there for that stage's rehearsal. The chain's
+#: response correlates its test pairs before the pair's own PIV.
+STAGE_AT_PROGRESS = {"calibrate": "calibration", "weights": "reconstruction",
+                     "response": "piv", "piv": "piv"}
 
 
 class _Forked:

@@ -1,13 +1,18 @@
 """The chain's response, measured on synthetic pairs through the experiment's own chain.
 
-The pairs are rendered through the experiment's camera and reconstructed and correlated on
-its grid with its settings: the per-vector uncertainty's calibration
-(docs/methods.md#response-measurement).
+The test pairs are rendered through the experiment's camera and reconstructed and correlated
+on its grid with its settings (the per-vector uncertainty's calibration,
+:func:`measure_response`). It is measured once per experiment (:func:`experiment_response`),
+under a key of what the experiment fixes (:func:`experiment_response_key`), never of one
+pair's images, so every pair of the experiment shares it.
 """
 
 from __future__ import annotations
 
 import itertools
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -23,6 +28,7 @@ from plenopiv.piv.response import (
     response_shifts,
     spurious_disagreement,
 )
+from plenopiv.settings import as_dict
 
 
 def measure_response(calibration, grid, correction, *, reconstruct, correlate, n_particles: int,
@@ -46,7 +52,7 @@ def measure_response(calibration, grid, correction, *, reconstruct, correlate, n
     correlate : callable
         ``correlate(volume_a, volume_b) -> VectorField``, the correlation of the real volumes.
     n_particles : int
-        Particles per test pair (the real pair's seeding).
+        Particles per test pair (the experiment's seeding: :func:`response_particle_count`).
     f_number : float, optional
         Aperture of the recording (default: the camera's).
     rays_per_particle : int
@@ -214,3 +220,167 @@ def placement_offset(volume, positions, grid, correlate, blob_vox) -> np.ndarray
             out[:, layer] = comps[:, layer][:, ok[layer]].mean(axis=1)
     return out
 
+
+
+# ---- once per experiment --------------------------------------------------------------------
+
+
+def response_particle_count(calibration, grid, per_lenslet: float) -> int:
+    """Particles of one response test pair for a seeding of ``per_lenslet``.
+
+    ``per_lenslet`` (particles per lenslet) × the lenslet count × the box's lateral area
+    (``grid`` bounds, m²) over the field of view at the focal plane of the calibrated camera
+    (:func:`plenopiv.synthetic.images.field_of_view`, m²): the density of the experiment
+    spread through the whole box, as :func:`measure_response` seeds it. At least 1.
+    """
+    from plenopiv.synthetic.images import field_of_view
+
+    cam = calibration.effective_camera
+    fx, fy = field_of_view(cam, 0.0)
+    b = grid.bounds
+    area = float((b[0, 1] - b[0, 0]) * (b[1, 1] - b[1, 0]))
+    return max(1, int(round(per_lenslet * cam.microlens_array.count * area / (4.0 * fx * fy))))
+
+
+def array_hash(array) -> str:
+    """A short hash of an array's bytes and shape (for cache keys)."""
+    import hashlib
+
+    a = np.ascontiguousarray(array)
+    return hashlib.sha256(a.tobytes() + str(a.shape).encode()).hexdigest()[:16]
+
+
+def experiment_response_key(experiment, calibration, weights_key: str, image_mask=None,
+                            volume_mask=None) -> str:
+    """The response cache key: only what the experiment fixes, nothing of a pair.
+
+    The weights' key (camera, calibration, working grid, f-number, lit fraction), the
+    ``[volume]`` grid, the ``[reconstruction]`` and ``[piv]`` tables (with the response's
+    seeding, ``response_particles_per_lenslet``, and the particle count it gives), the
+    internal depth correction, the point spread the calibration measured, and the masks.
+    """
+    from plenopiv.products.caches import response_key
+
+    grid = experiment.volume
+    piv = experiment.piv
+    n = response_particle_count(calibration, grid, piv.response_particles_per_lenslet)
+    return response_key(weights_key, grid.key(), as_dict(experiment.reconstruction),
+                        as_dict(piv), n, experiment.particles.internal_correction,
+                        calibration.point_spread_sigma_px,
+                        None if image_mask is None else array_hash(image_mask),
+                        None if volume_mask is None else array_hash(volume_mask))
+
+
+@dataclass(frozen=True)
+class ExperimentResponse:
+    """The chain's response of one experiment (:func:`experiment_response`).
+
+    response : the measured :class:`~plenopiv.piv.response.Response`, or None when no test
+        pair gave a vector field (too few particles).
+    key : :func:`experiment_response_key`.
+    from_cache : found in the response cache (``[output] weights_cache``).
+    seconds : wall-clock time spent getting it here, s (measuring, or reading the cache).
+    n_particles : particles per test pair (:func:`response_particle_count`).
+    """
+
+    response: object
+    key: str
+    from_cache: bool
+    seconds: float
+    n_particles: int
+
+    def summary(self) -> dict:
+        """JSON values for a run's summary (``seconds``, ``from_cache``, ...)."""
+        return {"seconds": round(self.seconds, 3), "from_cache": self.from_cache,
+                "measured": self.response is not None, "n_particles": self.n_particles,
+                "key": self.key[:24]}
+
+
+def experiment_response(experiment, calibration, weights, settings, *, image_mask=None,
+                        volume_mask=None, workers=None,
+                        announce: Callable[[object], None] | None = None
+                        ) -> ExperimentResponse:
+    """The chain's response of ``experiment``: from the cache, or measured and cached.
+
+    Parameters
+    ----------
+    experiment : Experiment
+        Its grid, ``[reconstruction]``, ``[particles]`` and ``[piv]`` tables; the cache is
+        ``[output] weights_cache`` (``response-KEY.json``; none when it is "").
+    calibration : Calibration
+    weights : Weights
+        The projector every pair of the experiment uses.
+    settings : PIVSettings
+        The PIV of the pairs (``experiment.piv.settings()``).
+    image_mask, volume_mask : bool arrays, optional
+        The experiment's masks (:mod:`plenopiv.workflow.masks`).
+    workers : int, optional
+        Threads of the correlation.
+    announce : callable, optional
+        ``announce(weights)``, called once just before a measurement starts (not when the
+        cache has it).
+    """
+    from plenopiv.camera.corrections import DepthCorrection
+    from plenopiv.piv import correlate_volumes
+    from plenopiv.products.caches import cached_response
+    from plenopiv.workflow.volume import reconstruct_volume
+
+    t0 = time.perf_counter()
+    grid = experiment.volume
+    n = response_particle_count(calibration, grid, experiment.piv.response_particles_per_lenslet)
+    key = experiment_response_key(experiment, calibration, weights.key, image_mask, volume_mask)
+    cache = experiment.output.weights_cache
+    path = experiment.path(cache) / f"response-{key[:24]}.json" if cache else None
+    correction = DepthCorrection.for_camera(
+        calibration.camera, internal=experiment.particles.internal_correction)
+
+    def reconstruct(image):
+        return reconstruct_volume(calibration, image, grid, settings=experiment.reconstruction,
+                                  particles=experiment.particles, weights=weights,
+                                  image_mask=image_mask).volume
+
+    def correlate(a, b):
+        return correlate_volumes(a, b, grid, settings=settings, workers=workers,
+                                 mask=volume_mask)
+
+    def measure():
+        if announce is not None:
+            announce(weights)
+        return measure_response(calibration, grid, correction, reconstruct=reconstruct,
+                                correlate=correlate, n_particles=n,
+                                f_number=experiment.reconstruction.f_number,
+                                displacements=experiment.piv.response_displacements)
+
+    resp, hit = cached_response(path, key, measure)
+    return ExperimentResponse(resp, key, hit, time.perf_counter() - t0, n)
+
+
+#: Seconds per ray the tracer renders (:func:`plenopiv.synthetic.images.particle_image`), for
+#: the response's time estimate; measured in docs/performance.md.
+SECONDS_PER_RENDERED_RAY = 2e-7
+
+
+def response_counts(displacements: int = 3) -> tuple[int, int]:
+    """``(reconstructions, correlations)`` of one :func:`measure_response`.
+
+    Per uniform test pair two reconstructions, its correlation and the placement's; with 3
+    displacements three more modulated pairs, two reconstructions and one correlation each.
+    """
+    from plenopiv.piv.response import DEPTH_SHIFTS, SEPARATING_SHIFTS
+
+    uniform = len(DEPTH_SHIFTS) + len(SEPARATING_SHIFTS) if displacements == 3 else 1
+    modulated = 3 if displacements == 3 else 0
+    return 2 * (uniform + modulated), 2 * uniform + modulated
+
+
+def response_seconds(volume_s: float, piv_s: float, n_particles: int, displacements: int = 3,
+                     rays_per_particle: int = 1024) -> float:
+    """Estimated time of :func:`measure_response`, s.
+
+    ``volume_s`` and ``piv_s``: one reconstruction (its particles included) and one PIV of
+    the experiment, s (:func:`plenopiv.workflow.planning.plan`); each reconstruction's
+    image is rendered first (:data:`SECONDS_PER_RENDERED_RAY`).
+    """
+    n_rec, n_piv = response_counts(displacements)
+    render = SECONDS_PER_RENDERED_RAY * n_particles * rays_per_particle
+    return n_rec * (volume_s + render) + n_piv * piv_s

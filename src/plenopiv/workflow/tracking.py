@@ -142,21 +142,33 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
 
 def track_images(calibration: Calibration, image_a, image_b, experiment, *,
                  volume_a: VolumeResult | None = None, volume_b: VolumeResult | None = None,
-                 vectors: VectorResult | None = None, progress=None) -> tuple:
+                 vectors: VectorResult | None = None, progress=None,
+                 names=("image A", "image B")) -> tuple:
     """Tracks of one pair with an experiment's settings, reusing what is given.
 
-    Volumes not given are reconstructed (weights built once), vectors not given are
-    correlated. Returns ``(TrackResult, volume_a, volume_b, vectors, timings)``.
+    The images (as recorded) are preprocessed first (``[preprocess]``,
+    :class:`~plenopiv.workflow.preprocess.ImagePreparation`, which also judges them); volumes
+    not given are reconstructed from them (weights built once, the ``[mask] image`` and the
+    preprocessing's mask left out), vectors not given are correlated. ``names``: how warnings
+    about the images name them. Returns ``(TrackResult,
+    volume_a, volume_b, vectors, timings, preprocess)``, the last what was applied (the
+    products' ``preprocess`` attribute).
     """
     import time
 
-    from plenopiv.reconstruction.subdivision import weights_for
+    from plenopiv.reconstruction.build import weights_for
+    from plenopiv.workflow.masks import image_mask
     from plenopiv.workflow.pair import correlate
+    from plenopiv.workflow.preprocess import ImagePreparation, union
     from plenopiv.workflow.volume import check_lattice, reconstruct_volume
 
     t = {}
     t0 = time.perf_counter()
     rec = experiment.reconstruction
+    preparation = ImagePreparation(experiment, calibration)
+    pa, pb, norm = preparation.pair(image_a, image_b, names=names)
+    record = preparation.record({"A": pa.figures, "B": pb.figures}, norm)
+    image_a, image_b = pa.image, pb.image
     lf = None
     if volume_a is None or volume_b is None:
         # the pair's micro-images against the calibration's, before the weights are made
@@ -166,11 +178,14 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
                                  cache_dir=experiment.path(cache) if cache else None)
         lf = _light_field_of(weights)
         kw = dict(settings=rec, particles=experiment.particles, weights=weights,
-                  progress=progress)
+                  progress=progress, checked=True)
+        own = image_mask(experiment.mask, calibration.camera.sensor.shape, experiment.base_dir)
         if volume_a is None:
-            volume_a = reconstruct_volume(calibration, image_a, experiment.volume, **kw)
+            volume_a = reconstruct_volume(calibration, image_a, experiment.volume, **kw,
+                                          image_mask=union(own, pa.mask))
         if volume_b is None:
-            volume_b = reconstruct_volume(calibration, image_b, experiment.volume, **kw)
+            volume_b = reconstruct_volume(calibration, image_b, experiment.volume, **kw,
+                                          image_mask=union(own, pb.mask))
     t["reconstruct_s"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     if vectors is None:
@@ -182,7 +197,7 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
                         settings=experiment.tracking, f_number=rec.f_number,
                         min_lit=rec.min_lit, lf=lf)
     t["track_s"] = time.perf_counter() - t2
-    return tracks, volume_a, volume_b, vectors, t
+    return tracks, volume_a, volume_b, vectors, t, record
 
 
 def _light_field_of(weights) -> LightField | None:
@@ -195,22 +210,28 @@ def track_and_save(calibration: Calibration, image_a, image_b, result, experimen
                    out_dir, name: str, *, weights=None) -> dict:
     """Batch hook (``[tracking] enabled``): track a processed pair, write ``NAME_tracks.h5``.
 
-    ``result`` is the pair's :class:`plenopiv.workflow.pair.PairResult`; ``weights`` the
-    reconstruction's (:class:`plenopiv.reconstruction.weights.Weights`), whose light field
-    the tracking reuses (built again without them); returns a small summary.
+    ``result`` is the pair's :class:`plenopiv.workflow.pair.PairResult` (its ``preprocess``
+    record goes into the tracks product; ``image_a``, ``image_b`` are the images it was
+    reconstructed from); ``weights`` the reconstruction's
+    (:class:`plenopiv.reconstruction.weights.Weights`), whose light field the tracking reuses
+    (built again without them); returns a small summary.
     """
     import time
     from pathlib import Path
 
+    from plenopiv.products.jsonio import dumps
     from plenopiv.products.tracks import save_track_products
+    from plenopiv.workflow.preprocess import ATTRIBUTE
 
     t0 = time.perf_counter()
     rec = experiment.reconstruction
     tracks = track_pair(calibration, image_a, image_b, result.volume_a, result.volume_b,
                         result.vectors, settings=experiment.tracking, f_number=rec.f_number,
                         min_lit=rec.min_lit, lf=_light_field_of(weights))
+    pre = {} if result.preprocess is None else {ATTRIBUTE: dumps(result.preprocess)}
     paths = save_track_products(tracks, result.vectors, Path(out_dir) / f"{name}_tracks.h5",
-                                config=experiment.to_dict(), vtk=experiment.output.vtk)
+                                config=experiment.to_dict(), vtk=experiment.output.vtk,
+                                extra_attrs=pre)
     return {"tracks": paths["tracks"], "n_tracks": len(tracks),
             "track_s": round(time.perf_counter() - t0, 3)}
 

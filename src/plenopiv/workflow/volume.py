@@ -22,10 +22,11 @@ from plenopiv.particles.peaks import find_particles
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.products.images import check_image
 from plenopiv.products.volume import VolumeResult
+from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.geometry import ProjectionGeometry
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.solve import solve_volume
-from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of, weights_for
+from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of
 from plenopiv.reconstruction.weights import Weights
 
 Progress = Callable[[str, float], None] | None
@@ -70,7 +71,8 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
                        settings: ReconstructionSettings = _DEFAULT_RECONSTRUCTION,
                        particles: ParticleSettings = _DEFAULT_PARTICLES,
                        weights: Weights | None = None, cache_dir: str | Path | None = None,
-                       progress: Progress = None, image_mask=None) -> VolumeResult:
+                       progress: Progress = None, image_mask=None,
+                       checked: bool = False) -> VolumeResult:
     """Reconstruct one image into a volume and extract its particles.
 
     Parameters
@@ -92,6 +94,11 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         Pixels to ignore (True): their rows of the system are dropped, so they count neither
         as light nor as dark (a reflection, a model in the view). The dark threshold is taken
         from the unmasked pixels. See :mod:`plenopiv.workflow.masks`.
+    checked : bool
+        The image was checked and preprocessed already
+        (:class:`plenopiv.workflow.preprocess.ImagePreparation`: counts ≥ 0, the sensor's
+        shape), so :func:`~plenopiv.products.images.check_image` is not run again (its
+        warnings were given once, for the image as recorded).
 
     Notes
     -----
@@ -105,8 +112,14 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t = {}
     t0 = time.perf_counter()
     check_grid(grid)
-    img = check_image(image, shape=calibration.camera.sensor.shape, name="particle image",
-                      particles=True)
+    if checked:
+        img = np.asarray(image, dtype=np.float64)
+        if img.shape != tuple(calibration.camera.sensor.shape):
+            raise ReconstructionError(f"the prepared image has shape {img.shape}: expected the "
+                                      f"sensor's {calibration.camera.sensor.shape}")
+    else:
+        img = check_image(image, shape=calibration.camera.sensor.shape,
+                          name="particle image", particles=True)
     if weights is None:
         calibration = check_lattice(calibration, [img], settings)
         if progress is not None:

@@ -24,8 +24,8 @@ from plenopiv.piv.settings import PIVSettings
 from plenopiv.products.figures import vector_comparison
 from plenopiv.products.files import atomic_path
 from plenopiv.products.jsonio import dumps
+from plenopiv.reconstruction.choose import lateral_subdivision
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.reconstruction.subdivision import lateral_subdivision
 from plenopiv.settings import as_dict
 from plenopiv.synthetic.flows import HillVortex, LambOseen, Uniform
 from plenopiv.synthetic.images import (
@@ -251,6 +251,7 @@ def case_experiment(case: VortexCase, calibration, out: Path) -> Experiment:
                       piv=PIVSettings(windows=list(case.windows_vox), overlap=0.5,
                                     passes=case.passes, uncertainty=case.uncertainty,
                                     response_displacements=case.response_displacements,
+                                    response_particles_per_lenslet=case.particles_per_lenslet,
                                     overlap_correction=case.overlap_correction,
                                     broad_peaks=case.broad_peaks),
                       images=ImagesConfig(dt_s=case.dt),

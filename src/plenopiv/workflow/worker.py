@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.reconstruction.subdivision import weights_for
+from plenopiv.reconstruction.build import weights_for
 from plenopiv.resources import prefer_small_pages
 from plenopiv.workflow.experiment import experiment_calibration
 from plenopiv.workflow.pair import PairProcessor, save_pair
+from plenopiv.workflow.response import ExperimentResponse
 
 
 @dataclass(frozen=True)
@@ -25,21 +26,47 @@ class ExperimentPairProcess:
     loads the experiment and the calibration and builds or loads the projector, its later
     pairs reuse them. Each call reads the pair's images, processes them and writes the
     products; the vectors file is written last, marked complete.
+
+    ``response``: the chain's response measured once before the pairs fan out
+    (:func:`prepare_response`); every pair uses it. None: each worker gets it from the
+    response cache, or measures it (``[piv] uncertainty = "response"``). ``background``: the
+    batch's minimum or mean background (``[preprocess] background = "minimum"`` or
+    ``"mean"``), formed once over the batch's images before the pairs fan out, and
+    ``background_images`` the number of images it was formed from.
     """
 
     experiment_path: str
     calibration_path: str
     out_dir: str
+    response: ExperimentResponse | None = None
+    background: str | None = None
+    background_images: int = 0
 
     def __call__(self, job) -> dict:
-        """Process one :class:`plenopiv.batch.PairJob`; returns a small summary."""
+        """Process one :class:`plenopiv.batch.PairJob`; returns a small summary.
+
+        The warnings about its images (:class:`~plenopiv.errors.PlenopivWarning`: the image
+        check, the preprocessing's one per image) are returned under ``warnings``.
+        """
+        import warnings
+
+        from plenopiv.errors import PlenopivWarning
         from plenopiv.products.images import read_image
         from plenopiv.products.jsonio import dumps
 
-        processor = worker_processor(self.experiment_path, self.calibration_path)
+        processor = worker_processor(self.experiment_path, self.calibration_path,
+                                     self.background, self.background_images)
+        processor.share_response(self.response)
         exp, cal = processor.experiment, processor.calibration
         ia, ib = read_image(job.image_a), read_image(job.image_b)
-        res = processor(ia, ib)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", PlenopivWarning)
+            res = processor(ia, ib, names=(f"image {str(job.image_a)!r}",
+                                           f"image {str(job.image_b)!r}"))
+        said = [str(w.message) for w in caught if issubclass(w.category, PlenopivWarning)]
+        for w in caught:
+            if not issubclass(w.category, PlenopivWarning):
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         extra = {"image_a": str(job.image_a), "image_b": str(job.image_b)}
         if getattr(job, "identity", None) is not None:
             extra["identity"] = dumps(dict(job.identity), sort_keys=True)
@@ -47,13 +74,14 @@ class ExperimentPairProcess:
         if exp.tracking.enabled:  # before the vectors file, which marks the pair complete
             from plenopiv.workflow.tracking import track_and_save
 
-            tracked = track_and_save(cal, ia, ib, res, exp, self.out_dir, job.name,
-                                     weights=processor.weights())
+            tracked = track_and_save(cal, res.images[0].image, res.images[1].image, res, exp,
+                                     self.out_dir, job.name, weights=processor.weights())
         paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra)
         vec = res.vectors
         return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),
                 "n_particles_a": len(res.volume_a.particle_position),
-                **{k: round(v, 3) for k, v in res.timings.items()}, **tracked}
+                **{k: round(v, 3) for k, v in res.timings.items()}, **tracked,
+                **({"warnings": said} if said else {})}
 
 
 #: The :class:`PairProcessor` this process keeps, with its key (:func:`worker_processor`).
@@ -70,16 +98,19 @@ def _file_identity(path: str | Path) -> tuple:
     return (str(p), st.st_size, st.st_mtime_ns)
 
 
-def worker_processor(experiment_path: str | Path, calibration_path: str | Path
+def worker_processor(experiment_path: str | Path, calibration_path: str | Path,
+                     background: str | Path | None = None, background_images: int = 0
                      ) -> PairProcessor:
     """The :class:`PairProcessor` of this process for an experiment file and a calibration.
 
     Made on first use (the experiment and the calibration loaded, the projector built or read
     from the weights cache on the first pair) and kept for the later pairs of the process;
     a changed file (size or modification time) or another experiment replaces it. One is kept
-    at a time, so a worker holds one projector.
+    at a time, so a worker holds one projector. ``background``: the batch's background image
+    (:class:`ExperimentPairProcess`).
     """
-    key = (_file_identity(experiment_path), _file_identity(calibration_path))
+    key = (_file_identity(experiment_path), _file_identity(calibration_path),
+           None if background is None else _file_identity(background))
     with _WORKER_LOCK:
         if _WORKER_PROCESSOR.get("key") != key:
             from plenopiv.config.experiment import load_experiment
@@ -88,7 +119,16 @@ def worker_processor(experiment_path: str | Path, calibration_path: str | Path
             prefer_small_pages()    # a batch worker's process is the batch's own
             exp = load_experiment(experiment_path)
             cal = experiment_calibration(exp, calibration_path)
-            _WORKER_PROCESSOR.update(key=key, processor=PairProcessor(exp, cal))
+            batch, record = None, None
+            if background is not None:
+                from plenopiv.products.files import file_identity
+                from plenopiv.products.images import read_image
+
+                batch = read_image(background)
+                record = {"file": str(background), "sha256": file_identity(background),
+                          "images": int(background_images)}
+            _WORKER_PROCESSOR.update(key=key, processor=PairProcessor(
+                exp, cal, batch_background=batch, batch_record=record))
         return _WORKER_PROCESSOR["processor"]
 
 
@@ -117,3 +157,16 @@ def prepare_weights(experiment, calibration: Calibration) -> tuple[bool, float]:
                          cache_dir=experiment.path(cache), load=False)
     return hit, time.perf_counter() - t0
 
+
+
+def prepare_response(experiment, calibration: Calibration, *,
+                     announce=None) -> ExperimentResponse | None:
+    """The chain's response of the experiment, once, before a batch's pairs fan out.
+
+    From the response cache, or measured here (``announce(weights)`` is called first) with
+    the projector every pair uses, then cached (``[output] weights_cache``). None unless
+    ``[piv] uncertainty = "response"``. The projector built for it is dropped on return.
+    """
+    if experiment.piv.uncertainty != "response":
+        return None
+    return PairProcessor(experiment, calibration).response(announce=announce)

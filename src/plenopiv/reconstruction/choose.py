@@ -1,0 +1,413 @@
+"""What a reconstruction runs on: its working grid and its projector, decided in one place.
+
+:func:`choose_reconstruction` takes a calibration, a ``[volume]`` grid and the
+``[reconstruction]`` settings and returns a :class:`ReconstructionChoice`: the lateral
+subdivision of the voxels (:func:`lateral_subdivision`), the working grid
+(:func:`subdivided_grid`), the projector (explicit weights, the separable matrix-free lattice
+projector, or the per-lenslet one), its estimated memory and the reason. The reconstruction
+(:func:`plenopiv.reconstruction.build.weights_for`) builds what it says, and
+``plenopiv plan`` reports it, so the two cannot disagree. Nothing is built here but the
+light field the estimates need.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.resolution import footprint
+from plenopiv.errors import ReconstructionError
+from plenopiv.lightfield import LightField
+from plenopiv.reconstruction._kernels import weights as K
+from plenopiv.reconstruction.geometry import (
+    SLAB_VOXELS,
+    ProjectionGeometry,
+    check_grid_in_view,
+    separable_axes,
+    subcell_factors,
+)
+from plenopiv.reconstruction.real_lattice import estimate_lenslet_gb
+from plenopiv.reconstruction.weights import _kernel_args
+
+if TYPE_CHECKING:
+    from plenopiv.reconstruction.settings import ReconstructionSettings
+
+__all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "SUBDIVIDED_VOXEL_FOOTPRINTS", "ProjectorFit",
+           "ReconstructionChoice", "choose_projector", "choose_reconstruction",
+           "estimate_matrix_free_gb", "estimate_nnz", "fit_projector", "lateral_subdivision",
+           "memory_budget_gb", "reconstruction_grid", "subdivided_grid"]
+
+
+#: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
+SUBDIVIDED_VOXEL_FOOTPRINTS = 1 / 3
+
+
+def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
+                        settings: ReconstructionSettings) -> tuple[int, int]:
+    """Subdivision ``(ky, kx)`` of the lateral voxels during the reconstruction.
+
+    ``settings.lateral_subdivision`` as given, or for ``"auto"`` the smallest k per axis for
+    which the working voxel is at most a third of a lenslet footprint (5 % slack, at most
+    :data:`~plenopiv.reconstruction.settings.MAX_SUBDIVISION`). Depth along a pixel's beam is
+    told apart by
+    the beams of the other views shifting sideways by a fraction of a footprint; voxels a
+    footprint wide hold those shifts in one voxel, and the reconstructed particle is 2-3
+    times longer in depth than with half-footprint voxels. On the CI camera (Oseen, 0.3
+    particles per lenslet, footprint voxels) the w gain is 0.73 with k = 2, 0.89 with 3 and
+    0.89 with 4 (w rms 0.60, 0.48, 0.40 voxel; without subdivision see
+    docs/validation/vortex.md).
+
+    This is the subdivision asked for; :func:`choose_reconstruction` may take a coarser one
+    where the weights of this one would not fit in memory.
+    """
+    from plenopiv.reconstruction.settings import MAX_SUBDIVISION
+
+    k = settings.lateral_subdivision
+    if k != "auto":
+        return int(k), int(k)
+    half = SUBDIVIDED_VOXEL_FOOTPRINTS * footprint(calibration.effective_camera)
+    return tuple(int(min(MAX_SUBDIVISION, max(1, math.ceil(d / half - 0.05))))
+                 for d in (grid.voxel[1], grid.voxel[0]))
+
+
+def subdivided_grid(grid: VolumeGrid, ky: int, kx: int) -> VolumeGrid:
+    """``grid`` with every voxel cut into ``ky × kx`` laterally (same box, same depth)."""
+    dx, dy, dz = grid.voxel
+    ox, oy, oz = grid.origin
+    nz, ny, nx = grid.shape
+    return VolumeGrid((ox - 0.5 * dx + 0.5 * dx / kx, oy - 0.5 * dy + 0.5 * dy / ky, oz),
+                      (dx / kx, dy / ky, dz), (nz, ny * ky, nx * kx))
+
+
+def reconstruction_grid(calibration: Calibration, grid: VolumeGrid,
+                        settings: ReconstructionSettings) -> VolumeGrid:
+    """The working grid of a reconstruction on ``grid`` (:func:`lateral_subdivision`).
+
+    The subdivision asked for; :attr:`ReconstructionChoice.grid` is the one a reconstruction
+    takes (coarser where that one would not fit in memory).
+    """
+    return subdivided_grid(grid, *lateral_subdivision(calibration, grid, settings))
+
+
+@dataclass(frozen=True)
+class ReconstructionChoice:
+    """How a reconstruction of a ``[volume]`` grid runs (:func:`choose_reconstruction`).
+
+    Attributes
+    ----------
+    projector : {"sparse", "lattice", "lenslet"}
+        Explicit CSR weights (cached), the separable matrix-free lattice projector
+        (axis-aligned square lattice), or the per-lenslet matrix-free projector (any other
+        lattice).
+    subdivision : (int, int)
+        Lateral subdivision ``(ky, kx)`` of the voxels.
+    grid : VolumeGrid
+        The working grid: the ``[volume]`` grid subdivided by ``subdivision``.
+    memory_bytes : float
+        Estimated peak memory of the reconstruction with this projector, bytes
+        (:class:`~plenopiv.reconstruction.choose.ProjectorFit`).
+    budget_bytes : float
+        Memory allowed (``[reconstruction] max_weights_gb``, default
+        :func:`~plenopiv.reconstruction.choose.memory_budget_gb`), bytes.
+    reason : str
+        Why this projector and this subdivision, in words.
+    nnz : int or None
+        Estimated non-zeros of the explicit weights of the working grid (None where the
+        decision did not need them).
+    n_rays : int
+        Rays (lit pixels) of the light field.
+    fallbacks : tuple of str
+        Subdivisions given up because their weights did not fit, with why (``"auto"``
+        only); a reconstruction warns with each.
+    refusal : str or None
+        Why a reconstruction refuses this grid (nothing allowed fits the budget), else None.
+    """
+
+    projector: str
+    subdivision: tuple[int, int]
+    grid: VolumeGrid
+    memory_bytes: float
+    budget_bytes: float
+    reason: str
+    nnz: int | None = None
+    n_rays: int = 0
+    fallbacks: tuple[str, ...] = ()
+    refusal: str | None = None
+
+    @property
+    def working_shape(self) -> tuple[int, int, int]:
+        """Shape ``(nz, ny, nx)`` of the working grid."""
+        return tuple(int(n) for n in self.grid.shape)
+
+    @property
+    def matrix_free(self) -> bool:
+        """True for the lattice and the per-lenslet projectors (no stored weights)."""
+        return self.projector != "sparse"
+
+    @property
+    def settings_projector(self) -> str:
+        """The projector in the words of ``[reconstruction] projector``: sparse or lattice."""
+        return "sparse" if self.projector == "sparse" else "lattice"
+
+    def to_dict(self) -> dict:
+        """Plain JSON values; memory in bytes and GB."""
+        return {"projector": self.projector, "lateral_subdivision": list(self.subdivision),
+                "working_shape": list(self.working_shape),
+                "memory_bytes": float(self.memory_bytes), "memory_gb": self.memory_bytes / 1e9,
+                "budget_bytes": float(self.budget_bytes), "reason": self.reason,
+                "nnz": self.nnz, "n_rays": int(self.n_rays),
+                "fallbacks": list(self.fallbacks), "refusal": self.refusal}
+
+
+def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
+                          settings: ReconstructionSettings, *,
+                          geometry: ProjectionGeometry | None = None) -> ReconstructionChoice:
+    """The working grid and projector of a reconstruction of ``grid`` with ``settings``.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The camera and its effective S_i (``Calibration.from_camera`` for a camera model).
+    grid : VolumeGrid
+        The ``[volume]`` grid, effective coordinates, metres.
+    settings : ReconstructionSettings
+        ``method``, ``projector``, ``max_weights_gb``, ``lateral_subdivision``,
+        ``f_number`` and ``min_lit`` are read.
+    geometry : ProjectionGeometry, optional
+        Of ``calibration`` with ``settings.f_number`` and ``settings.min_lit``, on any grid:
+        lends its light field (built here otherwise).
+
+    Returns
+    -------
+    ReconstructionChoice
+
+    Raises
+    ------
+    ReconstructionError
+        The grid lies out of view. A budget that nothing fits is not raised but returned
+        (:attr:`ReconstructionChoice.refusal`).
+
+    Notes
+    -----
+    In order:
+
+    1. ``projector = "auto"`` with ``method`` other than ``"smart"`` takes explicit weights:
+       row-action and block MART walk their rows.
+    2. The subdivision is :func:`lateral_subdivision`'s. ``"auto"`` projector on a subdivided
+       grid whose rays are separable (axis-aligned square lattice) takes the lattice
+       projector: the explicit weights grow k² and the lattice projector projects them about
+       ten times faster (docs/validation/vortex.md).
+    3. Otherwise :func:`~plenopiv.reconstruction.choose.fit_projector`: explicit weights while
+       their estimate fits the budget, then (``"auto"``, ``"lattice"``) the matrix-free
+       projector of the lattice while its estimate fits.
+    4. With ``lateral_subdivision = "auto"``, a subdivision whose reconstruction fits nothing
+       is given up for one coarser by one per axis (recorded in ``fallbacks``).
+    """
+    if settings.projector not in PROJECTORS:
+        raise ValueError(f"projector = {settings.projector!r}: expected one of {PROJECTORS}")
+    if geometry is None:
+        geometry = ProjectionGeometry.for_settings(calibration, grid, settings)
+    budget = memory_budget_gb() if settings.max_weights_gb is None else settings.max_weights_gb
+    projector, why = settings.projector, f"projector = \"{settings.projector}\""
+    if projector == "auto" and settings.method != "smart":
+        projector = "sparse"
+        why = f"method = \"{settings.method}\" walks the rows of explicit weights"
+    ky, kx = lateral_subdivision(calibration, grid, settings)
+    n_rays = geometry.light_field.n_rays
+    if projector == "auto" and (ky, kx) != (1, 1):
+        work = geometry.on_grid(subdivided_grid(grid, ky, kx))
+        if work.separable_axes is not None:
+            work.check_in_view()
+            fit = fit_projector(work.light_field, work.grid, projector="lattice",
+                                budget_gb=math.inf, separable=True)
+            over = (f", above the {budget:.3g} GB of max_weights_gb, which this path does "
+                    "not hold it to" if fit.memory_gb > budget else "")
+            return ReconstructionChoice(
+                "lattice", (ky, kx), work.grid, fit.memory_gb * 1e9, budget * 1e9,
+                f"{why}: a {ky} x {kx} subdivided grid on an axis-aligned square lattice "
+                "takes the matrix-free lattice projector (k² times the explicit weights "
+                f"otherwise), ~{fit.memory_gb:.3g} GB{over}", n_rays=n_rays)
+    fallbacks: list[str] = []
+    while True:
+        work = geometry.on_grid(subdivided_grid(grid, ky, kx))
+        fit = fit_projector(work.light_field, work.grid, projector=projector, budget_gb=budget,
+                            separable=work.separable_axes is not None)
+        if (fit.refusal is None or settings.lateral_subdivision != "auto"
+                or max(ky, kx) == 1):
+            break
+        fallbacks.append(f"lateral_subdivision = \"auto\": the weights of a {ky} x {kx} "
+                         f"subdivision do not fit ({fit.refusal}); trying "
+                         f"{max(1, ky - 1)} x {max(1, kx - 1)}")
+        ky, kx = max(1, ky - 1), max(1, kx - 1)
+    return ReconstructionChoice(
+        fit.kind, (ky, kx), work.grid, fit.memory_gb * 1e9, budget * 1e9,
+        _reason(fit, why, budget, (ky, kx), fallbacks), nnz=fit.nnz, n_rays=n_rays,
+        fallbacks=tuple(fallbacks), refusal=fit.refusal)
+
+
+def _reason(fit, why: str, budget: float, subdivision, fallbacks) -> str:
+    """Why :func:`choose_reconstruction` took ``fit``, in words (``budget`` in GB)."""
+    names = {"sparse": "explicit weights", "lattice": "the matrix-free lattice projector",
+             "lenslet": "the per-lenslet matrix-free projector (the lattice is rotated, "
+                        "hexagonal or irregular)"}
+    if fit.refusal is not None:
+        text = f"{why}: nothing fits the {budget:.3g} GB allowed"
+    elif fit.kind == "sparse":
+        text = (f"{why}: {names['sparse']}, ~{fit.memory_gb:.3g} GB of the {budget:.3g} GB "
+                "allowed")
+    elif fit.nnz is not None:
+        text = (f"{why}: the explicit weights (~{fit.nnz:.3g} non-zeros) do not fit the "
+                f"{budget:.3g} GB allowed; {names[fit.kind]}")
+    else:
+        text = f"{why}: {names[fit.kind]}"
+    if fallbacks:
+        text += f" on a {subdivision[0]} x {subdivision[1]} subdivision (finer ones do not fit)"
+    return text
+
+
+#: Bytes per explicit non-zero in a reconstruction: W's CSR (8: int32 voxel index, float32
+#: weight), held once (its row-normalised and row-selected projectors are views of it), and
+#: 2 for the row views, schedules, images and volumes; the traced peak of a whole SMART or
+#: row-action MART reconstruction stays within it (benchmarks/bench_weights.py
+#: --reconstruct). Method "block" adds 4 for its block column sums.
+BYTES_PER_NONZERO = 10
+
+
+
+PROJECTORS = ("auto", "sparse", "lattice")
+
+
+
+def estimate_nnz(lf: LightField, grid: VolumeGrid, *, min_weight: float = 1e-7,
+                 sample: int = 101) -> int:
+    """Non-zeros of the explicit W, counted on every ``sample``-th ray and scaled up."""
+    check_grid_in_view(lf, grid)
+    counts = K.count_nnz(*_kernel_args(lf, grid, min_weight, sample))
+    return int(counts.sum() * lf.n_rays / max(len(counts), 1))
+
+
+
+def memory_budget_gb() -> float:
+    """Default memory for explicit weights: 40 % of the physical memory (GB)."""
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        total = 8e9
+    return 0.4 * total / 1e9
+
+
+
+@dataclass(frozen=True)
+class ProjectorFit:
+    """The projector a memory budget allows on one grid, and the estimate that decided it.
+
+    Attributes
+    ----------
+    kind : {"sparse", "lattice", "lenslet"}
+        Explicit CSR weights, the separable matrix-free lattice projector (axis-aligned
+        square lattice) or the per-lenslet matrix-free projector (any other lattice).
+    memory_gb : float
+        Estimated peak memory of a reconstruction with it, GB: :data:`BYTES_PER_NONZERO` ×
+        ``nnz`` for explicit weights, :func:`estimate_matrix_free_gb` or
+        :func:`~plenopiv.reconstruction.real_lattice.estimate_lenslet_gb` otherwise.
+    nnz : int or None
+        Estimated non-zeros of the explicit weights (None where not estimated).
+    refusal : str or None
+        Why nothing allowed fits the budget (the reconstruction's error message), else None.
+    """
+
+    kind: str
+    memory_gb: float
+    nnz: int | None = None
+    refusal: str | None = None
+
+
+
+def fit_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto",
+                  budget_gb: float, min_weight: float = 1e-7,
+                  separable: bool | None = None) -> ProjectorFit:
+    """The projector :func:`choose_projector` takes, with its estimate; refusals are returned.
+
+    ``budget_gb`` is the memory allowed, GB. ``separable``: whether ``lf``'s rays are
+    separable (:func:`~plenopiv.reconstruction.geometry.separable_axes`), where the caller
+    knows it; computed here otherwise.
+    """
+    if projector not in PROJECTORS:
+        raise ValueError(f"projector = {projector!r}: expected one of {PROJECTORS}")
+    nnz = None
+    if projector in ("auto", "sparse"):
+        nnz = estimate_nnz(lf, grid, min_weight=min_weight)
+        need = BYTES_PER_NONZERO * nnz / 1e9
+        if need <= budget_gb:
+            return ProjectorFit("sparse", need, nnz)
+        if projector == "sparse":
+            return ProjectorFit("sparse", need, nnz, refusal=(
+                f"the explicit weights need ~{need:.3g} GB, more than the {budget_gb:.3g} GB "
+                "allowed ([reconstruction] max_weights_gb): set projector = \"auto\" (the "
+                "matrix-free projector), use fewer or larger voxels, or raise max_weights_gb"))
+    if separable is None:
+        separable = separable_axes(lf) is not None
+    need = estimate_matrix_free_gb(lf, grid) if separable else estimate_lenslet_gb(lf, grid)
+    kind = "lattice" if separable else "lenslet"
+    if need <= budget_gb:
+        return ProjectorFit(kind, need, nnz)
+    return ProjectorFit(kind, need, nnz, refusal=(
+        f"the matrix-free reconstruction of a {grid.shape[0]} × {grid.shape[1]} × "
+        f"{grid.shape[2]}-voxel volume needs ~{need:.3g} GB ("
+        + ("projection buffers of depth slices × voxel rows × sensor columns, "
+           if separable else "") + "volumes, rays), more than the "
+        f"{budget_gb:.3g} GB allowed ([reconstruction] max_weights_gb): use fewer or larger "
+        "voxels, or raise max_weights_gb"))
+
+
+
+def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto",
+                     max_weights_gb: float | None = None, min_weight: float = 1e-7) -> str:
+    """``"sparse"`` or ``"lattice"`` for a reconstruction of ``grid`` from ``lf``.
+
+    ``"auto"`` keeps the explicit weights while their estimated memory
+    (:data:`BYTES_PER_NONZERO` × :func:`estimate_nnz`) fits in ``max_weights_gb`` (default
+    :func:`memory_budget_gb`), and takes a matrix-free projector beyond that
+    (:func:`plenopiv.reconstruction.real_lattice.matrix_free_projector`: the separable lattice
+    projector for an axis-aligned square lattice, the per-lenslet one for any other).
+
+    Both estimates are checked against the same budget before anything large is allocated
+    (:func:`fit_projector`, which also says which matrix-free projector and what memory).
+
+    Raises
+    ------
+    ReconstructionError
+        The explicit weights would not fit and ``"sparse"`` was asked for, or the
+        matrix-free reconstruction's estimate (:func:`estimate_matrix_free_gb`, or
+        :func:`plenopiv.reconstruction.real_lattice.estimate_lenslet_gb` for a lattice that is
+        not axis-aligned) exceeds the budget.
+    """
+    budget = memory_budget_gb() if max_weights_gb is None else float(max_weights_gb)
+    fit = fit_projector(lf, grid, projector=projector, budget_gb=budget, min_weight=min_weight)
+    if fit.refusal is not None:
+        raise ReconstructionError(fit.refusal)
+    return "sparse" if fit.kind == "sparse" else "lattice"
+
+
+
+def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
+    """Peak memory of a matrix-free SMART reconstruction of ``grid`` from ``lf``, GB.
+
+    Two projection buffers (depth slices × voxel rows × used sensor columns, float32), about
+    twelve float32 volumes (estimate, update, column sums, first guess, masks), the rays and
+    their per-call copies (~64 bytes each), and one depth slab of the sub-voxel line-of-sight
+    mask (:mod:`plenopiv.reconstruction.sightline`: its buffer and six refined float32 arrays).
+    """
+    nz, ny, nx = grid.shape
+    cols = lf.pixel % lf.shape[1]
+    n_cols = int(cols.max() - cols.min() + 1) if len(cols) else 0
+    kx, ky = subcell_factors(grid, lf.footprint)
+    fine = min(SLAB_VOXELS, grid.n_voxels * kx * ky)
+    slab_nz = max(1, fine // max(ny * ky * nx * kx, 1))
+    total = (2 * 4 * nz * ny * n_cols + 12 * 4 * grid.n_voxels + 64 * lf.n_rays
+             + 4 * slab_nz * ny * ky * n_cols + 6 * 4 * fine)
+    return total / 1e9

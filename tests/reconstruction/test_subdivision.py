@@ -1,0 +1,91 @@
+"""The laterally subdivided reconstruction grid (``[reconstruction] lateral_subdivision``) and
+the merge of its voxels back onto the volume's grid (``subdivision_kernel``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.camera.grid import VolumeGrid
+from plenopiv.camera.model import load_camera
+from plenopiv.camera.resolution import footprint
+from plenopiv.errors import ReconstructionError
+from plenopiv.reconstruction.build import weights_for
+from plenopiv.reconstruction.choose import lateral_subdivision, subdivided_grid
+from plenopiv.reconstruction.settings import ReconstructionSettings
+from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of
+from plenopiv.synthetic.images import particle_image
+from plenopiv.workflow.volume import reconstruct_volume
+
+
+@pytest.fixture(scope="module")
+def cal():
+    return Calibration.from_camera(load_camera("small_m1"))
+
+
+def grid_of(cal, voxel_footprints, half=8):
+    b = footprint(cal.effective_camera)
+    v = voxel_footprints * b
+    return VolumeGrid.from_bounds((-half * b, half * b), (-half * b, half * b),
+                                  (-1e-3, 1e-3), voxel=(v, v, b))
+
+
+@pytest.mark.parametrize(("voxel", "k"), [(1.0, 3), (0.5, 2), (1 / 3, 1), (0.25, 1), (2.0, 4)])
+def test_auto_subdivides_to_a_third_of_a_footprint(cal, voxel, k):
+    assert lateral_subdivision(cal, grid_of(cal, voxel), ReconstructionSettings()) == (k, k)
+    fixed = ReconstructionSettings(lateral_subdivision=2)
+    assert lateral_subdivision(cal, grid_of(cal, voxel), fixed) == (2, 2)
+
+
+def test_subdivided_grid_covers_the_same_box(cal):
+    grid = grid_of(cal, 1.0)
+    fine = subdivided_grid(grid, 3, 2)
+    np.testing.assert_allclose(fine.bounds, grid.bounds, rtol=0, atol=1e-12)
+    assert fine.shape == (grid.shape[0], grid.shape[1] * 3, grid.shape[2] * 2)
+    assert subdivision_of(fine, grid) == (3, 2)
+    with pytest.raises(ReconstructionError, match="another volume grid"):
+        subdivision_of(subdivided_grid(grid_of(cal, 1.0, half=7), 3, 3), grid)
+    # a finer grid of the same box is a subdivision too
+    assert subdivision_of(subdivided_grid(grid_of(cal, 0.5), 2, 2), grid) == (4, 4)
+
+
+def test_box_merge_sums_and_gaussian_merge_keeps_total_and_position():
+    rng = np.random.default_rng(3)
+    fine = rng.random((2, 12, 18)).astype(np.float32)
+    box = merge_subdivided(fine, 3, 3, kernel="box")
+    np.testing.assert_allclose(box, fine.reshape(2, 4, 3, 6, 3).sum(axis=(2, 4)), rtol=1e-6)
+    for k in (2, 3):
+        for offset in range(k):                 # a point at each sub-voxel position
+            v = np.zeros((1, 12 * k, 12 * k), np.float32)
+            v[0, 6 * k + offset, 6 * k + k // 2] = 1.0
+            merged = merge_subdivided(v, k, k)
+            # samples of a Gaussian of half a voxel sum to 1 within 2 exp(-2 pi² / 4) = 1.4 %
+            # per axis (the ripple with the position inside the voxel)
+            assert merged.sum() == pytest.approx(1.0, rel=0.03)
+            profile = merged[0].sum(axis=1)
+            centroid = profile @ np.arange(12) / profile.sum()
+            true = 6 + (offset - (k - 1) / 2) / k
+            assert centroid == pytest.approx(true, abs=0.03)
+            # the box merge puts the point in its voxel whatever its position inside
+            box = merge_subdivided(v, k, k, kernel="box")[0].sum(axis=1)
+            assert box @ np.arange(12) / box.sum() == 6
+    with pytest.raises(ValueError, match="kernel"):
+        merge_subdivided(fine, 3, 3, kernel="cubic")
+
+
+def test_reconstruction_on_the_subdivided_grid_returns_the_volume_grid(cal):
+    grid = grid_of(cal, 1.0)
+    cam = load_camera("small_m1")
+    b = footprint(cal.effective_camera)
+    img = particle_image(cam, [(0.3 * b, -0.2 * b, 0.6e-3)], rays_per_particle=4000, seed=1)
+    w, _ = weights_for(cal, grid, ReconstructionSettings())
+    assert w.grid.shape == (grid.shape[0], 3 * grid.shape[1], 3 * grid.shape[2])
+    assert w.matrix_free            # a square lattice: the matrix-free projector
+    res = reconstruct_volume(cal, img, grid, weights=w)
+    assert res.volume.shape == grid.shape and res.grid == grid
+    assert len(res.particle_position) >= 1
+    # weights on the volume's own grid reconstruct without subdivision
+    own, _ = weights_for(cal, grid, ReconstructionSettings(lateral_subdivision=1))
+    assert own.grid == grid
+    assert reconstruct_volume(cal, img, grid, weights=own).volume.shape == grid.shape

@@ -1,0 +1,187 @@
+"""``plenopiv plan`` and plenopiv.workflow.planning: resolution, recommendations, fit, size and
+cost."""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+
+import numpy as np
+import pytest
+
+from plenopiv.calibration.model import Calibration
+from plenopiv.camera.grid import VolumeGrid, volume_from_dict
+from plenopiv.camera.model import load_camera
+from plenopiv.camera.resolution import footprint
+from plenopiv.cli import main
+from plenopiv.lightfield import light_field
+from plenopiv.piv.settings import PIVSettings
+from plenopiv.reconstruction.choose import estimate_nnz
+from plenopiv.reconstruction.settings import ReconstructionSettings
+from plenopiv.workflow import planning, rates
+
+MM = 1e-3
+
+
+def user_box(voxel=0.26e-3):
+    """The box a new user typed for the small camera (issue #15)."""
+    return VolumeGrid.from_bounds((-7 * MM, 7 * MM), (-4.5 * MM, 4.5 * MM), (-5 * MM, 5 * MM),
+                                  voxel=voxel)
+
+
+def test_resolution_cell_and_near_focus(small_camera):
+    cam = planning.camera_resolution(small_camera)
+    b = footprint(small_camera)
+    assert cam.footprint == pytest.approx(b)
+    # depth cell = b S_o / D with D = f/N: 2.24 mm for the 135 mm lens at f/2.8
+    so = small_camera.object_distance
+    d = small_camera.main_lens.focal_length / small_camera.main_lens.f_number
+    assert cam.depth_cell == pytest.approx(b * so / d)
+    assert cam.depth_cell == pytest.approx(2.237e-3, rel=1e-3)
+    assert cam.near_focus == cam.depth_cell
+    # a stopped-down recording has a longer depth cell
+    assert planning.camera_resolution(small_camera, 5.6).depth_cell == pytest.approx(
+        2 * cam.depth_cell)
+
+
+@pytest.mark.parametrize("name", ["small_test", "small_m1"])
+def test_weight_count_matches_the_light_field(name):
+    """The pattern count is within 5 % of the sampled count of the real weights."""
+    cam = load_camera(name)
+    lf = light_field(Calibration.from_camera(cam))
+    for grid in (user_box(), VolumeGrid.from_bounds((-2 * MM, 2 * MM), (-1 * MM, 3 * MM),
+                                                    (-8 * MM, 2 * MM), voxel=0.2 * MM)):
+        n_rays, nnz = planning.estimate_size(cam, grid)
+        assert n_rays == pytest.approx(lf.n_rays, rel=0.05)
+        assert nnz == pytest.approx(estimate_nnz(lf, grid, sample=13), rel=0.05)
+
+
+def test_vectors_per_pass_as_the_piv_lays_them_out():
+    from plenopiv.piv.windows import _window_layout
+
+    assert planning.vectors_per_pass((18, 69, 108), [(8, 32, 32), (6, 24, 24)], 0.5, 3) == (
+        (3, 3, 5), (5, 4, 8), (5, 4, 8))
+    assert planning.vectors_per_pass((15, 40, 40), [(24, 16, 16)], 0.5, 1) == ((0, 4, 4),)
+    for shape, w, ov in (((49, 35, 51), (12, 12, 12), 0.5), ((38, 35, 54), (16, 12, 12), 0.75),
+                         ((20, 30, 40), (7, 9, 11), 0.3)):
+        layout = _window_layout(shape, w, ov)
+        assert planning.vectors_per_pass(shape, [w], ov, 1)[0] == tuple(
+            len(s) for s in layout.starts)
+
+
+def test_users_box_gets_concrete_advice(small_camera):
+    p = planning.plan(small_camera, user_box())
+    assert p.fits and not p.warnings
+    text = " ".join(p.advice)
+    assert "half a footprint" in text and "0.13 mm" in text
+    assert "depth voxel" in text and "0.556 mm" in text
+    # the tables to paste load as they are, and give the recommended grid
+    toml = tomllib.loads(p.recommended_toml())
+    grid = volume_from_dict(toml["volume"])
+    assert grid.shape == p.recommended_grid.shape == (18, 69, 108)
+    assert [tuple(w) for w in toml["piv"]["windows"]] == list(p.recommended_windows)
+    assert p.recommended_windows == ((8, 32, 32), (6, 24, 24))
+    assert min(p.recommended_vectors) >= planning.MIN_VECTORS_LAST_PASS
+
+
+def test_windows_that_do_not_fit_are_a_warning(small_camera):
+    grid = VolumeGrid.from_bounds((-3 * MM, 3 * MM), (-3 * MM, 3 * MM), (-2 * MM, 2 * MM),
+                                  voxel=0.26 * MM)
+    p = planning.plan(small_camera, grid)
+    assert not p.fits
+    w = " ".join(p.warnings)
+    assert "do not fit" in w and "z: window 24 voxels > 15 voxels" in w
+    assert "windows larger than the volume" in w
+    # and the recommended windows for this box do fit
+    assert all(min(v) > 0 for v in planning.vectors_per_pass(
+        p.recommended_grid.shape, p.recommended_windows, 0.5, 3))
+
+
+def test_box_outside_the_field_of_view(small_camera):
+    grid = VolumeGrid.from_bounds((-10 * MM, 10 * MM), (-4 * MM, 4 * MM), (-5 * MM, 5 * MM),
+                                  voxel=(0.13 * MM, 0.13 * MM, 0.556 * MM))
+    p = planning.plan(small_camera, grid, piv=PIVSettings(windows=[(8, 32, 32), (6, 24, 24)]))
+    assert any("field of view" in w for w in p.warnings)
+
+
+def test_full_camera_uses_the_lattice_projector_and_its_memory(auburn_camera):
+    grid = VolumeGrid.from_bounds((-37 * MM, 37 * MM), (-25 * MM, 25 * MM),
+                                  (-26 * MM, 26 * MM), voxel=0.26 * MM)
+    # footprint voxels without subdivision: docs/performance.md, 3.5 GB peak for the 16 MP
+    # pair
+    p = planning.plan(auburn_camera, grid, memory_total=24e9,
+                      reconstruction=ReconstructionSettings(lateral_subdivision=1))
+    assert p.projector == "lattice" and p.decision.subdivision == (1, 1)
+    assert p.nnz > 1e10               # docs/performance.md: 1.23e10 non-zeros, ~100 GB of CSR
+    assert p.n_rays == pytest.approx(11.55e6, rel=0.03)
+    assert 2.5e9 < p.memory["peak"] < 5e9
+    assert 20 < p.time["pair"] < 200
+    assert p.time_model.startswith("benchmark rates")
+    # the default 3 x 3 subdivision: README, 7.1 GB peak and 385 s for the pair on a shared
+    # 2-core machine (the reconstruction's own estimate of its memory is 11 GB)
+    p = planning.plan(auburn_camera, grid, memory_total=24e9)
+    assert p.projector == "lattice" and p.decision.subdivision == (3, 3)
+    assert 6e9 < p.memory["peak"] < 15e9
+    assert 200 < p.time["pair"] < 1000
+
+
+def test_measured_rates_are_positive(small_camera):
+    grid = VolumeGrid.from_bounds((-2 * MM, 2 * MM), (-2 * MM, 2 * MM), (-3 * MM, 3 * MM),
+                                  voxel=(0.13 * MM, 0.13 * MM, 0.556 * MM))
+    cfg = PIVSettings(windows=[(6, 16, 16)], passes=2)
+    r = rates.measure_rates(small_camera, grid, piv=cfg, budget_s=0.5)
+    assert r.source == "measured" and r.threads >= 1
+    for v in (r.build_s_per_nnz, r.sweep_s_per_nnz, r.lattice_s_per_ray_slice,
+              r.piv_s_per_window_voxel):
+        assert math.isfinite(v) and 0 < v < 1e-3
+    p = planning.plan(small_camera, grid, piv=cfg, rates=r)
+    assert p.time_model.startswith("rates measured")
+    assert p.time["pair"] == pytest.approx(p.time["weights"] + 2 * p.time["volume"]
+                                           + p.time["piv"])
+
+
+def test_cli_plan_experiment_human_and_json(tmp_path, capsys):
+    exp = tmp_path / "exp.toml"
+    exp.write_text('camera = "small_test"\n[volume]\nx_mm = [-7, 7]\ny_mm = [-4.5, 4.5]\n'
+                   'z_mm = [-5, 5]\nvoxel_mm = 0.26\n')
+    assert main(["plan", str(exp), "--no-measure"]) == 0
+    out = capsys.readouterr().out
+    for text in ("resolution cell", "near-focus zone", "recommended", "memory", "time model",
+                 "voxel_mm = [0.13, 0.13, 0.556]"):
+        assert text in out
+    assert "np.float64" not in out and "e-1" not in out
+    assert main(["plan", str(exp), "--no-measure", "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["command"] == "plan" and s["kind"] == "experiment"
+    assert s["resolution_cell_mm"]["lateral"] == pytest.approx(0.2596, abs=1e-4)
+    assert s["volume"]["shape"] == [38, 35, 54] and s["windows_fit"]
+    assert s["recommended"]["voxel_mm"][2] == pytest.approx(0.5556, abs=1e-3)
+    # the box options replace the experiment's
+    assert main(["plan", str(exp), "--no-measure", "--json", "--z-mm", "-2", "2"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert not s["windows_fit"] and s["warnings"]
+
+
+def test_cli_plan_camera_with_box(capsys):
+    assert main(["plan", "small_m1", "--no-measure", "--json", "--x-mm", "-2", "2",
+                 "--y-mm", "-2", "2", "--z-mm", "-3", "3"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["kind"] == "camera"
+    assert s["volume"]["x_mm"] == pytest.approx([-2, 2])
+    # a camera alone: the recommended voxel, and windows that fit
+    assert np.allclose(s["volume"]["voxel_mm"], s["recommended"]["voxel_mm"], rtol=0.05)
+    assert s["windows_fit"]
+
+
+def test_cli_plan_needs_the_image_distance(tmp_path, capsys):
+    from plenopiv.camera.model import PRESET_DIR
+
+    raw = (PRESET_DIR / "small_test.toml").read_text()
+    assert "image_distance_mm = 200.0\n" in raw
+    cam = tmp_path / "cam.toml"
+    cam.write_text(raw.replace("image_distance_mm = 200.0\n", ""))
+    assert main(["plan", str(cam), "--no-measure"]) == 2
+    assert "image_distance_mm" in capsys.readouterr().err
+    assert main(["plan", str(cam), "--no-measure", "--image-distance-mm", "200", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["footprint_mm"] == pytest.approx(0.2596, abs=1e-4)
