@@ -141,16 +141,10 @@ def check_recording(calibration, images, *, tolerance_px: float = TOLERANCE_PX,
 
     Notes
     -----
-    The mean image is cut into tiles of about 6 x 6 lenslets. In each, the calibration's
-    micro-images, drawn as soft discs (the diameter the aperture models, at most the pitch)
-    and made zero-mean, are cross-correlated with the recorded light over shifts up to 0.45
-    pitch; the peak, refined by a parabola per axis, is the tile's shift. A tile counts when
-    its peak stands out of the correlation half a pitch away (an image with no micro-image
-    structure, or an empty tile, has none) and it holds light. The shift and rotation about
-    the sensor's centre are fitted to the tiles' shifts by least squares (tiles beyond 3
-    robust standard deviations left out), the discs redrawn there and the residual measured
-    once more. The micro-images repeat with the pitch, so a shift is found modulo the pitch:
-    a whole-lenslet shift is not seen.
+    Soft discs at the calibration's micro-images are cross-correlated with the mean image in
+    tiles of about 6 x 6 lenslets; the tiles' shifts give a shift and a rotation about the
+    sensor's centre (docs/methods.md#recording-against-calibration). The micro-images repeat
+    with the pitch, so a shift is found modulo the pitch.
     """
     tol = float(tolerance_px)
     if not (math.isfinite(tol) and tol > 0):

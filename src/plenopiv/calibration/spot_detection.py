@@ -316,12 +316,11 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     centres, intensity, area, flags, std = (a[order] for a in (centres, intensity, area, flags,
                                                                 std))
     flags |= _image_flags(raw, sat_level, centres, intensity, flags, radius, opts)
-    return SpotSet(
-        centres_px=centres, intensity=intensity, area_px=area, flags=flags,
-        image_shape=work.shape, pitch_px=pitch, window_radius_px=radius, method=method,
-        grid=grid, rejected_px=rejected, spot_radius_px=spot_r, spot_rms_radius_px=spot_rms,
-        moment_radius_px=moment_r, annulus_px=annulus, centre_std_px=std,
-    )
+    return SpotSet(centres_px=centres, intensity=intensity, area_px=area, flags=flags,
+                   image_shape=work.shape, pitch_px=pitch, window_radius_px=radius,
+                   method=method, grid=grid, rejected_px=rejected, spot_radius_px=spot_r,
+                   spot_rms_radius_px=spot_rms, moment_radius_px=moment_r,
+                   annulus_px=annulus, centre_std_px=std)
 
 
 def _checked_options(method, background, grid, threshold, detection_threshold, min_area_px,
