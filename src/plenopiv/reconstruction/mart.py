@@ -110,8 +110,10 @@ def reconstruct(
     ImageError
         The image holds NaN/inf or negative values, or no pixel above ``pixel_threshold``.
     ReconstructionError
-        The image, ``blocks``, ``initial`` or ``shape`` does not match the projector, or the
-        projector lacks row access for ``"mart"``/``"block"``.
+        The image, ``blocks``, ``initial`` or ``shape`` does not match the projector, the
+        projector lacks row access for ``"mart"``/``"block"``, or, with ``initial`` "mlos" or
+        "ones", every voxel a lit pixel sees is seen by a dark one (nothing to iterate; a
+        given first guess may be empty).
     ValueError
         An option is outside its valid set.
 
@@ -128,6 +130,12 @@ def reconstruct(
     schedule = projector.block_schedule(blocks) if method == "block" else None
 
     volume = _first_guess(initial, intensity, bright, projector)
+    if isinstance(initial, str) and not volume.any():
+        raise ReconstructionError(
+            f"every voxel a lit pixel sees is also seen by a dark pixel (I <= pixel_threshold "
+            f"= {pixel_threshold:g} counts), so the line of sight leaves an empty volume: "
+            "give the dark pixels as ceilings (method='smart', ceiling=, their intensity the "
+            "noise floor) or use plenopiv.reconstruction.solve.solve_volume, which does")
     sweep = _sweep_of(method, projector, intensity, bright, relaxation, schedule, ceiling)
     for iteration in range(1, iterations + 1):
         sweep(volume)
