@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from plenopiv.calibration.defects import DarkFrame
+from plenopiv.calibration.defects import DarkFrame, WhiteFlat
 from plenopiv.calibration.image_distance import (
     FocalPointFit,
     MagnificationResult,
@@ -171,7 +171,9 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     phase_harmonics : int
         Harmonics of each lattice's sub-pixel phase bias (default 2; 0: none; fit_lattice).
     white_image : ndarray, optional
-        A white at the working aperture: its micro-image diameter is stored
+        A white at the working aperture: the focal-point and alignment images are divided by
+        it (:class:`~plenopiv.calibration.defects.WhiteFlat`: the lenslets' throughput and
+        the micro-images' vignetting), its micro-image diameter is stored
         (``extra["micro_image_diameter_px"]``), a camera f-number that models it 1.25 times
         off is noted (:func:`~plenopiv.lightfield.light_field` warns on the same).
     dark : ndarray, optional
@@ -190,12 +192,13 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
               "bad_pixels": dark_frame.hot}
     options = {"threshold": spot_threshold, "method": spot_method,
                "phase_harmonics": phase_harmonics, **limits}
-    fp = dark_frame.subtract(check_image(focal_point_image, shape=shape,
-                                         name="focal-point image"))
+    flat = WhiteFlat.of(white_image, dark_frame, shape)
+    fp = flat.apply(dark_frame.subtract(check_image(focal_point_image, shape=shape,
+                                                    name="focal-point image")))
 
     # 1. focal spots; 2. the lenslets (alignment image or nominal), each with its focal spot
     spots, lat = spot_lattice(fp, camera, "the focal-point image", **options)
-    lenslets = lenslet_centres(camera, alignment_image, dark=dark_frame, **options)
+    lenslets = lenslet_centres(camera, alignment_image, dark=dark_frame, flat=flat, **options)
     scale = focal_spot_scale(float(np.mean(lat.pitch_px)), lenslets.pitch_px)
     lenslets = lenslets_on_sensor(lenslets, scale, shape, spots.window_radius_px + 1)
     focal_px = lat.corrected_centres_px

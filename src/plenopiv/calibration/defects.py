@@ -274,3 +274,54 @@ class DarkFrame:
             return image
         out = np.asarray(image, np.float32) - self.frame
         return patch_pixels(out, self.hot) if patch else out
+
+
+#: The flat of the calibration images divides by the white down to this fraction of its lit
+#: level and by that floor below it: the gain is continuous and at most ``1 / fraction``, so
+#: the dim rims and gaps are never amplified into a ring that pulls the spots (a division
+#: that zeroes or amplifies them without bound does).
+WHITE_FLOOR_FRACTION = 0.5
+#: The white's lit level: the median of its pixels above this fraction of its 99.9th
+#: percentile (the micro-images' plateaus).
+WHITE_LIT_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class WhiteFlat:
+    """The calibration images' flat field from a white, or nothing (:meth:`apply` identity).
+
+    A white lights every micro-image through the camera's lenslets, so it holds each pixel's
+    share of the light: the lenslets' throughput and the fall-off inside each micro-image
+    (vignetting). The fall-off pulls every spot off its centre towards the brighter side,
+    by its gradient times the spot's variance: an alignment spot off its micro-image's
+    centre moves towards it, and the focal-point fit reads a longer S_i (+0.12 mm at 20 %
+    light lost at the rims, docs/validation/realcam.md). Dividing by the white, pixel by
+    pixel, takes the fall-off out.
+    """
+
+    gain: np.ndarray | None = None
+    level: float = float("nan")
+
+    @classmethod
+    def of(cls, white, dark: DarkFrame, shape) -> WhiteFlat:
+        """The flat of ``white`` (None: none) less ``dark``; checked against ``shape``."""
+        if white is None:
+            return cls()
+        from plenopiv.products.images import check_image
+
+        w = dark.subtract(check_image(white, shape=shape, name="white image"), patch=True)
+        w = np.asarray(w, dtype=np.float64)
+        top = float(np.percentile(w, 99.9))
+        lit = w > WHITE_LIT_FRACTION * top
+        if not (top > 0 and lit.any()):
+            raise ImageError("the white image holds no light above its dark: expected a "
+                             "white at the working aperture")
+        level = float(np.median(w[lit]))
+        gain = level / np.maximum(w, WHITE_FLOOR_FRACTION * level)
+        return cls(gain.astype(np.float32), level)
+
+    def apply(self, image):
+        """``image`` times the flat's gain (float32), or ``image`` itself without a white."""
+        if self.gain is None or image is None:
+            return image
+        return np.asarray(image, np.float32) * self.gain

@@ -23,7 +23,9 @@ def add_parser(sub) -> None:
                      help="alignment image (collimated light); default: the nominal lattice")
     cal.add_argument("--ruler", metavar="IMG", help="ruler image on the nominal focal plane")
     cal.add_argument("--white", metavar="IMG",
-                     help="white image at the working aperture: checks the camera's f_number "
+                     help="white image at the working aperture: the focal-point and alignment "
+                          "images are divided by it (lenslet throughput and the micro-images' "
+                          "vignetting, which bias S_i), and the camera's f_number is checked "
                           "against its micro-image size")
     cal.add_argument("--dark", metavar="PATH",
                      help="dark frame or stack (TIFF, multi-page TIFF, PNG, file.h5:/path 2-D "
