@@ -8,9 +8,9 @@ read noise, hot and dead pixels, lenslet throughput, vignetting, glow, particle 
 pulse ratio) and all of them together, with the matching dark and white frames (what
 ``plenopiv simulate dark|white`` writes). Each case then runs as ``plenopiv calibrate
 --dark --white`` and ``plenopiv run`` would: the calibration images with the master dark
-subtracted and its hot pixels repaired
-(:func:`~plenopiv.workflow.preprocess.subtract_calibration_dark`), divided by the white, then the
-pair without and with a ``[preprocess]`` table (dark, white, ``hot_pixels = "auto"``), and is
+subtracted (:func:`~plenopiv.workflow.preprocess.calibration_dark`, its hot and cold pixels
+ignored) and divided by the white, then the pair without and with a ``[preprocess]`` table
+(dark, white, ``hot_pixels = "auto"``), and is
 scored against the truth: S_i error, particles detected and ghosts (matched within the
 resolution cell, :func:`pipelines.studies.field_quality.match_particles`), the velocity's gain,
 bias and rms per component (:func:`plenopiv.workflow.vortex_case.compare_with_truth`) and
@@ -51,7 +51,7 @@ from plenopiv.synthetic.images import (
 from plenopiv.synthetic.seeding import particle_count, random_particles
 from plenopiv.synthetic.sensor import REALISTIC, RecordingSettings, camera_instance
 from plenopiv.workflow.pair import process_pair
-from plenopiv.workflow.preprocess import calibration_dark, subtract_calibration_dark
+from plenopiv.workflow.preprocess import calibration_dark
 from plenopiv.workflow.vortex_case import (
     FOCAL_POINT_F_NUMBER,
     VortexCase,
@@ -223,21 +223,16 @@ def _calibrate(cam: CameraModel, fp, al, dark_path: Path | None, white=None):
     """``plenopiv calibrate`` (``--dark``, ``--white`` when given): ``(calibration or None,
     S_i, error)``.
 
-    ``white``: the mean white frame (raw counts); its dark is taken off like the calibration
-    images', and ``calibrate`` divides them by it (its flat field,
+    ``white``: the mean white frame (raw counts); ``calibrate`` takes the dark off it and the
+    calibration images, and divides them by it (its flat field,
     :class:`~plenopiv.calibration.defects.WhiteFlat`).
     """
-    master = None
-    if dark_path is not None:
-        master, bad, _ = calibration_dark(dark_path, cam.sensor.shape)
-        fp, al = (subtract_calibration_dark(x, master, bad, name=name)
-                  for x, name in ((fp, "focal-point image"), (al, "alignment image")))
-        if white is not None:
-            white = subtract_calibration_dark(white, master, bad, name="white image")
+    dark = None if dark_path is None else calibration_dark(dark_path, cam.sensor.shape)[0]
     user = cam.replace(main_lens=replace(cam.main_lens, image_distance=None))
     try:
         rep = calibrate(user, fp, alignment_image=al, method="focal-point",
-                        focal_point_f_number=FOCAL_POINT_F_NUMBER, white_image=white)
+                        focal_point_f_number=FOCAL_POINT_F_NUMBER, white_image=white,
+                        dark=dark)
     except PlenopivError as exc:
         return None, float("nan"), f"{type(exc).__name__}: {exc}"
     return rep.calibration, rep.calibration.image_distance, None

@@ -249,9 +249,16 @@ class DarkFrame:
 
     @classmethod
     def of(cls, dark, shape) -> DarkFrame:
-        """Check ``dark`` (None, or a finite 2-D array of ``shape``) and find its hot pixels."""
+        """Check ``dark``: None, a DarkFrame, or a finite 2-D array of ``shape``.
+
+        The hot pixels of an array are found here; a DarkFrame brings its own.
+        """
         if dark is None:
             return cls()
+        if isinstance(dark, DarkFrame):
+            if dark.frame is not None:
+                cls.of(dark.frame, shape)
+            return dark
         d = np.asarray(dark)
         if d.ndim != 2 or tuple(d.shape) != tuple(shape):
             raise ImageError(f"the dark frame has shape {d.shape}: expected the sensor's "

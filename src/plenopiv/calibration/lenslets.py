@@ -133,10 +133,11 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None, fla
         image = dark.subtract(image)
     if flat is not None:
         image = flat.apply(image)
-    # collimated light focuses to (almost) one pixel: accept one-pixel spots here; a hot
-    # pixel is then rejected by the lattice fit as off-lattice instead
+    # collimated light focuses to (almost) one pixel: accept one-pixel spots here, and never
+    # take a spot's sharp core for a hot pixel; a hot pixel is then rejected by the lattice
+    # fit as off-lattice instead
     spots, lat = spot_lattice(image, camera, "the alignment image", min_area_px=0.9,
-                              **lattice_options)
+                              hot_pixel_shapes=False, **lattice_options)
     ok = lat.inlier & ((lat.flags & SpotFlag.EDGE) == 0)
     return LensletCentres(lat.best_centres_px[ok], lat.grid_index[ok], "alignment image",
                           float(np.mean(lat.pitch_px)), lat, spots)

@@ -224,7 +224,7 @@ def _local_background(work, pitch):
 def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
                  detection_threshold=0.15, method="auto", window_radius_px=None,
                  moment_radius_px=None, background="local", min_area_px=1.5, dim_fraction=0.5,
-                 max_saturated_fraction=0.02, bad_pixels=None):
+                 max_saturated_fraction=0.02, bad_pixels=None, hot_pixel_shapes=True):
     """Find one sub-pixel spot centre per lenslet in a calibration image.
 
     Parameters
@@ -266,6 +266,9 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
         median first. Without them, where spots are broader than a pixel, hot pixels are
         found by their shape (:func:`~plenopiv.calibration.defects.isolated_pixels`),
         replaced alike and the spots detected again.
+    hot_pixel_shapes : bool
+        False: never look for hot pixels by their shape (an alignment image, whose spots
+        may hold their light in one pixel whatever their halo makes of their measured size).
 
     Returns
     -------
@@ -296,7 +299,7 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     centres, intensity, area, rejected = _first_centroids(work, cand, radius, pitch, opts)
     interior = ~_edge_mask(centres, radius, work.shape)
     spot_r, spot_rms = _spot_size(work, centres[interior], pitch)
-    hot = isolated_pixels(work, noise) if spot_rms >= 1.0 else None
+    hot = isolated_pixels(work, noise) if hot_pixel_shapes and spot_rms >= 1.0 else None
     if hot is not None and hot.any():
         work = patch_pixels(work, hot)
         cand, work, _ = _candidates(work, pitch, background, opts["detection_threshold"])

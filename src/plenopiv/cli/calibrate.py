@@ -84,28 +84,19 @@ def cmd_calibrate(args) -> dict:
     progress = _StageBar("calibrate", {"read images": 5, "spots and S_i": 75, "report": 20},
                          args.quiet or args.json)
     progress("read images")
-    dark = bad = dark_record = None
+    dark = dark_record = None
     if args.dark is not None:
         from plenopiv.workflow.preprocess import calibration_dark
 
-        dark, bad, dark_record = calibration_dark(args.dark, cam.sensor.shape)
+        dark, dark_record = calibration_dark(args.dark, cam.sensor.shape)
 
-    def read(flag, spec):
-        if spec is None:
-            return None
-        img = read_image(spec)
-        if dark is None:
-            return img
-        from plenopiv.workflow.preprocess import subtract_calibration_dark
+    def read(spec):
+        return None if spec is None else read_image(spec)
 
-        return subtract_calibration_dark(img, dark, bad, name=f"{flag} {spec!r}")
-
-    fp = read("--focal-point", args.focal_point)
-    al = read("--alignment", args.alignment)
-    ru = read("--ruler", args.ruler)
-    wh = read("--white", args.white)
+    fp, al, ru, wh = (read(s) for s in (args.focal_point, args.alignment, args.ruler,
+                                        args.white))
     progress("spots and S_i")
-    report = calibrate(cam, fp, alignment_image=al, ruler_image=ru, white_image=wh,
+    report = calibrate(cam, fp, alignment_image=al, ruler_image=ru, white_image=wh, dark=dark,
                        ruler_spacing=(None if args.ruler_spacing_mm is None
                                       else args.ruler_spacing_mm * 1e-3),
                        ruler_axis=args.ruler_axis, method=args.method,
