@@ -16,6 +16,11 @@ class ParticleSettings:
     """``[particles]``: 3-D peak detection.
 
     threshold : a particle's peak must exceed this fraction of the reference intensity.
+    noise_sigmas : and it must exceed the volume's background level by this many standard
+        deviations of its noise, both estimated from the volume
+        (:func:`plenopiv.particles.threshold.background_noise`); 0 turns it off. The default 5
+        lets white Gaussian noise make at most 2.9e-7 false peaks per voxel (the share of its
+        voxels above 5 sigma), three in a 10-million-voxel volume.
     threshold_reference : "bright" (default: the 99.9th percentile of the positive voxels,
         which a few hot voxels cannot move, while they can put the maximum many times above
         the particles' peaks) | "maximum" (the volume's maximum).
@@ -41,6 +46,7 @@ class ParticleSettings:
     """
 
     threshold: float = Field(0.1, ge=0, lt=1)
+    noise_sigmas: float = Field(5.0, ge=0)
     threshold_reference: Literal["bright", "maximum"] = "bright"
     method: Literal["gaussian", "centroid"] = "centroid"
     min_separation_vox: tuple[float, float, float] | None = None
