@@ -302,6 +302,7 @@ def test_gaussian_fit_beats_the_centroid_at_low_noise(rng):
         rms[method] = np.sqrt(np.mean((found.position_vox[m[:, 1]] - truth[m[:, 0]]) ** 2,
                                       axis=0))
     assert rms["gaussian"][0] < 0.7 * rms["centroid"][0]
+    assert ParticleSettings().method == "gaussian"
 
 
 @pytest.mark.parametrize("gaussian", [True, False])

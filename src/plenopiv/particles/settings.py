@@ -24,9 +24,11 @@ class ParticleSettings:
     threshold_reference : "bright" (default: the 99.9th percentile of the positive voxels,
         which a few hot voxels cannot move, while they can put the maximum many times above
         the particles' peaks) | "maximum" (the volume's maximum).
-    method : sub-voxel estimator, "centroid" (intensity-weighted over box_vox; the better one
-        for the depth-elongated particles of plenoptic reconstructions) | "gaussian" (3-point
-        per axis).
+    method : sub-voxel estimator, "gaussian" (default: the 3-point Gaussian per axis with
+        samples fit_spacing_vox apart; on reconstructed volumes its errors are below the
+        centroid's on every axis, docs/validation/particle_noise.md) | "centroid"
+        (intensity-weighted over box_vox; less noisy in depth where white noise is above
+        about 0.03 of the peak and the blobs are 3 voxels deep or more).
     min_separation_vox, box_vox, fit_spacing_vox : ``[z, y, x]`` voxels (see
         :func:`plenopiv.particles.peaks.find_particles`). ``None`` (default): from the camera's
         resolution cell (:func:`plenopiv.workflow.volume.particle_options`): peaks within one cell
@@ -48,7 +50,7 @@ class ParticleSettings:
     threshold: float = Field(0.1, ge=0, lt=1)
     noise_sigmas: float = Field(5.0, ge=0)
     threshold_reference: Literal["bright", "maximum"] = "bright"
-    method: Literal["gaussian", "centroid"] = "centroid"
+    method: Literal["gaussian", "centroid"] = "gaussian"
     min_separation_vox: tuple[float, float, float] | None = None
     box_vox: tuple[int, int, int] | None = None
     fit_spacing_vox: tuple[int, int, int] = (2, 1, 1)
