@@ -53,6 +53,7 @@ UNITS = {
     "experiment:reconstruction.min_lit": "fraction",
     "experiment:reconstruction.lateral_subdivision": "working voxels per voxel, each axis",
     "experiment:particles.threshold": "fraction of the reference",
+    "experiment:particles.noise_sigmas": "noise standard deviations",
     "experiment:piv.windows": "voxels [z, y, x]",
     "experiment:piv.overlap": "fraction",
     "experiment:piv.response_particles_per_lenslet": "particles per lenslet",
@@ -216,6 +217,10 @@ MEANINGS = {
                                                       "accepted (a quarter pixel: every ray "
                                                       "off by it)",
     "experiment:particles.threshold": "a particle's peak must exceed it",
+    "experiment:particles.noise_sigmas": "and it must exceed the volume's background level by "
+                                         "this many standard deviations of its noise, both "
+                                         "estimated from the volume (0: off); 5 lets white "
+                                         "noise make 2.9e-7 false peaks per voxel",
     "experiment:particles.threshold_reference": '`"bright"`: the 99.9th percentile of the '
                                                 'positive voxels; `"maximum"`: the volume\'s '
                                                 'maximum',

@@ -20,6 +20,7 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.particles.bundle import PARTICLE_BUNDLE, bundle_positions, lit_rays
 from plenopiv.particles.peaks import find_particles
 from plenopiv.particles.settings import ParticleSettings
+from plenopiv.particles.threshold import peak_threshold
 from plenopiv.products.images import check_image
 from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.build import weights_for
@@ -43,17 +44,16 @@ def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration:
     """Keywords of :func:`~plenopiv.particles.peaks.find_particles` for ``particles`` and a volume.
 
     The threshold is ``particles.threshold`` times the reference intensity (the 99.9th
-    percentile of the positive voxels, or the maximum). Unset separation and box follow the
+    percentile of the positive voxels, or the maximum), and at least ``particles.noise_sigmas``
+    noise deviations above the volume's background
+    (:func:`~plenopiv.particles.threshold.peak_threshold`). Unset separation and box follow the
     resolution cell (:func:`resolution_cell`) in voxels of ``grid``: peaks closer than one
     cell (1.5 cells laterally, so that diagonal neighbours merge) are one particle; the
     centroid box is ±1 cell.
     """
-    v = np.asarray(volume)
-    if particles.threshold_reference == "maximum":
-        ref = float(v.max())
-    else:
-        pos = v[v > 0]
-        ref = float(np.percentile(pos, 99.9)) if pos.size else 0.0
+    threshold = peak_threshold(volume, fraction=particles.threshold,
+                               reference=particles.threshold_reference,
+                               noise_sigmas=particles.noise_sigmas)
     lat, dep = resolution_cell(calibration.effective_camera, f_number)
     vx, vy, vz = (float(a) for a in grid.voxel)
     sep = particles.min_separation_vox
@@ -62,7 +62,7 @@ def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration:
     box = particles.box_vox
     if box is None:
         box = tuple(max(1, int(round(c / d))) for c, d in ((dep, vz), (lat, vy), (lat, vx)))
-    return {"threshold": particles.threshold * ref, "method": particles.method,
+    return {"threshold": threshold, "method": particles.method,
             "min_separation_vox": tuple(sep), "box_vox": tuple(box),
             "fit_spacing_vox": particles.fit_spacing_vox}
 
