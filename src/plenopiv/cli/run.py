@@ -192,17 +192,19 @@ def _batch_background(exp, jobs, calibration, out_dir):
 
 
 def _with_identities(jobs, exp, cal_path, background=None):
-    """Give each job the identity of what makes its product.
+    """Give each job the identity of what makes its product, and its companion files.
 
     The identity holds the experiment's settings, the calibration file and the two images
-    (content hashes), and with a ``[preprocess]`` table its dark, white and background
-    (content hashes; the batch's own background, ``background``, too); resume recomputes a
-    product made from anything else.
+    (content hashes), with a ``[preprocess]`` table its dark, white and background (content
+    hashes; the batch's own background, ``background``, too), and with ``[mask]`` files
+    their content hashes; resume recomputes a product made from anything else, or one whose
+    volumes or side products (:func:`_companions`) are missing.
     """
     from dataclasses import replace
 
     from plenopiv.products.files import file_identity
     from plenopiv.workflow.experiment import settings_identity
+    from plenopiv.workflow.provenance import mask_inputs
 
     common = {"settings": settings_identity(exp), "calibration": file_identity(cal_path)}
     pre = exp.preprocess
@@ -212,8 +214,27 @@ def _with_identities(jobs, exp, cal_path, background=None):
         if background is not None:
             ids["background"] = file_identity(background)
         common["preprocess"] = ids
+    masks = mask_inputs(exp)
+    if masks:
+        common["mask"] = masks
     return [replace(j, identity={**common, "image_a": file_identity(j.image_a),
-                                 "image_b": file_identity(j.image_b)}) for j in jobs]
+                                 "image_b": file_identity(j.image_b)},
+                    companions=_companions(j, exp)) for j in jobs]
+
+
+def _companions(job, exp) -> tuple:
+    """The files a pair writes beside its vectors product (``plenopiv.workflow.worker``)."""
+    folder, name = job.output.parent, job.name
+    out = [folder / f"{name}_volume_A.h5", folder / f"{name}_volume_B.h5"]
+    if exp.output.vtk:
+        out.append(job.output.with_suffix(".vti"))
+    if exp.output.png:
+        out += [folder / f"{name}_volume_A.png", folder / f"{name}_vectors.png"]
+    if exp.tracking.enabled:
+        out += [folder / f"{name}_tracks.h5", folder / f"{name}_tracks_binned.h5"]
+        if exp.output.vtk:
+            out += [folder / f"{name}_tracks.vtp", folder / f"{name}_tracks_binned.vti"]
+    return tuple(out)
 
 
 def print_summary(s: dict) -> None:
