@@ -27,7 +27,6 @@ def cmd_run(args) -> dict:
     """Many pairs end to end on dask (local processes, SLURM, or a running scheduler)."""
     from plenopiv.batch import BatchInterrupted, check_batch_options, pending_jobs, run_batch
     from plenopiv.batch.cluster import batch_options
-    from plenopiv.batch.jobs import discover_pairs
     from plenopiv.config.experiment import load_experiment
     from plenopiv.errors import ComputationError
     from plenopiv.resources import check_grid
@@ -51,18 +50,13 @@ def cmd_run(args) -> dict:
                           "two exposures) or pairs (HDF5 files with /image_a and /image_b)")
     out_dir = exp.path(exp.output.directory)
     check_output_path(out_dir, what="[output] directory", folder=True)
-    if im.pairs is not None:
-        jobs = discover_pairs(im.pairs, out_dir=out_dir, root=exp.base_dir,
-                              output_name="{name}_vectors.h5")
-    else:
-        jobs = discover_pairs(im.a, im.b, out_dir=out_dir, root=exp.base_dir,
-                              output_name="{name}_vectors.h5", pair_by=im.pair_by)
+    jobs = batch_jobs(exp)
     cal_path = exp.path(im.calibration)
     _check_products_spare_inputs(jobs, [args.experiment, cal_path])
     cal = experiment_calibration(exp, cal_path)
     check_grid(exp.volume)
     background, n_background = _batch_background(exp, jobs, cal, out_dir)
-    jobs = _with_identities(jobs, exp, cal_path, background)
+    jobs = with_identities(jobs, exp, cal_path, background)
     # explicit weights go into the weights cache once, before the workers start; each worker
     # then makes its projector once, for all its pairs
     hit, weights_s = prepare_weights(exp, cal)
@@ -191,7 +185,19 @@ def _batch_background(exp, jobs, calibration, out_dir):
     return path, n
 
 
-def _with_identities(jobs, exp, cal_path, background=None):
+def batch_jobs(exp) -> list:
+    """The pairs of an experiment's ``[images]`` table, their products in ``[output]``."""
+    from plenopiv.batch.jobs import discover_pairs
+
+    im, out_dir = exp.images, exp.path(exp.output.directory)
+    if im.pairs is not None:
+        return discover_pairs(im.pairs, out_dir=out_dir, root=exp.base_dir,
+                              output_name="{name}_vectors.h5")
+    return discover_pairs(im.a, im.b, out_dir=out_dir, root=exp.base_dir,
+                          output_name="{name}_vectors.h5", pair_by=im.pair_by)
+
+
+def with_identities(jobs, exp, cal_path, background=None):
     """Give each job the identity of what makes its product, and its companion files.
 
     The identity holds the experiment's settings, the calibration file and the two images

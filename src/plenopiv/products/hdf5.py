@@ -57,7 +57,7 @@ def check_finite(values, name: str, path: str | Path, error: type[Exception], *,
     if bad.any():
         where = np.argwhere(bad)[:3]
         at = ", ".join(str(tuple(int(i) for i in w)) if a.ndim > 1 else str(int(w[0]))
-                       for w in where)
+                       for w in where) if a.ndim else "its value"
         n_nan, n_inf = int(np.isnan(a[bad]).sum()), int(np.isinf(a[bad]).sum())
         what = " and ".join(t for t in (f"{n_nan} NaN" if n_nan else "",
                                         f"{n_inf} infinite" if n_inf else "") if t)

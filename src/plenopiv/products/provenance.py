@@ -115,6 +115,8 @@ def check_readable(path: str | Path, kind: str, schema: Any, version: Any,
     without a schema version (``schema`` None) is schema :data:`FIRST_SCHEMA`.
     """
     shown = str(path)
+    if hasattr(schema, "item"):          # a numpy scalar, as HDF5 attributes come back
+        schema = schema.item()
     if schema is None:
         number = FIRST_SCHEMA
     else:
@@ -141,17 +143,19 @@ def check_readable(path: str | Path, kind: str, schema: Any, version: Any,
 
 
 def short(value: Any) -> str:
-    """A hash shortened for a message (its first 12 characters)."""
-    text = str(value)
-    return text if len(text) <= 16 else f"{text[:12]}…"
+    """A hash shortened for a message: its first 12 characters, and a ``:/dataset`` it names."""
+    digest, sep, dataset = str(value).partition(":")
+    return (digest if len(digest) <= 16 else f"{digest[:12]}…") + sep + dataset
 
 
 def differences(a: Mapping, b: Mapping, *, ignore: Iterable[str] = (),
-                sections: Iterable[str] = ("inputs", "settings")) -> list[str]:
+                sections: Iterable[str] = ("inputs", "settings"),
+                form: str = "{word} ({a} ≠ {b})") -> list[str]:
     """What two provenance records disagree on, in words (those both record).
 
     An input or setting that only one of them records (a product of schema 1 records none)
-    is not compared.
+    is not compared. ``form`` phrases each: ``word`` names it, ``a`` and ``b`` are the two
+    hashes, shortened.
     """
     skip = set(ignore)
     out = []
@@ -159,7 +163,8 @@ def differences(a: Mapping, b: Mapping, *, ignore: Iterable[str] = (),
         x, y = a.get(section) or {}, b.get(section) or {}
         for key in sorted(set(x) & set(y) - skip):
             if x[key] != y[key]:
-                out.append(f"{WORDS.get(key, key)} ({short(x[key])} ≠ {short(y[key])})")
+                out.append(form.format(word=WORDS.get(key, key), a=short(x[key]),
+                                       b=short(y[key])))
     return out
 
 

@@ -109,9 +109,9 @@ def check_volume_pair(path_a, record_a: Mapping, path_b, record_b: Mapping) -> N
     diffs = differences(record_a, record_b, ignore=PAIR_IGNORES)
     if diffs:
         raise ProvenanceError(
-            f"the volumes {str(path_a)!r} and {str(path_b)!r} were not made alike: their "
-            f"{'; '.join(diffs)} differ. Reconstruct both exposures with the same calibration, "
-            "camera and experiment settings (only the image may differ)")
+            f"the volumes {str(path_a)!r} and {str(path_b)!r} were not made alike: they "
+            f"differ in their {'; '.join(diffs)}. Reconstruct both exposures with the same "
+            "calibration, camera and experiment settings (only the image may differ)")
 
 
 def _recorded(record: Mapping, role: str, tag: str) -> str | None:
@@ -144,9 +144,9 @@ def check_track_products(given: Mapping[str, tuple], *, images: tuple, calibrati
             continue
         shown, record = given[f"volume_{tag}"]
         wrong = mismatched_inputs(record, {"image": (digest, name), "calibration": calibration})
-        wrong += [f"its {d}" for d in differences(
-            record, {"settings": settings}, sections=("settings",),
-            ignore=("particles", "preprocess", "mask"))]
+        wrong += differences(record, {"settings": settings}, sections=("settings",),
+                             ignore=("particles", "preprocess", "mask"),
+                             form="its {word} is not the experiment's ({a} ≠ {b})")
         problems += [f"--volume-{tag} {str(shown)!r}: {w}" for w in wrong]
     if "vectors" in given:
         shown, record = given["vectors"]
