@@ -110,7 +110,8 @@ def cmd_calibrate(args) -> dict:
               "ruler": args.ruler, "ruler_spacing_mm": args.ruler_spacing_mm,
               "white": args.white, "dark": args.dark,
               "method": args.method}
-    report.calibration.save(out, config={"inputs": inputs, "summary": report.summary()})
+    report.calibration.save(out, config={"inputs": inputs, "summary": report.summary()},
+                            provenance=_provenance(args, cam, inputs))
     summary = {"command": "calibrate", "out": str(out), **report.summary()}
     if dark_record is not None:
         summary["dark"] = dark_record
@@ -123,3 +124,19 @@ def cmd_calibrate(args) -> dict:
     progress.close()
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     return summary
+
+
+def _provenance(args, camera, inputs: dict) -> dict:
+    """What made the calibration: its images (content hashes), camera and options."""
+    from plenopiv.products.files import file_identity
+    from plenopiv.products.provenance import json_hash, make_provenance
+
+    files = {k: file_identity(v) for k, v in inputs.items()
+             if k in ("focal_point", "alignment", "ruler", "white", "dark") and v is not None}
+    options = {k: v for k, v in vars(args).items()
+               if k not in ("func", "out", "json", "quiet", "camera", "focal_point",
+                            "alignment", "ruler", "white", "dark", "no_report")
+               and isinstance(v, (str, int, float, bool, list, tuple, type(None)))}
+    return make_provenance("calibration", inputs=files,
+                           settings={"camera": json_hash(camera.to_dict()),
+                                     "calibrate": json_hash(options)})

@@ -37,11 +37,14 @@ def add_parser(sub) -> None:
 def cmd_piv(args) -> dict:
     """Cross-correlate two volume products into a vector field."""
     from plenopiv.config.experiment import load_experiment
+    from plenopiv.errors import ReconstructionError
     from plenopiv.piv import MIN_WINDOW_VOX
     from plenopiv.piv.settings import MAX_WINDOW_VOX, PIVSettings
+    from plenopiv.products.hdf5 import product_provenance
     from plenopiv.products.volume import load_volume
     from plenopiv.settings import as_dict
     from plenopiv.workflow.pair import correlate
+    from plenopiv.workflow.provenance import check_volume_pair, vectors_provenance
 
     _number("--dt", args.dt, minimum=0, open_min=True, unit="seconds between the exposures")
     for w in args.windows or ():
@@ -63,6 +66,9 @@ def cmd_piv(args) -> dict:
     except ValueError as exc:
         raise ConfigError(f"[piv] with the options given: {exc}") from None
     t0 = time.perf_counter()
+    records = {k: product_provenance(path, "volume", ReconstructionError)
+               for k, path in (("volume_a", args.volume_a), ("volume_b", args.volume_b))}
+    check_volume_pair(args.volume_a, records["volume_a"], args.volume_b, records["volume_b"])
     va, vb = load_volume(args.volume_a), load_volume(args.volume_b)
     mask = None
     if exp is not None:
@@ -76,7 +82,10 @@ def cmd_piv(args) -> dict:
             f"piv pass {info['pass']}/{info['passes']}", info["pass"] / info["passes"]))
     files = vec.save(out, config={"piv": as_dict(settings), "volume_a": str(args.volume_a),
                                   "volume_b": str(args.volume_b), "dt_s": args.dt},
-                     vtk=not args.no_vtk, extra_attrs={"complete": True})
+                     vtk=not args.no_vtk, extra_attrs={"complete": True},
+                     provenance=vectors_provenance(args.volume_a, args.volume_b,
+                                                   piv=settings, dt=args.dt,
+                                                   sources=records))
     summary = {"command": "piv", "out": str(out), "shape": list(vec.u.shape),
                "valid_fraction": float(np.mean(vec.valid)), "n_replaced": vec.n_replaced,
                "quantity": "displacement" if args.dt is None else "velocity",

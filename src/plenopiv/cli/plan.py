@@ -106,9 +106,9 @@ def cmd_plan(args) -> dict:
     if args.image_distance_mm is not None:
         camera = camera.with_image_distance(args.image_distance_mm * 1e-3)
     elif calibration is not None:
-        from plenopiv.calibration.model import Calibration
+        from plenopiv.workflow.experiment import calibration_for_camera
 
-        cal = Calibration.load(calibration).with_camera(camera)
+        cal = calibration_for_camera(calibration, camera, whose=f"the camera of {str(path)!r}")
         camera = cal.camera
     if grid is None:
         cam = planning.camera_resolution(camera, recon.f_number)

@@ -25,11 +25,13 @@ def add_parser(sub) -> None:
 def cmd_reconstruct(args) -> dict:
     """Reconstruct one image into a volume with its particle table."""
     from plenopiv.config.experiment import load_experiment
+    from plenopiv.products.files import file_identity
     from plenopiv.products.images import read_image
     from plenopiv.products.jsonio import dumps
     from plenopiv.resources import check_grid
     from plenopiv.workflow.experiment import experiment_calibration
     from plenopiv.workflow.preprocess import ATTRIBUTE, ImagePreparation, union
+    from plenopiv.workflow.provenance import volume_provenance
     from plenopiv.workflow.volume import reconstruct_volume
 
     exp = load_experiment(args.config)
@@ -56,7 +58,10 @@ def cmd_reconstruct(args) -> dict:
                                                              exp.base_dir), prepared.mask),
                                  checked=True)
     res.save(out, config={**exp.to_dict(), "calibration": str(args.calibration),
-                          "image": str(args.image)}, extra_attrs={ATTRIBUTE: dumps(record)})
+                          "image": str(args.image)}, extra_attrs={ATTRIBUTE: dumps(record)},
+             provenance=volume_provenance(exp, image=file_identity(args.image),
+                                          calibration=file_identity(args.calibration),
+                                          record=record))
     summary = {"command": "reconstruct", "out": str(out), "shape": list(res.volume.shape),
                "n_particles": len(res.particle_position),
                "depth_correction": res.correction.to_dict(),

@@ -37,12 +37,14 @@ def cmd_track(args) -> dict:
     from plenopiv.products.volume import load_volume
     from plenopiv.workflow.experiment import experiment_calibration
     from plenopiv.workflow.preprocess import ATTRIBUTE, ImagePreparation
+    from plenopiv.workflow.provenance import tracks_provenance
     from plenopiv.workflow.tracking import track_images
 
     out = _check_out(args.out, (".h5",))
     exp = load_experiment(args.config)
     cal = experiment_calibration(exp, args.calibration)
     ImagePreparation.refuse_batch_background(exp)
+    inputs, sources = _check_reused(args, exp)
     ia, ib = read_image(args.image_a), read_image(args.image_b)
     t0 = time.perf_counter()
     va = load_volume(args.volume_a) if args.volume_a else None
@@ -54,7 +56,9 @@ def cmd_track(args) -> dict:
     cfg = {**exp.to_dict(), "calibration": str(args.calibration),
            "image_a": str(args.image_a), "image_b": str(args.image_b)}
     paths = save_track_products(tracks, vec, out, config=cfg, vtk=exp.output.vtk,
-                                extra_attrs={ATTRIBUTE: dumps(pre)})
+                                extra_attrs={ATTRIBUTE: dumps(pre)},
+                                provenance=tracks_provenance(exp, inputs=inputs,
+                                                             sources=sources, record=pre))
     d = tracks.displacement
     return {"command": "track", "out": str(out), "n_tracks": len(tracks),
             "n_particles_a": len(va.particle_position), "n_particles_b": len(vb.particle_position),
@@ -65,3 +69,30 @@ def cmd_track(args) -> dict:
             "files": paths, "timings_s": {k: round(v, 3) for k, v in timings.items()},
             "preprocess": pre,
             "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def _check_reused(args, exp) -> tuple[dict, dict]:
+    """The content hashes of the inputs and the records of the products reused.
+
+    ``--volume-a``, ``--volume-b`` and ``--vectors`` must be of this pair's images and
+    calibration (:func:`plenopiv.workflow.provenance.check_track_products`).
+    """
+    from plenopiv.errors import ReconstructionError
+    from plenopiv.products.files import file_identity
+    from plenopiv.products.hdf5 import product_provenance
+    from plenopiv.workflow.provenance import check_track_products, settings_hashes
+
+    inputs = {"image_a": file_identity(args.image_a), "image_b": file_identity(args.image_b),
+              "calibration": file_identity(args.calibration)}
+    given = {}
+    for role, path, kind in (("volume_a", args.volume_a, "volume"),
+                             ("volume_b", args.volume_b, "volume"),
+                             ("vectors", args.vectors, "vectors")):
+        if path:
+            given[role] = (path, product_provenance(path, kind, ReconstructionError))
+            inputs[role] = file_identity(path)
+    check_track_products(given, images=((inputs["image_a"], str(args.image_a)),
+                                        (inputs["image_b"], str(args.image_b))),
+                         calibration=(inputs["calibration"], str(args.calibration)),
+                         settings=settings_hashes(exp))
+    return inputs, {role: record for role, (_, record) in given.items()}

@@ -68,20 +68,31 @@ class ExperimentPairProcess:
             if not issubclass(w.category, PlenopivWarning):
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         extra = {"image_a": str(job.image_a), "image_b": str(job.image_b)}
-        if getattr(job, "identity", None) is not None:
-            extra["identity"] = dumps(dict(job.identity), sort_keys=True)
+        identity = getattr(job, "identity", None)
+        if identity is not None:
+            extra["identity"] = dumps(dict(identity), sort_keys=True)
+        inputs = _inputs_of(identity)
         tracked = {}
         if exp.tracking.enabled:  # before the vectors file, which marks the pair complete
             from plenopiv.workflow.tracking import track_and_save
 
             tracked = track_and_save(cal, res.images[0].image, res.images[1].image, res, exp,
-                                     self.out_dir, job.name, weights=processor.weights())
-        paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra)
+                                     self.out_dir, job.name, weights=processor.weights(),
+                                     inputs=inputs)
+        paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra, inputs=inputs)
         vec = res.vectors
         return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),
                 "n_particles_a": len(res.volume_a.particle_position),
                 **{k: round(v, 3) for k, v in res.timings.items()}, **tracked,
                 **({"warnings": said} if said else {})}
+
+
+def _inputs_of(identity) -> dict | None:
+    """The content hashes a pair's products record, from its job's identity (None: none)."""
+    if identity is None:
+        return None
+    return {**{k: identity.get(k) for k in ("image_a", "image_b", "calibration")},
+            **(identity.get("mask") or {})}
 
 
 #: The :class:`PairProcessor` this process keeps, with its key (:func:`worker_processor`).
