@@ -263,12 +263,11 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
         Largest fraction of pixels at the integer dtype's maximum.
     bad_pixels : array_like of bool, shape (R, C), optional
         Pixels to ignore (a dark frame's hot pixels), replaced by their good neighbours'
-        median first. Without them, where spots are broader than a pixel, hot pixels are
-        found by their shape (:func:`~plenopiv.calibration.defects.isolated_pixels`),
-        replaced alike and the spots detected again.
+        median first.
     hot_pixel_shapes : bool
-        False: never look for hot pixels by their shape (an alignment image, whose spots
-        may hold their light in one pixel whatever their halo makes of their measured size).
+        Where spots are broader than a pixel, find hot pixels by their shape
+        (:func:`~plenopiv.calibration.defects.isolated_pixels`), replace them alike and detect
+        again; False never (an alignment spot may hold its light in one pixel, halo or not).
 
     Returns
     -------
@@ -280,11 +279,8 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     ImageError
         Not 2-D, not real, NaN/inf, dark, constant, saturated, or no periodic spots.
     ValueError
-        An option is outside its valid set.
-
-    Notes
-    -----
-    The steps, the choice of estimator and its accuracy are in docs/methods.md#focal-spots.
+        An option is outside its valid set. The steps, the choice of estimator and its
+        accuracy: docs/methods.md#focal-spots.
     """
     opts = _checked_options(method, background, grid, threshold, detection_threshold,
                             min_area_px, dim_fraction, max_saturated_fraction)

@@ -99,6 +99,11 @@ class VolumeResult:
                         finalize=_cf_volume, provenance=provenance)
 
 
+#: Datasets of the volume product that may hold NaN: a size the Gaussian fit could not measure
+#: along an axis (a peak whose samples are not concave there).
+NAN_DATASETS = ("/particles/size_m",)
+
+
 def load_volume(path: str | Path) -> VolumeResult:
     """Read a volume product written by :meth:`VolumeResult.save`.
 
@@ -114,7 +119,7 @@ def load_volume(path: str | Path) -> VolumeResult:
         pos = fh.array("/particles/position_m")
         pos_e = fh.array("/particles/position_effective_m")
         inten = fh.array("/particles/intensity")
-        size = fh.array("/particles/size_m")
+        size = fh.array("/particles/size_m", allow_nan="/particles/size_m" in NAN_DATASETS)
         cen = (fh.array("/particles/centroid_effective_m")
                if "/particles/centroid_effective_m" in fh else None)
     step = [a[1] - a[0] if len(a) > 1 else 1.0 for a in (x, y, ze)]
