@@ -260,10 +260,13 @@ def _volume_progress(progress: Progress, tag: str) -> Progress:
 
 
 def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
-              extra_attrs=None) -> dict:
+              extra_attrs=None, judgement: dict | None = None) -> dict:
     """Write a pair's products: ``NAME_vectors.h5`` (+ ``.vti``), the two volumes, PNGs.
 
     The vectors file is written last and marked complete, so that a batch can resume.
+    ``judgement``: the settings' and the seeding's judgement
+    (:meth:`~plenopiv.workflow.judgement.Judgement.record`), every product's ``judgement``
+    attribute.
     """
     from plenopiv.products.jsonio import dumps
     from plenopiv.workflow.preprocess import ATTRIBUTE
@@ -271,6 +274,8 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
     out = Path(out_dir)
     cfg = experiment.to_dict()
     pre = {} if result.preprocess is None else {ATTRIBUTE: dumps(result.preprocess)}
+    if judgement is not None:
+        pre["judgement"] = dumps(judgement)
     paths = {}
     for tag, vol in (("A", result.volume_a), ("B", result.volume_b)):
         paths[f"volume_{tag}"] = str(vol.save(out / f"{name}_volume_{tag}.h5", config=cfg,
