@@ -117,6 +117,7 @@ ALLOWED.update({
 DEFAULTS = {
     "experiment:reconstruction.relaxation": "2.0 (smart), 0.03 (mart, block)",
     "experiment:reconstruction.f_number": "the camera's",
+    "experiment:piv.windows": "chosen for the camera and box",
     "experiment:reconstruction.max_weights_gb": "40 % of the memory",
     "experiment:particles.min_separation_vox": "from the resolution cell",
     "experiment:particles.box_vox": "from the resolution cell",
@@ -239,7 +240,10 @@ MEANINGS = {
     "experiment:particles.position": '`"light_field"`: each volume peak seeds a ray-bundle fit '
                                      'on the raw image, independent of the voxel grid; '
                                      '`"volume"`: the `method` estimate on the voxels',
-    "experiment:piv.windows": "interrogation windows per pass; later passes repeat the last",
+    "experiment:piv.windows": "interrogation windows per pass; later passes repeat the last. "
+                              "Unset: 16 → 12 footprints laterally and 3.6 → 2.7 depth cells, "
+                              "cut to give 4 vectors along every axis of the box, said in a "
+                              "`note:` line ([methods](methods.md#settings-judgement))",
     "experiment:piv.overlap": "share of a window common to its neighbour",
     "experiment:piv.passes": "passes, at least the number of windows",
     "experiment:piv.deformation": "deform the volumes by the predictor (WIDIM); false: shift "

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from plenopiv.cli._common import _add_common, _add_example, _integer
+from plenopiv.cli._judgement import JUDGEMENT, experiment_judgement
 from plenopiv.errors import ConfigError
 from plenopiv.products.files import check_output_path
 
@@ -54,6 +55,8 @@ def cmd_run(args) -> dict:
     cal_path = exp.path(im.calibration)
     _check_products_spare_inputs(jobs, [args.experiment, cal_path])
     cal = experiment_calibration(exp, cal_path)
+    # the settings judged before any pair (each worker chooses the unset ones the same way)
+    exp, judged = experiment_judgement(exp, cal)
     check_grid(exp.volume)
     background, n_background = _batch_background(exp, jobs, cal, out_dir)
     jobs = with_identities(jobs, exp, cal_path, background)
@@ -73,7 +76,7 @@ def cmd_run(args) -> dict:
                                     background=None if background is None else str(background),
                                     background_images=n_background)
     head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit,
-            "response": response_info}
+            "response": response_info, JUDGEMENT: judged.record()}
     try:
         summary = run_batch(jobs, process, resume=args.resume,
                             progress=not (args.quiet or args.json), **opts)

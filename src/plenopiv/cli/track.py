@@ -7,6 +7,7 @@ import time
 import numpy as np
 
 from plenopiv.cli._common import _add_common, _add_example, _check_out
+from plenopiv.cli._judgement import JUDGEMENT, experiment_judgement, report
 
 
 def add_parser(sub) -> None:
@@ -43,6 +44,7 @@ def cmd_track(args) -> dict:
     out = _check_out(args.out, (".h5",))
     exp = load_experiment(args.config)
     cal = experiment_calibration(exp, args.calibration)
+    exp, judged = experiment_judgement(exp, cal, purpose="tracking")
     ImagePreparation.refuse_batch_background(exp)
     inputs, sources = _check_reused(args, exp)
     ia, ib = read_image(args.image_a), read_image(args.image_b)
@@ -55,8 +57,12 @@ def cmd_track(args) -> dict:
         names=(f"image {str(args.image_a)!r}", f"image {str(args.image_b)!r}"))
     cfg = {**exp.to_dict(), "calibration": str(args.calibration),
            "image_a": str(args.image_a), "image_b": str(args.image_b)}
+    judged, seeding = judged.with_seeding(
+        0.5 * (len(va.particle_position) + len(vb.particle_position)), purpose="tracking")
+    report([seeding])
     paths = save_track_products(tracks, vec, out, config=cfg, vtk=exp.output.vtk,
-                                extra_attrs={ATTRIBUTE: dumps(pre)},
+                                extra_attrs={ATTRIBUTE: dumps(pre),
+                                             JUDGEMENT: dumps(judged.record())},
                                 provenance=tracks_provenance(exp, inputs=inputs,
                                                              sources=sources, record=pre))
     d = tracks.displacement
@@ -67,7 +73,7 @@ def cmd_track(args) -> dict:
                                      if len(tracks) else None),
             "max_displacement_m": np.abs(d).max(axis=0).tolist() if len(d) else None,
             "files": paths, "timings_s": {k: round(v, 3) for k, v in timings.items()},
-            "preprocess": pre,
+            "preprocess": pre, JUDGEMENT: judged.record(),
             "seconds": round(time.perf_counter() - t0, 3)}
 
 

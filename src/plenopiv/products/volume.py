@@ -129,6 +129,15 @@ def load_volume(path: str | Path) -> VolumeResult:
                         particle_centroid_effective=cen)
 
 
+def volume_attribute(path: str | Path, name: str) -> str | None:
+    """The root attribute ``name`` of a volume product, or None where it has none."""
+    with open_product(path, "volume", ReconstructionError) as fh:
+        value = fh.attrs.get(name)
+    if isinstance(value, bytes):
+        value = value.decode()
+    return None if value is None else str(value)
+
+
 def _cf_volume(fh) -> None:
     """Dimension scales and long names of an open volume product (xarray sees x, y, z)."""
     cf_axes(fh)

@@ -260,14 +260,16 @@ def _volume_progress(progress: Progress, tag: str) -> Progress:
 
 
 def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
-              extra_attrs=None, inputs=None) -> dict:
+              extra_attrs=None, inputs=None, judgement: dict | None = None) -> dict:
     """Write a pair's products: ``NAME_vectors.h5`` (+ ``.vti``), the two volumes, PNGs.
 
     The vectors file is written last and marked complete, so that a batch can resume.
     ``inputs``: the content hashes of ``image_a``, ``image_b``, ``calibration`` and the
     ``[mask]`` files (``mask_image``, ``mask_volume``), recorded in each product's
     ``provenance`` (:mod:`plenopiv.workflow.provenance`); the masks are hashed here when
-    not given.
+    not given. ``judgement``: the settings' and the seeding's judgement
+    (:meth:`~plenopiv.workflow.judgement.Judgement.record`), every product's ``judgement``
+    attribute.
     """
     from plenopiv.products.jsonio import dumps
     from plenopiv.workflow.preprocess import ATTRIBUTE
@@ -279,6 +281,8 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
     inputs = dict(inputs or {})
     masks = {k: v for k, v in inputs.items() if k.startswith("mask_")} \
         if any(k.startswith("mask_") for k in inputs) else mask_inputs(experiment)
+    if judgement is not None:
+        pre["judgement"] = dumps(judgement)
     paths, records = {}, {}
     for tag, vol in (("A", result.volume_a), ("B", result.volume_b)):
         records[f"volume_{tag.lower()}"] = volume_provenance(
