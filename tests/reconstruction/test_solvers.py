@@ -98,7 +98,8 @@ def test_solvers_match_their_numpy_twins(rng, solver, with_options):
     got = least_squares(image, P, solver=solver, iterations=25, support=support,
                         initial=start, ceiling=ceil, l1=l1)
     if solver == "fista":
-        want = fista_twin(W, image, ceil, support, start, 25, l1, lipschitz_bound(P, support))
+        lam = l1 * (W.T @ image)[support].max()
+        want = fista_twin(W, image, ceil, support, start, 25, lam, lipschitz_bound(P, support))
     elif solver == "sirt":
         want = sirt_twin(W, image, ceil, support, start, 25, 1.0)
     else:
@@ -246,3 +247,13 @@ def test_solve_volume_takes_a_solver_on_both_projectors(small_camera):
         projector=kind, iterations=10), solver="fista").volume for kind in ("sparse", "lattice")}
     assert min(v.min() for v in vols.values()) >= 0
     assert reconstruction_quality(vols["lattice"], vols["sparse"]) >= 0.99
+
+
+def test_an_l1_term_of_lambda_max_keeps_the_volume_empty(rng):
+    """λ = λ_max = max (Wᵀ I): the gradient at E = 0 is Wᵀ(0 - I) + λ >= 0, so E = 0 is the
+    solution; a smaller λ lets voxels in, fewer than without the term."""
+    W, P, truth, image, _ = problem(rng)
+    assert not least_squares(image, P, solver="fista", iterations=20, l1=1.0).any()
+    some = least_squares(image, P, solver="fista", iterations=50, l1=0.1)
+    none = least_squares(image, P, solver="fista", iterations=50)
+    assert 0 < np.count_nonzero(some) < np.count_nonzero(none)

@@ -57,7 +57,9 @@ def least_squares(image, projector: Projector, *, solver: str, iterations: int,
     initial : array_like, n_voxels values, optional
         First guess (>= 0); default zero.
     l1 : float
-        λ >= 0 of the sparsity term λ Σ E (FISTA only; with E >= 0 it is λ ||E||₁), counts.
+        The sparsity term λ Σ E (FISTA only; with E >= 0 it is λ ||E||₁) as a fraction of
+        ``λ_max = max_j (Wᵀ I)_j`` over the support, the λ from which E = 0 solves the
+        problem without ceilings (dimensionless, >= 0; 0: no term).
     relaxation : float
         μ of SIRT, in (0, 2).
     power_iterations : int
@@ -140,6 +142,8 @@ def _report(callback, iteration, x) -> None:
 
 def _fista(projector, b, ceiling, mask, x, iterations, callback, *, l1, power_iterations):
     step = np.float32(1.0 / lipschitz_bound(projector, mask, iterations=power_iterations))
+    if l1:
+        l1 = l1 * float(np.max(np.asarray(projector.back(b), np.float64) * mask))
     y, t = x.copy(), 1.0
     for k in range(1, iterations + 1):
         g = np.asarray(projector.back(_residual(projector, y, b, ceiling)), np.float32)
