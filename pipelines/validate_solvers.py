@@ -14,7 +14,7 @@ from pathlib import Path
 # the repository root, so that pipelines.studies imports from a clone without installing it
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipelines.studies.solvers import DENSITIES, equal_cost_study, study, tables
+from pipelines.studies.solvers import DENSITIES, equal_cost_study, hybrid_study, study, tables
 from plenopiv.products.jsonio import dumps
 
 if __name__ == "__main__":
@@ -23,14 +23,17 @@ if __name__ == "__main__":
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--equal-cost", action="store_true",
                     help="SMART and FISTA (with the L1 term) at 40 iterations instead")
+    ap.add_argument("--hybrid", action="store_true",
+                    help="FISTA as the first guess of SMART, against the default, instead")
     ap.add_argument("--seeds", type=int, nargs="+", default=[20261206, 7, 11])
     a = ap.parse_args()
     rows, cols = (15, 21) if a.quick else (21, 31)
     densities = (0.1, 0.3) if a.quick else DENSITIES
     seeds = a.seeds[:2] if a.quick else a.seeds
-    run = equal_cost_study if a.equal_cost else study
+    ap_run = {"equal_cost": equal_cost_study, "hybrid": hybrid_study}
+    run = next((ap_run[k] for k in ap_run if getattr(a, k)), study)
     result = run(rows, cols, seeds, densities=densities)
-    name = "solvers_equal_cost" if a.equal_cost else "solvers"
+    name = "solvers_equal_cost" if a.equal_cost else "solvers_hybrid" if a.hybrid else "solvers"
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{name}.json").write_text(dumps(result))

@@ -156,6 +156,32 @@ def equal_cost_study(rows: int, cols: int, seeds, densities=DENSITIES, progress=
     return out
 
 
+#: FISTA as the first guess of SMART: (name, FISTA iterations, SMART sweeps).
+HYBRIDS = (("smart (default)", 10, 0), ("fista 5 + smart 5", 5, 5),
+           ("fista 20 + smart 5", 20, 5))
+
+
+def hybrid_study(rows: int, cols: int, seeds, densities=DENSITIES, progress=print) -> dict:
+    """FISTA's volume as SMART's first guess (:data:`HYBRIDS`), on the held-out seeds."""
+    setup = study_setup(rows, cols)
+    out = {"camera": f"auburn_50mm patch {rows} x {cols} lenslets", "seeds": list(seeds[1:]),
+           "densities": list(densities), "rows": []}
+    for density in densities:
+        for seed in seeds[1:]:
+            pos, img = fields(setup, density, seed)
+            for name, fista, sweeps in HYBRIDS:
+                args = (None, {}, 10) if not sweeps else \
+                    ("fista", {"smart_sweeps": sweeps}, fista)
+                row = run_solver(setup, img, pos, *args)
+                row.update(solver=name, density_ppl=density, seed=seed,
+                           iterations=fista + sweeps, held_out=True)
+                out["rows"].append(row)
+                progress(f"{density} seed {seed} {name}: Q {row['q']['cell']:.3f} "
+                         f"det {row['detection_rate']:.3f} ghost {row['ghost_rate']:.3f} "
+                         f"{row['time_s']:.2f} s")
+    return out
+
+
 def _cell(values) -> str:
     v = np.asarray([x for x in values if x == x], float)
     if not len(v):

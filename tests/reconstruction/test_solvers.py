@@ -234,7 +234,8 @@ def test_explicit_and_matrix_free_projectors_agree(projectors, solver):
 
 def test_solve_volume_takes_a_solver_on_both_projectors(small_camera):
     """The pipeline's rows, ceilings and line of sight with FISTA: both projectors agree
-    (Q >= 0.99 between them, the bar of SMART's own test) and the volume is non-negative."""
+    (Q >= 0.99 between them, the bar of SMART's own test) and the volume is non-negative;
+    SMART sweeps may follow."""
     cal = Calibration.from_camera(small_camera)
     lf = light_field(cal)
     b = lf.footprint
@@ -247,6 +248,12 @@ def test_solve_volume_takes_a_solver_on_both_projectors(small_camera):
         projector=kind, iterations=10), solver="fista").volume for kind in ("sparse", "lattice")}
     assert min(v.min() for v in vols.values()) >= 0
     assert reconstruction_quality(vols["lattice"], vols["sparse"]) >= 0.99
+    # SMART sweeps after FISTA are multiplicative: FISTA's zero voxels stay zero
+    both = reconstruct_volume(cal, img, grid, settings=ReconstructionSettings(
+        projector="sparse", iterations=10), solver="fista",
+        solver_options={"smart_sweeps": 3}).volume
+    assert both.min() >= 0 and not both[vols["sparse"] == 0].any()
+    assert not np.array_equal(both, vols["sparse"])
 
 
 def test_an_l1_term_of_lambda_max_keeps_the_volume_empty(rng):

@@ -86,7 +86,8 @@ def solve_volume(weights, image: np.ndarray, settings, *,
         support; FISTA and SIRT start from the line of sight, CGLS from zero.
     solver_options : dict, optional
         More keywords of ``least_squares`` (``l1``, ``relaxation``, ``initial``,
-        ``support``; ``support=None`` frees every voxel).
+        ``support``; ``support=None`` frees every voxel), and ``smart_sweeps``: that many
+        SMART sweeps (``settings.relaxation_used``) from the solver's volume.
     """
     geometry = weights.geometry if geometry is None else geometry
     if geometry is None:
@@ -133,8 +134,13 @@ def solve_volume(weights, image: np.ndarray, settings, *,
             view = proj.select_rows(rows)
         values = np.maximum(raw[rows], np.float32(floor)) / row_scale[rows]
         if solver is not None:
-            return _least_squares(values, view, ~bright[rows], first, solver, settings,
-                                  solver_options, callback).reshape(weights.grid.shape)
+            options = dict(solver_options or {})
+            sweeps = options.pop("smart_sweeps", 0)
+            volume = _least_squares(values, view, ~bright[rows], first, solver, settings,
+                                    options, callback)
+            if not sweeps:
+                return volume.reshape(weights.grid.shape)
+            common.update(iterations=sweeps, initial=volume, callback=None)
         return reconstruct(values, view, method="smart", ceiling=~bright[rows], **common)
     blocks = None
     if settings.method == "block":
