@@ -72,7 +72,8 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
                        particles: ParticleSettings = _DEFAULT_PARTICLES,
                        weights: Weights | None = None, cache_dir: str | Path | None = None,
                        progress: Progress = None, image_mask=None,
-                       checked: bool = False) -> VolumeResult:
+                       checked: bool = False, solver: str | None = None,
+                       solver_options: dict | None = None) -> VolumeResult:
     """Reconstruct one image into a volume and extract its particles.
 
     Parameters
@@ -99,6 +100,9 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         (:class:`plenopiv.workflow.preprocess.ImagePreparation`: counts ≥ 0, the sensor's
         shape), so :func:`~plenopiv.products.images.check_image` is not run again (its
         warnings were given once, for the image as recorded).
+    solver, solver_options : optional
+        A least-squares solver instead of ``settings.method``
+        (:func:`~plenopiv.reconstruction.solve.solve_volume`).
 
     Notes
     -----
@@ -141,7 +145,8 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t1 = time.perf_counter()
     vol = solve_volume(weights, img, settings, image_mask=image_mask, geometry=geometry,
                        callback=None if progress is None else report,
-                       footprint=footprint(calibration.effective_camera))
+                       footprint=footprint(calibration.effective_camera), solver=solver,
+                       solver_options=solver_options)
     if ky > 1 or kx > 1:            # the working voxels back onto the volume's grid
         vol = merge_subdivided(vol, ky, kx, kernel=settings.subdivision_kernel)
     t["mart_s"] = time.perf_counter() - t1
