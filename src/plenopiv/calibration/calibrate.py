@@ -189,7 +189,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
               "bad_pixels": dark_frame.hot}
     options = {"threshold": spot_threshold, "method": spot_method,
                "phase_harmonics": phase_harmonics, **limits}
-    flat = WhiteFlat.of(white_image, dark_frame, shape)
+    flat = WhiteFlat.of(white_image, dark_frame, shape, camera.pitch_px)
     fp = flat.apply(dark_frame.subtract(check_image(focal_point_image, shape=shape,
                                                     name="focal-point image")))
 
