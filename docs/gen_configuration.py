@@ -304,6 +304,9 @@ MEANINGS = {
                                            "runner-up's, in either direction (another B "
                                            "particle near the prediction, another prediction "
                                            "near the B particle); 1: no test",
+    "experiment:tracking.merged_brightness": "a track is refused when both its ends are "
+                                             "brighter than this many times the median "
+                                             "particle: two particles seen as one; 0: off",
     "experiment:tracking.bundle_radius": "a pixel's ray belongs to a particle when it passes "
                                          "within this distance",
     "experiment:tracking.bundle_iterations": "ray selections and solves per particle",

@@ -87,11 +87,13 @@ def measure_ambiguity(case: VortexCase, axis: str = "y", ratios=RATIOS) -> dict:
     Returns
     -------
     dict
-        ``curve``: per ratio ``tracked_fraction`` (true particles with a correct track /
-        true particles inside the volume), ``wrong_rate`` (no true particle within one cell
-        of both ends / tracks), ``identity_rate`` (the ends' nearest true particles differ /
-        tracks), ``n_tracks``, ``rejected_ambiguous``; ``wrong_tracks`` (their classes,
-        :func:`classify_wrong`) at each ratio; ``seconds``.
+        ``curve``: per ratio (``merged_brightness`` at its default) ``tracked_fraction``
+        (true particles with a correct track / true particles inside the volume),
+        ``wrong_rate`` (no true particle within one cell of both ends / tracks),
+        ``identity_rate`` (the ends' nearest true particles differ / tracks),
+        ``n_tracks``, ``rejected_ambiguous``, ``rejected_merged``; ``without_tests`` the
+        same for ratio 1 and ``merged_brightness`` 0; ``wrong_tracks`` (their classes,
+        :func:`classify_wrong`) at each ratio and ``"plain"``; ``seconds``.
     """
     t0 = time.perf_counter()
     rng = np.random.default_rng(case.seed)
@@ -111,19 +113,28 @@ def measure_ambiguity(case: VortexCase, axis: str = "y", ratios=RATIOS) -> dict:
     n_true = int(inside.sum())
     curve, classes = [], {}
     default = TrackingSettings().ambiguity_ratio
-    for r in sorted(set(ratios) | {1.0, default}, reverse=True):
-        tracks = match_ends(ends, res.vectors, settings=TrackingSettings(ambiguity_ratio=r))
+    plain = TrackingSettings(ambiguity_ratio=1.0, merged_brightness=0.0)
+    for r in [None, *sorted(set(ratios) | {1.0, default}, reverse=True)]:
+        st = plain if r is None else TrackingSettings(ambiguity_ratio=r)
+        tracks = match_ends(ends, res.vectors, settings=st)
         wrong, ident = _wrong(tracks, true_a, true_b, ends.scale)
         ja = associate_tracks(tracks.position_a, tracks.position_b, true_a, true_b, ends.scale)
         good = ja[(ja >= 0)]
         tracked = np.unique(good[inside[good]])
         n = len(tracks)
-        curve.append({"ratio": r, "n_tracks": n, "tracked_fraction": len(tracked) / n_true,
-                      "wrong_rate": float(wrong.mean()) if n else 0.0,
-                      "identity_rate": float(ident.mean()) if n else 0.0,
-                      "rejected_ambiguous": tracks.counts["rejected_ambiguous"]})
+        point = {"ratio": r, "n_tracks": n, "tracked_fraction": len(tracked) / n_true,
+                 "wrong_rate": float(wrong.mean()) if n else 0.0,
+                 "identity_rate": float(ident.mean()) if n else 0.0,
+                 "rejected_ambiguous": tracks.counts["rejected_ambiguous"],
+                 "rejected_merged": tracks.counts["rejected_merged"]}
         pred = predict_positions(res.vectors, tracks.position_a)
-        classes[str(r)] = classify_wrong(tracks, pred, true_a, true_b, ends.scale)
+        key = "plain" if r is None else str(r)
+        classes[key] = classify_wrong(tracks, pred, true_a, true_b, ends.scale)
+        if r is None:
+            without = point
+        else:
+            curve.append(point)
     return {"flow": case.flow, "axis": axis, "particles_per_lenslet": case.particles_per_lenslet,
-            "seed": case.seed, "n_true": n_true, "curve": curve, "wrong_tracks": classes,
+            "seed": case.seed, "n_true": n_true, "curve": curve, "without_tests": without,
+            "wrong_tracks": classes,
             "seconds": round(time.perf_counter() - t0, 1)}

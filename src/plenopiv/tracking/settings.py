@@ -28,6 +28,10 @@ class TrackingSettings:
         prediction exceeds this fraction of the runner-up's, in either direction (another
         particle of B near the prediction, or another particle's prediction near the B
         particle); smaller refuses more; 1 keeps every mutual nearest pair (0.7).
+    merged_brightness : a track is refused when both its ends are brighter than this many
+        times the median particle of their volume (two particles closer than a resolution
+        cell, seen as one in both exposures: the track joins two particles); 0 keeps them
+        (1.45; with a broad spread of particle brightness, raise it or set 0).
     bundle_radius : a ray belongs to a particle when it passes within this many half beam
         widths of it (1.5).
     bundle_iterations : ray selections and solves per particle, the first around the volume
@@ -46,6 +50,7 @@ class TrackingSettings:
     median_threshold: float = Field(2.0, gt=0, allow_inf_nan=False)
     median_epsilon_cells: float = Field(0.1, gt=0, allow_inf_nan=False)
     ambiguity_ratio: float = Field(AMBIGUITY, gt=0, le=1, allow_inf_nan=False)
+    merged_brightness: float = Field(1.45, ge=0, allow_inf_nan=False)
     bundle_radius: float = Field(1.5, gt=0, allow_inf_nan=False)
     bundle_iterations: int = Field(4, ge=1)
     forward_refine: bool = True

@@ -90,7 +90,8 @@ class TrackEnds:
 
     ``position_*`` (N, 3) physical positions and ``uncertainty_*`` (N, 3) their standard
     uncertainties, metres; ``bundle_*`` the raw fits; ``scale`` the resolution cell
-    ``(lat, lat, depth)`` in physical metres; ``counts`` the particles and fits.
+    ``(lat, lat, depth)`` in physical metres; ``brightness_*`` (N,) the volumes' particle
+    intensities; ``counts`` the particles and fits.
     """
 
     position_a: np.ndarray
@@ -101,6 +102,8 @@ class TrackEnds:
     bundle_b: BundlePositions
     scale: np.ndarray
     counts: dict
+    brightness_a: np.ndarray | None = None
+    brightness_b: np.ndarray | None = None
 
 
 def track_ends(calibration: Calibration, image_a, image_b, volume_a: VolumeResult,
@@ -129,7 +132,9 @@ def track_ends(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
         grid, local = _refined(b, fs, settings.min_lenslets, dep)
         counts[f"refined_grid_{name}"], counts[f"refined_local_{name}"] = grid, local
     scale = np.array([lat, lat, dep * volume_a.correction.scale])
-    return TrackEnds(pa, ua, ba, pb, ub, bb, scale, counts)
+    return TrackEnds(pa, ua, ba, pb, ub, bb, scale, counts,
+                     np.asarray(volume_a.particle_intensity, float),
+                     np.asarray(volume_b.particle_intensity, float))
 
 
 def match_ends(ends: TrackEnds, vectors: VectorResult, *,
@@ -148,15 +153,38 @@ def match_ends(ends: TrackEnds, vectors: VectorResult, *,
     # patch has one edge per axis, which fixes the ratio of lateral offset to depth only
     seen = ((ba.n_lenslets[ia] >= settings.min_lenslets)
             & (bb.n_lenslets[ib] >= settings.min_lenslets))
+    merged = _merged(ends, ia, ib, settings) & seen
     counts = dict(ends.counts)
     counts.update({"rejected_two_way": m.rejected_mutual,
                    "rejected_ambiguous": m.rejected_ambiguous,
                    "rejected_median": m.rejected_median,
-                   "rejected_few_lenslets": int((~seen).sum()), "tracks": int(seen.sum())})
+                   "rejected_few_lenslets": int((~seen).sum()),
+                   "rejected_merged": int(merged.sum())})
+    seen &= ~merged
+    counts["tracks"] = int(seen.sum())
     ia, ib = ia[seen], ib[seen]
     return TrackResult(pa[ia], pb[ib], ends.uncertainty_a[ia], ends.uncertainty_b[ib],
                        m.quality[seen], m.residual[seen], ia, ib, ba.n_lenslets[ia],
                        bb.n_lenslets[ib], vectors.dt, counts)
+
+
+def _merged(ends: TrackEnds, ia, ib, settings: TrackingSettings) -> np.ndarray:
+    """Tracks whose two ends are both brighter than ``merged_brightness`` times the median.
+
+    The median is that of the exposure's measurable particles (converged, seen through
+    ``min_lenslets``): such a track is two particles closer than a resolution cell, seen as
+    one in both exposures.
+    """
+    limit = settings.merged_brightness
+    if not limit or ends.brightness_a is None or ends.brightness_b is None:
+        return np.zeros(len(ia), bool)
+    out = np.ones(len(ia), bool)
+    for b, i, fit in ((ends.brightness_a, ia, ends.bundle_a), (ends.brightness_b, ib,
+                                                              ends.bundle_b)):
+        ok = fit.converged & (fit.n_lenslets >= settings.min_lenslets)
+        ref = np.median(b[ok]) if ok.any() else np.nan
+        out &= b[i] > limit * ref
+    return out
 
 
 def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResult,
