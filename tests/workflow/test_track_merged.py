@@ -41,3 +41,24 @@ def test_merged_brightness_zero_keeps_every_track():
     t = match_ends(_ends([1, 1, 2, 1, 1], [1, 1, 2, 1, 1]), _still(),
                    settings=TrackingSettings(merged_brightness=0.0))
     assert len(t) == 5 and t.counts["rejected_merged"] == 0
+
+
+def test_the_limit_follows_the_spread_of_brightness(rng):
+    """Log-normal brightness of spread 0.3 (a real recording's): 2.5 robust deviations above
+    the median is exp(0.75) = 2.1, so a particle twice the median (as bright as two merged
+    ones, 0.6 % of such particles and more) is kept, while with all particles alike the
+    1.45 limit refuses it."""
+    from plenopiv.workflow.tracking import _merged
+
+    n = 400
+    spread = np.exp(0.3 * rng.standard_normal(n))
+    spread[0] = 2.0
+    alike = np.ones(n)
+    alike[0] = 2.0
+    fit = SimpleNamespace(converged=np.ones(n, bool), n_lenslets=np.full(n, 20))
+    idx = np.arange(n)
+    for b, refused in ((spread, False), (alike, True)):
+        ends = SimpleNamespace(brightness_a=b, brightness_b=b, bundle_a=fit, bundle_b=fit)
+        merged = _merged(ends, idx, idx, TrackingSettings(min_lenslets=6))
+        assert bool(merged[0]) is refused
+        assert merged.mean() <= (0.02 if not refused else 1.0 / n)

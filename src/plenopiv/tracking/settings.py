@@ -30,8 +30,9 @@ class TrackingSettings:
         particle); smaller refuses more; 1 keeps every mutual nearest pair (0.7).
     merged_brightness : a track is refused when both its ends are brighter than this many
         times the median particle of their volume (two particles closer than a resolution
-        cell, seen as one in both exposures: the track joins two particles); 0 keeps them
-        (1.45; with a broad spread of particle brightness, raise it or set 0).
+        cell, seen as one in both exposures: the track joins two particles); raised to
+        exp(2.5 s) where the particles' log brightness spreads by s (a real recording's
+        spread: s 0.3 makes it 2.1); 0 keeps them (1.45).
     bundle_radius : a ray belongs to a particle when it passes within this many half beam
         widths of it (1.5).
     bundle_iterations : ray selections and solves per particle, the first around the volume
