@@ -303,6 +303,14 @@ MEANINGS = {
     "experiment:tracking.median_threshold": "normalised median test of a track's deviation "
                                             "from its prediction against its neighbours",
     "experiment:tracking.median_epsilon_cells": "noise floor of that test",
+    "experiment:tracking.ambiguity_ratio": "ratio test: a match is refused when its distance "
+                                           "from the prediction exceeds this fraction of the "
+                                           "runner-up's, in either direction (another B "
+                                           "particle near the prediction, another prediction "
+                                           "near the B particle); 1: no test",
+    "experiment:tracking.merged_brightness": "a track is refused when both its ends are "
+                                             "brighter than this many times the median "
+                                             "particle: two particles seen as one; 0: off",
     "experiment:tracking.bundle_radius": "a pixel's ray belongs to a particle when it passes "
                                          "within this distance",
     "experiment:tracking.bundle_iterations": "ray selections and solves per particle",

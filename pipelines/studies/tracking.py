@@ -115,11 +115,14 @@ def _calibration(case: VortexCase, rng):
     return cam, rep.calibration
 
 
-def _simulate(case: VortexCase, cam, cal, rng):
+def _simulate(case: VortexCase, cam, cal, rng, axis=None):
+    """Grid, flow, pair and the two images of a case; ``axis`` (3,) turns the vortex."""
     grid = aligned_grid(cal.effective_camera, case)
     box = SeedingBox(tuple(grid.bounds[0] * 0.98), tuple(grid.bounds[1] * 0.98),
                      (-case.depth, case.depth))
     flow = _flow(case, box)
+    if axis is not None:
+        flow = replace(flow, axis=tuple(float(a) for a in axis))
     n = particle_count(cam, box, per_lenslet=case.particles_per_lenslet)
     fov = np.prod(2 * np.array(field_of_view(cam, 0.0)))
     n = int(n * (box.x[1] - box.x[0]) * (box.y[1] - box.y[0]) / fov)

@@ -3,10 +3,10 @@
 The correlation field predicts where each particle of exposure A went (Keane, Adrian & Zhang
 1995), so the search for its partner in B shrinks to a small sphere around the prediction:
 :func:`predict_positions`, :func:`match_particles` (nearest candidate within the search
-radius, consistent both ways) and :func:`neighbour_median_test` (tracks that disagree with
-their neighbours). Distances are measured in resolution cells, ``(b, b, ΔZ)`` metres per unit
-(:func:`plenopiv.camera.resolution.resolution_cell`), so that one search radius suits the
-sharp lateral and the blurred depth direction.
+radius, mutual and unambiguous both ways) and :func:`neighbour_median_test` (tracks that
+disagree with their neighbours). Distances are measured in resolution cells, ``(b, b, ΔZ)``
+metres per unit (:func:`plenopiv.camera.resolution.resolution_cell`), so that one search
+radius suits the sharp lateral and the blurred depth direction.
 
 See docs/methods.md#matching.
 """
@@ -42,6 +42,11 @@ class MatchSettings:
     neighbour_radius : float
         Only tracks within this distance (cells) count as neighbours (> 0); a track with
         fewer than 3 neighbours is kept untested.
+    ambiguity_ratio : float
+        Ratio test, in (0, 1]: a match is refused when its distance exceeds this fraction of
+        the distance to the runner-up, in either direction (the second-nearest B particle to
+        the A particle's prediction, or the second-nearest prediction to the B particle).
+        1: no test (a mutual nearest partner is never further than its runner-up).
     """
 
     search_radius_cells: float = 1.0
@@ -49,6 +54,7 @@ class MatchSettings:
     median_epsilon_cells: float = 0.1
     neighbours: int = 8
     neighbour_radius: float = 8.0
+    ambiguity_ratio: float = 1.0
 
     def __post_init__(self):
         for name in ("search_radius_cells", "median_threshold", "median_epsilon_cells",
@@ -58,6 +64,9 @@ class MatchSettings:
                 raise ValueError(f"tracking {name} = {v!r}: expected a number > 0")
         if int(self.neighbours) != self.neighbours or self.neighbours < 3:
             raise ValueError(f"tracking neighbours = {self.neighbours!r}: expected an int >= 3")
+        if not (np.isfinite(self.ambiguity_ratio) and 0 < self.ambiguity_ratio <= 1):
+            raise ValueError(f"tracking ambiguity_ratio = {self.ambiguity_ratio!r}: expected "
+                             "a number in (0, 1]")
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,12 +80,13 @@ class Matches:
     residual : (M,) float64
         Distance of the B particle from the predicted position, cells.
     quality : (M,) float64
-        1 - d1/d2 with d1, d2 the distances of the nearest and second-nearest B candidates
-        from the prediction (1: unique, 0: ambiguous), dimensionless.
+        1 - d1/d2, d1 the match's distance and d2 the runner-up's, in the more ambiguous of
+        the two directions (the second-nearest B particle to the prediction, the
+        second-nearest prediction to the B particle; 1: unique, 0: a tie), dimensionless.
     n_candidates : (M,) int64
         B particles within the search radius of the prediction.
-    rejected_mutual, rejected_median : int
-        Matches dropped by the two-way check and by the neighbour test.
+    rejected_mutual, rejected_median, rejected_ambiguous : int
+        Matches dropped by the two-way check, by the neighbour test and by the ratio test.
     """
 
     index_a: np.ndarray
@@ -86,6 +96,7 @@ class Matches:
     n_candidates: np.ndarray
     rejected_mutual: int = 0
     rejected_median: int = 0
+    rejected_ambiguous: int = 0
 
     def __len__(self) -> int:
         """Return the number of tracks."""
@@ -222,21 +233,25 @@ def match_particles(positions_a, positions_b, predicted_b, scale, *,
         return Matches(empty, empty, np.zeros(0), np.zeros(0), empty)
     qb, qp = pb / sc, pred / sc
     r = settings.search_radius_cells
-    d2, j2 = cKDTree(qb).query(qp, k=min(2, len(qb)), distance_upper_bound=r)
-    d2, j2 = d2.reshape(len(qp), -1), j2.reshape(len(qp), -1)
-    found = np.isfinite(d2[:, 0])
+    tree_b, tree_p = cKDTree(qb), cKDTree(qp)
+    d_ab, j_ab = _two_nearest(tree_b, qp)
+    found = d_ab[:, 0] <= r
     ia = np.flatnonzero(found)
-    ib = j2[found, 0]
-    dist = d2[found, 0]
-    second = d2[found, 1] if d2.shape[1] > 1 else np.full(len(ia), np.inf)
-    quality = np.where(np.isfinite(second), 1.0 - dist / np.where(second > 0, second, 1.0), 1.0)
-    n_cand = np.array([len(c) for c in cKDTree(qb).query_ball_point(qp[ia], r)], np.int64)
+    ib = j_ab[found, 0]
+    dist = d_ab[found, 0]
+    n_cand = np.array([len(c) for c in tree_b.query_ball_point(qp[ia], r)], np.int64)
     # consistency both ways: the B particle's nearest prediction must be this A particle
-    _, back = cKDTree(qp).query(qb[ib], k=1)
-    mutual = back == ia
+    d_ba, j_ba = _two_nearest(tree_p, qb[ib])
+    mutual = j_ba[:, 0] == ia
     n_mutual = int((~mutual).sum())
-    ia, ib, dist, quality, n_cand = ia[mutual], ib[mutual], dist[mutual], quality[mutual], \
-        n_cand[mutual]
+    # ratio test both ways: the runner-up, a B particle near the prediction or a prediction
+    # near the B particle, must lie clearly further than the partner
+    ratio = np.maximum(_ratio(dist, d_ab[found, 1]), _ratio(dist, d_ba[:, 1]))
+    quality = 1.0 - ratio
+    clear = ratio <= settings.ambiguity_ratio
+    n_ambiguous = int((mutual & ~clear).sum())
+    keep = mutual & clear
+    ia, ib, dist, quality, n_cand = ia[keep], ib[keep], dist[keep], quality[keep], n_cand[keep]
     # the test runs on the deviation from the prediction: the correlation field has removed
     # the resolved flow (gradients included), what is left is position noise and mismatch
     bad = neighbour_median_test(pa[ia] / sc, (pb[ib] - pred[ia]) / sc,
@@ -246,4 +261,24 @@ def match_particles(positions_a, positions_b, predicted_b, scale, *,
                                 radius=settings.neighbour_radius)
     keep = ~bad
     return Matches(ia[keep], ib[keep], dist[keep], quality[keep], n_cand[keep],
-                   n_mutual, int(bad.sum()))
+                   n_mutual, int(bad.sum()), n_ambiguous)
+
+
+def _two_nearest(tree: cKDTree, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distances and indices of the two nearest tree points of each point, (N, 2).
+
+    A missing runner-up (a tree of one point) is at infinite distance.
+    """
+    d, j = tree.query(points, k=min(2, tree.n))
+    d, j = d.reshape(len(points), -1), j.reshape(len(points), -1)
+    if d.shape[1] < 2:
+        d = np.hstack([d, np.full((len(points), 1), np.inf)])
+        j = np.hstack([j, np.full((len(points), 1), tree.n)])
+    return d, j
+
+
+def _ratio(nearest: np.ndarray, runner_up: np.ndarray) -> np.ndarray:
+    """d1/d2 of each match (0 without a runner-up; 1 for a tie at zero distance)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = nearest / runner_up
+    return np.where(runner_up > 0, np.where(np.isfinite(runner_up), q, 0.0), 1.0)

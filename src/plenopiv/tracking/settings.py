@@ -8,7 +8,10 @@ from plenopiv.particles.bundle import BundleSettings
 from plenopiv.settings import settings
 from plenopiv.tracking.matching import MatchSettings
 
-__all__ = ["TrackingSettings"]
+__all__ = ["AMBIGUITY", "TrackingSettings"]
+
+#: Default ``ambiguity_ratio`` (docs/validation/tracking.md, the ratio-test curve).
+AMBIGUITY = 0.7
 
 
 @settings
@@ -21,6 +24,15 @@ class TrackingSettings:
     median_threshold : normalised median test of a track's deviation from its prediction
         against its neighbouring tracks (2.0, as Westerweel & Scarano 2005 for PIV).
     median_epsilon_cells : noise floor of that test, resolution cells (0.1).
+    ambiguity_ratio : ratio test of a match, in (0, 1]: refused when its distance from the
+        prediction exceeds this fraction of the runner-up's, in either direction (another
+        particle of B near the prediction, or another particle's prediction near the B
+        particle); smaller refuses more; 1 keeps every mutual nearest pair (0.7).
+    merged_brightness : a track is refused when both its ends are brighter than this many
+        times the median particle of their volume (two particles closer than a resolution
+        cell, seen as one in both exposures: the track joins two particles); raised to
+        exp(2.5 s) where the particles' log brightness spreads by s (a real recording's
+        spread: s 0.3 makes it 2.1); 0 keeps them (1.45).
     bundle_radius : a ray belongs to a particle when it passes within this many half beam
         widths of it (1.5).
     bundle_iterations : ray selections and solves per particle, the first around the volume
@@ -38,6 +50,8 @@ class TrackingSettings:
     search_radius_cells: float = Field(1.0, gt=0, allow_inf_nan=False)
     median_threshold: float = Field(2.0, gt=0, allow_inf_nan=False)
     median_epsilon_cells: float = Field(0.1, gt=0, allow_inf_nan=False)
+    ambiguity_ratio: float = Field(AMBIGUITY, gt=0, le=1, allow_inf_nan=False)
+    merged_brightness: float = Field(1.45, ge=0, allow_inf_nan=False)
     bundle_radius: float = Field(1.5, gt=0, allow_inf_nan=False)
     bundle_iterations: int = Field(4, ge=1)
     forward_refine: bool = True
@@ -47,7 +61,8 @@ class TrackingSettings:
         """The matcher's options of this table (the same names, in resolution cells)."""
         return MatchSettings(search_radius_cells=self.search_radius_cells,
                              median_threshold=self.median_threshold,
-                             median_epsilon_cells=self.median_epsilon_cells)
+                             median_epsilon_cells=self.median_epsilon_cells,
+                             ambiguity_ratio=self.ambiguity_ratio)
 
     def bundle_settings(self) -> BundleSettings:
         """The ray-bundle fit's options of this table (``bundle_radius``, ``bundle_iterations``)."""

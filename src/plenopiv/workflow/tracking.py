@@ -8,6 +8,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
@@ -27,7 +29,8 @@ from plenopiv.tracking.matching import match_particles, predict_positions
 from plenopiv.tracking.settings import TrackingSettings
 from plenopiv.tracking.tracks import TrackResult
 
-__all__ = ["physical_bundle", "track_images", "track_pair"]
+__all__ = ["TrackEnds", "match_ends", "physical_bundle", "track_ends", "track_images",
+           "track_pair"]
 
 
 #: The forward refinement's default settings.
@@ -81,6 +84,121 @@ def _refined(b: BundlePositions, forward: ForwardSettings | None, min_lenslets: 
     return int(grid.sum()), int((~grid).sum())
 
 
+@dataclass(frozen=True, eq=False)
+class TrackEnds:
+    """The particles of both exposures, ready to be matched (:func:`track_ends`).
+
+    ``position_*`` (N, 3) physical positions and ``uncertainty_*`` (N, 3) their standard
+    uncertainties, metres; ``bundle_*`` the raw fits; ``scale`` the resolution cell
+    ``(lat, lat, depth)`` in physical metres; ``brightness_*`` (N,) the volumes' particle
+    intensities; ``counts`` the particles and fits.
+    """
+
+    position_a: np.ndarray
+    uncertainty_a: np.ndarray
+    bundle_a: BundlePositions
+    position_b: np.ndarray
+    uncertainty_b: np.ndarray
+    bundle_b: BundlePositions
+    scale: np.ndarray
+    counts: dict
+    brightness_a: np.ndarray | None = None
+    brightness_b: np.ndarray | None = None
+
+
+def track_ends(calibration: Calibration, image_a, image_b, volume_a: VolumeResult,
+               volume_b: VolumeResult, *, settings: TrackingSettings | None = None,
+               f_number: float | None = None, min_lit: float = 0.5,
+               lf: LightField | None = None) -> TrackEnds:
+    """Bundle (and refined) positions of both exposures' particles.
+
+    Arguments as :func:`track_pair`; :func:`match_ends` matches them.
+    """
+    settings = TrackingSettings() if settings is None else settings
+    if lf is None:
+        lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
+    lat, dep = resolution_cell(calibration.effective_camera, f_number)
+    bs = settings.bundle_settings()
+    fs = FORWARD if settings.forward_refine else None
+    table = ray_table(lf)
+    pa, ua, ba = physical_bundle(lf, image_a, volume_a, bs, dep, fs, settings.min_lenslets,
+                                 table)
+    pb, ub, bb = physical_bundle(lf, image_b, volume_b, bs, dep, fs, settings.min_lenslets,
+                                 table)
+    counts = {"particles_a": len(pa), "particles_b": len(pb),
+              "bundle_failed_a": int((~ba.converged).sum()),
+              "bundle_failed_b": int((~bb.converged).sum())}
+    for name, b in (("a", ba), ("b", bb)):
+        grid, local = _refined(b, fs, settings.min_lenslets, dep)
+        counts[f"refined_grid_{name}"], counts[f"refined_local_{name}"] = grid, local
+    scale = np.array([lat, lat, dep * volume_a.correction.scale])
+    return TrackEnds(pa, ua, ba, pb, ub, bb, scale, counts,
+                     np.asarray(volume_a.particle_intensity, float),
+                     np.asarray(volume_b.particle_intensity, float))
+
+
+def match_ends(ends: TrackEnds, vectors: VectorResult, *,
+               settings: TrackingSettings | None = None) -> TrackResult:
+    """Match the ends of :func:`track_ends` with the correlation field as predictor."""
+    settings = TrackingSettings() if settings is None else settings
+    pa, pb, ba, bb = ends.position_a, ends.position_b, ends.bundle_a, ends.bundle_b
+    # only converged fits take part (the others keep their seed and are left out)
+    ia_ok, ib_ok = np.flatnonzero(ba.converged), np.flatnonzero(bb.converged)
+    pred = predict_positions(vectors, pa[ia_ok])
+    m = match_particles(pa[ia_ok], pb[ib_ok], pred, ends.scale,
+                        settings=settings.match_settings())
+    ia, ib = ia_ok[m.index_a], ib_ok[m.index_b]
+    # an end seen through fewer lenslets has no depth in the image: one lenslet is lit
+    # whatever the depth within its depth of field; through up to 2 x 2 lenslets the lit
+    # patch has one edge per axis, which fixes the ratio of lateral offset to depth only
+    seen = ((ba.n_lenslets[ia] >= settings.min_lenslets)
+            & (bb.n_lenslets[ib] >= settings.min_lenslets))
+    merged = _merged(ends, ia, ib, settings) & seen
+    counts = dict(ends.counts)
+    counts.update({"rejected_two_way": m.rejected_mutual,
+                   "rejected_ambiguous": m.rejected_ambiguous,
+                   "rejected_median": m.rejected_median,
+                   "rejected_few_lenslets": int((~seen).sum()),
+                   "rejected_merged": int(merged.sum())})
+    seen &= ~merged
+    counts["tracks"] = int(seen.sum())
+    ia, ib = ia[seen], ib[seen]
+    return TrackResult(pa[ia], pb[ib], ends.uncertainty_a[ia], ends.uncertainty_b[ib],
+                       m.quality[seen], m.residual[seen], ia, ib, ba.n_lenslets[ia],
+                       bb.n_lenslets[ib], vectors.dt, counts)
+
+
+#: A single particle is taken for two merged ones only beyond this many robust standard
+#: deviations of the exposure's log brightness above its median (one-sided 0.6 %): with a
+#: spread of brightness (a laser profile, particle sizes) the gate follows it.
+MERGED_SPREAD_SIGMAS = 2.5
+
+
+def _merged(ends: TrackEnds, ia, ib, settings: TrackingSettings) -> np.ndarray:
+    """Tracks whose two ends are both brighter than the merged-particle limit.
+
+    The limit is the median brightness of the exposure's measurable particles (converged,
+    seen through ``min_lenslets``) times ``merged_brightness``, or times
+    exp(:data:`MERGED_SPREAD_SIGMAS` s) where their log brightness spreads by s (robust
+    standard deviation), whichever is larger: such a track is two particles closer than a
+    resolution cell, seen as one in both exposures, about twice as bright as one.
+    """
+    limit = settings.merged_brightness
+    if not limit or ends.brightness_a is None or ends.brightness_b is None:
+        return np.zeros(len(ia), bool)
+    out = np.ones(len(ia), bool)
+    for b, i, fit in ((ends.brightness_a, ia, ends.bundle_a), (ends.brightness_b, ib,
+                                                              ends.bundle_b)):
+        ok = fit.converged & (fit.n_lenslets >= settings.min_lenslets) & (b > 0)
+        if not ok.any():
+            return np.zeros(len(ia), bool)
+        log_b = np.log(b[ok])
+        spread = 1.4826 * float(np.median(np.abs(log_b - np.median(log_b))))
+        factor = max(limit, float(np.exp(MERGED_SPREAD_SIGMAS * spread)))
+        out &= b[i] > factor * float(np.exp(np.median(log_b)))
+    return out
+
+
 def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResult,
                volume_b: VolumeResult, vectors: VectorResult, *,
                settings: TrackingSettings | None = None, f_number: float | None = None,
@@ -104,40 +222,9 @@ def track_pair(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
         The light field of this calibration with ``f_number`` and ``min_lit``, when already
         built (the reconstruction's: ``weights.geometry.light_field``); built here otherwise.
     """
-    settings = TrackingSettings() if settings is None else settings
-    if lf is None:
-        lf = light_field(calibration, f_number=f_number, min_lit=min_lit)
-    lat, dep = resolution_cell(calibration.effective_camera, f_number)
-    bs = settings.bundle_settings()
-    fs = FORWARD if settings.forward_refine else None
-    table = ray_table(lf)
-    pa, ua, ba = physical_bundle(lf, image_a, volume_a, bs, dep, fs, settings.min_lenslets,
-                                 table)
-    pb, ub, bb = physical_bundle(lf, image_b, volume_b, bs, dep, fs, settings.min_lenslets,
-                                 table)
-    # only converged fits take part (the others keep their seed and are left out)
-    ia_ok, ib_ok = np.flatnonzero(ba.converged), np.flatnonzero(bb.converged)
-    scale = np.array([lat, lat, dep * volume_a.correction.scale])
-    ms = settings.match_settings()
-    pred = predict_positions(vectors, pa[ia_ok])
-    m = match_particles(pa[ia_ok], pb[ib_ok], pred, scale, settings=ms)
-    ia, ib = ia_ok[m.index_a], ib_ok[m.index_b]
-    # an end seen through fewer lenslets has no depth in the image: one lenslet is lit
-    # whatever the depth within its depth of field; through up to 2 x 2 lenslets the lit
-    # patch has one edge per axis, which fixes the ratio of lateral offset to depth only
-    seen = ((ba.n_lenslets[ia] >= settings.min_lenslets)
-            & (bb.n_lenslets[ib] >= settings.min_lenslets))
-    counts = {"particles_a": len(pa), "particles_b": len(pb),
-              "bundle_failed_a": int((~ba.converged).sum()),
-              "bundle_failed_b": int((~bb.converged).sum()),
-              "rejected_two_way": m.rejected_mutual, "rejected_median": m.rejected_median,
-              "rejected_few_lenslets": int((~seen).sum()), "tracks": int(seen.sum())}
-    for name, b in (("a", ba), ("b", bb)):
-        grid, local = _refined(b, fs, settings.min_lenslets, dep)
-        counts[f"refined_grid_{name}"], counts[f"refined_local_{name}"] = grid, local
-    ia, ib = ia[seen], ib[seen]
-    return TrackResult(pa[ia], pb[ib], ua[ia], ub[ib], m.quality[seen], m.residual[seen], ia,
-                       ib, ba.n_lenslets[ia], bb.n_lenslets[ib], vectors.dt, counts)
+    ends = track_ends(calibration, image_a, image_b, volume_a, volume_b, settings=settings,
+                      f_number=f_number, min_lit=min_lit, lf=lf)
+    return match_ends(ends, vectors, settings=settings)
 
 
 def track_images(calibration: Calibration, image_a, image_b, experiment, *,
