@@ -57,6 +57,7 @@ UNITS = {
     "experiment:piv.windows": "voxels [z, y, x]",
     "experiment:piv.overlap": "fraction",
     "experiment:piv.response_particles_per_lenslet": "particles per lenslet",
+    "experiment:piv.min_particles_per_window": "particles",
     "experiment:tracking.bundle_radius": "half beam widths",
     "experiment:tracking.min_lenslets": "lenslets",
     "experiment:mask.image": "path", "experiment:mask.volume": "path",
@@ -109,6 +110,7 @@ ALLOWED.update({
         f"`{n}`" for n in _piv.RESPONSE_DISPLACEMENTS),
     "experiment:piv.response_particles_per_lenslet": "number > 0, ≤ "
                                                      f"{_piv.MAX_RESPONSE_PARTICLES_PER_LENSLET:g}",
+    "experiment:piv.min_particles_per_window": "integer ≥ 0 (0: no minimum)",
     "experiment:piv.windows": f"list of [wz, wy, wx], edges {_piv.MIN_WINDOW_VOX}–"
                               f"{_piv.MAX_WINDOW_VOX}",
 })
@@ -271,6 +273,12 @@ MEANINGS = {
                                                      "experiment and shared by its pairs, so it "
                                                      "follows this, never a pair's own count: "
                                                      "set the experiment's nominal seeding",
+    "experiment:piv.min_particles_per_window": "fewest particles each window of a valid "
+                                               "vector holds in both volumes (the particle "
+                                               "tables); fewer: flag 8, replaced like an "
+                                               "outlier; 2, where the vectors' error leaves "
+                                               "the noise ([methods](methods.md#particles-per-"
+                                               "window))",
     "experiment:piv.overlap_correction": "fit the peak on the correlation divided by the "
                                          "windows' overlap fraction",
     "experiment:piv.broad_peaks": "5-point Gaussian fit along broad peaks (σ ≥ 1 voxel), "

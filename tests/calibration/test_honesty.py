@@ -84,7 +84,8 @@ def test_hexagonal_image_forced_square_is_refused(patch):
 def test_scene_images_are_refused(patch):
     ruler = ruler_image(patch, Ruler(1e-3), rays_per_lenslet=300)
     with pytest.raises(CalibrationError,
-                       match=r"(max_rms_residual_pitch|max_missing_fraction).*not a scene"):
+                       match=r"(max_rms_residual_pitch|max_missing_fraction).*a ruler image "
+                             r"given as"):
         calibrate(patch, ruler)
     box = SeedingBox.field_of_view(patch, (-5e-3, 5e-3))
     parts = particle_image(patch, random_particles(box, 400, np.random.default_rng(1)),
@@ -227,7 +228,7 @@ def test_cli_calibrate_reports_quality_and_refuses_a_ruler(tmp_path, capsys, sma
                  "--out", str(tmp_path / "bad.h5")])
     err = capsys.readouterr().err
     assert code == 2
-    assert "max_missing_fraction" in err and "not a scene, a ruler" in err
+    assert "max_missing_fraction" in err and "a ruler image given as the focal-point image?" in err
     assert not (tmp_path / "bad.h5").exists()
 
 

@@ -272,5 +272,42 @@ def test_a_volume_correlated_with_itself_is_warned_about(rng):
     vol = rng.random(grid.shape).astype(np.float32)
     res = VolumeResult(vol, grid, DepthCorrection(), np.zeros((0, 3)), np.zeros((0, 3)),
                        np.zeros(0), np.zeros((0, 3)))
+    # a noise volume has no particle table: no minimum of particles per window
     with pytest.warns(PlenopivWarning, match="identical"):
-        correlate(res, res, PIVSettings(windows=((8, 8, 8),), passes=1))
+        correlate(res, res, PIVSettings(windows=((8, 8, 8),), passes=1,
+                                        min_particles_per_window=0))
+
+
+@pytest.mark.parametrize("entry", ["run", "track", "piv"])
+def test_identical_inputs_are_warned_about_once_by_every_pair_verb(pair_products, entry,
+                                                                   tmp_path, capsys):
+    """``run`` (the pair processor), ``track`` and ``piv`` given one input twice: one warning.
+
+    Images are checked where they are prepared (``ImagePreparation.pair``), volumes where
+    they are correlated; volumes made from checked images are not warned about again.
+    """
+    import warnings
+
+    from plenopiv.errors import PlenopivWarning
+    from plenopiv.workflow.pair import PairProcessor
+    from plenopiv.workflow.tracking import track_images
+
+    res, paths, _, _, (cal, pair, exp) = pair_products
+    if entry == "piv":
+        code = main(["piv", paths["volume_A"], paths["volume_A"], "--out",
+                     str(tmp_path / "v.h5"), "--no-png", "--no-vtk"])
+        err = capsys.readouterr().err
+        assert code == 0 and err.count("warning:") == 1 and "are identical" in err
+        assert f"volume {paths['volume_A']!r} and volume {paths['volume_A']!r}" in err
+        return
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        if entry == "run":
+            PairProcessor(exp, cal)(pair.image_a, pair.image_a)
+        else:
+            track_images(cal, pair.image_a, pair.image_a, exp, volume_a=res.volume_a,
+                         volume_b=res.volume_a, vectors=res.vectors)
+    said = [str(w.message) for w in caught if issubclass(w.category, PlenopivWarning)
+            and "identical" in str(w.message)]
+    assert said == ["image A and image B are identical (the same file or frame given twice?): "
+                    "the field is zero by construction and says nothing of the flow"]

@@ -42,13 +42,14 @@ from plenopiv.calibration.lenslets import (
     spot_lattice,
 )
 from plenopiv.calibration.model import Calibration
+from plenopiv.calibration.nominal import check_against_camera
 from plenopiv.calibration.psf import point_spread_sigma
 from plenopiv.calibration.spot_types import Lattice, SpotFlag, SpotSet
 from plenopiv.camera.model import CameraModel, apply_misplacement
 from plenopiv.camera.resolution import MICRO_IMAGE_TOLERANCE
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
 from plenopiv.errors import CalibrationError
-from plenopiv.products.images import check_image
+from plenopiv.products.images import check_image, warn_identical
 
 METHODS = ("focal-point", "magnification", "both")
 # harmonics of the sub-pixel phase bias fitted with each lattice (fit_lattice)
@@ -175,12 +176,11 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
         stored (``extra["micro_image_diameter_px"]``), an f-number 1.25 times off noted.
     dark : ndarray, optional
         A dark frame of the sensor (no light, the images' exposure), counts: subtracted from
-        every image, and its hot pixels
-        (:func:`~plenopiv.calibration.defects.hot_pixels_from_dark`) ignored by the spot
-        detection. Without it the black level, its fixed pattern per column and row, and the
-        hot pixels are estimated on each image (docs/methods.md#sensor-defects).
+        every image, its hot pixels (:func:`~plenopiv.calibration.defects.hot_pixels_from_dark`)
+        ignored by the spot detection. Without it the black level, its fixed pattern per
+        column and row, and the hot pixels are estimated on each image (methods.md).
     """
-    _check_method(method, ruler_image, ruler_spacing)
+    _inputs(method, ruler_spacing, focal_point_image, alignment_image, ruler_image, white_image)
     shape, pp = camera.sensor.shape, camera.sensor.pixel_pitch
     dark_frame = DarkFrame.of(dark, shape)
     limits = {"max_missing_fraction": max_missing_fraction,
@@ -196,7 +196,8 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     # 1. focal spots; 2. the lenslets (alignment image or nominal), each with its focal spot
     spots, lat = spot_lattice(fp, camera, "the focal-point image", **options)
     lenslets = lenslet_centres(camera, alignment_image, dark=dark_frame, flat=flat, **options)
-    scale = focal_spot_scale(float(np.mean(lat.pitch_px)), lenslets.pitch_px)
+    scale = focal_spot_scale(float(np.mean(lat.pitch_px)), lenslets.pitch_px,
+                             _lenslets_from(camera, lenslets))
     lenslets = lenslets_on_sensor(lenslets, scale, shape, spots.window_radius_px + 1)
     focal_px = lat.corrected_centres_px
     spot_of = pair_focal_spots(focal_px, _pairable(lat), lenslets, scale, shape,
@@ -215,8 +216,8 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
 
     spots_px, missing_notes = _every_focal_spot(focal_px, spot_of, lenslets, fit, spot_model,
                                                 camera)
-    si, meth, si_notes = _chosen_image_distance(method, fit, mag)
-    calibrated = camera.with_image_distance(si)
+    si, meth, si_notes = _chosen_image_distance(method, fit, mag, camera, lenslets)
+    calibrated = camera.with_image_distance(si, origin=f"measured by the {meth} method")
     psf = point_spread_sigma(calibrated, spots, focal_point_f_number, threshold=spot_threshold)
     cal = Calibration(camera=calibrated, centre_px=lenslets.centre_px,
                       focal_spot_px=spots_px, grid_index=lenslets.grid_index, method=meth,
@@ -229,8 +230,26 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
                              lenslets.spots, white)
 
 
-def _check_method(method, ruler_image, ruler_spacing):
-    """Raise when ``method`` is unknown or lacks its ruler image."""
+def _lenslets_from(camera: CameraModel, lenslets: LensletCentres) -> str:
+    """Where the lenslet pitch came from, as the user gave it (for messages)."""
+    if lenslets.lattice is not None:
+        return "measured on the alignment image"
+    return (f"[microlens_array] pitch_um = {camera.microlens_array.pitch * 1e6:g} over [sensor] "
+            f"pixel_pitch_um = {camera.sensor.pixel_pitch * 1e6:g}")
+
+
+#: What a calibration image that is another one's copy means (warn_identical)
+IDENTICAL_IMAGES = ("each calibration image shows its own thing (focal spots, lenslet centres, "
+                    "ruler ticks, micro-images at the working aperture): one of them is the "
+                    "wrong file")
+
+
+def _inputs(method, ruler_spacing, focal_point_image, alignment_image, ruler_image, white_image):
+    """Raise when ``method`` is unknown or lacks its ruler image; warn of identical images."""
+    warn_identical(("the focal-point image", "the alignment image", "the ruler image",
+                    "the white image"),
+                   (focal_point_image, alignment_image, ruler_image, white_image),
+                   consequence=IDENTICAL_IMAGES)
     if method not in METHODS:
         raise ValueError(f"method = {method!r}: expected one of {METHODS}")
     if method in ("magnification", "both") and (ruler_image is None or ruler_spacing is None):
@@ -266,18 +285,36 @@ def _every_focal_spot(focal_px, spot_of, lenslets: LensletCentres, fit: FocalPoi
                       f"{idx[:, 1].max()}); filled from the fitted focal-point model"]
 
 
-def _chosen_image_distance(method, fit: FocalPointFit, mag: MagnificationResult | None):
-    """The S_i the calibration keeps (m), its method name, and a note when the two disagree."""
+def _chosen_image_distance(method, fit: FocalPointFit, mag: MagnificationResult | None,
+                           camera: CameraModel, lenslets: LensletCentres):
+    """The S_i the calibration keeps (m), its method name, and notes.
+
+    A note when the two methods disagree; the S_i is checked against the camera file
+    (:func:`~plenopiv.calibration.nominal.check_against_camera`, with the alignment image's
+    pitch when there is one), refused or warned about with the figures.
+    """
     if method == "magnification":
-        return mag.image_distance, "magnification", []
+        si, sigma, notes = mag.image_distance, mag.sigma_image_distance, []
+    else:
+        si, sigma, notes = fit.image_distance, fit.sigma_image_distance, _disagreement(fit, mag)
+    aligned = lenslets.lattice is not None
+    notes += check_against_camera(
+        camera, si, sigma, method,
+        alignment_pitch_px=float(lenslets.lattice.pitch_px[1]) if aligned else None)
+    return si, method, notes
+
+
+def _disagreement(fit: FocalPointFit, mag: MagnificationResult | None) -> list[str]:
+    """A note when the focal-point and the magnification S_i disagree beyond 3 sigma."""
     notes = []
     if mag is not None and abs(mag.image_distance - fit.image_distance) > \
             3 * mag.sigma_image_distance:
         notes.append(
             f"the focal-point S_i ({fit.image_distance * 1e3:.2f} mm) and the magnification "
             f"S_i ({mag.image_distance * 1e3:.2f} ± {mag.sigma_image_distance * 1e3:.2f} mm) "
-            "disagree: an exit-pupil offset or a wrong f̄ (see the lens corrections)")
-    return fit.image_distance, method, notes
+            "disagree: an exit-pupil offset, a wrong f̄ ([microlens_array] sensor_distance_um) "
+            "or a wrong ruler spacing (--ruler-spacing-mm) (see the lens corrections)")
+    return notes
 
 
 def _extra(spot_of, fit: FocalPointFit, mag, meth, spots: SpotSet, white, psf) -> dict:

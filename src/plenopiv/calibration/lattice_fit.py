@@ -132,7 +132,7 @@ def _grow_indices(pts, a1, a2, d0, seeds):
 
 def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
                 window_radius_px=None, max_missing_fraction=None, outlier_threshold_px=None,
-                min_size=4, phase_harmonics=0, max_shape_error=0.05):
+                min_size=4, phase_harmonics=0, max_shape_error=0.05, what="the spots"):
     """Index the spots on a regular lattice and fit it by linear least squares.
 
     Parameters
@@ -168,6 +168,8 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
     max_shape_error : float or None
         Largest departure from the grid type's shape (default 5 %, angles in radians;
         ``lattice_quality.check_lattice_shape``), else CalibrationError; None: no check.
+    what : str
+        How errors name the image (``"the focal-point image"``; default ``"the spots"``).
 
     Returns
     -------
@@ -176,8 +178,8 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
     Raises
     ------
     CalibrationError
-        Too few spots, no square or hexagonal order, a spacing far from
-        ``expected_pitch_px``, or more missing positions than ``max_missing_fraction``.
+        Too few spots, no lattice, a spacing far from ``expected_pitch_px``, or more missing
+        positions than ``max_missing_fraction``.
     ValueError
         An option is outside its valid set. (The steps: docs/methods.md#lattice-fit.)
 
@@ -187,10 +189,8 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
     >>> from plenopiv.calibration.spots import detect_spots, fit_lattice
     >>> rr, cc = np.mgrid[0:120, 0:120] % 20 - np.array([10.3, 9.8])[:, None, None]
     >>> lattice = fit_lattice(detect_spots(np.exp(-(rr**2 + cc**2) / 2), expected_pitch_px=20.0))
-    >>> lattice.grid, np.round(lattice.pitch_px, 2).tolist()
-    ('square', [20.0, 20.0])
-    >>> np.round(lattice.origin_px, 1).tolist()
-    [10.3, 9.8]
+    >>> lattice.grid, lattice.pitch_px.round(2).tolist(), lattice.origin_px.round(1).tolist()
+    ('square', [20.0, 20.0], [10.3, 9.8])
     """
     min_size, max_missing_fraction, phase_harmonics = _checked_options(
         grid, min_size, max_missing_fraction, phase_harmonics)
@@ -214,7 +214,7 @@ def fit_lattice(spots, *, grid="auto", expected_pitch_px=None, image_shape=None,
     coef, res, cov_scale, bias = fit
     origin, basis, shift = coef[0], np.stack([coef[1], coef[2]]), _shift(coef, grid)
     if max_shape_error is not None:
-        _check_shape(grid, basis, shift, float(max_shape_error), res, flags)
+        _check_shape(grid, basis, shift, float(max_shape_error), res, flags, what)
     _check_extent(index[fitted], min_size)
     missing = _missing(
         index, flags, origin, basis, shift, image_shape, window_radius_px, pts[fitted]
@@ -363,25 +363,29 @@ def _robust_fit(index, pts, grid, flags, d0, outlier_threshold_px, phase_harmoni
     return fit, fitted, flags
 
 
-def _check_shape(grid, basis, shift, tol, res, flags):
-    """:func:`check_lattice_shape`, adding how many spots sit on the lattice when few do.
+def _check_shape(grid, basis, shift, tol, res, flags, what="the spots"):
+    """:func:`check_lattice_shape`, its error following what the spots show.
 
-    When the shape is wrong and fewer than :data:`MIN_ON_LATTICE_FRACTION` of the complete
-    spots lie near a node, the image may hold no lattice at all (a scene, a particle image),
-    and the error says so beside the grid type it blames.
+    The shape of the other grid type (a row spacing of sqrt(3)/2 of the pitch forced on a
+    square grid, or of 1 on a hexagonal one): the grid type is wrong, and the error says so.
+    Otherwise, when fewer than :data:`MIN_ON_LATTICE_FRACTION` of the complete spots lie near
+    a node, the image holds no lattice at all (a scene, a particle image): the error says
+    that, naming the image ``what``, and blames no grid type.
     """
     try:
         check_lattice_shape(grid, basis, shift, tol)
     except CalibrationError as err:
+        p_row, p_col = np.hypot(basis[:, 0], basis[:, 1])
+        other_ratio = math.sqrt(3.0) / 2.0 if grid == "square" else 1.0
+        if abs(p_row / (other_ratio * p_col) - 1.0) <= tol:
+            raise
         complete = (flags & SpotFlag.EDGE) == 0
         pitch = float(np.mean(np.hypot(basis[:, 0], basis[:, 1])))
         r = np.hypot(*res[complete].T)
         fraction = float(np.mean(r <= ON_LATTICE_RADIUS * pitch)) if r.size else 1.0
         if fraction < MIN_ON_LATTICE_FRACTION:
             rms = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
-            raise CalibrationError(
-                f"{err} Or no lenslet lattice at all: "
-                f"{not_a_lattice('the spots', fraction, r.size, grid, pitch, rms)}") from err
+            raise not_a_lattice(what, fraction, r.size, grid, pitch, rms) from err
         raise
 
 

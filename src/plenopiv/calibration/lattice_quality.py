@@ -25,8 +25,20 @@ MAX_LENSLET_CONTRAST = 0.2
 #: No limit on the rms lattice residual by default: real arrays scatter about their lattice
 MAX_RMS_RESIDUAL_PITCH = None
 
-_HINT = ("is it a focal-point, alignment or white image of this camera, not a scene, a ruler "
-         "or a particle image?")
+_NEEDS = {"focal-point": "the lenslets' focal spots (a white sheet through the stopped-down "
+                        "lens)",
+          "alignment": "one spot on each lenslet's axis (collimated light, the main lens off)",
+          "white": "every micro-image evenly lit (a white sheet at the working aperture)"}
+"""What each calibration image must show, by the word that names it."""
+
+#: The likely swap where an image's spots sit on no lattice
+NO_LATTICE = "a particle image or a scene"
+
+
+def swap_hint(what: str, likely: str) -> str:
+    """The hint that follows what the image shows: ``likely`` given as ``what``, and its need."""
+    need = next((v for k, v in _NEEDS.items() if k in what), None)
+    return f"{likely} given as {what}?" + (f" It must show {need}" if need else "")
 
 
 def check_lattice(lattice, *, what="the image", max_rms_residual_pitch=MAX_RMS_RESIDUAL_PITCH,
@@ -84,7 +96,7 @@ def check_lattice(lattice, *, what="the image", max_rms_residual_pitch=MAX_RMS_R
             f"{what}: the spots fit a regular {q['grid']} lattice only to "
             f"{q['rms_residual_px']:.3f} px rms, {100 * q['rms_residual_pitch']:.2f} % of its "
             f"pitch {pitch:.2f} px (at most {100 * max_rms_residual_pitch:g} %, "
-            f"max_rms_residual_pitch); {_HINT}"
+            f"max_rms_residual_pitch); {swap_hint(what, NO_LATTICE)}"
         )
     if max_missing_fraction is not None and q["missing_fraction"] > max_missing_fraction:
         shown = ", ".join(f"({i}, {j})" for i, j in lattice.missing_index[:6])
@@ -93,17 +105,44 @@ def check_lattice(lattice, *, what="the image", max_rms_residual_pitch=MAX_RMS_R
             f"{what}: {q['n_missing']} lattice positions inside the image hold no spot, "
             f"{100 * q['missing_fraction']:.1f} % of them (at most "
             f"{100 * max_missing_fraction:g} %, max_missing_fraction); grid indices "
-            f"{shown}{more}; {_HINT} (dark corners outside the lens's image circle: raise "
-            "max_missing_fraction)"
+            f"{shown}{more}; {holes_hint(lattice, what)}"
         )
     if max_lenslet_contrast is not None and q["lenslet_contrast"] > max_lenslet_contrast:
         raise CalibrationError(
             f"{what}: a lattice of {q['n_spots']} micro-images, but unevenly lit: one in ten "
             f"differs from its neighbours by more than {100 * q['lenslet_contrast']:.0f} % "
             f"(lenslet_contrast; a calibration image at most {100 * max_lenslet_contrast:g} "
-            f"%, max_lenslet_contrast): the micro-images of a scene or a ruler; {_HINT}"
+            f"%, max_lenslet_contrast): the micro-images of a scene, a ruler or dense "
+            f"particles; {swap_hint(what, 'a ruler, a scene or a particle image')}"
         )
     return q
+
+
+def holes_hint(lattice, what: str) -> str:
+    """The hint for a lattice with holes, from where they lie.
+
+    Along the lattice's border (within 2 lenslets of it for most of them): dark corners or
+    edges, outside the lens's image circle. On far fewer rows or columns than scattered holes
+    would take: a ruler, whose ticks hide lines of lenslets. Scattered: the lit lenslets of
+    a particle image or a scene.
+    """
+    holes = np.asarray(lattice.missing_index).reshape(-1, 2)
+    index = np.asarray(lattice.grid_index)[np.asarray(lattice.inlier, bool)]
+    if not len(holes) or not len(index):
+        return swap_hint(what, NO_LATTICE)
+    lo, hi = index.min(axis=0), index.max(axis=0)
+    border = np.minimum(holes - lo, hi - holes).min(axis=1) <= 2
+    if border.mean() > 0.6:
+        return ("its holes lie along its border: dark corners or edges outside the lens's "
+                "image circle? (raise max_missing_fraction)")
+    for axis, name in ((1, "columns"), (0, "rows")):
+        # n holes scattered over m lines fill m (1 - exp(-n/m)) of them; a ruler's far fewer
+        lines = len(np.unique(holes[:, axis]))
+        span = hi[axis] - lo[axis] + 1
+        if lines < 0.5 * span * (1.0 - math.exp(-len(holes) / span)):
+            return (f"its holes fall on {lines} of its {span} {name}, as a ruler's ticks "
+                    f"hide lines of lenslets; {swap_hint(what, 'a ruler image')}")
+    return f"its holes are scattered over the lattice; {swap_hint(what, NO_LATTICE)}"
 
 
 def not_a_lattice(what, fraction, n_complete, grid, pitch_px, rms_px,
@@ -114,7 +153,8 @@ def not_a_lattice(what, fraction, n_complete, grid, pitch_px, rms_px,
         f"complete spots lie within {ON_LATTICE_RADIUS:g} of a pitch of a node of the "
         f"best-fitting {grid} lattice (pitch {pitch_px:.2f} px, rms residual {rms_px:.2f} px); "
         f"a lenslet array puts at least {100 * minimum:g} % there (min_on_lattice_fraction), "
-        f"spots with no lattice about {100 * math.pi * ON_LATTICE_RADIUS ** 2:.0f} %; {_HINT}")
+        f"spots with no lattice about {100 * math.pi * ON_LATTICE_RADIUS ** 2:.0f} %; "
+        f"{swap_hint(what, NO_LATTICE)}")
 
 
 def check_lattice_shape(grid, basis, shift, tol):

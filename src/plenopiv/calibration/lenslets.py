@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plenopiv.calibration.lattice_fit import fit_lattice
-from plenopiv.calibration.lattice_quality import MIN_ON_LATTICE_FRACTION, check_lattice
+from plenopiv.calibration.lattice_quality import MIN_ON_LATTICE_FRACTION, check_lattice, swap_hint
 from plenopiv.calibration.spot_detection import detect_spots
 from plenopiv.calibration.spot_types import Lattice, SpotFlag, SpotSet
 from plenopiv.camera.model import CameraModel
@@ -86,12 +86,36 @@ def spot_lattice(image, camera: CameraModel, what: str, *, max_missing_fraction,
     """
     grid = camera.microlens_array.grid
     spots = detect_spots(image, grid=grid, **detect_options)
-    lattice = fit_lattice(spots, grid=grid, image_shape=camera.sensor.shape,
-                          phase_harmonics=phase_harmonics)
+    _check_spot_count(len(spots.centres_px), camera, what, max_missing_fraction)
+    try:
+        lattice = fit_lattice(spots, grid=grid, image_shape=camera.sensor.shape,
+                              phase_harmonics=phase_harmonics, what=what)
+    except CalibrationError as exc:
+        if str(exc).startswith(what):
+            raise
+        raise CalibrationError(f"{what}: {exc}") from None
     check_lattice(lattice, what=what, max_missing_fraction=max_missing_fraction,
                   max_rms_residual_pitch=max_rms_residual_pitch,
                   min_on_lattice_fraction=min_on_lattice_fraction)
     return spots, lattice
+
+
+FEW_SPOTS_FRACTION = 0.5
+"""A calibration image lights every lenslet of its camera, one spot each, up to the missing
+fraction it allows: one with fewer than this fraction of those shows scattered points."""
+
+
+def _check_spot_count(n_spots: int, camera: CameraModel, what: str,
+                      max_missing_fraction) -> None:
+    """Refuse an image with far fewer spots than lenslets: a particle image or a scene."""
+    n_lenslets = camera.microlens_array.count
+    least = FEW_SPOTS_FRACTION * (1.0 - (max_missing_fraction or 0.0)) * n_lenslets
+    if n_spots < least:
+        raise CalibrationError(
+            f"{what}: {n_spots} spots, where this camera's {n_lenslets} lenslets make one "
+            f"each in a calibration image (at least {least:.0f} with max_missing_fraction = "
+            f"{max_missing_fraction or 0:g}): it shows scattered points, not a lenslet "
+            f"lattice; {swap_hint(what, 'a particle image or a scene')}")
 
 
 def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None, flat=None,
@@ -143,8 +167,12 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None, fla
                           float(np.mean(lat.pitch_px)), lat, spots)
 
 
-def focal_spot_scale(focal_pitch_px: float, lenslet_pitch_px: float) -> float:
+def focal_spot_scale(focal_pitch_px: float, lenslet_pitch_px: float,
+                     lenslets_from: str = "") -> float:
     """Ratio of the focal-spot pitch to the lenslet pitch, ``1 + f/S_i``; checked.
+
+    ``lenslets_from``: where the lenslet pitch came from, for the message (e.g.
+    ``"[microlens_array] pitch_um = 125 over [sensor] pixel_pitch_um = 7.4"``).
 
     Raises
     ------
@@ -153,10 +181,12 @@ def focal_spot_scale(focal_pitch_px: float, lenslet_pitch_px: float) -> float:
     """
     scale = focal_pitch_px / lenslet_pitch_px
     if not 1.0 < scale < 1.1:
+        source = f" ({lenslets_from})" if lenslets_from else ""
         raise CalibrationError(
             f"the focal spots are {focal_pitch_px:.4g} px apart and the lenslets "
-            f"{lenslet_pitch_px:.4g} px: expected a ratio 1 + f̄/S_i slightly above 1 (got "
-            f"{scale:.5f}); wrong camera file or image?")
+            f"{lenslet_pitch_px:.4g} px{source}: expected a ratio 1 + f̄/S_i slightly above 1 "
+            f"(got {scale:.5f}); is that pitch wrong, or the image not a focal-point image of "
+            "this camera?")
     return scale
 
 

@@ -23,7 +23,7 @@ import numpy as np
 from plenopiv.camera import optics
 from plenopiv.camera.model import CameraModel, camera_from_dict
 from plenopiv.conventions import sensor_to_pixel
-from plenopiv.errors import CalibrationError
+from plenopiv.errors import CalibrationError, ConfigError
 from plenopiv.products.hdf5 import open_product, write_h5
 from plenopiv.products.jsonio import dumps
 from plenopiv.products.provenance import json_hash, make_provenance
@@ -115,7 +115,9 @@ class Calibration:
             E.g. the experiment's camera (its interfaces and back-side model); its own
             ``image_distance`` is replaced by :attr:`image_distance`.
         """
-        return dataclasses.replace(self, camera=camera.with_image_distance(self.image_distance))
+        return dataclasses.replace(self, camera=camera.with_image_distance(
+            self.image_distance, origin=self.camera.main_lens.image_distance_origin or
+            "of the calibration"))
 
     @classmethod
     def from_camera(cls, camera: CameraModel) -> Calibration:
@@ -180,14 +182,21 @@ class Calibration:
         with open_product(path, "calibration", CalibrationError) as fh:
             a = fh.attrs
             if "camera" in a:
-                camera = camera_from_dict(json.loads(a["camera"]), source=f"{path}:camera")
+                cfg, source = json.loads(a["camera"]), f"{path}:camera"
             else:             # written before the camera attribute: the config's camera
-                camera = camera_from_dict(json.loads(a["config"])["camera"],
-                                          source=f"{path}:config")
+                cfg, source = json.loads(a["config"])["camera"], f"{path}:config"
+            if isinstance(cfg, dict) and isinstance(cfg.get("main_lens"), dict):
+                # the calibrated S_i is checked below, named as calibrated, not as a key
+                cfg["main_lens"].pop("image_distance_mm", None)
+            camera = camera_from_dict(cfg, source=source)
             # the product's S_i is its image_distance_m attribute (the camera's copy went
             # through mm, and older files' config may not hold it)
-            camera = camera.with_image_distance(_positive(fh.number("image_distance_m"),
-                                                          "image_distance_m", path))
+            try:
+                camera = camera.with_image_distance(
+                    _positive(fh.number("image_distance_m"), "image_distance_m", path),
+                    origin=f"from {str(path)!r}")
+            except ConfigError as exc:      # named as calibrated, with its file
+                raise CalibrationError(str(exc)) from None
             return cls(camera=camera,
                        centre_px=fh.array("/lenslets/centre_px").astype(float),
                        focal_spot_px=fh.array("/lenslets/focal_spot_px").astype(float),

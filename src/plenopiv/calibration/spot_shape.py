@@ -142,8 +142,9 @@ def _fit(values, t, g_r, g_c, ok):
     a = sol[:, 0]
     safe_a = np.where(np.abs(a) > 0, a, np.nan)
     shift = sol[:, 2:] / safe_a[:, None]
-    std = np.sqrt(np.stack([cov[:, 2, 2], cov[:, 3, 3]], axis=1) * s2[:, None]) \
-        / np.abs(safe_a)[:, None]
+    # a near-singular system can round a variance below zero: no standard error then
+    var = np.stack([cov[:, 2, 2], cov[:, 3, 3]], axis=1) * s2[:, None]
+    std = np.sqrt(np.where(var >= 0, var, np.nan)) / np.abs(safe_a)[:, None]
     shift[~det_ok] = np.nan
     std[~det_ok] = np.nan
     return shift, std, a, np.sqrt(s2)

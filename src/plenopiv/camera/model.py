@@ -259,12 +259,18 @@ class MainLens:
     exit_pupil_offset : float
         Exit pupil minus principal plane, metres, + towards the sensor. Chief rays in image
         space leave from the exit pupil centre (0, 0, offset).
+    image_distance_origin : str or None
+        Where ``image_distance`` came from, so that messages name what the user gave (see
+        :meth:`image_distance_text`): None, the camera file's ``[main_lens]
+        image_distance_mm``; a command-line option (``"--image-distance-mm"``); or the
+        calibration that measured it (e.g. ``"from 'cal.h5'"``). Not compared.
     """
 
     focal_length: float
     f_number: float
     image_distance: float | None = None
     exit_pupil_offset: float = 0.0
+    image_distance_origin: str | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         _require(self.focal_length > 0,
@@ -272,11 +278,25 @@ class MainLens:
         _require(self.f_number > 0, f"[main_lens] f_number = {self.f_number:g}: expected > 0")
         if self.image_distance is not None:
             _require(self.image_distance > self.focal_length,
-                     f"[main_lens] image_distance_mm = {self.image_distance * 1e3:g}: expected > "
+                     f"{self.image_distance_text()}: expected > [main_lens] "
                      f"focal_length_mm = {self.focal_length * 1e3:g} (a real image)")
             _require(self.exit_pupil_offset < self.image_distance,
                      f"[main_lens] exit_pupil_offset_mm = {self.exit_pupil_offset * 1e3:g}: "
-                     "expected less than image_distance_mm")
+                     f"expected less than {self.image_distance_text()}")
+
+    def image_distance_text(self) -> str:
+        """How a message names S_i: as the user gave it, or as calibrated (never a key unwritten).
+
+        ``[main_lens] image_distance_mm = 200`` (the camera file), ``--image-distance-mm
+        200`` (an option), or ``the calibrated image distance S_i = 76.8 mm (from 'cal.h5')``.
+        """
+        mm = self.image_distance * 1e3
+        origin = self.image_distance_origin
+        if origin is None:
+            return f"[main_lens] image_distance_mm = {mm:g}"
+        if origin.startswith("--"):
+            return f"{origin} {mm:g}"
+        return f"the calibrated image distance S_i = {mm:.4g} mm ({origin})"
 
     @property
     def aperture_diameter(self) -> float:
@@ -338,20 +358,22 @@ class CameraModel:
                  "per lenslet")
         width, height = mla.extent
         _require(width <= sen.width * (1 + 1e-9),
-                 f"[microlens_array] cols = {mla.cols} × pitch {mla.pitch * 1e6:g} µm = "
-                 f"{width * 1e3:.4g} mm is wider than the sensor ([sensor] cols = {sen.cols} × "
-                 f"{sen.pixel_pitch * 1e6:g} µm = {sen.width * 1e3:.4g} mm): expected the array "
-                 "to fit on the sensor")
+                 f"[microlens_array] cols = {mla.cols} lenslets of pitch_um = "
+                 f"{mla.pitch * 1e6:g} span {width * 1e3:.4g} mm, wider than the sensor "
+                 f"([sensor] cols = {sen.cols} of pixel_pitch_um = {sen.pixel_pitch * 1e6:g}, "
+                 f"{sen.width * 1e3:.4g} mm): expected the array to fit on the sensor")
         _require(height <= sen.height * (1 + 1e-9),
-                 f"[microlens_array] rows = {mla.rows} lenslets span {height * 1e3:.4g} mm, taller "
-                 f"than the sensor ([sensor] rows = {sen.rows} × {sen.pixel_pitch * 1e6:g} µm = "
+                 f"[microlens_array] rows = {mla.rows} lenslets of pitch_um = "
+                 f"{mla.pitch * 1e6:g} span {height * 1e3:.4g} mm, taller than the sensor "
+                 f"([sensor] rows = {sen.rows} of pixel_pitch_um = {sen.pixel_pitch * 1e6:g}, "
                  f"{sen.height * 1e3:.4g} mm): expected the array to fit on the sensor")
         if self.external_interface is not None and self.main_lens.image_distance is not None:
             _require(self.interface_distance > 0,
                      f"[external_interface] medium_depth_mm = "
                      f"{self.external_interface.medium_depth * 1e3:g}: the interface would lie "
-                     f"behind the main lens (S_o,eff = {self.object_distance * 1e3:.4g} mm); "
-                     "expected (n2/n1)·l1 < S_o,eff")
+                     f"behind the main lens (S_o,eff = {self.object_distance * 1e3:.4g} mm, "
+                     f"from {self.main_lens.image_distance_text()}); expected (n2/n1)·l1 < "
+                     "S_o,eff")
 
     # ---- derived distances (metres) --------------------------------------------------------
     @property
@@ -465,10 +487,15 @@ class CameraModel:
         return self.replace(sensor=sensor, microlens_array=mla,
                             name=f"{self.name}, {rows} x {cols}-lenslet patch{plate}")
 
-    def with_image_distance(self, image_distance: float) -> CameraModel:
-        """Return a copy with another effective image distance S_i,eff (metres)."""
-        return self.replace(main_lens=dataclasses.replace(self.main_lens,
-                                                          image_distance=image_distance))
+    def with_image_distance(self, image_distance: float, *,
+                            origin: str | None = None) -> CameraModel:
+        """Return a copy with another effective image distance S_i,eff (metres).
+
+        ``origin``: where it came from, for messages (:attr:`MainLens.image_distance_origin`;
+        None: the camera file's key).
+        """
+        return self.replace(main_lens=dataclasses.replace(
+            self.main_lens, image_distance=image_distance, image_distance_origin=origin))
 
     def to_dict(self) -> dict[str, Any]:
         """The camera as a config dictionary in the units of the TOML schema."""
@@ -606,21 +633,39 @@ def read_toml(path: str | Path, what: str = "config") -> dict:
     if p.exists() and not p.is_file() and not p.is_dir():
         raise ConfigError(f"{what} file {str(p)!r} is not a regular file (a pipe, socket or "
                           "device): expected a TOML file")
+    text = ""
     try:
-        text = p.read_bytes().decode("utf-8")
-        return tomllib.loads(text.removeprefix("\ufeff"))   # a byte-order mark is no key
+        raw = p.read_bytes()
+        _refuse_wide_text(raw, what, p)
+        text = raw.decode("utf-8").lstrip("\ufeff")      # a byte-order mark is no key
+        return tomllib.loads(text)
     except FileNotFoundError:
         raise ConfigError(f"{what} file {str(p)!r} not found") from None
     except IsADirectoryError:
         raise ConfigError(f"{what} file {str(p)!r} is a folder: expected a TOML file") from None
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{what} file {str(p)!r} is not valid TOML: {exc}") from None
+        mark = ""
+        if "\ufeff" in text:
+            line = text[:text.index("\ufeff")].count("\n") + 1
+            mark = (f" (line {line} holds a byte-order mark, U+FEFF, where two files were "
+                    "joined: remove it)")
+        raise ConfigError(f"{what} file {str(p)!r} is not valid TOML: {exc}{mark}") from None
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{what} file {str(p)!r} is not UTF-8 text (byte "
                           f"0x{exc.object[exc.start]:02x} at offset {exc.start}): expected a "
                           "TOML file") from None
     except OSError as exc:
         raise ConfigError(f"{what} file {str(p)!r} cannot be read: {exc}") from None
+
+
+def _refuse_wide_text(raw: bytes, what: str, path: Path) -> None:
+    """Refuse UTF-16 or UTF-32 text by its byte-order mark, naming it (TOML is UTF-8)."""
+    for mark, name in ((b"\xff\xfe\x00\x00", "UTF-32"), (b"\x00\x00\xfe\xff", "UTF-32"),
+                       (b"\xff\xfe", "UTF-16"), (b"\xfe\xff", "UTF-16")):
+        if raw.startswith(mark):
+            raise ConfigError(f"{what} file {str(path)!r} is {name} text, not UTF-8 (it "
+                              f"starts with the byte-order mark {mark.hex(' ').upper()}): save "
+                              "it as UTF-8, with or without a byte-order mark")
 
 
 def preset_names() -> list[str]:

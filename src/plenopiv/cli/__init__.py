@@ -36,6 +36,7 @@ from plenopiv.cli import (
     validate,
 )
 from plenopiv.cli._common import _add_example, _Parser
+from plenopiv.cli._memory import out_of_memory
 from plenopiv.cli._output import _fmt as _fmt
 from plenopiv.cli._output import _print_lines
 from plenopiv.cli._progress import _StageBar as _StageBar
@@ -45,7 +46,6 @@ from plenopiv.errors import (
     EXIT_TERMINATED,
     PlenopivError,
     PlenopivWarning,
-    ResourceError,
     Terminated,
 )
 from plenopiv.products.jsonio import to_json
@@ -104,6 +104,27 @@ def _report_failure(exc: BaseException, status: int, command: str | None, as_jso
         print(to_json(obj))
     print(f"error: {msg}", file=sys.stderr)
     return status
+
+
+def _unexpected(exc: Exception) -> PlenopivError:
+    """What to say of an exception plenopiv's own checks did not raise.
+
+    Memory running out, in any of its shapes (:func:`~plenopiv.cli._memory.out_of_memory`);
+    a read or write that failed; else a bug, with how to see where.
+    """
+    memory = out_of_memory(exc)
+    if memory is not None:
+        return memory
+    if isinstance(exc, OSError):           # a read or write outside plenopiv's own checks
+        where = f" ({exc.filename})" if exc.filename else ""
+        return PlenopivError(f"a file operation failed{where}: {type(exc).__name__}: "
+                             f"{_one_line(exc.strerror or exc)}")
+    if os.environ.get("PLENOPIV_TRACEBACK"):
+        import traceback
+
+        traceback.print_exc()
+    return PlenopivError(f"unexpected {type(exc).__name__}: {_one_line(exc)} (a bug in "
+                         "plenopiv; set PLENOPIV_TRACEBACK=1 to see where)")
 
 
 def _raise_terminated(signum, frame):
@@ -166,23 +187,8 @@ def main(argv: list[str] | None = None) -> int:
                             "on the next run")
         return _report_failure(exc, EXIT_TERMINATED if terminated else EXIT_INTERRUPTED,
                                command, as_json, warned)
-    except OSError as exc:             # a read or write outside plenopiv's own checks
-        where = f" ({exc.filename})" if exc.filename else ""
-        err = PlenopivError(f"a file operation failed{where}: {type(exc).__name__}: "
-                            f"{_one_line(exc.strerror or exc)}")
-        return _report_failure(err, EXIT_FAILED, command, as_json, warned)
-    except MemoryError as exc:
-        err = ResourceError(f"out of memory ({type(exc).__name__}: {_one_line(exc)}): use "
-                            "a smaller volume, sensor or batch")
-        return _report_failure(err, EXIT_FAILED, command, as_json, warned)
     except Exception as exc:  # noqa: BLE001 - the one error path: no traceback for users
-        if os.environ.get("PLENOPIV_TRACEBACK"):
-            import traceback
-
-            traceback.print_exc()
-        err = PlenopivError(f"unexpected {type(exc).__name__}: {_one_line(exc)} (a bug in "
-                            "plenopiv; set PLENOPIV_TRACEBACK=1 to see where)")
-        return _report_failure(err, EXIT_FAILED, command, as_json, warned)
+        return _report_failure(_unexpected(exc), EXIT_FAILED, command, as_json, warned)
     if warned:
         summary = {**summary, "warnings": warned}
     if as_json:

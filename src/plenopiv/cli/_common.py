@@ -188,7 +188,8 @@ def _camera_from_args(args) -> CameraModel:
     cam = load_camera(args.camera)
     if getattr(args, "image_distance_mm", None) is not None:
         _number("--image-distance-mm", args.image_distance_mm, minimum=0, open_min=True)
-        cam = cam.with_image_distance(args.image_distance_mm * 1e-3)
+        cam = cam.with_image_distance(args.image_distance_mm * 1e-3,
+                                      origin="--image-distance-mm")
     if getattr(args, "lenslets", None) is not None:
         if min(args.lenslets) < 1:
             raise ConfigError(f"--lenslets {args.lenslets[0]} {args.lenslets[1]}: expected two "

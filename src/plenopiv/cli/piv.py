@@ -82,7 +82,8 @@ def cmd_piv(args) -> dict:
     with _StageBar("piv", {"piv": 1}, args.quiet or args.json) as bar:
         bar("piv")
         vec = correlate(va, vb, settings, dt=args.dt, mask=mask, progress=lambda info: bar(
-            f"piv pass {info['pass']}/{info['passes']}", info["pass"] / info["passes"]))
+            f"piv pass {info['pass']}/{info['passes']}", info["pass"] / info["passes"]),
+            names=(f"volume {str(args.volume_a)!r}", f"volume {str(args.volume_b)!r}"))
     files = vec.save(out, config={"piv": as_dict(settings), "volume_a": str(args.volume_a),
                                   "volume_b": str(args.volume_b), "dt_s": args.dt},
                      vtk=not args.no_vtk,

@@ -110,7 +110,8 @@ def cmd_plan(args) -> dict:
         piv_cfg = dataclasses.replace(piv_cfg, windows=tuple(tuple(w) for w in args.windows))
     cal = None
     if args.image_distance_mm is not None:
-        camera = camera.with_image_distance(args.image_distance_mm * 1e-3)
+        camera = camera.with_image_distance(args.image_distance_mm * 1e-3,
+                                            origin="--image-distance-mm")
     elif calibration is not None:
         from plenopiv.workflow.experiment import calibration_for_camera
 

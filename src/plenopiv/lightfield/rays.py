@@ -171,6 +171,8 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
     fbar = cam.microlens_array.sensor_distance
     pp = cam.sensor.pixel_pitch
     n_f = cam.main_lens.f_number if f_number is None else f_number
+    # the messages name the key the f-number came from
+    key = "[main_lens] f_number" if f_number is None else "[reconstruction] f_number"
     radius = cam.main_lens.focal_length / n_f / 2
     if cam.microlens_array.back_side == "thesis" and cam.microlens_array.substrate is not None:
         # rays keep their in-glass angle behind the lenslets: the micro-images, and so the
@@ -186,7 +188,7 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
     # a micro-image pitch of its own spot (so that no pixel belongs to two lenslets)
     r_img_px = radius * fbar / si / pp
     pitch_px = cam.pitch_px * (1 + fbar / si)
-    _check_micro_images(calibration, n_f, 2.0 * r_img_px, pitch_px)
+    _check_micro_images(calibration, n_f, 2.0 * r_img_px, pitch_px, key)
     r_max = min(r_img_px + 1.0, 0.5 * pitch_px)
     half = int(math.ceil(r_max)) + 1
     off = np.arange(-half, half + 1)
@@ -220,8 +222,8 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
         warnings.warn(
             f"the light field keeps {len(pix)} rays for {n_lenslets} lenslets "
             f"({len(pix) / n_lenslets:.2g} per lenslet, fewer than {MIN_RAYS_PER_LENSLET:g}): "
-            f"with f_number = {n_f:g} the modelled micro-images are {2 * r_img_px:.2f} px "
-            "across; views and refocused images will be mostly blank or NaN (check f_number)",
+            f"with {key} = {n_f:g} the modelled micro-images are {2 * r_img_px:.2f} px "
+            "across; views and refocused images will be mostly blank or NaN (check it)",
             LightFieldWarning, stacklevel=2)
     return LightField(
         pixel=pix, lenslet=k_idx[order].astype(np.int32), s=centres_m[k_idx[order]],
@@ -231,7 +233,7 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
 
 
 def _check_micro_images(calibration: Calibration, n_f: float, model_px: float,
-                        pitch_px: float) -> None:
+                        pitch_px: float, key: str = "f_number") -> None:
     """Warn when the modelled micro-image size contradicts the calibration (see light_field)."""
     measured = calibration.extra.get("micro_image_diameter_px")
     if measured is not None and np.isfinite(measured) and measured > 0:
@@ -239,18 +241,18 @@ def _check_micro_images(calibration: Calibration, n_f: float, model_px: float,
         if not 1.0 / MICRO_IMAGE_TOLERANCE <= ratio <= MICRO_IMAGE_TOLERANCE:
             implied = n_f * ratio
             warnings.warn(
-                f"f_number = {n_f:g} makes the micro-images {model_px:.1f} px across, but the "
+                f"{key} = {n_f:g} makes the micro-images {model_px:.1f} px across, but the "
                 f"white image of the calibration shows {float(measured):.1f} px (as from "
                 f"f_number = {implied:.3g}); the light field takes each lenslet's pixels "
                 f"within the modelled size, so it {'misses' if ratio < 1 else 'adds dark'} "
-                "pixels: set [main_lens] f_number (or f_number=) to the recording's aperture",
+                f"pixels: set {key} to the recording's aperture",
                 LightFieldWarning, stacklevel=3)
             return
     if model_px > MICRO_IMAGE_TOLERANCE * pitch_px:
         warnings.warn(
-            f"f_number = {n_f:g} makes the micro-images {model_px:.1f} px across, more than "
+            f"{key} = {n_f:g} makes the micro-images {model_px:.1f} px across, more than "
             f"their pitch {pitch_px:.1f} px: they would overlap, and each lenslet keeps only "
-            "the pixels within half a pitch (check f_number)", LightFieldWarning, stacklevel=3)
+            "the pixels within half a pitch (check it)", LightFieldWarning, stacklevel=3)
 
 
 def _lit_inside(ux, uy, inside, cell, radius):

@@ -6,14 +6,21 @@
 field holds window-centre coordinates and ``u, v, w`` (along x, y, z) in metres, and a
 displacement ``d`` means the pattern of ``volume_a`` at ``p`` is found in ``volume_b`` at
 ``p + d`` (:mod:`plenopiv.conventions`). Modules in data order: ``settings``, ``inputs``,
-``windows``, ``correlation``, ``outliers``, ``statistics``, ``multipass``, ``field``,
-``response``, ``uncertainty``; ``_kernels`` holds the numba kernels and their NumPy twins.
+``windows``, ``correlation``, ``outliers``, ``evidence``, ``statistics``, ``multipass``,
+``field``, ``response``, ``uncertainty``; ``_kernels`` holds the numba kernels and their
+NumPy twins.
 Functions that need numba and scipy are imported on first use. See docs/methods.md#piv.
 """
 
 import importlib
 
-from plenopiv.piv.field import FLAG_EMPTY, FLAG_MASKED, FLAG_OUTLIER, VectorField
+from plenopiv.piv.field import (
+    FLAG_EMPTY,
+    FLAG_FEW_PARTICLES,
+    FLAG_MASKED,
+    FLAG_OUTLIER,
+    VectorField,
+)
 from plenopiv.piv.settings import (
     DEFORMATION_ORDERS,
     MIN_WINDOW_VOX,
@@ -25,6 +32,7 @@ from plenopiv.piv.settings import (
 __all__ = [
     "DEFORMATION_ORDERS",
     "FLAG_EMPTY",
+    "FLAG_FEW_PARTICLES",
     "FLAG_MASKED",
     "FLAG_OUTLIER",
     "MIN_WINDOW_VOX",

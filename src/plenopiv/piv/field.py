@@ -15,6 +15,9 @@ FLAG_EMPTY = 2
 """Bit of :attr:`VectorField.flag`: the window had no intensity variation (no particles)."""
 FLAG_MASKED = 4
 """Bit of :attr:`VectorField.flag`: the window centre lies in the volume mask."""
+FLAG_FEW_PARTICLES = 8
+"""Bit of :attr:`VectorField.flag`: a window of the vector held fewer particles than
+:attr:`~plenopiv.piv.settings.PIVSettings.min_particles_per_window` (in volume A or B)."""
 
 def _readonly(array, dtype):
     a = np.array(array, dtype=dtype, copy=True)
@@ -53,9 +56,10 @@ class VectorField:
         ``~valid`` where ``u`` is finite.
     flag : ndarray of uint8, shape (nz, ny, nx)
         Why a vector was rejected, a sum of the bits ``FLAG_OUTLIER`` (1, normalised median
-        test), ``FLAG_EMPTY`` (2, no intensity variation in the window) and ``FLAG_MASKED``
-        (4, window centre in the volume mask); 0 for a valid vector. Default: ``FLAG_OUTLIER``
-        where not ``valid``.
+        test), ``FLAG_EMPTY`` (2, no intensity variation in the window), ``FLAG_MASKED``
+        (4, window centre in the volume mask) and ``FLAG_FEW_PARTICLES`` (8, fewer particles
+        in a window than ``settings.min_particles_per_window``); 0 for a valid vector.
+        Default: ``FLAG_OUTLIER`` where not ``valid``.
     u_uncertainty, v_uncertainty, w_uncertainty : ndarray, shape (nz, ny, nx)
         Standard uncertainty of ``u``, ``v``, ``w`` in metres (see :mod:`plenopiv.piv.multipass`,
         *Uncertainty*); NaN where no vector is given. Default: NaN (not estimated).
@@ -63,6 +67,9 @@ class VectorField:
         The terms of the uncertainty, each ``(3, nz, ny, nx)`` metres in ``(u, v, w)`` order:
         ``"correlation"`` (correlation statistics) and ``"last_correction"`` (the last pass's
         change of the estimate), for diagnostics; None if not estimated.
+    particles_per_window : ndarray of int32, shape (nz, ny, nx)
+        The particles the vector's windows of the last pass held: the fewer of volume A's
+        and volume B's (:mod:`plenopiv.piv.evidence`). Default: -1 (not counted).
 
     All arrays are read-only.
     """
@@ -84,6 +91,7 @@ class VectorField:
     v_uncertainty: np.ndarray | None = None
     w_uncertainty: np.ndarray | None = None
     uncertainty_parts: dict | None = field(default=None, compare=False, repr=False)
+    particles_per_window: np.ndarray | None = None
 
     def __post_init__(self):
         for name in ("x", "y", "z"):
@@ -99,6 +107,8 @@ class VectorField:
         for name in ("u_uncertainty", "v_uncertainty", "w_uncertainty"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, np.full(shape, np.nan))
+        if self.particles_per_window is None:
+            object.__setattr__(self, "particles_per_window", np.full(shape, -1))
         for name, dtype in (
             ("u", np.float64),
             ("v", np.float64),
@@ -111,6 +121,7 @@ class VectorField:
             ("u_uncertainty", np.float64),
             ("v_uncertainty", np.float64),
             ("w_uncertainty", np.float64),
+            ("particles_per_window", np.int32),
         ):
             object.__setattr__(self, name, _readonly(getattr(self, name), dtype))
             if getattr(self, name).shape != shape:

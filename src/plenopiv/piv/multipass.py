@@ -20,8 +20,16 @@ from typing import NamedTuple
 import numpy as np
 
 from plenopiv.conventions import voxel_to_world
+from plenopiv.errors import PIVError
 from plenopiv.piv.correlation import _correlate_pass, _peak_refinement
-from plenopiv.piv.field import FLAG_EMPTY, FLAG_MASKED, FLAG_OUTLIER, VectorField
+from plenopiv.piv.evidence import particle_table, window_counts
+from plenopiv.piv.field import (
+    FLAG_EMPTY,
+    FLAG_FEW_PARTICLES,
+    FLAG_MASKED,
+    FLAG_OUTLIER,
+    VectorField,
+)
 from plenopiv.piv.inputs import (
     _check_engine,
     _check_mask,
@@ -53,6 +61,7 @@ def correlate_volumes(
     engine="numba",
     progress: Callable[[dict], None] | None = None,
     mask=None,
+    particles=None,
 ):
     r"""Measure the displacement field between two particle volumes by multi-pass 3-D PIV.
 
@@ -81,18 +90,25 @@ def correlate_volumes(
         Masked voxels are set to zero in both volumes before correlating, and a vector whose
         window centre lies in the mask (the mask, interpolated trilinearly at the centre, is
         at least 0.5) is NaN, not valid, and flagged ``FLAG_MASKED``. None: no mask.
+    particles : (positions_a, positions_b), keyword-only
+        The volumes' particle tables, each ``(N, 3)`` ``(x, y, z)`` metres on ``grid``. A
+        vector whose windows hold fewer than ``settings.min_particles_per_window`` of them
+        in either volume (each window placed where the pass took it) is not valid and
+        flagged ``FLAG_FEW_PARTICLES``. None: the volumes' local maxima above 0.1 of their
+        bright level are the particles (:func:`plenopiv.piv.evidence.particle_table`).
 
     Returns
     -------
     VectorField
         Displacements (metres) on the window-centre grid of the last pass, with each
-        vector's quality (peak height, peak ratio, flag, replaced) and standard uncertainty.
+        vector's quality (peak height, peak ratio, flag, replaced, particles per window) and
+        standard uncertainty.
 
     Raises
     ------
     PIVError
         If the volumes differ in shape, are not 3-D, hold non-finite values, do not fit the
-        windows, or the grid is unusable.
+        windows, the grid is unusable, or no window holds enough particles.
     ValueError
         If an option is outside its valid set.
 
@@ -130,10 +146,29 @@ def correlate_volumes(
     if mask is not None:
         vol_a = np.where(mask, np.float32(0), vol_a)
         vol_b = np.where(mask, np.float32(0), vol_b)
+    tables = _particle_tables(particles, (vol_a, vol_b), origin, voxel, mask)
     with _numba_threads(workers):
-        return _multipass(
-            vol_a, vol_b, origin, voxel, settings, workers, kernels, progress, mask=mask
-        )
+        return _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress,
+                          mask=mask, tables=tables)
+
+
+def _particle_tables(particles, volumes, origin, voxel, mask):
+    """The :func:`particle_table` of both volumes, from ``particles`` or the volumes."""
+    shape = volumes[0].shape
+    if particles is None:
+        return tuple(particle_table(shape, volume=v, mask=mask) for v in volumes)
+    if not (isinstance(particles, (tuple, list)) and len(particles) == 2):
+        raise ValueError(f"particles = {type(particles).__name__}: expected (positions_a, "
+                         "positions_b), two (N, 3) tables of (x, y, z) metres, or None")
+    tables = []
+    for name, p in zip("AB", particles, strict=True):
+        p = np.asarray(p, dtype=float)
+        if p.size and (p.ndim != 2 or p.shape[1] != 3):
+            raise PIVError(f"the particle table of volume {name} has shape {p.shape}: "
+                           "expected (N, 3) positions (x, y, z) in metres")
+        tables.append(particle_table(shape, positions=p, origin=origin, voxel=voxel,
+                                     mask=mask))
+    return tuple(tables)
 
 
 class _Pass(NamedTuple):
@@ -141,7 +176,9 @@ class _Pass(NamedTuple):
 
     ``last`` is what its correlation saw: the two volumes (deformed or not), the window
     shifts of a discrete offset (or None) and the displacement it found between its windows;
-    ``change`` is what the pass changed in the estimate (None for the first pass).
+    ``change`` is what the pass changed in the estimate (None for the first pass);
+    ``offsets`` where each window lay in the undeformed volumes A and B relative to its place
+    in the layout, ``(n, 3)`` voxels each (None: not moved).
     """
 
     estimate: np.ndarray
@@ -149,6 +186,7 @@ class _Pass(NamedTuple):
     snr: np.ndarray
     last: tuple
     change: np.ndarray | None
+    offsets: tuple = (None, None)
 
 
 def _first_pass(vol_a, vol_b, layout, correlate):
@@ -166,9 +204,10 @@ def _deformed_pass(vol_a, vol_b, layout, predictor, previous, deform, correlate)
     b_def = deform(vol_b, dense, +0.5, "b")
     del dense
     corrector, peak, snr = correlate(a_def, b_def, layout, shift=None)
-    at_centres = _interpolate_field(predictor, previous.centres, layout.centres)
-    estimate = at_centres.reshape(3, -1).T + corrector
-    return _Pass(estimate, peak, snr, (a_def, b_def, None, corrector), corrector)
+    at_centres = _interpolate_field(predictor, previous.centres, layout.centres).reshape(3, -1).T
+    estimate = at_centres + corrector
+    return _Pass(estimate, peak, snr, (a_def, b_def, None, corrector), corrector,
+                 (-0.5 * at_centres, 0.5 * at_centres))
 
 
 def _offset_pass(vol_a, vol_b, layout, predictor, previous, correlate):
@@ -178,7 +217,8 @@ def _offset_pass(vol_a, vol_b, layout, predictor, previous, correlate):
     corrector, peak, snr = correlate(vol_a, vol_b, layout, shift=shift)
     estimate = shift + corrector
     change = estimate - at_centres.reshape(3, -1).T
-    return _Pass(estimate, peak, snr, (vol_a, vol_b, shift, corrector), change)
+    return _Pass(estimate, peak, snr, (vol_a, vol_b, shift, corrector), change,
+                 (-(shift // 2), shift - shift // 2))
 
 
 def _deformer(vol_a, vol_b, settings, kernels):
@@ -194,8 +234,12 @@ def _deformer(vol_a, vol_b, settings, kernels):
     return deform
 
 
-def _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress, mask=None):
-    """Run the WIDIM loop of :func:`correlate_volumes` on checked inputs."""
+def _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress, *, mask,
+               tables):
+    """Run the WIDIM loop of :func:`correlate_volumes` on checked inputs.
+
+    ``tables``: the :func:`~plenopiv.piv.evidence.particle_table` of volumes A and B.
+    """
     correlate = functools.partial(
         _correlate_pass,
         gaussian=settings.subpixel == "gaussian",
@@ -222,6 +266,7 @@ def _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress
         in_mask = _centre_mask(mask, layout)
         empty = ~np.all(np.isfinite(result.estimate), axis=1) & ~in_mask
         result.estimate[in_mask] = np.nan
+        count, few = _evidence(result, layout, tables, settings, in_mask | empty)
         field_vox = result.estimate.T.reshape((3,) + layout.shape)
         outlier, _ = _median_test(
             field_vox,
@@ -238,10 +283,38 @@ def _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress
                       "n_vectors": int(outlier.size), "n_outliers": int(outlier.sum())})
     in_mask = in_mask.reshape(layout.shape)
     final = _final_vectors(field_vox, validated, outlier, in_mask, empty.reshape(layout.shape),
-                           settings, kernels)
+                           few.reshape(layout.shape), settings, kernels)
     sigma_vox, parts = _uncertainty(result, layout, final, in_mask, voxel, settings, kernels,
                                     earlier_change)
-    return _vector_field(layout, origin, voxel, result, final, sigma_vox, parts, settings)
+    return _vector_field(layout, origin, voxel, result, final, sigma_vox, parts, settings,
+                         count.reshape(layout.shape))
+
+
+def _particles(n: int) -> str:
+    return f"{n} particle" if n == 1 else f"{n} particles"
+
+
+def _evidence(result, layout, tables, settings, rejected):
+    """The particles of each window in both volumes, and the windows holding too few.
+
+    Returns ``(count, few)``, flat over the windows: the fewer of the particles its window
+    held in volume A and in volume B, and True where that is below
+    ``settings.min_particles_per_window`` (and the window is not ``rejected`` already, empty
+    or masked); their estimates become NaN, like an empty window's. Raises PIVError when no
+    window is left.
+    """
+    count = np.minimum(*(window_counts(t, layout, o)
+                         for t, o in zip(tables, result.offsets, strict=True)))
+    few = (count < settings.min_particles_per_window) & ~rejected
+    result.estimate[few] = np.nan
+    if few.any() and (few | rejected).all():
+        held = [_particles(int(t[-1, -1, -1])) for t in tables]
+        raise PIVError(
+            f"no window of {layout.window} voxels holds {settings.min_particles_per_window} "
+            f"particles in both volumes (volume A holds {held[0]}, B {held[1]}; the most in "
+            f"one window: {int(count.max())}): too few particles for a vector; seed more, use "
+            "larger [piv] windows, or lower [piv] min_particles_per_window")
+    return count, few
 
 
 class _Final(NamedTuple):
@@ -259,13 +332,14 @@ class _Final(NamedTuple):
     disagreement: np.ndarray
 
 
-def _final_vectors(field_vox, validated, outlier, in_mask, empty, settings, kernels):
+def _final_vectors(field_vox, validated, outlier, in_mask, empty, few, settings, kernels):
     """Flag the last pass's rejected vectors and replace them as ``settings.replacement`` says."""
     rejected = outlier | in_mask
     flag = (
-        np.where(outlier & ~empty & ~in_mask, FLAG_OUTLIER, 0)
+        np.where(outlier & ~empty & ~in_mask & ~few, FLAG_OUTLIER, 0)
         | np.where(empty, FLAG_EMPTY, 0)
         | np.where(in_mask, FLAG_MASKED, 0)
+        | np.where(few, FLAG_FEW_PARTICLES, 0)
     ).astype(np.uint8)
     if settings.replacement == "median":
         result = validated.copy()
@@ -310,7 +384,8 @@ def _uncertainty(last_pass, layout, final, in_mask, voxel, settings, kernels,
     return sigma_vox, parts
 
 
-def _vector_field(layout, origin, voxel, last_pass, final, sigma_vox, parts, settings):
+def _vector_field(layout, origin, voxel, last_pass, final, sigma_vox, parts, settings,
+                  count):
     """Assemble the :class:`VectorField` in metres from the last pass's results in voxels."""
     shape = layout.shape
     cz, cy, cx = layout.centres
@@ -338,4 +413,5 @@ def _vector_field(layout, origin, voxel, last_pass, final, sigma_vox, parts, set
         v_uncertainty=sigma_vox[1] * dy,
         w_uncertainty=sigma_vox[0] * dz,
         uncertainty_parts=parts,
+        particles_per_window=count,
     )

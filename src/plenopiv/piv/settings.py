@@ -42,6 +42,10 @@ validations were run at (docs/validation/vortex.md, uncertainty.md)."""
 MAX_RESPONSE_PARTICLES_PER_LENSLET = 10.0
 """Largest seeding of the response's test pairs, particles per lenslet."""
 
+MIN_PARTICLES_PER_WINDOW = 2
+"""Default of :attr:`PIVSettings.min_particles_per_window`, particles (docs/methods.md,
+*Particles per window*)."""
+
 def _is_number(value) -> bool:
     """A real number that is not a boolean (``True`` is no threshold)."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
@@ -169,6 +173,14 @@ class PIVSettings:
         The response is measured once per experiment and shared by all its pairs, so it
         follows this setting, never a pair's own particle count: set it to the experiment's
         nominal seeding (default :data:`RESPONSE_PARTICLES_PER_LENSLET`).
+    min_particles_per_window : int
+        Fewest particles each window of a vector must hold in both volumes, particles
+        (>= 0; 0 turns the test off). A particle counts in the window holding its position
+        in the volume's particle table, the window placed where the pass took it; a vector
+        whose windows hold fewer is not valid, flagged ``FLAG_FEW_PARTICLES`` (8) and
+        replaced like an outlier. The default, :data:`MIN_PARTICLES_PER_WINDOW`, is where the
+        error of the vectors leaves the noise on the synthetic cases
+        (docs/methods.md#particles-per-window).
 
     Raises
     ------
@@ -206,6 +218,7 @@ class PIVSettings:
     uncertainty: str = "response"
     response_displacements: int = 3
     response_particles_per_lenslet: float = RESPONSE_PARTICLES_PER_LENSLET
+    min_particles_per_window: int = MIN_PARTICLES_PER_WINDOW
 
     def __post_init__(self):
         w = self.windows
@@ -284,6 +297,11 @@ class PIVSettings:
                 f"> 0 and <= {MAX_RESPONSE_PARTICLES_PER_LENSLET:g} (the experiment's nominal "
                 "seeding)"
             )
+        m = self.min_particles_per_window
+        if not isinstance(m, (int, np.integer)) or isinstance(m, bool) or m < 0:
+            raise ValueError(f"min_particles_per_window = {m!r}: expected a whole number of "
+                             "particles >= 0 (0: no minimum)")
+        object.__setattr__(self, "min_particles_per_window", int(m))
 
     def window_vox(self, pass_index):
         """Window edge ``(wz, wy, wx)`` in voxels of pass ``pass_index`` (0-based)."""

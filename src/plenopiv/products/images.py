@@ -214,6 +214,25 @@ def check_image(image: np.ndarray, *, shape: tuple[int, int] | None = None, name
     return out
 
 
+def warn_identical(names, arrays, *, consequence: str) -> list[tuple[str, str]]:
+    """Warn for every two of ``arrays`` that hold the same values; None entries are skipped.
+
+    Two exposures, volumes or calibration images that are equal are the same file or the
+    same frame given twice: what is computed from them runs, and says nothing. The warning
+    (:class:`~plenopiv.errors.PlenopivWarning`) names both (``names``, one per array) and
+    ``consequence``, what the result then is. Returns the pairs of names warned about.
+    """
+    given = [(n, np.asarray(a)) for n, a in zip(names, arrays, strict=True) if a is not None]
+    same = []
+    for i, (a, x) in enumerate(given):
+        for b, y in given[i + 1:]:
+            if x.shape == y.shape and np.array_equal(x, y):
+                same.append((a, b))
+                warnings.warn(f"{a} and {b} are identical (the same file or frame given "
+                              f"twice?): {consequence}", PlenopivWarning, stacklevel=2)
+    return same
+
+
 def write_image(path: str | Path, image: np.ndarray, *, metadata: dict | None = None) -> Path:
     """Write an image atomically as TIFF (or ``.png`` for 8/16-bit) and return the path."""
     p = Path(path)

@@ -57,7 +57,10 @@ def check_velocity(u, v, w, dt) -> None:
 QUALITY = {
     "valid": (np.int8, "1", "1: valid vector; 0: rejected (see flag)"),
     "flag": (np.uint8, "1", "why a vector was rejected, sum of 1: normalised median test, "
-             "2: empty window (no particles), 4: window centre in the volume mask; 0: valid"),
+             "2: empty window (no particles), 4: window centre in the volume mask, 8: fewer "
+             "particles in a window than [piv] min_particles_per_window; 0: valid"),
+    "particles_per_window": (np.int32, "1", "particles in the vector's windows of the last "
+                             "pass, the fewer of volume A's and B's; -1: not counted"),
     "replaced": (np.int8, "1", "1: rejected vector filled from its neighbours"),
     "peak_ratio": (np.float32, "1", "correlation peak ratio, primary over secondary peak"),
     "snr": (np.float32, "1", "correlation peak ratio (same as peak_ratio)"),
@@ -85,7 +88,10 @@ class VectorResult:
     peak_height : (nz, ny, nx)
         Correlation peak height (correlation coefficient).
     flag : (nz, ny, nx) uint8
-        Rejection reasons (bits of :mod:`plenopiv.piv`: 1 median test, 2 empty, 4 masked).
+        Rejection reasons (bits of :mod:`plenopiv.piv`: 1 median test, 2 empty, 4 masked,
+        8 too few particles).
+    particles_per_window : (nz, ny, nx) int32
+        Particles in each vector's windows, the fewer of A's and B's; -1 where not counted.
     replaced : (nz, ny, nx) bool
         Rejected vectors filled from their neighbours.
     u_uncertainty, v_uncertainty, w_uncertainty : (nz, ny, nx)
@@ -119,6 +125,7 @@ class VectorResult:
     uncertainty_method: str = "correlation"
     grid: VolumeGrid | None = None
     window_vox: tuple[int, int, int] | None = None
+    particles_per_window: np.ndarray | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "dt", check_dt(self.dt, "VectorResult dt"))
@@ -130,7 +137,8 @@ class VectorResult:
                     "replaced": ~valid & np.isfinite(np.asarray(self.u, float)),
                     "u_uncertainty": np.full(shape, np.nan),
                     "v_uncertainty": np.full(shape, np.nan),
-                    "w_uncertainty": np.full(shape, np.nan)}
+                    "w_uncertainty": np.full(shape, np.nan),
+                    "particles_per_window": np.full(shape, -1, np.int32)}
         for name, value in defaults.items():
             if getattr(self, name) is None:
                 object.__setattr__(self, name, value)
@@ -160,10 +168,12 @@ class VectorResult:
                    v_uncertainty=np.asarray(field.v_uncertainty),
                    w_uncertainty=np.asarray(field.w_uncertainty) * scale,
                    uncertainty_method=uncertainty_method, grid=physical,
-                   window_vox=tuple(int(n) for n in field.settings.windows[-1]))
+                   window_vox=tuple(int(n) for n in field.settings.windows[-1]),
+                   particles_per_window=np.asarray(field.particles_per_window))
 
     def _quality(self) -> dict:
         return {"valid": self.valid, "flag": self.flag, "replaced": self.replaced,
+                "particles_per_window": self.particles_per_window,
                 "peak_ratio": self.snr, "snr": self.snr, "peak_height": self.peak_height}
 
     def save(self, path: str | Path, *, config: dict | None = None, vtk: bool = False,
@@ -173,8 +183,9 @@ class VectorResult:
         ``/u, /v, /w`` are displacements in metres, or velocities in m/s when ``dt`` is set
         (their ``units`` attribute says which); ``/u_uncertainty`` etc. their standard
         uncertainties in the same units; per-vector quality in ``/valid``, ``/flag``,
-        ``/replaced``, ``/peak_ratio`` (also ``/snr``) and ``/peak_height``. ``provenance``:
-        what made it (:func:`~plenopiv.products.provenance.make_provenance`).
+        ``/replaced``, ``/particles_per_window``, ``/peak_ratio`` (also ``/snr``) and
+        ``/peak_height``. ``provenance``: what made it
+        (:func:`~plenopiv.products.provenance.make_provenance`).
         """
         scale, unit = (1.0, "m") if self.dt is None else (1.0 / self.dt, "m s-1")
         names = {"u": "x", "v": "y", "w": "z"}

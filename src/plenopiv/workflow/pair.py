@@ -6,15 +6,13 @@ Two volumes, their correlation, the per-vector uncertainty and the pair's produc
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from plenopiv.calibration.model import Calibration
-from plenopiv.errors import PIVError, PlenopivWarning, ReconstructionError
+from plenopiv.errors import PIVError, ReconstructionError
+from plenopiv.products.images import warn_identical
 from plenopiv.products.vectors import VectorResult, check_dt
 from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.build import weights_for
@@ -26,12 +24,14 @@ if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
     pass
 
 
-
 def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, dt=None,
-              workers=None, progress=None, mask=None, response=None) -> VectorResult:
+              workers=None, progress=None, mask=None, response=None,
+              names=("volume A", "volume B")) -> VectorResult:
     """3-D PIV between two reconstructed volumes of the same grid, in physical coordinates.
 
-    The volumes are on the effective (air-equivalent) grid.
+    The volumes are on the effective (air-equivalent) grid; identical volumes are warned about
+    (:func:`~plenopiv.products.images.warn_identical`, ``names``: how the warning names
+    them; None: not checked, where the images they came from were).
 
     ``mask``: volume mask (bool ``[z, y, x]``, True outside the flow). ``response``: a
     callable ``response(field) -> Response`` (:func:`plenopiv.workflow.response.measure_response`)
@@ -40,6 +40,7 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
     """
     from plenopiv.piv import PIVSettings, correlate_volumes
     from plenopiv.piv.uncertainty import combine
+    from plenopiv.workflow.preprocess import IDENTICAL_PAIR
 
     for name, r in (("result_a", result_a), ("result_b", result_b)):
         if not isinstance(r, VolumeResult):
@@ -56,12 +57,12 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
         raise ReconstructionError("the two volumes were reconstructed on different grids "
                                   f"(A: {text(result_a.grid)}; B: {text(result_b.grid)}): "
                                   "expected the same [volume] for both exposures")
-    if np.array_equal(result_a.volume, result_b.volume):
-        warnings.warn("the two volumes are identical (the same file or image twice?): the "
-                      "field is zero by construction and says nothing of the flow",
-                      PlenopivWarning, stacklevel=2)
+    if names is not None:
+        warn_identical(names, (result_a.volume, result_b.volume), consequence=IDENTICAL_PAIR)
     field = correlate_volumes(result_a.volume, result_b.volume, result_a.grid,
-                              settings=settings, workers=workers, progress=progress, mask=mask)
+                              settings=settings, workers=workers, progress=progress, mask=mask,
+                              particles=(result_a.volume_position_effective,
+                                         result_b.volume_position_effective))
     method = "correlation"
     measured = None if response is None else response(field)
     if measured is not None:
@@ -216,7 +217,8 @@ class PairProcessor:
             progress("piv", 0.0)
         response = None if measured is None else (lambda _field: measured.response)
         vec = correlate(va, vb, exp.piv, dt=exp.images.dt_s, workers=workers,
-                        mask=vol_mask, response=response, progress=_piv_progress(progress))
+                        mask=vol_mask, response=response, progress=_piv_progress(progress),
+                        names=None)      # the images were checked (ImagePreparation.pair)
         timings = {"reconstruct_s": t1 - t0, "piv_s": time.perf_counter() - t2}
         if measured is not None and not had_response:
             timings["response_s"] = t2 - t1

@@ -29,10 +29,13 @@ from plenopiv.preprocess.dark import master_dark
 from plenopiv.preprocess.microimages import MicroImages, gap_level, micro_images
 from plenopiv.preprocess.pixels import dark_defects
 from plenopiv.preprocess.stage import Frames, prepare_frames, prepare_image, prepare_pair
-from plenopiv.products.images import check_image, saturation
+from plenopiv.products.images import check_image, saturation, warn_identical
 
-__all__ = ["ATTRIBUTE", "ImagePreparation", "PreparedImage", "calibration_dark",
-           "form_batch_background", "union"]
+__all__ = ["ATTRIBUTE", "IDENTICAL_PAIR", "ImagePreparation", "PreparedImage",
+           "calibration_dark", "form_batch_background", "union"]
+
+#: What a pair of identical exposures or volumes gives (:func:`warn_identical`).
+IDENTICAL_PAIR = "the field is zero by construction and says nothing of the flow"
 
 #: The root attribute of every product that records what was applied (JSON).
 ATTRIBUTE = "preprocess"
@@ -232,7 +235,12 @@ class ImagePreparation:
 
     def pair(self, raw_a, raw_b, names=("image A", "image B")
              ) -> tuple[PreparedImage, PreparedImage, dict | None]:
-        """Both exposures of a pair, B on A's scale; ``(A, B, the normalisation's figures)``."""
+        """Both exposures of a pair, B on A's scale; ``(A, B, the normalisation's figures)``.
+
+        Two identical exposures are warned about
+        (:func:`~plenopiv.products.images.warn_identical`).
+        """
+        warn_identical(names, (raw_a, raw_b), consequence=IDENTICAL_PAIR)
         ca, sat_a, frac_a, held_a = self._check(raw_a, names[0])
         cb, sat_b, frac_b, held_b = self._check(raw_b, names[1])
         if self.frames is None:

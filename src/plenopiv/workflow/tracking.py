@@ -257,6 +257,8 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     record = preparation.record({"A": pa.figures, "B": pb.figures}, norm)
     image_a, image_b = pa.image, pb.image
     lf = None
+    # volumes given are checked when correlated; those made here come from checked images
+    given = volume_a is not None and volume_b is not None
     if volume_a is None or volume_b is None:
         # the pair's micro-images against the calibration's, before the weights are made
         calibration = check_lattice(calibration, [image_a, image_b], rec)
@@ -276,8 +278,8 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     t["reconstruct_s"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     if vectors is None:
-        vectors = correlate(volume_a, volume_b, experiment.piv,
-                            dt=experiment.images.dt_s)
+        vectors = correlate(volume_a, volume_b, experiment.piv, dt=experiment.images.dt_s,
+                            names=("volume A", "volume B") if given else None)
     t["piv_s"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     tracks = track_pair(calibration, image_a, image_b, volume_a, volume_b, vectors,
