@@ -80,6 +80,7 @@ __all__ = [
     "product_identity",
     "run_batch",
     "slurm_cluster_kwargs",
+    "stopped_before_start",
     "thread_env",
 ]
 
@@ -440,6 +441,27 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
     if interrupted is not None:
         raise _interruption(interrupted, summary, summary_file)
     return summary
+
+
+def stopped_before_start(jobs: Sequence[PairJob], stop: KeyboardInterrupt, *,
+                         resume: bool = True, summary_path: str | Path | None = None
+                         ) -> BatchInterrupted:
+    """The :class:`BatchInterrupted` of a batch stopped while it prepared, its summary written.
+
+    A command that prepares before :func:`run_batch` (weights, the response) calls this on a
+    Ctrl-C or SIGTERM, so that ``batch_summary.json`` describes this run, not an earlier one:
+    pairs whose complete product was made with their identity are ``skipped`` (jobs
+    without an identity are not checked), every other ``interrupted``.
+    """
+    jobs = _check_jobs(jobs)
+    summary_file = Path(summary_path) if summary_path else _default_summary_path(jobs)
+    known = resume and all(j.identity is not None for j in jobs)
+    results, recomputed, _ = _jobs_to_run(jobs, known)
+    for job in jobs:
+        results.setdefault(job.name, JobResult(job.name, "interrupted", str(job.output)))
+    summary = _write_summary(tuple(results[j.name] for j in jobs), summary_file, seconds=0.0,
+                             recomputed=tuple(recomputed))
+    return _interruption(stop, summary, summary_file)
 
 
 def _interruption(stop: KeyboardInterrupt, summary, summary_file) -> BatchInterrupted:
