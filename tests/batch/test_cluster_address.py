@@ -82,7 +82,8 @@ def test_what_answered_is_named_within_the_timeout(server, said):
 
 
 def test_nothing_listening_and_unknown_hosts():
-    with pytest.raises(ConfigError, match=r"nothing listens on port \d+ of 127.0.0.1 \(connection refused\)"):
+    refused = r"nothing listens on port \d+ of 127.0.0.1 \(connection refused\)"
+    with pytest.raises(ConfigError, match=refused):
         probe_scheduler(f"127.0.0.1:{closed_port()}", TIMEOUT)
     with pytest.raises(ConfigError, match="is not known|nothing answered within"):
         probe_scheduler("tcp://no-such-host.invalid:8786", TIMEOUT)
