@@ -35,12 +35,14 @@ def cmd_track(args) -> dict:
     from plenopiv.products.tracks import save_track_products
     from plenopiv.products.vectors import load_vectors
     from plenopiv.products.volume import load_volume
+    from plenopiv.resources import check_grid
     from plenopiv.workflow.experiment import experiment_calibration
     from plenopiv.workflow.preprocess import ATTRIBUTE, ImagePreparation
     from plenopiv.workflow.tracking import track_images
 
     out = _check_out(args.out, (".h5",))
     exp = load_experiment(args.config)
+    check_grid(exp.volume)
     cal = experiment_calibration(exp, args.calibration)
     ImagePreparation.refuse_batch_background(exp)
     ia, ib = read_image(args.image_a), read_image(args.image_b)
