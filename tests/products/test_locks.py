@@ -450,3 +450,18 @@ def test_a_run_stopped_while_it_prepares_writes_its_summary(inputs, tmp_path, mo
     summary = json.loads((tmp_path / "batch" / "batch_summary.json").read_text())
     assert summary["interrupted"] == ["p_1", "p_2", "p_3"] and summary["n_done"] == 0
     assert not (tmp_path / "batch" / FOLDER_LOCK_NAME).exists()
+
+
+def test_the_heartbeat_does_not_stop_rehearsals_from_forking(tmp_path):
+    """The background compilation forks while a verb holds its locks (the heartbeat thread
+    runs then), as it did before locks existed; it spawns only for threads that matter."""
+    code = ("from plenopiv.products.locks import output_locks, claim_output\n"
+            "from plenopiv.workflow.precompile import can_fork\n"
+            "import threading\n"
+            f"with output_locks():\n    claim_output({str(tmp_path / 'x.h5')!r})\n"
+            "    print(can_fork())\n"
+            "    threading.Thread(target=threading.Event().wait, args=(2,), daemon=True)"
+            ".start()\n    print(can_fork())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=cli_env(), timeout=120, check=True).stdout.split()
+    assert out == ["True", "False"]

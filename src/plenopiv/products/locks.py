@@ -34,6 +34,8 @@ HEARTBEAT_S = 30.0
 STALE_AFTER_S = 600.0
 #: An unreadable lock younger than this is being written by its holder, seconds.
 WRITING_GRACE_S = 10.0
+#: The name of the thread that refreshes this process's locks.
+HEARTBEAT_THREAD = "plenopiv-lock-heartbeat"
 
 
 class OutputLockedError(OutputError):
@@ -289,7 +291,7 @@ class _Scope:
         lock = OutputLock(output, folder=folder, command=self.command, what=what).acquire()
         self.locks[key] = lock
         if self.beat is None:
-            self.beat = threading.Thread(target=self._heartbeat, name="plenopiv-lock-heartbeat",
+            self.beat = threading.Thread(target=self._heartbeat, name=HEARTBEAT_THREAD,
                                          daemon=True)
             self.beat.start()
         return lock
