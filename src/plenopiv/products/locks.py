@@ -25,6 +25,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from plenopiv.errors import OutputError, PlenopivWarning
+from plenopiv.products.jsonio import dumps
 
 #: The lock of a folder of products, inside it.
 FOLDER_LOCK_NAME = ".plenopiv.lock"
@@ -138,7 +139,7 @@ def _create(path: Path, record: dict) -> bool:
     except FileExistsError:
         return False
     try:
-        os.write(fd, (json.dumps(record) + "\n").encode())
+        os.write(fd, (dumps(record) + "\n").encode())
     finally:
         os.close(fd)
     return True
