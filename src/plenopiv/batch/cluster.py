@@ -8,6 +8,7 @@ of a running scheduler; each worker's numba/BLAS/OpenMP threads pinned to
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
 import re
@@ -278,6 +279,30 @@ def _sigint_ignored() -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def _sigterm_deferred() -> Iterator[None]:
+    """Hold a SIGTERM that arrives while a cluster starts until it can be closed.
+
+    The signal is recorded and raised again on leaving, where the cluster and its client are
+    registered for closing: a cluster stopped half way through its start leaves workers that
+    nothing closes (and dask's exit handler fails on them with a traceback).
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = []
+    old = signal.signal(signal.SIGTERM, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        if received:
+            signal.raise_signal(signal.SIGTERM)      # now handled as it would have been
+
+
+@contextlib.contextmanager
 def _scoped_environ(updates: Mapping[str, str], restore: Sequence[str] = ()) -> Iterator[None]:
     """Set ``updates`` in ``os.environ``; on exit restore them and the keys ``restore``."""
     keys = set(updates) | set(restore)
@@ -293,18 +318,36 @@ def _scoped_environ(updates: Mapping[str, str], restore: Sequence[str] = ()) -> 
                 os.environ[k] = v
 
 
-def _quick_exit_plugin():
-    """A worker plugin that freezes the garbage collector when its worker closes.
+class _HeartbeatOfAStoppedBatch:
+    """A logging filter: a worker's failed heartbeat once its batch's scheduler is gone.
 
-    A worker that compiled the numba kernels holds millions of objects; the interpreter's
-    last garbage collection at exit then outlasts the nanny's 4 s grace and the worker is
-    killed with a warning ("Worker process still alive after 4.0 seconds, killing").
-    Frozen objects are skipped by that collection: the worker exits in well under a second.
+    The scheduler of a batch goes away only when the batch ends or is stopped (Ctrl-C,
+    SIGTERM); a worker busy with a pair then logs the failed heartbeat with a traceback on
+    the batch's stderr, after the batch's own one-line message.
+    """
+
+    def filter(self, record) -> bool:
+        return not str(record.msg).startswith("Failed to communicate with scheduler during "
+                                              "heartbeat")
+
+
+def _quick_exit_plugin():
+    """A worker plugin: quiet about the end of its batch, and quick to exit.
+
+    It filters the failed heartbeat of a stopped batch (:class:`_HeartbeatOfAStoppedBatch`)
+    and freezes the garbage collector when its worker closes: a worker that compiled the
+    numba kernels holds millions of objects; the interpreter's last garbage collection at
+    exit then outlasts the nanny's 4 s grace and the worker is killed with a warning
+    ("Worker process still alive after 4.0 seconds, killing"). Frozen objects are skipped
+    by that collection: the worker exits in well under a second.
     """
     from distributed import WorkerPlugin
 
     class QuickExit(WorkerPlugin):
         name = "plenopiv-quick-exit"
+
+        def setup(self, worker):
+            logging.getLogger("distributed.worker").addFilter(_HeartbeatOfAStoppedBatch())
 
         def teardown(self, worker):
             import gc
@@ -356,20 +399,23 @@ def _open_client(kind: str, cluster: str, n_workers: int | None, threads: int | 
         stack.enter_context(_scoped_environ(blas, restore=[*spawn_keys, "PYTHONHASHSEED",
                                                            "__DASK_PARENT_PID"]))
         stack.enter_context(dask.config.set(sched_cfg))
-        if kind == "local":
-            from distributed import LocalCluster
+        with _sigterm_deferred():      # a cluster half started could not be closed
+            if kind == "local":
+                from distributed import LocalCluster
 
-            kw = {"dashboard_address": ":0", **options}  # a free port: no clash with another batch
-            with _sigint_ignored():
-                cl = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                                  env=env, **kw)
-        else:
-            cl = _slurm_cluster(options, threads, n_workers)
-        stack.callback(cl.close)
-        client = Client(cl, set_as_default=False)
-        stack.callback(client.close)
-        register = getattr(client, "register_plugin", None) or client.register_worker_plugin
-        register(_quick_exit_plugin())
+                # a free port: no clash with another batch; the workers' log lines at ERROR
+                # and above only (their warnings as a batch stops are not the user's concern)
+                kw = {"dashboard_address": ":0", "silence_logs": logging.ERROR, **options}
+                with _sigint_ignored():
+                    cl = LocalCluster(n_workers=n_workers, threads_per_worker=1,
+                                      processes=True, env=env, **kw)
+            else:
+                cl = _slurm_cluster(options, threads, n_workers)
+            stack.callback(cl.close)
+            client = Client(cl, set_as_default=False)
+            stack.callback(client.close)
+            register = getattr(client, "register_plugin", None) or client.register_worker_plugin
+            register(_quick_exit_plugin())
         yield client
 
 
