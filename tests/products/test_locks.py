@@ -465,3 +465,17 @@ def test_the_heartbeat_does_not_stop_rehearsals_from_forking(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env=cli_env(), timeout=120, check=True).stdout.split()
     assert out == ["True", "False"]
+
+
+#: Files written beside a verb's ``--out``: each is locked as the output itself is.
+BESIDE = {"calibrate": "{o}/cal.png", "piv": "{o}/w.vti", "track": "{o}/t_binned.h5",
+          "simulate pair": "{o}/x_A.tif"}
+
+
+@pytest.mark.parametrize("verb", sorted(BESIDE))
+def test_the_files_written_beside_an_output_are_locked_too(verb, inputs, tmp_path,
+                                                           live_holder, capsys):
+    args, _, _ = argv_of(verb, inputs, tmp_path, inputs)
+    plant(Path(BESIDE[verb].replace("{o}", str(tmp_path))), False, live_holder)
+    assert main(args) == 2
+    assert f"PID {live_holder['pid']}" in capsys.readouterr().err

@@ -6,7 +6,8 @@ import time
 
 import numpy as np
 
-from plenopiv.cli._common import _add_common, _add_example, _check_out
+from plenopiv.cli._common import _add_common, _add_example, _check_out, _input_files
+from plenopiv.products.files import check_output_path
 
 
 def add_parser(sub) -> None:
@@ -40,8 +41,8 @@ def cmd_track(args) -> dict:
     from plenopiv.workflow.preprocess import ATTRIBUTE, ImagePreparation
     from plenopiv.workflow.tracking import track_images
 
-    out = _check_out(args.out, (".h5",))
     exp = load_experiment(args.config)
+    out = _check_outputs(args, exp.output.vtk)
     check_grid(exp.volume)
     cal = experiment_calibration(exp, args.calibration)
     ImagePreparation.refuse_batch_background(exp)
@@ -67,3 +68,17 @@ def cmd_track(args) -> dict:
             "files": paths, "timings_s": {k: round(v, 3) for k, v in timings.items()},
             "preprocess": pre,
             "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def _check_outputs(args, vtk: bool):
+    """Check ``--out`` and what is written beside it; none may be an input, each is locked.
+
+    Beside it: ``.vtp``, ``_binned.h5`` and its ``.vti`` (the last with ``[output] vtk``).
+    """
+    inputs = _input_files(args.calibration, args.image_a, args.image_b, args.config,
+                          args.volume_a, args.volume_b, args.vectors)
+    out = _check_out(args.out, (".h5",), inputs=inputs, beside=(".vtp",) if vtk else ())
+    binned = out.with_name(out.stem + "_binned.h5")
+    for path in (binned, *((binned.with_suffix(".vti"),) if vtk else ())):
+        check_output_path(path, inputs=inputs, what=f"{path.name} written beside --out")
+    return out
