@@ -98,7 +98,7 @@ def test_the_default_matrix_free_path_is_held_to_max_weights_gb():
     cam = camera("small_test")
     cal = Calibration.from_camera(cam)
     b = footprint(cam)
-    grid = VolumeGrid.from_bounds((-12 * b, 12 * b), (-12 * b, 12 * b), (-3e-3, 3e-3),
+    grid = VolumeGrid.from_bounds((-15 * b, 15 * b), (-15 * b, 15 * b), (-4e-3, 4e-3),
                                   voxel=(b, b, 0.05e-3))
     d = choose_reconstruction(cal, grid, ReconstructionSettings())
     assert (d.projector, d.subdivision) == ("lattice", (3, 3))

@@ -423,12 +423,13 @@ def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto
 def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
     """Peak memory of a matrix-free SMART reconstruction of ``grid`` from ``lf``, GB.
 
-    Two projection buffers (depth slices × voxel rows × used sensor columns, float32), about
-    twelve float32 volumes (estimate, update, column sums, first guess, masks), the rays and
-    their per-call copies (~64 bytes each), one depth slab of the sub-voxel line-of-sight
-    mask (:mod:`plenopiv.reconstruction.sightline`: its buffer and six refined float32
-    arrays) and the lattice projector's tables. Building the light field comes before and
-    is budgeted on its own (:func:`choose_reconstruction`).
+    Held throughout: the light field (52 bytes a ray), the lattice projector's tables and
+    rays, the sensor image (float64) and two copies. On top, the larger of its two phases:
+    the sub-voxel line of sight (:mod:`plenopiv.reconstruction.sightline`: one depth slab's
+    buffer and six refined float32 arrays, two volumes) and SMART (one projection buffer of
+    depth slices × voxel rows × used sensor columns, float32; ten float32 volumes: estimate,
+    update, column sums, first guess, masks; 32 bytes a ray of per-call copies). Building
+    the light field comes before and is budgeted on its own (:func:`choose_reconstruction`).
     """
     nz, ny, nx = grid.shape
     cols = lf.pixel % lf.shape[1]
@@ -436,10 +437,11 @@ def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
     kx, ky = subcell_factors(grid, lf.footprint)
     fine = min(SLAB_VOXELS, grid.n_voxels * kx * ky)
     slab_nz = max(1, fine // max(ny * ky * nx * kx, 1))
-    total = (2 * 4 * nz * ny * n_cols + 12 * 4 * grid.n_voxels + 64 * lf.n_rays
-             + 4 * slab_nz * ny * ky * n_cols + 6 * 4 * fine
-             + _lattice_table_bytes(lf, grid, n_cols))
-    return total / 1e9
+    held = (52 * lf.n_rays + _lattice_table_bytes(lf, grid, n_cols)
+            + 24 * lf.shape[0] * lf.shape[1])
+    sightline = 4 * slab_nz * ny * ky * n_cols + 6 * 4 * fine + 2 * 4 * grid.n_voxels
+    smart = 4 * nz * ny * n_cols + 10 * 4 * grid.n_voxels + 32 * lf.n_rays
+    return (held + max(sightline, smart)) / 1e9
 
 
 def _lattice_table_bytes(lf: LightField, grid: VolumeGrid, n_cols: int) -> float:
