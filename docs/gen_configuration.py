@@ -53,6 +53,7 @@ UNITS = {
     "experiment:reconstruction.min_lit": "fraction",
     "experiment:reconstruction.lateral_subdivision": "working voxels per voxel, each axis",
     "experiment:particles.threshold": "fraction of the reference",
+    "experiment:particles.noise_sigmas": "noise standard deviations",
     "experiment:piv.windows": "voxels [z, y, x]",
     "experiment:piv.overlap": "fraction",
     "experiment:piv.response_particles_per_lenslet": "particles per lenslet",
@@ -116,6 +117,7 @@ ALLOWED.update({
 DEFAULTS = {
     "experiment:reconstruction.relaxation": "2.0 (smart), 0.03 (mart, block)",
     "experiment:reconstruction.f_number": "the camera's",
+    "experiment:piv.windows": "chosen for the camera and box",
     "experiment:reconstruction.max_weights_gb": "40 % of the memory",
     "experiment:particles.min_separation_vox": "from the resolution cell",
     "experiment:particles.box_vox": "from the resolution cell",
@@ -216,6 +218,10 @@ MEANINGS = {
                                                       "accepted (a quarter pixel: every ray "
                                                       "off by it)",
     "experiment:particles.threshold": "a particle's peak must exceed it",
+    "experiment:particles.noise_sigmas": "and it must exceed the volume's background level by "
+                                         "this many standard deviations of its noise, both "
+                                         "estimated from the volume (0: off); 5 lets white "
+                                         "noise make 2.9e-7 false peaks per voxel",
     "experiment:particles.threshold_reference": '`"bright"`: the 99.9th percentile of the '
                                                 'positive voxels; `"maximum"`: the volume\'s '
                                                 'maximum',
@@ -234,7 +240,10 @@ MEANINGS = {
     "experiment:particles.position": '`"light_field"`: each volume peak seeds a ray-bundle fit '
                                      'on the raw image, independent of the voxel grid; '
                                      '`"volume"`: the `method` estimate on the voxels',
-    "experiment:piv.windows": "interrogation windows per pass; later passes repeat the last",
+    "experiment:piv.windows": "interrogation windows per pass; later passes repeat the last. "
+                              "Unset: 16 → 12 footprints laterally and 3.6 → 2.7 depth cells, "
+                              "cut to give 4 vectors along every axis of the box, said in a "
+                              "`note:` line ([methods](methods.md#settings-judgement))",
     "experiment:piv.overlap": "share of a window common to its neighbour",
     "experiment:piv.passes": "passes, at least the number of windows",
     "experiment:piv.deformation": "deform the volumes by the predictor (WIDIM); false: shift "

@@ -6,10 +6,11 @@ real camera (:mod:`plenopiv.synthetic.sensor`) with one effect of
 :data:`~plenopiv.synthetic.sensor.REALISTIC` at a time (black level with its fixed pattern,
 read noise, hot and dead pixels, lenslet throughput, vignetting, glow, particle brightness,
 pulse ratio) and all of them together, with the matching dark and white frames (what
-``plenopiv simulate dark|white`` writes). Each case then runs as ``plenopiv calibrate --dark``
-and ``plenopiv run`` would: the calibration images with the master dark subtracted and its hot
-pixels repaired (:func:`~plenopiv.workflow.preprocess.subtract_calibration_dark`), then the
-pair without and with a ``[preprocess]`` table (dark, white, ``hot_pixels = "auto"``), and is
+``plenopiv simulate dark|white`` writes). Each case then runs as ``plenopiv calibrate
+--dark --white`` and ``plenopiv run`` would: the calibration images with the master dark
+subtracted (:func:`~plenopiv.workflow.preprocess.calibration_dark`, its hot and cold pixels
+ignored) and divided by the white, then the pair without and with a ``[preprocess]`` table
+(dark, white, ``hot_pixels = "auto"``), and is
 scored against the truth: S_i error, particles detected and ghosts (matched within the
 resolution cell, :func:`pipelines.studies.field_quality.match_particles`), the velocity's gain,
 bias and rms per component (:func:`plenopiv.workflow.vortex_case.compare_with_truth`) and
@@ -50,7 +51,7 @@ from plenopiv.synthetic.images import (
 from plenopiv.synthetic.seeding import particle_count, random_particles
 from plenopiv.synthetic.sensor import REALISTIC, RecordingSettings, camera_instance
 from plenopiv.workflow.pair import process_pair
-from plenopiv.workflow.preprocess import calibration_dark, subtract_calibration_dark
+from plenopiv.workflow.preprocess import calibration_dark
 from plenopiv.workflow.vortex_case import (
     FOCAL_POINT_F_NUMBER,
     VortexCase,
@@ -218,38 +219,20 @@ def record_case(setup: StudyCase, rec: RecordingSettings, t: Truth) -> Recording
     return Recording(fp, al, a, b, dark, white)
 
 
-#: Pixels of the white below this fraction of its brightest are 0 in a calibration image
-#: divided by the white: the micro-images' plateaus (15 px across at f/2.2), which hold every
-#: focal spot at f/16 and every alignment spot (at most 2.6 px off a micro-image's centre).
-#: Lower, the read noise of the rims, divided by a small white and clipped at 0, makes a
-#: bright ring about each micro-image's centre that pulls the alignment spots towards it
-#: (S_i 2.3 mm short with all the effects at 5 %).
-WHITE_LIT = 0.5
-
-
 def _calibrate(cam: CameraModel, fp, al, dark_path: Path | None, white=None):
-    """``plenopiv calibrate`` (``--dark`` when given): ``(calibration or None, S_i, error)``.
+    """``plenopiv calibrate`` (``--dark``, ``--white`` when given): ``(calibration or None,
+    S_i, error)``.
 
-    ``white``: the mean white frame (raw counts); given, both calibration images are divided
-    by it (its dark taken off too), pixel by pixel where it exceeds :data:`WHITE_LIT` of its
-    brightest, 0 elsewhere: the flat field docs/methods.md#a-real-recording describes, which
-    ``calibrate`` does not apply itself.
+    ``white``: the mean white frame (raw counts); ``calibrate`` takes the dark off it and the
+    calibration images, and divides them by it (its flat field,
+    :class:`~plenopiv.calibration.defects.WhiteFlat`).
     """
-    master = None
-    if dark_path is not None:
-        master, bad, _ = calibration_dark(dark_path, cam.sensor.shape)
-        fp = subtract_calibration_dark(fp, master, bad, name="focal-point image")
-        al = subtract_calibration_dark(al, master, bad, name="alignment image")
-    if white is not None:
-        wd = np.asarray(white, float) - (0.0 if master is None else master.mean)
-        lit = wd > WHITE_LIT * wd.max()
-        ref = float(np.median(wd[lit]))
-        fp, al = (np.where(lit, np.asarray(x, float) / np.where(lit, wd, 1.0) * ref, 0.0)
-                  for x in (fp, al))
+    dark = None if dark_path is None else calibration_dark(dark_path, cam.sensor.shape)[0]
     user = cam.replace(main_lens=replace(cam.main_lens, image_distance=None))
     try:
         rep = calibrate(user, fp, alignment_image=al, method="focal-point",
-                        focal_point_f_number=FOCAL_POINT_F_NUMBER)
+                        focal_point_f_number=FOCAL_POINT_F_NUMBER, white_image=white,
+                        dark=dark)
     except PlenopivError as exc:
         return None, float("nan"), f"{type(exc).__name__}: {exc}"
     return rep.calibration, rep.calibration.image_distance, None
@@ -308,8 +291,10 @@ def run_case(setup: StudyCase, effect: str, t: Truth, work: Path) -> dict:
         dark_path = write_image_stack(work / "dark.tif", frames.dark)
     if frames.white is not None:
         white_path = write_image_stack(work / "white.tif", frames.white)
+    white = None if frames.white is None else frames.white.mean(axis=0)
     if setup.calibrate:
-        cal, s_i, failed = _calibrate(cam, frames.focal_point, frames.alignment, dark_path)
+        cal, s_i, failed = _calibrate(cam, frames.focal_point, frames.alignment, dark_path,
+                                      white)
     else:
         cal, s_i, failed = Calibration.from_camera(cam), cam.image_distance, None
     out: dict = {"effect": effect,
@@ -321,17 +306,18 @@ def run_case(setup: StudyCase, effect: str, t: Truth, work: Path) -> dict:
                  "calibration_dark": dark_path is not None, "calibration_error": failed}
     if dark_path is not None and setup.calibrate:
         # the same calibration images without their dark, as a calibration without --dark
-        _, s_raw, failed_raw = _calibrate(cam, frames.focal_point, frames.alignment, None)
+        _, s_raw, failed_raw = _calibrate(cam, frames.focal_point, frames.alignment, None,
+                                          white)
         out.update(image_distance_raw_mm=s_raw * 1e3,
                    image_distance_raw_error_mm=(s_raw - cam.image_distance) * 1e3,
                    calibration_raw_error=failed_raw)
     if setup.calibrate and rec.has_optics:
-        # the same calibration images divided by the white: what the optics leave in S_i
-        _, s_flat, failed_flat = _calibrate(cam, frames.focal_point, frames.alignment,
-                                            dark_path, white=frames.white.mean(axis=0))
-        out.update(image_distance_flat_mm=s_flat * 1e3,
-                   image_distance_flat_error_mm=(s_flat - cam.image_distance) * 1e3,
-                   calibration_flat_error=failed_flat)
+        # the same calibration images without the white: what the optics do to S_i
+        _, s_bare, failed_bare = _calibrate(cam, frames.focal_point, frames.alignment,
+                                            dark_path)
+        out.update(image_distance_no_white_mm=s_bare * 1e3,
+                   image_distance_no_white_error_mm=(s_bare - cam.image_distance) * 1e3,
+                   calibration_no_white_error=failed_bare)
     if cal is None:
         out["seconds"] = round(time.perf_counter() - t0, 1)
         return out

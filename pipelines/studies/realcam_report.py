@@ -90,7 +90,7 @@ def shortfalls(rows: list[dict]) -> list[dict]:
                 "image_distance_error_mm": r["image_distance_error_mm"],
                 "ideal_image_distance_error_mm": ideal["image_distance_error_mm"],
                 "image_distance_raw_error_mm": r.get("image_distance_raw_error_mm"),
-                "image_distance_flat_error_mm": r.get("image_distance_flat_error_mm")}
+                "image_distance_no_white_error_mm": r.get("image_distance_no_white_error_mm")}
         for chain in ("raw", "preprocessed"):
             c = r.get(chain)
             if c is None:
@@ -145,9 +145,10 @@ def markdown(result: dict, figures: list[str]) -> str:
              "sensor has an effect: a dark of an ideal sensor is zero) and its white (4 "
              "frames at the recording's f/2.2), as `plenopiv simulate dark|white` writes "
              "them.", "",
-             "Each case runs as `plenopiv calibrate --dark` and `plenopiv run` would: the "
+             "Each case runs as `plenopiv calibrate --dark --white` and `plenopiv run` would: the "
              "calibration images with the master dark subtracted and its hot and cold pixels "
-             "repaired, calibrated by the focal-point method (S_i, offset and rotation); then "
+             "repaired, divided by the white, calibrated by the focal-point method (S_i, "
+             "offset and rotation); then "
              "the pair as recorded (**raw**: no `[preprocess]` table) and with `[preprocess]` "
              "dark, white and `hot_pixels = \"auto\"` (**preprocessed**). Particles of "
              "volume A are matched one-to-one to the true ones within the resolution cell "
@@ -186,17 +187,17 @@ def seed_lines(run: dict, figures: list[str]) -> list[str]:
     lines += table(cols, body) + [""]
     lines += ["S_i error: the calibration from the dark-subtracted images (the ideal case and "
               "the optics' and light's cases have no dark). Beside it the same calibration "
-              "images as recorded (without their dark), and divided by the case's white "
-              "(dark-subtracted, pixel by pixel where it exceeds half its brightest: the flat "
-              "field of docs/methods.md#a-real-recording, which `calibrate` does not apply):",
+              "images as recorded (without their dark, with the white), and without the "
+              "case's white (the images not divided by it: what the lenslets' throughput and "
+              "the micro-images' vignetting do to S_i):",
               ""]
     cal = [[r["effect"], fmt(r["image_distance_error_mm"], "+.4f"),
             fmt(r.get("image_distance_raw_error_mm"), "+.4f"),
-            fmt(r.get("image_distance_flat_error_mm"), "+.4f"),
+            fmt(r.get("image_distance_no_white_error_mm"), "+.4f"),
             "; ".join(x for x in (r.get("calibration_raw_error"),
-                                  r.get("calibration_flat_error")) if x)]
+                                  r.get("calibration_no_white_error")) if x)]
            for r in rows if r["effect"] != IDEAL]
-    lines += table(["case", "S_i error (mm)", "as recorded (mm)", "over the white (mm)",
+    lines += table(["case", "S_i error (mm)", "as recorded (mm)", "without the white (mm)",
                     "refusal"], cal) + [""]
     for name in figures:
         lines += [f"![rms per component, ideal, raw and preprocessed]({name})", ""]
@@ -247,9 +248,9 @@ def shortfall_lines(items: list[dict], by: dict) -> list[str]:
         if it.get("image_distance_raw_error_mm") is not None:
             parts[-1] += (f" ({fmt(it['image_distance_raw_error_mm'], '+.4f')} mm without the "
                           "dark)")
-        if it.get("image_distance_flat_error_mm") is not None:
-            parts[-1] += (f" ({fmt(it['image_distance_flat_error_mm'], '+.4f')} mm over the "
-                          "white)")
+        if it.get("image_distance_no_white_error_mm") is not None:
+            parts[-1] += (f" ({fmt(it['image_distance_no_white_error_mm'], '+.4f')} mm without "
+                          "the white)")
         for chain in ("raw", "preprocessed"):
             c = it.get(chain)
             if c is None:
@@ -281,11 +282,11 @@ def shortfall_lines(items: list[dict], by: dict) -> list[str]:
                 f"{' / '.join(fmt(v, '.2f') for v in ratio)} times the ideal's; S_i "
                 f"{fmt(a['image_distance_error_mm'], '+.4f')} mm off with the dark "
                 f"subtracted, {fmt(a.get('image_distance_raw_error_mm'), '+.4f')} mm without "
-                f"it, {fmt(a.get('image_distance_flat_error_mm'), '+.4f')} mm with the images "
-                f"divided by the white, against {fmt(ideal['image_distance_error_mm'], '+.4f')} "
-                "mm ideal. `calibrate` takes no white: the lenslets' throughput and the "
-                "vignetting stay in the focal-point and alignment spots, and what they do to "
-                "S_i stays in the vectors of every case run with that calibration.", ""]
+                f"it, {fmt(a.get('image_distance_no_white_error_mm'), '+.4f')} mm without the "
+                f"white, against {fmt(ideal['image_distance_error_mm'], '+.4f')} mm ideal. "
+                "Without the white the lenslets' throughput and the vignetting stay in the "
+                "focal-point and alignment spots, and what they do to S_i stays in the vectors "
+                "of every case run with that calibration.", ""]
     return out
 
 

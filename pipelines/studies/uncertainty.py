@@ -33,8 +33,7 @@ import numpy as np
 
 from pipelines.studies.output import pyplot, savefig, write_json, write_text
 from plenopiv.piv.settings import PIVSettings
-from plenopiv.products.hdf5 import open_product
-from plenopiv.products.vectors import VectorResult
+from plenopiv.products.vectors import VectorResult, load_vectors
 from plenopiv.workflow.accuracy import gain_bias_rms
 from plenopiv.workflow.compare import inner_vectors, true_displacement
 from plenopiv.workflow.vortex_case import VortexCase, case_flow, coverage, run_case
@@ -89,11 +88,10 @@ def evaluate_case(label: str, case: VortexCase, work: Path) -> dict:
     # the PIV of the saved volumes again, for the terms of its uncertainty
     settings = PIVSettings(windows=tuple(case.windows_vox), overlap=0.5, passes=3)
     field = correlate_volumes(va.volume, vb.volume, va.grid, settings=settings)
-    with open_product(products["vectors"], "vectors", ValueError) as fh:
-        dt = float(fh.attrs["dt_s"])
-        final = np.stack([fh[f"{c}_uncertainty"][()] * dt for c in "uvw"])
-        valid = fh["valid"][()].astype(bool)
-        method = str(fh.attrs["uncertainty_method"])
+    stored = load_vectors(products["vectors"])      # displacements, metres
+    final = np.stack([getattr(stored, f"{c}_uncertainty") for c in "uvw"])
+    valid = np.asarray(stored.valid, bool)
+    method = stored.uncertainty_method
     scale = np.array([1.0, 1.0, abs(va.correction.scale)])[:, None, None, None]
     parts = field.uncertainty_parts
     sigma = {"correlation": parts["correlation"] * scale,

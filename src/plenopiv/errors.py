@@ -55,6 +55,13 @@ class ComparisonError(PlenopivError):
     """The inputs of a comparison do not fit: not the products expected, or different grids."""
 
 
+class ProvenanceError(PlenopivError):
+    """Products that do not belong together: made from other inputs, or by a newer plenopiv.
+
+    The message names both files (or the file and the input) and what differs.
+    """
+
+
 class ResourceError(PlenopivError):
     """A size beyond what this machine can do (memory, voxel count), refused before work."""
 

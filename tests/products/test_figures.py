@@ -116,8 +116,11 @@ def test_titles_never_double_a_word(captured):
 def test_pair_products_title_the_pair_once(tmp_path, monkeypatch):
     """save_pair's figures for a pair named "pair" (the demo's)."""
     from plenopiv.workflow import pair as pair_module
+    from plenopiv.workflow import provenance
 
     titles = []
+    for name in ("volume_provenance", "vectors_provenance", "mask_inputs"):
+        monkeypatch.setattr(provenance, name, lambda *a, **k: {})
     monkeypatch.setattr(plots, "vector_slices",
                         lambda vec, path, *, title="": titles.append(plots.title_text(
                             title, "velocity (m/s)")) or path)
@@ -142,6 +145,8 @@ def test_pair_products_title_the_pair_once(tmp_path, monkeypatch):
 
     class Exp:
         output = type("O", (), {"png": True, "vtk": False})()
+        piv = None
+        images = type("I", (), {"dt_s": None})()
 
         def to_dict(self):
             return {}

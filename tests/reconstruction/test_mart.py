@@ -122,8 +122,15 @@ def test_volumes_stay_non_negative(seed, method, relaxation, iterations, dark_fr
     image[rng.uniform(size=50) < dark_fraction] = 0.0
     image[0] = 1.0  # at least one bright pixel
     blocks = rng.integers(0, 3, 50) if method == "block" else None
-    volume = reconstruct(image, W, method=method, iterations=iterations, blocks=blocks,
-                         relaxation=relaxation, initial=initial)
+    kw = dict(method=method, iterations=iterations, blocks=blocks, relaxation=relaxation,
+              initial=initial)
+    m64 = m.astype(np.float64)
+    free = ((m64.T @ (image <= 0).astype(float)) == 0) & (np.asarray(m64.sum(axis=0)) > 0)
+    if not free.any():      # every seen voxel is seen by a dark pixel: refused
+        with pytest.raises(ReconstructionError, match="empty volume"):
+            reconstruct(image, W, **kw)
+        return
+    volume = reconstruct(image, W, **kw)
     assert volume.dtype == np.float32
     assert np.all(np.isfinite(volume)) and np.all(volume >= 0)
 
@@ -159,6 +166,22 @@ def test_dark_pixels_zero_their_voxels_whatever_the_first_guess(rng):
         volume = reconstruct(image, W, **{**CLASSIC, "iterations": 0}, initial=initial)
         assert np.all(volume[seen_dark] == 0)
         assert np.all(volume[~seen_dark & (W.column_sums() > 0)] > 0)
+
+
+def test_a_line_of_sight_that_empties_the_volume_is_refused(rng):
+    """Each voxel seen by some dark pixel (every pixel sees every voxel, one is dark): the
+    hard zeroing leaves nothing to iterate, and an all-zero volume would be a silent wrong
+    result; with the dark pixel as a ceiling the same image reconstructs."""
+    W = SparseProjector.from_scipy(scipy.sparse.csr_matrix(rng.uniform(0.1, 1.0, (6, 4))))
+    image = np.array([0.0, 2.0, 3.0, 1.0, 2.5, 1.5], np.float32)
+    for method in METHODS:
+        blocks = np.zeros(6, int) if method == "block" else None
+        with pytest.raises(ReconstructionError, match="empty volume.*ceiling"):
+            reconstruct(image, W, method=method, iterations=2, relaxation=1.0, blocks=blocks)
+    floor = np.where(image > 0, image, 0.01).astype(np.float32)
+    volume = reconstruct(floor, W, method="smart", iterations=2, relaxation=1.0,
+                         ceiling=image <= 0)
+    assert volume.max() > 0
 
 
 # -- a toy tomography problem -----------------------------------------------------------------

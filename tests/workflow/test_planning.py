@@ -157,9 +157,17 @@ def test_cli_plan_experiment_human_and_json(tmp_path, capsys):
     assert s["resolution_cell_mm"]["lateral"] == pytest.approx(0.2596, abs=1e-4)
     assert s["volume"]["shape"] == [38, 35, 54] and s["windows_fit"]
     assert s["recommended"]["voxel_mm"][2] == pytest.approx(0.5556, abs=1e-3)
-    # the box options replace the experiment's
+    # the box options replace the experiment's; windows left unset are chosen to fit it
     assert main(["plan", str(exp), "--no-measure", "--json", "--z-mm", "-2", "2"]) == 0
     s = json.loads(capsys.readouterr().out)
+    assert s["windows_fit"]
+    chosen = [f["kind"] for f in s["judgement"]["findings"] if f["severity"] == "chosen"]
+    assert chosen == ["windows"]
+    # windows given are kept, and judged
+    assert main(["plan", str(exp), "--no-measure", "--json", "--z-mm", "-2", "2",
+                 "--windows", "24", "16", "16"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["windows_vox"] == [[24, 16, 16]]
     assert not s["windows_fit"] and s["warnings"]
 
 

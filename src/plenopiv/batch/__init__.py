@@ -49,7 +49,9 @@ from plenopiv.batch.jobs import (
     _remove_stale_parts,
     _stale_reason,
     discover_pairs,
+    finished_before,
     is_complete,
+    lost_reason,
     mark_complete,
     product_identity,
 )
@@ -197,7 +199,11 @@ class BatchSummary:
         Plain JSON types only: numpy values become numbers and lists, anything else that a
         ``process`` returned becomes its ``repr``.
         """
-        d = {"n_jobs": self.n_jobs, "n_done": len(self.done),
+        from plenopiv import __version__
+        from plenopiv.products.provenance import schema_version
+
+        d = {"schema_version": schema_version("batch summary"), "plenopiv_version": __version__,
+             "n_jobs": self.n_jobs, "n_done": len(self.done),
              "n_skipped": len(self.skipped), "n_failed": len(self.failed),
              "done": list(self.done), "skipped": list(self.skipped),
              "failed": [{"name": n, "error": e} for n, e in self.failed],
@@ -435,7 +441,7 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
 
     t0 = time.perf_counter()
     removed = _remove_temporaries(jobs, summary_file)
-    results, recomputed, todo = _jobs_to_run(jobs, resume)
+    results, recomputed, todo = _jobs_to_run(jobs, resume, finished_before(summary_file))
     interrupted = None
     try:
         if todo:
@@ -556,11 +562,13 @@ def pending_jobs(jobs: Sequence[PairJob], *, resume: bool = True) -> list[PairJo
     return _jobs_to_run(_check_jobs(jobs), resume)[2]
 
 
-def _jobs_to_run(jobs: Sequence[PairJob], resume: bool) -> tuple[dict, list, list]:
+def _jobs_to_run(jobs: Sequence[PairJob], resume: bool,
+                 finished: set[str] = frozenset()) -> tuple[dict, list, list]:
     """``(results of the skipped jobs, (name, why) of the recomputed ones, jobs to run)``.
 
     With ``resume``, a complete product made with the job's identity is skipped; one made
-    with other settings or inputs is recomputed, with the reason.
+    with other settings or inputs, or missing a companion file, is recomputed, with the
+    reason; so is a pair the earlier summary records as ``finished`` whose product is gone.
     """
     results: dict[str, JobResult] = {}
     recomputed: list[tuple[str, str]] = []
@@ -572,6 +580,8 @@ def _jobs_to_run(jobs: Sequence[PairJob], resume: bool) -> tuple[dict, list, lis
                 results[job.name] = JobResult(job.name, "skipped", str(job.output))
                 continue
             recomputed.append((job.name, reason))
+        elif resume and job.name in finished:
+            recomputed.append((job.name, lost_reason(job)))
         todo.append(job)
     return results, recomputed, todo
 

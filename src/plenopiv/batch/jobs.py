@@ -4,7 +4,8 @@ A :class:`PairJob` names a pair, its two images and its product; :func:`discover
 finds them from glob patterns. A product is complete when its root attribute
 :data:`COMPLETE_ATTR` is set (the last thing written) and, when the job carries one, it
 records the job's identity (:data:`IDENTITY_ATTR`), so that a resumed batch skips exactly the
-pairs already made with the same settings and inputs.
+pairs already made with the same settings and inputs, whose other files (``companions``)
+are all there, and that this plenopiv can read (:func:`_stale_reason`).
 """
 
 from __future__ import annotations
@@ -47,6 +48,9 @@ class PairJob:
     identity : mapping of str to str, optional
         What makes this pair's product (e.g. hashes of the settings, the calibration and the
         two images); stored in the product by ``process``, compared on resume.
+    companions : tuple of Path
+        The pair's other files (its volumes, side products), written before ``output``; a
+        resumed batch recomputes the pair when one of them is missing.
     """
 
     name: str
@@ -54,6 +58,7 @@ class PairJob:
     image_b: str
     output: Path
     identity: Mapping[str, str] | None = field(default=None, compare=False)
+    companions: tuple[Path, ...] = field(default=(), compare=False)
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name.strip() or "/" in self.name \
@@ -67,12 +72,14 @@ class PairJob:
             raise ConfigError(f"pair {self.name!r}: output {str(out)!r} must be an HDF5 file "
                               "ending in .h5 or .hdf5 (its completeness is an HDF5 attribute)")
         object.__setattr__(self, "output", out)
+        object.__setattr__(self, "companions", tuple(Path(p) for p in self.companions))
 
     def to_dict(self) -> dict:
         """Return the job as JSON-friendly values."""
         return {"name": self.name, "image_a": self.image_a, "image_b": self.image_b,
                 "output": str(self.output),
-                "identity": None if self.identity is None else dict(self.identity)}
+                "identity": None if self.identity is None else dict(self.identity),
+                "companions": [str(p) for p in self.companions]}
 
 
 def _natural_key(s: str):
@@ -291,34 +298,58 @@ def mark_complete(path: str | Path, identity: Mapping[str, str] | None = None) -
         fh.attrs[COMPLETE_ATTR] = True
 
 
-def product_identity(path: str | Path) -> dict | None:
-    """The identity stored in a product (None when it has none or cannot be read)."""
+def _stored(path: str | Path) -> tuple[dict | None, tuple]:
+    """``(identity, (kind, schema_version, plenopiv_version))`` stored in a product.
+
+    None where absent (or the file unreadable).
+    """
     import h5py
 
     try:
         with h5py.File(path, "r") as fh:
             raw = fh.attrs.get(IDENTITY_ATTR)
+            versions = (str(fh.attrs.get("product", "product")), fh.attrs.get("schema_version"),
+                        fh.attrs.get("plenopiv_version"))
     except Exception:  # noqa: BLE001 - unreadable: no identity
-        return None
-    if raw is None:
-        return None
-    try:
-        out = json.loads(raw)
-    except (TypeError, ValueError):
-        return None
-    return out if isinstance(out, dict) else None
+        return None, ("product", None, None)
+    out = None
+    if raw is not None:
+        try:
+            out = json.loads(raw)
+        except (TypeError, ValueError):
+            out = None
+    return (out if isinstance(out, dict) else None), versions
+
+
+def product_identity(path: str | Path) -> dict | None:
+    """The identity stored in a product (None when it has none or cannot be read)."""
+    return _stored(path)[0]
 
 
 _IDENTITY_WORDS = {"settings": "the settings", "calibration": "the calibration",
                    "image_a": "the first image", "image_b": "the second image",
-                   "preprocess": "the preprocessing frames"}
+                   "preprocess": "the preprocessing frames", "mask": "the mask files"}
 
 
 def _stale_reason(job: PairJob) -> str | None:
-    """Why a complete product must be recomputed for ``job`` (None: it may be kept)."""
+    """Why a complete product must be recomputed for ``job`` (None: it may be kept).
+
+    A companion file missing; a product this plenopiv cannot read (a newer schema or major
+    version); one without the job's identity, or made with other settings or inputs.
+    """
+    from plenopiv.products.provenance import check_readable
+
+    missing = [p.name for p in job.companions if not p.is_file()]
+    if missing:
+        return (f"its {', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing "
+                "(deleted since it was made)")
+    stored, (kind, schema, version) = _stored(job.output)
+    try:
+        check_readable(job.output, kind, schema, version, ValueError)
+    except ValueError as exc:
+        return f"this plenopiv cannot read it: {exc}"
     if job.identity is None:
         return None
-    stored = product_identity(job.output)
     if stored is None:
         return ("the product records no identity of its settings and inputs (made by an "
                 "older plenopiv or elsewhere)")
@@ -328,6 +359,30 @@ def _stale_reason(job: PairJob) -> str | None:
         return None
     return "made with other " + ", ".join(_IDENTITY_WORDS.get(k, k).replace("the ", "", 1)
                                           for k in changed)
+
+
+def finished_before(summary_file: str | Path) -> set[str]:
+    """The pairs a batch's earlier summary records as done or skipped (empty without one).
+
+    A summary this plenopiv cannot read (a newer schema, damaged) records none.
+    """
+    from plenopiv.products.provenance import check_readable
+
+    try:
+        d = json.loads(Path(summary_file).read_text())
+        check_readable(summary_file, "batch summary", d.get("schema_version"),
+                       d.get("plenopiv_version"), ValueError)
+        return {r["name"] for r in d.get("results", ())
+                if r.get("status") in ("done", "skipped")}
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return set()
+
+
+def lost_reason(job: PairJob) -> str:
+    """Why a pair finished before is recomputed although its product is not complete."""
+    if not job.output.exists():
+        return f"its product {job.output.name} was deleted since the last run"
+    return f"its product {job.output.name} is no longer complete (damaged since the last run)"
 
 
 def is_complete(path: str | Path) -> bool:

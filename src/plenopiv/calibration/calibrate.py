@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from plenopiv.calibration.defects import DarkFrame
+from plenopiv.calibration.defects import DarkFrame, WhiteFlat
 from plenopiv.calibration.image_distance import (
     FocalPointFit,
     MagnificationResult,
@@ -145,10 +145,9 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
         The camera description (its ``image_distance`` may be unset).
     focal_point_image : ndarray
         White sheet through the stopped-down lens (or a full-aperture white).
-    alignment_image : ndarray, optional
-        Collimated light, lens removed: the lenslet centres (else the nominal lattice).
-    ruler_image : ndarray, optional
-        A ruler on the focal plane, ticks ``ruler_spacing`` m apart along ``ruler_axis``.
+    alignment_image, ruler_image : ndarray, optional
+        Collimated light, lens removed: the lenslet centres (else the nominal lattice). A
+        ruler on the focal plane, ticks ``ruler_spacing`` m apart along ``ruler_axis``.
     method : {"focal-point", "magnification", "both"}
         Which S_i is kept; "both" keeps the focal-point one, the other reported beside it.
     max_missing_fraction : float
@@ -171,9 +170,9 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     phase_harmonics : int
         Harmonics of each lattice's sub-pixel phase bias (default 2; 0: none; fit_lattice).
     white_image : ndarray, optional
-        A white at the working aperture: its micro-image diameter is stored
-        (``extra["micro_image_diameter_px"]``), a camera f-number that models it 1.25 times
-        off is noted (:func:`~plenopiv.lightfield.light_field` warns on the same).
+        A white at the working aperture: divides the focal-point and alignment images
+        (:class:`~plenopiv.calibration.defects.WhiteFlat`); its micro-image diameter is
+        stored (``extra["micro_image_diameter_px"]``), an f-number 1.25 times off noted.
     dark : ndarray, optional
         A dark frame of the sensor (no light, the images' exposure), counts: subtracted from
         every image, and its hot pixels
@@ -190,12 +189,13 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
               "bad_pixels": dark_frame.hot}
     options = {"threshold": spot_threshold, "method": spot_method,
                "phase_harmonics": phase_harmonics, **limits}
-    fp = dark_frame.subtract(check_image(focal_point_image, shape=shape,
-                                         name="focal-point image"))
+    flat = WhiteFlat.of(white_image, dark_frame, shape, camera.pitch_px)
+    fp = flat.apply(dark_frame.subtract(check_image(focal_point_image, shape=shape,
+                                                    name="focal-point image")))
 
     # 1. focal spots; 2. the lenslets (alignment image or nominal), each with its focal spot
     spots, lat = spot_lattice(fp, camera, "the focal-point image", **options)
-    lenslets = lenslet_centres(camera, alignment_image, dark=dark_frame, **options)
+    lenslets = lenslet_centres(camera, alignment_image, dark=dark_frame, flat=flat, **options)
     scale = focal_spot_scale(float(np.mean(lat.pitch_px)), lenslets.pitch_px)
     lenslets = lenslets_on_sensor(lenslets, scale, shape, spots.window_radius_px + 1)
     focal_px = lat.corrected_centres_px

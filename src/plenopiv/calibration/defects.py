@@ -249,9 +249,16 @@ class DarkFrame:
 
     @classmethod
     def of(cls, dark, shape) -> DarkFrame:
-        """Check ``dark`` (None, or a finite 2-D array of ``shape``) and find its hot pixels."""
+        """Check ``dark``: None, a DarkFrame, or a finite 2-D array of ``shape``.
+
+        The hot pixels of an array are found here; a DarkFrame brings its own.
+        """
         if dark is None:
             return cls()
+        if isinstance(dark, DarkFrame):
+            if dark.frame is not None:
+                cls.of(dark.frame, shape)
+            return dark
         d = np.asarray(dark)
         if d.ndim != 2 or tuple(d.shape) != tuple(shape):
             raise ImageError(f"the dark frame has shape {d.shape}: expected the sensor's "
@@ -274,3 +281,86 @@ class DarkFrame:
             return image
         out = np.asarray(image, np.float32) - self.frame
         return patch_pixels(out, self.hot) if patch else out
+
+
+#: The flat of the calibration images divides by the white down to this fraction of its lit
+#: level and by that floor below it: the gain is continuous and at most ``1 / fraction``, so
+#: the dim rims and gaps are never amplified into a ring that pulls the spots (a division
+#: that zeroes or amplifies them without bound does).
+WHITE_FLOOR_FRACTION = 0.5
+#: Without a dark frame, a white's black level is this percentile of its pixels: its darkest
+#: gaps (a white at the working aperture leaves a few per cent of the sensor between its
+#: micro-images; its fixed pattern, a few counts under thousands, stays in the flat).
+WHITE_BLACK_PERCENTILE = 1.0
+#: The white's lit level: the median of its pixels above this fraction of its 99.9th
+#: percentile (the micro-images' plateaus).
+WHITE_LIT_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class WhiteFlat:
+    """The calibration images' flat field from a white, or nothing (:meth:`apply` identity).
+
+    A white lights every micro-image through the camera's lenslets, so it holds each pixel's
+    share of the light: the lenslets' throughput and the fall-off inside each micro-image
+    (vignetting). The fall-off pulls every spot off its centre towards the brighter side,
+    by its gradient times the spot's variance: an alignment spot off its micro-image's
+    centre moves towards it, and the focal-point fit reads a longer S_i (+0.12 mm at 20 %
+    light lost at the rims, docs/validation/realcam.md). Dividing by the white, pixel by
+    pixel, takes the fall-off out.
+    """
+
+    gain: np.ndarray | None = None
+    level: float = float("nan")
+    black_pitch_px: float | None = None
+
+    @classmethod
+    def of(cls, white, dark: DarkFrame, shape, pitch_px: float) -> WhiteFlat:
+        """The flat of ``white`` (None: none) less ``dark``; checked against ``shape``.
+
+        Without a dark frame the white's black level (its :data:`WHITE_BLACK_PERCENTILE`
+        percentile) is taken off it, and each image's own (:func:`black_level`, lenslet pitch
+        ``pitch_px``) off the image before the flat multiplies it: a black level times the
+        flat would print the micro-images into the gaps.
+        """
+        if white is None:
+            return cls()
+        from plenopiv.products.images import check_image
+
+        w = dark.subtract(check_image(white, shape=shape, name="white image"), patch=True)
+        w = np.asarray(w, dtype=np.float64)
+        black_pitch = None
+        if dark.frame is None:      # the white's black: its darkest gaps (a white has few)
+            black_pitch = float(pitch_px)
+            w = w - float(np.percentile(w, WHITE_BLACK_PERCENTILE))
+        top = float(np.percentile(w, 99.9))
+        lit = w > WHITE_LIT_FRACTION * top
+        if not (top > 0 and lit.any()):
+            raise ImageError("the white image holds no light above its dark: expected a "
+                             "white at the working aperture")
+        level = float(np.median(w[lit]))
+        gain = level / np.maximum(w, WHITE_FLOOR_FRACTION * level)
+        return cls(gain.astype(np.float32), level, black_pitch)
+
+    def apply(self, image):
+        """``image`` times the flat's gain (float32), or ``image`` itself without a white.
+
+        Without a dark frame, the image's own black level is taken off first.
+        """
+        if self.gain is None or image is None:
+            return image
+        img = np.asarray(image, np.float32)
+        if self.black_pitch_px is not None:
+            img = img - black_level(img, self.black_pitch_px)
+        return img * self.gain
+
+
+def black_level(image, pitch_px: float) -> np.ndarray:
+    """The black level of an image without its dark frame (float32, the image's shape).
+
+    The smooth level of its dark gaps (per region of 4 x 4 pitches) plus the fixed pattern
+    per column and row (:func:`fixed_pattern`; none on a white, whose gaps are too few).
+    """
+    a = np.asarray(image, dtype=np.float32)
+    smooth, _ = _dark_gaps(a, pitch_px)
+    return smooth + fixed_pattern(a, pitch_px)

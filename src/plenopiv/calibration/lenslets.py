@@ -94,7 +94,7 @@ def spot_lattice(image, camera: CameraModel, what: str, *, max_missing_fraction,
     return spots, lattice
 
 
-def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None,
+def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None, flat=None,
                     **lattice_options):
     """The lenslets of ``camera``: from its alignment image, or its nominal lattice.
 
@@ -108,6 +108,9 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None,
     dark : DarkFrame, optional
         The dark frame (:class:`~plenopiv.calibration.defects.DarkFrame`) subtracted from
         the alignment image once checked.
+    flat : WhiteFlat, optional
+        The white's flat field (:class:`~plenopiv.calibration.defects.WhiteFlat`) applied
+        after the dark.
     **lattice_options
         Passed to :func:`spot_lattice` (limits, ``phase_harmonics``, ``threshold``,
         ``method``).
@@ -128,10 +131,13 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None,
     image = check_image(alignment_image, shape=camera.sensor.shape, name="alignment image")
     if dark is not None:
         image = dark.subtract(image)
-    # collimated light focuses to (almost) one pixel: accept one-pixel spots here; a hot
-    # pixel is then rejected by the lattice fit as off-lattice instead
+    if flat is not None:
+        image = flat.apply(image)
+    # collimated light focuses to (almost) one pixel: accept one-pixel spots here, and never
+    # take a spot's sharp core for a hot pixel; a hot pixel is then rejected by the lattice
+    # fit as off-lattice instead
     spots, lat = spot_lattice(image, camera, "the alignment image", min_area_px=0.9,
-                              **lattice_options)
+                              hot_pixel_shapes=False, **lattice_options)
     ok = lat.inlier & ((lat.flags & SpotFlag.EDGE) == 0)
     return LensletCentres(lat.best_centres_px[ok], lat.grid_index[ok], "alignment image",
                           float(np.mean(lat.pitch_px)), lat, spots)

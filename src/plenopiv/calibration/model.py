@@ -26,6 +26,7 @@ from plenopiv.conventions import sensor_to_pixel
 from plenopiv.errors import CalibrationError
 from plenopiv.products.hdf5 import open_product, write_h5
 from plenopiv.products.jsonio import dumps
+from plenopiv.products.provenance import json_hash, make_provenance
 
 
 @dataclass(frozen=True)
@@ -137,8 +138,13 @@ class Calibration:
                    rotation=mla.rotation)
 
     # ---- HDF5 product ------------------------------------------------------------------------
-    def save(self, path: str | Path, *, config: dict | None = None) -> Path:
-        """Write the calibration product (HDF5, atomic)."""
+    def save(self, path: str | Path, *, config: dict | None = None,
+             provenance: dict | None = None) -> Path:
+        """Write the calibration product (HDF5, atomic).
+
+        ``provenance``: what made it (:func:`~plenopiv.products.provenance.make_provenance`);
+        without it, the camera's hash alone.
+        """
         cfg = {"camera": self.camera.to_dict(), **(config or {})}
         cam = self.camera
         mla = cam.microlens_array
@@ -160,11 +166,17 @@ class Calibration:
                                             "/lenslets/focal_spot_px": "px",
                                             # lattice (row, column) index: a count
                                             "/lenslets/grid_index": "1"},
-                        config=cfg, kind="calibration")
+                        config=cfg, kind="calibration",
+                        provenance=provenance or make_provenance(
+                            "calibration", settings={"camera": json_hash(cam.to_dict())}))
 
     @classmethod
     def load(cls, path: str | Path) -> Calibration:
-        """Read a calibration product written by :meth:`save`."""
+        """Read a calibration product written by :meth:`save`.
+
+        Every array and number is checked finite (a damaged product is refused naming the
+        file and the dataset); S_i must be a length > 0.
+        """
         with open_product(path, "calibration", CalibrationError) as fh:
             a = fh.attrs
             if "camera" in a:
@@ -174,37 +186,22 @@ class Calibration:
                                           source=f"{path}:config")
             # the product's S_i is its image_distance_m attribute (the camera's copy went
             # through mm, and older files' config may not hold it)
-            camera = camera.with_image_distance(_finite_positive(a["image_distance_m"],
-                                                                 "image_distance_m", path))
+            camera = camera.with_image_distance(_positive(fh.number("image_distance_m"),
+                                                          "image_distance_m", path))
             return cls(camera=camera,
-                       centre_px=_finite(fh["/lenslets/centre_px"][()], "/lenslets/centre_px",
-                                         path),
-                       focal_spot_px=_finite(fh["/lenslets/focal_spot_px"][()],
-                                             "/lenslets/focal_spot_px", path),
-                       grid_index=fh["/lenslets/grid_index"][()].astype(int),
-                       method=str(a["method"]), offset=tuple(a["offset_m"]),
-                       rotation=float(a["rotation_rad"]),
-                       rms_residual_px=float(a["rms_residual_px"]),
+                       centre_px=fh.array("/lenslets/centre_px").astype(float),
+                       focal_spot_px=fh.array("/lenslets/focal_spot_px").astype(float),
+                       grid_index=fh.array("/lenslets/grid_index").astype(int),
+                       method=str(a["method"]),
+                       offset=tuple(float(v) for v in fh.number("offset_m")),
+                       rotation=fh.number("rotation_rad"),
+                       rms_residual_px=fh.number("rms_residual_px", allow_nan=True),
                        extra=json.loads(a.get("extra", "{}")))
 
 
-def _finite(values, name: str, path) -> np.ndarray:
-    """``values`` of a calibration product, refused where any is NaN or infinite."""
-    a = np.asarray(values, float)
-    bad = ~np.isfinite(a)
-    if bad.any():
-        rows = np.flatnonzero(bad.any(axis=-1) if a.ndim > 1 else bad)
-        raise CalibrationError(f"calibration {str(path)!r}: {name} holds {int(bad.sum())} NaN "
-                               f"or infinite values (rows {', '.join(map(str, rows[:5]))}"
-                               f"{', ...' if len(rows) > 5 else ''}): the product is damaged; "
-                               "calibrate again")
-    return a
-
-
-def _finite_positive(value, name: str, path) -> float:
-    """A calibrated length of the product, refused unless finite and > 0."""
-    v = float(value)
-    if not (np.isfinite(v) and v > 0):
-        raise CalibrationError(f"calibration {str(path)!r}: {name} = {v!r}: expected a "
+def _positive(value: float, name: str, path) -> float:
+    """A calibrated length of the product, refused unless > 0."""
+    if not value > 0:
+        raise CalibrationError(f"calibration {str(path)!r}: {name} = {value!r}: expected a "
                                "finite length > 0; the product is damaged, calibrate again")
-    return v
+    return value

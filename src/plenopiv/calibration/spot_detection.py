@@ -224,7 +224,7 @@ def _local_background(work, pitch):
 def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
                  detection_threshold=0.15, method="auto", window_radius_px=None,
                  moment_radius_px=None, background="local", min_area_px=1.5, dim_fraction=0.5,
-                 max_saturated_fraction=0.02, bad_pixels=None):
+                 max_saturated_fraction=0.02, bad_pixels=None, hot_pixel_shapes=True):
     """Find one sub-pixel spot centre per lenslet in a calibration image.
 
     Parameters
@@ -263,9 +263,11 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
         Largest fraction of pixels at the integer dtype's maximum.
     bad_pixels : array_like of bool, shape (R, C), optional
         Pixels to ignore (a dark frame's hot pixels), replaced by their good neighbours'
-        median first. Without them, where spots are broader than a pixel, hot pixels are
-        found by their shape (:func:`~plenopiv.calibration.defects.isolated_pixels`),
-        replaced alike and the spots detected again.
+        median first.
+    hot_pixel_shapes : bool
+        Where spots are broader than a pixel, find hot pixels by their shape
+        (:func:`~plenopiv.calibration.defects.isolated_pixels`), replace them alike and detect
+        again; False never (an alignment spot may hold its light in one pixel, halo or not).
 
     Returns
     -------
@@ -277,11 +279,8 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     ImageError
         Not 2-D, not real, NaN/inf, dark, constant, saturated, or no periodic spots.
     ValueError
-        An option is outside its valid set.
-
-    Notes
-    -----
-    The steps, the choice of estimator and its accuracy are in docs/methods.md#focal-spots.
+        An option is outside its valid set. The steps, the choice of estimator and its
+        accuracy: docs/methods.md#focal-spots.
     """
     opts = _checked_options(method, background, grid, threshold, detection_threshold,
                             min_area_px, dim_fraction, max_saturated_fraction)
@@ -296,7 +295,7 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     centres, intensity, area, rejected = _first_centroids(work, cand, radius, pitch, opts)
     interior = ~_edge_mask(centres, radius, work.shape)
     spot_r, spot_rms = _spot_size(work, centres[interior], pitch)
-    hot = isolated_pixels(work, noise) if spot_rms >= 1.0 else None
+    hot = isolated_pixels(work, noise) if hot_pixel_shapes and spot_rms >= 1.0 else None
     if hot is not None and hot.any():
         work = patch_pixels(work, hot)
         cand, work, _ = _candidates(work, pitch, background, opts["detection_threshold"])

@@ -23,7 +23,9 @@ def add_parser(sub) -> None:
                      help="alignment image (collimated light); default: the nominal lattice")
     cal.add_argument("--ruler", metavar="IMG", help="ruler image on the nominal focal plane")
     cal.add_argument("--white", metavar="IMG",
-                     help="white image at the working aperture: checks the camera's f_number "
+                     help="white image at the working aperture: the focal-point and alignment "
+                          "images are divided by it (lenslet throughput and the micro-images' "
+                          "vignetting, which bias S_i), and the camera's f_number is checked "
                           "against its micro-image size")
     cal.add_argument("--dark", metavar="PATH",
                      help="dark frame or stack (TIFF, multi-page TIFF, PNG, file.h5:/path 2-D "
@@ -82,28 +84,19 @@ def cmd_calibrate(args) -> dict:
     progress = _StageBar("calibrate", {"read images": 5, "spots and S_i": 75, "report": 20},
                          args.quiet or args.json)
     progress("read images")
-    dark = bad = dark_record = None
+    dark = dark_record = None
     if args.dark is not None:
         from plenopiv.workflow.preprocess import calibration_dark
 
-        dark, bad, dark_record = calibration_dark(args.dark, cam.sensor.shape)
+        dark, dark_record = calibration_dark(args.dark, cam.sensor.shape)
 
-    def read(flag, spec):
-        if spec is None:
-            return None
-        img = read_image(spec)
-        if dark is None:
-            return img
-        from plenopiv.workflow.preprocess import subtract_calibration_dark
+    def read(spec):
+        return None if spec is None else read_image(spec)
 
-        return subtract_calibration_dark(img, dark, bad, name=f"{flag} {spec!r}")
-
-    fp = read("--focal-point", args.focal_point)
-    al = read("--alignment", args.alignment)
-    ru = read("--ruler", args.ruler)
-    wh = read("--white", args.white)
+    fp, al, ru, wh = (read(s) for s in (args.focal_point, args.alignment, args.ruler,
+                                        args.white))
     progress("spots and S_i")
-    report = calibrate(cam, fp, alignment_image=al, ruler_image=ru, white_image=wh,
+    report = calibrate(cam, fp, alignment_image=al, ruler_image=ru, white_image=wh, dark=dark,
                        ruler_spacing=(None if args.ruler_spacing_mm is None
                                       else args.ruler_spacing_mm * 1e-3),
                        ruler_axis=args.ruler_axis, method=args.method,
@@ -117,7 +110,8 @@ def cmd_calibrate(args) -> dict:
               "ruler": args.ruler, "ruler_spacing_mm": args.ruler_spacing_mm,
               "white": args.white, "dark": args.dark,
               "method": args.method}
-    report.calibration.save(out, config={"inputs": inputs, "summary": report.summary()})
+    report.calibration.save(out, config={"inputs": inputs, "summary": report.summary()},
+                            provenance=_provenance(args, cam, inputs))
     summary = {"command": "calibrate", "out": str(out), **report.summary()}
     if dark_record is not None:
         summary["dark"] = dark_record
@@ -130,3 +124,19 @@ def cmd_calibrate(args) -> dict:
     progress.close()
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     return summary
+
+
+def _provenance(args, camera, inputs: dict) -> dict:
+    """What made the calibration: its images (content hashes), camera and options."""
+    from plenopiv.products.files import file_identity
+    from plenopiv.products.provenance import json_hash, make_provenance
+
+    files = {k: file_identity(v) for k, v in inputs.items()
+             if k in ("focal_point", "alignment", "ruler", "white", "dark") and v is not None}
+    options = {k: v for k, v in vars(args).items()
+               if k not in ("func", "out", "json", "quiet", "camera", "focal_point",
+                            "alignment", "ruler", "white", "dark", "no_report")
+               and isinstance(v, (str, int, float, bool, list, tuple, type(None)))}
+    return make_provenance("calibration", inputs=files,
+                           settings={"camera": json_hash(camera.to_dict()),
+                                     "calibrate": json_hash(options)})

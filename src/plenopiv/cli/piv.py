@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from plenopiv.cli._common import _add_common, _add_example, _check_out, _input_files, _number
+from plenopiv.cli._judgement import JUDGEMENT, report
 from plenopiv.cli._progress import _StageBar
 from plenopiv.errors import ConfigError
 
@@ -37,11 +38,15 @@ def add_parser(sub) -> None:
 def cmd_piv(args) -> dict:
     """Cross-correlate two volume products into a vector field."""
     from plenopiv.config.experiment import load_experiment
+    from plenopiv.errors import ReconstructionError
     from plenopiv.piv import MIN_WINDOW_VOX
     from plenopiv.piv.settings import MAX_WINDOW_VOX, PIVSettings
+    from plenopiv.products.hdf5 import product_provenance
+    from plenopiv.products.jsonio import dumps
     from plenopiv.products.volume import load_volume
     from plenopiv.settings import as_dict
     from plenopiv.workflow.pair import correlate
+    from plenopiv.workflow.provenance import check_volume_pair, vectors_provenance
 
     _number("--dt", args.dt, minimum=0, open_min=True, unit="seconds between the exposures")
     for w in args.windows or ():
@@ -63,7 +68,11 @@ def cmd_piv(args) -> dict:
     except ValueError as exc:
         raise ConfigError(f"[piv] with the options given: {exc}") from None
     t0 = time.perf_counter()
+    records = {k: product_provenance(path, "volume", ReconstructionError)
+               for k, path in (("volume_a", args.volume_a), ("volume_b", args.volume_b))}
+    check_volume_pair(args.volume_a, records["volume_a"], args.volume_b, records["volume_b"])
     va, vb = load_volume(args.volume_a), load_volume(args.volume_b)
+    settings, judged = _judgement(args.volume_a, exp, settings, changes, va, vb)
     mask = None
     if exp is not None:
         from plenopiv.workflow.masks import volume_mask
@@ -76,11 +85,15 @@ def cmd_piv(args) -> dict:
             f"piv pass {info['pass']}/{info['passes']}", info["pass"] / info["passes"]))
     files = vec.save(out, config={"piv": as_dict(settings), "volume_a": str(args.volume_a),
                                   "volume_b": str(args.volume_b), "dt_s": args.dt},
-                     vtk=not args.no_vtk, extra_attrs={"complete": True})
+                     vtk=not args.no_vtk,
+                     extra_attrs={"complete": True, JUDGEMENT: dumps(judged.record())},
+                     provenance=vectors_provenance(args.volume_a, args.volume_b,
+                                                   piv=settings, dt=args.dt,
+                                                   sources=records))
     summary = {"command": "piv", "out": str(out), "shape": list(vec.u.shape),
                "valid_fraction": float(np.mean(vec.valid)), "n_replaced": vec.n_replaced,
                "quantity": "displacement" if args.dt is None else "velocity",
-               "uncertainty_method": vec.uncertainty_method,
+               "uncertainty_method": vec.uncertainty_method, JUDGEMENT: judged.record(),
                "files": [str(f) for f in files]}
     if not args.no_png:
         from plenopiv.products.figures import vector_slices
@@ -89,3 +102,45 @@ def cmd_piv(args) -> dict:
         summary["png"] = str(vector_slices(vec, out.with_suffix(".png"), title=title))
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     return summary
+
+
+def _judgement(volume_a, exp, settings, changes: dict, va, vb):
+    """``(settings with the unset ones chosen, Judgement)`` of the PIV of two volumes, said.
+
+    The camera's resolution and the reconstruction's subdivision come from volume A's
+    ``judgement`` attribute (``plenopiv reconstruct``), else from ``--config``'s camera where
+    it knows its image distance; without either only the windows against the box are judged.
+    Given: ``--config``'s ``[piv]`` keys and the options (``changes``).
+    """
+    import json
+
+    from plenopiv.products.volume import volume_attribute
+    from plenopiv.workflow.judgement import (
+        Camera,
+        Judgement,
+        camera_resolution,
+        choose_unset,
+        given_settings,
+        judge,
+    )
+
+    cam, sub = None, None
+    recorded = volume_attribute(volume_a, JUDGEMENT)
+    if recorded:
+        rec = json.loads(recorded)
+        cam = None if rec.get("camera") is None else Camera.from_dict(rec["camera"])
+        sub = None if rec.get("lateral_subdivision") is None else tuple(
+            rec["lateral_subdivision"])
+    elif exp is not None:
+        try:
+            cam = camera_resolution(exp.camera, exp.reconstruction.f_number)
+        except ConfigError:             # the camera file gives no image distance
+            cam = None
+    given = frozenset() if exp is None else (given_settings(exp) or frozenset())
+    settings, chosen = choose_unset(cam, va.grid, settings,
+                                    given | {f"piv.{k}" for k in changes})
+    n = 0.5 * (len(va.particle_position) + len(vb.particle_position))
+    found = judge(cam, va.grid, None, settings, subdivision=sub, n_particles=n)
+    judged = Judgement(cam, va.grid, chosen + found, sub, n)
+    report(judged.findings)
+    return settings, judged

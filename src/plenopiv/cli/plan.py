@@ -6,9 +6,10 @@ import dataclasses
 import time
 from pathlib import Path
 
-from plenopiv.cli._common import _add_common, _add_example
+from plenopiv.cli._common import _add_common, _add_example, _number
 from plenopiv.cli._output import _fmt
 from plenopiv.cli._progress import _StageBar
+from plenopiv.errors import ConfigError
 
 
 def add_parser(sub) -> None:
@@ -34,6 +35,9 @@ def add_parser(sub) -> None:
                       help="effective S_i (mm) when the camera file does not give it")
     plan.add_argument("--calibration", metavar="CAL.h5",
                       help="take S_i from this calibration product")
+    plan.add_argument("--seeding", type=float, metavar="PPL",
+                      help="the seeding expected, particles per lenslet: judged against the "
+                           "seeding the chain was validated at")
     plan.add_argument("--no-measure", action="store_true",
                       help="estimate times from the benchmark figures instead of timing the "
                            "kernels here (no numba compilation)")
@@ -73,6 +77,7 @@ def cmd_plan(args) -> dict:
     from plenopiv.reconstruction.settings import ReconstructionSettings
     from plenopiv.workflow import planning
     from plenopiv.workflow import rates as rates_module
+    from plenopiv.workflow.judgement import choose_unset, given_settings
 
     path = Path(args.config)
     table = _config_table(path)
@@ -88,6 +93,7 @@ def cmd_plan(args) -> dict:
             cfg["volume"] = volume
         exp = experiment_from_dict(cfg, base_dir=path.parent, source=str(path))
         camera, grid = exp.camera, exp.volume
+        given = given_settings(exp)
         recon, piv_cfg = exp.reconstruction, exp.piv
         calibration = args.calibration or (exp.path(exp.images.calibration)
                                            if exp.images.calibration else None)
@@ -97,7 +103,7 @@ def cmd_plan(args) -> dict:
         camera = load_camera(args.config)
         recon, piv_cfg = ReconstructionSettings(), PIVSettings()
         calibration = args.calibration
-        grid = None
+        grid, given = None, frozenset()
     if args.f_number is not None:
         recon = dataclasses.replace(recon, f_number=args.f_number)
     if args.windows:
@@ -106,9 +112,9 @@ def cmd_plan(args) -> dict:
     if args.image_distance_mm is not None:
         camera = camera.with_image_distance(args.image_distance_mm * 1e-3)
     elif calibration is not None:
-        from plenopiv.calibration.model import Calibration
+        from plenopiv.workflow.experiment import calibration_for_camera
 
-        cal = Calibration.load(calibration).with_camera(camera)
+        cal = calibration_for_camera(calibration, camera, whose=f"the camera of {str(path)!r}")
         camera = cal.camera
     if grid is None:
         cam = planning.camera_resolution(camera, recon.f_number)
@@ -117,9 +123,14 @@ def cmd_plan(args) -> dict:
         vox = [v * 1e3 for v in planning.recommended_voxel(cam)]
         default = {"x_mm": [-fx, fx], "y_mm": [-fy, fy], "z_mm": [-dz, dz], "voxel_mm": vox}
         grid = volume_from_dict({**default, **(box or {})}, source="plan options")
-        if args.windows is None:
-            piv_cfg = dataclasses.replace(
-                piv_cfg, windows=tuple(planning.recommended_windows(cam, grid.voxel)))
+    if args.windows:
+        given = (given or frozenset()) | {"piv.windows"}
+    try:
+        resolution = planning.camera_resolution(camera, recon.f_number)
+    except ConfigError:          # no image distance: plan() says what to give
+        resolution = None
+    piv_cfg, chosen = choose_unset(resolution, grid, piv_cfg, given)
+    _number("--seeding", args.seeding, minimum=0, open_min=True, unit="particles per lenslet")
     t0 = time.perf_counter()
     if args.no_measure:
         rates = rates_module.BENCHMARK_RATES
@@ -129,7 +140,7 @@ def cmd_plan(args) -> dict:
             rates = rates_module.measure_rates(camera, grid, f_number=recon.f_number,
                                            min_lit=recon.min_lit, piv=piv_cfg)
     result = planning.plan(camera, grid, reconstruction=recon, piv=piv_cfg, rates=rates,
-                           calibration=cal)
+                           calibration=cal, seeding=args.seeding, chosen=chosen)
     return {"command": "plan", "config": str(args.config),
             "kind": "experiment" if is_experiment else "camera", **result.to_dict(),
             "seconds": round(time.perf_counter() - t0, 3)}
@@ -201,10 +212,12 @@ def print_summary(p: dict) -> None:
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
         print(f"{k.ljust(width)}  {v}")
-    for title in ("warnings", "advice"):
-        if p[title]:
+    chosen = [f["text"] for f in p["judgement"]["findings"] if f["severity"] == "chosen"]
+    for title, lines in (("chosen", chosen), ("warnings", p["warnings"]),
+                         ("advice", p["advice"])):
+        if lines:
             print(f"{title}:")
-            for line in p[title]:
+            for line in lines:
                 print(f"  - {line}")
     if p["advice"] or p["warnings"]:
         print("recommended [volume] and [piv] for this box:")

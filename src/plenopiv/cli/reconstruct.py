@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 
 from plenopiv.cli._common import _add_common, _add_example, _check_out, _input_files
+from plenopiv.cli._judgement import JUDGEMENT, experiment_judgement, report
 from plenopiv.cli._progress import _StageBar
 
 
@@ -25,11 +26,13 @@ def add_parser(sub) -> None:
 def cmd_reconstruct(args) -> dict:
     """Reconstruct one image into a volume with its particle table."""
     from plenopiv.config.experiment import load_experiment
+    from plenopiv.products.files import file_identity
     from plenopiv.products.images import read_image
     from plenopiv.products.jsonio import dumps
     from plenopiv.resources import check_grid
     from plenopiv.workflow.experiment import experiment_calibration
     from plenopiv.workflow.preprocess import ATTRIBUTE, ImagePreparation, union
+    from plenopiv.workflow.provenance import volume_provenance
     from plenopiv.workflow.volume import reconstruct_volume
 
     exp = load_experiment(args.config)
@@ -37,6 +40,7 @@ def cmd_reconstruct(args) -> dict:
     out = _check_out(args.out, (".h5",), inputs=inputs,
                      beside=(".png",) if exp.output.png else ())
     cal = experiment_calibration(exp, args.calibration)
+    exp, judged = experiment_judgement(exp, cal)
     check_grid(exp.volume)
     ImagePreparation.refuse_batch_background(exp)
     img = read_image(args.image)
@@ -55,12 +59,19 @@ def cmd_reconstruct(args) -> dict:
                                  image_mask=union(image_mask(exp.mask, cal.camera.sensor.shape,
                                                              exp.base_dir), prepared.mask),
                                  checked=True)
+    judged, seeding = judged.with_seeding(len(res.particle_position), piv=exp.piv)
+    report([seeding])
     res.save(out, config={**exp.to_dict(), "calibration": str(args.calibration),
-                          "image": str(args.image)}, extra_attrs={ATTRIBUTE: dumps(record)})
+                          "image": str(args.image)},
+             extra_attrs={ATTRIBUTE: dumps(record), JUDGEMENT: dumps(judged.record())},
+             provenance=volume_provenance(exp, image=file_identity(args.image),
+                                          calibration=file_identity(args.calibration),
+                                          record=record))
     summary = {"command": "reconstruct", "out": str(out), "shape": list(res.volume.shape),
                "n_particles": len(res.particle_position),
                "depth_correction": res.correction.to_dict(),
                "image_distance_mm": cal.image_distance * 1e3, "preprocess": record,
+               JUDGEMENT: judged.record(),
                "timings_s": {k: round(v, 3) for k, v in res.timings.items()}}
     if exp.output.png:
         from plenopiv.products.figures import volume_slices

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from plenopiv.cli._common import _add_common, _add_example, _integer
+from plenopiv.cli._judgement import JUDGEMENT, experiment_judgement
 from plenopiv.errors import ConfigError
 from plenopiv.products.files import check_output_path
 
@@ -31,7 +32,6 @@ def cmd_run(args) -> dict:
     """
     from plenopiv.batch import check_batch_options, stopped_before_start
     from plenopiv.batch.cluster import batch_options
-    from plenopiv.batch.jobs import discover_pairs
     from plenopiv.config.experiment import load_experiment
 
     _integer("--workers", args.workers, minimum=1, maximum=4096)
@@ -51,12 +51,7 @@ def cmd_run(args) -> dict:
                           "two exposures) or pairs (HDF5 files with /image_a and /image_b)")
     out_dir = exp.path(exp.output.directory)
     check_output_path(out_dir, what="[output] directory", folder=True)
-    if im.pairs is not None:
-        jobs = discover_pairs(im.pairs, out_dir=out_dir, root=exp.base_dir,
-                              output_name="{name}_vectors.h5")
-    else:
-        jobs = discover_pairs(im.a, im.b, out_dir=out_dir, root=exp.base_dir,
-                              output_name="{name}_vectors.h5", pair_by=im.pair_by)
+    jobs = batch_jobs(exp)
     try:
         return _prepare_and_run(args, exp, jobs, out_dir, opts)
     except KeyboardInterrupt as stop:        # stopped before the pairs started
@@ -74,9 +69,11 @@ def _prepare_and_run(args, exp, jobs, out_dir, opts) -> dict:
     cal_path = exp.path(exp.images.calibration)
     _check_products_spare_inputs(jobs, [args.experiment, cal_path])
     cal = experiment_calibration(exp, cal_path)
+    # the settings judged before any pair (each worker chooses the unset ones the same way)
+    exp, judged = experiment_judgement(exp, cal)
     check_grid(exp.volume)
     background, n_background = _batch_background(exp, jobs, cal, out_dir)
-    jobs = _with_identities(jobs, exp, cal_path, background)
+    jobs = with_identities(jobs, exp, cal_path, background)
     # explicit weights go into the weights cache once, before the workers start; each worker
     # then makes its projector once, for all its pairs
     hit, weights_s = prepare_weights(exp, cal)
@@ -93,7 +90,7 @@ def _prepare_and_run(args, exp, jobs, out_dir, opts) -> dict:
                                     background=None if background is None else str(background),
                                     background_images=n_background)
     head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit,
-            "response": response_info}
+            "response": response_info, JUDGEMENT: judged.record()}
     try:
         summary = run_batch(jobs, process, resume=args.resume,
                             progress=not (args.quiet or args.json), **opts)
@@ -205,18 +202,32 @@ def _batch_background(exp, jobs, calibration, out_dir):
     return path, n
 
 
-def _with_identities(jobs, exp, cal_path, background=None):
-    """Give each job the identity of what makes its product.
+def batch_jobs(exp) -> list:
+    """The pairs of an experiment's ``[images]`` table, their products in ``[output]``."""
+    from plenopiv.batch.jobs import discover_pairs
+
+    im, out_dir = exp.images, exp.path(exp.output.directory)
+    if im.pairs is not None:
+        return discover_pairs(im.pairs, out_dir=out_dir, root=exp.base_dir,
+                              output_name="{name}_vectors.h5")
+    return discover_pairs(im.a, im.b, out_dir=out_dir, root=exp.base_dir,
+                          output_name="{name}_vectors.h5", pair_by=im.pair_by)
+
+
+def with_identities(jobs, exp, cal_path, background=None):
+    """Give each job the identity of what makes its product, and its companion files.
 
     The identity holds the experiment's settings, the calibration file and the two images
-    (content hashes), and with a ``[preprocess]`` table its dark, white and background
-    (content hashes; the batch's own background, ``background``, too); resume recomputes a
-    product made from anything else.
+    (content hashes), with a ``[preprocess]`` table its dark, white and background (content
+    hashes; the batch's own background, ``background``, too), and with ``[mask]`` files
+    their content hashes; resume recomputes a product made from anything else, or one whose
+    volumes or side products (:func:`_companions`) are missing.
     """
     from dataclasses import replace
 
     from plenopiv.products.files import file_identity
     from plenopiv.workflow.experiment import settings_identity
+    from plenopiv.workflow.provenance import mask_inputs
 
     common = {"settings": settings_identity(exp), "calibration": file_identity(cal_path)}
     pre = exp.preprocess
@@ -226,8 +237,27 @@ def _with_identities(jobs, exp, cal_path, background=None):
         if background is not None:
             ids["background"] = file_identity(background)
         common["preprocess"] = ids
+    masks = mask_inputs(exp)
+    if masks:
+        common["mask"] = masks
     return [replace(j, identity={**common, "image_a": file_identity(j.image_a),
-                                 "image_b": file_identity(j.image_b)}) for j in jobs]
+                                 "image_b": file_identity(j.image_b)},
+                    companions=_companions(j, exp)) for j in jobs]
+
+
+def _companions(job, exp) -> tuple:
+    """The files a pair writes beside its vectors product (``plenopiv.workflow.worker``)."""
+    folder, name = job.output.parent, job.name
+    out = [folder / f"{name}_volume_A.h5", folder / f"{name}_volume_B.h5"]
+    if exp.output.vtk:
+        out.append(job.output.with_suffix(".vti"))
+    if exp.output.png:
+        out += [folder / f"{name}_volume_A.png", folder / f"{name}_vectors.png"]
+    if exp.tracking.enabled:
+        out += [folder / f"{name}_tracks.h5", folder / f"{name}_tracks_binned.h5"]
+        if exp.output.vtk:
+            out += [folder / f"{name}_tracks.vtp", folder / f"{name}_tracks_binned.vti"]
+    return tuple(out)
 
 
 def print_summary(s: dict) -> None:

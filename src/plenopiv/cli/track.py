@@ -7,6 +7,7 @@ import time
 import numpy as np
 
 from plenopiv.cli._common import _add_common, _add_example, _check_out, _input_files
+from plenopiv.cli._judgement import JUDGEMENT, experiment_judgement, report
 from plenopiv.products.files import check_output_path
 
 
@@ -39,13 +40,16 @@ def cmd_track(args) -> dict:
     from plenopiv.resources import check_grid
     from plenopiv.workflow.experiment import experiment_calibration
     from plenopiv.workflow.preprocess import ATTRIBUTE, ImagePreparation
+    from plenopiv.workflow.provenance import tracks_provenance
     from plenopiv.workflow.tracking import track_images
 
     exp = load_experiment(args.config)
     out = _check_outputs(args, exp.output.vtk)
     check_grid(exp.volume)
     cal = experiment_calibration(exp, args.calibration)
+    exp, judged = experiment_judgement(exp, cal, purpose="tracking")
     ImagePreparation.refuse_batch_background(exp)
+    inputs, sources = _check_reused(args, exp)
     ia, ib = read_image(args.image_a), read_image(args.image_b)
     t0 = time.perf_counter()
     va = load_volume(args.volume_a) if args.volume_a else None
@@ -56,8 +60,14 @@ def cmd_track(args) -> dict:
         names=(f"image {str(args.image_a)!r}", f"image {str(args.image_b)!r}"))
     cfg = {**exp.to_dict(), "calibration": str(args.calibration),
            "image_a": str(args.image_a), "image_b": str(args.image_b)}
+    judged, seeding = judged.with_seeding(
+        0.5 * (len(va.particle_position) + len(vb.particle_position)), purpose="tracking")
+    report([seeding])
     paths = save_track_products(tracks, vec, out, config=cfg, vtk=exp.output.vtk,
-                                extra_attrs={ATTRIBUTE: dumps(pre)})
+                                extra_attrs={ATTRIBUTE: dumps(pre),
+                                             JUDGEMENT: dumps(judged.record())},
+                                provenance=tracks_provenance(exp, inputs=inputs,
+                                                             sources=sources, record=pre))
     d = tracks.displacement
     return {"command": "track", "out": str(out), "n_tracks": len(tracks),
             "n_particles_a": len(va.particle_position), "n_particles_b": len(vb.particle_position),
@@ -66,7 +76,7 @@ def cmd_track(args) -> dict:
                                      if len(tracks) else None),
             "max_displacement_m": np.abs(d).max(axis=0).tolist() if len(d) else None,
             "files": paths, "timings_s": {k: round(v, 3) for k, v in timings.items()},
-            "preprocess": pre,
+            "preprocess": pre, JUDGEMENT: judged.record(),
             "seconds": round(time.perf_counter() - t0, 3)}
 
 
@@ -82,3 +92,30 @@ def _check_outputs(args, vtk: bool):
     for path in (binned, *((binned.with_suffix(".vti"),) if vtk else ())):
         check_output_path(path, inputs=inputs, what=f"{path.name} written beside --out")
     return out
+
+
+def _check_reused(args, exp) -> tuple[dict, dict]:
+    """The content hashes of the inputs and the records of the products reused.
+
+    ``--volume-a``, ``--volume-b`` and ``--vectors`` must be of this pair's images and
+    calibration (:func:`plenopiv.workflow.provenance.check_track_products`).
+    """
+    from plenopiv.errors import ReconstructionError
+    from plenopiv.products.files import file_identity
+    from plenopiv.products.hdf5 import product_provenance
+    from plenopiv.workflow.provenance import check_track_products, settings_hashes
+
+    inputs = {"image_a": file_identity(args.image_a), "image_b": file_identity(args.image_b),
+              "calibration": file_identity(args.calibration)}
+    given = {}
+    for role, path, kind in (("volume_a", args.volume_a, "volume"),
+                             ("volume_b", args.volume_b, "volume"),
+                             ("vectors", args.vectors, "vectors")):
+        if path:
+            given[role] = (path, product_provenance(path, kind, ReconstructionError))
+            inputs[role] = file_identity(path)
+    check_track_products(given, images=((inputs["image_a"], str(args.image_a)),
+                                        (inputs["image_b"], str(args.image_b))),
+                         calibration=(inputs["calibration"], str(args.calibration)),
+                         settings=settings_hashes(exp))
+    return inputs, {role: record for role, (_, record) in given.items()}

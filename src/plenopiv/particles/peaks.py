@@ -2,10 +2,9 @@
 
 :func:`find_particles` finds the local maxima above a threshold, keeps the brightest of any
 that lie closer than a minimum separation, and refines each to sub-voxel precision by the
-3-point Gaussian per axis or the intensity-weighted centroid (the default for the
-depth-elongated particles of plenoptic volumes). The result, :class:`Particles`, holds
-positions as fractional voxel indices ``(z, y, x)`` and converts them to world ``(x, y, z)``
-metres through :func:`plenopiv.conventions.voxel_to_world`.
+3-point Gaussian per axis (the default) or the intensity-weighted centroid. The result,
+:class:`Particles`, holds positions as fractional voxel indices ``(z, y, x)`` and converts them
+to world ``(x, y, z)`` metres through :func:`plenopiv.conventions.voxel_to_world`.
 
 See docs/methods.md#peaks for the estimators, their bias and the reference.
 """
@@ -124,10 +123,10 @@ def find_particles(
         2 sigma_z (e.g. ``(6, 2, 2)`` for sigma_z = 3), or the box cuts the blob. No default,
         for the same reason (``[particles] box_vox``).
     method : {"gaussian", "centroid"}
-        Sub-voxel estimator: ``"centroid"`` (default, :data:`DEFAULT_METHOD`), the
-        intensity-weighted centroid over the box; ``"gaussian"``, the 3-point Gaussian fit
-        per axis through the peak voxel and its two neighbours (exact for a sampled Gaussian
-        blob, see Notes).
+        Sub-voxel estimator: ``"gaussian"`` (default, :data:`DEFAULT_METHOD`), the 3-point
+        Gaussian fit per axis through the peak voxel and its two samples ``fit_spacing_vox``
+        away (exact for a sampled Gaussian blob, see Notes); ``"centroid"``, the
+        intensity-weighted centroid over the box.
     fit_spacing_vox : int or sequence of 3 ints
         Spacing m ``(z, y, x)``, voxels (>= 1), of the samples the Gaussian fit uses on each
         side of the peak. 1 is the classical 3-point fit; on a blob of width s the noise of

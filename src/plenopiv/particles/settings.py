@@ -16,12 +16,19 @@ class ParticleSettings:
     """``[particles]``: 3-D peak detection.
 
     threshold : a particle's peak must exceed this fraction of the reference intensity.
+    noise_sigmas : and it must exceed the volume's background level by this many standard
+        deviations of its noise, both estimated from the volume
+        (:func:`plenopiv.particles.threshold.background_noise`); 0 turns it off. The default 5
+        lets white Gaussian noise make at most 2.9e-7 false peaks per voxel (the share of its
+        voxels above 5 sigma), three in a 10-million-voxel volume.
     threshold_reference : "bright" (default: the 99.9th percentile of the positive voxels,
         which a few hot voxels cannot move, while they can put the maximum many times above
         the particles' peaks) | "maximum" (the volume's maximum).
-    method : sub-voxel estimator, "centroid" (intensity-weighted over box_vox; the better one
-        for the depth-elongated particles of plenoptic reconstructions) | "gaussian" (3-point
-        per axis).
+    method : sub-voxel estimator, "gaussian" (default: the 3-point Gaussian per axis with
+        samples fit_spacing_vox apart; on reconstructed volumes its errors are below the
+        centroid's on every axis, docs/validation/particle_noise.md) | "centroid"
+        (intensity-weighted over box_vox; less noisy in depth where white noise is above
+        about 0.03 of the peak and the blobs are 3 voxels deep or more).
     min_separation_vox, box_vox, fit_spacing_vox : ``[z, y, x]`` voxels (see
         :func:`plenopiv.particles.peaks.find_particles`). ``None`` (default): from the camera's
         resolution cell (:func:`plenopiv.workflow.volume.particle_options`): peaks within one cell
@@ -41,8 +48,9 @@ class ParticleSettings:
     """
 
     threshold: float = Field(0.1, ge=0, lt=1)
+    noise_sigmas: float = Field(5.0, ge=0)
     threshold_reference: Literal["bright", "maximum"] = "bright"
-    method: Literal["gaussian", "centroid"] = "centroid"
+    method: Literal["gaussian", "centroid"] = "gaussian"
     min_separation_vox: tuple[float, float, float] | None = None
     box_vox: tuple[int, int, int] | None = None
     fit_spacing_vox: tuple[int, int, int] = (2, 1, 1)

@@ -88,7 +88,11 @@ class PIVSettings:
         may differ per axis: plenoptic particles are elongated in Z, so a taller window in z
         (e.g. ``((32, 32, 32), (24, 16, 16))``) keeps enough particle pairs per window.
         Every edge is at least 4 voxels. Stored as a tuple of triples. Default
-        ``((24, 16, 16), (16, 12, 12))``, the ``[piv] windows`` default of an experiment.
+        ``((24, 16, 16), (16, 12, 12))``. An experiment file that leaves ``[piv] windows``
+        unset gets windows chosen for its camera and box by the commands that run it
+        (:func:`plenopiv.workflow.judgement.choose_unset`: 16 → 12 lenslet footprints
+        laterally and 3.6 → 2.7 depth cells, cut to give 4 vectors along every axis of the
+        box); windows it gives are never changed.
     overlap : float
         Fraction of a window shared with its neighbour, ``0 <= overlap < 1``. The window step
         is ``max(1, round(w * (1 - overlap)))`` voxels per axis.

@@ -1,7 +1,11 @@
-"""HDF5 products: atomic writes with units, conventions, version and config; checked reads.
+"""HDF5 products: atomic writes with units, conventions, versions, provenance; checked reads.
 
 A product is an HDF5 file whose root attributes carry the package version, the product kind,
-the conventions and the resolved config as JSON; each dataset carries its ``units``.
+its schema version and provenance (:mod:`plenopiv.products.provenance`), the conventions and
+the resolved config as JSON; each dataset carries its ``units``. :func:`open_product` refuses
+another kind, a newer schema or a damaged file, and its arrays are read through
+:meth:`ProductFile.array`, which refuses NaN and infinite values where none may be
+(:func:`check_finite`).
 """
 
 from __future__ import annotations
@@ -19,18 +23,100 @@ from plenopiv import __version__
 from plenopiv.errors import WriteError
 from plenopiv.products.files import atomic_path, check_input_file, write_failure
 from plenopiv.products.jsonio import to_json
+from plenopiv.products.provenance import (
+    PROVENANCE_ATTR,
+    SCHEMA_ATTR,
+    check_readable,
+    make_provenance,
+    read_provenance,
+    schema_version,
+)
 
 CONVENTIONS = ("SI units; pixels (row, col) with the top-left pixel centre at (0, 0); "
                "volumes [z, y, x]; world points (x, y, z); Z grows away from the camera")
 
 
+def check_finite(values, name: str, path: str | Path, error: type[Exception], *,
+                 allow_nan: bool = False, allow_inf: bool = False,
+                 product: str = "product") -> np.ndarray:
+    """``values`` read from dataset ``name`` of ``path``, refused where NaN or inf may not be.
+
+    Every array read from a product or cache goes through here (:meth:`ProductFile.array`).
+    ``allow_nan``: NaN marks a missing value (a rejected vector); ``allow_inf``: +inf or -inf
+    is a value (a correlation peak without a second peak). Integer and boolean arrays pass.
+    The error names the file, the dataset, how many values and where the first lie.
+    """
+    a = np.asarray(values)
+    if a.dtype.kind not in "fc":
+        return a
+    bad = np.zeros(a.shape, bool)
+    if not allow_nan:
+        bad |= np.isnan(a)
+    if not allow_inf:
+        bad |= np.isinf(a)
+    if bad.any():
+        where = np.argwhere(bad)[:3]
+        at = ", ".join(str(tuple(int(i) for i in w)) if a.ndim > 1 else str(int(w[0]))
+                       for w in where) if a.ndim else "its value"
+        n_nan, n_inf = int(np.isnan(a[bad]).sum()), int(np.isinf(a[bad]).sum())
+        what = " and ".join(t for t in (f"{n_nan} NaN" if n_nan else "",
+                                        f"{n_inf} infinite" if n_inf else "") if t)
+        allowed = "NaN only" if allow_nan else ("±inf only" if allow_inf else "none")
+        raise error(f"{product} file {str(path)!r}: dataset {name} holds {what} values "
+                    f"(at {at}{', ...' if int(bad.sum()) > 3 else ''}; allowed there: "
+                    f"{allowed}): the file is damaged; make it again")
+    return a
+
+
+class ProductFile:
+    """An open product, as :func:`open_product` yields it: attributes and checked arrays.
+
+    ``attrs`` are the root attributes; ``name in product`` says whether a dataset exists;
+    :meth:`array` reads one (the only way in, so that every array read is checked);
+    :attr:`provenance` and :attr:`schema` are what the file records.
+    """
+
+    def __init__(self, fh: h5py.File, path: Path, product: str, error: type[Exception],
+                 schema: int):
+        self._fh, self.path, self.product, self.error = fh, path, product, error
+        self.schema = schema
+
+    @property
+    def attrs(self):
+        """The root attributes."""
+        return self._fh.attrs
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._fh
+
+    @property
+    def provenance(self) -> dict:
+        """The ``provenance`` record ({} for a file of schema 1)."""
+        return read_provenance(self._fh.attrs.get(PROVENANCE_ATTR))
+
+    def array(self, name: str, *, allow_nan: bool = False,
+              allow_inf: bool = False) -> np.ndarray:
+        """Dataset ``name``, refused (``error``) where it holds NaN or inf it may not hold."""
+        return check_finite(self._fh[name][()], name, self.path, self.error,
+                            allow_nan=allow_nan, allow_inf=allow_inf, product=self.product)
+
+    def number(self, name: str, *, allow_nan: bool = False) -> np.ndarray | float:
+        """Numeric root attribute ``name`` (a number or small array), checked as :meth:`array`."""
+        value = check_finite(np.asarray(self._fh.attrs[name], float), f"attribute {name}",
+                             self.path, self.error, allow_nan=allow_nan, product=self.product)
+        return float(value) if value.ndim == 0 else value
+
+
 @contextlib.contextmanager
-def open_product(path: str | Path, product: str, error: type[Exception]) -> Iterator[h5py.File]:
+def open_product(path: str | Path, product: str, error: type[Exception]
+                 ) -> Iterator[ProductFile]:
     """Open a plenopiv HDF5 product for reading, checking that it is one of kind ``product``.
 
-    A missing file, another product, and a read inside the block that fails (``OSError``,
-    ``KeyError``, ``ValueError``: a truncated file, a missing dataset or attribute) all raise
-    ``error`` naming the file; an ``error`` raised inside the block passes unchanged.
+    A missing file, another product, a newer or unknown schema or a newer major version
+    (:func:`~plenopiv.products.provenance.check_readable`), and a read inside the block that
+    fails (``OSError``, ``KeyError``, ``ValueError``: a truncated file, a missing dataset or
+    attribute) all raise ``error`` naming the file; an ``error`` raised inside the block
+    passes unchanged.
     """
     p = check_input_file(path, product, error)
     try:
@@ -38,7 +124,9 @@ def open_product(path: str | Path, product: str, error: type[Exception]) -> Iter
             if fh.attrs.get("product") != product:
                 raise error(f"{str(p)!r} is not a plenopiv {product} file "
                             f"(product = {fh.attrs.get('product')!r})")
-            yield fh
+            schema = check_readable(p, product, fh.attrs.get(SCHEMA_ATTR),
+                                    fh.attrs.get("plenopiv_version"), error)
+            yield ProductFile(fh, p, product, error, schema)
     except error:
         raise
     except (OSError, KeyError, ValueError) as exc:
@@ -46,10 +134,16 @@ def open_product(path: str | Path, product: str, error: type[Exception]) -> Iter
                     f"{type(exc).__name__}: {exc}") from None
 
 
+def product_provenance(path: str | Path, product: str, error: type[Exception]) -> dict:
+    """The ``provenance`` record of a product of kind ``product`` (checked as it is opened)."""
+    with open_product(path, product, error) as fh:
+        return fh.provenance
+
+
 def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
              attrs: dict[str, Any] | None = None, units: dict[str, str] | None = None,
              config: dict | None = None, kind: str = "product",
-             compress: bool = True, finalize=None) -> Path:
+             compress: bool = True, finalize=None, provenance: dict | None = None) -> Path:
     """Write an HDF5 product atomically.
 
     The file is written under a temporary name and renamed when closed; the root attribute
@@ -71,9 +165,16 @@ def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
         gzip the larger datasets (off for caches that must load fast).
     finalize : callable, optional
         ``finalize(fh)`` on the open file after the datasets (e.g. dimension scales).
+    provenance : dict, optional
+        What made the product (:func:`~plenopiv.products.provenance.make_provenance` of
+        ``kind``), stored as the JSON root attribute ``provenance``; without it, a record of
+        the versions alone. The root attribute ``schema_version`` is written either way.
     """
     p = Path(path)
     attrs = dict(attrs or {})
+    record = make_provenance(kind) if provenance is None else dict(provenance)
+    record.update(product=kind, schema_version=schema_version(kind))
+    attrs = {SCHEMA_ATTR: schema_version(kind), PROVENANCE_ATTR: to_json(record), **attrs}
     complete = attrs.pop("complete", None)
     size = sum(np.asarray(a).nbytes for a in datasets.values())
     with atomic_path(p) as tmp:

@@ -18,11 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
+from plenopiv.errors import ReconstructionError
 from plenopiv.products.files import atomic_path
-from plenopiv.products.hdf5 import write_h5
+from plenopiv.products.hdf5 import open_product, write_h5
 from plenopiv.tracking.tracks import TrackResult
 
-__all__ = ["TRACK_DATASETS", "write_tracks", "write_vtp"]
+__all__ = ["TRACK_DATASETS", "load_tracks", "write_tracks", "write_vtp"]
 
 #: The datasets every tracks product holds (``/velocity_m_s`` too when dt is known).
 TRACK_DATASETS = ("/position_a_m", "/position_b_m", "/displacement_m", "/uncertainty_m",
@@ -31,8 +32,12 @@ TRACK_DATASETS = ("/position_a_m", "/position_b_m", "/displacement_m", "/uncerta
 
 
 def write_tracks(path: str | Path, tracks: TrackResult, *, config: dict | None = None,
-                 vtk: bool = True, extra_attrs: dict | None = None) -> list[Path]:
-    """Write the tracks product atomically (and a ``.vtp`` beside it when ``vtk``)."""
+                 vtk: bool = True, extra_attrs: dict | None = None,
+                 provenance: dict | None = None) -> list[Path]:
+    """Write the tracks product atomically (and a ``.vtp`` beside it when ``vtk``).
+
+    ``provenance``: what made it (:func:`~plenopiv.products.provenance.make_provenance`).
+    """
     ds = {"/position_a_m": tracks.position_a, "/position_b_m": tracks.position_b,
           "/displacement_m": tracks.displacement, "/uncertainty_m": tracks.uncertainty,
           "/uncertainty_a_m": tracks.uncertainty_a, "/uncertainty_b_m": tracks.uncertainty_b,
@@ -52,11 +57,28 @@ def write_tracks(path: str | Path, tracks: TrackResult, *, config: dict | None =
              **(extra_attrs or {})}
     p = write_h5(path, {k: v if v.dtype == np.int64 else np.asarray(v, float)
                         for k, v in ds.items()}, attrs=attrs, units=units, config=config,
-                 kind="tracks")
+                 kind="tracks", provenance=provenance)
     out = [p]
     if vtk:
         out.append(write_vtp(Path(path).with_suffix(".vtp"), tracks))
     return out
+
+
+def load_tracks(path: str | Path) -> TrackResult:
+    """Read a tracks product written by :func:`write_tracks`; every array checked finite.
+
+    The velocity is not read (it is the displacement over ``dt``), but checked all the same.
+    """
+    with open_product(path, "tracks", ReconstructionError) as fh:
+        a = {name: fh.array(name) for name in TRACK_DATASETS + ("/velocity_m_s",)
+             if name in fh}
+        dt = fh.number("dt_s", allow_nan=True)
+        counts = {k[len("count_"):]: int(v) for k, v in fh.attrs.items()
+                  if k.startswith("count_")}
+    return TrackResult(a["/position_a_m"], a["/position_b_m"], a["/uncertainty_a_m"],
+                       a["/uncertainty_b_m"], a["/quality"], a["/residual_cells"],
+                       a["/index_a"], a["/index_b"], a["/n_lenslets_a"], a["/n_lenslets_b"],
+                       dt if np.isfinite(dt) else None, counts)
 
 
 def _data_array(name: str, values: np.ndarray) -> str:
@@ -106,18 +128,25 @@ def write_vtp(path: str | Path, tracks: TrackResult) -> Path:
 
 def save_track_products(tracks: TrackResult, vectors, out: str | Path, *,
                         config: dict | None = None, vtk: bool = True,
-                        extra_attrs: dict | None = None) -> dict:
-    """Write ``OUT`` (tracks), ``OUT.vtp`` and ``OUT_binned.h5`` (+ ``.vti``); their paths."""
+                        extra_attrs: dict | None = None, provenance: dict | None = None) -> dict:
+    """Write ``OUT`` (tracks), ``OUT.vtp`` and ``OUT_binned.h5`` (+ ``.vti``); their paths.
+
+    The binned field records the tracks' ``provenance`` as its own (a vectors product made
+    from the same inputs).
+    """
     from plenopiv.tracking.tracks import bin_tracks
 
     out = Path(out)
-    files = write_tracks(out, tracks, config=config, vtk=vtk, extra_attrs=extra_attrs)
+    files = write_tracks(out, tracks, config=config, vtk=vtk, extra_attrs=extra_attrs,
+                         provenance=provenance)
     paths = {"tracks": str(files[0])}
     if vtk:
         paths["vtp"] = str(files[1])
     binned = bin_tracks(tracks, vectors)
     bfiles = binned.save(out.with_name(out.stem + "_binned.h5"), config=config, vtk=vtk,
                          extra_attrs={"source": "particle tracks binned on the PIV grid",
-                                      "snr_meaning": "tracks per cell", **(extra_attrs or {})})
+                                      "snr_meaning": "tracks per cell", **(extra_attrs or {})},
+                         provenance=None if provenance is None else {**provenance,
+                                                                      "product": "vectors"})
     paths["binned"] = str(bfiles[0])
     return paths

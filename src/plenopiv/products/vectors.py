@@ -167,13 +167,14 @@ class VectorResult:
                 "peak_ratio": self.snr, "snr": self.snr, "peak_height": self.peak_height}
 
     def save(self, path: str | Path, *, config: dict | None = None, vtk: bool = False,
-             extra_attrs=None) -> list[Path]:
+             extra_attrs=None, provenance: dict | None = None) -> list[Path]:
         """Write the vectors product (CF style HDF5), and a ``.vti`` for ParaView if asked.
 
         ``/u, /v, /w`` are displacements in metres, or velocities in m/s when ``dt`` is set
         (their ``units`` attribute says which); ``/u_uncertainty`` etc. their standard
         uncertainties in the same units; per-vector quality in ``/valid``, ``/flag``,
-        ``/replaced``, ``/peak_ratio`` (also ``/snr``) and ``/peak_height``.
+        ``/replaced``, ``/peak_ratio`` (also ``/snr``) and ``/peak_height``. ``provenance``:
+        what made it (:func:`~plenopiv.products.provenance.make_provenance`).
         """
         scale, unit = (1.0, "m") if self.dt is None else (1.0 / self.dt, "m s-1")
         names = {"u": "x", "v": "y", "w": "z"}
@@ -197,7 +198,7 @@ class VectorResult:
         # thing written, inside its temporary, so a failed write leaves nothing marked
         vti = self.save_vtk(Path(path).with_suffix("")) if vtk else None
         p = write_h5(path, ds, attrs=attrs, units=units, config=config, kind="vectors",
-                     finalize=lambda fh: _cf_dimensions(fh, names))
+                     finalize=lambda fh: _cf_dimensions(fh, names), provenance=provenance)
         return [p] if vti is None else [p, vti]
 
     def _grid_attrs(self) -> dict:
@@ -256,24 +257,48 @@ def physical_grid(grid: VolumeGrid, correction: DepthCorrection) -> VolumeGrid:
                       (grid.voxel[0], grid.voxel[1], float(grid.voxel[2] * s)), grid.shape)
 
 
+#: Datasets of the vectors product that may hold NaN (a rejected vector left unreplaced, a
+#: masked window, an uncertainty or peak height not known); every other one is finite.
+NAN_DATASETS = ("/u", "/v", "/w", "/u_uncertainty", "/v_uncertainty", "/w_uncertainty",
+                "/peak_height", "/peak_ratio", "/snr")
+#: Datasets that may hold +inf (a correlation peak without a second peak).
+INF_DATASETS = ("/peak_ratio", "/snr")
+
+
 def load_vectors(path: str | Path) -> VectorResult:
     """Read a vectors product (:meth:`VectorResult.save`) as a VectorResult of displacements.
 
     Velocity products (``dt_s`` set) are turned back into displacements (metres), ``dt`` kept.
     The grid and window (:data:`GRID_ATTRS`) come from the product's attributes, or, in a
     product written without them, from the ``[volume]`` and ``[piv] windows`` of its config
-    (effective depth, as the experiment gave it); None where neither holds them.
+    (effective depth, as the experiment gave it); None where neither holds them. Every array
+    is checked: NaN only in :data:`NAN_DATASETS`, inf only in :data:`INF_DATASETS`.
     """
     with open_product(path, "vectors", ReconstructionError) as fh:
-        dt = float(fh.attrs.get("dt_s", np.nan))
+        dt = fh.number("dt_s", allow_nan=True)
         f = 1.0 if not np.isfinite(dt) else dt
-        arrays = {k: fh[f"/{k}"][()] for k in ("x", "y", "z", "u", "v", "w", "valid", "snr")}
+        names = ["x", "y", "z", "u", "v", "w", "valid", "snr", "peak_ratio", "peak_height",
+                 "flag", "replaced", "u_uncertainty", "v_uncertainty", "w_uncertainty"]
+        arrays = {k: fh.array(f"/{k}", allow_nan=f"/{k}" in NAN_DATASETS,
+                              allow_inf=f"/{k}" in INF_DATASETS)
+                  for k in names if f"/{k}" in fh}
+        for name in ("voxel_m", "volume_origin_m"):
+            if name in fh.attrs:
+                fh.number(name)
         grid, window = _stored_grid(dict(fh.attrs))
+        method = str(fh.attrs.get("uncertainty_method", "correlation"))
+        n_replaced = int(fh.attrs.get("n_replaced", 0))
+    optional = {k: arrays[k] for k in ("peak_height", "flag", "replaced") if k in arrays}
+    optional.update({k: arrays[k].astype(float) * f for k in
+                     ("u_uncertainty", "v_uncertainty", "w_uncertainty") if k in arrays})
+    if "replaced" in optional:
+        optional["replaced"] = optional["replaced"].astype(bool)
     return VectorResult(arrays["x"], arrays["y"], arrays["z"],
                         arrays["u"].astype(float) * f, arrays["v"].astype(float) * f,
                         arrays["w"].astype(float) * f, arrays["valid"].astype(bool),
                         arrays["snr"].astype(float), dt if np.isfinite(dt) else None,
-                        grid=grid, window_vox=window)
+                        n_replaced, grid=grid, window_vox=window, uncertainty_method=method,
+                        **optional)
 
 
 def _stored_grid(attrs: dict) -> tuple[VolumeGrid | None, tuple | None]:

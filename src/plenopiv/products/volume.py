@@ -68,8 +68,12 @@ class VolumeResult:
         """Physical depth of each voxel layer, metres."""
         return self.correction.depth(self.grid.z)
 
-    def save(self, path: str | Path, *, config: dict | None = None, extra_attrs=None) -> Path:
-        """Write the volume product (docs/design.md §7), atomically."""
+    def save(self, path: str | Path, *, config: dict | None = None, extra_attrs=None,
+             provenance: dict | None = None) -> Path:
+        """Write the volume product (docs/design.md §7), atomically.
+
+        ``provenance``: what made it (:func:`~plenopiv.products.provenance.make_provenance`).
+        """
         ds = {"/volume": self.volume.astype(np.float32), "/x": self.grid.x, "/y": self.grid.y,
               "/z": self.z_corrected, "/z_effective": self.grid.z,
               "/particles/position_m": self.particle_position,
@@ -92,27 +96,46 @@ class VolumeResult:
                  "particle_positions": ("volume" if self.particle_centroid_effective is None
                                         else "light_field"), **(extra_attrs or {})}
         return write_h5(path, ds, attrs=attrs, units=units, config=config, kind="volume",
-                        finalize=_cf_volume)
+                        finalize=_cf_volume, provenance=provenance)
+
+
+#: Datasets of the volume product that may hold NaN: a size the Gaussian fit could not measure
+#: along an axis (a peak whose samples are not concave there).
+NAN_DATASETS = ("/particles/size_m",)
 
 
 def load_volume(path: str | Path) -> VolumeResult:
-    """Read a volume product written by :meth:`VolumeResult.save`."""
+    """Read a volume product written by :meth:`VolumeResult.save`.
+
+    Every array is checked finite (:meth:`~plenopiv.products.hdf5.ProductFile.array`): a
+    damaged product is refused naming the file and the dataset.
+    """
     with open_product(path, "volume", ReconstructionError) as fh:
-        x, y, ze = fh["/x"][()], fh["/y"][()], fh["/z_effective"][()]
-        vol = fh["/volume"][()]
-        corr = DepthCorrection(float(fh.attrs["depth_correction_external"]),
-                               float(fh.attrs["depth_correction_internal"]))
-        pos = fh["/particles/position_m"][()]
-        pos_e = fh["/particles/position_effective_m"][()]
-        inten = fh["/particles/intensity"][()]
-        size = fh["/particles/size_m"][()]
-        cen = (fh["/particles/centroid_effective_m"][()]
+        x, y, ze = fh.array("/x"), fh.array("/y"), fh.array("/z_effective")
+        fh.array("/z")
+        vol = fh.array("/volume")
+        corr = DepthCorrection(fh.number("depth_correction_external"),
+                               fh.number("depth_correction_internal"))
+        pos = fh.array("/particles/position_m")
+        pos_e = fh.array("/particles/position_effective_m")
+        inten = fh.array("/particles/intensity")
+        size = fh.array("/particles/size_m", allow_nan="/particles/size_m" in NAN_DATASETS)
+        cen = (fh.array("/particles/centroid_effective_m")
                if "/particles/centroid_effective_m" in fh else None)
     step = [a[1] - a[0] if len(a) > 1 else 1.0 for a in (x, y, ze)]
     grid = VolumeGrid((float(x[0]), float(y[0]), float(ze[0])), tuple(float(v) for v in step),
                       vol.shape)
     return VolumeResult(vol, grid, corr, pos_e, pos, inten, size,
                         particle_centroid_effective=cen)
+
+
+def volume_attribute(path: str | Path, name: str) -> str | None:
+    """The root attribute ``name`` of a volume product, or None where it has none."""
+    with open_product(path, "volume", ReconstructionError) as fh:
+        value = fh.attrs.get(name)
+    if isinstance(value, bytes):
+        value = value.decode()
+    return None if value is None else str(value)
 
 
 def _cf_volume(fh) -> None:

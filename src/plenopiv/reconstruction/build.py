@@ -93,7 +93,9 @@ def cached_weights(calibration: Calibration, grid: VolumeGrid, *, cache_dir: str
     Loaded when built before for the same geometry.
 
     The file name carries the key, and the key stored inside is checked again, so weights of
-    another camera, calibration or grid are never reused; a corrupt cache file is rebuilt.
+    another camera, calibration or grid are never reused; a corrupt cache file is rebuilt, and
+    so, with a warning, is one whose weights do not match their checksum or hold NaN
+    (:func:`~plenopiv.products.caches.read_weights`).
     ``projector`` (see :func:`choose_projector`) may pick the matrix-free lattice projector
     instead, which is quick to build and never cached. ``load=False`` only fills the
     cache: a cached file is checked, not read; the lattice projector is not built; None

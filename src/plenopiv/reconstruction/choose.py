@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "SUBDIVIDED_VOXEL_FOOTPRINTS", "ProjectorFit",
            "ReconstructionChoice", "choose_projector", "choose_reconstruction",
            "estimate_matrix_free_gb", "estimate_nnz", "fit_projector", "lateral_subdivision",
-           "memory_budget_gb", "reconstruction_grid", "subdivided_grid"]
+           "memory_budget_gb", "reconstruction_grid", "subdivided_grid", "subdivision_for"]
 
 
 #: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
@@ -67,14 +67,23 @@ def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
     This is the subdivision asked for; :func:`choose_reconstruction` may take a coarser one
     where the weights of this one would not fit in memory.
     """
+    return subdivision_for(footprint(calibration.effective_camera), grid.voxel,
+                           settings.lateral_subdivision)
+
+
+def subdivision_for(footprint_m: float, voxel, setting: str | int) -> tuple[int, int]:
+    """``(ky, kx)`` of :func:`lateral_subdivision` from the footprint and the voxel.
+
+    ``footprint_m``: the lenslet footprint, m; ``voxel``: ``(dx, dy, dz)``, m; ``setting``:
+    ``[reconstruction] lateral_subdivision`` (``"auto"`` or an int).
+    """
     from plenopiv.reconstruction.settings import MAX_SUBDIVISION
 
-    k = settings.lateral_subdivision
-    if k != "auto":
-        return int(k), int(k)
-    half = SUBDIVIDED_VOXEL_FOOTPRINTS * footprint(calibration.effective_camera)
-    return tuple(int(min(MAX_SUBDIVISION, max(1, math.ceil(d / half - 0.05))))
-                 for d in (grid.voxel[1], grid.voxel[0]))
+    if setting != "auto":
+        return int(setting), int(setting)
+    third = SUBDIVIDED_VOXEL_FOOTPRINTS * footprint_m
+    return tuple(int(min(MAX_SUBDIVISION, max(1, math.ceil(d / third - 0.05))))
+                 for d in (voxel[1], voxel[0]))
 
 
 def subdivided_grid(grid: VolumeGrid, ky: int, kx: int) -> VolumeGrid:

@@ -73,12 +73,12 @@ def reconstruct(
         ``"block"``: the pixels of a block (``blocks``) act simultaneously, blocks in turn.
         ``"smart"``: all pixels act simultaneously (one block).
     iterations : int
-        Number of sweeps over all pixels (>= 0; 0 returns the first guess). 5-10 is typical.
+        Sweeps over all pixels (>= 0; 0 returns the first guess).
     relaxation : float
         Relaxation factor mu (dimensionless, > 0); 1 is the classical MART.
     pixel_threshold : float
-        Pixels with ``I_i <= pixel_threshold`` (counts) are dark: they are treated as zero,
-        which zeroes every voxel they see, once, before the first sweep (see Notes).
+        Pixels with ``I_i <= pixel_threshold`` (counts) are dark: zero, which zeroes every
+        voxel they see, once, before the first sweep (see Notes).
     blocks : array_like of int, n_pixels values, optional
         Block label of each pixel, required by ``method="block"`` (for example the
         perspective view a pixel belongs to, or the set of lenslets it lies under); blocks
@@ -88,11 +88,9 @@ def reconstruct(
         ``n_voxels`` non-negative values (e.g. the previous time step). Voxels seen by a dark
         pixel, or by no pixel at all, are set to zero whichever is chosen.
     shape : tuple of 3 int, optional
-        ``(nz, ny, nx)`` to return the volume reshaped; ``nz * ny * nx`` must equal
-        ``projector.n_voxels``.
+        ``(nz, ny, nx)`` to return the volume reshaped (``projector.n_voxels`` voxels).
     callback : callable, optional
-        Called as ``callback(iteration, volume)`` after each sweep (iteration counts from 1)
-        with a read-only view of the current volume, e.g. to report progress or residuals.
+        ``callback(iteration, volume)`` after each sweep (from 1), a read-only view.
     ceiling : array_like of bool, n_pixels values, optional
         ``method="smart"`` only: pixels whose intensity is an upper bound rather than a
         measurement (dark pixels given the noise floor as intensity). Their ratio
@@ -110,15 +108,15 @@ def reconstruct(
     ImageError
         The image holds NaN/inf or negative values, or no pixel above ``pixel_threshold``.
     ReconstructionError
-        The image, ``blocks``, ``initial`` or ``shape`` does not match the projector, or the
-        projector lacks row access for ``"mart"``/``"block"``.
+        The image, ``blocks``, ``initial`` or ``shape`` does not match the projector, the
+        projector lacks row access for ``"mart"``/``"block"``, or (``initial`` "mlos" or
+        "ones") the dark pixels see every voxel the lit ones see.
     ValueError
         An option is outside its valid set.
 
     Notes
     -----
-    The three methods, their update rules, the order of the MART sweep and the treatment of
-    dark pixels are described in the module docstring (:mod:`plenopiv.reconstruction.mart`).
+    The methods, their updates, the sweep's order and the dark pixels: the module docstring.
     """
     iterations, relaxation, pixel_threshold, ceiling = _checked_options(
         projector, method, iterations, relaxation, pixel_threshold, blocks, callback, ceiling)
@@ -128,6 +126,8 @@ def reconstruct(
     schedule = projector.block_schedule(blocks) if method == "block" else None
 
     volume = _first_guess(initial, intensity, bright, projector)
+    if isinstance(initial, str):
+        _check_not_empty(volume, pixel_threshold)
     sweep = _sweep_of(method, projector, intensity, bright, relaxation, schedule, ceiling)
     for iteration in range(1, iterations + 1):
         sweep(volume)
@@ -326,6 +326,16 @@ def _seen_by_dark(bright, projector) -> np.ndarray:
     if bright.all():
         return np.zeros(projector.n_voxels, bool)
     return np.asarray(projector.back((~bright).astype(np.float32))) > 0
+
+
+def _check_not_empty(volume, pixel_threshold: float) -> None:
+    """Refuse a first guess of its own making that the dark pixels emptied."""
+    if not volume.any():
+        raise ReconstructionError(
+            f"every voxel a lit pixel sees is also seen by a dark pixel (I <= pixel_threshold "
+            f"= {pixel_threshold:g} counts), so the line of sight leaves an empty volume: "
+            "give the dark pixels as ceilings (method='smart', ceiling=, their intensity the "
+            "noise floor) or use plenopiv.reconstruction.solve.solve_volume, which does")
 
 
 def _first_guess(initial, intensity, bright, projector) -> np.ndarray:

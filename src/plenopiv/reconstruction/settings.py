@@ -48,7 +48,9 @@ class ReconstructionSettings:
         the depth of a particle is told by beams shifting sideways by a fraction of a
         footprint, which voxels a footprint wide cannot represent, so with them a particle
         is reconstructed far too long in depth and its depth motion is under-measured
-        (docs/validation/vortex.md). Costs k² in weights and MART time.
+        (docs/validation/vortex.md). Costs k² in weights and MART time. A k that leaves
+        working voxels of 0.75 footprint or wider is warned before a run
+        (docs/methods.md#settings-judgement).
     subdivision_kernel : how the working voxels return to the [volume] grid: "gaussian"
         (default): each voxel takes the working volume weighted by a Gaussian of σ = half a
         voxel about its centre, which keeps where a particle lies inside the voxel in the

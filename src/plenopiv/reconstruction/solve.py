@@ -17,6 +17,7 @@ import numpy as np
 
 from plenopiv.errors import ReconstructionError
 from plenopiv.reconstruction.geometry import ProjectionGeometry
+from plenopiv.reconstruction.least_squares import least_squares
 from plenopiv.reconstruction.mart import reconstruct
 from plenopiv.reconstruction.real_lattice import LensletProjector
 from plenopiv.reconstruction.sightline import subcell_sightline
@@ -54,7 +55,8 @@ def _unmasked_rows(weights, image: np.ndarray, image_mask) -> tuple[np.ndarray, 
 
 def solve_volume(weights, image: np.ndarray, settings, *,
                  geometry: ProjectionGeometry | None = None, footprint: float | None = None,
-                 image_mask=None, callback: Callable | None = None) -> np.ndarray:
+                 image_mask=None, callback: Callable | None = None,
+                 solver: str | None = None, solver_options: dict | None = None) -> np.ndarray:
     """The MART volume of one sensor image on ``weights.grid`` (float32, ``[z, y, x]``).
 
     Parameters
@@ -77,6 +79,15 @@ def solve_volume(weights, image: np.ndarray, settings, *,
         Pixels to ignore (True): their rows count neither as light nor as dark.
     callback : callable, optional
         ``callback(iteration, volume)`` after each MART sweep.
+    solver : {"fista", "sirt", "cgls"}, optional
+        Instead of ``settings.method``, the least-squares solver of
+        :func:`plenopiv.reconstruction.least_squares.least_squares` on SMART's rows (dark rows
+        as ceilings), ``settings.iterations`` iterations, voxels held to the line of sight's
+        support; FISTA and SIRT start from the line of sight, CGLS from zero.
+    solver_options : dict, optional
+        More keywords of ``least_squares`` (``l1``, ``relaxation``, ``initial``,
+        ``support``; ``support=None`` frees every voxel), and ``smart_sweeps``: that many
+        SMART sweeps (``settings.relaxation_used``) from the solver's volume.
     """
     geometry = weights.geometry if geometry is None else geometry
     if geometry is None:
@@ -102,7 +113,7 @@ def solve_volume(weights, image: np.ndarray, settings, *,
     common = dict(iterations=settings.iterations, relaxation=settings.relaxation_used,
                   pixel_threshold=0.0, initial=first, shape=weights.grid.shape,
                   callback=callback)
-    if settings.method == "smart":
+    if settings.method == "smart" or solver is not None:
         # the dark pixels take part as ceilings: their light is at most the threshold, so
         # they lower the voxels that would send more into them and never raise any; only
         # those that see the first guess's support can change anything
@@ -122,12 +133,29 @@ def solve_volume(weights, image: np.ndarray, settings, *,
             rows = bright | (touching & reach)
             view = proj.select_rows(rows)
         values = np.maximum(raw[rows], np.float32(floor)) / row_scale[rows]
+        if solver is not None:
+            options = dict(solver_options or {})
+            sweeps = options.pop("smart_sweeps", 0)
+            volume = _least_squares(values, view, ~bright[rows], first, solver, settings,
+                                    options, callback)
+            if not sweeps:
+                return volume.reshape(weights.grid.shape)
+            common.update(iterations=sweeps, initial=volume, callback=None)
         return reconstruct(values, view, method="smart", ceiling=~bright[rows], **common)
     blocks = None
     if settings.method == "block":
         blocks = perspective_blocks(weights, geometry.light_field)[bright]
     return reconstruct(raw[bright] / row_scale[bright], proj.select_rows(bright),
                        method=settings.method, blocks=blocks, **common)
+
+
+def _least_squares(values, view, ceiling, first, solver, settings, options, callback):
+    """:func:`least_squares` of the selected rows, the line of sight as support and start."""
+    kw = dict(support=first.reshape(-1) > 0,
+              initial=None if solver == "cgls" else first.reshape(-1))
+    kw.update(options or {})
+    return least_squares(values, view, solver=solver, iterations=settings.iterations,
+                         ceiling=ceiling, callback=callback, **kw)
 
 
 def line_of_sight_guess(weights, raw, floor: float, touching, bright, geometry, *,

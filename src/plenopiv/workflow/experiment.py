@@ -55,17 +55,25 @@ def _describe(camera: CameraModel, image_distance: float | None) -> str:
 def product_settings(experiment) -> dict:
     """The settings of an experiment that shape a pair's products.
 
-    The camera, the grid, the reconstruction, particle, PIV, tracking and preprocessing tables,
-    dt and the side products (vtk, png). Not the image patterns, the batch, the folders or the
-    weight cache (the preprocessing's files count by their content, in the batch's identities).
+    The camera, the grid, the reconstruction, particle, PIV, tracking, preprocessing and mask
+    tables, dt and the side products (vtk, png). Not the image patterns, the batch, the
+    folders or the weight cache (the preprocessing's and the masks' files count by their
+    content, in the batch's identities).
     """
     d = experiment.to_dict()
     return {"camera": d["camera"], "volume": d["volume"],
             "reconstruction": d["reconstruction"], "particles": d["particles"],
             "piv": d["piv"], "tracking": d.get("tracking"), "dt_s": d["images"].get("dt_s"),
             "vtk": d["output"].get("vtk"), "png": d["output"].get("png"),
-            # only with a [preprocess] table: experiments without one keep their identity
-            **({"preprocess": d["preprocess"]} if d.get("preprocess") is not None else {})}
+            # only with a [preprocess] table or a mask: experiments without keep their identity
+            **({"preprocess": d["preprocess"]} if d.get("preprocess") is not None else {}),
+            **({"mask": d["mask"]} if masks_anything(experiment) else {})}
+
+
+def masks_anything(experiment) -> bool:
+    """Whether the experiment's ``[mask]`` table names a file, a box or a cylinder."""
+    m = experiment.mask
+    return m is not None and bool(m.image or m.volume or m.box or m.cylinder)
 
 
 def settings_identity(experiment) -> str:
@@ -80,31 +88,34 @@ def settings_identity(experiment) -> str:
     return hashlib.sha256(to_json(product_settings(experiment)).encode()).hexdigest()
 
 
-def experiment_calibration(experiment, calibration_path) -> Calibration:
-    """The calibration to use with an experiment.
+def calibration_for_camera(calibration_path, camera: CameraModel, *,
+                           whose: str = "the experiment's camera") -> Calibration:
+    """The calibration product at ``calibration_path``, for use with ``camera``.
 
     S_i and the lenslets come from the calibration product, the interfaces and back-side
-    model from the experiment's camera.
-
-    The calibration product records the camera it was made for; used with another camera
-    (sensor, lattice or main-lens focal length differ, or the experiment's nominal S_i is
+    model from ``camera``. The product records the camera it was made for; with another
+    camera (sensor, lattice or main-lens focal length differ, or the camera's nominal S_i is
     more than 10 % from the calibrated one) it is a
-    :class:`~plenopiv.errors.CalibrationError` naming both cameras and what differs.
+    :class:`~plenopiv.errors.CalibrationError` naming the file, both cameras and what differs.
+    ``plenopiv reconstruct``, ``track``, ``run`` and ``plan --calibration`` all check here.
     """
     cal = Calibration.load(calibration_path)
-    cam = experiment.camera
-    diffs = _camera_differences(cal.camera, cam)
-    nominal = cam.main_lens.image_distance
+    diffs = _camera_differences(cal.camera, camera)
+    nominal = camera.main_lens.image_distance
     if not diffs and nominal is not None and \
             abs(nominal - cal.image_distance) > IMAGE_DISTANCE_TOLERANCE * cal.image_distance:
         diffs.append(f"calibrated S_i {cal.image_distance * 1e3:.5g} mm against the "
-                     f"experiment camera's image_distance_mm = {nominal * 1e3:.5g} (more than "
+                     f"camera's image_distance_mm = {nominal * 1e3:.5g} (more than "
                      f"{IMAGE_DISTANCE_TOLERANCE:.0%} apart: refocused?)")
     if diffs:
         raise CalibrationError(
             f"the calibration {str(calibration_path)!r} was made for camera "
-            f"{_describe(cal.camera, cal.image_distance)} but the experiment's camera is "
-            f"{_describe(cam, nominal)}: {'; '.join(diffs)}. Use this camera's calibration "
-            "(plenopiv calibrate) or the experiment file of the calibrated camera")
-    return cal.with_camera(cam)
+            f"{_describe(cal.camera, cal.image_distance)} but {whose} is "
+            f"{_describe(camera, nominal)}: {'; '.join(diffs)}. Use this camera's calibration "
+            "(plenopiv calibrate) or the camera file of the calibrated camera")
+    return cal.with_camera(camera)
 
+
+def experiment_calibration(experiment, calibration_path) -> Calibration:
+    """The calibration to use with an experiment (:func:`calibration_for_camera`)."""
+    return calibration_for_camera(calibration_path, experiment.camera)

@@ -260,21 +260,37 @@ def _volume_progress(progress: Progress, tag: str) -> Progress:
 
 
 def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
-              extra_attrs=None) -> dict:
+              extra_attrs=None, inputs=None, judgement: dict | None = None) -> dict:
     """Write a pair's products: ``NAME_vectors.h5`` (+ ``.vti``), the two volumes, PNGs.
 
     The vectors file is written last and marked complete, so that a batch can resume.
+    ``inputs``: the content hashes of ``image_a``, ``image_b``, ``calibration`` and the
+    ``[mask]`` files (``mask_image``, ``mask_volume``), recorded in each product's
+    ``provenance`` (:mod:`plenopiv.workflow.provenance`); the masks are hashed here when
+    not given. ``judgement``: the settings' and the seeding's judgement
+    (:meth:`~plenopiv.workflow.judgement.Judgement.record`), every product's ``judgement``
+    attribute.
     """
     from plenopiv.products.jsonio import dumps
     from plenopiv.workflow.preprocess import ATTRIBUTE
+    from plenopiv.workflow.provenance import mask_inputs, vectors_provenance, volume_provenance
 
     out = Path(out_dir)
     cfg = experiment.to_dict()
     pre = {} if result.preprocess is None else {ATTRIBUTE: dumps(result.preprocess)}
-    paths = {}
+    inputs = dict(inputs or {})
+    masks = {k: v for k, v in inputs.items() if k.startswith("mask_")} \
+        if any(k.startswith("mask_") for k in inputs) else mask_inputs(experiment)
+    if judgement is not None:
+        pre["judgement"] = dumps(judgement)
+    paths, records = {}, {}
     for tag, vol in (("A", result.volume_a), ("B", result.volume_b)):
+        records[f"volume_{tag.lower()}"] = volume_provenance(
+            experiment, image=inputs.get(f"image_{tag.lower()}"),
+            calibration=inputs.get("calibration"), record=result.preprocess, masks=masks)
         paths[f"volume_{tag}"] = str(vol.save(out / f"{name}_volume_{tag}.h5", config=cfg,
-                                              extra_attrs=pre))
+                                              extra_attrs=pre,
+                                              provenance=records[f"volume_{tag.lower()}"]))
     if experiment.output.png:
         from plenopiv.products.figures import vector_slices, volume_slices
 
@@ -285,11 +301,13 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
                                                 title=f"pair {name}: volume A"))
         paths["png_vectors"] = str(vector_slices(result.vectors, out / f"{name}_vectors.png",
                                                  title=f"pair {name}"))
+    record = vectors_provenance(paths["volume_A"], paths["volume_B"],
+                                piv=experiment.piv, dt=experiment.images.dt_s,
+                                sources=records)
     files = result.vectors.save(out / f"{name}_vectors.h5", config=cfg, vtk=experiment.output.vtk,
                                 extra_attrs={"complete": True, **pre,
-                                             **(extra_attrs or {})})
+                                             **(extra_attrs or {})}, provenance=record)
     paths["vectors"] = str(files[0])
     if len(files) > 1:
         paths["vtk"] = str(files[1])
     return paths
-

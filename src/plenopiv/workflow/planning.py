@@ -11,7 +11,6 @@ computation; printing belongs to :mod:`plenopiv.cli`.
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -23,6 +22,19 @@ from plenopiv.camera.model import CameraModel
 from plenopiv.errors import ConfigError
 from plenopiv.piv.settings import PIVSettings
 from plenopiv.reconstruction.settings import ReconstructionSettings
+from plenopiv.workflow.judgement import (
+    MIN_VECTORS_LAST_PASS,
+    VALIDATED_PARTICLES_PER_LENSLET,
+    Camera,
+    Finding,
+    Judgement,
+    camera_resolution,
+    judge,
+    lenslets_in_box,
+    recommended_voxel,
+    recommended_windows,
+    snap_grid,
+)
 from plenopiv.workflow.rates import (
     BENCHMARK_RATES,
     Rates,
@@ -34,28 +46,10 @@ from plenopiv.workflow.rates import (
 if TYPE_CHECKING:
     from plenopiv.reconstruction.choose import ReconstructionChoice
 
-
-#: Lateral voxel per lenslet footprint: half-footprint voxels remove the peak locking of
-#: footprint voxels (docs/validation/vortex.md).
-LATERAL_VOXEL_PER_FOOTPRINT = 0.5
-
-
-#: Depth voxel per depth cell (b S_o/D): the validated grid of docs/validation/vortex.md had a
-#: depth voxel of 1/4.4 cell; a particle then spans about four voxels in depth.
-DEPTH_VOXEL_PER_CELL = 0.25
-
-
-#: Windows (first pass, last pass) of the validated vortex runs, in lenslet footprints
-#: laterally and in depth cells in depth: 32 → 24 half-footprint voxels, 16 → 12 voxels of
-#: 1/4.4 cell in depth.
-WINDOW_FOOTPRINTS = (16.0, 12.0)
-
-
-WINDOW_DEPTH_CELLS = (3.6, 2.7)
-
-
-#: Seeding density of the validated runs, particles per lenslet.
-VALIDATED_PARTICLES_PER_LENSLET = 0.15
+#: The judgement's resolution, recommendations and thresholds are planning's public names too.
+__all__ = ["BENCHMARK_RATES", "MIN_VECTORS_LAST_PASS", "Camera", "Plan", "available_memory",
+           "camera_resolution", "estimate_size", "plan", "recommended_voxel",
+           "recommended_windows", "vectors_per_pass"]
 
 
 #: Bytes per ray while the light field is built (temporaries included; the traced peak of the
@@ -85,21 +79,6 @@ SECONDS_PER_RAY_PARTICLE_FIT = 4.1e-7
 
 
 @dataclass(frozen=True)
-class Camera:
-    """The camera's resolution near the focal plane (effective coordinates), metres."""
-
-    name: str
-    footprint: float
-    depth_cell: float
-    near_focus: float
-    field_of_view: tuple[float, float]
-    f_number: float
-    object_distance: float
-    magnification: float
-    n_lenslets: int
-
-
-@dataclass(frozen=True)
 class Plan:
     """Everything ``plenopiv plan`` reports. Lengths in metres, memory in bytes, time in s."""
 
@@ -125,6 +104,8 @@ class Plan:
     particles_per_lenslet: float = VALIDATED_PARTICLES_PER_LENSLET
     decision: ReconstructionChoice | None = None
     response_s: float = 0.0
+    findings: tuple[Finding, ...] = ()
+    seeding: float | None = None
 
     @property
     def fits(self) -> bool:
@@ -145,6 +126,13 @@ class Plan:
                 f"voxel_mm = [{vox}]\n\n"
                 "[piv]\n"
                 f"windows = [{win}]\n")
+
+    def judgement(self) -> Judgement:
+        """The findings as the commands record them (a stated seeding as its particle count)."""
+        n = (None if self.seeding is None
+             else self.seeding * lenslets_in_box(self.camera, self.grid))
+        sub = None if self.decision is None else self.decision.subdivision
+        return Judgement(self.camera, self.grid, self.findings, sub, n)
 
     def _decision_dict(self) -> dict:
         """The reconstruction's decision (:class:`ReconstructionChoice`) as plan reports it."""
@@ -191,72 +179,14 @@ class Plan:
             "time_model": self.time_model,
             "warnings": list(self.warnings),
             "advice": list(self.advice),
+            "judgement": self.judgement().record(),
         }
-
-
-def _size(mm) -> str:
-    return " x ".join(f"{v:.3g}" for v in mm)
 
 
 def _mm(mm: float) -> str:
     """Return a length in mm, short: 3 decimals at most, no trailing zeros."""
     s = f"{mm:.3f}".rstrip("0").rstrip(".")
     return "0" if s in ("-0", "") else s
-
-
-def camera_resolution(camera: CameraModel, f_number: float | None = None) -> Camera:
-    """Footprint, depth cell, near-focus zone and field of view of ``camera`` (effective)."""
-    from plenopiv.camera.resolution import resolution_cell
-    from plenopiv.synthetic.images import field_of_view
-
-    n = camera.main_lens.f_number if f_number is None else f_number
-    lat, dep = resolution_cell(camera, n)
-    return Camera(name=camera.name, footprint=lat, depth_cell=dep, near_focus=dep,
-                  field_of_view=field_of_view(camera, 0.0), f_number=n,
-                  object_distance=camera.object_distance, magnification=camera.magnification,
-                  n_lenslets=camera.microlens_array.count)
-
-
-def recommended_voxel(cam: Camera) -> tuple[float, float, float]:
-    """``(dx, dy, dz)``: half a footprint laterally, a quarter of the depth cell in depth."""
-    lat = LATERAL_VOXEL_PER_FOOTPRINT * cam.footprint
-    return (lat, lat, DEPTH_VOXEL_PER_CELL * cam.depth_cell)
-
-
-#: The last pass should give at least this many vectors along every axis (50 % overlap):
-#: windows are capped at 1/2.5 of the box's voxels along an axis.
-MIN_VECTORS_LAST_PASS = 4
-
-
-def recommended_windows(cam: Camera, voxel, shape=None) -> tuple[tuple[int, int, int], ...]:
-    """Windows ``(wz, wy, wx)`` (first pass, last pass) in voxels of ``voxel``.
-
-    The validated physical sizes (:data:`WINDOW_FOOTPRINTS`, :data:`WINDOW_DEPTH_CELLS`),
-    rounded to even voxels; with ``shape`` (the box, ``(nz, ny, nx)`` voxels) the last window
-    is capped so that the last pass gives :data:`MIN_VECTORS_LAST_PASS` vectors along every
-    axis, and the first is at most 4/3 of it. On the small camera with a box 4.5 depth cells
-    deep, capping the depth window (3.6 → 1.5 cells) raised the correlation of u with a
-    Lamb-Oseen vortex from -0.05 to 0.93 (the vortex's depth scale is one depth cell).
-    """
-    def even(w, lo=6):
-        return max(lo, 2 * int(math.floor(w / 2 + 0.25)))
-
-    first, last = [], []
-    for axis in range(3):                    # z, y, x
-        if axis == 0:
-            size = [c * cam.depth_cell / voxel[2] for c in WINDOW_DEPTH_CELLS]
-        else:
-            size = [f * cam.footprint / voxel[2 - axis] for f in WINDOW_FOOTPRINTS]
-        w_first, w_last = even(size[0]), even(size[1])
-        if shape is not None:
-            cap = even(2 * shape[axis] / (MIN_VECTORS_LAST_PASS + 1), lo=4)
-            if w_last > cap:
-                w_last = cap
-                w_first = min(w_first, even(4 * w_last / 3, lo=4))
-            w_first = min(w_first, shape[axis])
-        first.append(w_first)
-        last.append(w_last)
-    return (tuple(first), tuple(last))
 
 
 def _axis_counts(u, pos, t, al, be, origin, vox, n):
@@ -313,11 +243,6 @@ def available_memory() -> float:
         return 8e9
 
 
-def _snap_grid(grid: VolumeGrid, voxel) -> VolumeGrid:
-    b = grid.bounds
-    return VolumeGrid.from_bounds(b[0], b[1], b[2], voxel=np.asarray(voxel, float))
-
-
 #: CPU time of a reconstruction with the per-lenslet projector (rotated or hexagonal arrays)
 #: over one with the separable lattice projector, the same grid moved off the footprints: the
 #: mean of the rotated and the hexagonal array at full size (docs/validation/real_arrays.md).
@@ -327,7 +252,8 @@ LENSLET_COST_RATIO = 3.2
 def plan(camera: CameraModel, grid: VolumeGrid, *,
          reconstruction: ReconstructionSettings | None = None, piv: PIVSettings | None = None,
          rates: Rates | None = None, memory_total: float | None = None,
-         calibration=None, geometry=None) -> Plan:
+         calibration=None, geometry=None, seeding: float | None = None,
+         chosen: tuple[Finding, ...] = ()) -> Plan:
     """Plan the reconstruction of ``grid`` (effective coordinates) with ``camera``.
 
     ``camera`` must know its image distance (from the camera file, or a calibration's
@@ -346,6 +272,11 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     With ``[piv] uncertainty = "response"`` the chain's response is measured once per
     experiment, before its pairs: ``response_s`` estimates that time
     (:func:`plenopiv.workflow.response.response_seconds`), s.
+
+    The warnings and advice are :func:`plenopiv.workflow.judgement.judge`'s on the decided
+    subdivision (``seeding``: the particles per lenslet expected, judged too), after the
+    settings ``chosen`` for the user (:func:`~plenopiv.workflow.judgement.choose_unset`),
+    then the memory's.
     """
     from plenopiv.calibration.model import Calibration
     from plenopiv.reconstruction.choose import choose_reconstruction
@@ -365,7 +296,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     passes = piv.passes or len(windows)
     vectors = vectors_per_pass(grid.shape, windows, piv.overlap, passes)
     rec_vox = recommended_voxel(cam)
-    rec_grid = _snap_grid(grid, rec_vox)
+    rec_grid = snap_grid(grid, rec_vox)
     rec_win = recommended_windows(cam, rec_grid.voxel, rec_grid.shape)
     rec_vectors = vectors_per_pass(rec_grid.shape, rec_win, piv.overlap, len(rec_win))[-1]
 
@@ -390,18 +321,34 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
              else "benchmark rates (rates.BENCHMARK_RATES, docs/performance.md)")
     model = f"{model}, {rates.threads} threads"
 
-    warnings, advice = _advise(cam, grid, windows, vectors, piv.overlap, rec_grid, rec_win,
-                               memory, total_mem, choice.settings_projector, camera)
-    warnings = list(choice.fallbacks) + warnings
-    if choice.refusal is not None:
-        warnings.insert(0, f"plenopiv reconstruct refuses this box: {choice.refusal}")
+    findings = chosen + judge(cam, grid, reconstruction, piv, subdivision=choice.subdivision,
+                              particles_per_lenslet=seeding, advice=True)
+    warnings = ([f"plenopiv reconstruct refuses this box: {choice.refusal}"]
+                if choice.refusal is not None else []) + list(choice.fallbacks)
+    warnings += [f.text for f in findings if f.severity == "warning"]
+    warnings += _memory_warnings(memory, total_mem, choice.settings_projector)
+    advice = [f.text for f in findings if f.severity == "advice"]
+    if advice:
+        advice.append("recommended [piv] windows for the recommended voxel: "
+                      + " then ".join(str(list(w)) for w in rec_win))
     return Plan(camera=cam, grid=grid, windows=windows, passes=passes, overlap=piv.overlap,
                 vectors=vectors, recommended_voxel=tuple(rec_grid.voxel),
                 recommended_windows=rec_win, recommended_grid=rec_grid,
                 recommended_vectors=rec_vectors, n_rays=n_rays, nnz=nnz,
                 projector=choice.settings_projector, memory=memory, time=times,
                 time_model=model, available_memory=total_mem, warnings=tuple(warnings),
-                advice=tuple(advice), decision=choice, response_s=response_s)
+                advice=tuple(advice), decision=choice, response_s=response_s,
+                findings=findings, seeding=seeding)
+
+
+def _memory_warnings(memory: dict, total_mem: float, projector: str) -> list[str]:
+    """A warning when the reconstruction's peak memory nears the machine's (bytes)."""
+    if memory["peak"] <= 0.8 * total_mem:
+        return []
+    return [f"the reconstruction needs about {memory['peak'] / 1e9:.3g} GB, "
+            f"{memory['peak'] / total_mem:.0%} of this machine's {total_mem / 1e9:.3g} GB: use "
+            "larger voxels or a smaller box"
+            + ("" if projector == "lattice" else ", or [reconstruction] projector = \"lattice\"")]
 
 
 def _memory(choice, grid: VolumeGrid, nnz: int) -> dict:
@@ -455,128 +402,4 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
             "pair": t_weights + 2 * t_volume + t_piv,
             "pair_cached_weights": 2 * t_volume + t_piv}
 
-
-def _window_warnings(grid: VolumeGrid, windows, vectors) -> list[str]:
-    """Warnings when a pass's windows exceed the volume or the last pass gives < 3 vectors."""
-    warnings: list[str] = []
-    for k in range(len(vectors)):
-        w = windows[min(k, len(windows) - 1)]
-        short = [(ax, wk, nk) for ax, wk, nk in zip("zyx", w, grid.shape, strict=True) if wk > nk]
-        if short:
-            parts = []
-            for ax, wk, nk in short:
-                i = "xyz".index(ax)
-                need = wk * grid.voxel[i] * 1e3
-                parts.append(f"{ax}: window {wk} voxels > {nk} voxels of the volume; make "
-                             f"{ax}_mm span at least {need:.3g} mm")
-            warnings.append(f"the PIV windows of pass {k + 1} do not fit the volume "
-                            f"{list(grid.shape)} (z, y, x): {'; '.join(parts)}, or use "
-                            "smaller [piv] windows; every pair would fail with \"windows "
-                            "larger than the volume\"")
-            break
-    if all(min(v) > 0 for v in vectors):
-        last = vectors[-1]
-        thin = [ax for ax, n in zip("zyx", last, strict=True) if n < 3]
-        if thin:
-            warnings.append(f"the last pass gives {last[0]} × {last[1]} × {last[2]} vectors "
-                            f"(z, y, x): fewer than 3 along {', '.join(thin)}, so the median "
-                            "test has few neighbours there; enlarge the box or shrink the "
-                            "windows along it")
-    return warnings
-
-
-def _field_of_view_warnings(cam: Camera, grid: VolumeGrid) -> list[str]:
-    """A warning when the box reaches laterally beyond the field of view at the focal plane."""
-    b = grid.bounds * 1e3
-    fx, fy = (v * 1e3 for v in cam.field_of_view)
-    out = []
-    if b[0, 0] < -fx * 1.001 or b[0, 1] > fx * 1.001:
-        out.append(f"x_mm = [{_mm(b[0, 0])}, {_mm(b[0, 1])}] reaches beyond "
-                   f"±{fx:.3g} mm")
-    if b[1, 0] < -fy * 1.001 or b[1, 1] > fy * 1.001:
-        out.append(f"y_mm = [{_mm(b[1, 0])}, {_mm(b[1, 1])}] reaches beyond "
-                   f"±{fy:.3g} mm")
-    if out:
-        return [f"the box leaves the field of view at the focal plane: {'; '.join(out)}"
-                ": voxels outside are seen by few pixels and hold noise"]
-    return []
-
-
-def _voxel_advice(cam: Camera, grid: VolumeGrid, rec_grid: VolumeGrid) -> list[str]:
-    """Advice when the voxel is far from half a footprint laterally or a quarter depth cell."""
-    advice: list[str] = []
-    fp, cell = cam.footprint * 1e3, cam.depth_cell * 1e3
-    vx, vy, vz = (v * 1e3 for v in grid.voxel)
-    if vx > 0.75 * fp or vy > 0.75 * fp:
-        advice.append(f"lateral voxel {vx:.3g} mm is {vx / fp:.2g} footprint ({fp:.3g} mm): "
-                      "displacements lock to whole footprints (bias -0.10 footprint at a "
-                      "1.25-footprint shift, docs/validation/vortex.md); use "
-                      f"{rec_grid.voxel[0] * 1e3:.3g} mm (half a footprint)")
-    elif vx < 0.3 * fp:
-        advice.append(f"lateral voxel {vx:.3g} mm is {vx / fp:.2g} footprint: finer than a "
-                      "third of a footprint costs voxels without resolving more; "
-                      f"{rec_grid.voxel[0] * 1e3:.3g} mm is enough")
-    elong = cell / vz
-    if elong > 6:
-        advice.append(f"depth voxel {vz:.3g} mm is 1/{elong:.2g} of the depth cell "
-                      f"({cell:.3g} mm): a particle spans about {elong:.0f} voxels in depth; "
-                      f"use {rec_grid.voxel[2] * 1e3:.3g} mm (a quarter of the cell), which "
-                      "is what the windows below are sized for")
-    elif elong < 2:
-        advice.append(f"depth voxel {vz:.3g} mm is {1 / elong:.2g} depth cells: particles are "
-                      f"under two voxels long in depth; use {rec_grid.voxel[2] * 1e3:.3g} mm")
-    return advice
-
-
-def _window_advice(cam: Camera, grid: VolumeGrid, windows, rec_grid: VolumeGrid,
-                   rec_win) -> list[str]:
-    """Advice when the first or last windows differ much from the recommended physical size."""
-    advice: list[str] = []
-    # physical sizes: the voxels may differ
-    rv = np.array(rec_grid.voxel[::-1]) * 1e3                       # z, y, x in mm
-    own = np.array(grid.voxel[::-1]) * 1e3
-    for k, (w, r) in enumerate(zip((windows[0], windows[-1]), rec_win, strict=True)):
-        mine, theirs = np.array(w) * own, np.array(r) * rv
-        ratio = mine / theirs
-        if np.any(ratio < 0.6) or np.any(ratio > 1.7):
-            which = "first" if k == 0 else "last"
-            advice.append(f"the {which} window {list(w)} voxels is {_size(mine)} mm (z, y, x); "
-                          f"for this camera and box use about {_size(theirs)} mm, i.e. {list(r)} "
-                          "voxels of the recommended voxel")
-        if len(windows) == 1:
-            break
-    capped = [ax for ax, r, ful in zip("zyx", rec_win[-1],
-                                       recommended_windows(cam, rec_grid.voxel)[-1], strict=True)
-              if r < ful]
-    if capped:
-        advice.append(f"this box is small along {', '.join(capped)} for the validated windows "
-                      f"({WINDOW_FOOTPRINTS[-1]:g} footprints, {WINDOW_DEPTH_CELLS[-1]:g} depth "
-                      f"cells): the recommended windows are cut to give {MIN_VECTORS_LAST_PASS} "
-                      "vectors along every axis (finer, noisier vectors); a larger box keeps "
-                      "the validated size")
-    return advice
-
-
-def _advise(cam: Camera, grid: VolumeGrid, windows, vectors, overlap, rec_grid, rec_win,
-            memory, total_mem, projector, camera) -> tuple[list[str], list[str]]:
-    """Warnings (the run would fail or mislead) and concrete advice (what to change)."""
-    warnings = _window_warnings(grid, windows, vectors) + _field_of_view_warnings(cam, grid)
-    advice = _voxel_advice(cam, grid, rec_grid) + _window_advice(cam, grid, windows, rec_grid,
-                                                                 rec_win)
-    if advice:
-        advice.append("recommended [piv] windows for the recommended voxel: "
-                      + " then ".join(str(list(w)) for w in rec_win))
-    b = grid.bounds * 1e3
-    nf = cam.near_focus * 1e3
-    if b[2, 0] >= -nf and b[2, 1] <= nf:
-        advice.append(f"the whole box lies in the near-focus zone |Z| < {nf:.3g} mm, where a "
-                      "particle lights one lenslet and depth motion is under-measured: extend "
-                      "z_mm beyond it")
-    if memory["peak"] > 0.8 * total_mem:
-        warnings.append(f"the reconstruction needs about {memory['peak'] / 1e9:.3g} GB, "
-                        f"{memory['peak'] / total_mem:.0%} of this machine's "
-                        f"{total_mem / 1e9:.3g} GB: use larger voxels or a smaller box"
-                        + ("" if projector == "lattice" else
-                           ", or [reconstruction] projector = \"lattice\""))
-    return warnings, advice
 

@@ -20,18 +20,19 @@ from pathlib import Path
 
 import numpy as np
 
+from plenopiv.calibration.defects import DarkFrame
 from plenopiv.calibration.model import Calibration
 from plenopiv.errors import ConfigError, ImageError, PlenopivWarning
 from plenopiv.preprocess.background import batch_background
 from plenopiv.preprocess.condition import advice, image_condition
-from plenopiv.preprocess.dark import MasterDark, master_dark
+from plenopiv.preprocess.dark import master_dark
 from plenopiv.preprocess.microimages import MicroImages, gap_level, micro_images
-from plenopiv.preprocess.pixels import dark_defects, repair_pixels
+from plenopiv.preprocess.pixels import dark_defects
 from plenopiv.preprocess.stage import Frames, prepare_frames, prepare_image, prepare_pair
 from plenopiv.products.images import check_image, saturation
 
 __all__ = ["ATTRIBUTE", "ImagePreparation", "PreparedImage", "calibration_dark",
-           "form_batch_background", "subtract_calibration_dark", "union"]
+           "form_batch_background", "union"]
 
 #: The root attribute of every product that records what was applied (JSON).
 ATTRIBUTE = "preprocess"
@@ -296,11 +297,15 @@ def form_batch_background(specs, kind: str) -> tuple[np.ndarray, int]:
 # ---- the calibration's dark ------------------------------------------------------------------
 
 
-def calibration_dark(spec: str | Path, shape) -> tuple[MasterDark, np.ndarray, dict]:
-    """The dark of ``plenopiv calibrate --dark``: ``(master dark, bad pixels, record)``.
+def calibration_dark(spec: str | Path, shape) -> tuple[DarkFrame, dict]:
+    """The dark of ``plenopiv calibrate --dark``: ``(dark frame, record)``.
 
-    ``shape``: the sensor's (rows, cols). Hot and cold pixels of the dark
-    (:func:`~plenopiv.preprocess.pixels.dark_defects`) are the bad pixels.
+    ``shape``: the sensor's (rows, cols). The frame is the master dark (the frames' mean),
+    subtracted from every calibration image by
+    :func:`~plenopiv.calibration.calibrate.calibrate`, unclipped (clipped, the gaps' noise
+    becomes a positive floor that a flat field amplifies at the micro-images' rims); its
+    pixels to ignore are the dark's hot and cold ones
+    (:func:`~plenopiv.preprocess.pixels.dark_defects`).
 
     Raises
     ------
@@ -319,24 +324,7 @@ def calibration_dark(spec: str | Path, shape) -> tuple[MasterDark, np.ndarray, d
                          f"expected the sensor's {shape[0]} × {shape[1]} (rows × cols)")
     dark = master_dark(frames, name=f"--dark {str(spec)!r}")
     hot, cold = dark_defects(dark.mean)
-    bad = hot | cold
     record = {"file": str(spec), "sha256": file_identity(spec), "frames": dark.n_frames,
               "level_counts": dark.level, "noise_counts": dark.noise,
               "hot_pixels": int(hot.sum()), "cold_pixels": int(cold.sum())}
-    return dark, bad, record
-
-
-def subtract_calibration_dark(image, dark: MasterDark, bad, *, name: str) -> np.ndarray:
-    """A calibration image with the dark subtracted, clipped at 0, its bad pixels repaired.
-
-    Before the calibration the lattice is unknown: a bad pixel takes the median of its good
-    3 × 3 neighbours (any lenslet's).
-    """
-    img = np.asarray(image, dtype=np.float64)
-    if img.shape != dark.shape:
-        raise ImageError(f"{name} is {img.shape[0]} × {img.shape[1]} pixels but --dark is "
-                         f"{dark.shape[0]} × {dark.shape[1]}: expected frames of one sensor")
-    x = np.clip(img - dark.mean, 0.0, None)
-    if np.asarray(bad).any():
-        x, _ = repair_pixels(x, bad)
-    return x
+    return DarkFrame(np.asarray(dark.mean, np.float32), hot | cold), record

@@ -207,14 +207,15 @@ def _light_field_of(weights) -> LightField | None:
 
 
 def track_and_save(calibration: Calibration, image_a, image_b, result, experiment,
-                   out_dir, name: str, *, weights=None) -> dict:
+                   out_dir, name: str, *, weights=None, inputs=None) -> dict:
     """Batch hook (``[tracking] enabled``): track a processed pair, write ``NAME_tracks.h5``.
 
     ``result`` is the pair's :class:`plenopiv.workflow.pair.PairResult` (its ``preprocess``
     record goes into the tracks product; ``image_a``, ``image_b`` are the images it was
     reconstructed from); ``weights`` the reconstruction's
     (:class:`plenopiv.reconstruction.weights.Weights`), whose light field the tracking reuses
-    (built again without them); returns a small summary.
+    (built again without them); ``inputs``: the content hashes of ``image_a``, ``image_b``
+    and ``calibration``, recorded in its provenance; returns a small summary.
     """
     import time
     from pathlib import Path
@@ -222,6 +223,7 @@ def track_and_save(calibration: Calibration, image_a, image_b, result, experimen
     from plenopiv.products.jsonio import dumps
     from plenopiv.products.tracks import save_track_products
     from plenopiv.workflow.preprocess import ATTRIBUTE
+    from plenopiv.workflow.provenance import tracks_provenance
 
     t0 = time.perf_counter()
     rec = experiment.reconstruction
@@ -231,7 +233,10 @@ def track_and_save(calibration: Calibration, image_a, image_b, result, experimen
     pre = {} if result.preprocess is None else {ATTRIBUTE: dumps(result.preprocess)}
     paths = save_track_products(tracks, result.vectors, Path(out_dir) / f"{name}_tracks.h5",
                                 config=experiment.to_dict(), vtk=experiment.output.vtk,
-                                extra_attrs=pre)
+                                extra_attrs=pre, provenance=tracks_provenance(
+                                    experiment, inputs={k: v for k, v in (inputs or {}).items()
+                                                        if not k.startswith("mask_")},
+                                    record=result.preprocess))
     return {"tracks": paths["tracks"], "n_tracks": len(tracks),
             "track_s": round(time.perf_counter() - t0, 3)}
 

@@ -20,6 +20,7 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.particles.bundle import PARTICLE_BUNDLE, bundle_positions, lit_rays
 from plenopiv.particles.peaks import find_particles
 from plenopiv.particles.settings import ParticleSettings
+from plenopiv.particles.threshold import peak_threshold
 from plenopiv.products.images import check_image
 from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.build import weights_for
@@ -43,17 +44,16 @@ def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration:
     """Keywords of :func:`~plenopiv.particles.peaks.find_particles` for ``particles`` and a volume.
 
     The threshold is ``particles.threshold`` times the reference intensity (the 99.9th
-    percentile of the positive voxels, or the maximum). Unset separation and box follow the
+    percentile of the positive voxels, or the maximum), and at least ``particles.noise_sigmas``
+    noise deviations above the volume's background
+    (:func:`~plenopiv.particles.threshold.peak_threshold`). Unset separation and box follow the
     resolution cell (:func:`resolution_cell`) in voxels of ``grid``: peaks closer than one
     cell (1.5 cells laterally, so that diagonal neighbours merge) are one particle; the
     centroid box is ±1 cell.
     """
-    v = np.asarray(volume)
-    if particles.threshold_reference == "maximum":
-        ref = float(v.max())
-    else:
-        pos = v[v > 0]
-        ref = float(np.percentile(pos, 99.9)) if pos.size else 0.0
+    threshold = peak_threshold(volume, fraction=particles.threshold,
+                               reference=particles.threshold_reference,
+                               noise_sigmas=particles.noise_sigmas)
     lat, dep = resolution_cell(calibration.effective_camera, f_number)
     vx, vy, vz = (float(a) for a in grid.voxel)
     sep = particles.min_separation_vox
@@ -62,7 +62,7 @@ def particle_options(particles: ParticleSettings, grid: VolumeGrid, calibration:
     box = particles.box_vox
     if box is None:
         box = tuple(max(1, int(round(c / d))) for c, d in ((dep, vz), (lat, vy), (lat, vx)))
-    return {"threshold": particles.threshold * ref, "method": particles.method,
+    return {"threshold": threshold, "method": particles.method,
             "min_separation_vox": tuple(sep), "box_vox": tuple(box),
             "fit_spacing_vox": particles.fit_spacing_vox}
 
@@ -72,7 +72,8 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
                        particles: ParticleSettings = _DEFAULT_PARTICLES,
                        weights: Weights | None = None, cache_dir: str | Path | None = None,
                        progress: Progress = None, image_mask=None,
-                       checked: bool = False) -> VolumeResult:
+                       checked: bool = False, solver: str | None = None,
+                       solver_options: dict | None = None) -> VolumeResult:
     """Reconstruct one image into a volume and extract its particles.
 
     Parameters
@@ -99,6 +100,9 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
         (:class:`plenopiv.workflow.preprocess.ImagePreparation`: counts ≥ 0, the sensor's
         shape), so :func:`~plenopiv.products.images.check_image` is not run again (its
         warnings were given once, for the image as recorded).
+    solver, solver_options : optional
+        A least-squares solver instead of ``settings.method``
+        (:func:`~plenopiv.reconstruction.solve.solve_volume`).
 
     Notes
     -----
@@ -141,7 +145,8 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t1 = time.perf_counter()
     vol = solve_volume(weights, img, settings, image_mask=image_mask, geometry=geometry,
                        callback=None if progress is None else report,
-                       footprint=footprint(calibration.effective_camera))
+                       footprint=footprint(calibration.effective_camera), solver=solver,
+                       solver_options=solver_options)
     if ky > 1 or kx > 1:            # the working voxels back onto the volume's grid
         vol = merge_subdivided(vol, ky, kx, kernel=settings.subdivision_kernel)
     t["mart_s"] = time.perf_counter() - t1

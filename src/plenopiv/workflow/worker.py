@@ -63,25 +63,58 @@ class ExperimentPairProcess:
             warnings.simplefilter("always", PlenopivWarning)
             res = processor(ia, ib, names=(f"image {str(job.image_a)!r}",
                                            f"image {str(job.image_b)!r}"))
+            judged = _pair_judgement(exp, cal, res)
         said = [str(w.message) for w in caught if issubclass(w.category, PlenopivWarning)]
         for w in caught:
             if not issubclass(w.category, PlenopivWarning):
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         extra = {"image_a": str(job.image_a), "image_b": str(job.image_b)}
-        if getattr(job, "identity", None) is not None:
-            extra["identity"] = dumps(dict(job.identity), sort_keys=True)
+        identity = getattr(job, "identity", None)
+        if identity is not None:
+            extra["identity"] = dumps(dict(identity), sort_keys=True)
+        inputs = _inputs_of(identity)
         tracked = {}
         if exp.tracking.enabled:  # before the vectors file, which marks the pair complete
             from plenopiv.workflow.tracking import track_and_save
 
             tracked = track_and_save(cal, res.images[0].image, res.images[1].image, res, exp,
-                                     self.out_dir, job.name, weights=processor.weights())
-        paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra)
+                                     self.out_dir, job.name, weights=processor.weights(),
+                                     inputs=inputs)
+        paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra, inputs=inputs,
+                          judgement=judged.record())
         vec = res.vectors
         return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),
                 "n_particles_a": len(res.volume_a.particle_position),
                 **{k: round(v, 3) for k, v in res.timings.items()}, **tracked,
                 **({"warnings": said} if said else {})}
+
+
+def _inputs_of(identity) -> dict | None:
+    """The content hashes a pair's products record, from its job's identity (None: none)."""
+    if identity is None:
+        return None
+    return {**{k: identity.get(k) for k in ("image_a", "image_b", "calibration")},
+            **(identity.get("mask") or {})}
+
+
+def _pair_judgement(exp, cal: Calibration, res):
+    """The judgement of a pair's settings and seeding; the seeding's finding is warned.
+
+    The settings were said by ``plenopiv run`` before the pairs; each pair's seeding (the
+    mean of its two particle tables) is its own.
+    """
+    import warnings
+
+    from plenopiv.errors import PlenopivWarning
+    from plenopiv.workflow.judgement import camera_resolution, judge_experiment
+
+    cam = camera_resolution(cal.effective_camera, exp.reconstruction.f_number)
+    _, judged = judge_experiment(exp, cam)
+    n = 0.5 * (len(res.volume_a.particle_position) + len(res.volume_b.particle_position))
+    judged, seeding = judged.with_seeding(n, piv=exp.piv)
+    if seeding is not None:
+        warnings.warn(seeding.text, PlenopivWarning, stacklevel=2)
+    return judged
 
 
 #: The :class:`PairProcessor` this process keeps, with its key (:func:`worker_processor`).
@@ -117,8 +150,13 @@ def worker_processor(experiment_path: str | Path, calibration_path: str | Path,
 
             _WORKER_PROCESSOR.clear()
             prefer_small_pages()    # a batch worker's process is the batch's own
+            from plenopiv.workflow.judgement import camera_resolution, judge_experiment
+
             exp = load_experiment(experiment_path)
             cal = experiment_calibration(exp, calibration_path)
+            # the settings left unset, chosen as plenopiv run chose them
+            exp, _ = judge_experiment(exp, camera_resolution(cal.effective_camera,
+                                                             exp.reconstruction.f_number))
             batch, record = None, None
             if background is not None:
                 from plenopiv.products.files import file_identity
