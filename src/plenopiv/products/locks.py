@@ -140,8 +140,12 @@ def _create(path: Path, record: dict) -> bool:
         return False
     try:
         os.write(fd, (dumps(record) + "\n").encode())
-    finally:
+    except BaseException:                    # a stop (or a full disk) half way: no torso left
         os.close(fd)
+        with contextlib.suppress(OSError):
+            path.unlink()
+        raise
+    os.close(fd)
     return True
 
 
@@ -256,8 +260,12 @@ class OutputLock:
         return True
 
     def release(self) -> None:
-        """Remove the lock file if it is still this process's; an empty folder made here too."""
-        if not self.held or self.record["pid"] != os.getpid():
+        """Remove the lock file if it is still this process's; an empty folder made here too.
+
+        Whether it is this process's is read from the file (its record), so a stop between
+        creating the file and noting it held still removes it.
+        """
+        if self.record["pid"] != os.getpid():
             return
         self.held = False
         if read_lock(self.path) == self.record:
@@ -289,8 +297,13 @@ class _Scope:
             return self.locks[key]
         if not folder:
             self._refuse_inside_locked_folder(output, what)
-        lock = OutputLock(output, folder=folder, command=self.command, what=what).acquire()
-        self.locks[key] = lock
+        lock = OutputLock(output, folder=folder, command=self.command, what=what)
+        self.locks[key] = lock                   # released on leaving, however acquire ends
+        try:
+            lock.acquire()
+        except OutputError:
+            del self.locks[key]
+            raise
         if self.beat is None:
             self.beat = threading.Thread(target=self._heartbeat, name=HEARTBEAT_THREAD,
                                          daemon=True)
