@@ -295,6 +295,10 @@ MEANINGS = {
     "experiment:batch.workers": "local worker processes",
     "experiment:batch.threads_per_worker": "numba threads of each worker",
     "experiment:batch.retries": "more runs of a pair whose worker process died",
+    "experiment:batch.connect_timeout_s": "how long a scheduler address (`cluster = "
+                                          "\"tcp://host:8786\"`) has to answer as a dask "
+                                          "scheduler; what answered otherwise (nothing, an "
+                                          "HTTP server, other bytes) is an error",
     "experiment:batch.queue": "SLURM partition",
     "experiment:batch.cores": "cores per SLURM job",
     "experiment:batch.memory": "memory per SLURM job",

@@ -293,6 +293,10 @@ CASES = [
      "{d}/pre_uniform.toml --out {d}/v.h5", 2, "'uniform.tif' shows no micro-image structure"),
     ("preprocess-minimum-for-one-image", "reconstruct {d}/cal.h5 {d}/a.tif --config "
      "{d}/pre_minimum.toml --out {d}/v.h5", 2, '[preprocess] background = "minimum" is the'),
+    ("track-out-is-image", "track {d}/cal.h5 {d}/img.h5:/image {d}/a.tif --config "
+     "{d}/exp.toml --out {d}/img.h5", 2, "is the input"),
+    ("track-out-is-volume-a", "track {d}/cal.h5 {d}/a.tif {d}/a.tif --config {d}/exp.toml "
+     "--volume-a {d}/va.h5 --out {d}/va.h5", 2, "is the input"),
     ("preprocess-minimum-for-one-pair", "track {d}/cal.h5 {d}/a.tif {d}/a.tif --config "
      "{d}/pre_minimum.toml --out {d}/t.h5 --json", 2, "give the path of a background image"),
     ("preprocess-unknown-key", "reconstruct {d}/cal.h5 {d}/a.tif --config {d}/pre_unknown.toml "

@@ -13,6 +13,7 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import load_camera
 from plenopiv.camera.resolution import footprint
 from plenopiv.errors import ReconstructionError
+from plenopiv.lightfield.rays import light_field_build_bytes
 from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.choose import choose_reconstruction, subdivided_grid
 from plenopiv.reconstruction.lattice import LatticeProjector
@@ -121,7 +122,9 @@ def test_budgets_methods_and_lattices_decide_alike(name):
     explicit = choose_reconstruction(cal, deep, ReconstructionSettings(lateral_subdivision=1,
                                                                        projector="sparse"))
     assert 2 * free.memory_bytes < explicit.memory_bytes
-    tight = 1.01 * free.memory_bytes / 1e9
+    # building the light field comes first and has its own peak: a budget must hold it too
+    tight = 1.01 * max(free.memory_bytes, light_field_build_bytes(cal)) / 1e9
+    assert tight < explicit.memory_bytes / 1e9
     cases = [(box(cam, 1.0), dict(method="mart")),
              (box(cam, 1.0), dict(method="mart", lateral_subdivision=2)),
              (deep, dict(projector="lattice", lateral_subdivision=1)),
@@ -143,9 +146,14 @@ def test_auto_subdivision_falls_back_where_nothing_fits():
     reconstruction both take a coarser subdivision, and the reconstruction warns why."""
     cam = camera("small_test+rotated")
     cal = Calibration.from_camera(cam)
-    deep = deep_box(cam)
+    b = footprint(cam)
+    # slices an eighth of a footprint deep: a budget between the two subdivisions' needs
+    # holds building the light field too
+    deep = VolumeGrid.from_bounds((-15 * b, 15 * b), (-10 * b, 10 * b), (-24 * b, 24 * b),
+                                  voxel=(b, b, b / 8))
     need = [choose_reconstruction(cal, deep, ReconstructionSettings(
         lateral_subdivision=k, projector="lattice")).memory_bytes for k in (2, 3)]
+    assert sum(need) / 2 > light_field_build_bytes(cal)
     s = ReconstructionSettings(projector="lattice", max_weights_gb=sum(need) / 2e9)
     d = choose_reconstruction(cal, deep, s)
     assert d.refusal is None and d.subdivision == (2, 2) and len(d.fallbacks) == 1

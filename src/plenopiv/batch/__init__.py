@@ -29,6 +29,7 @@ from typing import Any
 from plenopiv.batch.cluster import (
     _LOCAL_OPTIONS,
     _SLURM_OPTIONS,
+    CONNECT_TIMEOUT_S,
     THREAD_ENV_VARS,
     _check_options,
     _cluster_kind,
@@ -37,6 +38,7 @@ from plenopiv.batch.cluster import (
     _open_client,
     _positive_int,
     batch_options,
+    probe_scheduler,
     slurm_cluster_kwargs,
     thread_env,
 )
@@ -82,6 +84,7 @@ __all__ = [
     "product_identity",
     "run_batch",
     "slurm_cluster_kwargs",
+    "stopped_before_start",
     "thread_env",
 ]
 
@@ -337,10 +340,13 @@ def _default_summary_path(jobs: Sequence[PairJob]) -> Path:
 
 def check_batch_options(*, cluster: str = "local", n_workers: int | None = None,
                         threads_per_worker: int | None = None, retries: int = 2,
-                        cluster_options: Mapping | None = None) -> None:
+                        cluster_options: Mapping | None = None,
+                        connect_timeout: float = CONNECT_TIMEOUT_S) -> None:
     """Check the cluster options of :func:`run_batch` without starting anything.
 
-    A command can then refuse them before its own long preparations.
+    A command can then refuse them before its own long preparations; a scheduler address
+    must answer as a dask scheduler within ``connect_timeout`` seconds
+    (:func:`~plenopiv.batch.cluster.probe_scheduler`).
     """
     kind = _cluster_kind(cluster)
     _positive_int(n_workers, "n_workers")
@@ -348,13 +354,24 @@ def check_batch_options(*, cluster: str = "local", n_workers: int | None = None,
     _positive_int(retries, "retries", allow_none=False, minimum=0)
     allowed = {"local": _LOCAL_OPTIONS, "slurm": _SLURM_OPTIONS}.get(kind, ())
     _check_options(cluster_options, allowed, kind)
+    _check_timeout(connect_timeout)
+    if kind == "address":
+        probe_scheduler(cluster, connect_timeout)
+
+
+def _check_timeout(value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not 0 < value < float("inf"):
+        raise ConfigError(f"connect_timeout {value!r}: expected a finite number of seconds > 0")
+    return float(value)
 
 
 def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
               cluster: str = "local", n_workers: int | None = None,
               threads_per_worker: int | None = None, resume: bool = True, retries: int = 2,
               progress: bool = True, cluster_options: Mapping | None = None,
-              summary_path: str | Path | None = None) -> BatchSummary:
+              summary_path: str | Path | None = None,
+              connect_timeout: float = CONNECT_TIMEOUT_S) -> BatchSummary:
     """Run ``process`` on every job on dask worker processes; resumable and fault tolerant.
 
     Parameters
@@ -395,6 +412,8 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
     summary_path : str or Path, optional
         Where to write the JSON summary (default: ``batch_summary.json`` in the products'
         common folder). Written atomically, failures included.
+    connect_timeout : float
+        Seconds a scheduler address has to answer as one (else a ``ConfigError``).
 
     Returns
     -------
@@ -417,7 +436,7 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
     jobs = _check_jobs(jobs)
     _check_process(process)
     kind, n_workers, threads, retries, options, slots = _cluster_plan(
-        cluster, n_workers, threads_per_worker, retries, cluster_options)
+        cluster, n_workers, threads_per_worker, retries, cluster_options, connect_timeout)
     summary_file = Path(summary_path) if summary_path else _default_summary_path(jobs)
 
     t0 = time.perf_counter()
@@ -426,7 +445,8 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
     interrupted = None
     try:
         if todo:
-            with _open_client(kind, cluster, n_workers, threads, retries, options) as client:
+            with _open_client(kind, cluster, n_workers, threads, retries, options,
+                              connect_timeout) as client:
                 _submit_and_collect(client, todo, process, results,
                                     threads=threads if kind != "address" else None,
                                     slots=slots, retries=retries, progress=progress,
@@ -446,6 +466,27 @@ def run_batch(jobs: Sequence[PairJob], process: Callable[[PairJob], dict], *,
     if interrupted is not None:
         raise _interruption(interrupted, summary, summary_file)
     return summary
+
+
+def stopped_before_start(jobs: Sequence[PairJob], stop: KeyboardInterrupt, *,
+                         resume: bool = True, summary_path: str | Path | None = None
+                         ) -> BatchInterrupted:
+    """The :class:`BatchInterrupted` of a batch stopped while it prepared, its summary written.
+
+    A command that prepares before :func:`run_batch` (weights, the response) calls this on a
+    Ctrl-C or SIGTERM, so that ``batch_summary.json`` describes this run, not an earlier one:
+    pairs whose complete product was made with their identity are ``skipped`` (jobs
+    without an identity are not checked), every other ``interrupted``.
+    """
+    jobs = _check_jobs(jobs)
+    summary_file = Path(summary_path) if summary_path else _default_summary_path(jobs)
+    known = resume and all(j.identity is not None for j in jobs)
+    results, recomputed, _ = _jobs_to_run(jobs, known)
+    for job in jobs:
+        results.setdefault(job.name, JobResult(job.name, "interrupted", str(job.output)))
+    summary = _write_summary(tuple(results[j.name] for j in jobs), summary_file, seconds=0.0,
+                             recomputed=tuple(recomputed))
+    return _interruption(stop, summary, summary_file)
 
 
 def _interruption(stop: KeyboardInterrupt, summary, summary_file) -> BatchInterrupted:
@@ -474,14 +515,15 @@ def _write_summary(ordered: tuple[JobResult, ...], summary_file: Path, **fields
     return summary
 
 
-def _cluster_plan(cluster: str, n_workers, threads_per_worker, retries, cluster_options
-                  ) -> tuple:
-    """Checked cluster options of :func:`run_batch`.
+def _cluster_plan(cluster: str, n_workers, threads_per_worker, retries, cluster_options,
+                  connect_timeout=CONNECT_TIMEOUT_S) -> tuple:
+    """Checked cluster options of :func:`run_batch` (``connect_timeout`` checked, not kept).
 
     Returns ``(kind, n_workers, threads, retries, options, slots)``; ``slots`` is the number
     of pairs run at once when known before the cluster starts (else None).
     """
     kind = _cluster_kind(cluster)
+    _check_timeout(connect_timeout)
     slots = None
     n_workers = _positive_int(n_workers, "n_workers")
     threads = _positive_int(threads_per_worker, "threads_per_worker")

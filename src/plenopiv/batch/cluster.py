@@ -8,6 +8,7 @@ of a running scheduler; each worker's numba/BLAS/OpenMP threads pinned to
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
 import re
@@ -49,6 +50,117 @@ def _cluster_kind(cluster: str) -> str:
         return "address"
     raise ConfigError(f"cluster {cluster!r}: expected 'local', 'slurm' or a scheduler address "
                       "such as 'tcp://host:8786'")
+
+
+#: Default seconds to wait for a scheduler address to answer (``[batch] connect_timeout_s``).
+CONNECT_TIMEOUT_S = 10.0
+#: What a dask server says first on a connection: a frame holding its handshake.
+_HANDSHAKE_KEY = b"pickle-protocol"
+_MAX_HANDSHAKE_BYTES = 1 << 16
+
+
+def _host_port(address: str) -> tuple[str, str, int] | None:
+    """``(scheme, host, port)`` of a scheduler address; None where it is not TCP-like."""
+    scheme, sep, rest = address.partition("://")
+    if not sep:
+        scheme, rest = "tcp", address
+    if scheme not in ("tcp", "tls"):
+        return None
+    host, _, port = rest.rstrip("/").rpartition(":")
+    try:
+        return scheme, host.strip("[]"), int(port)
+    except ValueError:
+        return None
+
+
+def _read_some(sock, n: int, deadline: float) -> bytes:
+    """Up to ``n`` bytes from ``sock`` before ``deadline`` (time.monotonic); fewer on EOF."""
+    import socket
+    import time
+
+    data = b""
+    while len(data) < n:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            break
+        sock.settimeout(left)
+        try:
+            chunk = sock.recv(n - len(data))
+        except (TimeoutError, socket.timeout, OSError):   # no answer in time, or a reset
+            break
+        if not chunk:
+            break
+        data += chunk
+    return data
+
+
+def _what_answered(sock, first: bytes, timeout: float) -> str | None:
+    """Why the bytes a server sent first (``first``) are not a dask handshake; None if they are.
+
+    A server that says nothing is asked ``GET /`` to tell an HTTP server (a dashboard).
+    """
+    import struct
+    import time
+
+    if not first:
+        try:
+            sock.sendall(b"GET / HTTP/1.0\r\nHost: plenopiv\r\n\r\n")
+        except OSError:
+            return "it accepted the connection and closed it without a word"
+        reply = _read_some(sock, 64, time.monotonic() + min(timeout, 2.0))
+        if reply.startswith(b"HTTP/"):
+            return ("an HTTP server answered, not a dask scheduler (a dashboard? dask's "
+                    "scheduler listens on 8786 by default, its dashboard on 8787)")
+        return (f"it accepted the connection but sent no dask handshake within {timeout:g} s "
+                "(or closed it): not a dask scheduler")
+    if first.startswith(b"HTTP/"):
+        return "an HTTP server answered, not a dask scheduler"
+    (n,) = struct.unpack("<Q", first[:8].ljust(8, b"\0"))
+    body = b""
+    if len(first) == 8 and 0 < n <= _MAX_HANDSHAKE_BYTES:
+        body = _read_some(sock, n, time.monotonic() + timeout)
+    if _HANDSHAKE_KEY in body:
+        return None
+    return f"something answered that is not a dask scheduler (its first bytes: {first[:8]!r})"
+
+
+def probe_scheduler(address: str, timeout: float = CONNECT_TIMEOUT_S) -> None:
+    """Check that a dask scheduler answers at ``address`` within ``timeout`` seconds.
+
+    Raises
+    ------
+    ConfigError
+        Saying what answered: nothing (an unknown host, a refused connection, no answer in
+        time) or something that is not a dask scheduler (an HTTP server, other bytes). TLS
+        addresses are checked up to the connection; other protocols are left to dask.
+    """
+    import socket
+    import time
+
+    parts = _host_port(address)
+    if parts is None:
+        return
+    scheme, host, port = parts
+    where = f"the dask scheduler address {address!r}"
+    try:
+        sock = socket.create_connection((host, port), timeout=timeout)
+    except socket.gaierror as exc:
+        raise ConfigError(f"{where}: host {host!r} is not known ({exc.strerror})") from None
+    except (TimeoutError, socket.timeout):
+        raise ConfigError(f"{where}: nothing answered within {timeout:g} s (a host that is "
+                          "down, unreachable, or a firewall; [batch] connect_timeout_s sets "
+                          "the wait)") from None
+    except ConnectionRefusedError:
+        raise ConfigError(f"{where}: nothing listens on port {port} of {host} (connection "
+                          "refused); is the scheduler running, on this port?") from None
+    except OSError as exc:
+        raise ConfigError(f"{where}: cannot connect ({exc.strerror or exc})") from None
+    with sock:
+        if scheme == "tls":
+            return
+        why = _what_answered(sock, _read_some(sock, 8, time.monotonic() + timeout), timeout)
+    if why is not None:
+        raise ConfigError(f"{where}: {why}")
 
 
 def _positive_int(value, what: str, *, allow_none: bool = True, minimum: int = 1):
@@ -167,6 +279,30 @@ def _sigint_ignored() -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def _sigterm_deferred() -> Iterator[None]:
+    """Hold a SIGTERM that arrives while a cluster starts until it can be closed.
+
+    The signal is recorded and raised again on leaving, where the cluster and its client are
+    registered for closing: a cluster stopped half way through its start leaves workers that
+    nothing closes (and dask's exit handler fails on them with a traceback).
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = []
+    old = signal.signal(signal.SIGTERM, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        if received:
+            signal.raise_signal(signal.SIGTERM)      # now handled as it would have been
+
+
+@contextlib.contextmanager
 def _scoped_environ(updates: Mapping[str, str], restore: Sequence[str] = ()) -> Iterator[None]:
     """Set ``updates`` in ``os.environ``; on exit restore them and the keys ``restore``."""
     keys = set(updates) | set(restore)
@@ -182,18 +318,36 @@ def _scoped_environ(updates: Mapping[str, str], restore: Sequence[str] = ()) -> 
                 os.environ[k] = v
 
 
-def _quick_exit_plugin():
-    """A worker plugin that freezes the garbage collector when its worker closes.
+class _HeartbeatOfAStoppedBatch:
+    """A logging filter: a worker's failed heartbeat once its batch's scheduler is gone.
 
-    A worker that compiled the numba kernels holds millions of objects; the interpreter's
-    last garbage collection at exit then outlasts the nanny's 4 s grace and the worker is
-    killed with a warning ("Worker process still alive after 4.0 seconds, killing").
-    Frozen objects are skipped by that collection: the worker exits in well under a second.
+    The scheduler of a batch goes away only when the batch ends or is stopped (Ctrl-C,
+    SIGTERM); a worker busy with a pair then logs the failed heartbeat with a traceback on
+    the batch's stderr, after the batch's own one-line message.
+    """
+
+    def filter(self, record) -> bool:
+        return not str(record.msg).startswith("Failed to communicate with scheduler during "
+                                              "heartbeat")
+
+
+def _quick_exit_plugin():
+    """A worker plugin: quiet about the end of its batch, and quick to exit.
+
+    It filters the failed heartbeat of a stopped batch (:class:`_HeartbeatOfAStoppedBatch`)
+    and freezes the garbage collector when its worker closes: a worker that compiled the
+    numba kernels holds millions of objects; the interpreter's last garbage collection at
+    exit then outlasts the nanny's 4 s grace and the worker is killed with a warning
+    ("Worker process still alive after 4.0 seconds, killing"). Frozen objects are skipped
+    by that collection: the worker exits in well under a second.
     """
     from distributed import WorkerPlugin
 
     class QuickExit(WorkerPlugin):
         name = "plenopiv-quick-exit"
+
+        def setup(self, worker):
+            logging.getLogger("distributed.worker").addFilter(_HeartbeatOfAStoppedBatch())
 
         def teardown(self, worker):
             import gc
@@ -205,8 +359,13 @@ def _quick_exit_plugin():
 
 @contextlib.contextmanager
 def _open_client(kind: str, cluster: str, n_workers: int | None, threads: int | None,
-                 retries: int, options: dict) -> Iterator[Any]:
-    """Yield a connected ``Client``; clusters started here are closed on exit, always."""
+                 retries: int, options: dict, connect_timeout: float = CONNECT_TIMEOUT_S
+                 ) -> Iterator[Any]:
+    """Yield a connected ``Client``; clusters started here are closed on exit, always.
+
+    A scheduler address is probed first (:func:`probe_scheduler`) and the connection bounded
+    by ``connect_timeout`` seconds.
+    """
     import dask
     from distributed import Client
 
@@ -216,10 +375,12 @@ def _open_client(kind: str, cluster: str, n_workers: int | None, threads: int | 
     sched_cfg = {"distributed.scheduler.allowed-failures": retries,
                  "distributed.scheduler.worker-saturation": 1.0}
     if kind == "address":
+        probe_scheduler(cluster, connect_timeout)
         try:
-            client = Client(cluster, timeout="20s", set_as_default=False)
-        except (OSError, TimeoutError) as exc:
-            raise ConfigError(f"cannot reach the dask scheduler at {cluster!r}: {exc}") from None
+            client = Client(cluster, timeout=f"{connect_timeout}s", set_as_default=False)
+        except Exception as exc:  # noqa: BLE001 - whatever dask raises, one clear line
+            raise ConfigError(f"the dask scheduler at {cluster!r} answered but the connection "
+                              f"failed: {type(exc).__name__}: {exc}") from None
         try:
             yield client
         finally:
@@ -238,20 +399,23 @@ def _open_client(kind: str, cluster: str, n_workers: int | None, threads: int | 
         stack.enter_context(_scoped_environ(blas, restore=[*spawn_keys, "PYTHONHASHSEED",
                                                            "__DASK_PARENT_PID"]))
         stack.enter_context(dask.config.set(sched_cfg))
-        if kind == "local":
-            from distributed import LocalCluster
+        with _sigterm_deferred():      # a cluster half started could not be closed
+            if kind == "local":
+                from distributed import LocalCluster
 
-            kw = {"dashboard_address": ":0", **options}  # a free port: no clash with another batch
-            with _sigint_ignored():
-                cl = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                                  env=env, **kw)
-        else:
-            cl = _slurm_cluster(options, threads, n_workers)
-        stack.callback(cl.close)
-        client = Client(cl, set_as_default=False)
-        stack.callback(client.close)
-        register = getattr(client, "register_plugin", None) or client.register_worker_plugin
-        register(_quick_exit_plugin())
+                # a free port: no clash with another batch; the workers' log lines at ERROR
+                # and above only (their warnings as a batch stops are not the user's concern)
+                kw = {"dashboard_address": ":0", "silence_logs": logging.ERROR, **options}
+                with _sigint_ignored():
+                    cl = LocalCluster(n_workers=n_workers, threads_per_worker=1,
+                                      processes=True, env=env, **kw)
+            else:
+                cl = _slurm_cluster(options, threads, n_workers)
+            stack.callback(cl.close)
+            client = Client(cl, set_as_default=False)
+            stack.callback(client.close)
+            register = getattr(client, "register_plugin", None) or client.register_worker_plugin
+            register(_quick_exit_plugin())
         yield client
 
 
@@ -283,18 +447,21 @@ def batch_options(batch: Mapping) -> dict:
     ``cluster``, ``workers`` (→ ``n_workers``), ``threads_per_worker`` and ``retries`` are
     options of :func:`run_batch`; ``queue``, ``account``, ``cores``, ``processes``, ``memory``,
     ``walltime``, ``jobs`` and the other SLURM keys go to ``cluster_options`` (used only with
-    ``cluster = "slurm"``). Keys that are None are left out.
+    ``cluster = "slurm"``); ``connect_timeout_s`` becomes ``connect_timeout``. Keys that are
+    None are left out.
     """
     b = {k: v for k, v in dict(batch).items() if v is not None}
     out: dict[str, Any] = {}
     for key, arg in (("cluster", "cluster"), ("workers", "n_workers"),
-                     ("threads_per_worker", "threads_per_worker"), ("retries", "retries")):
+                     ("threads_per_worker", "threads_per_worker"), ("retries", "retries"),
+                     ("connect_timeout_s", "connect_timeout")):
         if key in b:
             out[arg] = b.pop(key)
     unknown = sorted(set(b) - set(_SLURM_OPTIONS))
     if unknown:
         raise ConfigError(f"[batch] unknown key {unknown[0]!r}; expected some of cluster, "
-                          f"workers, threads_per_worker, retries, {', '.join(_SLURM_OPTIONS)}")
+                          "workers, threads_per_worker, retries, connect_timeout_s, "
+                          f"{', '.join(_SLURM_OPTIONS)}")
     if out.get("cluster", "local") == "slurm":
         out["cluster_options"] = b
     return out

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -49,6 +50,7 @@ from plenopiv.errors import (
     Terminated,
 )
 from plenopiv.products.jsonio import to_json
+from plenopiv.products.locks import output_locks
 from plenopiv.resources import prefer_small_pages
 
 __all__ = ["build_parser", "main"]
@@ -177,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
                 return exc.code if isinstance(exc.code, int) else 0
             command = args.command if args.command != "simulate" else f"simulate {args.kind}"
             as_json = bool(getattr(args, "json", as_json))
-            summary = args.func(args)
+            with output_locks(shlex.join(["plenopiv", *argv])):
+                summary = args.func(args)
     except PlenopivError as exc:
         return _report_failure(exc, exc.exit_status, command, as_json, warned)
     except KeyboardInterrupt as stop:

@@ -191,9 +191,20 @@ def _camera_from_args(args) -> CameraModel:
         cam = cam.with_image_distance(args.image_distance_mm * 1e-3,
                                       origin="--image-distance-mm")
     if getattr(args, "lenslets", None) is not None:
-        if min(args.lenslets) < 1:
-            raise ConfigError(f"--lenslets {args.lenslets[0]} {args.lenslets[1]}: expected two "
-                              "positive lenslet counts ROWS COLS")
+        check_lenslets(args.lenslets, cam)
         cam = cam.patch(*args.lenslets)
     check_sensor(cam)
     return cam
+
+
+def check_lenslets(lenslets, camera: CameraModel) -> None:
+    """``--lenslets ROWS COLS``: a patch of the camera, so from 1 to its own lenslet counts.
+
+    More lenslets than the camera has would render a sensor larger than the camera's.
+    """
+    rows, cols = camera.microlens_array.rows, camera.microlens_array.cols
+    if not all(1 <= n <= most for n, most in zip(lenslets, (rows, cols), strict=True)):
+        raise ConfigError(f"--lenslets {lenslets[0]} {lenslets[1]}: expected a patch of the "
+                          f"camera, 1 to {rows} rows and 1 to {cols} columns of lenslets "
+                          f"({camera.name!r}: {camera.sensor.rows} x {camera.sensor.cols} "
+                          "pixels)")

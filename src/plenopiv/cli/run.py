@@ -25,14 +25,14 @@ def add_parser(sub) -> None:
 
 
 def cmd_run(args) -> dict:
-    """Many pairs end to end on dask (local processes, SLURM, or a running scheduler)."""
-    from plenopiv.batch import BatchInterrupted, check_batch_options, pending_jobs, run_batch
+    """Many pairs end to end on dask (local processes, SLURM, or a running scheduler).
+
+    The output folder is locked first (one batch per folder); a stop (Ctrl-C, SIGTERM) while
+    the batch prepares writes its summary too, every pair not started ``interrupted``.
+    """
+    from plenopiv.batch import check_batch_options, stopped_before_start
     from plenopiv.batch.cluster import batch_options
     from plenopiv.config.experiment import load_experiment
-    from plenopiv.errors import ComputationError
-    from plenopiv.resources import check_grid
-    from plenopiv.workflow.experiment import experiment_calibration
-    from plenopiv.workflow.worker import ExperimentPairProcess, prepare_response, prepare_weights
 
     _integer("--workers", args.workers, minimum=1, maximum=4096)
     exp = load_experiment(args.experiment)
@@ -52,7 +52,21 @@ def cmd_run(args) -> dict:
     out_dir = exp.path(exp.output.directory)
     check_output_path(out_dir, what="[output] directory", folder=True)
     jobs = batch_jobs(exp)
-    cal_path = exp.path(im.calibration)
+    try:
+        return _prepare_and_run(args, exp, jobs, out_dir, opts)
+    except KeyboardInterrupt as stop:        # stopped before the pairs started
+        raise stopped_before_start(jobs, stop, resume=args.resume) from None
+
+
+def _prepare_and_run(args, exp, jobs, out_dir, opts) -> dict:
+    """What the pairs share (calibration, background, weights, response), then the batch."""
+    from plenopiv.batch import BatchInterrupted, pending_jobs, run_batch
+    from plenopiv.errors import ComputationError
+    from plenopiv.resources import check_grid
+    from plenopiv.workflow.experiment import experiment_calibration
+    from plenopiv.workflow.worker import ExperimentPairProcess, prepare_response, prepare_weights
+
+    cal_path = exp.path(exp.images.calibration)
     _check_products_spare_inputs(jobs, [args.experiment, cal_path])
     cal = experiment_calibration(exp, cal_path)
     # the settings judged before any pair (each worker chooses the unset ones the same way)

@@ -6,8 +6,9 @@ import time
 
 import numpy as np
 
-from plenopiv.cli._common import _add_common, _add_example, _check_out
+from plenopiv.cli._common import _add_common, _add_example, _check_out, _input_files
 from plenopiv.cli._judgement import JUDGEMENT, experiment_judgement, report
+from plenopiv.products.files import check_output_path
 
 
 def add_parser(sub) -> None:
@@ -36,13 +37,15 @@ def cmd_track(args) -> dict:
     from plenopiv.products.tracks import save_track_products
     from plenopiv.products.vectors import load_vectors
     from plenopiv.products.volume import load_volume
+    from plenopiv.resources import check_grid
     from plenopiv.workflow.experiment import experiment_calibration
     from plenopiv.workflow.preprocess import ATTRIBUTE, ImagePreparation
     from plenopiv.workflow.provenance import tracks_provenance
     from plenopiv.workflow.tracking import track_images
 
-    out = _check_out(args.out, (".h5",))
     exp = load_experiment(args.config)
+    out = _check_outputs(args, exp.output.vtk)
+    check_grid(exp.volume)
     cal = experiment_calibration(exp, args.calibration)
     exp, judged = experiment_judgement(exp, cal, purpose="tracking")
     ImagePreparation.refuse_batch_background(exp)
@@ -75,6 +78,20 @@ def cmd_track(args) -> dict:
             "files": paths, "timings_s": {k: round(v, 3) for k, v in timings.items()},
             "preprocess": pre, JUDGEMENT: judged.record(),
             "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def _check_outputs(args, vtk: bool):
+    """Check ``--out`` and what is written beside it; none may be an input, each is locked.
+
+    Beside it: ``.vtp``, ``_binned.h5`` and its ``.vti`` (the last with ``[output] vtk``).
+    """
+    inputs = _input_files(args.calibration, args.image_a, args.image_b, args.config,
+                          args.volume_a, args.volume_b, args.vectors)
+    out = _check_out(args.out, (".h5",), inputs=inputs, beside=(".vtp",) if vtk else ())
+    binned = out.with_name(out.stem + "_binned.h5")
+    for path in (binned, *((binned.with_suffix(".vti"),) if vtk else ())):
+        check_output_path(path, inputs=inputs, what=f"{path.name} written beside --out")
+    return out
 
 
 def _check_reused(args, exp) -> tuple[dict, dict]:

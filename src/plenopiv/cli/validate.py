@@ -24,6 +24,7 @@ from plenopiv.cli._common import (
     _integer,
     _number,
     _seed,
+    check_lenslets,
 )
 from plenopiv.errors import ConfigError
 from plenopiv.products.files import check_output_path
@@ -139,6 +140,10 @@ def cmd_validate(args) -> dict:
     _integer("--lateral-oversampling", args.lateral_oversampling, minimum=1, maximum=16)
     for flag, n in zip(("--lenslets ROWS", "--lenslets COLS"), args.lenslets or (), strict=False):
         _integer(flag, n, minimum=1, maximum=100_000)
+    if args.lenslets is not None and args.case in ("oseen", "hill"):
+        from plenopiv.camera.model import load_camera
+
+        check_lenslets(args.lenslets, load_camera(args.camera))
     check_output_path(args.out, what="--out", folder=True)
     case = args.case
     if case in STUDIES:          # refused before any work where the study cannot be found

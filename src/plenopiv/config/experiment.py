@@ -133,12 +133,14 @@ class BatchConfig(StrictModel):
     cluster : "local" | "slurm" | a scheduler address ("tcp://host:8786").
     workers, threads_per_worker : local cluster size (default: cores, one thread each).
     queue, cores, memory, walltime, jobs : SLURM job settings (dask-jobqueue).
+    connect_timeout_s : seconds a scheduler address has to answer as a dask scheduler.
     """
 
     cluster: str = "local"
     workers: int | None = Field(None, ge=1)
     threads_per_worker: int | None = Field(None, ge=1)
     retries: int = Field(2, ge=0)
+    connect_timeout_s: float = Field(10.0, gt=0, allow_inf_nan=False)
     queue: str | None = None
     cores: int | None = Field(None, ge=1)
     memory: str | None = None

@@ -173,24 +173,13 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
     n_f = cam.main_lens.f_number if f_number is None else f_number
     # the messages name the key the f-number came from
     key = "[main_lens] f_number" if f_number is None else "[reconstruction] f_number"
-    radius = cam.main_lens.focal_length / n_f / 2
-    if cam.microlens_array.back_side == "thesis" and cam.microlens_array.substrate is not None:
-        # rays keep their in-glass angle behind the lenslets: the micro-images, and so the
-        # aperture as the pixels see it through u = -(x - x_c) S_i/f̄, are n times smaller
-        # (the depth scale this leaves is the internal correction, thesis Eq. 5.1)
-        radius /= cam.microlens_array.substrate.refractive_index
+    radius, r_img_px, pitch_px, r_max, half = _micro_image(calibration, n_f)
     cell = pp * si / fbar
     shape = cam.sensor.shape
 
     spots = np.asarray(calibration.focal_spot_px, float)
     centres_m = pixel_to_sensor(calibration.centre_px, shape, pp)
-    # pixels of each micro-image: within the aperture image radius (R f̄/S_i) and within half
-    # a micro-image pitch of its own spot (so that no pixel belongs to two lenslets)
-    r_img_px = radius * fbar / si / pp
-    pitch_px = cam.pitch_px * (1 + fbar / si)
     _check_micro_images(calibration, n_f, 2.0 * r_img_px, pitch_px, key)
-    r_max = min(r_img_px + 1.0, 0.5 * pitch_px)
-    half = int(math.ceil(r_max)) + 1
     off = np.arange(-half, half + 1)
     dr, dc = np.meshgrid(off, off, indexing="ij")
     dr, dc = dr.ravel(), dc.ravel()
@@ -230,6 +219,49 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
         u=np.stack([ux[keep], uy[keep]], axis=1)[order], lit=lit[keep][order],
         image_distance=si, object_distance=so, aperture_radius=radius, cell=cell,
         footprint=cam.microlens_array.pitch * so / si, shape=shape)
+
+
+def _micro_image(calibration: Calibration, n_f: float) -> tuple:
+    """``(radius, r_img_px, pitch_px, r_max, half)`` of :func:`light_field` at f-number ``n_f``.
+
+    The aperture radius (m), the micro-image's radius and pitch (px), the radius within which
+    a pixel belongs to its lenslet (within the aperture image, R f̄/S_i, and within half a
+    micro-image pitch of its own spot, so that no pixel belongs to two lenslets) and the
+    half-width of the square of candidate pixels about each spot.
+    """
+    cam = calibration.camera
+    si = calibration.image_distance
+    fbar = cam.microlens_array.sensor_distance
+    radius = cam.main_lens.focal_length / n_f / 2
+    if cam.microlens_array.back_side == "thesis" and cam.microlens_array.substrate is not None:
+        # rays keep their in-glass angle behind the lenslets: the micro-images, and so the
+        # aperture as the pixels see it through u = -(x - x_c) S_i/f̄, are n times smaller
+        # (the depth scale this leaves is the internal correction, thesis Eq. 5.1)
+        radius /= cam.microlens_array.substrate.refractive_index
+    r_img_px = radius * fbar / si / cam.sensor.pixel_pitch
+    pitch_px = cam.pitch_px * (1 + fbar / si)
+    r_max = min(r_img_px + 1.0, 0.5 * pitch_px)
+    return radius, r_img_px, pitch_px, r_max, int(math.ceil(r_max)) + 1
+
+
+#: Peak bytes of :func:`light_field` per candidate pixel (the square of pixels about each
+#: focal spot that it examines): its index, offset, mask and float64 working arrays
+#: (traced peaks of 109 to 134 bytes on the small camera and patches of both Auburn
+#: cameras, ``tracemalloc``).
+BUILD_BYTES_PER_CANDIDATE = 140
+
+
+def light_field_build_bytes(calibration: Calibration, *, f_number: float | None = None
+                            ) -> float:
+    """Peak memory of building the light field of ``calibration``, bytes, without building it.
+
+    What a memory budget checks before :func:`light_field` allocates its working arrays.
+    """
+    cam = calibration.camera
+    n_f = cam.main_lens.f_number if f_number is None else f_number
+    half = _micro_image(calibration, n_f)[4]
+    n_lenslets = len(np.asarray(calibration.focal_spot_px))
+    return float(BUILD_BYTES_PER_CANDIDATE) * n_lenslets * (2 * half + 1) ** 2
 
 
 def _check_micro_images(calibration: Calibration, n_f: float, model_px: float,

@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from plenopiv.errors import ImageError, OutputError, WriteError
+from plenopiv.products.locks import claim_output
 
 
 def _file_mode() -> int:
@@ -99,6 +100,11 @@ def check_output_path(path: str | Path, *, suffixes: tuple[str, ...] | None = No
     (probed by creating and deleting a temporary file: read-only mounts, /proc, /sys, no
     permission), and anything inside the installed package (its presets and sources are
     never written). Nothing is left behind.
+
+    Inside :func:`~plenopiv.products.locks.output_locks` (every ``plenopiv`` verb) the
+    output is then locked until the verb ends: one another live process writes is refused
+    (:class:`~plenopiv.products.locks.OutputLockedError`), a folder is created to hold its
+    lock.
     """
     p = Path(path)
     if not str(path).strip():
@@ -132,6 +138,7 @@ def check_output_path(path: str | Path, *, suffixes: tuple[str, ...] | None = No
             raise OutputError(f"{what} {str(path)!r} is the input {str(inp)!r}: it would be "
                               "overwritten; choose another output name")
     _probe_writable(p if folder else p.parent, what, str(path))
+    claim_output(p, folder=folder, what=what)
     return p
 
 

@@ -17,11 +17,14 @@ import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import footprint
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
+from plenopiv.lightfield.rays import light_field_build_bytes
 from plenopiv.reconstruction._kernels import weights as K
 from plenopiv.reconstruction.geometry import (
     SLAB_VOXELS,
@@ -206,10 +209,13 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
 
     1. ``projector = "auto"`` with ``method`` other than ``"smart"`` takes explicit weights:
        row-action and block MART walk their rows.
-    2. The subdivision is :func:`lateral_subdivision`'s. ``"auto"`` projector on a subdivided
-       grid whose rays are separable (axis-aligned square lattice) takes the lattice
-       projector: the explicit weights grow k² and the lattice projector projects them about
-       ten times faster (docs/validation/vortex.md).
+    2. Building the light field alone must fit the budget
+       (:func:`~plenopiv.lightfield.rays.light_field_build_bytes`, checked before it is
+       built). The subdivision is :func:`lateral_subdivision`'s. ``"auto"`` projector on a
+       subdivided grid whose rays are separable (axis-aligned square lattice) takes the
+       lattice projector, within the budget like every other: the explicit weights grow k²
+       and the lattice projector projects them about ten times faster
+       (docs/validation/vortex.md).
     3. Otherwise :func:`~plenopiv.reconstruction.choose.fit_projector`: explicit weights while
        their estimate fits the budget, then (``"auto"``, ``"lattice"``) the matrix-free
        projector of the lattice while its estimate fits.
@@ -226,25 +232,26 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
         projector = "sparse"
         why = f"method = \"{settings.method}\" walks the rows of explicit weights"
     ky, kx = lateral_subdivision(calibration, grid, settings)
+    rays = _light_field_refusal(calibration, settings.f_number, budget)
+    if rays is not None:
+        return ReconstructionChoice(settings.projector, (ky, kx), subdivided_grid(grid, ky, kx),
+                                    rays[0], budget * 1e9, f"{why}: {rays[1]}", refusal=rays[1])
     n_rays = geometry.light_field.n_rays
-    if projector == "auto" and (ky, kx) != (1, 1):
-        work = geometry.on_grid(subdivided_grid(grid, ky, kx))
-        if work.separable_axes is not None:
-            work.check_in_view()
-            fit = fit_projector(work.light_field, work.grid, projector="lattice",
-                                budget_gb=math.inf, separable=True)
-            over = (f", above the {budget:.3g} GB of max_weights_gb, which this path does "
-                    "not hold it to" if fit.memory_gb > budget else "")
-            return ReconstructionChoice(
-                "lattice", (ky, kx), work.grid, fit.memory_gb * 1e9, budget * 1e9,
-                f"{why}: a {ky} x {kx} subdivided grid on an axis-aligned square lattice "
-                "takes the matrix-free lattice projector (k² times the explicit weights "
-                f"otherwise), ~{fit.memory_gb:.3g} GB{over}", n_rays=n_rays)
     fallbacks: list[str] = []
     while True:
         work = geometry.on_grid(subdivided_grid(grid, ky, kx))
-        fit = fit_projector(work.light_field, work.grid, projector=projector, budget_gb=budget,
-                            separable=work.separable_axes is not None)
+        separable = work.separable_axes is not None
+        if projector == "auto" and (ky, kx) != (1, 1) and separable:
+            # k² times the explicit weights otherwise: the lattice projector, in the budget
+            work.check_in_view()
+            fit = fit_projector(work.light_field, work.grid, projector="lattice",
+                                budget_gb=budget, separable=True)
+            fit_why = (f"{why}: a {ky} x {kx} subdivided grid on an axis-aligned square "
+                       "lattice (explicit weights would grow k²)")
+        else:
+            fit = fit_projector(work.light_field, work.grid, projector=projector,
+                                budget_gb=budget, separable=separable)
+            fit_why = why
         if (fit.refusal is None or settings.lateral_subdivision != "auto"
                 or max(ky, kx) == 1):
             break
@@ -254,8 +261,26 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
         ky, kx = max(1, ky - 1), max(1, kx - 1)
     return ReconstructionChoice(
         fit.kind, (ky, kx), work.grid, fit.memory_gb * 1e9, budget * 1e9,
-        _reason(fit, why, budget, (ky, kx), fallbacks), nnz=fit.nnz, n_rays=n_rays,
+        _reason(fit, fit_why, budget, (ky, kx), fallbacks), nnz=fit.nnz, n_rays=n_rays,
         fallbacks=tuple(fallbacks), refusal=fit.refusal)
+
+
+def _light_field_refusal(calibration: Calibration, f_number, budget: float
+                         ) -> tuple[float, str] | None:
+    """``(bytes, why)`` where building the light field alone exceeds ``budget`` GB, else None.
+
+    Checked before the light field is built: its working arrays
+    (:func:`~plenopiv.lightfield.rays.light_field_build_bytes`) are the first large
+    allocation of every reconstruction, and on a small volume its peak.
+    """
+    need = light_field_build_bytes(calibration, f_number=f_number)
+    if need <= budget * 1e9:
+        return None
+    return need, (f"building the light field of the {calibration.camera.sensor.shape[0]} × "
+                  f"{calibration.camera.sensor.shape[1]}-pixel sensor needs ~{need / 1e9:.3g} "
+                  f"GB, more than the {budget:.3g} GB allowed ([reconstruction] "
+                  "max_weights_gb): raise max_weights_gb, or record a smaller part of the "
+                  "sensor")
 
 
 def _reason(fit, why: str, budget: float, subdivision, fallbacks) -> str:
@@ -272,7 +297,8 @@ def _reason(fit, why: str, budget: float, subdivision, fallbacks) -> str:
         text = (f"{why}: the explicit weights (~{fit.nnz:.3g} non-zeros) do not fit the "
                 f"{budget:.3g} GB allowed; {names[fit.kind]}")
     else:
-        text = f"{why}: {names[fit.kind]}"
+        text = (f"{why}: {names[fit.kind]}, ~{fit.memory_gb:.3g} GB of the {budget:.3g} GB "
+                "allowed")
     if fallbacks:
         text += f" on a {subdivision[0]} x {subdivision[1]} subdivision (finer ones do not fit)"
     return text
@@ -406,10 +432,13 @@ def choose_projector(lf: LightField, grid: VolumeGrid, *, projector: str = "auto
 def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
     """Peak memory of a matrix-free SMART reconstruction of ``grid`` from ``lf``, GB.
 
-    Two projection buffers (depth slices × voxel rows × used sensor columns, float32), about
-    twelve float32 volumes (estimate, update, column sums, first guess, masks), the rays and
-    their per-call copies (~64 bytes each), and one depth slab of the sub-voxel line-of-sight
-    mask (:mod:`plenopiv.reconstruction.sightline`: its buffer and six refined float32 arrays).
+    Held throughout: the light field (52 bytes a ray), the lattice projector's tables and
+    rays, the sensor image (float64) and two copies. On top, the larger of its two phases:
+    the sub-voxel line of sight (:mod:`plenopiv.reconstruction.sightline`: one depth slab's
+    buffer and six refined float32 arrays, two volumes) and SMART (one projection buffer of
+    depth slices × voxel rows × used sensor columns, float32; ten float32 volumes: estimate,
+    update, column sums, first guess, masks; 32 bytes a ray of per-call copies). Building
+    the light field comes before and is budgeted on its own (:func:`choose_reconstruction`).
     """
     nz, ny, nx = grid.shape
     cols = lf.pixel % lf.shape[1]
@@ -417,6 +446,23 @@ def estimate_matrix_free_gb(lf: LightField, grid: VolumeGrid) -> float:
     kx, ky = subcell_factors(grid, lf.footprint)
     fine = min(SLAB_VOXELS, grid.n_voxels * kx * ky)
     slab_nz = max(1, fine // max(ny * ky * nx * kx, 1))
-    total = (2 * 4 * nz * ny * n_cols + 12 * 4 * grid.n_voxels + 64 * lf.n_rays
-             + 4 * slab_nz * ny * ky * n_cols + 6 * 4 * fine)
-    return total / 1e9
+    held = (52 * lf.n_rays + _lattice_table_bytes(lf, grid, n_cols)
+            + 24 * lf.shape[0] * lf.shape[1])
+    sightline = 4 * slab_nz * ny * ky * n_cols + 6 * 4 * fine + 2 * 4 * grid.n_voxels
+    smart = 4 * nz * ny * n_cols + 10 * 4 * grid.n_voxels + 32 * lf.n_rays
+    return (held + max(sightline, smart)) / 1e9
+
+
+def _lattice_table_bytes(lf: LightField, grid: VolumeGrid, n_cols: int) -> float:
+    """Bytes of the lattice projector's tables and rays (``LatticeProjector``).
+
+    Per depth slice and sensor column or row a start, a count and ``kmax`` float32 weights;
+    the rows' transposed copy; 20 bytes per ray.
+    """
+    nz, ny, _ = grid.shape
+    t = (lf.object_distance + np.asarray(grid.z, float)) / lf.object_distance
+    reach = float(np.max(np.abs(1.0 - t) * lf.cell + t * lf.footprint)) if nz else 0.0
+    kmax = math.ceil(reach / min(grid.voxel[0], grid.voxel[1])) + 2
+    lines = n_cols + lf.shape[0]
+    return (nz * lines * (8 + 4 * kmax) + nz * lf.shape[0] * kmax * 8 + 8 * (ny * nz + 1)
+            + 20 * lf.n_rays)

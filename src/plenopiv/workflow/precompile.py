@@ -25,6 +25,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from plenopiv.products.locks import HEARTBEAT_THREAD
+
 #: Edge of the rehearsal's reconstruction volume, voxels (its PIV volume holds three of the
 #: first pass's windows along each axis, so that the median test has neighbours).
 RECONSTRUCTION_EDGE = 16
@@ -212,7 +214,9 @@ def can_fork() -> bool:
     """Whether a rehearsal may be a fork of this process (no import, no pickling).
 
     On Linux, while this process runs one thread and numba has not started its own: a fork
-    copies only the calling thread, and a lock held by another one would stay held.
+    copies only the calling thread, and a lock held by another one would stay held. The
+    output locks' heartbeat (:mod:`plenopiv.products.locks`) does not count: it holds no
+    lock a child uses, and a child never touches the output locks.
     """
     try:
         from numba.np.ufunc import parallel
@@ -220,8 +224,10 @@ def can_fork() -> bool:
         numba_threads = bool(parallel._is_initialized)
     except (ImportError, AttributeError):        # numba's private state moved: do not fork
         numba_threads = True
+    others = [t for t in threading.enumerate()
+              if t is not threading.current_thread() and t.name != HEARTBEAT_THREAD]
     return (sys.platform.startswith("linux") and hasattr(os, "fork")
-            and threading.active_count() == 1 and not numba_threads)
+            and not others and not numba_threads)
 
 
 class Rehearsals:
