@@ -297,7 +297,7 @@ def test_identical_inputs_are_warned_about_once_by_every_pair_verb(pair_products
         code = main(["piv", paths["volume_A"], paths["volume_A"], "--out",
                      str(tmp_path / "v.h5"), "--no-png", "--no-vtk"])
         err = capsys.readouterr().err
-        assert code == 0 and err.count("warning:") == 1 and "are identical" in err
+        assert code == 0 and err.count("are identical") == 1
         assert f"volume {paths['volume_A']!r} and volume {paths['volume_A']!r}" in err
         return
     with warnings.catch_warnings(record=True) as caught:
