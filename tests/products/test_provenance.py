@@ -547,3 +547,50 @@ def test_an_earlier_batch_summary_of_a_newer_schema_is_not_read(tmp_path):
     assert finished_before(path) == {"p"}
     path.write_text(json.dumps({**summary, "schema_version": 3}))
     assert finished_before(path) == set()
+
+
+# ---- finite values on write -------------------------------------------------------------------
+
+
+def test_nan_and_inf_are_refused_before_writing_where_the_format_has_none(tmp_path, rng):
+    """The same rule as on read, before anything is written: a volume's positions, a
+    calibration's centres, a vector field's coordinates refused (WriteError naming the
+    dataset, no file left, no .vti beside it); NaN in a rejected vector and an unmeasured
+    particle size written."""
+    from plenopiv.errors import WriteError
+
+    grid = VolumeGrid((0.0, 0.0, 0.0), (1e-4, 1e-4, 2e-4), (3, 4, 5))
+    pos = rng.uniform(0, 3e-4, (3, 3))
+    size = np.full((3, 3), 1e-4)
+    bad = pos.copy()
+    bad[1, 2] = np.nan
+
+    def volume(p, s):
+        return VolumeResult(rng.random(grid.shape).astype(np.float32), grid,
+                            DepthCorrection(1.33, 1.0), p, p, np.ones(3), s)
+    with pytest.raises(WriteError, match="position_m holds 1 NaN.*refused before writing"):
+        volume(bad, size).save(tmp_path / "v.h5")
+    assert not (tmp_path / "v.h5").exists()
+    unmeasured = size.copy()
+    unmeasured[0, 2] = np.nan
+    load_volume(volume(pos, unmeasured).save(tmp_path / "ok.h5"))
+
+    cal = Calibration.from_camera(load_camera("small_m1"))
+    centres = cal.centre_px.copy()
+    centres[3, 0] = np.inf
+    with pytest.raises(WriteError, match="centre_px holds 1 infinite"):
+        dataclasses.replace(cal, centre_px=centres).save(tmp_path / "c.h5")
+    assert not (tmp_path / "c.h5").exists()
+
+    shape = (2, 3, 4)
+    x, y, z = (np.linspace(-1e-3, 1e-3, n) for n in shape[::-1])
+    u = rng.normal(0, 1e-5, shape)
+    u[0, 0, 0] = np.nan                      # a rejected vector: written
+    VectorResult(x, y, z, u, u, u, np.ones(shape, bool), np.full(shape, 2.0)).save(
+        tmp_path / "f.h5", vtk=False)
+    x = x.copy()
+    x[1] = np.inf
+    with pytest.raises(WriteError, match="dataset /x holds 1 infinite"):
+        VectorResult(x, y, z, u, u, u, np.ones(shape, bool), np.full(shape, 2.0)).save(
+            tmp_path / "g.h5", vtk=True)
+    assert not list(tmp_path.glob("g*"))

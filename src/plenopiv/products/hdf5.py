@@ -38,7 +38,8 @@ CONVENTIONS = ("SI units; pixels (row, col) with the top-left pixel centre at (0
 
 def check_finite(values, name: str, path: str | Path, error: type[Exception], *,
                  allow_nan: bool = False, allow_inf: bool = False,
-                 product: str = "product") -> np.ndarray:
+                 product: str = "product",
+                 advice: str = "the file is damaged; make it again") -> np.ndarray:
     """``values`` read from dataset ``name`` of ``path``, refused where NaN or inf may not be.
 
     Every array read from a product or cache goes through here (:meth:`ProductFile.array`).
@@ -64,8 +65,20 @@ def check_finite(values, name: str, path: str | Path, error: type[Exception], *,
         allowed = "NaN only" if allow_nan else ("±inf only" if allow_inf else "none")
         raise error(f"{product} file {str(path)!r}: dataset {name} holds {what} values "
                     f"(at {at}{', ...' if int(bad.sum()) > 3 else ''}; allowed there: "
-                    f"{allowed}): the file is damaged; make it again")
+                    f"{allowed}): {advice}")
     return a
+
+
+def check_writable(datasets: dict, path: str | Path, kind: str, *, may_be_nan: tuple = (),
+                   may_be_inf: tuple = ()) -> None:
+    """Refuse datasets about to be written with NaN or ±inf where the format has none.
+
+    Raises :class:`~plenopiv.errors.WriteError` naming the file, the dataset and where.
+    """
+    for name, arr in datasets.items():
+        check_finite(arr, name, path, WriteError, allow_nan=name in may_be_nan,
+                     allow_inf=name in may_be_inf, product=kind,
+                     advice="refused before writing; nothing was written under that name")
 
 
 class ProductFile:
@@ -143,7 +156,8 @@ def product_provenance(path: str | Path, product: str, error: type[Exception]) -
 def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
              attrs: dict[str, Any] | None = None, units: dict[str, str] | None = None,
              config: dict | None = None, kind: str = "product",
-             compress: bool = True, finalize=None, provenance: dict | None = None) -> Path:
+             compress: bool = True, finalize=None, provenance: dict | None = None,
+             may_be_nan: tuple = (), may_be_inf: tuple = ()) -> Path:
     """Write an HDF5 product atomically.
 
     The file is written under a temporary name and renamed when closed; the root attribute
@@ -169,8 +183,12 @@ def write_h5(path: str | Path, datasets: dict[str, np.ndarray], *,
         What made the product (:func:`~plenopiv.products.provenance.make_provenance` of
         ``kind``), stored as the JSON root attribute ``provenance``; without it, a record of
         the versions alone. The root attribute ``schema_version`` is written either way.
+    may_be_nan, may_be_inf : tuple of str
+        The datasets that may hold NaN, or ±inf; any other non-finite value is refused
+        (:class:`~plenopiv.errors.WriteError`) before anything is written.
     """
     p = Path(path)
+    check_writable(datasets, p, kind, may_be_nan=may_be_nan, may_be_inf=may_be_inf)
     attrs = dict(attrs or {})
     record = make_provenance(kind) if provenance is None else dict(provenance)
     record.update(product=kind, schema_version=schema_version(kind))

@@ -17,7 +17,7 @@ from plenopiv.camera.corrections import DepthCorrection
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ConfigError, ReconstructionError
 from plenopiv.products.files import atomic_path
-from plenopiv.products.hdf5 import cf_axes, open_product, write_h5
+from plenopiv.products.hdf5 import cf_axes, check_writable, open_product, write_h5
 
 
 def check_dt(dt, what: str = "dt") -> float | None:
@@ -207,8 +207,10 @@ class VectorResult:
                  **self._grid_attrs(), **(extra_attrs or {})}
         # the .vti first, then the HDF5 file: its `complete` mark (extra_attrs) is the last
         # thing written, inside its temporary, so a failed write leaves nothing marked
+        check_writable(ds, path, "vectors", may_be_nan=NAN_DATASETS, may_be_inf=INF_DATASETS)
         vti = self.save_vtk(Path(path).with_suffix("")) if vtk else None
         p = write_h5(path, ds, attrs=attrs, units=units, config=config, kind="vectors",
+                     may_be_nan=NAN_DATASETS, may_be_inf=INF_DATASETS,
                      finalize=lambda fh: _cf_dimensions(fh, names), provenance=provenance)
         return [p] if vti is None else [p, vti]
 

@@ -96,6 +96,7 @@ class VolumeResult:
                  "particle_positions": ("volume" if self.particle_centroid_effective is None
                                         else "light_field"), **(extra_attrs or {})}
         return write_h5(path, ds, attrs=attrs, units=units, config=config, kind="volume",
+                        may_be_nan=NAN_DATASETS,
                         finalize=_cf_volume, provenance=provenance)
 
 
