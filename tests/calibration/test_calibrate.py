@@ -11,7 +11,7 @@ import pytest
 from plenopiv.calibration.calibrate import calibrate
 from plenopiv.calibration.model import Calibration
 from plenopiv.cli import main
-from plenopiv.errors import CalibrationError, ImageError
+from plenopiv.errors import CalibrationError, ImageError, PlenopivWarning
 from plenopiv.products.images import write_image
 from plenopiv.synthetic.images import (
     Ruler,
@@ -83,7 +83,9 @@ def test_bad_images_are_clear_errors(small_camera, images):
         calibrate(small_camera, nan)
     with pytest.raises(ImageError, match="saturated"):
         calibrate(small_camera, np.full_like(fp, 65535))
-    with pytest.raises(CalibrationError, match="ruler ticks"):
+    with pytest.raises(CalibrationError, match="ruler ticks"), \
+            pytest.warns(PlenopivWarning, match="focal-point image and the ruler image are "
+                                                "identical"):
         calibrate(small_camera, fp, ruler_image=fp, ruler_spacing=1e-3, method="both")
 
 

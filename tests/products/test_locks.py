@@ -92,11 +92,15 @@ NON_WRITERS = {"compare", "plan"}
 
 
 def volume(path: Path, shape, seed):
+    """A random volume with a particle table of one particle per 8 voxels (a vector needs
+    ``[piv] min_particles_per_window`` of them in its window)."""
     grid = VolumeGrid((0.0, 0.0, 0.0), (1e-4, 1e-4, 1e-4), shape)
-    vol = np.random.default_rng(seed).random(shape).astype(np.float32)
-    empty = np.zeros((0, 3))
-    VolumeResult(vol, grid, DepthCorrection(1.0, 1.0), empty, empty, np.zeros(0),
-                 empty).save(path)
+    rng = np.random.default_rng(seed)
+    vol = rng.random(shape).astype(np.float32)
+    n = int(np.prod(shape)) // 8
+    pos = rng.uniform(0.0, 1e-4, (n, 3)) * np.array(shape[::-1])
+    VolumeResult(vol, grid, DepthCorrection(1.0, 1.0), pos, pos, np.ones(n),
+                 np.full((n, 3), 1e-4)).save(path)
 
 
 @pytest.fixture(scope="module")
@@ -116,6 +120,10 @@ def inputs(tmp_path_factory):
     volume(d / "big_a.h5", (64, 64, 64), 3)
     volume(d / "big_b.h5", (64, 64, 64), 4)
     (d / "exp.toml").write_text(EXPERIMENT.format(out="out"))
+    # a box that keeps reconstruct busy for seconds, so that a SIGTERM finds it at work
+    (d / "exp_big.toml").write_text(EXPERIMENT.format(out="out").replace(
+        "x_mm = [-1.0625, 1.0625]", "x_mm = [-2.5, 2.5]").replace(
+        "y_mm = [-1.0625, 1.0625]", "y_mm = [-2.5, 2.5]"))
     return d
 
 
@@ -370,7 +378,8 @@ def test_of_processes_racing_for_one_output_exactly_one_writes(tmp_path, stale):
 #: Verbs stopped by a real SIGTERM while they work, with the changes that keep them busy:
 #: ``(replace, by)`` in their arguments, and more arguments.
 SIGTERM_VERBS = {
-    "calibrate": ((), []), "reconstruct": ((), []), "track": ((), []), "demo": ((), []),
+    "calibrate": ((), []), "reconstruct": (("/exp.toml", "/exp_big.toml"), []),
+    "track": ((), []), "demo": ((), []),
     "validate": ((), []), "run": ((), []), "simulate focal-point": ((), []),
     "piv": (("/va.h5", "/big_a.h5", "/vb.h5", "/big_b.h5"), []),
     "simulate pair": ((), ["--n-particles", "20000"]),
