@@ -51,19 +51,14 @@ DATA_SOURCES = (
 def shared_data_path(*parts) -> Path:
     """A file or folder of the third-party data ../shared/data (or ``$PLENOPIV_DATA``).
 
-    The data are never copied into the repository. On a user's clone, where the folder is
-    absent, these tests are skipped with a message that names the folder and how to get the
-    data. Under CI (``CI=true``, where the folder sits beside the clone) its absence is a
-    failure, and so, always, is a missing file in a folder that is present: the tests' known
-    answers would otherwise go unchecked.
+    The data are never copied into the repository. A missing folder or file is a failure
+    that names it and how to get the data: the tests' known answers (measured lattices of
+    real lenslet arrays) would otherwise go unchecked.
     """
     if not SHARED_DATA.is_dir():
-        msg = (f"third-party data folder {SHARED_DATA} not found (a clone without the "
-               "project's shared/ folder beside it): put the data there, or point "
-               f"PLENOPIV_DATA at a folder holding them; sources: {DATA_SOURCES}")
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+        pytest.fail(f"third-party data folder {SHARED_DATA} not found (a clone without the "
+                    "project's shared/ folder beside it): put the data there, or point "
+                    f"PLENOPIV_DATA at a folder holding them; sources: {DATA_SOURCES}")
     path = SHARED_DATA.joinpath(*parts)
     if not path.exists():
         pytest.fail(f"third-party file {path} not found in {SHARED_DATA}: the data folder is "
