@@ -24,14 +24,10 @@ from plenopiv.cli import main
 from plenopiv.cli.run import batch_jobs, with_identities
 from plenopiv.config.experiment import load_experiment
 from plenopiv.products.files import PACKAGE_DIR
+from small_case import VOLUME, simulate_pair_argv
 
 EXPERIMENT = """camera = "camera.toml"
-[volume]
-x_mm = [-1.0625, 1.0625]
-y_mm = [-1.0625, 1.0625]
-z_mm = [-1.5, 1.5]
-voxel_mm = 0.125
-[reconstruction]
+""" + VOLUME + """[reconstruction]
 lateral_subdivision = 1
 [piv]
 windows = [[12, 12, 12]]
@@ -60,9 +56,7 @@ def finished(tmp_path_factory):
     cam = load_camera(d / "camera.toml")
     Calibration.from_camera(cam).save(d / "cal.h5")
     (d / "pairs").mkdir()
-    assert main(["simulate", "pair", "small_m1", "--n-particles", "30", "--rays-per-particle",
-                 "256", "--depth-mm", "-1.5", "1.5", "--fill", "0.4", "--seed", "3",
-                 "--no-tiff", "--quiet", "--out", str(d / "pairs" / "p.h5")]) == 0
+    assert main(simulate_pair_argv(d / "pairs" / "p.h5", seed=3) + ["--quiet"]) == 0
     tifffile.imwrite(d / "dark.tif", np.full(cam.sensor.shape, 2, np.uint16))
     np.save(d / "mask.npy", np.zeros(cam.sensor.shape, bool))
     (d / "exp.toml").write_text(EXPERIMENT)

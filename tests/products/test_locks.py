@@ -44,16 +44,12 @@ from plenopiv.products.locks import (
     stale_reason,
 )
 from plenopiv.products.volume import VolumeResult
+from small_case import VOLUME, simulate_pair_argv
 
 REPO = Path(__file__).resolve().parents[2]
 
 EXPERIMENT = """camera = "small_m1"
-[volume]
-x_mm = [-1.0625, 1.0625]
-y_mm = [-1.0625, 1.0625]
-z_mm = [-1.5, 1.5]
-voxel_mm = 0.125
-[piv]
+""" + VOLUME + """[piv]
 windows = [[12, 12, 12]]
 passes = 2
 uncertainty = "correlation"
@@ -111,10 +107,8 @@ def inputs(tmp_path_factory):
     assert main(["simulate", "focal-point", "small_m1", "--out", str(d / "fp.tif"),
                  "--quiet", "--json"]) == 0
     for i in (1, 2, 3):
-        assert main(["simulate", "pair", "small_m1", "--n-particles", "40",
-                     "--rays-per-particle", "256", "--depth-mm", "-1.5", "1.5", "--fill", "0.4",
-                     "--seed", str(i), "--no-tiff", "--quiet", "--json",
-                     "--out", str(d / "pairs" / f"p_{i}.h5")]) == 0
+        assert main(simulate_pair_argv(d / "pairs" / f"p_{i}.h5", seed=i, n_particles=40)
+                    + ["--quiet", "--json"]) == 0
     volume(d / "va.h5", (8, 10, 12), 1)
     volume(d / "vb.h5", (8, 10, 12), 2)
     volume(d / "big_a.h5", (64, 64, 64), 3)

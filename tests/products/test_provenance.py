@@ -43,14 +43,10 @@ from plenopiv.products.volume import NAN_DATASETS as VOLUME_NAN_DATASETS
 from plenopiv.products.volume import VolumeResult, load_volume
 from plenopiv.tracking.tracks import TrackResult
 from plenopiv.workflow.provenance import PAIR_IGNORES, VOLUME_SETTINGS
+from small_case import VOLUME, simulate_pair_argv
 
 EXPERIMENT = """camera = "small_m1"
-[volume]
-x_mm = [-1.0625, 1.0625]
-y_mm = [-1.0625, 1.0625]
-z_mm = [-1.5, 1.5]
-voxel_mm = 0.125
-[reconstruction]
+""" + VOLUME + """[reconstruction]
 lateral_subdivision = 1
 [piv]
 windows = [[12, 12, 12]]
@@ -91,9 +87,7 @@ def chain(tmp_path_factory):
     dataclasses.replace(cal, centre_px=centre).save(d / "cal2.h5")
     Calibration.from_camera(load_camera("small_test")).save(d / "cal_small_test.h5")
     for seed, name in ((1, "pair"), (2, "pair2")):
-        assert run("simulate", "pair", "small_m1", "--n-particles", 30, "--rays-per-particle",
-                   256, "--depth-mm", -1.5, 1.5, "--fill", 0.4, "--seed", seed, "--no-tiff",
-                   "--out", d / f"{name}.h5")[0] == 0
+        assert run(*simulate_pair_argv(d / f"{name}.h5", seed=seed))[0] == 0
     tifffile.imwrite(d / "dark.tif", np.full(cam.sensor.shape, 2, np.uint16))
     np.save(d / "mask.npy", np.zeros(cam.sensor.shape, bool))
     (d / "exp.toml").write_text(EXPERIMENT)
