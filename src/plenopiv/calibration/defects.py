@@ -256,8 +256,9 @@ class DarkFrame:
         if dark is None:
             return cls()
         if isinstance(dark, DarkFrame):
-            if dark.frame is not None:
-                cls.of(dark.frame, shape)
+            if dark.frame is not None and tuple(dark.frame.shape) != tuple(shape):
+                raise ImageError(f"the dark frame has shape {dark.frame.shape}: expected the "
+                                 f"sensor's {shape[0]} × {shape[1]} (rows × cols)")
             return dark
         d = np.asarray(dark)
         if d.ndim != 2 or tuple(d.shape) != tuple(shape):
