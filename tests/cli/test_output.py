@@ -197,14 +197,12 @@ def test_letters_data_folder_may_be_the_parent_or_the_set(monkeypatch):
     assert letters.find_data_dir() == parent / letters.DATA_NAME
 
 
-def test_third_party_data_skip_on_a_clone_fail_under_ci(tmp_path, monkeypatch):
+def test_third_party_data_missing_is_a_failure(tmp_path, monkeypatch):
     monkeypatch.setattr(conftest, "SHARED_DATA", tmp_path / "absent")
-    monkeypatch.delenv("CI", raising=False)
-    with pytest.raises(pytest.skip.Exception, match="absent.*PLENOPIV_DATA.*plenoptomos"):
-        conftest.shared_data_path("plenopticam_spots")
-    monkeypatch.setenv("CI", "true")
-    with pytest.raises(pytest.fail.Exception, match="absent"):
-        conftest.shared_data_path("plenopticam_spots")
+    for ci in ("", "true"):
+        monkeypatch.setenv("CI", ci)
+        with pytest.raises(pytest.fail.Exception, match="absent.*PLENOPIV_DATA.*plenoptomos"):
+            conftest.shared_data_path("plenopticam_spots")
     # a folder that is present but lacks a file is always a failure
     (tmp_path / "present").mkdir()
     monkeypatch.setattr(conftest, "SHARED_DATA", tmp_path / "present")
