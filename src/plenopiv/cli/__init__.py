@@ -201,5 +201,22 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def console() -> None:
+    """The ``plenopiv`` command: :func:`main`, its status the process's exit status.
+
+    Ended by SIGTERM, the process leaves at once once its one line is out: the interpreter's
+    finalizers would run compiled-code destructors half torn down by the signal (numba's
+    llvmlite prints an ignored exception then).
+    """
+    import os
+
+    status = main()
+    if status == EXIT_TERMINATED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    sys.exit(status)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    console()

@@ -1,7 +1,5 @@
 """``python -m plenopiv.cli``: the ``plenopiv`` command."""
 
-import sys
+from plenopiv.cli import console
 
-from plenopiv.cli import main
-
-sys.exit(main())
+console()
