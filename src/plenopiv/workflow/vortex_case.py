@@ -78,6 +78,18 @@ class VortexCase:
     blur_px : standard deviation of a Gaussian blur of every rendered image, pixels (the
         optics' point spread function), before the noise
     reconstruction : reconstruction settings (the library's defaults unless given)
+    axis : the vortex's axis, "x", "y", "z" or a direction (3,) (normalised); None: the flow's
+        own (Oseen along y, so that particles move in depth; Hill along x)
+    centre_offset : (x, y, z) of the vortex's centre from the seeded volume's centre, metres
+    f_number, image_distance, lattice_rotation, lattice_offset, lattice : the camera varied
+        from its preset, one property at a time (:func:`case_camera`): the recording's
+        f-number, the effective S_i (metres; the magnification follows), the lenslet array's
+        rotation γ (radians) and offset (s_o, t_o) (metres), "square" or "hexagonal"; None
+        keeps the preset's
+    voxel_lateral_factor : lateral voxel / lenslet footprint before ``lateral_oversampling``
+        (1: the footprint grid; e.g. 1.1 is the voxel a user keeps at 0.125 mm when the
+        magnification goes from -1 to -1.1)
+    grid_shift : (x, y, z) shift of the grid from the footprints' centres, in voxels
     """
 
     flow: str = "oseen"
@@ -104,6 +116,15 @@ class VortexCase:
     depth_centre: float = 0.0
     blur_px: float = 0.0
     reconstruction: ReconstructionSettings = ReconstructionSettings()
+    axis: str | tuple[float, float, float] | None = None
+    centre_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    f_number: float | None = None
+    image_distance: float | None = None
+    lattice_rotation: float | None = None
+    lattice_offset: tuple[float, float] | None = None
+    lattice: str | None = None
+    voxel_lateral_factor: float = 1.0
+    grid_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self):
         if self.flow not in FLOWS:
@@ -113,6 +134,23 @@ class VortexCase:
         k = self.lateral_oversampling
         if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
             raise ValueError(f"lateral_oversampling = {k!r}: expected an int >= 1")
+        if self.axis is not None:
+            if self.flow == "uniform":
+                raise ValueError("axis: the uniform flow takes its direction from uniform_axis")
+            flow_axis(self.axis)
+        if len(self.centre_offset) != 3:
+            raise ValueError(f"centre_offset = {self.centre_offset!r}: expected (x, y, z) metres")
+        if len(self.grid_shift) != 3:
+            raise ValueError(f"grid_shift = {self.grid_shift!r}: expected (x, y, z) voxels")
+        if not self.voxel_lateral_factor > 0:
+            raise ValueError(f"voxel_lateral_factor = {self.voxel_lateral_factor!r}: "
+                             "expected > 0")
+
+    @property
+    def camera_changes(self) -> dict:
+        """The camera properties this case sets (name: value), none for the preset's."""
+        names = ("f_number", "image_distance", "lattice_rotation", "lattice_offset", "lattice")
+        return {n: getattr(self, n) for n in names if getattr(self, n) is not None}
 
     @property
     def windows_vox(self) -> tuple:
@@ -121,23 +159,57 @@ class VortexCase:
         return tuple((wz, wy * k, wx * k) for wz, wy, wx in self.windows)
 
 
+def flow_axis(axis) -> tuple[float, float, float]:
+    """The unit vector of a case's ``axis``: "x", "y", "z" or a non-zero direction (3,)."""
+    if isinstance(axis, str):
+        if axis not in ("x", "y", "z"):
+            raise ValueError(f"axis = {axis!r}: expected 'x', 'y', 'z' or a direction (3,)")
+        return tuple(float(k == "xyz".index(axis)) for k in range(3))
+    a = np.asarray(axis, float)
+    if a.shape != (3,) or not np.all(np.isfinite(a)) or not np.linalg.norm(a) > 0:
+        raise ValueError(f"axis = {axis!r}: expected 'x', 'y', 'z' or a non-zero direction (3,)")
+    return tuple(float(v) for v in a / np.linalg.norm(a))
+
+
+def varied_camera(camera: CameraModel, case: VortexCase) -> CameraModel:
+    """``camera`` with the properties ``case`` varies (:attr:`VortexCase.camera_changes`)."""
+    lens = camera.main_lens
+    if case.f_number is not None:
+        lens = replace(lens, f_number=float(case.f_number))
+    if case.image_distance is not None:
+        lens = replace(lens, image_distance=float(case.image_distance))
+    mla = camera.microlens_array
+    if case.lattice_rotation is not None:
+        mla = replace(mla, rotation=float(case.lattice_rotation))
+    if case.lattice_offset is not None:
+        mla = replace(mla, offset=tuple(float(v) for v in case.lattice_offset))
+    if case.lattice is not None:
+        mla = replace(mla, grid=case.lattice)
+    return camera.replace(main_lens=lens, microlens_array=mla)
+
+
 def case_camera(case: VortexCase) -> CameraModel:
-    """The true camera of a case: the preset, or its central ``case.lenslets`` patch."""
+    """The true camera of a case: the preset with its changes, or their central patch.
+
+    The changes are :func:`varied_camera`'s; the patch is ``case.lenslets``, when given.
+    """
     cam = load_camera(case.camera)
+    if case.camera_changes:
+        cam = varied_camera(cam, case)
     return cam if case.lenslets is None else cam.patch(*case.lenslets)
 
 
 def _flow(case: VortexCase, box: SeedingBox):
     half_y = 0.5 * (box.y[1] - box.y[0])
     vmax = case.max_displacement / case.dt
-    centre = (0.0, 0.0, case.depth_centre)
+    centre = tuple(float(c) for c in np.add((0.0, 0.0, case.depth_centre), case.centre_offset))
     if case.flow == "oseen":
         rc = 0.6 * min(half_y, case.depth)
         return LambOseen(circulation=vmax * 2 * np.pi * rc / 0.6382, core_radius=rc,
-                         centre=centre, axis=(0.0, 1.0, 0.0))
+                         centre=centre, axis=flow_axis("y" if case.axis is None else case.axis))
     if case.flow == "hill":
         return HillVortex(radius=0.8 * min(half_y, case.depth), speed=vmax / 1.5,
-                          centre=centre, axis=(1.0, 0.0, 0.0))
+                          centre=centre, axis=flow_axis("x" if case.axis is None else case.axis))
     if case.flow == "uniform":
         v = np.zeros(3)
         v["xyz".index(case.uniform_axis)] = vmax
@@ -159,13 +231,15 @@ def case_flow(case: VortexCase, grid: VolumeGrid):
 def aligned_grid(camera: CameraModel, case: VortexCase) -> VolumeGrid:
     """A grid whose lateral voxels are the lenslet footprints on the focal plane.
 
-    The voxels are centred on the footprints, in effective coordinates.
+    The voxels are centred on the footprints, in effective coordinates; a case's
+    ``voxel_lateral_factor`` scales the lateral voxel and its ``grid_shift`` moves the grid
+    (in voxels) off the footprints.
     """
-    b = footprint(camera)
+    b = footprint(camera) * case.voxel_lateral_factor
     hx, hy = field_of_view(camera, 0.0)
     nx = int(case.lateral_fill * hx / b)
     ny = int(case.lateral_fill * hy / b)
-    dz = b * case.voxel_depth_factor
+    dz = footprint(camera) * case.voxel_depth_factor
     eff_depth, eff_centre = case.depth, case.depth_centre
     if camera.external_interface is not None:
         eff_depth *= camera.external_interface.depth_ratio
@@ -173,8 +247,10 @@ def aligned_grid(camera: CameraModel, case: VortexCase) -> VolumeGrid:
     nz = int(np.ceil(eff_depth / dz))
     zc = dz * round(eff_centre / dz)          # a voxel centre stays on the focal plane
     lat = b / case.lateral_oversampling
-    return VolumeGrid.from_bounds(((-nx - 0.5) * b, (nx + 0.5) * b), ((-ny - 0.5) * b,
-                                  (ny + 0.5) * b), (zc - (nz + 0.5) * dz, zc + (nz + 0.5) * dz),
+    sx, sy, sz = (float(v) for v in case.grid_shift)
+    return VolumeGrid.from_bounds(((-nx - 0.5 + sx) * b, (nx + 0.5 + sx) * b),
+                                  ((-ny - 0.5 + sy) * b, (ny + 0.5 + sy) * b),
+                                  (zc + (sz - nz - 0.5) * dz, zc + (sz + nz + 0.5) * dz),
                                   voxel=(lat, lat, dz))
 
 
