@@ -68,9 +68,12 @@ def test_a_particle_at_focus_loses_its_place_in_the_footprint():
 def test_the_page_lists_every_variation_and_seed():
     rows = [{"variation": n, "seed": s, "gain": [np.nan, 1.0, 0.9],
              "bias_vox": [0.0, 0.01, -0.02], "rms_vox": [0.05, 0.15, 0.4],
+             "true_rms_vox": [0.0, 1.4, 1.0], "voxel_mm": [0.125, 0.125, 0.125],
+             "by_depth": [{"rms_vox": [0.05, r, 0.4]} for r in (0.2, 0.1, 0.05)],
              "particles": {"rms_vox": [0.1, 0.1, 0.9], "scale_error": [0.0, 1e-3, -4e-3]},
              "calibration": {"image_distance_error_mm": 0.003}}
             for n in (REFERENCE, "rotated 1.5 mrad") for s in (1, 2)]
     result = {"summary": summarise(rows), "seconds": 1.0}
     text = markdown(result, "python pipelines/validate_invariance.py")
     assert "| rotated 1.5 mrad | 1,2 |" in text and REFERENCE in text
+    assert "| rotated 1.5 mrad | v | 0.200 | 0.100 | 0.050 | 18.8 | 125.0 |" in text

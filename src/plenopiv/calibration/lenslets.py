@@ -190,16 +190,28 @@ def focal_spot_scale(focal_pitch_px: float, lenslet_pitch_px: float,
     return scale
 
 
-def lenslets_on_sensor(lenslets: LensletCentres, scale: float, shape, margin_px: float):
-    """The lenslets whose focal spot lies fully on the sensor; a new :class:`LensletCentres`.
+def spots_inside(lenslets: LensletCentres, scale: float, shape, margin_px: float) -> np.ndarray:
+    """Whether each lenslet's focal spot lies ``margin_px`` px inside the sensor's edge (bool).
 
     The focal spot is predicted by scaling the lenslet centre by ``scale`` about the sensor
-    centre; it must lie ``margin_px`` px inside the sensor's edge.
+    centre.
     """
     centre_rc = (np.array(shape) - 1) / 2.0
     predicted = centre_rc + (lenslets.centre_px - centre_rc) * scale
-    inside = np.all((predicted >= margin_px) & (predicted <= np.array(shape) - 1 - margin_px),
-                    axis=1)
+    return np.all((predicted >= margin_px) & (predicted <= np.array(shape) - 1 - margin_px),
+                  axis=1)
+
+
+def lenslets_on_sensor(lenslets: LensletCentres, scale: float, shape, margin_px: float = 0.0):
+    """The lenslets whose focal spot lies on the sensor; a new :class:`LensletCentres`.
+
+    The focal spot (:func:`spots_inside`) must lie ``margin_px`` px inside the sensor's edge.
+    With the default 0, every lenslet whose micro-image centre is on the sensor is kept,
+    however close to the edge: a rotated or hexagonal array brings the outer lenslets'
+    spots within a spot window of the edge, where the spot cannot be measured but the
+    micro-image's pixels still see the volume (their spots are then predicted by the fit).
+    """
+    inside = spots_inside(lenslets, scale, shape, margin_px)
     return LensletCentres(lenslets.centre_px[inside], lenslets.grid_index[inside],
                           lenslets.source, lenslets.pitch_px, lenslets.lattice, lenslets.spots)
 
@@ -228,7 +240,7 @@ def _pair(focal_px, lenslet_px, scale, centre_rc, max_dist):
 
 
 def pair_focal_spots(focal_px, usable, lenslets: LensletCentres, scale: float, shape,
-                     max_missing_fraction: float):
+                     max_missing_fraction: float, expected=None):
     """The focal spot of each lenslet: its index into ``focal_px``, -1 where none.
 
     Parameters
@@ -245,6 +257,9 @@ def pair_focal_spots(focal_px, usable, lenslets: LensletCentres, scale: float, s
         Sensor ``(rows, cols)``, px.
     max_missing_fraction : float
         Largest accepted fraction of lenslets without a focal spot.
+    expected : ndarray of bool, shape (N,), optional
+        The lenslets whose focal spot can be measured (its window on the sensor,
+        :func:`spots_inside`); the fraction counts only these. Default: all.
 
     Returns
     -------
@@ -264,12 +279,13 @@ def pair_focal_spots(focal_px, usable, lenslets: LensletCentres, scale: float, s
                                f"{MIN_PAIRED_SPOTS}")
     spot_of = np.full(len(lenslets.centre_px), -1)
     spot_of[pair[use]] = np.flatnonzero(use)
-    missing = np.flatnonzero(spot_of < 0)
-    frac = len(missing) / len(lenslets.centre_px)
+    counted = np.ones(len(spot_of), bool) if expected is None else np.asarray(expected, bool)
+    missing = np.flatnonzero((spot_of < 0) & counted)
+    frac = len(missing) / max(int(counted.sum()), 1)
     if frac > max_missing_fraction:
         idx = lenslets.grid_index[missing]
         raise CalibrationError(
-            f"{len(missing)} of {len(lenslets.centre_px)} lenslets ({frac:.0%}) have no focal "
+            f"{len(missing)} of {int(counted.sum())} lenslets ({frac:.0%}) have no focal "
             f"spot: expected at most {max_missing_fraction:.0%}; grid rows {idx[:, 0].min()}-"
             f"{idx[:, 0].max()}, cols {idx[:, 1].min()}-{idx[:, 1].max()} affected; check "
             "the focal-point image, the aperture and spot_threshold")
