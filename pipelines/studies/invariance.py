@@ -1,14 +1,14 @@
 """Invariance of the chain to the camera and to the flow's orientation, one property at a time.
 
-Each variation is the demo's Oseen case (:class:`plenopiv.workflow.vortex_case.VortexCase`,
+Each variation is the demo's Oseen case (``VortexCase`` of plenopiv.workflow.vortex_case,
 camera ``small_m1``, correlation uncertainty) with one thing changed from a reference: the
 vortex's axis (x, y, z, oblique) or its centre, the recording's f-number (micro-images that
 fill or under-fill their cells), the image distance (a magnification other than -1), the
-lenslet array's rotation or offset, a hexagonal array; and all of a second camera's changes
-together. Every case runs calibrate -> reconstruct -> correlate and is scored against the truth:
-gain, bias and rms per component (:func:`~plenopiv.workflow.vortex_case.compare_with_truth`),
-the calibration's S_i, rotation and offset errors, and the particles of volume A against the
-true positions (bias, rms and scale per axis), which locate a lateral error before the PIV.
+lenslet array's rotation or offset, a hexagonal array, voxels off or unlike the footprints;
+and all of a second camera's changes together. Every case runs calibrate -> reconstruct ->
+correlate and is scored against the truth: gain, bias and rms per component, the
+calibration's S_i, lenslet centres and focal spots, and the particles of volume A against the
+true positions (rms and scale per axis), which locate a lateral error before the PIV.
 ``pipelines/validate_invariance.py`` writes ``docs/validation/invariance.*``.
 """
 
@@ -271,7 +271,8 @@ def _cells(stat: dict, spec: str) -> list[str]:
 def markdown(result: dict, command: str, figures=()) -> str:
     """The page: accuracy per component and the diagnostics, per variation."""
     lines = ["# Invariance to the camera and to the flow's orientation", "",
-             __doc__.split("\n\n")[0].replace("\n", " "), "",
+             __doc__.split("\n\n")[1].split("``pipelines/")[0].replace("\n", " ").strip(),
+             "",
              f"Made by `{command}` in {result['seconds']} s; figures are means over the seeds "
              "listed (each seed a new particle field and new noise), in voxels (lateral voxel "
              "for u and v, depth voxel for w). The gain of a component that does not vary "
@@ -308,6 +309,16 @@ def markdown(result: dict, command: str, figures=()) -> str:
             for s in result["summary"]]
     lines += table(["variation", "S_i error, mm", "particle rms x", "y", "z",
                     "scale error x", "y", "z"], rows)
+    if result.get("before"):
+        lines += ["", *section("Before and after: " + result["before"]["label"])]
+        old = {s["variation"]: s for s in result["before"]["summary"]}
+        rows = [[s["variation"], *[fmt(v, ".3f") for v in old[s["variation"]]["rms_vox"]["mean"]],
+                 *[fmt(v, ".3f") for v in s["rms_vox"]["mean"]],
+                 fmt(old[s["variation"]]["gain"]["mean"][2], ".3f"),
+                 fmt(s["gain"]["mean"][2], ".3f")]
+                for s in result["summary"] if s["variation"] in old]
+        lines += table(["variation", "rms u before", "v", "w", "rms u after", "v", "w",
+                        "gain w before", "after"], rows)
     if result.get("focus_profiles"):
         lines += ["", *section("Single particles against depth"), FOCUS_TEXT, ""]
         rows = [[p["variation"], fmt(p["single_lenslet_depth_mm"], ".3f"),
@@ -361,4 +372,48 @@ def write_report(out: Path, result: dict, command: str) -> None:
 
 
 #: What the page's figures show (written under the tables).
-FINDINGS: tuple[str, ...] = ()
+FINDINGS: tuple[str, ...] = (
+    "## What it shows",
+    "",
+    "- **No property of the camera or of the flow's orientation costs lateral accuracy "
+    "beyond the seeds' scatter, except a smaller stop, and that cost is physical.** The "
+    "lateral component that carries the motion errs 0.139 voxel rms about x (0.125-0.149 "
+    "over three seeds); every other variation lies within 0.12-0.17 with ranges that overlap "
+    "it. f/2.8 errs 0.184 (0.175-0.194) and measures w at a gain of 0.56.",
+    "- **The lateral error lives at focus.** In the band of |Z| nearest the focal plane the "
+    "motion component errs 0.18-0.26 voxel, in the farthest 0.08-0.14. A single particle "
+    "within the single-lenslet depth p·S_i·N/(f_m·M²) of focus is seen by one lenslet: its "
+    "place within the footprint is lost, b/√12 = 0.289 voxel rms at Z = 0 on every camera, "
+    "0.005-0.03 voxel a millimetre away. That depth is 0.50 mm at f/2, 0.55 at f/2.2, 0.70 "
+    "at f/2.8 (the micro-images under-fill their cells: fewer views), 0.48 at S_i 105 mm: a "
+    "smaller stop widens the band where the footprint quantises the position, and the near "
+    "band's error grows with it (0.26 against 0.18 voxel). This is the camera's optics, not "
+    "a step of the chain; the lateral goal of 0.1 voxel is met beyond the band and not "
+    "within it.",
+    "- **A magnification other than -1 costs nothing in metres.** At S_i 105 mm (M = -1.1) "
+    "the footprint, and the voxel, are 113.6 µm: the motion component errs 0.168 voxel, "
+    "19 µm, against 17 µm at M = -1; on 0.125 mm voxels (1.1 footprints) 0.148 voxel.",
+    "- **The calibration kept too few lenslets of a rotated or hexagonal array.** It dropped "
+    "every lenslet whose focal spot lay less than a spot window from the sensor's edge: on "
+    "the demo camera, whose outer spots sit 8 px from it, a rotation of 1.5 mrad lost 24 "
+    "lenslets of the top row and a hexagonal array 41 at its row ends, and said nothing "
+    "(n_missing 0). It now keeps every lenslet whose spot is on the sensor and predicts the "
+    "spots it cannot measure from the fit (2501 of 2501; spots within 0.003 px rms of the "
+    "truth; tests/calibration/test_edge_lenslets.py). The lost lenslets lay outside the "
+    "reconstructed box, so the velocity hardly moves (table above).",
+    "- **Lattice rotation, offset, packing, voxels off or unlike the footprints, the "
+    "vortex's axis and centre**: gains of u and v 0.94-1.00, biases within ±0.03 voxel, "
+    "particle positions of volume A 0.10-0.13 voxel rms laterally and S_i within 0.006 mm "
+    "in every case. Off focus, single particles' lateral positions do not move with any of "
+    "them (tests/workflow/test_camera_invariance.py).",
+    "- **Cost that is not accuracy.** A lattice that is not axis-aligned and square takes "
+    "explicit weights instead of the lattice projector (3.3 GB against 0.12 GB estimated on "
+    "the demo camera, 3-5 times the time).",
+    "- **A figure measured elsewhere is not reproduced here.** The second camera (S_i 105 mm, "
+    "f/2.2, 1.5 mrad, a few µm of offset, vortex about x) was reported at v rms 0.270 voxel; "
+    "this case gives 0.134-0.172 over three seeds, and the same camera through "
+    "the chain of `pipelines/studies/realcam.py` (focal-point calibration without a ruler) "
+    "0.148-0.180 against 0.136-0.187 for the demo camera. The depth of the seeded box "
+    "decides the share of particles within the single-lenslet band, and with it the lateral "
+    "rms: a thinner box or one centred on focus errs more.",
+)

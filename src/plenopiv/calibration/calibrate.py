@@ -40,7 +40,6 @@ from plenopiv.calibration.lenslets import (
     measure_white_image,
     pair_focal_spots,
     spot_lattice,
-    spots_inside,
 )
 from plenopiv.calibration.model import Calibration
 from plenopiv.calibration.nominal import check_against_camera
@@ -199,12 +198,10 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     lenslets = lenslet_centres(camera, alignment_image, dark=dark_frame, flat=flat, **options)
     scale = focal_spot_scale(float(np.mean(lat.pitch_px)), lenslets.pitch_px,
                              _lenslets_from(camera, lenslets))
-    # every lenslet on the sensor; those whose spot window the edge cuts get a predicted spot
-    lenslets = lenslets_on_sensor(lenslets, scale, shape)
-    measurable = spots_inside(lenslets, scale, shape, spots.window_radius_px + 1)
+    lenslets = lenslets_on_sensor(lenslets, scale, shape)   # spots cut by the edge: predicted
     focal_px = lat.corrected_centres_px
     spot_of = pair_focal_spots(focal_px, _pairable(lat), lenslets, scale, shape,
-                               max_missing_fraction, expected=measurable)
+                               max_missing_fraction, margin_px=spots.window_radius_px + 1)
     found = spot_of >= 0
 
     # 3. focal-point fit

@@ -240,7 +240,7 @@ def _pair(focal_px, lenslet_px, scale, centre_rc, max_dist):
 
 
 def pair_focal_spots(focal_px, usable, lenslets: LensletCentres, scale: float, shape,
-                     max_missing_fraction: float, expected=None):
+                     max_missing_fraction: float, margin_px: float = 0.0):
     """The focal spot of each lenslet: its index into ``focal_px``, -1 where none.
 
     Parameters
@@ -257,9 +257,9 @@ def pair_focal_spots(focal_px, usable, lenslets: LensletCentres, scale: float, s
         Sensor ``(rows, cols)``, px.
     max_missing_fraction : float
         Largest accepted fraction of lenslets without a focal spot.
-    expected : ndarray of bool, shape (N,), optional
-        The lenslets whose focal spot can be measured (its window on the sensor,
-        :func:`spots_inside`); the fraction counts only these. Default: all.
+    margin_px : float
+        The fraction counts only the lenslets whose focal spot lies this far inside the
+        sensor's edge (:func:`spots_inside`; a spot window: where it can be measured).
 
     Returns
     -------
@@ -279,7 +279,7 @@ def pair_focal_spots(focal_px, usable, lenslets: LensletCentres, scale: float, s
                                f"{MIN_PAIRED_SPOTS}")
     spot_of = np.full(len(lenslets.centre_px), -1)
     spot_of[pair[use]] = np.flatnonzero(use)
-    counted = np.ones(len(spot_of), bool) if expected is None else np.asarray(expected, bool)
+    counted = spots_inside(lenslets, scale, shape, margin_px)
     missing = np.flatnonzero((spot_of < 0) & counted)
     frac = len(missing) / max(int(counted.sum()), 1)
     if frac > max_missing_fraction:
