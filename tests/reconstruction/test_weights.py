@@ -12,7 +12,6 @@ from plenopiv.lightfield import light_field
 from plenopiv.reconstruction._kernels import weights as WK
 from plenopiv.reconstruction.build import cached_weights
 from plenopiv.reconstruction.weights import build_weights, weights_reference
-from plenopiv.synthetic import _kernels as TK
 from plenopiv.synthetic.images import particle_image
 
 
