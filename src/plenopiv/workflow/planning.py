@@ -75,9 +75,9 @@ BYTES_PER_RAY_PARTICLE_FIT = 30
 
 #: Seconds per sensor pixel of the check of a recording against its calibration
 #: (:func:`plenopiv.calibration.recording.check_recording`, ``[reconstruction] lattice_check``
-#: not "off"; numpy's FFT, one thread): 0.5-0.6 s for the 0.73 MP sensor of the small
-#: cameras, 13 s for the 16 MP one, with the machine shared (``benchmarks/plan_accuracy.py``).
-SECONDS_PER_PIXEL_RECORDING_CHECK = 8e-7
+#: not "off"; its two passes): 0.28-0.33 s for the 0.73 MP sensor of the small cameras, about
+#: 4 s a pass for the 16 MP one (``benchmarks/plan_accuracy.py``).
+SECONDS_PER_PIXEL_RECORDING_CHECK = 4.5e-7
 
 
 #: Seconds per ray of that fit on two threads, from the 16 MP camera at 0.36 particles per
