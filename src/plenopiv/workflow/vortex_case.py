@@ -218,7 +218,9 @@ def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
         err = (meas[ok] - truth[ok]) / vox
         sig = np.stack([np.asarray(s).ravel() for s in sigma], axis=1)[ok] / vox
         out["coverage_2sigma"] = coverage(err, sig).tolist()
-        out["rms_sigma_vox"] = np.sqrt(np.nanmean(sig**2, axis=0)).tolist()
+        n = np.sum(np.isfinite(sig), axis=0)        # a component may carry no uncertainty
+        rms = np.sqrt(np.nansum(sig**2, axis=0) / np.maximum(n, 1))
+        out["rms_sigma_vox"] = np.where(n > 0, rms, np.nan).tolist()
     z_abs = np.abs(Z.ravel()[ok])
     edges = np.linspace(0.0, z_abs.max() if len(z_abs) else 0.0, depth_bands + 1)
     edges[-1] = np.inf
