@@ -246,11 +246,11 @@ def _lenslets(camera, alignment_image, spots: SpotSet, dark_frame: DarkFrame,
     Without a dark frame, the hot pixels the focal-point image showed by their shape
     (:func:`~plenopiv.calibration.defects.hot_pixel_mask`) are repaired in the alignment
     image, whose one-pixel spots cannot tell them. The spots' window is that of their rms
-    radius where the 99 % radius of their stacked light reads wider (:func:`~plenopiv.
-    calibration.spot_detection.window_radius_from_rms`): without the dark the black level
-    left in the gaps and a hot pixel beside a spot, summed over the cell's rings, carry the
-    99 % radius to the cell's edge, and a window that wide takes the gaps' pattern and noise
-    into every centre (0.26 px of noise in each instead of 0.01,
+    radius where the 99 % radius of their stacked light reads wider
+    (:func:`~plenopiv.calibration.spot_detection.window_radius_from_rms`): without the dark
+    the black level left in the gaps and a hot pixel beside a spot, summed over the cell's
+    rings, carry the 99 % radius to the cell's edge, and a window that wide takes the gaps'
+    pattern and noise into every centre (0.26 px of noise in each instead of 0.01,
     docs/methods.md#sensor-defects).
     """
     if dark_frame.frame is not None or alignment_image is None:
