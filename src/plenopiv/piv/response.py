@@ -16,6 +16,7 @@ from plenopiv.piv.settings import RESPONSE_DISPLACEMENTS, RESPONSE_PARTICLES_PER
 
 __all__ = [
     "DEPTH_SHIFTS",
+    "EXCESS_MOTION_LEVELS",
     "LATERAL_SHIFTS",
     "RESPONSE_DISPLACEMENTS",
     "RESPONSE_PARTICLES_PER_LENSLET",
@@ -60,6 +61,15 @@ deformation follows it; particle images stay matched)."""
 MODULATION_AXES = ((1, 2, 0), (2, 0, 1), (0, 1, 2))
 """Per modulation test pair, the axis ``(x, y, z)`` = ``(0, 1, 2)`` along which ``u``, ``v``
 and ``w`` vary: three pairs give every component along every axis."""
+
+
+EXCESS_MOTION_LEVELS = (3, 3, 2)
+"""Per component ``(u, v, w)``, the motion its shared error is fitted in
+(:meth:`Response.excess`): 3, the motion along x, y and z apart; 2, the lateral motion's
+magnitude and the depth motion. A lateral component's error follows the motion along its own
+axis more than across it, so ``u`` and ``v`` take the three axes apart; the depth component
+has no lateral direction of its own, and a lattice symmetric in x and y gives it the same
+error for the same lateral motion whichever way it goes."""
 
 
 RESPONSE_VERSION = 10
@@ -199,7 +209,15 @@ class Response:
         motion in lateral and depth resolution cells (``cell``), the :math:`a \ge 0` fitted
         by non-negative least squares to the test pairs' excess :math:`\max(0, r^2 - s^2)`;
         the test pairs moving along x only and along depth only (``SEPARATING_SHIFTS``) tell
-        the axes apart from the diagonal ones. Motions beyond the test pairs' largest are
+        the axes apart from the diagonal ones. The depth component has no lateral direction
+        of its own: on a lattice symmetric in x and y a lateral motion changes its error by
+        as much whichever way it goes, so ``w`` is fitted in the lateral motion's magnitude
+        :math:`|(t_x, t_y)|` and the depth motion (``EXCESS_MOTION_LEVELS``). Fitted along x
+        and y apart, the test pairs, whose lateral motion is along x alone or diagonal, gave
+        ``w`` the whole lateral error along x and none along y (its diagonal pairs' error is
+        no larger than the pair's along x alone), and a flow moving across y had its depth
+        error under-covered (docs/validation/uncertainty_loo.md). Motions beyond the test
+        pairs' largest are
         held there. Test pairs that cannot tell the three apart fall back to the lateral
         motion :math:`|(u, v)|` and the depth motion, and a single test pair to the whole
         motion :math:`|(t_x, t_y, t_z)|` through it. Scaling each component by its own
@@ -223,16 +241,19 @@ class Response:
         if self.cell is None:
             return np.broadcast_to(self.at(z)[1][:, :, None, None], disp.shape).copy()
         cell = np.asarray(self.cell, float)
-        for level in (3, 2, 1):          # the finest motion model the test pairs determine
-            test = _motion_in_cells(self.shifts.T, cell, level).T            # (n, terms)
-            if np.linalg.matrix_rank(test) == level:
-                break
-        motion = np.nan_to_num(_motion_in_cells(disp, cell, level))
-        motion = np.minimum(motion, test.max(axis=0)[:, None, None, None])
+        models = []                      # per component: its test pairs' and vectors' motion
+        for finest in EXCESS_MOTION_LEVELS:
+            for level in range(finest, 0, -1):   # the finest model the test pairs determine
+                test = _motion_in_cells(self.shifts.T, cell, level).T        # (n, terms)
+                if np.linalg.matrix_rank(test) == level:
+                    break
+            motion = np.nan_to_num(_motion_in_cells(disp, cell, level))
+            models.append((test, np.minimum(motion, test.max(axis=0)[:, None, None, None])))
+
         def fitted(random, statistics):
             excess2 = np.maximum(random**2 - statistics**2, 0.0)            # (n, 3, layers)
             out = np.zeros_like(disp)
-            for k in range(3):
+            for k, (test, motion) in enumerate(models):
                 coef = np.stack([nnls(test, excess2[:, k, layer])[0]
                                  for layer in range(self.z.size)], axis=1)  # (terms, layers)
                 at_z = np.stack([np.interp(z, self.z, c) for c in coef])      # (terms, nz)
