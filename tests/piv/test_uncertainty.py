@@ -78,6 +78,34 @@ def test_the_test_vectors_random_error_is_not_counted_twice():
     np.testing.assert_allclose(f.uncertainty_parts["response_random"][2], 0.0)
 
 
+def test_the_gain_error_is_the_rms_over_the_test_pairs_not_the_error_at_their_mean_gain():
+    """Two test pairs measure w at gains 0.5 and 2 (mean 1.25): a displacement measured at
+    those gains errs by 1 and 1/2 of the measured value, rms sqrt(5/8), where the mean gain
+    would give 1/5; gains straddling 1 closely (0.8, 1.25, mean 1.025) still give their rms,
+    not 0.024. One pair, or pairs of equal gain, give |1 - g| / g; a component no pair moves
+    along, or a gain of 1, none; a gain below min_gain is held there."""
+    z = np.array([-1e-3, 0.0, 1e-3])
+    shifts = np.array([[1e-4, 0.0, 5e-5], [0.0, 0.0, 1e-4]])
+    gain = np.full((2, 3, 3), np.nan)
+    gain[0, 0] = 1.0                                  # only the first pair moves along x
+    gain[:, 2] = np.array([0.5, 2.0])[:, None]
+    resp = Response(z, shifts, gain, np.zeros((2, 3, 3)), np.zeros((2, 3, 3)), 100)
+    err = resp.gain_error(z)
+    np.testing.assert_allclose(err[2], np.sqrt(5 / 8))
+    np.testing.assert_allclose(err[:2], 0.0)          # u at gain 1, v never moved
+    gain[:, 2] = np.array([0.8, 1.25])[:, None]
+    np.testing.assert_allclose(replace(resp, gain=gain).gain_error(z)[2],
+                               np.sqrt((0.25**2 + 0.2**2) / 2))
+    gain[:, 2] = 0.5
+    np.testing.assert_allclose(replace(resp, gain=gain).gain_error(z)[2], 1.0)
+    gain[:, 2] = 0.01                                 # held at min_gain 0.1: (1 - 0.1) / 0.1
+    np.testing.assert_allclose(replace(resp, gain=gain).gain_error(z, 0.1)[2], 9.0)
+    # through combine: the term is that error times the measured displacement
+    gain[:, 2] = np.array([0.5, 2.0])[:, None]
+    out = combine(_field(w=1e-4, sigma=0.0), replace(resp, gain=gain))
+    np.testing.assert_allclose(out.uncertainty_parts["response_gain"][2], np.sqrt(5 / 8) * 1e-4)
+
+
 def _grid_field(u, spacing_m, window_vox=(8, 8, 8)):
     """A field of displacement ``u`` (nz, ny, nx) on a grid of ``spacing_m`` (x, y, z) from
     windows of ``window_vox`` at 50 % overlap (the voxel is spacing / (window / 2))."""

@@ -184,6 +184,27 @@ class Response:
         return (np.stack([np.interp(z, self.z, g) for g in gain]),
                 np.stack([np.interp(z, self.z, r) for r in excess]))
 
+    def gain_error(self, z, min_gain: float = 0.1) -> np.ndarray:
+        r"""Relative error of a displacement measured at the chain's gain, ``(3, len(z))``.
+
+        Per component and layer, :math:`\sqrt{\langle ((1 - g_j) / g_j)^2 \rangle_j}` over
+        the test pairs ``j`` that move along its axis, each :math:`g_j` held at ``min_gain``
+        or more (dimensionless; 0 where no test pair moves along it), linear between the
+        layers. A displacement measured at gain :math:`g` errs by :math:`(g - 1) / g` of the
+        measured value. The gain depends on the displacement (near focus a tenth of a depth
+        cell may be measured twice over and half a cell at its size), and which test
+        displacement a vector's gain is nearest is not known: the error at the mean gain,
+        :math:`|1 - \bar g| / \bar g`, vanishes where the test pairs' gains lie either side
+        of 1 although each of them errs; the rms over the test pairs does not
+        (docs/validation/uncertainty_loo.md).
+        """
+        z = np.asarray(z, float)
+        moved = np.isfinite(self.gain)
+        g = np.maximum(np.where(moved, self.gain, 1.0), min_gain)
+        rel2 = np.where(moved, ((1.0 - g) / g) ** 2, 0.0)
+        rms = np.sqrt(rel2.sum(axis=0) / np.maximum(moved.sum(axis=0), 1))
+        return np.stack([np.interp(z, self.z, r) for r in rms])
+
     def excess(self, z, disp) -> np.ndarray:
         r"""Excess random error of vectors by their motion, ``(3, nz, ny, nx)``, metres.
 
