@@ -73,6 +73,8 @@ class VortexCase:
     passes : PIV passes (the last window repeats)
     overlap_correction, broad_peaks : the PIV peak fit (:class:`plenopiv.piv.PIVSettings`)
     uniform_axis : "x", "y" or "z", the direction of the ``"uniform"`` flow
+    flow_axis : "x", "y", "z" or None, the axis of the vortex (None: the flow's own, y for
+        Oseen so that particles move in depth, x for Hill)
     depth_centre : Z of the centre of the seeded and reconstructed volume, metres (0: centred
         on the focal plane; > 0 places it beyond the focal plane, away from the camera)
     blur_px : standard deviation of a Gaussian blur of every rendered image, pixels (the
@@ -101,6 +103,7 @@ class VortexCase:
     overlap_correction: bool = True
     broad_peaks: bool = True
     uniform_axis: str = "x"
+    flow_axis: str | None = None
     depth_centre: float = 0.0
     blur_px: float = 0.0
     reconstruction: ReconstructionSettings = ReconstructionSettings()
@@ -110,6 +113,8 @@ class VortexCase:
             raise ValueError(f"flow = {self.flow!r}: expected one of {FLOWS}")
         if self.uniform_axis not in ("x", "y", "z"):
             raise ValueError(f"uniform_axis = {self.uniform_axis!r}: expected 'x', 'y' or 'z'")
+        if self.flow_axis not in (None, "x", "y", "z"):
+            raise ValueError(f"flow_axis = {self.flow_axis!r}: expected 'x', 'y', 'z' or None")
         k = self.lateral_oversampling
         if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
             raise ValueError(f"lateral_oversampling = {k!r}: expected an int >= 1")
@@ -127,6 +132,13 @@ def case_camera(case: VortexCase) -> CameraModel:
     return cam if case.lenslets is None else cam.patch(*case.lenslets)
 
 
+def _axis(case: VortexCase, default: str) -> tuple[float, float, float]:
+    """The unit vector of the case's vortex axis (``flow_axis``, else ``default``)."""
+    axis = [0.0, 0.0, 0.0]
+    axis["xyz".index(case.flow_axis or default)] = 1.0
+    return tuple(axis)
+
+
 def _flow(case: VortexCase, box: SeedingBox):
     half_y = 0.5 * (box.y[1] - box.y[0])
     vmax = case.max_displacement / case.dt
@@ -134,10 +146,10 @@ def _flow(case: VortexCase, box: SeedingBox):
     if case.flow == "oseen":
         rc = 0.6 * min(half_y, case.depth)
         return LambOseen(circulation=vmax * 2 * np.pi * rc / 0.6382, core_radius=rc,
-                         centre=centre, axis=(0.0, 1.0, 0.0))
+                         centre=centre, axis=_axis(case, "y"))
     if case.flow == "hill":
         return HillVortex(radius=0.8 * min(half_y, case.depth), speed=vmax / 1.5,
-                          centre=centre, axis=(1.0, 0.0, 0.0))
+                          centre=centre, axis=_axis(case, "x"))
     if case.flow == "uniform":
         v = np.zeros(3)
         v["xyz".index(case.uniform_axis)] = vmax
