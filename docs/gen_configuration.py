@@ -34,9 +34,9 @@ def models():
     """The root model of each file, and models of tables the root types as plain dicts."""
     from plenopiv.camera.grid import _VolumeCfg
     from plenopiv.camera.model import _CameraCfg
-    from plenopiv.config.experiment import _ExperimentCfg
+    from plenopiv.config.experiment import ExperimentFile
 
-    return {"camera": _CameraCfg, "experiment": _ExperimentCfg}, {("experiment", "volume"):
+    return {"camera": _CameraCfg, "experiment": ExperimentFile}, {("experiment", "volume"):
                                                                   _VolumeCfg}
 
 

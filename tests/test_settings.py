@@ -12,7 +12,7 @@ import pytest
 
 from plenopiv.camera.grid import volume_from_dict
 from plenopiv.camera.model import _CameraCfg, camera_from_dict, camera_to_dict, load_camera
-from plenopiv.config.experiment import _ExperimentCfg, experiment_from_dict
+from plenopiv.config.experiment import ExperimentFile, experiment_from_dict
 from plenopiv.errors import ConfigError
 from plenopiv.settings import fields_of
 
@@ -72,7 +72,7 @@ def camera_cases():
 
 def experiment_cases():
     base = {"camera": "small_test", "volume": dict(VOLUME)}
-    for path, accepted in scalar_keys(_ExperimentCfg):
+    for path, accepted in scalar_keys(ExperimentFile):
         if path in (("camera",),):
             continue
         for kind, value in wrong_values(accepted):
@@ -110,7 +110,7 @@ def test_a_volume_key_of_the_wrong_type_is_refused_by_name(key, value):
 
 
 def test_the_enumeration_reaches_every_table():
-    tables = {path[0] for path, _ in scalar_keys(_ExperimentCfg) if len(path) > 1}
+    tables = {path[0] for path, _ in scalar_keys(ExperimentFile) if len(path) > 1}
     assert {"reconstruction", "particles", "piv", "images", "batch", "output",
             "tracking"} <= tables
     assert len(list(experiment_cases())) > 60

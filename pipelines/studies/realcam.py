@@ -195,8 +195,7 @@ def record_case(setup: StudyCase, rec: RecordingSettings, t: Truth) -> Recording
     cam = setup.truth_camera()
     instance = None if rec.is_ideal else camera_instance(cam, rec, seed=setup.camera_seed)
     finish, sensor = _finisher(instance, setup.seed)
-    fp = finish(focal_point_image(cam, f_number=FOCAL_POINT_F_NUMBER, instance=instance), 0)
-    al = finish(alignment_image(cam, instance=instance), 1)
+    fp, al, dark, white = record_calibration(setup, rec)
     w = None
     if rec.brightness_sigma_ln > 0:
         w = np.exp(rec.brightness_sigma_ln * t.brightness_normal)
@@ -208,6 +207,19 @@ def record_case(setup: StudyCase, rec: RecordingSettings, t: Truth) -> Recording
     # one exposure for both frames, fixed by A, so that B shows its pulse energy
     exposure = auto_exposure(ia, bit_depth=BIT_DEPTH, sensor=sensor)
     a, b = finish(ia, 2, exposure), finish(ib, 3, exposure)
+    return Recording(fp, al, a, b, dark, white)
+
+
+def record_calibration(setup: StudyCase, rec: RecordingSettings):
+    """The focal-point and alignment images, dark and white stacks (or None) of one case.
+
+    Each from its own stream of the seed, as :func:`record_case` records them.
+    """
+    cam = setup.truth_camera()
+    instance = None if rec.is_ideal else camera_instance(cam, rec, seed=setup.camera_seed)
+    finish, sensor = _finisher(instance, setup.seed)
+    fp = finish(focal_point_image(cam, f_number=FOCAL_POINT_F_NUMBER, instance=instance), 0)
+    al = finish(alignment_image(cam, instance=instance), 1)
     dark = white = None
     if sensor is not None:
         zero = np.zeros(cam.sensor.shape)
@@ -216,26 +228,66 @@ def record_case(setup: StudyCase, rec: RecordingSettings, t: Truth) -> Recording
         irr = white_image(cam, instance=instance)
         e = auto_exposure(irr, bit_depth=BIT_DEPTH, sensor=sensor)
         white = np.stack([finish(irr, 30 + k, e) for k in range(WHITE_FRAMES)])
-    return Recording(fp, al, a, b, dark, white)
+    return fp, al, dark, white
 
 
 def _calibrate(cam: CameraModel, fp, al, dark_path: Path | None, white=None):
     """``plenopiv calibrate`` (``--dark``, ``--white`` when given): ``(calibration or None,
-    S_i, error)``.
+    S_i, error or warning)``.
 
     ``white``: the mean white frame (raw counts); ``calibrate`` takes the dark off it and the
     calibration images, and divides them by it (its flat field,
-    :class:`~plenopiv.calibration.defects.WhiteFlat`).
+    :class:`~plenopiv.calibration.defects.WhiteFlat`). Its warnings are returned as
+    ``"warned: ..."``.
     """
     dark = None if dark_path is None else calibration_dark(dark_path, cam.sensor.shape)[0]
     user = cam.replace(main_lens=replace(cam.main_lens, image_distance=None))
     try:
-        rep = calibrate(user, fp, alignment_image=al, method="focal-point",
-                        focal_point_f_number=FOCAL_POINT_F_NUMBER, white_image=white,
-                        dark=dark)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", PlenopivWarning)
+            rep = calibrate(user, fp, alignment_image=al, method="focal-point",
+                            focal_point_f_number=FOCAL_POINT_F_NUMBER, white_image=white,
+                            dark=dark)
     except PlenopivError as exc:
         return None, float("nan"), f"{type(exc).__name__}: {exc}"
-    return rep.calibration, rep.calibration.image_distance, None
+    said = [str(w.message) for w in caught if issubclass(w.category, PlenopivWarning)]
+    return (rep.calibration, rep.calibration.image_distance,
+            "; ".join(f"warned: {m}" for m in said) or None)
+
+
+def calibration_figures(setup: StudyCase, effect: str, frames, work: Path) -> tuple:
+    """S_i of one case with its dark, without it and without the white: ``(calibration or
+    None, the row's calibration keys)``. ``frames``: ``(focal point, alignment, dark stack,
+    white stack)``; the stacks are written under ``work`` as ``plenopiv calibrate`` reads them.
+    """
+    rec = recording(effect)
+    cam = setup.truth_camera()
+    fp, al, dark_stack, white_stack = frames
+    work.mkdir(parents=True, exist_ok=True)
+    dark_path = None if dark_stack is None else write_image_stack(work / "dark.tif",
+                                                                   dark_stack)
+    white = None if white_stack is None else white_stack.mean(axis=0)
+    if setup.calibrate:
+        cal, s_i, failed = _calibrate(cam, fp, al, dark_path, white)
+    else:
+        cal, s_i, failed = Calibration.from_camera(cam), cam.image_distance, None
+    out = {"true_image_distance_mm": cam.image_distance * 1e3,
+           "image_distance_mm": s_i * 1e3,
+           "image_distance_error_mm": (s_i - cam.image_distance) * 1e3,
+           "calibration_dark": dark_path is not None, "calibration_error": failed}
+    if dark_path is not None and setup.calibrate:
+        # the same calibration images without their dark, as a calibration without --dark
+        _, s_raw, failed_raw = _calibrate(cam, fp, al, None, white)
+        out.update(image_distance_raw_mm=s_raw * 1e3,
+                   image_distance_raw_error_mm=(s_raw - cam.image_distance) * 1e3,
+                   calibration_raw_error=failed_raw)
+    if setup.calibrate and rec.has_optics:
+        # the same calibration images without the white: what the optics do to S_i
+        _, s_bare, failed_bare = _calibrate(cam, fp, al, dark_path)
+        out.update(image_distance_no_white_mm=s_bare * 1e3,
+                   image_distance_no_white_error_mm=(s_bare - cam.image_distance) * 1e3,
+                   calibration_no_white_error=failed_bare)
+    return cal, out
 
 
 def _particles(result, positions, tolerance) -> dict:
@@ -283,41 +335,18 @@ def run_case(setup: StudyCase, effect: str, t: Truth, work: Path) -> dict:
     """One case: record, calibrate (with its dark), run the pair raw and preprocessed."""
     t0 = time.perf_counter()
     rec = recording(effect)
-    cam = setup.truth_camera()
     frames = record_case(setup, rec, t)
     work.mkdir(parents=True, exist_ok=True)
-    dark_path = white_path = None
-    if frames.dark is not None:
-        dark_path = write_image_stack(work / "dark.tif", frames.dark)
+    white_path = None
     if frames.white is not None:
         white_path = write_image_stack(work / "white.tif", frames.white)
-    white = None if frames.white is None else frames.white.mean(axis=0)
-    if setup.calibrate:
-        cal, s_i, failed = _calibrate(cam, frames.focal_point, frames.alignment, dark_path,
-                                      white)
-    else:
-        cal, s_i, failed = Calibration.from_camera(cam), cam.image_distance, None
+    cal, figures = calibration_figures(
+        setup, effect, (frames.focal_point, frames.alignment, frames.dark, frames.white), work)
+    dark_path = work / "dark.tif" if frames.dark is not None else None
     out: dict = {"effect": effect,
                  "recording": {k: v for k, v in dataclasses.asdict(rec).items()
                                if v != getattr(RecordingSettings(), k)},
-                 "true_image_distance_mm": cam.image_distance * 1e3,
-                 "image_distance_mm": s_i * 1e3,
-                 "image_distance_error_mm": (s_i - cam.image_distance) * 1e3,
-                 "calibration_dark": dark_path is not None, "calibration_error": failed}
-    if dark_path is not None and setup.calibrate:
-        # the same calibration images without their dark, as a calibration without --dark
-        _, s_raw, failed_raw = _calibrate(cam, frames.focal_point, frames.alignment, None,
-                                          white)
-        out.update(image_distance_raw_mm=s_raw * 1e3,
-                   image_distance_raw_error_mm=(s_raw - cam.image_distance) * 1e3,
-                   calibration_raw_error=failed_raw)
-    if setup.calibrate and rec.has_optics:
-        # the same calibration images without the white: what the optics do to S_i
-        _, s_bare, failed_bare = _calibrate(cam, frames.focal_point, frames.alignment,
-                                            dark_path)
-        out.update(image_distance_no_white_mm=s_bare * 1e3,
-                   image_distance_no_white_error_mm=(s_bare - cam.image_distance) * 1e3,
-                   calibration_no_white_error=failed_bare)
+                 **figures}
     if cal is None:
         out["seconds"] = round(time.perf_counter() - t0, 1)
         return out

@@ -486,7 +486,10 @@ METHOD = [
     "gets the fit of its own class: the windows that hold the volume's lateral boundary err "
     "more (particles cross it between the exposures, fewer lines of sight see its voxels; "
     "on the test pairs the edge's spread is 0.8-1.7 times the interior's). It also gets the "
-    "error of a displacement measured with gain g, |1 - g| / max(g, 0.1) |d|. "
+    "error of a displacement measured at the chain's gain, the rms over the test pairs of "
+    "|1 - g_j| / max(g_j, 0.1) times |d| (the error at the mean gain vanished where the "
+    "pairs' gains lay either side of 1; `uncertainty_loo.md`); w's shared error is fitted in "
+    "the lateral motion's magnitude and the depth motion, not along x and y apart. "
     "It is a type-B evaluation from a calibration of the measuring system: the vortex flows "
     "are not used to build it.",
     "4. **Unresolved curvature**: a top-hat window of edge W measures the window average, "

@@ -185,3 +185,46 @@ def test_the_corrected_reconstruction_finds_the_particles_as_an_unmoved_one(
     assert np.median(distance(fixed)) < 0.1 and np.mean(distance(fixed) < 0.1) >= 0.7
     assert reconstruction_quality(off.volume, exact.volume) < 0.9
     assert np.median(distance(off)) > 0.5
+
+
+# ---- the kernels against their twins ---------------------------------------------------------
+
+
+def test_soft_discs_kernel_matches_its_numpy_twin(rng):
+    """Discs near and across the image's edges, overlapping where spots are close."""
+    from plenopiv.calibration._recording_kernels import soft_discs, soft_discs_numpy
+
+    spots = np.vstack([rng.uniform(-5, 45, (30, 2)), [[0.5, 0.5], [20.5, 20.49999]]])
+    for radius, edge in ((3.2, 1.0), (6.0, 0.5)):
+        np.testing.assert_allclose(soft_discs((40, 52), spots, radius, edge),
+                                   soft_discs_numpy((40, 52), spots, radius, edge),
+                                   rtol=0, atol=1e-12)
+
+
+def test_tiles_and_their_correlations_are_those_of_one_tile_at_a_time(rng):
+    """The tiles holding spots (sorted search) are those a tile-by-tile count finds, and the
+    correlations transformed together (FFT sizes rounded up) are each tile's own."""
+    from plenopiv.calibration import recording as rec
+
+    shape, size, pitch, reach = (95, 130), 24, 7.5, 6
+    spots = rng.uniform(-10, 140, (160, 2)) * (0.75, 1.0)
+    tiles = rec._tiles_with_spots(shape, spots, size, pitch)
+    expected = []
+    for r0 in range(0, shape[0] - size // 2, size):
+        for c0 in range(0, shape[1] - size // 2, size):
+            r1, c1 = min(r0 + size, shape[0]), min(c0 + size, shape[1])
+            inside = np.all((spots >= (r0 - pitch, c0 - pitch))
+                            & (spots < (r1 + pitch, c1 + pitch)), axis=1)
+            if inside.sum() >= 4:
+                expected.append((r0, c0, r1, c1))
+    assert tiles == expected and len({(t[2] - t[0], t[3] - t[1]) for t in tiles}) > 1
+    image, model = rng.random(shape), rng.random(shape)
+    corrs = rec._tile_correlations(image, model, tiles, reach)
+    for (r0, c0, r1, c1), corr in zip(tiles, corrs, strict=True):
+        m, w = image[r0:r1, c0:c1], model[r0:r1, c0:c1]
+        np.testing.assert_allclose(corr, rec._correlation(m - m.mean(), w - w.mean(), reach),
+                                   rtol=0, atol=1e-9 * m.size)
+    lights = rec._tile_lights(image, tiles)
+    for (r0, c0, r1, c1), light in zip(tiles, lights, strict=True):
+        m = image[r0:r1, c0:c1]
+        assert light == pytest.approx(np.sum(np.clip(m - np.median(m), 0.0, None)), rel=1e-12)

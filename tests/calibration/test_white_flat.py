@@ -22,16 +22,9 @@ from plenopiv.calibration.calibrate import calibrate
 from plenopiv.calibration.defects import DarkFrame, WhiteFlat
 from plenopiv.camera.model import load_camera
 from plenopiv.errors import ImageError
-from plenopiv.synthetic.images import (
-    alignment_image,
-    auto_exposure,
-    finish_image,
-    focal_point_image,
-    white_image,
-)
-from plenopiv.synthetic.sensor import REALISTIC, RecordingSettings, camera_instance
+from plenopiv.synthetic.sensor import REALISTIC, RecordingSettings
+from sensor_recording import FOCAL_POINT_F_NUMBER, record
 
-FOCAL_POINT_F_NUMBER = 16.0
 #: 20 % of the light lost at a micro-image's rim (REALISTIC's), centred on the micro-image or
 #: on the lenslet's axis; a +-10 % throughput spread between lenslets.
 EFFECTS = {
@@ -47,27 +40,6 @@ def camera():
     return load_camera("small_m1")
 
 
-def _record(camera, settings: RecordingSettings, seed: int):
-    """Focal-point, alignment, white (mean of 4) and dark (mean of 8, None without a sensor)."""
-    inst = camera_instance(camera, settings, seed=7)
-    sensor = inst if settings.has_sensor else None
-    rng = np.random.default_rng(seed)
-
-    def finish(irr, exposure=None):
-        return finish_image(irr, exposure=exposure, noise="poisson", full_well=20000.0,
-                            bit_depth=16, rng=rng, sensor=sensor)
-    fp = finish(focal_point_image(camera, f_number=FOCAL_POINT_F_NUMBER, instance=inst))
-    al = finish(alignment_image(camera, instance=inst))
-    irr = white_image(camera, instance=inst)
-    e = auto_exposure(irr, bit_depth=16, sensor=sensor)
-    white = np.mean([finish(irr, e) for _ in range(4)], axis=0)
-    dark = None
-    if sensor is not None:
-        zero = np.zeros(camera.sensor.shape)
-        dark = np.mean([finish(zero, 1.0) for _ in range(8)], axis=0)
-    return fp, al, white, dark
-
-
 def _image_distance(camera, fp, al, white=None, dark=None):
     user = camera.replace(main_lens=replace(camera.main_lens, image_distance=None))
     rep = calibrate(user, fp, alignment_image=al, white_image=white, dark=dark,
@@ -79,7 +51,7 @@ def _image_distance(camera, fp, al, white=None, dark=None):
 
 @pytest.mark.parametrize("effect", list(EFFECTS))
 def test_the_white_takes_the_effect_out_of_si(camera, effect):
-    fp, al, white, _ = _record(camera, EFFECTS[effect], seed=3)
+    fp, al, white, _ = record(camera, EFFECTS[effect], seed=3)
     si, sigma = _image_distance(camera, fp, al, white)
     err = si - camera.image_distance
     assert abs(err) <= 4 * sigma, (effect, err * 1e3, sigma * 1e3)
@@ -89,30 +61,27 @@ def test_the_white_takes_the_effect_out_of_si(camera, effect):
 def test_without_the_white_vignetting_lengthens_si(camera, centre):
     """The effect is real: 20 % fall-off at the rims moves S_i by more than 0.1 mm (30 of the
     fit's standard deviations) the way the spots' pull predicts, longer."""
-    fp, al, _, _ = _record(camera, RecordingSettings(vignetting=0.2, vignetting_centre=centre),
+    fp, al, _, _ = record(camera, RecordingSettings(vignetting=0.2, vignetting_centre=centre),
                            seed=3)
     si, sigma = _image_distance(camera, fp, al)
     assert si - camera.image_distance > max(0.1e-3, 10 * sigma)
 
 
 @pytest.mark.parametrize(("effect", "with_dark"), [
-    ("black level", True), ("black level", False), ("all", True),
-    pytest.param("all", False, marks=pytest.mark.xfail(strict=True, reason=(
-        "every effect of REALISTIC without the dark: S_i -0.135 mm with the white (sigma "
-        "0.008 mm), +0.44 mm without it (docs/validation/realcam.md); each effect alone "
-        "without the dark stays within 0.02 mm: what the sensor's effects do together "
-        "without their dark is not found yet")))])
+    ("black level", True), ("black level", False), ("all", True), ("all", False)])
 def test_the_white_with_a_black_level_with_or_without_its_dark(camera, effect, with_dark):
     """A sensor's black level (100 counts of a 12-bit ADC with its column and pixel pattern)
     in the white and the calibration images: with the dark it is subtracted from all three;
     without it, each image's own (the smooth level of its gaps and its fixed pattern) is,
     before the flat multiplies it (times the flat it would print the micro-images into the
-    gaps). Either way S_i within four of the fit's standard deviations, every lenslet
-    found; "all" is every effect of REALISTIC."""
+    gaps), and the hot pixels the focal-point image shows by their shape are repaired in the
+    alignment image. Either way S_i within four of the fit's standard deviations, every
+    lenslet found; "all" is every effect of REALISTIC (without the dark +0.022 mm, sigma
+    0.0075 mm; -0.135 mm before the hot pixels were repaired)."""
     settings = REALISTIC if effect == "all" else RecordingSettings(**{
         f: getattr(REALISTIC, f) for f in ("black_level_counts", "column_offset_counts",
                                            "pixel_offset_counts", "adc_bits")})
-    fp, al, white, dark = _record(camera, settings, seed=5)
+    fp, al, white, dark = record(camera, settings, seed=5)
     si, sigma = _image_distance(camera, fp, al, white, dark if with_dark else None)
     err = si - camera.image_distance
     assert abs(err) <= 4 * sigma, (effect, with_dark, err * 1e3, sigma * 1e3)

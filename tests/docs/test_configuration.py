@@ -26,9 +26,9 @@ def config_models():
     """
     from plenopiv.camera.grid import _VolumeCfg
     from plenopiv.camera.model import _CameraCfg
-    from plenopiv.config.experiment import _ExperimentCfg
+    from plenopiv.config.experiment import ExperimentFile
 
-    return ({"camera": _CameraCfg, "experiment": _ExperimentCfg},
+    return ({"camera": _CameraCfg, "experiment": ExperimentFile},
             {("experiment", "volume"): _VolumeCfg}, {("experiment", "camera")})
 
 

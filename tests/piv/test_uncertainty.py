@@ -78,6 +78,34 @@ def test_the_test_vectors_random_error_is_not_counted_twice():
     np.testing.assert_allclose(f.uncertainty_parts["response_random"][2], 0.0)
 
 
+def test_the_gain_error_is_the_rms_over_the_test_pairs_not_the_error_at_their_mean_gain():
+    """Two test pairs measure w at gains 0.5 and 2 (mean 1.25): a displacement measured at
+    those gains errs by 1 and 1/2 of the measured value, rms sqrt(5/8), where the mean gain
+    would give 1/5; gains straddling 1 closely (0.8, 1.25, mean 1.025) still give their rms,
+    not 0.024. One pair, or pairs of equal gain, give |1 - g| / g; a component no pair moves
+    along, or a gain of 1, none; a gain below min_gain is held there."""
+    z = np.array([-1e-3, 0.0, 1e-3])
+    shifts = np.array([[1e-4, 0.0, 5e-5], [0.0, 0.0, 1e-4]])
+    gain = np.full((2, 3, 3), np.nan)
+    gain[0, 0] = 1.0                                  # only the first pair moves along x
+    gain[:, 2] = np.array([0.5, 2.0])[:, None]
+    resp = Response(z, shifts, gain, np.zeros((2, 3, 3)), np.zeros((2, 3, 3)), 100)
+    err = resp.gain_error(z)
+    np.testing.assert_allclose(err[2], np.sqrt(5 / 8))
+    np.testing.assert_allclose(err[:2], 0.0)          # u at gain 1, v never moved
+    gain[:, 2] = np.array([0.8, 1.25])[:, None]
+    np.testing.assert_allclose(replace(resp, gain=gain).gain_error(z)[2],
+                               np.sqrt((0.25**2 + 0.2**2) / 2))
+    gain[:, 2] = 0.5
+    np.testing.assert_allclose(replace(resp, gain=gain).gain_error(z)[2], 1.0)
+    gain[:, 2] = 0.01                                 # held at min_gain 0.1: (1 - 0.1) / 0.1
+    np.testing.assert_allclose(replace(resp, gain=gain).gain_error(z, 0.1)[2], 9.0)
+    # through combine: the term is that error times the measured displacement
+    gain[:, 2] = np.array([0.5, 2.0])[:, None]
+    out = combine(_field(w=1e-4, sigma=0.0), replace(resp, gain=gain))
+    np.testing.assert_allclose(out.uncertainty_parts["response_gain"][2], np.sqrt(5 / 8) * 1e-4)
+
+
 def _grid_field(u, spacing_m, window_vox=(8, 8, 8)):
     """A field of displacement ``u`` (nz, ny, nx) on a grid of ``spacing_m`` (x, y, z) from
     windows of ``window_vox`` at 50 % overlap (the voxel is spacing / (window / 2))."""
@@ -604,25 +632,56 @@ def test_the_location_term_reaches_the_product_through_the_response():
 
 def test_the_shared_error_of_each_component_follows_the_motion_along_each_axis():
     """With test pairs along x alone, along depth alone and diagonal ones, the excess of each
-    component is fitted per axis of motion: a component gets from a motion along x what the
+    lateral component is fitted per axis of motion: it gets from a motion along x what the
     pair along x gave it, from a motion along y what the diagonal pairs gave beyond that
-    (here u's error grows with motion along x only, v's along y only, w's with all)."""
+    (here u's error grows with motion along x only, v's along y only); the depth component's
+    with the lateral motion's magnitude and the depth motion."""
     cell = np.array([1e-4, 1e-4, 4e-4])
     shifts = np.array([[0.5, 0.5, 0.1], [1.25, 1.25, 0.25], [1.75, 1.75, 0.5],
                        [1.25, 0.0, 0.0], [0.0, 0.0, 0.5]]) * cell
     t = shifts / cell                                             # motion in cells
-    rate = np.array([[4.0, 0.0, 0.0], [0.0, 4.0, 0.0], [1.0, 1.0, 9.0]]) * 1e-10  # k x axis
+    rate = np.array([[4.0, 0.0, 0.0], [0.0, 4.0, 0.0]]) * 1e-10   # u, v per axis x, y, z
+    rate_w = np.array([2.0, 9.0]) * 1e-10                         # w: lateral, depth
+
+    def w_motion(m):
+        return np.stack([np.hypot(m[..., 0], m[..., 1]), m[..., 2]], axis=-1)
+
     statistics = np.full((5, 3, 3), 1e-5)
-    random = np.sqrt(statistics**2 + (t @ rate.T)[:, :, None])   # excess = rate . t
+    excess2 = np.concatenate([t @ rate.T, (w_motion(t) @ rate_w)[:, None]], axis=1)
+    random = np.sqrt(statistics**2 + excess2[:, :, None])
     gain = np.ones((5, 3, 3))
     resp = Response(np.array([-1e-3, 0.0, 1e-3]), shifts, gain, random, statistics, 100, cell)
     for d in ((1e-4, 0.0, 0.0), (0.0, 1.5e-4, 0.0), (0.5e-4, 1e-4, 1e-4), (0.0, 0.0, 0.0)):
         disp = np.broadcast_to(np.asarray(d)[:, None, None, None], (3, 3, 2, 2))
-        expected = np.sqrt(rate @ (np.abs(d) / cell))
+        m = np.abs(d) / cell
+        expected = np.sqrt(np.append(rate @ m, w_motion(m) @ rate_w))
         got = resp.excess(resp.z, disp)
         for k in range(3):
             np.testing.assert_allclose(got[k], expected[k], rtol=1e-6, atol=1e-12,
                                        err_msg=f"{d} component {k}")
+
+
+def test_the_depth_error_of_a_lateral_motion_does_not_depend_on_its_direction():
+    """The test pairs move laterally along x alone or diagonally, never along y alone: a
+    depth error that does not grow from the diagonal pairs' motion to the pair's along x
+    (as measured) must still reach a vector moving along y, and one moving along x, along
+    y or obliquely by the same amount gets the same w excess, at every layer."""
+    from plenopiv.piv.response import LATERAL_SHIFTS, SEPARATING_SHIFTS
+
+    cell = np.array([1e-4, 1e-4, 4e-4])
+    shifts = np.array([(a, a, 0.0) for a in LATERAL_SHIFTS] + list(SEPARATING_SHIFTS)) * cell
+    z = np.array([-1e-3, 0.0, 1e-3])
+    statistics = np.full((len(shifts), 3, 3), 1e-5)
+    random = np.full((len(shifts), 3, 3), 3e-5)        # the same error whatever the motion
+    random[-1] = statistics[-1]                        # none from depth motion alone
+    resp = Response(z, shifts, np.ones_like(random), random, statistics, 100, cell)
+    got = []
+    for angle in (0.0, np.pi / 2, 0.4, np.pi):
+        d = 1.25e-4 * np.array([np.cos(angle), np.sin(angle), 0.0])
+        got.append(resp.excess(z, np.broadcast_to(d[:, None, None, None], (3, 3, 2, 2)))[2])
+    assert got[0].min() > 1e-5                         # the excess is there along x
+    for g in got[1:]:
+        np.testing.assert_allclose(g, got[0], rtol=1e-9)
 
 
 def test_the_placement_does_not_depend_on_where_the_voxel_grid_starts(rng):

@@ -1,4 +1,4 @@
-"""Light field (pixel -> ray) and voxel-pixel weights, checked against the ray tracer."""
+"""Voxel-pixel weights, checked against their NumPy twin and the ray tracer."""
 
 from __future__ import annotations
 
@@ -7,28 +7,17 @@ import pytest
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
-from plenopiv.conventions import pixel_to_sensor
 from plenopiv.errors import ConfigError, ReconstructionError
-from plenopiv.lightfield import _kernels as LK
 from plenopiv.lightfield import light_field
 from plenopiv.reconstruction._kernels import weights as WK
 from plenopiv.reconstruction.build import cached_weights
 from plenopiv.reconstruction.weights import build_weights, weights_reference
-from plenopiv.synthetic import _kernels as TK
 from plenopiv.synthetic.images import particle_image
-from plenopiv.synthetic.tracer import geometry_vector
 
 
 @pytest.fixture(scope="module")
 def lf(small_camera):
     return light_field(Calibration.from_camera(small_camera))
-
-
-def test_lit_fraction_kernel_matches_numpy(rng):
-    ux, uy = rng.uniform(-1, 1, (2, 5000))
-    for got, want in zip(LK.lit_fraction(ux, uy, 0.1, 0.8, 8),
-                         LK.lit_fraction_numpy(ux, uy, 0.1, 0.8, 8), strict=True):
-        np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
 
 
 def grid_around_axis(lf, fraction, half_lenslets=6.5, depth=6.25e-3, dz=0.25e-3):
@@ -51,33 +40,6 @@ def trilinear_blob(grid, point):
                      * (fr[2] if dz else 1 - fr[2]))
                 vol[i0[2] + dz, i0[1] + dy, i0[0] + dx] += w
     return vol
-
-
-def test_pixel_rays_retrace_to_their_pixels(small_camera, lf):
-    """The ray of each pixel (through u on the lens and s on the lenslets), traced forward by
-    the simulator, lands on that pixel's centre."""
-    g = geometry_vector(small_camera)
-    rng = np.random.default_rng(3)
-    # fully lit pixels (a pixel cut by the aperture edge aims at its lit part instead)
-    pick = rng.choice(np.flatnonzero(lf.lit == 1.0), 3000, replace=False)
-    u, s = lf.u[pick], lf.s[pick]
-    m = (s - u) / small_camera.mla_z
-    k, sx, sy = TK.trace_image_rays(u[:, 0].copy(), u[:, 1].copy(), np.zeros(len(pick)),
-                                    m[:, 0].copy(), m[:, 1].copy(), g)
-    assert np.all(k == lf.lenslet[pick])
-    rows, cols = np.divmod(lf.pixel[pick], small_camera.sensor.cols)
-    centre = pixel_to_sensor(np.stack([rows, cols], 1), small_camera.sensor.shape,
-                             small_camera.sensor.pixel_pitch)
-    assert np.abs(np.stack([sx, sy], 1) - centre).max() < 1e-6 * small_camera.sensor.pixel_pitch
-
-
-def test_light_field_geometry(lf, small_camera):
-    assert lf.lit.min() >= 0.5 and lf.lit.max() == 1.0
-    assert np.hypot(*lf.u.T).max() <= lf.aperture_radius + lf.cell
-    assert np.allclose(lf.position_at_depth(0.0), lf.focal_plane_position)
-    assert np.allclose(lf.position_at_depth(-lf.object_distance), lf.u)
-    assert lf.footprint == pytest.approx(125e-6 / abs(small_camera.magnification))
-    assert len(np.unique(lf.pixel)) == lf.n_rays
 
 
 @pytest.mark.parametrize("alpha, beta", [(0.3, 1.0), (1.0, 0.3), (0.0, 0.7), (0.5, 0.5)])

@@ -650,6 +650,8 @@ def test_track_command_end_to_end(tmp_path, capsys):
                   <= np.array([0.1, 0.1, 0.5]) * 0.125e-3)
     np.testing.assert_allclose(v, d / 1e-3)
     assert out.with_suffix(".vtp").exists()
+    with h5py.File(out, "r") as fh:
+        assert json.loads(fh.attrs["judgement"]) == s["judgement"]
     binned = load_vectors(s["files"]["binned"])
     assert binned.u.shape == (len(binned.z), len(binned.y), len(binned.x))
     assert binned.valid.any()
@@ -692,6 +694,11 @@ def test_tracking_in_a_batch_pair_and_its_config(tmp_path):
         assert fh["/n_lenslets_a"][()].min() >= 6 and fh["/n_lenslets_b"][()].min() >= 6
         assert fh.attrs["count_rejected_few_lenslets"] >= 0
         assert fh.attrs["count_tracks"] == s["n_tracks"]
+        # the judgement of the settings and of the seeding, as `plenopiv track` records it
+        judged = json.loads(fh.attrs["judgement"])
+    with h5py.File(tmp_path / "p1_vectors.h5", "r") as fh:
+        assert set(judged) == set(json.loads(fh.attrs["judgement"]))
+    assert judged["n_particles"] > 0 and judged["particles_per_lenslet"] > 0
     (tmp_path / "bad.toml").write_text(text + "search_radius = 2\n")
     with pytest.raises(ConfigError, match="search_radius"):
         load_experiment(tmp_path / "bad.toml")

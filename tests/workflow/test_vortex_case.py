@@ -95,10 +95,40 @@ def test_uncertainty_coverage_in_the_band_on_the_ci_camera(oseen, hill):
     it leaves this band with a chance of about 0.3 % per component (the narrower 90-98 %
     with about 4 %, 22 % over the six components: a test that failed a right sigma), while
     a sigma 30 % too small (84 % inside) leaves it with a chance of 63 %. Measured on these
-    renders: Oseen u, v, w = 95.6, 95.0, 92.2 %, Hill 95.5, 93.2, 89.2 %."""
+    renders: Oseen u, v, w = 97.2, 95.0, 92.8 %, Hill 97.1, 93.1, 89.1 %."""
     for e in (oseen, hill):
         cov = np.asarray(e["coverage_2sigma"])
         assert np.all((cov >= COVERAGE[0]) & (cov <= COVERAGE[1])), cov
+
+
+@pytest.mark.slow
+def test_uncertainty_coverage_in_the_band_with_the_vortex_turned(tmp_path_factory):
+    """Hill's vortex with its axis along y, a case the uncertainty model was not developed on
+    (0.15 particles per lenslet, Poisson noise): 85-99 % of the true errors within +-2 sigma
+    per component. The response's test pairs move laterally along x alone or diagonally;
+    fitted along x and y apart, w got no shared error from motion along y, and this case's w
+    was covered at 80.4 % (now 89.6; u, v 94.5, 96.9; docs/validation/uncertainty_loo.md)."""
+    e = _errors(tmp_path_factory, flow="hill", flow_axis="y")
+    cov = np.asarray(e["coverage_2sigma"])
+    assert np.all((cov >= COVERAGE[0]) & (cov <= COVERAGE[1])), cov
+
+
+def test_the_vortex_axis_of_a_case_turns_the_flow():
+    """``flow_axis`` turns the vortex: Oseen about y by default (no v), about x (no u), about
+    z (no w); Hill about x by default; an unknown axis is refused."""
+    from plenopiv.workflow.vortex_case import aligned_grid, case_flow
+
+    grid = aligned_grid(case_camera(VortexCase()), VortexCase())
+    pts = np.random.default_rng(0).uniform(-1e-3, 1e-3, (200, 3))
+    for kw, still in ((dict(), 1), (dict(flow_axis="y"), 1), (dict(flow_axis="x"), 0),
+                      (dict(flow_axis="z"), 2), (dict(flow="hill", flow_axis="z"), None)):
+        vel = case_flow(VortexCase(**kw), grid)(pts)
+        if still is not None:
+            assert np.abs(vel[:, still]).max() < 1e-12 * np.abs(vel).max(), kw
+    hill = case_flow(VortexCase(flow="hill"), grid)
+    assert tuple(hill.axis) == (1.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="flow_axis"):
+        VortexCase(flow_axis="w")
 
 
 @pytest.mark.xfail(strict=True, reason=(

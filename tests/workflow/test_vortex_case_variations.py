@@ -1,6 +1,6 @@
 """The vortex case varied one property at a time: camera, flow axis and centre, grid.
 
-Every property a case can vary (:attr:`VortexCase.camera_changes`, ``axis``,
+Every property a case can vary (:attr:`VortexCase.camera_changes`, ``flow_axis``,
 ``centre_offset``, ``voxel_lateral_factor``, ``grid_shift``) changes that property alone, and
 the defaults leave the preset, the flow and the grid of the demo and the studies as they were.
 The study that runs them is docs/validation/invariance.md.
@@ -21,7 +21,7 @@ from plenopiv.workflow.vortex_case import (
     aligned_grid,
     case_camera,
     case_flow,
-    flow_axis,
+    vortex_axis,
 )
 
 #: Each camera property a case varies, a value other than the preset's, and where the camera
@@ -73,10 +73,11 @@ def test_each_camera_change_sets_its_property_alone(name):
 @pytest.mark.parametrize("axis", list(AXES))
 def test_the_flow_turns_about_its_axis_and_moves_with_its_centre(axis):
     offset = (0.31e-3, -0.23e-3, 0.17e-3)
-    case = VortexCase(axis=AXES[axis] if axis == "oblique" else axis, centre_offset=offset)
+    case = VortexCase(flow_axis=AXES[axis] if axis == "oblique" else axis,
+                      centre_offset=offset)
     grid = _grid(case)
     flow = case_flow(case, grid)
-    a = np.asarray(flow_axis(case.axis))
+    a = np.asarray(vortex_axis(case.flow_axis))
     np.testing.assert_allclose(np.linalg.norm(a), 1.0)
     np.testing.assert_allclose(flow.centre, offset)
     rng = np.random.default_rng(3)
@@ -90,8 +91,8 @@ def test_the_flow_turns_about_its_axis_and_moves_with_its_centre(axis):
                        / np.linalg.norm(np.cross(a, [0.6, 0.8, 0.0])))).max() > 0
 
 
-@pytest.mark.parametrize("bad", [dict(axis="w"), dict(axis=(0, 0, 0)), dict(axis=(1, 0)),
-                                 dict(flow="uniform", axis="x"), dict(centre_offset=(0, 0)),
+@pytest.mark.parametrize("bad", [dict(flow_axis="w"), dict(flow_axis=(0, 0, 0)),
+                                 dict(flow_axis=(1, 0)), dict(centre_offset=(0, 0)),
                                  dict(grid_shift=(0.5,)), dict(voxel_lateral_factor=0.0)])
 def test_bad_variations_are_refused(bad):
     with pytest.raises(ValueError):

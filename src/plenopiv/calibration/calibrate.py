@@ -12,11 +12,18 @@ See docs/methods.md#calibration.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from plenopiv.calibration.defects import DarkFrame, WhiteFlat
+from plenopiv.calibration.defects import (
+    HOT_SHAPE_MIN_RMS_PX,
+    DarkFrame,
+    WhiteFlat,
+    gap_level,
+    hot_pixel_mask,
+)
 from plenopiv.calibration.image_distance import (
     FocalPointFit,
     MagnificationResult,
@@ -31,6 +38,7 @@ from plenopiv.calibration.lattice_quality import (
     MAX_MISSING_FRACTION,
     MAX_RMS_RESIDUAL_PITCH,
     MIN_ON_LATTICE_FRACTION,
+    pitch_sigma,
 )
 from plenopiv.calibration.lenslets import (
     LensletCentres,
@@ -44,11 +52,12 @@ from plenopiv.calibration.lenslets import (
 from plenopiv.calibration.model import Calibration
 from plenopiv.calibration.nominal import check_against_camera
 from plenopiv.calibration.psf import point_spread_sigma
+from plenopiv.calibration.spot_detection import window_radius_from_rms
 from plenopiv.calibration.spot_types import Lattice, SpotFlag, SpotSet
 from plenopiv.camera.model import CameraModel, apply_misplacement
 from plenopiv.camera.resolution import MICRO_IMAGE_TOLERANCE
 from plenopiv.conventions import pixel_to_sensor, sensor_to_pixel
-from plenopiv.errors import CalibrationError
+from plenopiv.errors import CalibrationError, PlenopivWarning
 from plenopiv.products.images import check_image, warn_identical
 
 METHODS = ("focal-point", "magnification", "both")
@@ -193,9 +202,9 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     fp = flat.apply(dark_frame.subtract(check_image(focal_point_image, shape=shape,
                                                     name="focal-point image")))
 
-    # 1. focal spots; 2. the lenslets (alignment image or nominal), each with its focal spot
+    # 1. focal spots; 2. the lenslets (alignment or nominal) and their spots; 3. the fit
     spots, lat = spot_lattice(fp, camera, "the focal-point image", **options)
-    lenslets = lenslet_centres(camera, alignment_image, dark=dark_frame, flat=flat, **options)
+    lenslets = _lenslets(camera, alignment_image, spots, dark_frame, flat, options)
     scale = focal_spot_scale(float(np.mean(lat.pitch_px)), lenslets.pitch_px,
                              _lenslets_from(camera, lenslets))
     lenslets = lenslets_on_sensor(lenslets, scale, shape)   # spots cut by the edge: predicted
@@ -204,7 +213,6 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
                                max_missing_fraction, margin_px=spots.window_radius_px + 1)
     found = spot_of >= 0
 
-    # 3. focal-point fit
     spot_model = SpotModel.from_camera(camera, focal_point_f_number=focal_point_f_number)
     fit = fit_focal_points(pixel_to_sensor(lenslets.centre_px[found], shape, pp),
                            pixel_to_sensor(focal_px[spot_of[found]], shape, pp), spot_model,
@@ -226,8 +234,89 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
                       extra=_extra(spot_of, fit, mag, meth, spots, white, psf))
     return CalibrationReport(cal, lat, lenslets.lattice, fit, mag, int(np.sum(~found)),
                              lenslets.grid_index[~found], lenslets.source,
-                             focal_px[spot_of[found]], notes + missing_notes + si_notes, spots,
-                             lenslets.spots, white)
+                             focal_px[spot_of[found]], notes + missing_notes + si_notes
+                             + _defect_notes(camera, focal_point_image, spots, lenslets, scale,
+                                             fit, dark_frame), spots, lenslets.spots, white)
+
+
+def _lenslets(camera, alignment_image, spots: SpotSet, dark_frame: DarkFrame,
+              flat: WhiteFlat, options: dict) -> LensletCentres:
+    """The lenslets (:func:`lenslet_centres`), hot pixels repaired.
+
+    Without a dark frame, the hot pixels the focal-point image showed by their shape
+    (:func:`~plenopiv.calibration.defects.hot_pixel_mask`) are repaired in the alignment
+    image, whose one-pixel spots cannot tell them. The spots' window is that of their rms
+    radius where the 99 % radius of their stacked light reads wider
+    (:func:`~plenopiv.calibration.spot_detection.window_radius_from_rms`): without the dark
+    the black level left in the gaps and a hot pixel beside a spot, summed over the cell's
+    rings, carry the 99 % radius to the cell's edge, and a window that wide takes the gaps'
+    pattern and noise into every centre (0.26 px of noise in each instead of 0.01,
+    docs/methods.md#sensor-defects).
+    """
+    if dark_frame.frame is not None or alignment_image is None:
+        return lenslet_centres(camera, alignment_image, dark=dark_frame, flat=flat, **options)
+    if spots.spot_rms_radius_px >= HOT_SHAPE_MIN_RMS_PX:
+        # broad focal spots: what they reject as one pixel of light is a hot pixel
+        options = {**options, "bad_pixels": hot_pixel_mask(spots.rejected_px,
+                                                           camera.sensor.shape)}
+    lenslets = lenslet_centres(camera, alignment_image, dark=dark_frame, flat=flat, **options)
+    found = lenslets.spots
+    radius = window_radius_from_rms(found.spot_rms_radius_px)
+    if not found.moment_radius_px > radius + 1.0:
+        return lenslets
+    return lenslet_centres(camera, alignment_image, dark=dark_frame, flat=flat,
+                           **{**options, "moment_radius_px": radius})
+
+
+#: The S_i the alignment lattice's pitch carries (:func:`_defect_notes`) is warned about
+#: beyond this many times the focal-point fit's own standard deviation and beyond
+#: LATTICE_SIGMA_FLOOR of S_i (0.01 mm at 100 mm; the demo camera's ideal render carries
+#: 0.004 mm, with the real camera's effects and their dark 0.008 mm)
+LATTICE_SIGMA_FACTOR = 3.0
+LATTICE_SIGMA_FLOOR = 1e-4
+#: Without a dark frame a black level above this fraction of the focal spots' peak is noted
+BLACK_LEVEL_NOTE = 0.01
+
+
+def _defect_notes(camera, focal_point_image, spots: SpotSet, lenslets: LensletCentres,
+                  scale: float, fit: FocalPointFit, dark_frame: DarkFrame) -> list[str]:
+    """What the images' defects leave in S_i: notes, and a warning beyond what noise allows.
+
+    The alignment lattice's pitch, relative standard error ``eps``
+    (:func:`~plenopiv.calibration.lattice_quality.pitch_sigma`), carries
+    ``S_i scale / (scale - 1) eps`` into S_i (``scale = 1 + f/S_i``: 200 times ``eps`` at
+    f = 0.5 mm, S_i = 100 mm), which the focal-point fit's standard deviation leaves out.
+    Beyond :data:`LATTICE_SIGMA_FACTOR` times that deviation it is warned about, naming the
+    dark frame where there was none. Without one, a black level above
+    :data:`BLACK_LEVEL_NOTE` of the spots' peak is noted with the hot pixels repaired.
+    """
+    notes = []
+    si = fit.image_distance
+    if dark_frame.frame is None:
+        level, peak = gap_level(focal_point_image, camera.pitch_px)
+        if level > BLACK_LEVEL_NOTE * peak:
+            notes.append(
+                f"no dark frame: a black level of {level:.4g} counts (the median of the "
+                f"focal-point image's gaps, {100 * level / peak:.2g} % of its brightest "
+                "spots) and its pattern per column and row were estimated and taken off, and "
+                f"{len(spots.rejected_px)} hot pixels found by their shape repaired; each "
+                "pixel's own offset and hot pixels inside a spot stay (--dark takes them off)")
+    if lenslets.lattice is None:
+        return notes
+    sigma = si * scale / (scale - 1.0) * pitch_sigma(lenslets.lattice)
+    if not sigma > max(LATTICE_SIGMA_FACTOR * fit.sigma_image_distance,
+                       LATTICE_SIGMA_FLOOR * si):
+        return notes
+    cause = ("without a dark frame hot pixels or the black level's pattern may sit in the "
+             "alignment spots: give the dark frame (--dark)" if dark_frame.frame is None else
+             "the alignment image's spots are noisier or more disturbed than its dark frame "
+             "explains: check its exposure and focus")
+    text = (f"the alignment image's lenslet centres fit their lattice to "
+            f"{lenslets.lattice.rms_residual_px:.3f} px rms: its pitch carries "
+            f"±{sigma * 1e3:.3f} mm into S_i, {sigma / fit.sigma_image_distance:.0f} times the "
+            f"focal-point fit's ±{fit.sigma_image_distance * 1e3:.4f} mm; {cause}")
+    warnings.warn(text, PlenopivWarning, stacklevel=3)
+    return notes + [text]
 
 
 def _lenslets_from(camera: CameraModel, lenslets: LensletCentres) -> str:

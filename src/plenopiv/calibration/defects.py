@@ -28,6 +28,11 @@ HOT_DARK_SIGMA = 8.0
 # of its height (a spot of rms radius >= 1 px: the 4-neighbours of its peak hold >= 0.37)
 HOT_IMAGE_SIGMA = 8.0
 HOT_NEIGHBOUR_FRACTION = 0.25
+# Hot pixels are told by their shape where the spots' measured rms radius (pixel width
+# included) is at least this: a Gaussian spot of sigma 0.53 px per axis, centred on a pixel,
+# measures 0.85 px and its 4-neighbours hold 0.25 of its peak; at 0.9 px they hold 0.29, and
+# a spot off a pixel's centre has a brighter neighbour still
+HOT_SHAPE_MIN_RMS_PX = 0.9
 # The fixed pattern is estimated where at least this fraction of the image is dark gap, and
 # the gaps' noise is less than this fraction of the brightest light above them
 MIN_DARK_FRACTION = 0.5
@@ -223,9 +228,10 @@ def isolated_pixels(work, noise: float, *, sigma: float = HOT_IMAGE_SIGMA,
 
     A pixel is hot when it stands ``sigma`` noise standard deviations above the background
     and its brightest 4-neighbour holds less than ``neighbour_fraction`` of its height: light
-    confined to one pixel. Use it only on images whose spots are broader than that (rms
-    radius of at least a pixel: the 4-neighbours of a spot's peak then hold at least 0.37 of
-    it); an alignment image's one-pixel spots would be taken for hot pixels.
+    confined to one pixel. Use it only on images whose spots are broader than that (a
+    measured rms radius of at least :data:`HOT_SHAPE_MIN_RMS_PX`: the 4-neighbours of a
+    spot's peak then hold at least 0.29 of it); an alignment image's one-pixel spots would
+    be taken for hot pixels.
 
     Parameters
     ----------
@@ -238,6 +244,21 @@ def isolated_pixels(work, noise: float, *, sigma: float = HOT_IMAGE_SIGMA,
     pad = np.pad(w, 1, mode="edge")
     n4 = np.maximum.reduce([pad[:-2, 1:-1], pad[2:, 1:-1], pad[1:-1, :-2], pad[1:-1, 2:]])
     return (w > sigma * max(float(noise), 1e-12)) & (n4 < neighbour_fraction * w)
+
+
+def hot_pixel_mask(positions_px, shape) -> np.ndarray:
+    """The pixels at ``positions_px`` (``(K, 2)`` ``(row, col)`` px, rounded): a boolean mask.
+
+    Without a dark frame the hot pixels of the alignment image, whose one-pixel spots look
+    like them, are those the focal-point image showed by their shape (its spots are broader
+    than a pixel: :attr:`~plenopiv.calibration.spot_types.SpotSet.rejected_px`): a hot
+    pixel's dark current is in every image the sensor records.
+    """
+    mask = np.zeros(shape, dtype=bool)
+    rc = np.rint(np.asarray(positions_px, dtype=np.float64).reshape(-1, 2)).astype(np.int64)
+    inside = np.all((rc >= 0) & (rc < np.asarray(shape)), axis=1)
+    mask[rc[inside, 0], rc[inside, 1]] = True
+    return mask
 
 
 @dataclass(frozen=True)
@@ -365,3 +386,15 @@ def black_level(image, pitch_px: float) -> np.ndarray:
     a = np.asarray(image, dtype=np.float32)
     smooth, _ = _dark_gaps(a, pitch_px)
     return smooth + fixed_pattern(a, pitch_px)
+
+
+def gap_level(image, pitch_px: float) -> tuple[float, float]:
+    """An image's black level and its brightest light, counts.
+
+    The median of its gaps' smooth level (:func:`black_level` without the pattern) and its
+    99.9th percentile.
+    """
+    a = np.asarray(image, dtype=np.float32)
+    smooth, _ = _dark_gaps(a, pitch_px)
+    return float(np.median(smooth)), float(np.percentile(a[::2, ::2], 99.9))
+

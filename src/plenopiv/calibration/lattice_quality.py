@@ -184,3 +184,27 @@ def check_lattice_shape(grid, basis, shift, tol):
                 f"the spots do not form a {grid} lattice: {text} (at most {limit}, "
                 f"max_shape_error = {tol:g}); is the grid type wrong (a {other} array)?"
             )
+
+
+def pitch_sigma(lattice) -> float:
+    """Relative standard error of a lattice's pitch from its inliers' residuals.
+
+    Least squares of the positions ``origin + i b_1 + j b_2`` gives each basis vector the
+    standard error ``sigma / sqrt(S_k)`` per component, ``sigma`` the residuals' rms per
+    coordinate and ``S_k`` the sum of squares of the index ``k`` about its mean; over the
+    pitch ``p`` that is ``sigma / (p sqrt(S_k))``, and the two axes together (inverse-variance
+    mean) ``sigma / (p sqrt(S_1 + S_2))``. The residuals' rms, not their robust spread: a few
+    centres pulled off their nodes (a hot pixel beside a spot) move the pitch as much as
+    they weigh in it. NaN with fewer than 3 inliers.
+    """
+    inlier = np.asarray(lattice.inlier, dtype=bool)
+    if np.count_nonzero(inlier) < 3:
+        return float("nan")
+    res = np.asarray(lattice.residual_px, dtype=np.float64)[inlier]
+    idx = np.asarray(lattice.grid_index, dtype=np.float64)[inlier]
+    sigma = math.sqrt(float(np.mean(res * res)))
+    spread = float(np.sum((idx - idx.mean(axis=0)) ** 2))
+    pitch = float(np.mean(lattice.pitch_px))
+    if not (spread > 0 and pitch > 0):
+        return float("nan")
+    return sigma / (pitch * math.sqrt(spread))

@@ -20,8 +20,11 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft
 from scipy.spatial import cKDTree
 
+from plenopiv._threads import thread_count
+from plenopiv.calibration._recording_kernels import soft_discs
 from plenopiv.camera.resolution import micro_image_diameter_px
 from plenopiv.errors import CalibrationError, PlenopivWarning
 
@@ -46,6 +49,8 @@ SIGNIFICANCE = 3.0
 _MAX_TILE_SPREAD = 0.1
 # a soft disc's edge, px (the correlation surface is then smooth enough for a parabola)
 _EDGE_PX = 1.0
+# the most tiles transformed at once
+_TILE_BATCH = 256
 
 
 @dataclass(frozen=True)
@@ -244,24 +249,6 @@ def _transform(points, shift, theta, centre):
     return centre + rot + np.asarray(shift, dtype=np.float64)
 
 
-def _discs(shape, spots, radius):
-    """Soft discs of ``radius`` px at ``spots`` on an image of ``shape``.
-
-    Discs are at least a pitch apart, so each offset from the centres hits distinct pixels.
-    """
-    out = np.zeros(shape)
-    h = int(math.ceil(radius + 3 * _EDGE_PX))
-    base = np.rint(spots).astype(np.int64)
-    frac = spots - base
-    for a in range(-h, h + 1):
-        for b in range(-h, h + 1):
-            r, c = base[:, 0] + a, base[:, 1] + b
-            ok = (r >= 0) & (c >= 0) & (r < shape[0]) & (c < shape[1])
-            dist = np.hypot(a - frac[ok, 0], b - frac[ok, 1])
-            out[r[ok], c[ok]] += 0.5 * (1.0 - np.tanh((dist - radius) / _EDGE_PX))
-    return out
-
-
 def _tile_shifts(mean, spots, radius, pitch):
     """Per tile: the shift of the recorded light from the discs at ``spots``, px.
 
@@ -272,26 +259,15 @@ def _tile_shifts(mean, spots, radius, pitch):
     reach = max(int(0.45 * pitch), 1)
     half = max(int(round(0.5 * pitch)), 1)
     full = reach + half + 1
-    model = _discs(mean.shape, spots, radius)
-    tiles, lights = [], []
-    for r0 in range(0, mean.shape[0] - size // 2, size):
-        for c0 in range(0, mean.shape[1] - size // 2, size):
-            r1, c1 = min(r0 + size, mean.shape[0]), min(c0 + size, mean.shape[1])
-            inside = np.all((spots >= (r0 - pitch, c0 - pitch))
-                            & (spots < (r1 + pitch, c1 + pitch)), axis=1)
-            if inside.sum() < 4:
-                continue
-            m = mean[r0:r1, c0:c1]
-            tiles.append((r0, c0, r1, c1))
-            lights.append(float(np.sum(np.clip(m - np.median(m), 0.0, None))))
+    tiles = _tiles_with_spots(mean.shape, spots, size, pitch)
+    lights = _tile_lights(mean, tiles)
+    floor = _MIN_LIGHT * float(np.median(lights)) if len(lights) else 0.0
+    tiles = [t for t, light in zip(tiles, lights, strict=True) if light > floor and light > 0]
+    lights = lights[(lights > floor) & (lights > 0)]
+    corrs = _tile_correlations(mean, soft_discs(mean.shape, spots, radius, _EDGE_PX), tiles,
+                               full)
     out_shift, out_centre, out_light = [], [], []
-    floor = _MIN_LIGHT * float(np.median(lights)) if lights else 0.0
-    for (r0, c0, r1, c1), light in zip(tiles, lights, strict=True):
-        if not (light > floor and light > 0):
-            continue
-        m = mean[r0:r1, c0:c1]
-        w = model[r0:r1, c0:c1]
-        corr = _correlation(m - m.mean(), w - w.mean(), full)
+    for (r0, c0, r1, c1), light, corr in zip(tiles, lights, corrs, strict=True):
         inner = corr[full - reach:full + reach + 1, full - reach:full + reach + 1]
         k = np.unravel_index(int(np.argmax(inner)), inner.shape)
         kr, kc = k[0] + full - reach, k[1] + full - reach
@@ -306,13 +282,87 @@ def _tile_shifts(mean, spots, radius, pitch):
                _parabola(corr[kr, kc - 1], peak, corr[kr, kc + 1]))
         out_shift.append((kr - full + sub[0], kc - full + sub[1]))
         out_centre.append((0.5 * (r0 + r1 - 1), 0.5 * (c0 + c1 - 1)))
-        out_light.append(light)
+        out_light.append(float(light))
     return (np.array(out_shift, dtype=np.float64).reshape(-1, 2),
             np.array(out_centre, dtype=np.float64).reshape(-1, 2), np.array(out_light))
 
 
+def _tiles_with_spots(shape, spots, size, pitch):
+    """The tiles ``(r0, c0, r1, c1)`` that hold at least 4 spots within a pitch of them.
+
+    Tiles of ``size`` px a side, row by row (the last row and column may be smaller).
+    """
+    order = np.argsort(spots[:, 0], kind="stable")
+    rows, cols = spots[order, 0], spots[order, 1]
+    tiles = []
+    for r0 in range(0, shape[0] - size // 2, size):
+        r1 = min(r0 + size, shape[0])
+        lo, hi = np.searchsorted(rows, [r0 - pitch, r1 + pitch], side="left")
+        band = np.sort(cols[lo:hi])
+        for c0 in range(0, shape[1] - size // 2, size):
+            c1 = min(c0 + size, shape[1])
+            a, b = np.searchsorted(band, [c0 - pitch, c1 + pitch], side="left")
+            if b - a >= 4:
+                tiles.append((r0, c0, r1, c1))
+    return tiles
+
+
+def _by_shape(tiles):
+    """The tiles' indices grouped by their shape ``(rows, cols)``.
+
+    In chunks of at most :data:`_TILE_BATCH` tiles: bounded memory for a 16 MP sensor.
+    """
+    groups: dict = {}
+    for k, (r0, c0, r1, c1) in enumerate(tiles):
+        groups.setdefault((r1 - r0, c1 - c0), []).append(k)
+    for shape, ks in groups.items():
+        for i in range(0, len(ks), _TILE_BATCH):
+            yield shape, ks[i:i + _TILE_BATCH]
+
+
+def _stack(image, tiles, ks):
+    """The tiles ``ks`` of ``image`` (all of one shape) as a stack (K, rows, cols)."""
+    return np.stack([image[tiles[k][0]:tiles[k][2], tiles[k][1]:tiles[k][3]] for k in ks])
+
+
+def _tile_lights(mean, tiles):
+    """Each tile's light above its median, ``sum(max(m - median(m), 0))`` (T,)."""
+    lights = np.zeros(len(tiles))
+    for _, ks in _by_shape(tiles):
+        m = _stack(mean, tiles, ks)
+        med = np.median(m.reshape(len(ks), -1), axis=1)[:, None, None]
+        lights[ks] = np.sum(np.clip(m - med, 0.0, None), axis=(1, 2))
+    return lights
+
+
+def _tile_correlations(mean, model, tiles, reach):
+    """Each tile of ``mean`` correlated with the same tile of ``model``, both less their mean.
+
+    :func:`_correlation` for shifts up to ``reach`` px, (T, 2 reach + 1, 2 reach + 1); the
+    tiles of one shape are transformed together.
+    """
+    out = np.empty((len(tiles), 2 * reach + 1, 2 * reach + 1))
+    for (h, w), ks in _by_shape(tiles):
+        m = _stack(mean, tiles, ks)
+        d = _stack(model, tiles, ks)
+        m = m - m.mean(axis=(1, 2), keepdims=True)
+        d = d - d.mean(axis=(1, 2), keepdims=True)
+        # at least the tile and the shifts (no wrap-around), of sizes the FFT does fast
+        shape = tuple(scipy.fft.next_fast_len(n + 2 * reach, real=True) for n in (h, w))
+        workers = thread_count()
+        spectrum = (scipy.fft.rfft2(m, shape, axes=(1, 2), workers=workers)
+                    * np.conj(scipy.fft.rfft2(d, shape, axes=(1, 2), workers=workers)))
+        corr = scipy.fft.irfft2(spectrum, shape, axes=(1, 2), workers=workers)
+        idx = np.r_[np.arange(-reach, reach + 1)] % np.array(shape)[:, None]
+        out[ks] = corr[:, idx[0][:, None], idx[1][None, :]]
+    return out
+
+
 def _correlation(m, w, reach):
-    """``sum_x m(x) w(x - s)`` for shifts ``s`` of up to ``reach`` px, shape (2r+1, 2r+1)."""
+    """``sum_x m(x) w(x - s)`` for shifts ``s`` of up to ``reach`` px, shape (2r+1, 2r+1).
+
+    One tile at a time: the NumPy twin of :func:`_tile_correlations`.
+    """
     shape = (m.shape[0] + 2 * reach, m.shape[1] + 2 * reach)
     fm = np.fft.rfft2(m, shape)
     fw = np.fft.rfft2(w, shape)

@@ -19,7 +19,12 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtri
 
 from plenopiv.calibration import _spot_kernels as _k
-from plenopiv.calibration.defects import fixed_pattern, isolated_pixels, patch_pixels
+from plenopiv.calibration.defects import (
+    HOT_SHAPE_MIN_RMS_PX,
+    fixed_pattern,
+    isolated_pixels,
+    patch_pixels,
+)
 from plenopiv.calibration.spot_shape import fit_radius, shape_refine, shape_uncertainty
 from plenopiv.calibration.spot_types import (
     BACKGROUNDS,
@@ -265,9 +270,9 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
         Pixels to ignore (a dark frame's hot pixels), replaced by their good neighbours'
         median first.
     hot_pixel_shapes : bool
-        Where spots are broader than a pixel, find hot pixels by their shape
-        (:func:`~plenopiv.calibration.defects.isolated_pixels`), replace them alike and detect
-        again; False never (an alignment spot may hold its light in one pixel, halo or not).
+        Where spots are broader than a pixel (rms ``HOT_SHAPE_MIN_RMS_PX``), find hot pixels
+        by their shape (:func:`~plenopiv.calibration.defects.isolated_pixels`), replace them
+        and detect again; False never (an alignment spot may be one pixel, halo or not).
 
     Returns
     -------
@@ -295,7 +300,8 @@ def detect_spots(image, *, expected_pitch_px=None, grid=None, threshold=0.1,
     centres, intensity, area, rejected = _first_centroids(work, cand, radius, pitch, opts)
     interior = ~_edge_mask(centres, radius, work.shape)
     spot_r, spot_rms = _spot_size(work, centres[interior], pitch)
-    hot = isolated_pixels(work, noise) if hot_pixel_shapes and spot_rms >= 1.0 else None
+    broad = hot_pixel_shapes and spot_rms >= HOT_SHAPE_MIN_RMS_PX
+    hot = isolated_pixels(work, noise) if broad else None
     if hot is not None and hot.any():
         work = patch_pixels(work, hot)
         cand, work, _ = _candidates(work, pitch, background, opts["detection_threshold"])
@@ -663,6 +669,18 @@ def _window_fits(spot_r, pitch):
     radius is near half the pitch) keep the thresholded centroid.
     """
     return bool(np.isfinite(spot_r) and 2.0 * spot_r + 4.0 <= pitch and spot_r <= 0.35 * pitch)
+
+
+def window_radius_from_rms(spot_rms_px: float) -> float:
+    """The window radius of a Gaussian spot of measured rms radius ``spot_rms_px``, px.
+
+    A Gaussian holds 99 % of its light within ``sqrt(ln 100)`` = 2.15 times its rms radius;
+    the window reaches 1.75 times that plus 0.5 px (:func:`_window_geometry`). The rms radius,
+    weighted by the light, reads the spot's size where the 99 % radius, a threshold on the
+    stacked profile's tail, is carried outwards by a background left in the gaps.
+    """
+    r99 = math.sqrt(math.log(1.0 / (1.0 - _ENERGY_FRACTION))) * float(spot_rms_px)
+    return max(_WINDOW_SCALE * r99 + 0.5, r99 + _WINDOW_MARGIN_PX, 1.5)
 
 
 def _window_geometry(spot_r, pitch, moment_radius_px):

@@ -26,11 +26,18 @@ def add_parser(sub) -> None:
                      help="white image at the working aperture: the focal-point and alignment "
                           "images are divided by it (lenslet throughput and the micro-images' "
                           "vignetting, which bias S_i), and the camera's f_number is checked "
-                          "against its micro-image size")
+                          "against its micro-image size; without it the vignetting cannot be "
+                          "seen in the calibration images and nothing warns of it (+0.12 mm "
+                          "of S_i at 20 %% light lost at the rims on the demo camera)")
     cal.add_argument("--dark", metavar="PATH",
                      help="dark frame or stack (TIFF, multi-page TIFF, PNG, file.h5:/path 2-D "
                           "or 3-D): its mean is subtracted from every calibration image and its "
-                          "hot pixels are repaired before spot detection")
+                          "hot pixels are repaired before spot detection; without it each "
+                          "image's black level and its column and row pattern are estimated "
+                          "from its gaps, the focal-point image's hot pixels found by shape "
+                          "and repaired in the alignment image, and what the alignment "
+                          "lattice then carries into S_i warned about beyond 3 times the "
+                          "fit's standard deviation")
     cal.add_argument("--ruler-spacing-mm", type=float, help="ruler tick spacing (mm)")
     cal.add_argument("--ruler-axis", choices=("x", "y"), default="x",
                      help="direction along which the ticks repeat (default x, along columns)")

@@ -202,7 +202,9 @@ def print_summary(p: dict) -> None:
     t = p["time_s"]
     rows.append(("time", f"weights {_fmt(t['weights'])} s"
                          + (" (once, then cached)" if sparse else "") + ", one volume "
-                         f"{_fmt(t['volume'])} s, PIV {_fmt(t['piv'])} s; a pair "
+                         f"{_fmt(t['volume'])} s, the recording's check "
+                         f"{_fmt(t['recording_check'])} s, PIV {_fmt(t['piv'])} s; "
+                         f"plenopiv reconstruct {_fmt(t['reconstruct'])} s, a pair "
                          f"{_fmt(t['pair'])} s ({_fmt(t['pair_cached_weights'])} s with cached "
                          "weights)"))
     if p.get("response_s"):

@@ -16,11 +16,12 @@ minimal file::
 from __future__ import annotations
 
 import dataclasses
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, PlainValidator, ValidationError
+from pydantic import Field, PlainValidator, ValidationError, create_model
 
 from plenopiv.camera.grid import VolumeGrid, volume_from_dict
 from plenopiv.camera.model import CameraModel, camera_from_dict, load_camera, read_toml
@@ -32,7 +33,7 @@ from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.settings import StrictModel, as_dict, format_validation_error, validate_table
 from plenopiv.tracking.settings import TrackingSettings
 
-__all__ = ["Experiment", "experiment_from_dict", "load_experiment"]
+__all__ = ["TABLES", "Experiment", "ExperimentFile", "experiment_from_dict", "load_experiment"]
 
 
 def _piv_table(value) -> PIVSettings:
@@ -163,23 +164,14 @@ class OutputConfig(StrictModel):
     weights_cache: str = ".plenopiv-cache"
 
 
-class _ExperimentCfg(StrictModel):
-    camera: str | dict
-    volume: dict
-    reconstruction: ReconstructionSettings = ReconstructionSettings()
-    particles: ParticleSettings = ParticleSettings()
-    piv: PIVTable = PIVSettings()
-    images: ImagesConfig = ImagesConfig()
-    batch: BatchConfig = BatchConfig()
-    output: OutputConfig = OutputConfig()
-    tracking: TrackingSettings = TrackingSettings()
-    mask: MaskConfig = MaskConfig()
-    preprocess: PreprocessSettings | None = None
-
-
 @dataclass(frozen=True)
 class Experiment:
-    """A resolved experiment configuration."""
+    """A resolved experiment configuration: the camera, the volume and one field per table.
+
+    The tables (:data:`TABLES`) are declared here only; the file's model
+    (:data:`ExperimentFile`) is derived from them. ``base_dir`` is the folder relative paths
+    of the file resolve against, ``source`` the file's tables as read.
+    """
 
     camera: CameraModel
     volume: VolumeGrid
@@ -189,11 +181,11 @@ class Experiment:
     images: ImagesConfig = ImagesConfig()
     batch: BatchConfig = BatchConfig()
     output: OutputConfig = OutputConfig()
-    base_dir: Path = Path(".")
-    source: dict = field(default_factory=dict, compare=False, repr=False)
     tracking: TrackingSettings = TrackingSettings()
     mask: MaskConfig = MaskConfig()
     preprocess: PreprocessSettings | None = None
+    base_dir: Path = Path(".")
+    source: dict = field(default_factory=dict, compare=False, repr=False)
 
     def path(self, relative: str | None) -> Path | None:
         """Return a path of the config, resolved against the experiment file's folder."""
@@ -204,20 +196,40 @@ class Experiment:
 
     def to_dict(self) -> dict:
         """Return the resolved configuration (camera in full), for product attributes."""
-        tables = ("reconstruction", "particles", "piv", "images", "batch", "output",
-                  "tracking", "mask")
+        tables = {name: getattr(self, name) for name in TABLES}
         return {"camera": self.camera.to_dict(), "volume": self.volume.to_dict(),
-                **{name: as_dict(getattr(self, name)) for name in tables},
-                "preprocess": None if self.preprocess is None else as_dict(self.preprocess)}
+                **{name: None if value is None else as_dict(value)
+                   for name, value in tables.items()}}
+
+
+TABLES = ("reconstruction", "particles", "piv", "images", "batch", "output", "tracking", "mask",
+          "preprocess")
+"""The optional tables of an experiment file, each one field of :class:`Experiment`."""
+
+
+def _file_model():
+    """The TOML model of an experiment file, derived from :class:`Experiment`'s tables.
+
+    Each table is declared once, on :class:`Experiment` (its type and default); the file adds
+    the camera (a preset name, a path or an inline table) and the volume (a table).
+    """
+    hints = typing.get_type_hints(Experiment, include_extras=True)
+    tables = {f.name: (hints[f.name], f.default) for f in dataclasses.fields(Experiment)
+              if f.name in TABLES}
+    return create_model("ExperimentFile", __base__=StrictModel, camera=(str | dict, ...),
+                        volume=(dict, ...), **tables)
+
+
+ExperimentFile = _file_model()
 
 
 def experiment_from_dict(cfg: dict, *, base_dir: Path = Path("."),
                          source: str = "experiment config") -> Experiment:
     """Validate an experiment config dictionary and resolve the camera and the grid."""
     try:
-        c = validate_table(_ExperimentCfg, cfg, source)
+        c = validate_table(ExperimentFile, cfg, source)
     except ValidationError as exc:
-        raise ConfigError(format_validation_error(exc, source, _ExperimentCfg)) from None
+        raise ConfigError(format_validation_error(exc, source, ExperimentFile)) from None
     if isinstance(c.camera, dict):
         camera = camera_from_dict(c.camera, source=f"{source} [camera]")
     else:
@@ -225,9 +237,8 @@ def experiment_from_dict(cfg: dict, *, base_dir: Path = Path("."),
         cand = p if p.is_absolute() else base_dir / p
         camera = load_camera(cand if cand.exists() else c.camera)
     grid = volume_from_dict(c.volume, source=source)
-    return Experiment(camera, grid, c.reconstruction, c.particles, c.piv, c.images, c.batch,
-                      c.output, base_dir, cfg, tracking=c.tracking, mask=c.mask,
-                      preprocess=c.preprocess)
+    return Experiment(camera, grid, base_dir=base_dir, source=cfg,
+                      **{name: getattr(c, name) for name in TABLES})
 
 
 def load_experiment(path: str | Path) -> Experiment:

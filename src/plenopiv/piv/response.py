@@ -16,6 +16,7 @@ from plenopiv.piv.settings import RESPONSE_DISPLACEMENTS, RESPONSE_PARTICLES_PER
 
 __all__ = [
     "DEPTH_SHIFTS",
+    "EXCESS_MOTION_LEVELS",
     "LATERAL_SHIFTS",
     "RESPONSE_DISPLACEMENTS",
     "RESPONSE_PARTICLES_PER_LENSLET",
@@ -60,6 +61,15 @@ deformation follows it; particle images stay matched)."""
 MODULATION_AXES = ((1, 2, 0), (2, 0, 1), (0, 1, 2))
 """Per modulation test pair, the axis ``(x, y, z)`` = ``(0, 1, 2)`` along which ``u``, ``v``
 and ``w`` vary: three pairs give every component along every axis."""
+
+
+EXCESS_MOTION_LEVELS = (3, 3, 2)
+"""Per component ``(u, v, w)``, the motion its shared error is fitted in
+(:meth:`Response.excess`): 3, the motion along x, y and z apart; 2, the lateral motion's
+magnitude and the depth motion. A lateral component's error follows the motion along its own
+axis more than across it, so ``u`` and ``v`` take the three axes apart; the depth component
+has no lateral direction of its own, and a lattice symmetric in x and y gives it the same
+error for the same lateral motion whichever way it goes."""
 
 
 RESPONSE_VERSION = 10
@@ -174,6 +184,27 @@ class Response:
         return (np.stack([np.interp(z, self.z, g) for g in gain]),
                 np.stack([np.interp(z, self.z, r) for r in excess]))
 
+    def gain_error(self, z, min_gain: float = 0.1) -> np.ndarray:
+        r"""Relative error of a displacement measured at the chain's gain, ``(3, len(z))``.
+
+        Per component and layer, :math:`\sqrt{\langle ((1 - g_j) / g_j)^2 \rangle_j}` over
+        the test pairs ``j`` that move along its axis, each :math:`g_j` held at ``min_gain``
+        or more (dimensionless; 0 where no test pair moves along it), linear between the
+        layers. A displacement measured at gain :math:`g` errs by :math:`(g - 1) / g` of the
+        measured value. The gain depends on the displacement (near focus a tenth of a depth
+        cell may be measured twice over and half a cell at its size), and which test
+        displacement a vector's gain is nearest is not known: the error at the mean gain,
+        :math:`|1 - \bar g| / \bar g`, vanishes where the test pairs' gains lie either side
+        of 1 although each of them errs; the rms over the test pairs does not
+        (docs/validation/uncertainty_loo.md).
+        """
+        z = np.asarray(z, float)
+        moved = np.isfinite(self.gain)
+        g = np.maximum(np.where(moved, self.gain, 1.0), min_gain)
+        rel2 = np.where(moved, ((1.0 - g) / g) ** 2, 0.0)
+        rms = np.sqrt(rel2.sum(axis=0) / np.maximum(moved.sum(axis=0), 1))
+        return np.stack([np.interp(z, self.z, r) for r in rms])
+
     def excess(self, z, disp) -> np.ndarray:
         r"""Excess random error of vectors by their motion, ``(3, nz, ny, nx)``, metres.
 
@@ -199,7 +230,15 @@ class Response:
         motion in lateral and depth resolution cells (``cell``), the :math:`a \ge 0` fitted
         by non-negative least squares to the test pairs' excess :math:`\max(0, r^2 - s^2)`;
         the test pairs moving along x only and along depth only (``SEPARATING_SHIFTS``) tell
-        the axes apart from the diagonal ones. Motions beyond the test pairs' largest are
+        the axes apart from the diagonal ones. The depth component has no lateral direction
+        of its own: on a lattice symmetric in x and y a lateral motion changes its error by
+        as much whichever way it goes, so ``w`` is fitted in the lateral motion's magnitude
+        :math:`|(t_x, t_y)|` and the depth motion (``EXCESS_MOTION_LEVELS``). Fitted along x
+        and y apart, the test pairs, whose lateral motion is along x alone or diagonal, gave
+        ``w`` the whole lateral error along x and none along y (its diagonal pairs' error is
+        no larger than the pair's along x alone), and a flow moving across y had its depth
+        error under-covered (docs/validation/uncertainty_loo.md). Motions beyond the test
+        pairs' largest are
         held there. Test pairs that cannot tell the three apart fall back to the lateral
         motion :math:`|(u, v)|` and the depth motion, and a single test pair to the whole
         motion :math:`|(t_x, t_y, t_z)|` through it. Scaling each component by its own
@@ -223,16 +262,19 @@ class Response:
         if self.cell is None:
             return np.broadcast_to(self.at(z)[1][:, :, None, None], disp.shape).copy()
         cell = np.asarray(self.cell, float)
-        for level in (3, 2, 1):          # the finest motion model the test pairs determine
-            test = _motion_in_cells(self.shifts.T, cell, level).T            # (n, terms)
-            if np.linalg.matrix_rank(test) == level:
-                break
-        motion = np.nan_to_num(_motion_in_cells(disp, cell, level))
-        motion = np.minimum(motion, test.max(axis=0)[:, None, None, None])
+        models = []                      # per component: its test pairs' and vectors' motion
+        for finest in EXCESS_MOTION_LEVELS:
+            for level in range(finest, 0, -1):   # the finest model the test pairs determine
+                test = _motion_in_cells(self.shifts.T, cell, level).T        # (n, terms)
+                if np.linalg.matrix_rank(test) == level:
+                    break
+            motion = np.nan_to_num(_motion_in_cells(disp, cell, level))
+            models.append((test, np.minimum(motion, test.max(axis=0)[:, None, None, None])))
+
         def fitted(random, statistics):
             excess2 = np.maximum(random**2 - statistics**2, 0.0)            # (n, 3, layers)
             out = np.zeros_like(disp)
-            for k in range(3):
+            for k, (test, motion) in enumerate(models):
                 coef = np.stack([nnls(test, excess2[:, k, layer])[0]
                                  for layer in range(self.z.size)], axis=1)  # (terms, layers)
                 at_z = np.stack([np.interp(z, self.z, c) for c in coef])      # (terms, nz)

@@ -523,10 +523,8 @@ def combine(field, response: Response | None):
     sigma_cs = iteration_uncertainty(field)
     if sigma_cs is None:
         sigma_cs = np.stack([field.u_uncertainty, field.v_uncertainty, field.w_uncertainty])
-    gain = response.at(field.z)[0][:, :, None, None]
     excess = response.excess(field.z, disp)
-    g = np.maximum(gain, MIN_GAIN)
-    sigma_gain = np.abs(1.0 - g) / g * np.abs(disp)
+    sigma_gain = response.gain_error(field.z, MIN_GAIN)[:, :, None, None] * np.abs(disp)
     spacing, window = _spacing_and_window(field)
     parts = dict(field.uncertainty_parts or {})
     # the curvature estimate less the part the vectors' random errors give it (counted by

@@ -73,6 +73,13 @@ BASE_BYTES = 0.3e9
 BYTES_PER_RAY_PARTICLE_FIT = 30
 
 
+#: Seconds per sensor pixel of the check of a recording against its calibration
+#: (:func:`plenopiv.calibration.recording.check_recording`, ``[reconstruction] lattice_check``
+#: not "off"; its two passes): 0.28-0.33 s for the 0.73 MP sensor of the small cameras, about
+#: 4 s a pass for the 16 MP one (``benchmarks/plan_accuracy.py``).
+SECONDS_PER_PIXEL_RECORDING_CHECK = 4.5e-7
+
+
 #: Seconds per ray of that fit on two threads, from the 16 MP camera at 0.36 particles per
 #: lenslet (``benchmarks/full_camera.py --track``).
 SECONDS_PER_RAY_PARTICLE_FIT = 4.1e-7
@@ -308,8 +315,9 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
         nnz = estimate_size(camera, choice.grid, f_number=reconstruction.f_number,
                             min_lit=reconstruction.min_lit)[1]
     memory = _memory(choice, grid, nnz)
+    checked = 0 if reconstruction.lattice_check == "off" else int(np.prod(camera.sensor.shape))
     times = _times(choice, grid, nnz, rates, reconstruction.iterations, windows, piv.overlap,
-                   passes, memory["weights_cache_file"])
+                   passes, memory["weights_cache_file"], checked_pixels=checked)
     response_s = 0.0
     if piv.uncertainty == "response":
         from plenopiv.workflow.response import response_particle_count, response_seconds
@@ -374,8 +382,12 @@ def _memory(choice, grid: VolumeGrid, nnz: int) -> dict:
 
 
 def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, windows,
-           overlap: float, passes: int, cache_file: float) -> dict:
+           overlap: float, passes: int, cache_file: float, checked_pixels: int = 0) -> dict:
     """Seconds per stage of the chosen reconstruction and the PIV (:class:`Plan` ``time``).
+
+    ``recording_check``: the check of the recording against its calibration on a sensor of
+    ``checked_pixels`` (once per image with ``plenopiv reconstruct``, once per pair with
+    ``run``); ``reconstruct``: one ``plenopiv reconstruct`` (weights, check, volume).
 
     A matrix-free sweep costs ``ky kx`` times the volume grid's: each beam crosses that many
     more working voxels (one 16 MP volume on the 3 × 3 subdivided grid: 173 s against 17 s
@@ -398,8 +410,10 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
     t_volume += SECONDS_PER_RAY_PARTICLE_FIT * n_rays   # their positions from the light field
     t_piv = rates.piv_s_per_call + rates.piv_s_per_window_voxel * _window_voxels(
         grid.shape, windows, overlap, passes)
+    t_check = SECONDS_PER_PIXEL_RECORDING_CHECK * checked_pixels
     return {"weights": t_weights, "volume": t_volume, "piv": t_piv,
-            "pair": t_weights + 2 * t_volume + t_piv,
-            "pair_cached_weights": 2 * t_volume + t_piv}
+            "recording_check": t_check, "reconstruct": t_weights + t_check + t_volume,
+            "pair": t_weights + t_check + 2 * t_volume + t_piv,
+            "pair_cached_weights": t_check + 2 * t_volume + t_piv}
 
 

@@ -120,10 +120,12 @@ def rehearse_reconstruction(calibration, experiment) -> None:
 
     The image is a volume of Gaussian blobs projected by the run's own kind of projector, so
     the reconstruction finds particles and fits their light-field positions; it is judged
-    first as a run judges its images (the preprocessing's micro-image and neighbour kernels).
+    first as a run judges its images (the preprocessing's micro-image and neighbour kernels),
+    and the recording check's model of micro-images is drawn once on a few pixels.
     """
     import warnings
 
+    from plenopiv.calibration._recording_kernels import soft_discs
     from plenopiv.workflow.pair import PairProcessor
     from plenopiv.workflow.preprocess import ImagePreparation
     from plenopiv.workflow.volume import reconstruct_volume
@@ -140,6 +142,7 @@ def rehearse_reconstruction(calibration, experiment) -> None:
         ImagePreparation(tiny, calibration).image(image)
     reconstruct_volume(calibration, image, grid, settings=tiny.reconstruction,
                        particles=tiny.particles, weights=weights)
+    soft_discs((8, 8), np.array([[3.0, 4.0]]), 2.0, 1.0)
 
 
 def rehearse_piv(calibration, experiment) -> None:

@@ -296,7 +296,8 @@ def _light_field_of(weights) -> LightField | None:
 
 
 def track_and_save(calibration: Calibration, image_a, image_b, result, experiment,
-                   out_dir, name: str, *, weights=None, inputs=None) -> dict:
+                   out_dir, name: str, *, weights=None, inputs=None,
+                   judgement: dict | None = None) -> dict:
     """Batch hook (``[tracking] enabled``): track a processed pair, write ``NAME_tracks.h5``.
 
     ``result`` is the pair's :class:`plenopiv.workflow.pair.PairResult` (its ``preprocess``
@@ -304,7 +305,9 @@ def track_and_save(calibration: Calibration, image_a, image_b, result, experimen
     reconstructed from); ``weights`` the reconstruction's
     (:class:`plenopiv.reconstruction.weights.Weights`), whose light field the tracking reuses
     (built again without them); ``inputs``: the content hashes of ``image_a``, ``image_b``
-    and ``calibration``, recorded in its provenance; returns a small summary.
+    and ``calibration``, recorded in its provenance; ``judgement``: the settings' and the
+    seeding's judgement for tracking (its ``judgement`` attribute, as ``plenopiv track``
+    writes it); returns a small summary.
     """
     import time
     from pathlib import Path
@@ -320,6 +323,8 @@ def track_and_save(calibration: Calibration, image_a, image_b, result, experimen
                         result.vectors, settings=experiment.tracking, f_number=rec.f_number,
                         min_lit=rec.min_lit, lf=_light_field_of(weights))
     pre = {} if result.preprocess is None else {ATTRIBUTE: dumps(result.preprocess)}
+    if judgement is not None:
+        pre["judgement"] = dumps(judgement)
     paths = save_track_products(tracks, result.vectors, Path(out_dir) / f"{name}_tracks.h5",
                                 config=experiment.to_dict(), vtk=experiment.output.vtk,
                                 extra_attrs=pre, provenance=tracks_provenance(

@@ -73,13 +73,13 @@ class VortexCase:
     passes : PIV passes (the last window repeats)
     overlap_correction, broad_peaks : the PIV peak fit (:class:`plenopiv.piv.PIVSettings`)
     uniform_axis : "x", "y" or "z", the direction of the ``"uniform"`` flow
+    flow_axis : "x", "y", "z", a direction (3,) (normalised) or None, the axis of the vortex
+        (None: the flow's own, y for Oseen so that particles move in depth, x for Hill)
     depth_centre : Z of the centre of the seeded and reconstructed volume, metres (0: centred
         on the focal plane; > 0 places it beyond the focal plane, away from the camera)
     blur_px : standard deviation of a Gaussian blur of every rendered image, pixels (the
         optics' point spread function), before the noise
     reconstruction : reconstruction settings (the library's defaults unless given)
-    axis : the vortex's axis, "x", "y", "z" or a direction (3,) (normalised); None: the flow's
-        own (Oseen along y, so that particles move in depth; Hill along x)
     centre_offset : (x, y, z) of the vortex's centre from the seeded volume's centre, metres
     f_number, image_distance, lattice_rotation, lattice_offset, lattice : the camera varied
         from its preset, one property at a time (:func:`case_camera`): the recording's
@@ -113,10 +113,10 @@ class VortexCase:
     overlap_correction: bool = True
     broad_peaks: bool = True
     uniform_axis: str = "x"
+    flow_axis: str | tuple[float, float, float] | None = None
     depth_centre: float = 0.0
     blur_px: float = 0.0
     reconstruction: ReconstructionSettings = ReconstructionSettings()
-    axis: str | tuple[float, float, float] | None = None
     centre_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
     f_number: float | None = None
     image_distance: float | None = None
@@ -131,13 +131,11 @@ class VortexCase:
             raise ValueError(f"flow = {self.flow!r}: expected one of {FLOWS}")
         if self.uniform_axis not in ("x", "y", "z"):
             raise ValueError(f"uniform_axis = {self.uniform_axis!r}: expected 'x', 'y' or 'z'")
+        if self.flow_axis is not None:
+            vortex_axis(self.flow_axis)
         k = self.lateral_oversampling
         if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
             raise ValueError(f"lateral_oversampling = {k!r}: expected an int >= 1")
-        if self.axis is not None:
-            if self.flow == "uniform":
-                raise ValueError("axis: the uniform flow takes its direction from uniform_axis")
-            flow_axis(self.axis)
         if len(self.centre_offset) != 3:
             raise ValueError(f"centre_offset = {self.centre_offset!r}: expected (x, y, z) metres")
         if len(self.grid_shift) != 3:
@@ -159,15 +157,16 @@ class VortexCase:
         return tuple((wz, wy * k, wx * k) for wz, wy, wx in self.windows)
 
 
-def flow_axis(axis) -> tuple[float, float, float]:
-    """The unit vector of a case's ``axis``: "x", "y", "z" or a non-zero direction (3,)."""
+def vortex_axis(axis) -> tuple[float, float, float]:
+    """The unit vector of a case's ``flow_axis``: "x", "y", "z" or a non-zero direction (3,)."""
     if isinstance(axis, str):
         if axis not in ("x", "y", "z"):
-            raise ValueError(f"axis = {axis!r}: expected 'x', 'y', 'z' or a direction (3,)")
+            raise ValueError(f"flow_axis = {axis!r}: expected 'x', 'y', 'z' or a direction (3,)")
         return tuple(float(k == "xyz".index(axis)) for k in range(3))
     a = np.asarray(axis, float)
     if a.shape != (3,) or not np.all(np.isfinite(a)) or not np.linalg.norm(a) > 0:
-        raise ValueError(f"axis = {axis!r}: expected 'x', 'y', 'z' or a non-zero direction (3,)")
+        raise ValueError(f"flow_axis = {axis!r}: expected 'x', 'y', 'z' or a non-zero "
+                         "direction (3,)")
     return tuple(float(v) for v in a / np.linalg.norm(a))
 
 
@@ -199,6 +198,11 @@ def case_camera(case: VortexCase) -> CameraModel:
     return cam if case.lenslets is None else cam.patch(*case.lenslets)
 
 
+def _axis(case: VortexCase, default: str) -> tuple[float, float, float]:
+    """The unit vector of the case's vortex axis (``flow_axis``, else ``default``)."""
+    return vortex_axis(default if case.flow_axis is None else case.flow_axis)
+
+
 def _flow(case: VortexCase, box: SeedingBox):
     half_y = 0.5 * (box.y[1] - box.y[0])
     vmax = case.max_displacement / case.dt
@@ -206,10 +210,10 @@ def _flow(case: VortexCase, box: SeedingBox):
     if case.flow == "oseen":
         rc = 0.6 * min(half_y, case.depth)
         return LambOseen(circulation=vmax * 2 * np.pi * rc / 0.6382, core_radius=rc,
-                         centre=centre, axis=flow_axis("y" if case.axis is None else case.axis))
+                         centre=centre, axis=_axis(case, "y"))
     if case.flow == "hill":
         return HillVortex(radius=0.8 * min(half_y, case.depth), speed=vmax / 1.5,
-                          centre=centre, axis=flow_axis("x" if case.axis is None else case.axis))
+                          centre=centre, axis=_axis(case, "x"))
     if case.flow == "uniform":
         v = np.zeros(3)
         v["xyz".index(case.uniform_axis)] = vmax
@@ -294,7 +298,9 @@ def compare_with_truth(vectors, flow, dt, grid: VolumeGrid, window_vox, *,
         err = (meas[ok] - truth[ok]) / vox
         sig = np.stack([np.asarray(s).ravel() for s in sigma], axis=1)[ok] / vox
         out["coverage_2sigma"] = coverage(err, sig).tolist()
-        out["rms_sigma_vox"] = np.sqrt(np.nanmean(sig**2, axis=0)).tolist()
+        n = np.sum(np.isfinite(sig), axis=0)        # a component may carry no uncertainty
+        rms = np.sqrt(np.nansum(sig**2, axis=0) / np.maximum(n, 1))
+        out["rms_sigma_vox"] = np.where(n > 0, rms, np.nan).tolist()
     z_abs = np.abs(Z.ravel()[ok])
     edges = np.linspace(0.0, z_abs.max() if len(z_abs) else 0.0, depth_bands + 1)
     edges[-1] = np.inf

@@ -64,6 +64,8 @@ class ExperimentPairProcess:
             res = processor(ia, ib, names=(f"image {str(job.image_a)!r}",
                                            f"image {str(job.image_b)!r}"))
             judged = _pair_judgement(exp, cal, res)
+            if exp.tracking.enabled:
+                tracking_judged = _pair_judgement(exp, cal, res, purpose="tracking")
         said = [str(w.message) for w in caught if issubclass(w.category, PlenopivWarning)]
         for w in caught:
             if not issubclass(w.category, PlenopivWarning):
@@ -79,7 +81,7 @@ class ExperimentPairProcess:
 
             tracked = track_and_save(cal, res.images[0].image, res.images[1].image, res, exp,
                                      self.out_dir, job.name, weights=processor.weights(),
-                                     inputs=inputs)
+                                     inputs=inputs, judgement=tracking_judged.record())
         paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra, inputs=inputs,
                           judgement=judged.record())
         vec = res.vectors
@@ -97,11 +99,12 @@ def _inputs_of(identity) -> dict | None:
             **(identity.get("mask") or {})}
 
 
-def _pair_judgement(exp, cal: Calibration, res):
+def _pair_judgement(exp, cal: Calibration, res, purpose: str = "velocimetry"):
     """The judgement of a pair's settings and seeding; the seeding's finding is warned.
 
     The settings were said by ``plenopiv run`` before the pairs; each pair's seeding (the
-    mean of its two particle tables) is its own.
+    mean of its two particle tables) is its own, judged for ``purpose`` ("velocimetry": the
+    vectors; "tracking": the tracks, whose seeding range differs).
     """
     import warnings
 
@@ -111,7 +114,8 @@ def _pair_judgement(exp, cal: Calibration, res):
     cam = camera_resolution(cal.effective_camera, exp.reconstruction.f_number)
     _, judged = judge_experiment(exp, cam)
     n = 0.5 * (len(res.volume_a.particle_position) + len(res.volume_b.particle_position))
-    judged, seeding = judged.with_seeding(n, piv=exp.piv)
+    judged, seeding = judged.with_seeding(n, purpose=purpose,
+                                          piv=exp.piv if purpose == "velocimetry" else None)
     if seeding is not None:
         warnings.warn(seeding.text, PlenopivWarning, stacklevel=2)
     return judged
