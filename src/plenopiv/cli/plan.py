@@ -138,8 +138,9 @@ def cmd_plan(args) -> dict:
     else:
         with _StageBar("plan", {"measure": 1}, args.quiet or args.json) as bar:
             bar("measure rates on this machine")
-            rates = rates_module.measure_rates(camera, grid, f_number=recon.f_number,
-                                           min_lit=recon.min_lit, piv=piv_cfg)
+            rates = rates_module.measure_rates(
+                camera, grid, f_number=recon.f_number, min_lit=recon.min_lit, piv=piv_cfg,
+                lateral_subdivision=recon.lateral_subdivision)
     result = planning.plan(camera, grid, reconstruction=recon, piv=piv_cfg, rates=rates,
                            calibration=cal, seeding=args.seeding, chosen=chosen)
     return {"command": "plan", "config": str(args.config),

@@ -389,9 +389,12 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
     ``checked_pixels`` (once per image with ``plenopiv reconstruct``, once per pair with
     ``run``); ``reconstruct``: one ``plenopiv reconstruct`` (weights, check, volume).
 
-    A matrix-free sweep costs ``ky kx`` times the volume grid's: each beam crosses that many
-    more working voxels (one 16 MP volume on the 3 × 3 subdivided grid: 173 s against 17 s
-    on footprint voxels, README "Full-camera scale").
+    A matrix-free sweep costs the measured rate at the subdivision it was measured at
+    (:attr:`~plenopiv.workflow.rates.Rates.lattice_subdivision`: the reconstruction's own,
+    measured in this process); at another one ``ky kx`` times the volume grid's, each beam
+    crossing that many more working voxels (one 16 MP volume on the 3 × 3 subdivided grid:
+    173 s against 17 s on footprint voxels; on the small cameras' grids a 3 × 3 sweep costs
+    about 4.6 times one on the footprints).
     """
     n_rays = choice.n_rays
     sweeps = iterations + 3      # MLOS, masks and row scaling: ~3 sweeps
@@ -403,8 +406,9 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
         t_weights = 2e-7 * n_rays                # light field and tables
         ray_slice = rates.lattice_s_per_ray_slice * (
             LENSLET_COST_RATIO if choice.projector == "lenslet" else 1.0)
-        ky, kx = choice.subdivision
-        t_volume = (ray_slice * n_rays * grid.shape[0] * ky * kx
+        # the rate's voxels cut as the rate was measured; another cut scaled by its area
+        (ky, kx), (my, mx) = choice.subdivision, rates.lattice_subdivision
+        t_volume = (ray_slice * n_rays * grid.shape[0] * (ky * kx) / (my * mx)
                     + rates.lattice_s_per_call) * sweeps
     t_volume += 5e-8 * grid.n_voxels             # particle detection
     t_volume += SECONDS_PER_RAY_PARTICLE_FIT * n_rays   # their positions from the light field

@@ -28,9 +28,12 @@ class Rates:
     sweep_s_per_call : the same, per sweep, whatever the non-zeros (the grid's voxels).
     lattice_s_per_call, piv_s_per_call : the fixed cost of a lattice sweep, of a PIV.
     lattice_s_per_ray_slice : one forward plus one back projection with the lattice projector,
-        per ray and depth slice.
+        per ray and depth slice, on voxels cut ``lattice_subdivision`` laterally.
     piv_s_per_window_voxel : 3-D PIV, per window voxel correlated (summed over the windows of
         every pass; the deformation of the volumes between passes included).
+    lattice_subdivision : ``(ky, kx)`` the lattice rate was measured at: the reconstruction's
+        own subdivision of the planned grid (a sweep's cost grows more slowly than
+        ``ky kx`` on a small grid, about as ``ky kx`` on a large one).
     source : "measured" (in this process) or "benchmark".
     threads : numba threads the rates were measured with.
     """
@@ -44,6 +47,7 @@ class Rates:
     lattice_s_per_call: float = 0.0
     piv_s_per_call: float = 0.0
     threads: int = 2
+    lattice_subdivision: tuple[int, int] = (1, 1)
 
 
 BENCHMARK_RATES = Rates(build_s_per_nnz=1.2e-7, sweep_s_per_nnz=1.5e-8, sweep_s_per_call=0.07,
@@ -74,21 +78,25 @@ def _slope(x1: float, t1: float, x2: float, t2: float) -> tuple[float, float]:
 
 def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
                   min_lit: float = 0.5, piv: PIVSettings | None = None,
-                  budget_s: float = 2.0) -> Rates:
+                  lateral_subdivision: str | int = "auto", budget_s: float = 2.0) -> Rates:
     """Time the reconstruction's kernels and the PIV on samples of this plan.
 
     Each is timed at two sample sizes (the shortest of a few calls), which separates the rate
     per unit of work from the fixed cost per call: the weights of a few hundred lenslets'
     rays built on ``grid`` (the kernels of :mod:`plenopiv.reconstruction.weights`) and projected
     forward and back; the lattice projector on two patches of the camera, on the grid's
-    slices; the PIV of two random particle volumes of two and three first windows a side. The
-    first call also compiles the kernels (cached on disk), before any timing.
+    slices and its voxels cut as the reconstruction will cut them (``lateral_subdivision``,
+    ``[reconstruction] lateral_subdivision``); the PIV of two random particle volumes of two
+    and three first windows a side. The first call also compiles the kernels (cached on
+    disk), before any timing.
     """
     import numba
 
     from plenopiv.calibration.model import Calibration
+    from plenopiv.camera.resolution import footprint
     from plenopiv.lightfield import light_field
     from plenopiv.reconstruction._kernels import weights as K
+    from plenopiv.reconstruction.choose import subdivided_grid, subdivision_for
     from plenopiv.reconstruction.lattice import LatticeProjector
     from plenopiv.reconstruction.projector import SparseProjector
 
@@ -139,17 +147,20 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     build_rate, _ = _slope(n1, b1, n2, b2)
     sweep_rate, sweep_call = _slope(n1, s1, n2, s2)
 
-    # the lattice projector on two patches, the grid's slices
+    # the lattice projector on two patches, the grid's slices, the working voxels
     lattice_rate, lattice_call = BENCHMARK_RATES.lattice_s_per_ray_slice, 0.0
+    cut = BENCHMARK_RATES.lattice_subdivision
     if mla.grid == "square":
+        cut = subdivision_for(footprint(camera), grid.voxel, lateral_subdivision)
         points = []
         for k in sorted({min(7, mla.rows, mla.cols), min(19, mla.rows, mla.cols)}):
             patch = camera.patch(k, k)
             plf = light_field(Calibration.from_camera(patch), f_number=f_number,
                               min_lit=min_lit, edge_centroid=False)
             half = np.abs(plf.focal_plane_position).max(axis=0) + plf.footprint
-            sub = VolumeGrid.from_bounds((-half[0], half[0]), (-half[1], half[1]),
-                                         tuple(grid.bounds[2]), voxel=grid.voxel)
+            sub = subdivided_grid(VolumeGrid.from_bounds(
+                (-half[0], half[0]), (-half[1], half[1]), tuple(grid.bounds[2]),
+                voxel=grid.voxel), *cut)
             lp = LatticeProjector.from_light_field(plf, sub)
             vs = np.ones(sub.n_voxels, np.float32)
             ones = np.ones(lp.n_pixels, np.float32)
@@ -165,7 +176,8 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     return Rates(build_s_per_nnz=build_rate, sweep_s_per_nnz=sweep_rate,
                  sweep_s_per_call=sweep_call, lattice_s_per_ray_slice=lattice_rate,
                  lattice_s_per_call=lattice_call, piv_s_per_window_voxel=piv_rate,
-                 piv_s_per_call=piv_call, source="measured", threads=numba.get_num_threads())
+                 piv_s_per_call=piv_call, source="measured", threads=numba.get_num_threads(),
+                 lattice_subdivision=tuple(int(k) for k in cut))
 
 
 def _window_voxels(shape, windows, overlap, passes) -> float:
