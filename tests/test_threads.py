@@ -6,10 +6,13 @@ slices, so the number of slices cannot change a single bit of the result.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
 from plenopiv._threads import run_slices, slices
+from plenopiv.errors import Terminated
 from plenopiv.reconstruction._kernels import lattice as lk
 from plenopiv.synthetic import _kernels as sk
 
@@ -37,6 +40,42 @@ def test_an_error_in_any_slice_is_raised_after_all_slices_ended():
     with pytest.raises(ValueError, match="slice"):
         run_slices(kernel, 30, parts=3)
     assert sorted(done) == [0, 10, 20]
+
+
+@pytest.mark.parametrize("interrupt", [KeyboardInterrupt, Terminated])
+def test_an_interrupt_of_the_calling_slice_is_raised_without_waiting_for_the_others(interrupt):
+    """The calling thread's slice is interrupted while it holds a lock the other slices wait
+    on (as numba's compiler holds llvmlite's while a kernel loads): the interrupt comes out at
+    once instead of waiting for slices that can never end. An error that is no interrupt
+    still waits for every slice (the test above)."""
+    held = threading.Lock()
+    started = threading.Event()
+
+    def kernel(lo, hi):
+        if lo == 0:
+            held.acquire()          # never released: the interrupt comes inside it
+            started.set()
+            raise interrupt()
+        started.wait()
+        with held:
+            pass
+
+    outcome = []
+
+    def call():
+        try:
+            run_slices(kernel, 20, parts=2)
+        except BaseException as exc:  # noqa: BLE001 - what came out is the result
+            outcome.append(exc)
+
+    caller = threading.Thread(target=call, daemon=True)
+    caller.start()
+    caller.join(timeout=30)
+    hung = caller.is_alive()
+    held.release()                  # the waiting slice ends, the pool is free again
+    caller.join(timeout=30)
+    assert not hung, "run_slices waited for a slice that waits on the interrupted one"
+    assert len(outcome) == 1 and isinstance(outcome[0], interrupt)
 
 
 def test_the_lattice_kernels_give_the_same_bits_on_any_number_of_slices():

@@ -14,7 +14,7 @@ bit, at the parallel speed. There is one slice per numba thread of the calling t
 from __future__ import annotations
 
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 
 import numba
 
@@ -49,7 +49,11 @@ def run_slices(kernel, n: int, *args, parts: int | None = None) -> None:
 
     ``kernel`` must be compiled with ``nogil=True`` and write disjoint parts of its outputs
     for disjoint slices. The calling thread runs the first slice; an exception of any slice
-    is raised here after all have ended.
+    is raised here after all have ended. An interrupt of the calling thread (Ctrl-C, or
+    SIGTERM through :func:`plenopiv.cli.sigterm_as_interrupt`) is raised at once, the other slices
+    not waited for: the interrupted slice may hold a lock they wait on (numba's compiler
+    takes llvmlite's when a kernel is first loaded, and an interrupt inside it never
+    releases it), and waiting would never end.
     """
     parts_ = thread_count() if parts is None else parts
     work = slices(n, parts_)
@@ -60,8 +64,14 @@ def run_slices(kernel, n: int, *args, parts: int | None = None) -> None:
     futures = [_pool().submit(kernel, *args, lo, hi) for lo, hi in work[1:]]
     try:
         kernel(*args, *work[0])
-    finally:
-        errors = [f.exception() for f in futures]
+    except Exception:
+        wait(futures)
+        raise
+    except BaseException:
+        for future in futures:
+            future.cancel()
+        raise
+    errors = [f.exception() for f in futures]
     for error in errors:
         if error is not None:
             raise error

@@ -126,3 +126,37 @@ def test_sigterm_ends_a_verb_as_ctrl_c_does_with_its_own_status(monkeypatch, cap
     err = capsys.readouterr().err
     assert "terminated (SIGTERM)" in err and "Traceback" not in err
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+@pytest.mark.parametrize("after", ["works on", "returns"])
+def test_a_sigterm_lost_inside_the_verb_still_ends_it_as_terminated(after, monkeypatch, capsys):
+    """The first SIGTERM's Terminated raised where it is swallowed (a finalizer, an ``except``
+    that takes everything; numba's llvmlite frees objects in ``__del__`` while compiling): the
+    process sends itself SIGTERM again until the verb has stopped, and a verb that finishes
+    after losing one ends as terminated all the same; the handler is put back."""
+    import os
+    import signal
+    import time
+
+    from plenopiv.cli import SIGTERM_REPEAT_S, main, presets
+
+    before = signal.getsignal(signal.SIGTERM)
+
+    def swallowing(args):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)                      # the handler runs in here
+        except BaseException:                     # noqa: BLE001 - the swallowing under test
+            pass
+        if after == "works on":
+            deadline = time.monotonic() + 20 * SIGTERM_REPEAT_S
+            while time.monotonic() < deadline:
+                time.sleep(0.01)
+            raise AssertionError("the repeated SIGTERM did not stop the verb")
+        return {"command": "presets"}
+
+    monkeypatch.setattr(presets, "cmd_presets", swallowing)
+    assert main(["presets"]) == 143
+    err = capsys.readouterr().err
+    assert "terminated (SIGTERM)" in err and "Traceback" not in err
+    assert signal.getsignal(signal.SIGTERM) is before

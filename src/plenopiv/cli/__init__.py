@@ -129,25 +129,66 @@ def _unexpected(exc: Exception) -> PlenopivError:
                          "plenopiv; set PLENOPIV_TRACEBACK=1 to see where)")
 
 
-def _raise_terminated(signum, frame):
-    raise Terminated()
+#: Seconds between the SIGTERMs a process sends itself until the command has answered the first
+SIGTERM_REPEAT_S = 0.5
+
+
+class _Termination:
+    """SIGTERM inside :func:`sigterm_as_interrupt`: asked for, and answered.
+
+    The handler raises :class:`~plenopiv.errors.Terminated` where the main thread happens to
+    be. Raised inside a finalizer (numba's llvmlite frees its objects in ``__del__`` while
+    compiling) or an ``except`` that takes every exception, it is printed or swallowed and
+    the command runs on: so once asked, the process sends itself SIGTERM again every
+    :data:`SIGTERM_REPEAT_S` until the command has left (answered), and a command that
+    finishes after a lost one ends as terminated all the same.
+    """
+
+    def __init__(self):
+        self.asked = False
+        self.answered = threading.Event()
+        self.lock = threading.Lock()        # no repeat is sent once answered
+
+    def handler(self, signum, frame):
+        if self.answered.is_set():
+            return
+        if not self.asked:
+            self.asked = True
+            threading.Thread(target=self._repeat, name="plenopiv-sigterm", daemon=True).start()
+        raise Terminated()
+
+    def _repeat(self):
+        while not self.answered.wait(SIGTERM_REPEAT_S):
+            with self.lock:
+                if not self.answered.is_set():
+                    os.kill(os.getpid(), signal.SIGTERM)
+
+    def answer(self):
+        """No more repeats: one already sent is caught before the handler is changed."""
+        with self.lock:
+            self.answered.set()
 
 
 @contextlib.contextmanager
 def sigterm_as_interrupt():
     """While inside, SIGTERM raises :class:`~plenopiv.errors.Terminated` (a KeyboardInterrupt).
 
-    Every verb then stops on SIGTERM as on Ctrl-C. Only in the main thread, where Python
-    runs signal handlers; the previous handler comes back on leaving.
+    Every verb then stops on SIGTERM as on Ctrl-C, even where the first one is lost
+    (:class:`_Termination`). Only in the main thread, where Python runs signal handlers; the
+    previous handler comes back on leaving.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    termination = _Termination()
+    previous = signal.signal(signal.SIGTERM, termination.handler)
     try:
         yield
     finally:
+        termination.answer()
         signal.signal(signal.SIGTERM, previous)
+        if termination.asked and not isinstance(sys.exc_info()[1], KeyboardInterrupt):
+            raise Terminated()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -204,14 +245,16 @@ def main(argv: list[str] | None = None) -> int:
 def console() -> None:
     """The ``plenopiv`` command: :func:`main`, its status the process's exit status.
 
-    Ended by SIGTERM, the process leaves at once once its one line is out: the interpreter's
-    finalizers would run compiled-code destructors half torn down by the signal (numba's
-    llvmlite prints an ignored exception then).
+    Ended by SIGTERM or Ctrl-C, the process leaves at once once its one line is out: the
+    interpreter's finalizers would run compiled-code destructors half torn down by the
+    signal (numba's llvmlite prints an ignored exception then), and would wait for the kernel
+    threads of :func:`plenopiv._threads.run_slices`, one of which may wait on a lock the
+    interrupted thread never released.
     """
     import os
 
     status = main()
-    if status == EXIT_TERMINATED:
+    if status in (EXIT_TERMINATED, EXIT_INTERRUPTED):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(status)

@@ -92,12 +92,7 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     """
     import numba
 
-    from plenopiv.calibration.model import Calibration
-    from plenopiv.camera.resolution import footprint
-    from plenopiv.lightfield import light_field
     from plenopiv.reconstruction._kernels import weights as K
-    from plenopiv.reconstruction.choose import subdivided_grid, subdivision_for
-    from plenopiv.reconstruction.lattice import LatticeProjector
     from plenopiv.reconstruction.projector import SparseProjector
 
     u, lit, lf = _ray_pattern(camera, f_number, min_lit)
@@ -147,37 +142,52 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     build_rate, _ = _slope(n1, b1, n2, b2)
     sweep_rate, sweep_call = _slope(n1, s1, n2, s2)
 
-    # the lattice projector on two patches, the grid's slices, the working voxels
-    lattice_rate, lattice_call = BENCHMARK_RATES.lattice_s_per_ray_slice, 0.0
-    cut = BENCHMARK_RATES.lattice_subdivision
-    if mla.grid == "square":
-        cut = subdivision_for(footprint(camera), grid.voxel, lateral_subdivision)
-        points = []
-        for k in sorted({min(7, mla.rows, mla.cols), min(19, mla.rows, mla.cols)}):
-            patch = camera.patch(k, k)
-            plf = light_field(Calibration.from_camera(patch), f_number=f_number,
-                              min_lit=min_lit, edge_centroid=False)
-            half = np.abs(plf.focal_plane_position).max(axis=0) + plf.footprint
-            sub = subdivided_grid(VolumeGrid.from_bounds(
-                (-half[0], half[0]), (-half[1], half[1]), tuple(grid.bounds[2]),
-                voxel=grid.voxel), *cut)
-            lp = LatticeProjector.from_light_field(plf, sub)
-            vs = np.ones(sub.n_voxels, np.float32)
-            ones = np.ones(lp.n_pixels, np.float32)
-            lp.back(lp.forward(vs))
-            t = _best(lambda lp=lp, o=ones, v=vs: (lp.back(o), lp.forward(v)), 0.15 * budget_s)
-            points.append((lp.n_pixels * sub.shape[0], t))
-        if len(points) == 2:
-            lattice_rate, lattice_call = _slope(*points[0], *points[1])
-        else:
-            lattice_rate = points[0][1] / points[0][0]
-
+    lattice_rate, lattice_call, cut = _measure_lattice(camera, grid, f_number, min_lit,
+                                                       lateral_subdivision, 0.15 * budget_s)
     piv_rate, piv_call = _measure_piv(piv or PIVSettings(), grid, 0.2 * budget_s)
     return Rates(build_s_per_nnz=build_rate, sweep_s_per_nnz=sweep_rate,
                  sweep_s_per_call=sweep_call, lattice_s_per_ray_slice=lattice_rate,
                  lattice_s_per_call=lattice_call, piv_s_per_window_voxel=piv_rate,
                  piv_s_per_call=piv_call, source="measured", threads=numba.get_num_threads(),
-                 lattice_subdivision=tuple(int(k) for k in cut))
+                 lattice_subdivision=cut)
+
+
+def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: float,
+                     lateral_subdivision, budget_s: float) -> tuple[float, float, tuple]:
+    """``(rate, fixed, (ky, kx))`` of the lattice projector, :func:`measure_rates`'s terms.
+
+    A forward and a back projection on patches of 7 and 19 lenslets a side, on the grid's
+    slices and its voxels cut as the reconstruction will cut them; the benchmark rate where
+    the lattice is not square.
+    """
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.camera.resolution import footprint
+    from plenopiv.lightfield import light_field
+    from plenopiv.reconstruction.choose import subdivided_grid, subdivision_for
+    from plenopiv.reconstruction.lattice import LatticeProjector
+
+    mla = camera.microlens_array
+    if mla.grid != "square":
+        return BENCHMARK_RATES.lattice_s_per_ray_slice, 0.0, BENCHMARK_RATES.lattice_subdivision
+    cut = tuple(int(k) for k in subdivision_for(footprint(camera), grid.voxel,
+                                                lateral_subdivision))
+    points = []
+    for k in sorted({min(7, mla.rows, mla.cols), min(19, mla.rows, mla.cols)}):
+        plf = light_field(Calibration.from_camera(camera.patch(k, k)), f_number=f_number,
+                          min_lit=min_lit, edge_centroid=False)
+        half = np.abs(plf.focal_plane_position).max(axis=0) + plf.footprint
+        sub = subdivided_grid(VolumeGrid.from_bounds(
+            (-half[0], half[0]), (-half[1], half[1]), tuple(grid.bounds[2]),
+            voxel=grid.voxel), *cut)
+        lp = LatticeProjector.from_light_field(plf, sub)
+        vs = np.ones(sub.n_voxels, np.float32)
+        ones = np.ones(lp.n_pixels, np.float32)
+        lp.back(lp.forward(vs))
+        t = _best(lambda lp=lp, o=ones, v=vs: (lp.back(o), lp.forward(v)), budget_s)
+        points.append((lp.n_pixels * sub.shape[0], t))
+    if len(points) == 2:
+        return (*_slope(*points[0], *points[1]), cut)
+    return points[0][1] / points[0][0], 0.0, cut
 
 
 def _window_voxels(shape, windows, overlap, passes) -> float:
