@@ -129,42 +129,52 @@ def _unexpected(exc: Exception) -> PlenopivError:
                          "plenopiv; set PLENOPIV_TRACEBACK=1 to see where)")
 
 
-#: Seconds between the SIGTERMs a process sends itself until the command has answered the first
-SIGTERM_REPEAT_S = 0.5
+#: Seconds after a SIGTERM lost in a finalizer before the process sends itself another
+SIGTERM_REPEAT_S = 0.05
 
 
 class _Termination:
-    """SIGTERM inside :func:`sigterm_as_interrupt`: asked for, and answered.
+    """SIGTERM inside :func:`sigterm_as_interrupt`, and one that was lost.
 
     The handler raises :class:`~plenopiv.errors.Terminated` where the main thread happens to
     be. Raised inside a finalizer (numba's llvmlite frees its objects in ``__del__`` while
-    compiling) or an ``except`` that takes every exception, it is printed or swallowed and
-    the command runs on: so once asked, the process sends itself SIGTERM again every
-    :data:`SIGTERM_REPEAT_S` until the command has left (answered), and a command that
-    finishes after a lost one ends as terminated all the same.
+    compiling), Python prints it as an ignored exception and the command runs on; the
+    unraisable hook (:meth:`unraisable`) takes it instead, and the process sends itself
+    SIGTERM again after :data:`SIGTERM_REPEAT_S` (again if that one is lost too); a command
+    that finishes before then ends as terminated all the same. A Terminated a verb catches
+    on purpose (a batch that writes its summary) is its own: nothing is sent again.
     """
 
     def __init__(self):
-        self.asked = False
-        self.answered = threading.Event()
-        self.lock = threading.Lock()        # no repeat is sent once answered
+        self.pending = False                # lost in a finalizer, not raised since
+        self.answered = threading.Event()   # the command has stopped: nothing more is sent
+        self.lock = threading.Lock()
 
     def handler(self, signum, frame):
         if self.answered.is_set():
             return
-        if not self.asked:
-            self.asked = True
-            threading.Thread(target=self._repeat, name="plenopiv-sigterm", daemon=True).start()
+        self.pending = False
         raise Terminated()
 
-    def _repeat(self):
-        while not self.answered.wait(SIGTERM_REPEAT_S):
-            with self.lock:
-                if not self.answered.is_set():
-                    os.kill(os.getpid(), signal.SIGTERM)
+    def unraisable(self, previous):
+        """``sys.unraisablehook`` that keeps a lost Terminated, ``previous`` for the rest."""
+        def hook(unraisable):
+            if not isinstance(unraisable.exc_value, Terminated):
+                previous(unraisable)
+                return
+            self.pending = True
+            timer = threading.Timer(SIGTERM_REPEAT_S, self._again)
+            timer.daemon = True
+            timer.start()
+        return hook
+
+    def _again(self):
+        with self.lock:
+            if self.pending and not self.answered.is_set():
+                os.kill(os.getpid(), signal.SIGTERM)
 
     def answer(self):
-        """No more repeats: one already sent is caught before the handler is changed."""
+        """Nothing more is sent; one already sent is caught before the handler changes."""
         with self.lock:
             self.answered.set()
 
@@ -173,21 +183,24 @@ class _Termination:
 def sigterm_as_interrupt():
     """While inside, SIGTERM raises :class:`~plenopiv.errors.Terminated` (a KeyboardInterrupt).
 
-    Every verb then stops on SIGTERM as on Ctrl-C, even where the first one is lost
-    (:class:`_Termination`). Only in the main thread, where Python runs signal handlers; the
-    previous handler comes back on leaving.
+    Every verb then stops on SIGTERM as on Ctrl-C, even where the first one is lost in a
+    finalizer (:class:`_Termination`). Only in the main thread, where Python runs signal
+    handlers; the previous handler comes back on leaving.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     termination = _Termination()
-    previous = signal.signal(signal.SIGTERM, termination.handler)
+    previous, previous_hook = signal.getsignal(signal.SIGTERM), sys.unraisablehook
+    signal.signal(signal.SIGTERM, termination.handler)
+    sys.unraisablehook = termination.unraisable(previous_hook)
     try:
         yield
     finally:
         termination.answer()
         signal.signal(signal.SIGTERM, previous)
-        if termination.asked and not isinstance(sys.exc_info()[1], KeyboardInterrupt):
+        sys.unraisablehook = previous_hook
+        if termination.pending and sys.exc_info()[1] is None:    # finished after a lost one
             raise Terminated()
 
 
