@@ -22,7 +22,6 @@ import plenopiv.reconstruction.build as build
 import plenopiv.reconstruction.geometry as geometry_module
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
-from plenopiv.camera.model import load_camera
 from plenopiv.camera.resolution import footprint
 from plenopiv.cli import main
 from plenopiv.cli.simulate import KINDS
@@ -31,24 +30,7 @@ from plenopiv.lightfield.rays import light_field_build_bytes
 from plenopiv.reconstruction.choose import choose_reconstruction
 from plenopiv.reconstruction.geometry import ProjectionGeometry
 from plenopiv.reconstruction.settings import ReconstructionSettings
-
-
-def camera(name):
-    """A preset, or ``NAME+rotated``: its lenslet array rotated by 2 mrad."""
-    base, _, variant = name.partition("+")
-    cam = load_camera(base)
-    if variant == "rotated":
-        cam = cam.replace(microlens_array=dataclasses.replace(cam.microlens_array,
-                                                              rotation=2e-3))
-    return cam
-
-
-def box(cam, voxel_footprints, half=4):
-    """A box of ``2 half`` footprints a side, 1.5 mm deep, voxels of ``voxel_footprints``."""
-    b = footprint(cam)
-    v = voxel_footprints * b
-    return VolumeGrid.from_bounds((-half * b, half * b), (-half * b, half * b),
-                                  (-0.75e-3, 0.75e-3), voxel=(v, v, 0.25e-3))
+from small_boxes import box, camera
 
 #: Every path a reconstruction takes to its projector: the lattice (aligned or rotated), the
 #: projector asked for and the lateral subdivision.

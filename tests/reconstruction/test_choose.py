@@ -3,14 +3,12 @@
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 
 import pytest
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
-from plenopiv.camera.model import load_camera
 from plenopiv.camera.resolution import footprint
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield.rays import light_field_build_bytes
@@ -21,26 +19,9 @@ from plenopiv.reconstruction.projector import SparseProjector
 from plenopiv.reconstruction.real_lattice import LensletProjector
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow import planning
+from small_boxes import box, camera
 
 KINDS = {SparseProjector: "sparse", LatticeProjector: "lattice", LensletProjector: "lenslet"}
-
-
-def camera(name):
-    """A preset, or ``NAME+rotated``: its lenslet array rotated by 2 mrad."""
-    base, _, variant = name.partition("+")
-    cam = load_camera(base)
-    if variant == "rotated":
-        mla = dataclasses.replace(cam.microlens_array, rotation=2e-3)
-        cam = cam.replace(microlens_array=mla)
-    return cam
-
-
-def box(cam, voxel_footprints, half=4):
-    """A box of ``2 half`` footprints a side, 1.5 mm deep, voxels of ``voxel_footprints``."""
-    b = footprint(cam)
-    v = voxel_footprints * b
-    return VolumeGrid.from_bounds((-half * b, half * b), (-half * b, half * b),
-                                  (-0.75e-3, 0.75e-3), voxel=(v, v, 0.25e-3))
 
 
 def built(cal, grid, settings):
