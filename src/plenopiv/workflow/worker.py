@@ -63,9 +63,8 @@ class ExperimentPairProcess:
             warnings.simplefilter("always", PlenopivWarning)
             res = processor(ia, ib, names=(f"image {str(job.image_a)!r}",
                                            f"image {str(job.image_b)!r}"))
-            judged = _pair_judgement(exp, cal, res)
-            if exp.tracking.enabled:
-                tracking_judged = _pair_judgement(exp, cal, res, purpose="tracking")
+            purposes = ("velocimetry", "tracking") if exp.tracking.enabled else ("velocimetry",)
+            judged = _pair_judgements(exp, cal, res, purposes)
         said = [str(w.message) for w in caught if issubclass(w.category, PlenopivWarning)]
         for w in caught:
             if not issubclass(w.category, PlenopivWarning):
@@ -81,9 +80,9 @@ class ExperimentPairProcess:
 
             tracked = track_and_save(cal, res.images[0].image, res.images[1].image, res, exp,
                                      self.out_dir, job.name, weights=processor.weights(),
-                                     inputs=inputs, judgement=tracking_judged.record())
+                                     inputs=inputs, judgement=judged["tracking"].record())
         paths = save_pair(res, self.out_dir, job.name, exp, extra_attrs=extra, inputs=inputs,
-                          judgement=judged.record())
+                          judgement=judged["velocimetry"].record())
         vec = res.vectors
         return {"vectors": paths["vectors"], "valid_fraction": float(np.mean(vec.valid)),
                 "n_particles_a": len(res.volume_a.particle_position),
@@ -99,12 +98,13 @@ def _inputs_of(identity) -> dict | None:
             **(identity.get("mask") or {})}
 
 
-def _pair_judgement(exp, cal: Calibration, res, purpose: str = "velocimetry"):
-    """The judgement of a pair's settings and seeding; the seeding's finding is warned.
+def _pair_judgements(exp, cal: Calibration, res, purposes) -> dict:
+    """The judgement of a pair's settings and seeding per purpose; each seeding finding warned.
 
-    The settings were said by ``plenopiv run`` before the pairs; each pair's seeding (the
-    mean of its two particle tables) is its own, judged for ``purpose`` ("velocimetry": the
-    vectors; "tracking": the tracks, whose seeding range differs).
+    The settings were said by ``plenopiv run`` before the pairs and are judged once here; each
+    pair's seeding (the mean of its two particle tables) is its own, judged for each of
+    ``purposes`` ("velocimetry": the vectors; "tracking": the tracks, whose seeding range
+    differs).
     """
     import warnings
 
@@ -112,13 +112,15 @@ def _pair_judgement(exp, cal: Calibration, res, purpose: str = "velocimetry"):
     from plenopiv.workflow.judgement import camera_resolution, judge_experiment
 
     cam = camera_resolution(cal.effective_camera, exp.reconstruction.f_number)
-    _, judged = judge_experiment(exp, cam)
+    _, settings = judge_experiment(exp, cam)
     n = 0.5 * (len(res.volume_a.particle_position) + len(res.volume_b.particle_position))
-    judged, seeding = judged.with_seeding(n, purpose=purpose,
-                                          piv=exp.piv if purpose == "velocimetry" else None)
-    if seeding is not None:
-        warnings.warn(seeding.text, PlenopivWarning, stacklevel=2)
-    return judged
+    out = {}
+    for purpose in purposes:
+        out[purpose], seeding = settings.with_seeding(
+            n, purpose=purpose, piv=exp.piv if purpose == "velocimetry" else None)
+        if seeding is not None:
+            warnings.warn(seeding.text, PlenopivWarning, stacklevel=2)
+    return out
 
 
 #: The :class:`PairProcessor` this process keeps, with its key (:func:`worker_processor`).
