@@ -76,6 +76,7 @@ from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.resources import prefer_small_pages
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.synthetic.truth import gaussian_truth_volume
+from plenopiv.workflow.accuracy import gain_bias_rms
 from plenopiv.workflow.pair import correlate
 from plenopiv.workflow.volume import reconstruct_volume
 from plenopiv.workflow.vortex_case import VortexCase, _flow, aligned_grid, compare_with_truth
@@ -267,8 +268,12 @@ def track_study(cal, ia, ib, vols, vec, pa, pb, grid, settings, log, lf=None) ->
     ja = associate_tracks(tracks.position_a, tracks.position_b, pa, pb, scale)
     ok = ja >= 0
     vox = np.asarray(grid.voxel)
-    err = (tracks.displacement[ok] - (pb[ja[ok]] - pa[ja[ok]])) / vox
-    return {"seconds": log["track"]["seconds"], "cpu_seconds": log["track"]["cpu_seconds"],
+    true = (pb[ja[ok]] - pa[ja[ok]]) / vox
+    err = tracks.displacement[ok] / vox - true
+    fit = gain_bias_rms((tracks.displacement[ok] / vox).T, true.T)
+    return {"gain": [round(v, 4) for v in fit["gain"]],
+            "bias_vox": [round(v, 4) for v in fit["bias"]],
+            "seconds": log["track"]["seconds"], "cpu_seconds": log["track"]["cpu_seconds"],
             "load": log["track"]["load"], "peak_gb": log["track"]["peak_gb"],
             "n_tracks": len(tracks), "tracked_fraction": float(len(np.unique(ja[ok])) / len(pa)),
             "wrong_match_rate": float((~ok).mean()) if len(ok) else None,

@@ -10,6 +10,7 @@ Q ≥ 0.99 between them, the issue's bar.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import numpy as np
@@ -179,3 +180,39 @@ def test_a_calibration_from_noisy_images_is_separable_and_reconstructs_alike():
     vols = [reconstruct_volume(cal, img, grid, settings=ReconstructionSettings(
         projector=kind, iterations=5)).volume for kind in ("sparse", "lattice")]
     assert reconstruction_quality(vols[1], vols[0]) >= 0.99
+
+
+def test_the_reused_projection_buffer_changes_nothing(pair, rng):
+    """Views share one projection buffer; calls in turn, into ``out`` or from several
+    threads at once give what a fresh projector gives, to the bit."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    lf, grid, _, lattice = pair
+    fresh = LatticeProjector.from_light_field(lf, grid)
+    views = [lattice, lattice.select_rows(rng.random(lf.n_rays) < 0.5),
+             lattice.scale_rows(rng.uniform(0.5, 2.0, lf.n_rays))]
+    e = [rng.random(grid.n_voxels).astype(np.float32) for _ in range(3)]
+    i = rng.random(lf.n_rays).astype(np.float32)
+    want_f = [fresh.forward(x) for x in e]
+    want_b = fresh.back(i)
+    for keep in (False, True):
+        kept = lattice.reusing_buffers() if keep else contextlib.nullcontext()
+        with kept:
+            _calls_in_turn(lattice, e, want_f, i, want_b)
+        assert lattice._scratch._array is None          # given back after the sweeps
+    with ThreadPoolExecutor(4) as pool, views[1].reusing_buffers():
+        got = list(pool.map(lambda x: lattice.forward(x), e * 4))
+    for g, want in zip(got, want_f * 4, strict=True):
+        np.testing.assert_array_equal(g, want)
+    assert views[2].forward(e[0]).shape == (views[2].n_pixels,)
+    with pytest.raises(ReconstructionError, match="contiguous float32"):
+        lattice.back(i, out=np.zeros(grid.n_voxels, np.float64))
+
+
+def _calls_in_turn(lattice, e, want_f, i, want_b):
+    for _ in range(2):
+        for x, want in zip(e, want_f, strict=True):
+            np.testing.assert_array_equal(lattice.forward(x), want)
+        out = np.full(lattice.n_voxels, np.nan, np.float32)
+        assert lattice.back(i, out=out) is out
+        np.testing.assert_array_equal(out, want_b)

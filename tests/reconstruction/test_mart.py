@@ -343,11 +343,18 @@ class DenseProjector:
     n_pixels = property(lambda self: self.matrix.shape[0])
     n_voxels = property(lambda self: self.matrix.shape[1])
 
-    def forward(self, volume):
-        return (self.matrix @ np.ravel(volume)).astype(np.float32)
+    @staticmethod
+    def _into(values, out):
+        if out is None:
+            return values.astype(np.float32)
+        out[:] = values
+        return out
 
-    def back(self, image):
-        return (self.matrix.T @ np.ravel(image)).astype(np.float32)
+    def forward(self, volume, *, out=None):
+        return self._into(self.matrix @ np.ravel(volume), out)
+
+    def back(self, image, *, out=None):
+        return self._into(self.matrix.T @ np.ravel(image), out)
 
     def row_sums(self):
         return self.matrix.sum(axis=1)

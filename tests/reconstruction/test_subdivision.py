@@ -89,3 +89,36 @@ def test_reconstruction_on_the_subdivided_grid_returns_the_volume_grid(cal):
     own, _ = weights_for(cal, grid, ReconstructionSettings(lateral_subdivision=1))
     assert own.grid == grid
     assert reconstruct_volume(cal, img, grid, weights=own).volume.shape == grid.shape
+
+
+@pytest.mark.parametrize("times", [1, 3.99, 4, 8.99, 9, 100])
+def test_auto_gives_up_a_subdivision_whose_working_grid_is_too_large(cal, monkeypatch, times):
+    """Every cap between 1 and 9 times the grid: the finest k with k² voxels within it."""
+    from plenopiv.reconstruction import choose
+
+    grid = grid_of(cal, 1.0)                         # a third of a footprint wants 3 x 3
+    monkeypatch.setattr(choose, "MAX_AUTO_WORKING_VOXELS", times * grid.n_voxels)
+    k = max(k for k in (1, 2, 3) if k * k <= max(times, 1))
+    assert lateral_subdivision(cal, grid, ReconstructionSettings()) == (k, k)
+    fixed = ReconstructionSettings(lateral_subdivision=3)     # a given k is never capped
+    assert lateral_subdivision(cal, grid, fixed) == (3, 3)
+    choice = choose.choose_reconstruction(cal, grid, ReconstructionSettings())
+    assert choice.subdivision == (k, k)
+    assert choice.grid.shape == (grid.shape[0], grid.shape[1] * k, grid.shape[2] * k)
+    if k < 3:       # said, with what the user can set
+        assert any("3 x 3 subdivision would make" in t and "lateral_subdivision = 3" in t
+                   for t in choice.fallbacks)
+    else:
+        assert not choice.fallbacks
+
+
+def test_the_judgement_names_the_subdivision_auto_gave_up(cal, monkeypatch):
+    from plenopiv.reconstruction import choose
+    from plenopiv.workflow.judgement import camera_resolution, lateral_voxel_finding
+
+    grid = grid_of(cal, 1.0)
+    monkeypatch.setattr(choose, "MAX_AUTO_WORKING_VOXELS", 2 * grid.n_voxels)
+    k = lateral_subdivision(cal, grid, ReconstructionSettings())
+    assert k == (1, 1)
+    finding = lateral_voxel_finding(camera_resolution(cal.effective_camera), grid, k)
+    assert "lateral_subdivision = 3" in finding.change and "9 times" in finding.change

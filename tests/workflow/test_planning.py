@@ -118,9 +118,16 @@ def test_full_camera_uses_the_lattice_projector_and_its_memory(auburn_camera):
     assert 2.5e9 < p.memory["peak"] < 5e9
     assert 20 < p.time["pair"] < 200
     assert p.time_model.startswith("benchmark rates")
-    # the default 3 x 3 subdivision: README, 7.1 GB peak and 385 s for the pair on a shared
-    # 2-core machine (the reconstruction's own estimate of its memory is 11 GB)
-    p = planning.plan(auburn_camera, grid, memory_total=24e9)
+    # the default: a 3 x 3 subdivision would hold 100 million working voxels, so "auto"
+    # takes the footprint voxels and says so
+    auto = planning.plan(auburn_camera, grid, memory_total=24e9)
+    assert auto.decision.subdivision == (1, 1)
+    assert auto.memory["peak"] == pytest.approx(p.memory["peak"], rel=1e-6)
+    assert any("lateral_subdivision = 3" in w for w in auto.warnings)
+    # a 3 x 3 subdivision asked for: 7.1 GB peak and 385 s for the pair on a shared 2-core
+    # machine (docs/performance.md#full-camera-scale)
+    p = planning.plan(auburn_camera, grid, memory_total=24e9,
+                      reconstruction=ReconstructionSettings(lateral_subdivision=3))
     assert p.projector == "lattice" and p.decision.subdivision == (3, 3)
     assert 6e9 < p.memory["peak"] < 15e9
     assert 200 < p.time["pair"] < 1000

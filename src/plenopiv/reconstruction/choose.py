@@ -42,11 +42,20 @@ if TYPE_CHECKING:
 __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "SUBDIVIDED_VOXEL_FOOTPRINTS", "ProjectorFit",
            "ReconstructionChoice", "choose_projector", "choose_reconstruction",
            "estimate_matrix_free_gb", "estimate_nnz", "fit_projector", "lateral_subdivision",
-           "memory_budget_gb", "reconstruction_grid", "subdivided_grid", "subdivision_for"]
+           "memory_budget_gb", "reconstruction_grid", "subdivided_grid", "subdivision_for",
+           "wanted_subdivision", "MAX_AUTO_WORKING_VOXELS"]
 
 
 #: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
 SUBDIVIDED_VOXEL_FOOTPRINTS = 1 / 3
+
+#: Most working voxels ``"auto"`` subdivides to: a finer subdivision is given up for one
+#: coarser by one per axis until the working grid holds at most this many voxels (a grid
+#: larger than this is never subdivided). A reconstruction's time grows with its working
+#: voxels: on the 16 MP camera a 287 x 193 x 201-voxel volume (11 million voxels) takes
+#: 30-80 s per volume on footprint voxels and 5-9 times that on a 3 x 3 subdivision
+#: (docs/performance.md#full-camera-scale).
+MAX_AUTO_WORKING_VOXELS = 15_000_000
 
 
 def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
@@ -55,27 +64,41 @@ def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
 
     ``settings.lateral_subdivision`` as given, or for ``"auto"`` the smallest k per axis for
     which the working voxel is at most a third of a lenslet footprint (5 % slack, at most
-    :data:`~plenopiv.reconstruction.settings.MAX_SUBDIVISION`). Depth along a pixel's beam is
-    told apart by
-    the beams of the other views shifting sideways by a fraction of a footprint; voxels a
-    footprint wide hold those shifts in one voxel, and the reconstructed particle is 2-3
-    times longer in depth than with half-footprint voxels. On the CI camera (Oseen, 0.3
-    particles per lenslet, footprint voxels) the w gain is 0.73 with k = 2, 0.89 with 3 and
-    0.89 with 4 (w rms 0.60, 0.48, 0.40 voxel; without subdivision see
+    :data:`~plenopiv.reconstruction.settings.MAX_SUBDIVISION`), coarser where the working
+    grid would exceed :data:`MAX_AUTO_WORKING_VOXELS`. Depth along a pixel's beam is told
+    apart by the beams of the other views shifting sideways by a fraction of a footprint;
+    voxels a footprint wide hold those shifts in one voxel, and the reconstructed particle
+    is 2-3 times longer in depth than with half-footprint voxels. On the CI camera (Oseen,
+    0.3 particles per lenslet, footprint voxels) the w gain is 0.73 with k = 2, 0.89 with 3
+    and 0.89 with 4 (w rms 0.60, 0.48, 0.40 voxel; without subdivision see
     docs/validation/vortex.md).
 
     This is the subdivision asked for; :func:`choose_reconstruction` may take a coarser one
     where the weights of this one would not fit in memory.
     """
-    return subdivision_for(footprint(calibration.effective_camera), grid.voxel,
+    return subdivision_for(footprint(calibration.effective_camera), grid,
                            settings.lateral_subdivision)
 
 
-def subdivision_for(footprint_m: float, voxel, setting: str | int) -> tuple[int, int]:
-    """``(ky, kx)`` of :func:`lateral_subdivision` from the footprint and the voxel.
+def subdivision_for(footprint_m: float, grid: VolumeGrid, setting: str | int
+                    ) -> tuple[int, int]:
+    """``(ky, kx)`` of :func:`lateral_subdivision` from the footprint and the grid.
 
-    ``footprint_m``: the lenslet footprint, m; ``voxel``: ``(dx, dy, dz)``, m; ``setting``:
+    ``footprint_m``: the lenslet footprint, m; ``grid``: the ``[volume]`` grid; ``setting``:
     ``[reconstruction] lateral_subdivision`` (``"auto"`` or an int).
+    """
+    ky, kx = wanted_subdivision(footprint_m, grid.voxel, setting)
+    if setting != "auto":
+        return ky, kx
+    while max(ky, kx) > 1 and grid.n_voxels * ky * kx > MAX_AUTO_WORKING_VOXELS:
+        ky, kx = max(1, ky - 1), max(1, kx - 1)
+    return ky, kx
+
+
+def wanted_subdivision(footprint_m: float, voxel, setting: str | int) -> tuple[int, int]:
+    """``(ky, kx)`` that makes the working voxel a third of a footprint, whatever its size.
+
+    ``voxel``: ``(dx, dy, dz)``, m; the rest as :func:`subdivision_for`.
     """
     from plenopiv.reconstruction.settings import MAX_SUBDIVISION
 
@@ -232,12 +255,12 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
         projector = "sparse"
         why = f"method = \"{settings.method}\" walks the rows of explicit weights"
     ky, kx = lateral_subdivision(calibration, grid, settings)
+    fallbacks: list[str] = _size_fallbacks(calibration, grid, settings, (ky, kx))
     rays = _light_field_refusal(calibration, settings.f_number, budget)
     if rays is not None:
         return ReconstructionChoice(settings.projector, (ky, kx), subdivided_grid(grid, ky, kx),
                                     rays[0], budget * 1e9, f"{why}: {rays[1]}", refusal=rays[1])
     n_rays = geometry.light_field.n_rays
-    fallbacks: list[str] = []
     while True:
         work = geometry.on_grid(subdivided_grid(grid, ky, kx))
         separable = work.separable_axes is not None
@@ -263,6 +286,21 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
         fit.kind, (ky, kx), work.grid, fit.memory_gb * 1e9, budget * 1e9,
         _reason(fit, fit_why, budget, (ky, kx), fallbacks), nnz=fit.nnz, n_rays=n_rays,
         fallbacks=tuple(fallbacks), refusal=fit.refusal)
+
+
+def _size_fallbacks(calibration: Calibration, grid: VolumeGrid,
+                    settings: ReconstructionSettings, taken: tuple[int, int]) -> list[str]:
+    """Why ``"auto"`` took ``taken`` instead of the third-footprint subdivision (or none)."""
+    wanted = wanted_subdivision(footprint(calibration.effective_camera), grid.voxel,
+                                settings.lateral_subdivision)
+    if wanted == tuple(taken):
+        return []
+    return [f"lateral_subdivision = \"auto\": a {wanted[0]} x {wanted[1]} subdivision would "
+            f"make {grid.n_voxels * wanted[0] * wanted[1] / 1e6:.3g} million working voxels "
+            f"(at most {MAX_AUTO_WORKING_VOXELS / 1e6:.3g} million: the reconstruction's time "
+            f"grows with them); taking {taken[0]} x {taken[1]}. Depth motion is then less "
+            "resolved (w gain lower); set [reconstruction] lateral_subdivision = "
+            f"{max(wanted)} to subdivide anyway"]
 
 
 def _light_field_refusal(calibration: Calibration, f_number, budget: float

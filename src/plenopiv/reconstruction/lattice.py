@@ -14,7 +14,9 @@ See docs/methods.md#projectors.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import threading
 
 import numpy as np
 
@@ -24,7 +26,7 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import lattice as _k
 from plenopiv.reconstruction.geometry import SEPARABLE_TOLERANCE, separable_axes
-from plenopiv.reconstruction.projector import CachedSums, _as_vector
+from plenopiv.reconstruction.projector import CachedSums, _as_vector, _output_volume
 
 __all__ = ["LatticeProjector", "separable_axes"]
 
@@ -47,6 +49,52 @@ def _transpose_rows(ys, yc, yw, ny) -> dict:
             "t_w": np.ascontiguousarray(yw[k, r, j][order])}
 
 
+class _Scratch:
+    """The float32 projection buffer of a projector and its views.
+
+    Inside :meth:`keeping` (a reconstruction's sweeps) one buffer serves call after call:
+    allocated afresh for every projection it costs its page faults each time (0.76 GB a
+    call at full size). Outside, and for a projection that finds it in use (another
+    thread), each call takes its own, freed when it returns.
+    """
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._array: np.ndarray | None = None
+        self._keepers = 0
+
+    @contextlib.contextmanager
+    def keeping(self):
+        with self._lock:
+            self._keepers += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._keepers -= 1
+                if not self._keepers:
+                    self._array = None
+
+    @contextlib.contextmanager
+    def buffer(self, shape):
+        if not self._keepers or not self._lock.acquire(blocking=False):
+            yield np.empty(shape, np.float32)
+            return
+        try:
+            if self._array is None or self._array.shape != tuple(shape):
+                self._array = None
+                self._array = np.empty(shape, np.float32)
+            yield self._array
+        finally:
+            self._lock.release()
+
+    def __getstate__(self):
+        return {}
+
+    def __setstate__(self, state):
+        self.__init__()
+
+
 class LatticeProjector(CachedSums):
     """W for a lattice-aligned camera, never stored: see the module docstring.
 
@@ -58,8 +106,10 @@ class LatticeProjector(CachedSums):
     projection (757 MB for the Auburn camera and 200 slices).
     """
 
-    def __init__(self, tables: dict, ray_row, ray_col, ray_scale, grid: VolumeGrid):
+    def __init__(self, tables: dict, ray_row, ray_col, ray_scale, grid: VolumeGrid,
+                 scratch: _Scratch | None = None):
         self._t = tables
+        self._scratch = _Scratch() if scratch is None else scratch
         self._ray_row = np.ascontiguousarray(ray_row, np.int64)
         self._ray_col = np.ascontiguousarray(ray_col, np.int64)
         self._scale = np.ascontiguousarray(ray_scale, np.float32)
@@ -130,12 +180,13 @@ class LatticeProjector(CachedSums):
         """The projector of the rays where ``mask`` (bool, n_pixels) is true."""
         mask = np.asarray(mask, bool)
         return LatticeProjector(self._t, self._ray_row[mask], self._ray_col[mask],
-                                self._scale[mask], self.grid)
+                                self._scale[mask], self.grid, self._scratch)
 
     def scale_rows(self, factors) -> LatticeProjector:
         """The projector with row i multiplied by ``factors[i]``."""
         return LatticeProjector(self._t, self._ray_row, self._ray_col,
-                                self._scale * np.asarray(factors, np.float32), self.grid)
+                                self._scale * np.asarray(factors, np.float32), self.grid,
+                                self._scratch)
 
     # -- the Projector protocol ------------------------------------------------------------
     @property
@@ -155,21 +206,30 @@ class LatticeProjector(CachedSums):
         arrays += [self._ray_row, self._ray_col, self._scale, self._row_ptr]
         return int(sum(x.nbytes for x in arrays))
 
-    def _buffer(self) -> np.ndarray:
+    def reusing_buffers(self):
+        """A context in which this projector and its views project through one buffer.
+
+        A reconstruction's sweeps (:class:`_Scratch`).
+        """
+        return self._scratch.keeping()
+
+    def _buffer(self):
+        """The projection buffer (slices × voxel rows × sensor columns), as a context."""
         nz, ny, _ = self.grid.shape
-        return np.empty((nz, ny, self._t["xs"].shape[1]), np.float32)
+        return self._scratch.buffer((nz, ny, self._t["xs"].shape[1]))
 
     def forward(self, volume, *, out=None) -> np.ndarray:
         """``I = W·E`` for E of n_voxels values (``[z, y, x]`` order); float32 (n_pixels,)."""
         e = _as_vector(volume, self.n_voxels, "volume", "n_voxels").reshape(self.grid.shape)
         t = self._t
         nz, ny, _ = self.grid.shape
-        tmp = self._buffer()
-        run_slices(_k.contract_x, nz * ny, e, t["xs"], t["xc"], t["xw"], tmp)
         if out is None:
             out = np.empty(self.n_pixels, np.float32)
-        run_slices(_k.contract_y, _k.row_blocks(t["ys"].shape[1], ROW_BLOCK), tmp, t["ys"],
-                   t["yc"], t["yw"], self._row_ptr, self._ray_col, self._scale, ROW_BLOCK, out)
+        with self._buffer() as tmp:
+            run_slices(_k.contract_x, nz * ny, e, t["xs"], t["xc"], t["xw"], tmp)
+            run_slices(_k.contract_y, _k.row_blocks(t["ys"].shape[1], ROW_BLOCK), tmp,
+                       t["ys"], t["yc"], t["yw"], self._row_ptr, self._ray_col, self._scale,
+                       ROW_BLOCK, out)
         return out
 
     def back(self, image, *, out=None) -> np.ndarray:
@@ -181,14 +241,11 @@ class LatticeProjector(CachedSums):
         dense[self._ray_row, self._ray_col] = y * self._scale
         used = self._row_used & dense.any(axis=1)
         nz, ny, _ = self.grid.shape
-        tmp = self._buffer()
-        run_slices(_k.spread_y, ny, dense, used, t["t_ptr"], t["t_row"], t["t_w"], tmp)
-        vol = np.empty(self.grid.shape, np.float32)
-        run_slices(_k.spread_x, nz * ny, tmp, t["xs"], t["xc"], t["xw"], vol)
-        if out is None:
-            return vol.reshape(-1)
-        out[:] = vol.reshape(-1)
-        return out
+        vol = _output_volume(out, self.grid.shape)
+        with self._buffer() as tmp:
+            run_slices(_k.spread_y, ny, dense, used, t["t_ptr"], t["t_row"], t["t_w"], tmp)
+            run_slices(_k.spread_x, nz * ny, tmp, t["xs"], t["xc"], t["xw"], vol)
+        return vol.reshape(-1) if out is None else out
 
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per ray (float32)."""

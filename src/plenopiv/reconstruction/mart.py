@@ -13,6 +13,7 @@ See docs/methods.md#mlos-mart-and-smart for the updates, the pixel order and the
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable
 
@@ -129,12 +130,7 @@ def reconstruct(
     if isinstance(initial, str):
         _check_not_empty(volume, pixel_threshold)
     sweep = _sweep_of(method, projector, intensity, bright, relaxation, schedule, ceiling)
-    for iteration in range(1, iterations + 1):
-        sweep(volume)
-        if callback is not None:
-            view = _shaped(volume, volume_shape).view()
-            view.flags.writeable = False
-            callback(iteration, view)
+    _sweeps(projector, sweep, volume, iterations, callback, volume_shape)
     return _shaped(volume, volume_shape)
 
 
@@ -265,14 +261,30 @@ def _checked_options(projector, method, iterations, relaxation, pixel_threshold,
     return iterations, relaxation, pixel_threshold, ceiling
 
 
+def _sweeps(projector, sweep, volume, iterations: int, callback, volume_shape) -> None:
+    """Run ``iterations`` sweeps on ``volume`` in place, ``callback`` after each.
+
+    A matrix-free projector keeps its projection buffer from sweep to sweep.
+    """
+    with getattr(projector, "reusing_buffers", contextlib.nullcontext)():
+        for iteration in range(1, iterations + 1):
+            sweep(volume)
+            if callback is not None:
+                view = _shaped(volume, volume_shape).view()
+                view.flags.writeable = False
+                callback(iteration, view)
+
+
 def _sweep_of(method, projector, intensity, bright, relaxation, schedule, ceiling):
     """``sweep(volume)``: one iteration of ``method``, updating the float32 volume in place."""
     mu = np.float32(relaxation)
     if method == "smart":
         column_norm = np.maximum(np.asarray(projector.column_sums(), np.float32), 1.0)
-        log_ratio = np.zeros(projector.n_pixels, np.float32)
+        work = {"log_ratio": np.zeros(projector.n_pixels, np.float32),
+                "projection": np.empty(projector.n_pixels, np.float32),
+                "correction": np.empty(projector.n_voxels, np.float32)}
         return lambda volume: _smart_iteration(projector, intensity, bright, volume, relaxation,
-                                               column_norm, log_ratio, ceiling)
+                                               column_norm, work, ceiling)
     csr = (projector.indptr, projector.indices, projector.data, projector.row_index,
            projector.row_scale)
     if method == "mart":
@@ -285,21 +297,27 @@ def _sweep_of(method, projector, intensity, bright, relaxation, schedule, ceilin
         schedule.group_ptr, schedule.block_group_ptr, intensity, bright, volume, mu, log_ratio)
 
 
-def _smart_iteration(projector, intensity, bright, volume, relaxation, column_norm, log_ratio,
+def _smart_iteration(projector, intensity, bright, volume, relaxation, column_norm, work,
                      ceiling=None):
     """Run one SMART iteration through the Projector protocol (forward, then back).
 
-    Rows of ``ceiling`` only lower their voxels.
+    Rows of ``ceiling`` only lower their voxels. ``work``: the float32 arrays
+    ``log_ratio`` and ``projection`` (n_pixels) and ``correction`` (n_voxels), reused from
+    sweep to sweep (a volume-sized array allocated afresh costs its page faults each time).
     """
-    projection = projector.forward(volume)
+    log_ratio, correction = work["log_ratio"], work["correction"]
+    projection = projector.forward(volume, out=work["projection"])
     log_ratio[:] = 0.0
     update = bright & (projection > 0.0)
     log_ratio[update] = np.clip(np.log(intensity[update] / projection[update]),
                                 -_k.LOG_RATIO_BOUND, _k.LOG_RATIO_BOUND)
     if ceiling is not None:
         np.clip(log_ratio, -CEILING_LOG_BOUND, 0.0, out=log_ratio, where=ceiling)
-    correction = projector.back(log_ratio)
-    volume *= np.exp(np.float32(relaxation) * correction / column_norm)
+    projector.back(log_ratio, out=correction)
+    correction *= np.float32(relaxation)
+    correction /= column_norm
+    np.exp(correction, out=correction)
+    volume *= correction
     np.minimum(volume, _k.VOXEL_MAX, out=volume)
 
 

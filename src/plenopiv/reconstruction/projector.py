@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import math
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -46,12 +47,12 @@ class Projector(Protocol):
         """Number of voxels (columns of W)."""
         ...
 
-    def forward(self, volume: np.ndarray) -> np.ndarray:
-        """Return ``W·volume``, shape (n_pixels,)."""
+    def forward(self, volume: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
+        """Return ``W·volume``, shape (n_pixels,), float32; written into ``out`` if given."""
         ...
 
-    def back(self, image: np.ndarray) -> np.ndarray:
-        """Return ``Wᵀ·image``, shape (n_voxels,)."""
+    def back(self, image: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
+        """Return ``Wᵀ·image``, shape (n_voxels,), float32; written into ``out`` if given."""
         ...
 
     def row_sums(self) -> np.ndarray:
@@ -644,3 +645,13 @@ def _as_vector(values, length: int, name: str, what: str) -> np.ndarray:
             f"{what} = {length}"
         )
     return np.ascontiguousarray(a.reshape(-1), dtype=np.float32)
+
+
+def _output_volume(out, shape) -> np.ndarray:
+    """``out`` (contiguous float32, n_voxels values) as a ``shape`` view, or a new array."""
+    if out is None:
+        return np.empty(shape, np.float32)
+    if out.dtype != np.float32 or out.size != math.prod(shape) or not out.flags.c_contiguous:
+        raise ReconstructionError(f"back: out must be a contiguous float32 array of "
+                                  f"{math.prod(shape)} values")
+    return out.reshape(shape)

@@ -25,7 +25,7 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import real_lattice as _k
-from plenopiv.reconstruction.projector import CachedSums, _as_vector
+from plenopiv.reconstruction.projector import CachedSums, _as_vector, _output_volume
 
 __all__ = ["LensletProjector", "estimate_lenslet_gb", "lenslet_weights_reference",
            "matrix_free_projector"]
@@ -249,11 +249,9 @@ class LensletProjector(CachedSums):
         y = _as_vector(image, self.n_pixels, "image", "n_pixels")
         slices, lenses = self._args()
         order = _k.interleaved_order(self.grid.shape[0], numba.get_num_threads())
-        vol = _k.back(y, *slices, *lenses, np.empty(self.grid.shape, np.float32), order)
-        if out is None:
-            return vol.reshape(-1)
-        out[:] = vol.reshape(-1)
-        return out
+        into = _output_volume(out, self.grid.shape)
+        vol = _k.back(y, *slices, *lenses, into, order)
+        return vol.reshape(-1) if out is None else out
 
     @functools.cached_property
     def _row_sums(self) -> np.ndarray:

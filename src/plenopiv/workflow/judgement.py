@@ -21,7 +21,7 @@ import numpy as np
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import CameraModel
 from plenopiv.piv.settings import MIN_WINDOW_VOX, PIVSettings
-from plenopiv.reconstruction.choose import subdivision_for
+from plenopiv.reconstruction.choose import subdivision_for, wanted_subdivision
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow.rates import vectors_per_pass
 
@@ -227,16 +227,23 @@ def lateral_voxel_finding(cam: Camera, grid: VolumeGrid,
     if work / fp < LOCKING_VOXEL_FOOTPRINTS:
         return None
     sub = "no lateral subdivision" if (ky, kx) == (1, 1) else f"a {ky} x {kx} subdivision"
-    auto = subdivision_for(fp, grid.voxel, "auto")
+    auto = subdivision_for(fp, grid, "auto")
+    wanted = wanted_subdivision(fp, grid.voxel, "auto")
+    if auto != wanted:      # "auto" gave up the finer cut for the size of the grid
+        fix = (f"set [reconstruction] lateral_subdivision = {max(wanted)} ({wanted[0]} x "
+               f"{wanted[1]}: about {wanted[0] * wanted[1] // (ky * kx)} times the "
+               "reconstruction's time), or reconstruct a smaller box")
+    else:
+        fix = (f"set [reconstruction] lateral_subdivision = \"auto\" ({auto[0]} x {auto[1]} "
+               f"here) or [volume] voxel_mm = {_mm(LATERAL_VOXEL_PER_FOOTPRINT * fp)} (half a "
+               "footprint)")
     return Finding(
         "lateral_voxel", "warning", "[reconstruction] lateral_subdivision", work / fp,
         "footprint", LOCKING_VOXEL_FOOTPRINTS,
         f"lateral voxel {_mm(vox)} mm is {vox / fp:.2g} footprint ({_mm(fp)} mm) and the "
         f"reconstruction works on it with {sub}: displacements lock to whole footprints and "
         "depth motion is under-measured (w gain 0.32 on footprint-wide working voxels, 0.90 "
-        "on a third of a footprint, docs/validation/vortex.md)",
-        f"set [reconstruction] lateral_subdivision = \"auto\" ({auto[0]} x {auto[1]} here) or "
-        f"[volume] voxel_mm = {_mm(LATERAL_VOXEL_PER_FOOTPRINT * fp)} (half a footprint)")
+        "on a third of a footprint, docs/validation/vortex.md)", fix)
 
 
 def depth_window_finding(cam: Camera, grid: VolumeGrid, piv: PIVSettings) -> Finding | None:
@@ -476,8 +483,7 @@ def judge(cam: Camera | None, grid: VolumeGrid,
     """
     out: list[Finding | None] = []
     if subdivision is None and reconstruction is not None and cam is not None:
-        subdivision = subdivision_for(cam.footprint, grid.voxel,
-                                      reconstruction.lateral_subdivision)
+        subdivision = subdivision_for(cam.footprint, grid, reconstruction.lateral_subdivision)
     if cam is not None and subdivision is not None:
         out.append(lateral_voxel_finding(cam, grid, subdivision))
     if piv is not None:
@@ -599,6 +605,6 @@ def judge_experiment(experiment: Experiment, cam: Camera | None, *,
         experiment = dataclasses.replace(experiment, piv=piv)
     rec = experiment.reconstruction
     sub = (None if cam is None else
-           subdivision_for(cam.footprint, experiment.volume.voxel, rec.lateral_subdivision))
+           subdivision_for(cam.footprint, experiment.volume, rec.lateral_subdivision))
     found = judge(cam, experiment.volume, rec, piv, subdivision=sub, purpose=purpose)
     return experiment, Judgement(cam, experiment.volume, chosen + found, sub)

@@ -169,7 +169,7 @@ def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: f
     mla = camera.microlens_array
     if mla.grid != "square":
         return BENCHMARK_RATES.lattice_s_per_ray_slice, 0.0, BENCHMARK_RATES.lattice_subdivision
-    cut = tuple(int(k) for k in subdivision_for(footprint(camera), grid.voxel,
+    cut = tuple(int(k) for k in subdivision_for(footprint(camera), grid,
                                                 lateral_subdivision))
     points = []
     for k in sorted({min(7, mla.rows, mla.cols), min(19, mla.rows, mla.cols)}):
