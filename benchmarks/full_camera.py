@@ -38,7 +38,10 @@ With ``--json`` the last line is one JSON object: ``reconstruct_seconds`` (per v
 ``reconstruct_peak_gb``, ``q``, ``pair_seconds`` (two volumes + PIV, the weights included),
 ``velocity_gain``, ``velocity_bias_vox`` and ``velocity_rms_vox`` (u, v, w),
 ``velocity_by_depth`` (the same per band of |Z|), and the patch figures. The reconstruction
-takes the library's default lateral subdivision (``--lateral-subdivision``).
+takes the library's default lateral subdivision (``--lateral-subdivision``): 2 x 2 on the
+aligned array, footprint voxels on the rotated and hexagonal ones, whose per-lenslet
+projector costs three times as much per working voxel
+(:data:`plenopiv.reconstruction.choose.MAX_AUTO_WORKING_VOXELS`).
 """
 
 from __future__ import annotations
@@ -70,9 +73,9 @@ from plenopiv.piv import PIVSettings
 from plenopiv.products.files import atomic_path
 from plenopiv.products.jsonio import dumps
 from plenopiv.reconstruction.build import cached_weights, weights_for
-from plenopiv.reconstruction.choose import lateral_subdivision
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.settings import ReconstructionSettings
+from plenopiv.reconstruction.subdivision import subdivision_of
 from plenopiv.resources import prefer_small_pages
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.synthetic.truth import gaussian_truth_volume
@@ -339,7 +342,7 @@ def main(argv=None) -> dict:
 
     print(f"projector: {type(w.projector).__name__}"
           f"{' (matrix-free)' if w.matrix_free else ''}, working grid {w.grid.shape} "
-          f"(lateral subdivision {lateral_subdivision(cal, grid, settings)})", file=sys.stderr)
+          f"(lateral subdivision {subdivision_of(w.grid, grid)})", file=sys.stderr)
     vols = {}
     calls = None
     if args.call_times:
@@ -386,7 +389,7 @@ def main(argv=None) -> dict:
         "pair_seconds": round(log["weights (light field)"]["seconds"] + sum(rec_s)
                               + log["PIV"]["seconds"], 2),
         "piv_seconds": log["PIV"]["seconds"],
-        "lateral_subdivision": list(lateral_subdivision(cal, grid, settings)),
+        "lateral_subdivision": list(subdivision_of(w.grid, grid)),
         "velocity_rms_vox": [round(v, 4) for v in err["rms_vox"]],
         "velocity_bias_vox": [round(v, 4) for v in err["bias_vox"]],
         "velocity_gain": [round(v, 4) for v in err["gain"]],

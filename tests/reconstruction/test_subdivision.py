@@ -112,6 +112,45 @@ def test_auto_gives_up_a_subdivision_whose_working_grid_is_too_large(cal, monkey
         assert not choice.fallbacks
 
 
+@pytest.mark.parametrize("rotation", [0.0, 2e-3])
+def test_the_cap_counts_the_working_voxels_at_the_cost_of_their_projector(cal, monkeypatch,
+                                                                         rotation):
+    """The per-lenslet projector (a rotated lattice) costs LENSLET_COST times the lattice
+    projector per working voxel: the same cap gives it a coarser subdivision."""
+    import dataclasses
+
+    from plenopiv.reconstruction import choose
+
+    cam = cal.camera
+    cam = cam.replace(microlens_array=dataclasses.replace(cam.microlens_array,
+                                                          rotation=rotation))
+    turned = Calibration.from_camera(cam)
+    grid = grid_of(turned, 1.0)
+    monkeypatch.setattr(choose, "MAX_AUTO_WORKING_VOXELS", 9 * grid.n_voxels)
+    choice = choose.choose_reconstruction(turned, grid, ReconstructionSettings())
+    cost = choose.model_projector_cost(cam)
+    assert cost == (1.0 if rotation == 0 else choose.LENSLET_COST)
+    k = max(k for k in (1, 2, 3) if cost * k * k <= 9)
+    assert choice.subdivision == (k, k)
+    assert choose.subdivision_for(footprint(turned.effective_camera), grid, "auto",
+                                  cost=cost) == (k, k)
+
+
+def test_the_16_mp_volume_is_subdivided_2_x_2_on_an_aligned_lattice_and_not_on_others():
+    """The full camera's volume (287 x 193 x 201 footprint voxels): 45 million working
+    voxels on 2 x 2 fit the cap at the lattice projector's cost, not at the per-lenslet
+    projector's (docs/performance.md#full-camera-scale)."""
+    from plenopiv.reconstruction import choose
+
+    b = 0.2596e-3
+    grid = VolumeGrid.from_bounds((-143.5 * b, 143.5 * b), (-96.5 * b, 96.5 * b),
+                                  (-100.5 * b, 100.5 * b), voxel=b)
+    assert grid.shape == (201, 193, 287)
+    assert choose.subdivision_for(b, grid, "auto", cost=1.0) == (2, 2)
+    assert choose.subdivision_for(b, grid, "auto", cost=choose.LENSLET_COST) == (1, 1)
+    assert choose.wanted_subdivision(b, grid.voxel, "auto") == (3, 3)
+
+
 def test_the_judgement_names_the_subdivision_auto_gave_up(cal, monkeypatch):
     from plenopiv.reconstruction import choose
     from plenopiv.workflow.judgement import camera_resolution, lateral_voxel_finding

@@ -119,10 +119,10 @@ def test_full_camera_uses_the_lattice_projector_and_its_memory(auburn_camera):
     assert 20 < p.time["pair"] < 200
     assert p.time_model.startswith("benchmark rates")
     # the default: a 3 x 3 subdivision would hold 100 million working voxels, so "auto"
-    # takes the footprint voxels and says so
+    # takes 2 x 2 (45 million) and says so: 67 s and 6.0 GB a volume measured
     auto = planning.plan(auburn_camera, grid, memory_total=24e9)
-    assert auto.decision.subdivision == (1, 1)
-    assert auto.memory["peak"] == pytest.approx(p.memory["peak"], rel=1e-6)
+    assert auto.decision.subdivision == (2, 2)
+    assert p.memory["peak"] < auto.memory["peak"] < 8e9
     assert any("lateral_subdivision = 3" in w for w in auto.warnings)
     # a 3 x 3 subdivision asked for: 7.1 GB peak and 385 s for the pair on a shared 2-core
     # machine (docs/performance.md#full-camera-scale)

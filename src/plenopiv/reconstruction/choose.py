@@ -27,6 +27,7 @@ from plenopiv.lightfield import LightField
 from plenopiv.lightfield.rays import light_field_build_bytes
 from plenopiv.reconstruction._kernels import weights as K
 from plenopiv.reconstruction.geometry import (
+    SEPARABLE_TOLERANCE,
     SLAB_VOXELS,
     ProjectionGeometry,
     check_grid_in_view,
@@ -43,30 +44,59 @@ __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "SUBDIVIDED_VOXEL_FOOTPRINTS", "Pr
            "ReconstructionChoice", "choose_projector", "choose_reconstruction",
            "estimate_matrix_free_gb", "estimate_nnz", "fit_projector", "lateral_subdivision",
            "memory_budget_gb", "reconstruction_grid", "subdivided_grid", "subdivision_for",
-           "wanted_subdivision", "MAX_AUTO_WORKING_VOXELS"]
+           "wanted_subdivision", "MAX_AUTO_WORKING_VOXELS", "LENSLET_COST",
+           "projector_cost", "model_projector_cost"]
 
 
 #: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
 SUBDIVIDED_VOXEL_FOOTPRINTS = 1 / 3
 
-#: Most working voxels ``"auto"`` subdivides to: a finer subdivision is given up for one
-#: coarser by one per axis until the working grid holds at most this many voxels (a grid
-#: larger than this is never subdivided). A reconstruction's time grows with its working
-#: voxels: on the 16 MP camera a 287 x 193 x 201-voxel volume (11 million voxels) takes
-#: 30-80 s per volume on footprint voxels and 5-9 times that on a 3 x 3 subdivision
-#: (docs/performance.md#full-camera-scale).
-MAX_AUTO_WORKING_VOXELS = 15_000_000
+#: Most working voxels ``"auto"`` subdivides to, counted at the lattice projector's cost
+#: (:data:`LENSLET_COST`): a finer subdivision is given up for one coarser by one per axis
+#: until the working grid holds at most this many (a grid larger is never subdivided). The
+#: reconstruction's time and memory grow with the working voxels: the 16 MP camera's full
+#: volume (287 x 193 x 201 footprint voxels) takes 43 s and 4.6 GB a volume on 2 cores on
+#: the footprints, 67 s and 6.0 GB on a 2 x 2 subdivision (45 million working voxels), and
+#: more than 8 GB on a 3 x 3 one (docs/performance.md#full-camera-scale).
+MAX_AUTO_WORKING_VOXELS = 50_000_000
+
+#: Time per working voxel of the per-lenslet projector (a rotated, hexagonal or irregular
+#: lattice) against the separable lattice projector's: 2.8 times per volume on the 16 MP
+#: camera on a 2 x 2 subdivision (197 s against 67 s, docs/performance.md).
+LENSLET_COST = 3.0
+
+
+def projector_cost(separable: bool) -> float:
+    """The cost factor of the matrix-free projector a lattice takes (1 for separable rays)."""
+    return 1.0 if separable else LENSLET_COST
+
+
+def model_projector_cost(camera) -> float:
+    """:func:`projector_cost` of a camera model's lattice, judged from its description.
+
+    Separable: a square lattice turned so little that a sensor column's micro-image
+    centres stay within :data:`~plenopiv.reconstruction.geometry.SEPARABLE_TOLERANCE` of a
+    pixel across the array. A calibration decides on its measured centres
+    (:func:`choose_reconstruction`); this is for where only the model is known.
+    """
+    mla = camera.microlens_array
+    span_px = max(mla.rows, mla.cols) * mla.pitch / camera.sensor.pixel_pitch
+    return projector_cost(mla.grid == "square"
+                          and abs(mla.rotation) * span_px <= SEPARABLE_TOLERANCE)
 
 
 def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
-                        settings: ReconstructionSettings) -> tuple[int, int]:
+                        settings: ReconstructionSettings, *, cost: float | None = None
+                        ) -> tuple[int, int]:
     """Subdivision ``(ky, kx)`` of the lateral voxels during the reconstruction.
 
     ``settings.lateral_subdivision`` as given, or for ``"auto"`` the smallest k per axis for
     which the working voxel is at most a third of a lenslet footprint (5 % slack, at most
     :data:`~plenopiv.reconstruction.settings.MAX_SUBDIVISION`), coarser where the working
-    grid would exceed :data:`MAX_AUTO_WORKING_VOXELS`. Depth along a pixel's beam is told
-    apart by the beams of the other views shifting sideways by a fraction of a footprint;
+    grid would exceed :data:`MAX_AUTO_WORKING_VOXELS` (``cost``: :func:`projector_cost`,
+    by default the calibrated camera's :func:`model_projector_cost`).
+    Depth along a pixel's beam is told apart by the beams of the other views shifting
+    sideways by a fraction of a footprint;
     voxels a footprint wide hold those shifts in one voxel, and the reconstructed particle
     is 2-3 times longer in depth than with half-footprint voxels. On the CI camera (Oseen,
     0.3 particles per lenslet, footprint voxels) the w gain is 0.73 with k = 2, 0.89 with 3
@@ -76,21 +106,24 @@ def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
     This is the subdivision asked for; :func:`choose_reconstruction` may take a coarser one
     where the weights of this one would not fit in memory.
     """
+    if cost is None:
+        cost = model_projector_cost(calibration.camera)
     return subdivision_for(footprint(calibration.effective_camera), grid,
-                           settings.lateral_subdivision)
+                           settings.lateral_subdivision, cost=cost)
 
 
-def subdivision_for(footprint_m: float, grid: VolumeGrid, setting: str | int
-                    ) -> tuple[int, int]:
+def subdivision_for(footprint_m: float, grid: VolumeGrid, setting: str | int, *,
+                    cost: float = 1.0) -> tuple[int, int]:
     """``(ky, kx)`` of :func:`lateral_subdivision` from the footprint and the grid.
 
     ``footprint_m``: the lenslet footprint, m; ``grid``: the ``[volume]`` grid; ``setting``:
-    ``[reconstruction] lateral_subdivision`` (``"auto"`` or an int).
+    ``[reconstruction] lateral_subdivision`` (``"auto"`` or an int); ``cost``: the
+    projector's cost per working voxel (:func:`projector_cost`).
     """
     ky, kx = wanted_subdivision(footprint_m, grid.voxel, setting)
     if setting != "auto":
         return ky, kx
-    while max(ky, kx) > 1 and grid.n_voxels * ky * kx > MAX_AUTO_WORKING_VOXELS:
+    while max(ky, kx) > 1 and cost * grid.n_voxels * ky * kx > MAX_AUTO_WORKING_VOXELS:
         ky, kx = max(1, ky - 1), max(1, kx - 1)
     return ky, kx
 
@@ -234,7 +267,9 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
        row-action and block MART walk their rows.
     2. Building the light field alone must fit the budget
        (:func:`~plenopiv.lightfield.rays.light_field_build_bytes`, checked before it is
-       built). The subdivision is :func:`lateral_subdivision`'s. ``"auto"`` projector on a
+       built). The subdivision is :func:`lateral_subdivision`'s, its working voxels
+       counted at the cost of the projector the lattice takes (:func:`projector_cost`:
+       separable rays or not). ``"auto"`` projector on a
        subdivided grid whose rays are separable (axis-aligned square lattice) takes the
        lattice projector, within the budget like every other: the explicit weights grow k²
        and the lattice projector projects them about ten times faster
@@ -254,13 +289,15 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
     if projector == "auto" and settings.method != "smart":
         projector = "sparse"
         why = f"method = \"{settings.method}\" walks the rows of explicit weights"
-    ky, kx = lateral_subdivision(calibration, grid, settings)
-    fallbacks: list[str] = _size_fallbacks(calibration, grid, settings, (ky, kx))
     rays = _light_field_refusal(calibration, settings.f_number, budget)
     if rays is not None:
+        ky, kx = lateral_subdivision(calibration, grid, settings)
         return ReconstructionChoice(settings.projector, (ky, kx), subdivided_grid(grid, ky, kx),
                                     rays[0], budget * 1e9, f"{why}: {rays[1]}", refusal=rays[1])
     n_rays = geometry.light_field.n_rays
+    cost = projector_cost(geometry.separable_axes is not None)
+    ky, kx = lateral_subdivision(calibration, grid, settings, cost=cost)
+    fallbacks: list[str] = _size_fallbacks(calibration, grid, settings, (ky, kx), cost)
     while True:
         work = geometry.on_grid(subdivided_grid(grid, ky, kx))
         separable = work.separable_axes is not None
@@ -289,18 +326,20 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
 
 
 def _size_fallbacks(calibration: Calibration, grid: VolumeGrid,
-                    settings: ReconstructionSettings, taken: tuple[int, int]) -> list[str]:
+                    settings: ReconstructionSettings, taken: tuple[int, int],
+                    cost: float) -> list[str]:
     """Why ``"auto"`` took ``taken`` instead of the third-footprint subdivision (or none)."""
     wanted = wanted_subdivision(footprint(calibration.effective_camera), grid.voxel,
                                 settings.lateral_subdivision)
     if wanted == tuple(taken):
         return []
+    per = "" if cost == 1.0 else f" at {cost:g} times the cost of the lattice projector's"
     return [f"lateral_subdivision = \"auto\": a {wanted[0]} x {wanted[1]} subdivision would "
-            f"make {grid.n_voxels * wanted[0] * wanted[1] / 1e6:.3g} million working voxels "
-            f"(at most {MAX_AUTO_WORKING_VOXELS / 1e6:.3g} million: the reconstruction's time "
-            f"grows with them); taking {taken[0]} x {taken[1]}. Depth motion is then less "
-            "resolved (w gain lower); set [reconstruction] lateral_subdivision = "
-            f"{max(wanted)} to subdivide anyway"]
+            f"make {grid.n_voxels * wanted[0] * wanted[1] / 1e6:.3g} million working voxels"
+            f"{per} (at most {MAX_AUTO_WORKING_VOXELS / 1e6:.3g} million: the "
+            f"reconstruction's time and memory grow with them); taking {taken[0]} x "
+            f"{taken[1]}. Depth motion is then less resolved (w gain lower); set "
+            f"[reconstruction] lateral_subdivision = {max(wanted)} to subdivide anyway"]
 
 
 def _light_field_refusal(calibration: Calibration, f_number, budget: float

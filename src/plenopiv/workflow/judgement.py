@@ -21,7 +21,11 @@ import numpy as np
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import CameraModel
 from plenopiv.piv.settings import MIN_WINDOW_VOX, PIVSettings
-from plenopiv.reconstruction.choose import subdivision_for, wanted_subdivision
+from plenopiv.reconstruction.choose import (
+    model_projector_cost,
+    subdivision_for,
+    wanted_subdivision,
+)
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow.rates import vectors_per_pass
 
@@ -91,7 +95,12 @@ SEVERITIES = ("warning", "advice", "chosen")
 
 @dataclass(frozen=True)
 class Camera:
-    """The camera's resolution near the focal plane (effective coordinates), metres."""
+    """The camera's resolution near the focal plane (effective coordinates), metres.
+
+    ``projector_cost``: the time per working voxel of the projector its lattice takes
+    (:func:`~plenopiv.reconstruction.choose.model_projector_cost`), which bounds the
+    ``"auto"`` lateral subdivision.
+    """
 
     name: str
     footprint: float
@@ -102,6 +111,7 @@ class Camera:
     object_distance: float
     magnification: float
     n_lenslets: int
+    projector_cost: float = 1.0
 
     def to_dict(self) -> dict:
         """Plain JSON values (SI units)."""
@@ -153,7 +163,8 @@ def camera_resolution(camera: CameraModel, f_number: float | None = None) -> Cam
     return Camera(name=camera.name, footprint=lat, depth_cell=dep, near_focus=dep,
                   field_of_view=field_of_view(camera, 0.0), f_number=n,
                   object_distance=camera.object_distance, magnification=camera.magnification,
-                  n_lenslets=camera.microlens_array.count)
+                  n_lenslets=camera.microlens_array.count,
+                  projector_cost=model_projector_cost(camera))
 
 
 def recommended_voxel(cam: Camera) -> tuple[float, float, float]:
@@ -227,7 +238,7 @@ def lateral_voxel_finding(cam: Camera, grid: VolumeGrid,
     if work / fp < LOCKING_VOXEL_FOOTPRINTS:
         return None
     sub = "no lateral subdivision" if (ky, kx) == (1, 1) else f"a {ky} x {kx} subdivision"
-    auto = subdivision_for(fp, grid, "auto")
+    auto = subdivision_for(fp, grid, "auto", cost=cam.projector_cost)
     wanted = wanted_subdivision(fp, grid.voxel, "auto")
     if auto != wanted:      # "auto" gave up the finer cut for the size of the grid
         fix = (f"set [reconstruction] lateral_subdivision = {max(wanted)} ({wanted[0]} x "
@@ -483,7 +494,8 @@ def judge(cam: Camera | None, grid: VolumeGrid,
     """
     out: list[Finding | None] = []
     if subdivision is None and reconstruction is not None and cam is not None:
-        subdivision = subdivision_for(cam.footprint, grid, reconstruction.lateral_subdivision)
+        subdivision = subdivision_for(cam.footprint, grid, reconstruction.lateral_subdivision,
+                                      cost=cam.projector_cost)
     if cam is not None and subdivision is not None:
         out.append(lateral_voxel_finding(cam, grid, subdivision))
     if piv is not None:
@@ -605,6 +617,7 @@ def judge_experiment(experiment: Experiment, cam: Camera | None, *,
         experiment = dataclasses.replace(experiment, piv=piv)
     rec = experiment.reconstruction
     sub = (None if cam is None else
-           subdivision_for(cam.footprint, experiment.volume, rec.lateral_subdivision))
+           subdivision_for(cam.footprint, experiment.volume, rec.lateral_subdivision,
+                           cost=cam.projector_cost))
     found = judge(cam, experiment.volume, rec, piv, subdivision=sub, purpose=purpose)
     return experiment, Judgement(cam, experiment.volume, chosen + found, sub)

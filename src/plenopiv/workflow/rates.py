@@ -163,14 +163,18 @@ def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: f
     from plenopiv.calibration.model import Calibration
     from plenopiv.camera.resolution import footprint
     from plenopiv.lightfield import light_field
-    from plenopiv.reconstruction.choose import subdivided_grid, subdivision_for
+    from plenopiv.reconstruction.choose import (
+        model_projector_cost,
+        subdivided_grid,
+        subdivision_for,
+    )
     from plenopiv.reconstruction.lattice import LatticeProjector
 
     mla = camera.microlens_array
     if mla.grid != "square":
         return BENCHMARK_RATES.lattice_s_per_ray_slice, 0.0, BENCHMARK_RATES.lattice_subdivision
-    cut = tuple(int(k) for k in subdivision_for(footprint(camera), grid,
-                                                lateral_subdivision))
+    cut = tuple(int(k) for k in subdivision_for(footprint(camera), grid, lateral_subdivision,
+                                                cost=model_projector_cost(camera)))
     points = []
     for k in sorted({min(7, mla.rows, mla.cols), min(19, mla.rows, mla.cols)}):
         plf = light_field(Calibration.from_camera(camera.patch(k, k)), f_number=f_number,
