@@ -512,9 +512,10 @@ class StudySetup:
                                      region=self.region)
 
 
-def study_setup(rows: int, cols: int) -> StudySetup:
-    """Camera patch of ``rows`` × ``cols`` lenslets, exact calibration, grid and weights."""
-    cam = study_camera(rows, cols)
+def study_setup(rows: int, cols: int, *, preset: str = "auburn_50mm") -> StudySetup:
+    """Camera patch of ``rows`` × ``cols`` lenslets of ``preset``, exact calibration, grid
+    and weights."""
+    cam = study_camera(rows, cols, preset=preset)
     cal = Calibration.from_camera(cam)
     grid = study_grid(cam)
     lat, dep = resolution_cell(cam)

@@ -85,10 +85,15 @@ def fields(setup, density: float, seed: int):
     return pos, render(setup.camera, pos, seed=seed, noise=True, rng=rng)
 
 
-def study(rows: int, cols: int, seeds, densities=DENSITIES, progress=print) -> dict:
-    """Every solver, density and seed: the rows of the study and the tuned iteration counts."""
-    setup = study_setup(rows, cols)
-    out = {"camera": f"auburn_50mm patch {rows} x {cols} lenslets",
+def study(rows: int, cols: int, seeds, densities=DENSITIES, progress=print, *,
+          preset: str = "auburn_50mm") -> dict:
+    """Every solver, density and seed: the rows of the study and the tuned iteration counts.
+
+    ``preset``: the camera a patch is cut from (the 16 MP ``auburn_135mm``'s lenslets and
+    optics at a patch's size, for the full camera).
+    """
+    setup = study_setup(rows, cols, preset=preset)
+    out = {"camera": f"{preset} patch {rows} x {cols} lenslets",
            "grid_shape": list(setup.grid.shape), "seeds": list(seeds),
            "densities": list(densities), "rows": [], "best_iterations": {}, "traces": {}}
     for density in densities:
