@@ -272,8 +272,9 @@ def track_study(cal, ia, ib, vols, vec, pa, pb, grid, settings, log, lf=None) ->
     ok = ja >= 0
     vox = np.asarray(grid.voxel)
     true = (pb[ja[ok]] - pa[ja[ok]]) / vox
-    err = tracks.displacement[ok] / vox - true
-    fit = gain_bias_rms((tracks.displacement[ok] / vox).T, true.T)
+    measured = tracks.displacement[ok] / vox
+    err = measured - true
+    fit = gain_bias_rms(measured.T, true.T)
     return {"gain": [round(v, 4) for v in fit["gain"]],
             "bias_vox": [round(v, 4) for v in fit["bias"]],
             "seconds": log["track"]["seconds"], "cpu_seconds": log["track"]["cpu_seconds"],

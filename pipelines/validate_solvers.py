@@ -30,19 +30,14 @@ if __name__ == "__main__":
                     help="the patch's size (default 21 x 31; 15 x 21 with --quick)")
     ap.add_argument("--camera", default="auburn_50mm",
                     help="preset the patch is cut from (auburn_135mm: the 16 MP camera's "
-                         "optics; its results go to solvers_auburn_135mm.json)")
+                         "optics; its results go to solvers_auburn_135mm.json and so on)")
     a = ap.parse_args()
     rows, cols = a.lenslets or ((15, 21) if a.quick else (21, 31))
     densities = (0.1, 0.3) if a.quick else DENSITIES
     seeds = a.seeds[:2] if a.quick else a.seeds
     ap_run = {"equal_cost": equal_cost_study, "hybrid": hybrid_study}
     run = next((ap_run[k] for k in ap_run if getattr(a, k)), study)
-    if run is study:
-        result = run(rows, cols, seeds, densities=densities, preset=a.camera)
-    elif a.camera != "auburn_50mm":
-        ap.error("--camera is taken by the main study only (not --equal-cost, --hybrid)")
-    else:
-        result = run(rows, cols, seeds, densities=densities)
+    result = run(rows, cols, seeds, densities=densities, preset=a.camera)
     name = "solvers_equal_cost" if a.equal_cost else "solvers_hybrid" if a.hybrid else "solvers"
     if a.camera != "auburn_50mm":
         name += f"_{a.camera}"

@@ -129,15 +129,16 @@ EQUAL_COST_ITERATIONS = 40
 L1_FRACTIONS = (0.003, 0.01, 0.03)
 
 
-def equal_cost_study(rows: int, cols: int, seeds, densities=DENSITIES, progress=print) -> dict:
+def equal_cost_study(rows: int, cols: int, seeds, densities=DENSITIES, progress=print, *,
+                     preset: str = "auburn_50mm") -> dict:
     """SMART and FISTA (with and without the L1 term) at :data:`EQUAL_COST_ITERATIONS`.
 
     The L1 fraction is chosen per density on the first seed (largest Q at the last
     iteration), and every solver is scored on the other seeds only.
     """
-    setup = study_setup(rows, cols)
+    setup = study_setup(rows, cols, preset=preset)
     n = EQUAL_COST_ITERATIONS
-    out = {"camera": f"auburn_50mm patch {rows} x {cols} lenslets", "iterations": n,
+    out = {"camera": f"{preset} patch {rows} x {cols} lenslets", "iterations": n,
            "seeds": list(seeds[1:]), "tuning_seed": seeds[0], "densities": list(densities),
            "rows": [], "l1": {}}
     for density in densities:
@@ -166,10 +167,11 @@ HYBRIDS = (("smart (default)", 10, 0), ("fista 5 + smart 5", 5, 5),
            ("fista 20 + smart 5", 20, 5))
 
 
-def hybrid_study(rows: int, cols: int, seeds, densities=DENSITIES, progress=print) -> dict:
+def hybrid_study(rows: int, cols: int, seeds, densities=DENSITIES, progress=print, *,
+                 preset: str = "auburn_50mm") -> dict:
     """FISTA's volume as SMART's first guess (:data:`HYBRIDS`), on the held-out seeds."""
-    setup = study_setup(rows, cols)
-    out = {"camera": f"auburn_50mm patch {rows} x {cols} lenslets", "seeds": list(seeds[1:]),
+    setup = study_setup(rows, cols, preset=preset)
+    out = {"camera": f"{preset} patch {rows} x {cols} lenslets", "seeds": list(seeds[1:]),
            "densities": list(densities), "rows": []}
     for density in densities:
         for seed in seeds[1:]:

@@ -161,3 +161,17 @@ def test_the_judgement_names_the_subdivision_auto_gave_up(cal, monkeypatch):
     assert k == (1, 1)
     finding = lateral_voxel_finding(camera_resolution(cal.effective_camera), grid, k)
     assert "lateral_subdivision = 3" in finding.change and "9 times" in finding.change
+
+
+def test_the_cap_depends_on_the_box_s_voxel_count_not_its_place_or_turn(cal, monkeypatch):
+    """A box moved, or turned a quarter (nx and ny swapped), gets the same cut."""
+    from plenopiv.reconstruction import choose
+
+    b = footprint(cal.effective_camera)
+    base = VolumeGrid((0.0, 0.0, 0.0), (b, b, b), (10, 12, 18))
+    moved = VolumeGrid((3.7 * b, -1.3 * b, 0.4 * b), (b, b, b), (10, 12, 18))
+    turned = VolumeGrid((0.0, 0.0, 0.0), (b, b, b), (10, 18, 12))
+    for cap in (1, 4, 9):
+        monkeypatch.setattr(choose, "MAX_AUTO_WORKING_VOXELS", cap * base.n_voxels)
+        cuts = {choose.subdivision_for(b, g, "auto") for g in (base, moved, turned)}
+        assert len(cuts) == 1

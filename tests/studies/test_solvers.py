@@ -26,3 +26,21 @@ def test_every_solver_is_scored_on_the_16_mp_cameras_optics():
     assert len(out["rows"]) == len(SOLVERS) + len(TUNED)
     for row in out["rows"]:
         assert "error" in row or 0.0 < row["q"]["cell"] <= 1.0
+
+
+@pytest.mark.parametrize("kind", ["equal_cost_study", "hybrid_study"])
+def test_every_study_takes_the_preset(kind, monkeypatch):
+    """The equal-cost and hybrid studies cut their patch from the preset they are given."""
+    import pipelines.studies.solvers as solvers
+
+    seen = []
+
+    def record(rows, cols, *, preset):
+        seen.append(preset)
+        raise RuntimeError("stop after the set-up")
+
+    monkeypatch.setattr(solvers, "study_setup", record)
+    with pytest.raises(RuntimeError, match="stop after the set-up"):
+        getattr(solvers, kind)(5, 7, [5, 6], densities=(0.1,), progress=lambda *_: None,
+                               preset="auburn_135mm")
+    assert seen == ["auburn_135mm"]

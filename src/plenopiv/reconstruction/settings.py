@@ -49,10 +49,11 @@ class ReconstructionSettings:
         footprint, which voxels a footprint wide cannot represent, so with them a particle
         is reconstructed far too long in depth and its depth motion is under-measured
         (docs/validation/vortex.md). Costs k² in weights and MART time, so "auto" takes a
-        coarser k (down to 1) where the working grid would hold more than 15 million voxels
-        (the 16 MP camera's full volume: 11 million voxels at k = 1, about 45 s a volume on
-        2 cores, 5-9 times that at k = 3), and says so. A k that leaves working voxels of
-        0.75 footprint or wider is warned before a run (docs/methods.md#settings-judgement).
+        coarser k (down to 1) where the working grid would hold more than 50 million voxels,
+        counted three times for a rotated or hexagonal lattice (the 16 MP camera's full
+        volume: 2 x 2, 67 s and 6.0 GB a volume on 2 cores; footprint voxels on a rotated
+        array), and says so. A k that leaves working voxels of 0.75 footprint or wider is
+        warned before a run (docs/methods.md#settings-judgement).
     subdivision_kernel : how the working voxels return to the [volume] grid: "gaussian"
         (default): each voxel takes the working volume weighted by a Gaussian of σ = half a
         voxel about its centre, which keeps where a particle lies inside the voxel in the
