@@ -167,3 +167,22 @@ def test_a_sigterm_lost_in_a_finalizer_still_ends_the_verb_as_terminated(after, 
     assert err.strip().splitlines()[-1].startswith("error: terminated (SIGTERM)")
     assert "Traceback" not in err and "Exception ignored" not in err
     assert signal.getsignal(signal.SIGTERM) is before and sys.unraisablehook is hook
+
+
+def test_after_a_sigterm_what_finalizers_raise_is_not_printed(monkeypatch, capsys):
+    """The process the command owns drops finalizer failures once SIGTERM was taken (an
+    llvmlite object half freed by the signal fails again later); before, they are shown."""
+    import types
+
+    from plenopiv import cli
+
+    shown = []
+    hook = cli.quiet_after_sigterm(lambda u: shown.append(u))
+    monkeypatch.setattr(cli, "SIGTERM_RECEIVED", __import__("threading").Event())
+    failure = types.SimpleNamespace(exc_value=AttributeError("_as_parameter_"))
+    hook(failure)
+    assert shown == [failure]
+    cli.SIGTERM_RECEIVED.set()
+    hook(failure)
+    assert shown == [failure]
+    assert capsys.readouterr().err == ""

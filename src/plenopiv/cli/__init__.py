@@ -133,6 +133,24 @@ def _unexpected(exc: Exception) -> PlenopivError:
 SIGTERM_REPEAT_S = 0.05
 
 
+#: Set once a SIGTERM has been taken: the process is ending (:func:`quiet_after_sigterm`).
+SIGTERM_RECEIVED = threading.Event()
+
+
+def quiet_after_sigterm(previous):
+    """``sys.unraisablehook`` that drops what finalizers raise once SIGTERM was taken.
+
+    A Terminated raised inside a compiled-code finalizer leaves its object half freed, and
+    the object's next finalizer then fails (llvmlite: "no attribute '_as_parameter_'"),
+    possibly after the command's one line is out; the process is ending with 143, and the
+    failure is the signal's consequence, not news. Before that, ``previous`` takes them.
+    """
+    def hook(unraisable):
+        if not SIGTERM_RECEIVED.is_set():
+            previous(unraisable)
+    return hook
+
+
 class _Termination:
     """SIGTERM inside :func:`sigterm_as_interrupt`, and one that was lost.
 
@@ -153,6 +171,7 @@ class _Termination:
     def handler(self, signum, frame):
         if self.answered.is_set():
             return
+        SIGTERM_RECEIVED.set()
         self.pending = False
         raise Terminated()
 
@@ -266,6 +285,7 @@ def console() -> None:
     """
     import os
 
+    sys.unraisablehook = quiet_after_sigterm(sys.unraisablehook)
     status = main()
     if status in (EXIT_TERMINATED, EXIT_INTERRUPTED):
         sys.stdout.flush()
