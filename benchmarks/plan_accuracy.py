@@ -17,9 +17,12 @@ weights, the recording's check and the volume, as ``plenopiv reconstruct`` runs 
 GB, and their ratios predicted / measured (the goal: within 0.8-1.2). Both sides run on the
 same machine under the same load, since the plan's rates are measured in the same process.
 
-Cases: ``small_m1`` (the demo's camera and box), ``small_test`` (configs/experiments), and
-``auburn_50mm`` (the full camera on a box of the whole field of view, 20 000 particles: minutes
-and several GB).
+Cases: ``small_m1`` (the demo's camera and box), ``small_test`` (configs/experiments),
+``auburn_50mm`` (the 16 MP camera on the demo's box: minutes and several GB), and
+``auburn_135mm_aligned`` / ``auburn_135mm_rotated``: the 16 MP camera's whole field of view
+and ±26 mm in depth, the volume of ``benchmarks/full_camera.py`` (11 million voxels of
+0.26 mm moved off the footprints; the array as made, or turned by 2 mrad: the per-lenslet
+projector), 5-10 minutes each.
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ CASES = {
     "small_m1": ("small_m1", None),
     "small_test": ("small_test", ROOT / "configs" / "experiments" / "small_test.toml"),
     "auburn_50mm": ("auburn_50mm", None),
+    "auburn_135mm_aligned": ("auburn_135mm", "full_camera:aligned"),
+    "auburn_135mm_rotated": ("auburn_135mm", "full_camera:rotated"),
 }
 
 
@@ -66,8 +71,21 @@ def _case(name: str):
     from plenopiv.camera.model import load_camera
 
     preset, experiment = CASES[name]
+    if isinstance(experiment, str) and experiment.startswith("full_camera:"):
+        return _full_camera_case(experiment.split(":")[1])
     cam = load_camera(preset)
     return Calibration.from_camera(cam), _box(cam, experiment)
+
+
+def _full_camera_case(geometry: str):
+    """``(calibration, grid)`` of ``benchmarks/full_camera.py``'s volume on one array."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from full_camera import full_case
+
+    args = argparse.Namespace(geometry=geometry, lenslets=None, seed=1, displacement_vox=3.0,
+                              grid_offset_vox=(0.37, 0.21))
+    _cam, cal, _case, grid, _box, _flow = full_case(args)
+    return cal, grid
 
 
 def plan_and_time(name: str, image_path: Path) -> dict:
@@ -83,7 +101,12 @@ def plan_and_time(name: str, image_path: Path) -> dict:
 
     cal, grid = _case(name)
     cam = cal.camera
-    p = planning.plan(cam, grid, rates=rates.measure_rates(cam, grid))
+    from plenopiv.reconstruction.settings import ReconstructionSettings
+
+    t0 = time.perf_counter()
+    measured = rates.measure_rates(cam, grid, reconstruction=ReconstructionSettings())
+    plan_s = time.perf_counter() - t0
+    p = planning.plan(cam, grid, rates=measured)
     b = grid.bounds
     n = int(round(0.15 * lenslets_in_box(camera_resolution(cam), grid)))
     pair = simulate_pair(cam, Uniform((0.0, 0.0, 0.0)), dt=1e-3,
@@ -102,7 +125,9 @@ def plan_and_time(name: str, image_path: Path) -> dict:
     return {"case": name, "shape": list(grid.shape), "particles": n,
             "projector": p.decision.projector, "time_model": p.time_model,
             "predicted_s": predicted_s, "measured_s": seconds,
-            "time_ratio": predicted_s / seconds, "predicted_gb": predicted_gb}
+            "time_ratio": predicted_s / seconds, "predicted_gb": predicted_gb,
+            "rates_s": plan_s, "rehearsed": measured.rehearsal is not None,
+            "predicted_stages_s": p.time}
 
 
 def peak_memory(name: str, image_path: Path) -> dict:

@@ -3,6 +3,7 @@ cost."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import tomllib
@@ -145,7 +146,7 @@ def test_measured_rates_are_positive(small_camera):
     p = planning.plan(small_camera, grid, piv=cfg, rates=r)
     assert p.time_model.startswith("rates measured")
     assert p.time["pair"] == pytest.approx(p.time["weights"] + p.time["recording_check"]
-                                           + 2 * p.time["volume"]
+                                           + p.time["first_volume"] + 2 * p.time["volume"]
                                            + p.time["piv"])
 
 
@@ -246,3 +247,78 @@ def test_the_planned_peak_memory_is_the_measured_one_within_a_fifth():
                          text=True).stdout
     measured = float(out.strip().splitlines()[-1])
     assert 0.8 <= predicted / measured <= 1.2, (predicted / 1e9, measured / 1e9)
+
+
+def test_the_rehearsal_stands_only_for_the_reconstruction_it_rehearsed(small_camera):
+    """Figures rehearsed with another projector, subdivision or sweep count are not used."""
+    grid = user_box()
+    base = planning.plan(small_camera, grid, rates=rates.BENCHMARK_RATES)
+    choice = base.decision
+    reh = rates.Rehearsal(weights_s_per_ray=1e-6, volume_s_per_ray_slice=1e-8,
+                          first_s_per_ray_slice=2e-9, check_s_per_pixel=3e-7,
+                          projector=choice.projector, subdivision=tuple(choice.subdivision),
+                          iterations=10)
+    rehearsed = planning.plan(small_camera, grid,
+                              rates=dataclasses.replace(rates.BENCHMARK_RATES, rehearsal=reh))
+    t = rehearsed.time
+    assert t["weights"] == pytest.approx(1e-6 * choice.n_rays)
+    assert t["first_volume"] == pytest.approx(2e-9 * choice.n_rays * grid.shape[0])
+    assert t["pair"] == pytest.approx(t["weights"] + t["recording_check"] + t["first_volume"]
+                                      + 2 * t["volume"] + t["piv"])
+    assert "rehearsed" in rehearsed.time_model
+    for other in (dict(projector="sparse"), dict(subdivision=(1, 1)), dict(iterations=5)):
+        p = planning.plan(small_camera, grid, rates=dataclasses.replace(
+            rates.BENCHMARK_RATES, rehearsal=dataclasses.replace(reh, **other)))
+        assert p.time["first_volume"] == 0.0 and "rehearsed" not in p.time_model
+        assert p.time["volume"] == pytest.approx(base.time["volume"])
+
+
+def test_the_planned_time_is_the_measured_one_within_a_factor_of_two():
+    """The demo's box planned with the reconstruction rehearsed, against one ``reconstruct``
+    of it in this process. benchmarks/plan_accuracy.py holds the plan within 20 % on an idle
+    machine, from the small cameras to the 16 MP one (docs/performance.md); on a shared
+    machine a test holds a factor of two, which a model that leaves out a stage misses (the
+    16 MP camera's weights were planned at a sixth of their time before the rehearsal)."""
+    import time
+
+    from plenopiv.synthetic.flows import Uniform
+    from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
+    from plenopiv.workflow.volume import reconstruct_volume
+    from plenopiv.workflow.vortex_case import VortexCase, aligned_grid
+
+    cam = load_camera("small_m1")
+    grid = aligned_grid(cam, VortexCase())
+    measured_rates = rates.measure_rates(cam, grid, reconstruction=ReconstructionSettings(),
+                                         budget_s=0.5)
+    assert measured_rates.rehearsal is not None
+    p = planning.plan(cam, grid, rates=measured_rates)
+    assert "rehearsed" in p.time_model and p.time["first_volume"] > 0
+    b = grid.bounds
+    pair = simulate_pair(cam, Uniform((0.0, 0.0, 0.0)), dt=1e-3,
+                         box=SeedingBox(tuple(b[0]), tuple(b[1]), tuple(b[2])),
+                         n_particles=270, rng=np.random.default_rng(1), rays_per_particle=256)
+    image = np.asarray(pair.image_a, float)
+    cal = Calibration.from_camera(cam)
+    half = VolumeGrid.from_bounds(*(tuple(lo + (hi - lo) * f for f in (0.25, 0.75))
+                                    for lo, hi in b), voxel=grid.voxel)
+    reconstruct_volume(cal, image, half)              # the kernels compiled or loaded
+    t0 = time.perf_counter()
+    reconstruct_volume(cal, image, grid)
+    measured = time.perf_counter() - t0
+    assert 0.5 <= p.time["reconstruct"] / measured <= 2.0, (p.time, measured)
+
+
+def test_a_turned_lattice_is_planned_with_measured_rates(small_camera):
+    """A square lattice turned by 2 mrad and shifted (the per-lenslet projector): the rates
+    are measured (the separable projector's on the lattice made straight) and the
+    reconstruction rehearsed with the per-lenslet projector; ``plenopiv plan`` refused it."""
+    mla = dataclasses.replace(small_camera.microlens_array, rotation=2e-3, offset=(3e-6, -2e-6))
+    cam = small_camera.replace(microlens_array=mla)
+    grid = VolumeGrid.from_bounds((-2 * MM, 2 * MM), (-2 * MM, 2 * MM), (-3 * MM, 3 * MM),
+                                  voxel=0.26 * MM)
+    settings = ReconstructionSettings(projector="lattice")    # matrix-free (small: explicit)
+    r = rates.measure_rates(cam, grid, reconstruction=settings, budget_s=0.2)
+    assert r.rehearsal is not None and r.rehearsal.projector == "lenslet"
+    p = planning.plan(cam, grid, rates=r, reconstruction=settings)
+    assert p.decision.projector == "lenslet" and "rehearsed" in p.time_model
+    assert p.time["reconstruct"] > 0 and p.time["first_volume"] >= 0

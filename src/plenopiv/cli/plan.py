@@ -138,9 +138,8 @@ def cmd_plan(args) -> dict:
     else:
         with _StageBar("plan", {"measure": 1}, args.quiet or args.json) as bar:
             bar("measure rates on this machine")
-            rates = rates_module.measure_rates(
-                camera, grid, f_number=recon.f_number, min_lit=recon.min_lit, piv=piv_cfg,
-                lateral_subdivision=recon.lateral_subdivision)
+            rates = rates_module.measure_rates(camera, grid, piv=piv_cfg,
+                                               reconstruction=recon)
     result = planning.plan(camera, grid, reconstruction=recon, piv=piv_cfg, rates=rates,
                            calibration=cal, seeding=args.seeding, chosen=chosen)
     return {"command": "plan", "config": str(args.config),
@@ -203,7 +202,8 @@ def print_summary(p: dict) -> None:
     t = p["time_s"]
     rows.append(("time", f"weights {_fmt(t['weights'])} s"
                          + (" (once, then cached)" if sparse else "") + ", one volume "
-                         f"{_fmt(t['volume'])} s, the recording's check "
+                         f"{_fmt(t['volume'])} s (the first {_fmt(t['first_volume'])} s more), "
+                         "the recording's check "
                          f"{_fmt(t['recording_check'])} s, PIV {_fmt(t['piv'])} s; "
                          f"plenopiv reconstruct {_fmt(t['reconstruct'])} s, a pair "
                          f"{_fmt(t['pair'])} s ({_fmt(t['pair_cached_weights'])} s with cached "

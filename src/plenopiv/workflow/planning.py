@@ -75,9 +75,9 @@ BYTES_PER_RAY_PARTICLE_FIT = 30
 
 #: Seconds per sensor pixel of the check of a recording against its calibration
 #: (:func:`plenopiv.calibration.recording.check_recording`, ``[reconstruction] lattice_check``
-#: not "off"; its two passes): 0.28-0.33 s for the 0.73 MP sensor of the small cameras, about
-#: 4 s a pass for the 16 MP one (``benchmarks/plan_accuracy.py``).
-SECONDS_PER_PIXEL_RECORDING_CHECK = 4.5e-7
+#: not "off"; its two passes) where the reconstruction was not rehearsed: 0.16-0.24 s for the
+#: 0.73 MP sensor of the small cameras, 4.2 s for the 16 MP one (``benchmarks/plan_accuracy.py``).
+SECONDS_PER_PIXEL_RECORDING_CHECK = 2.7e-7
 
 
 #: Seconds per ray of that fit on two threads, from the 16 MP camera at 0.36 particles per
@@ -328,6 +328,10 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     model = ("rates measured in this process" if rates.source == "measured"
              else "benchmark rates (rates.BENCHMARK_RATES, docs/performance.md)")
     model = f"{model}, {rates.threads} threads"
+    reh = rates.rehearsal
+    if reh is not None and reh.matches(choice.projector, choice.subdivision,
+                                       reconstruction.iterations):
+        model += ", the reconstruction rehearsed on a patch of the camera"
 
     findings = chosen + judge(cam, grid, reconstruction, piv, subdivision=choice.subdivision,
                               particles_per_lenslet=seeding, advice=True)
@@ -387,18 +391,28 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
 
     ``recording_check``: the check of the recording against its calibration on a sensor of
     ``checked_pixels`` (once per image with ``plenopiv reconstruct``, once per pair with
-    ``run``); ``reconstruct``: one ``plenopiv reconstruct`` (weights, check, volume).
+    ``run``); ``first_volume``: what the first volume of a weights object adds (its row and
+    column sums, the line of sight's refined cells); ``reconstruct``: one ``plenopiv
+    reconstruct`` (weights, check, first volume).
 
-    A matrix-free sweep costs the measured rate at the subdivision it was measured at
-    (:attr:`~plenopiv.workflow.rates.Rates.lattice_subdivision`: the reconstruction's own,
-    measured in this process); at another one ``ky kx`` times the volume grid's, each beam
-    crossing that many more working voxels (one 16 MP volume on the 3 × 3 subdivided grid:
-    173 s against 17 s on footprint voxels; on the small cameras' grids a 3 × 3 sweep costs
-    about 4.6 times one on the footprints).
+    Where the reconstruction was rehearsed (:class:`~plenopiv.workflow.rates.Rehearsal`, the
+    same projector, subdivision and sweeps) its figures scale by rays and depth slices.
+    Otherwise a matrix-free sweep costs the measured rate at the subdivision it was measured
+    at (:attr:`~plenopiv.workflow.rates.Rates.lattice_subdivision`); at another one ``ky kx``
+    times the volume grid's, each beam crossing that many more working voxels (on the small
+    cameras' grids a 3 × 3 sweep costs about 4.6 times one on the footprints).
     """
     n_rays = choice.n_rays
     sweeps = iterations + 3      # MLOS, masks and row scaling: ~3 sweeps
-    if choice.projector == "sparse":
+    t_first = 0.0
+    reh = rates.rehearsal
+    if reh is not None and reh.matches(choice.projector, choice.subdivision, iterations):
+        # the reconstruction itself, rehearsed on patches of the camera
+        ray_slices = n_rays * grid.shape[0]
+        t_weights = reh.weights_s_per_ray * n_rays
+        t_volume = reh.volume_s_per_ray_slice * ray_slices
+        t_first = reh.first_s_per_ray_slice * ray_slices
+    elif choice.projector == "sparse":
         # light field, weights, and the cache file written at ~250 MB/s
         t_weights = 2e-7 * n_rays + rates.build_s_per_nnz * nnz + cache_file / 250e6
         t_volume = (rates.sweep_s_per_nnz * nnz + rates.sweep_s_per_call) * sweeps
@@ -414,10 +428,12 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
     t_volume += SECONDS_PER_RAY_PARTICLE_FIT * n_rays   # their positions from the light field
     t_piv = rates.piv_s_per_call + rates.piv_s_per_window_voxel * _window_voxels(
         grid.shape, windows, overlap, passes)
-    t_check = SECONDS_PER_PIXEL_RECORDING_CHECK * checked_pixels
+    t_check = (reh.check_s_per_pixel if reh is not None else
+               SECONDS_PER_PIXEL_RECORDING_CHECK) * checked_pixels
     return {"weights": t_weights, "volume": t_volume, "piv": t_piv,
-            "recording_check": t_check, "reconstruct": t_weights + t_check + t_volume,
-            "pair": t_weights + t_check + 2 * t_volume + t_piv,
-            "pair_cached_weights": t_check + 2 * t_volume + t_piv}
+            "recording_check": t_check, "first_volume": t_first,
+            "reconstruct": t_weights + t_check + t_first + t_volume,
+            "pair": t_weights + t_check + t_first + 2 * t_volume + t_piv,
+            "pair_cached_weights": t_check + t_first + 2 * t_volume + t_piv}
 
 

@@ -1,11 +1,14 @@
 """The rates that turn a plan's sizes into times.
 
 Measured on small samples of the reconstruction's and the PIV's own kernels in this process
-(:func:`measure_rates`), or the benchmark's (:data:`BENCHMARK_RATES`).
+(:func:`measure_rates`), or the benchmark's (:data:`BENCHMARK_RATES`). A matrix-free
+reconstruction is also rehearsed whole on two patches of the camera (:class:`Rehearsal`):
+its light field, line of sight, row and column sums and sweeps, as they run.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -15,7 +18,7 @@ import numpy as np
 
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import CameraModel
-from plenopiv.errors import ConfigError
+from plenopiv.errors import ConfigError, PlenopivError
 from plenopiv.piv.settings import PIVSettings
 
 
@@ -36,6 +39,7 @@ class Rates:
         ``ky kx`` on a small grid, about as ``ky kx`` on a large one).
     source : "measured" (in this process) or "benchmark".
     threads : numba threads the rates were measured with.
+    rehearsal : the matrix-free reconstruction rehearsed whole, or None.
     """
 
     build_s_per_nnz: float
@@ -48,6 +52,48 @@ class Rates:
     piv_s_per_call: float = 0.0
     threads: int = 2
     lattice_subdivision: tuple[int, int] = (1, 1)
+    rehearsal: Rehearsal | None = None
+
+
+@dataclass(frozen=True)
+class Rehearsal:
+    """Seconds of a matrix-free reconstruction rehearsed on two patches of the camera.
+
+    weights_s_per_ray : the weights (light field, projector tables, row maxima) per
+        light-field ray, on the grid's depth slices.
+    volume_s_per_ray_slice : one volume of an image (line of sight, first guess, sweeps; not
+        the particles) per ray and depth slice.
+    first_s_per_ray_slice : what the first volume of a weights object adds (row and column
+        sums, the line of sight's refined projectors and their cell sums).
+    check_s_per_pixel : the check of a recording against its calibration, per sensor pixel.
+    projector, subdivision, iterations : the reconstruction rehearsed; its figures stand
+        for that one alone.
+
+    Each is the larger patch's time over its work, not a slope through both patches: the
+    larger one's arrays outgrow the caches as the camera's do, and the time per unit of a
+    larger problem is higher still (the 16 MP camera's weights cost about twice a patch's per
+    ray: docs/performance.md#the-plan-against-the-run).
+    """
+
+    weights_s_per_ray: float
+    volume_s_per_ray_slice: float
+    first_s_per_ray_slice: float
+    check_s_per_pixel: float
+    projector: str
+    subdivision: tuple[int, int]
+    iterations: int
+
+    def matches(self, projector: str, subdivision, iterations: int) -> bool:
+        """Whether these figures are those of this reconstruction."""
+        return (self.projector == projector and tuple(subdivision) == self.subdivision
+                and iterations == self.iterations)
+
+
+#: Lenslets a side of the patches the reconstruction is rehearsed on (the camera's size where
+#: smaller): the larger one's arrays outgrow the processor's caches, as the camera's do.
+REHEARSAL_PATCHES = (19, 41)
+#: Particles per lenslet of the rehearsal's image.
+REHEARSAL_SEEDING = 0.15
 
 
 BENCHMARK_RATES = Rates(build_s_per_nnz=1.2e-7, sweep_s_per_nnz=1.5e-8, sweep_s_per_call=0.07,
@@ -78,7 +124,8 @@ def _slope(x1: float, t1: float, x2: float, t2: float) -> tuple[float, float]:
 
 def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
                   min_lit: float = 0.5, piv: PIVSettings | None = None,
-                  lateral_subdivision: str | int = "auto", budget_s: float = 2.0) -> Rates:
+                  lateral_subdivision: str | int = "auto", budget_s: float = 2.0,
+                  reconstruction=None) -> Rates:
     """Time the reconstruction's kernels and the PIV on samples of this plan.
 
     Each is timed at two sample sizes (the shortest of a few calls), which separates the rate
@@ -88,9 +135,15 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     slices and its voxels cut as the reconstruction will cut them (``lateral_subdivision``,
     ``[reconstruction] lateral_subdivision``); the PIV of two random particle volumes of two
     and three first windows a side. The first call also compiles the kernels (cached on
-    disk), before any timing.
+    disk), before any timing. ``reconstruction`` (``[reconstruction]``, whose f-number,
+    ``min_lit`` and subdivision then win) also has a matrix-free reconstruction rehearsed
+    (:func:`rehearse`).
     """
     import numba
+
+    if reconstruction is not None:
+        f_number, min_lit = reconstruction.f_number, reconstruction.min_lit
+        lateral_subdivision = reconstruction.lateral_subdivision
 
     from plenopiv.reconstruction._kernels import weights as K
     from plenopiv.reconstruction.projector import SparseProjector
@@ -145,11 +198,16 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     lattice_rate, lattice_call, cut = _measure_lattice(camera, grid, f_number, min_lit,
                                                        lateral_subdivision, 0.15 * budget_s)
     piv_rate, piv_call = _measure_piv(piv or PIVSettings(), grid, 0.2 * budget_s)
+    rehearsal = None
+    if reconstruction is not None:
+        # a box the rehearsal cannot take is planned from the kernels' rates alone
+        with contextlib.suppress(PlenopivError):
+            rehearsal = rehearse(camera, grid, reconstruction, cut)
     return Rates(build_s_per_nnz=build_rate, sweep_s_per_nnz=sweep_rate,
                  sweep_s_per_call=sweep_call, lattice_s_per_ray_slice=lattice_rate,
                  lattice_s_per_call=lattice_call, piv_s_per_window_voxel=piv_rate,
                  piv_s_per_call=piv_call, source="measured", threads=numba.get_num_threads(),
-                 lattice_subdivision=cut)
+                 lattice_subdivision=cut, rehearsal=rehearsal)
 
 
 def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: float,
@@ -158,7 +216,9 @@ def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: f
 
     A forward and a back projection on patches of 7 and 19 lenslets a side, on the grid's
     slices and its voxels cut as the reconstruction will cut them; the benchmark rate where
-    the lattice is not square.
+    the lattice is not square. A turned or shifted square lattice is timed as made straight
+    (the separable projector's rate, which the plan scales for the per-lenslet one); the
+    subdivision is the camera's own.
     """
     from plenopiv.calibration.model import Calibration
     from plenopiv.camera.resolution import footprint
@@ -175,9 +235,11 @@ def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: f
         return BENCHMARK_RATES.lattice_s_per_ray_slice, 0.0, BENCHMARK_RATES.lattice_subdivision
     cut = tuple(int(k) for k in subdivision_for(footprint(camera), grid, lateral_subdivision,
                                                 cost=model_projector_cost(camera)))
+    straight = camera.replace(microlens_array=dataclasses.replace(mla, rotation=0.0,
+                                                                  offset=(0.0, 0.0)))
     points = []
     for k in sorted({min(7, mla.rows, mla.cols), min(19, mla.rows, mla.cols)}):
-        plf = light_field(Calibration.from_camera(camera.patch(k, k)), f_number=f_number,
+        plf = light_field(Calibration.from_camera(straight.patch(k, k)), f_number=f_number,
                           min_lit=min_lit, edge_centroid=False)
         half = np.abs(plf.focal_plane_position).max(axis=0) + plf.footprint
         sub = subdivided_grid(VolumeGrid.from_bounds(
@@ -192,6 +254,115 @@ def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: f
     if len(points) == 2:
         return (*_slope(*points[0], *points[1]), cut)
     return points[0][1] / points[0][0], 0.0, cut
+
+
+def rehearse(camera: CameraModel, grid: VolumeGrid, settings, cut, *,
+             budget_s: float = 2.0) -> Rehearsal | None:
+    """Rehearse a matrix-free reconstruction on a patch of the camera (:data:`REHEARSAL_PATCHES`).
+
+    Each patch's calibration is the camera's own; its grid covers the same share of the
+    patch's field of view as ``grid`` does of the camera's, on ``grid``'s voxels and depth
+    slices, cut ``cut = (ky, kx)`` as the reconstruction will cut them; its image is the
+    forward projection of one bright voxel per 1 / :data:`REHEARSAL_SEEDING` lenslets.
+    Timed on the larger patch: the check of the image against the calibration, the weights,
+    the first volume and a second one of the same image, each the shortest of the runs that
+    ``budget_s`` allows (at least two: one alone varies by a fifth); a tiny patch and
+    the smaller one run first, untimed, to compile the kernels and settle the caches. The
+    patch takes the matrix-free projector its lattice allows; None where ``settings`` ask
+    for explicit weights or the cut is not square.
+    """
+    if cut[0] != cut[1] or settings.projector == "sparse":
+        return None
+    # matrix-free as the camera would take it: a patch's explicit weights would fit where
+    # the camera's do not
+    settings = dataclasses.replace(settings, lateral_subdivision=int(cut[0]),
+                                   projector="lattice")
+    mla = camera.microlens_array
+    share = np.clip(np.max(np.abs(grid.bounds[:2]), axis=1) / _field_half(camera), 0.0, 1.0)
+    sizes = sorted({min(k, mla.rows, mla.cols) for k in REHEARSAL_PATCHES})
+    for k in [min(5, *sizes), *sizes[:-1]]:
+        _rehearse_patch(camera, k, grid, share, settings)
+    best, start, runs = None, time.perf_counter(), 0
+    while runs < 2 or time.perf_counter() - start < budget_s:
+        runs += 1
+        run = _rehearse_patch(camera, sizes[-1], grid, share, settings)
+        if run is None:
+            return None
+        best = run if best is None else tuple(min(a, b) for a, b in zip(best, run, strict=True))
+    kind, n_rays, ray_slices, n_pixels = _rehearse_patch.last
+    t_check, t_weights, t_first, t_volume = best
+    return Rehearsal(weights_s_per_ray=t_weights / n_rays,
+                     volume_s_per_ray_slice=t_volume / ray_slices,
+                     first_s_per_ray_slice=max(t_first - t_volume, 0.0) / ray_slices,
+                     check_s_per_pixel=t_check / n_pixels, projector=kind,
+                     subdivision=tuple(int(c) for c in cut), iterations=settings.iterations)
+
+
+def _rehearse_patch(camera: CameraModel, k: int, grid: VolumeGrid, share, settings):
+    """``(check, weights, first volume, second volume)`` seconds on a k × k patch, or None.
+
+    The check is that of the recording against its calibration (``[reconstruction]
+    lattice_check``), timed once the image exists. None when the patch takes explicit
+    weights; the projector's kind, the rays, the rays times depth slices and the sensor's
+    pixels are left in ``_rehearse_patch.last``.
+    """
+    import warnings
+
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.reconstruction.build import weights_for
+    from plenopiv.reconstruction.solve import solve_volume
+    from plenopiv.workflow.volume import check_lattice
+
+    cal = Calibration.from_camera(camera.patch(k, k))
+    half = np.maximum(_field_half(cal.effective_camera) * share,
+                      2.0 * np.asarray(grid.voxel[:2], dtype=np.float64))
+    patch_grid = VolumeGrid.from_bounds((-half[0], half[0]), (-half[1], half[1]),
+                                        tuple(grid.bounds[2]), voxel=grid.voxel)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        t0 = time.perf_counter()
+        weights, _ = weights_for(cal, patch_grid, settings)
+        _ = weights.normalised
+        seconds = [time.perf_counter() - t0]
+        kind = _KINDS.get(type(weights.projector).__name__)
+        if kind is None:
+            return None
+        image = _rehearsal_image(weights, cal.camera.sensor.shape, k * k * float(np.prod(share)))
+        t0 = time.perf_counter()
+        with contextlib.suppress(PlenopivError):
+            check_lattice(cal, [image], settings)
+        seconds.insert(0, time.perf_counter() - t0)
+        for _volume in range(2):
+            t0 = time.perf_counter()
+            solve_volume(weights, image, settings)
+            seconds.append(time.perf_counter() - t0)
+    n_rays = len(weights.pixel)
+    _rehearse_patch.last = (kind, n_rays, n_rays * weights.grid.shape[0], image.size)
+    return tuple(seconds)
+
+
+#: The matrix-free projectors by class, as :class:`ReconstructionChoice` names them.
+_KINDS = {"LatticeProjector": "lattice", "LensletProjector": "lenslet"}
+
+
+def _field_half(camera: CameraModel) -> np.ndarray:
+    """Half the field of view (x, y) on the focal plane, metres: the outer footprints' edges."""
+    from plenopiv.camera.resolution import footprint
+
+    centres = camera.microlens_array.nominal_centres() / abs(camera.magnification)
+    return np.abs(centres).max(axis=0) + 0.5 * footprint(camera)
+
+
+def _rehearsal_image(weights, shape, lenslets: float) -> np.ndarray:
+    """A sensor image of bright voxels scattered through the weights' grid (counts).
+
+    :data:`REHEARSAL_SEEDING` per lenslet of the ``lenslets`` the grid covers.
+    """
+    rng = np.random.default_rng(0)
+    n = max(1, int(round(REHEARSAL_SEEDING * lenslets)))
+    volume = np.zeros(weights.grid.n_voxels, np.float32)
+    volume[rng.choice(weights.grid.n_voxels, size=n, replace=False)] = 1.0
+    return weights.forward_image(volume, shape) * np.float32(1000.0)
 
 
 def _window_voxels(shape, windows, overlap, passes) -> float:
