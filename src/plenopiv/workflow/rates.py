@@ -202,12 +202,22 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     if reconstruction is not None:
         # a box the rehearsal cannot take is planned from the kernels' rates alone
         with contextlib.suppress(PlenopivError):
-            rehearsal = rehearse(camera, grid, reconstruction, cut)
+            rehearsal = rehearse(camera, grid, reconstruction,
+                                 _subdivision(camera, grid, lateral_subdivision))
     return Rates(build_s_per_nnz=build_rate, sweep_s_per_nnz=sweep_rate,
                  sweep_s_per_call=sweep_call, lattice_s_per_ray_slice=lattice_rate,
                  lattice_s_per_call=lattice_call, piv_s_per_window_voxel=piv_rate,
                  piv_s_per_call=piv_call, source="measured", threads=numba.get_num_threads(),
                  lattice_subdivision=cut, rehearsal=rehearsal)
+
+
+def _subdivision(camera: CameraModel, grid: VolumeGrid, lateral_subdivision) -> tuple:
+    """``(ky, kx)``: the reconstruction's cut of ``grid`` as the camera model judges it."""
+    from plenopiv.camera.resolution import footprint
+    from plenopiv.reconstruction.choose import model_projector_cost, subdivision_for
+
+    return tuple(int(k) for k in subdivision_for(footprint(camera), grid, lateral_subdivision,
+                                                 cost=model_projector_cost(camera)))
 
 
 def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: float,
@@ -221,20 +231,16 @@ def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: f
     subdivision is the camera's own.
     """
     from plenopiv.calibration.model import Calibration
-    from plenopiv.camera.resolution import footprint
     from plenopiv.lightfield import light_field
     from plenopiv.reconstruction.choose import (
-        model_projector_cost,
         subdivided_grid,
-        subdivision_for,
     )
     from plenopiv.reconstruction.lattice import LatticeProjector
 
     mla = camera.microlens_array
     if mla.grid != "square":
         return BENCHMARK_RATES.lattice_s_per_ray_slice, 0.0, BENCHMARK_RATES.lattice_subdivision
-    cut = tuple(int(k) for k in subdivision_for(footprint(camera), grid, lateral_subdivision,
-                                                cost=model_projector_cost(camera)))
+    cut = _subdivision(camera, grid, lateral_subdivision)
     straight = camera.replace(microlens_array=dataclasses.replace(mla, rotation=0.0,
                                                                   offset=(0.0, 0.0)))
     points = []
@@ -269,9 +275,9 @@ def rehearse(camera: CameraModel, grid: VolumeGrid, settings, cut, *,
     ``budget_s`` allows (at least two: one alone varies by a fifth); a tiny patch and
     the smaller one run first, untimed, to compile the kernels and settle the caches. The
     patch takes the matrix-free projector its lattice allows; None where ``settings`` ask
-    for explicit weights or the cut is not square.
+    for explicit weights (or a method that walks their rows) or the cut is not square.
     """
-    if cut[0] != cut[1] or settings.projector == "sparse":
+    if cut[0] != cut[1] or settings.projector == "sparse" or settings.method != "smart":
         return None
     # matrix-free as the camera would take it: a patch's explicit weights would fit where
     # the camera's do not
