@@ -180,6 +180,48 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
     spots = np.asarray(calibration.focal_spot_px, float)
     centres_m = pixel_to_sensor(calibration.centre_px, shape, pp)
     _check_micro_images(calibration, n_f, 2.0 * r_img_px, pitch_px, key)
+    # lenslet by lenslet in chunks: each chunk's working arrays stay below the allocator's
+    # threshold for fresh pages, which a 16 MP sensor's whole arrays (20 million candidate
+    # pixels) paid in page faults on every temporary
+    parts = [_candidate_rays(spots[lo:lo + CHUNK_LENSLETS], lo, half, shape, r_max,
+                             (pp, si, fbar), cell, radius, min_lit, edge_centroid)
+             for lo in range(0, len(spots), CHUNK_LENSLETS)]
+    pix, k_idx, ux, uy, lit = (np.concatenate([p[i] for p in parts]) if parts else
+                               np.zeros(0, dt) for i, dt in
+                               enumerate((np.int64, np.int64, float, float, float)))
+    order = np.argsort(pix, kind="stable")
+    pix = pix[order]
+    if len(pix) and np.any(np.diff(pix) == 0):
+        raise CalibrationError("two lenslets claim the same pixel: the focal spots are closer "
+                               "than the aperture image; check the f-number and calibration")
+    n_lenslets = max(len(spots), 1)
+    if len(pix) < MIN_RAYS_PER_LENSLET * n_lenslets:
+        warnings.warn(
+            f"the light field keeps {len(pix)} rays for {n_lenslets} lenslets "
+            f"({len(pix) / n_lenslets:.2g} per lenslet, fewer than {MIN_RAYS_PER_LENSLET:g}): "
+            f"with {key} = {n_f:g} the modelled micro-images are {2 * r_img_px:.2f} px "
+            "across; views and refocused images will be mostly blank or NaN (check it)",
+            LightFieldWarning, stacklevel=2)
+    return LightField(
+        pixel=pix, lenslet=k_idx[order].astype(np.int32), s=centres_m[k_idx[order]],
+        u=np.stack([ux[order], uy[order]], axis=1), lit=lit[order],
+        image_distance=si, object_distance=so, aperture_radius=radius, cell=cell,
+        footprint=cam.microlens_array.pitch * so / si, shape=shape)
+
+
+#: Lenslets per chunk of :func:`light_field`'s candidate pixels.
+CHUNK_LENSLETS = 2048
+
+
+def _candidate_rays(spots, first: int, half: int, shape, r_max: float, optics: tuple,
+                    cell: float, radius: float, min_lit: float, edge_centroid: bool) -> tuple:
+    """The kept rays of some lenslets: ``(pixel, lenslet, ux, uy, lit)``, lenslet by lenslet.
+
+    ``spots`` (rows, cols) are lenslets ``first, first + 1, ...``; ``optics``: the pixel
+    pitch, S_i and f̄ (metres), which map a pixel's offset from its spot to the aperture.
+    See :func:`light_field`.
+    """
+    pp, si, fbar = optics
     off = np.arange(-half, half + 1)
     dr, dc = np.meshgrid(off, off, indexing="ij")
     dr, dc = dr.ravel(), dc.ravel()
@@ -200,25 +242,8 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
         ux, uy = ux + dux, uy + duy
     keep = inside & (lit >= min_lit)
     k_idx, _ = np.nonzero(keep)
-    pix = (rows[keep].astype(np.int64) * shape[1] + cols[keep])
-    order = np.argsort(pix, kind="stable")
-    pix = pix[order]
-    if len(pix) and np.any(np.diff(pix) == 0):
-        raise CalibrationError("two lenslets claim the same pixel: the focal spots are closer "
-                               "than the aperture image; check the f-number and calibration")
-    n_lenslets = max(len(spots), 1)
-    if len(pix) < MIN_RAYS_PER_LENSLET * n_lenslets:
-        warnings.warn(
-            f"the light field keeps {len(pix)} rays for {n_lenslets} lenslets "
-            f"({len(pix) / n_lenslets:.2g} per lenslet, fewer than {MIN_RAYS_PER_LENSLET:g}): "
-            f"with {key} = {n_f:g} the modelled micro-images are {2 * r_img_px:.2f} px "
-            "across; views and refocused images will be mostly blank or NaN (check it)",
-            LightFieldWarning, stacklevel=2)
-    return LightField(
-        pixel=pix, lenslet=k_idx[order].astype(np.int32), s=centres_m[k_idx[order]],
-        u=np.stack([ux[keep], uy[keep]], axis=1)[order], lit=lit[keep][order],
-        image_distance=si, object_distance=so, aperture_radius=radius, cell=cell,
-        footprint=cam.microlens_array.pitch * so / si, shape=shape)
+    pix = rows[keep].astype(np.int64) * shape[1] + cols[keep]
+    return pix, k_idx + first, ux[keep], uy[keep], lit[keep]
 
 
 def _micro_image(calibration: Calibration, n_f: float) -> tuple:
@@ -244,11 +269,17 @@ def _micro_image(calibration: Calibration, n_f: float) -> tuple:
     return radius, r_img_px, pitch_px, r_max, int(math.ceil(r_max)) + 1
 
 
-#: Peak bytes of :func:`light_field` per candidate pixel (the square of pixels about each
-#: focal spot that it examines): its index, offset, mask and float64 working arrays
-#: (traced peaks of 109 to 134 bytes on the small camera and patches of both Auburn
-#: cameras, ``tracemalloc``).
+#: Peak bytes of :func:`light_field` per candidate pixel of one chunk (the square of pixels
+#: about each focal spot that it examines, :data:`CHUNK_LENSLETS` lenslets at a time): its
+#: index, offset, mask and float64 working arrays (traced peaks of 109 to 134 bytes on the
+#: small camera and patches of both Auburn cameras, ``tracemalloc``).
 BUILD_BYTES_PER_CANDIDATE = 140
+#: Peak bytes per candidate pixel of the whole sensor once the kept rays are joined and
+#: sorted (traced: 59 and 66 bytes for the two 16 MP cameras, whose peaks of 1.44 and 1.62
+#: GB were 2.67 and 2.78 GB when the light field was built in one piece), and while the
+#: chunks run (the rays kept so far, 40 bytes each, under half of the candidates).
+KEPT_BYTES_PER_CANDIDATE = 70
+CHUNKING_BYTES_PER_CANDIDATE = 20
 
 
 def light_field_build_bytes(calibration: Calibration, *, f_number: float | None = None
@@ -261,7 +292,11 @@ def light_field_build_bytes(calibration: Calibration, *, f_number: float | None 
     n_f = cam.main_lens.f_number if f_number is None else f_number
     half = _micro_image(calibration, n_f)[4]
     n_lenslets = len(np.asarray(calibration.focal_spot_px))
-    return float(BUILD_BYTES_PER_CANDIDATE) * n_lenslets * (2 * half + 1) ** 2
+    candidates = n_lenslets * (2 * half + 1) ** 2
+    chunk = min(n_lenslets, CHUNK_LENSLETS) * (2 * half + 1) ** 2
+    return float(max(BUILD_BYTES_PER_CANDIDATE * chunk
+                     + CHUNKING_BYTES_PER_CANDIDATE * candidates,
+                     KEPT_BYTES_PER_CANDIDATE * candidates))
 
 
 def _check_micro_images(calibration: Calibration, n_f: float, model_px: float,
