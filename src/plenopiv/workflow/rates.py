@@ -294,8 +294,8 @@ def rehearse(camera: CameraModel, grid: VolumeGrid, settings, cut, *,
         run = _rehearse_patch(camera, sizes[-1], grid, share, settings)
         if run is None:
             return None
-        best = run if best is None else tuple(min(a, b) for a, b in zip(best, run, strict=True))
-    kind, n_rays, ray_slices, n_pixels = _rehearse_patch.last
+        seconds, (kind, n_rays, ray_slices, n_pixels) = run
+        best = seconds if best is None else tuple(map(min, best, seconds))
     t_check, t_weights, t_first, t_volume = best
     return Rehearsal(weights_s_per_ray=t_weights / n_rays,
                      volume_s_per_ray_slice=t_volume / ray_slices,
@@ -305,12 +305,11 @@ def rehearse(camera: CameraModel, grid: VolumeGrid, settings, cut, *,
 
 
 def _rehearse_patch(camera: CameraModel, k: int, grid: VolumeGrid, share, settings):
-    """``(check, weights, first volume, second volume)`` seconds on a k × k patch, or None.
+    """One rehearsal on a k × k patch: ``(seconds, sizes)``, or None for explicit weights.
 
-    The check is that of the recording against its calibration (``[reconstruction]
-    lattice_check``), timed once the image exists. None when the patch takes explicit
-    weights; the projector's kind, the rays, the rays times depth slices and the sensor's
-    pixels are left in ``_rehearse_patch.last``.
+    ``seconds``: the check of the recording against its calibration (``[reconstruction]
+    lattice_check``), the weights, the first volume and the second; ``sizes``: the
+    projector's kind, the rays, the rays times depth slices and the sensor's pixels.
     """
     import warnings
 
@@ -343,8 +342,7 @@ def _rehearse_patch(camera: CameraModel, k: int, grid: VolumeGrid, share, settin
             solve_volume(weights, image, settings)
             seconds.append(time.perf_counter() - t0)
     n_rays = len(weights.pixel)
-    _rehearse_patch.last = (kind, n_rays, n_rays * weights.grid.shape[0], image.size)
-    return tuple(seconds)
+    return tuple(seconds), (kind, n_rays, n_rays * weights.grid.shape[0], image.size)
 
 
 #: The matrix-free projectors by class, as :class:`ReconstructionChoice` names them.
