@@ -322,3 +322,24 @@ def test_a_turned_lattice_is_planned_with_measured_rates(small_camera):
     p = planning.plan(cam, grid, rates=r, reconstruction=settings)
     assert p.decision.projector == "lenslet" and "rehearsed" in p.time_model
     assert p.time["reconstruct"] > 0 and p.time["first_volume"] >= 0
+
+
+@pytest.mark.parametrize("shift", [(0.0, 0.0), (0.37, 0.21), (-9.0, 4.6), (8.3, -9.8)])
+def test_the_rehearsed_share_of_the_field_does_not_depend_on_where_the_box_lies(
+        small_camera, shift):
+    """A box moved within the field (by whole and by fractions of footprints) covers the same
+    share of it, so the rehearsal runs the same patch; a box reaching past the field counts
+    only what lies inside."""
+    from plenopiv.synthetic.images import field_of_view
+
+    b = footprint(small_camera)
+    box = VolumeGrid.from_bounds((-3 * MM, 3 * MM), (-2 * MM, 2 * MM), (-3 * MM, 3 * MM),
+                                 voxel=0.26 * MM)
+    moved = VolumeGrid(tuple(np.array(box.origin) + np.array([*shift, 0.0]) * b), box.voxel,
+                       box.shape)
+    assert rates.covered_share(small_camera, moved) == pytest.approx(
+        rates.covered_share(small_camera, box), abs=1e-12)
+    half = field_of_view(small_camera)
+    wide = VolumeGrid.from_bounds((-3 * half[0], 0.0), (-half[1], half[1]), (-MM, MM),
+                                  voxel=0.26 * MM)
+    assert rates.covered_share(small_camera, wide) == pytest.approx([0.5, 1.0], abs=0.02)

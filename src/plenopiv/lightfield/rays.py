@@ -186,9 +186,8 @@ def light_field(calibration: Calibration, *, f_number: float | None = None,
     parts = [_candidate_rays(spots[lo:lo + CHUNK_LENSLETS], lo, half, shape, r_max,
                              (pp, si, fbar), cell, radius, min_lit, edge_centroid)
              for lo in range(0, len(spots), CHUNK_LENSLETS)]
-    pix, k_idx, ux, uy, lit = (np.concatenate([p[i] for p in parts]) if parts else
-                               np.zeros(0, dt) for i, dt in
-                               enumerate((np.int64, np.int64, float, float, float)))
+    columns = list(zip(*parts, strict=True)) or [np.zeros(0, np.int64)] * 2 + [np.zeros(0)] * 3
+    pix, k_idx, ux, uy, lit = (np.concatenate(c) for c in columns)
     order = np.argsort(pix, kind="stable")
     pix = pix[order]
     if len(pix) and np.any(np.diff(pix) == 0):

@@ -328,9 +328,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     model = ("rates measured in this process" if rates.source == "measured"
              else "benchmark rates (rates.BENCHMARK_RATES, docs/performance.md)")
     model = f"{model}, {rates.threads} threads"
-    reh = rates.rehearsal
-    if reh is not None and reh.matches(choice.projector, choice.subdivision,
-                                       reconstruction.iterations):
+    if _rehearsal_of(rates, choice, reconstruction.iterations) is not None:
         model += ", the reconstruction rehearsed on a patch of the camera"
 
     findings = chosen + judge(cam, grid, reconstruction, piv, subdivision=choice.subdivision,
@@ -385,6 +383,14 @@ def _memory(choice, grid: VolumeGrid, nnz: int) -> dict:
             "peak": max(build, recon, piv_bytes), "weights_cache_file": cache_file}
 
 
+def _rehearsal_of(rates: Rates, choice, iterations: int):
+    """The rates' rehearsal where it stands for ``choice`` at ``iterations`` sweeps, or None."""
+    reh = rates.rehearsal
+    if reh is not None and reh.matches(choice.projector, choice.subdivision, iterations):
+        return reh
+    return None
+
+
 def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, windows,
            overlap: float, passes: int, cache_file: float, checked_pixels: int = 0) -> dict:
     """Seconds per stage of the chosen reconstruction and the PIV (:class:`Plan` ``time``).
@@ -405,9 +411,9 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
     n_rays = choice.n_rays
     sweeps = iterations + 3      # MLOS, masks and row scaling: ~3 sweeps
     t_first = 0.0
-    reh = rates.rehearsal
-    if reh is not None and reh.matches(choice.projector, choice.subdivision, iterations):
-        # the reconstruction itself, rehearsed on patches of the camera
+    reh = _rehearsal_of(rates, choice, iterations)
+    if reh is not None:
+        # the reconstruction itself, rehearsed on a patch of the camera
         ray_slices = n_rays * grid.shape[0]
         t_weights = reh.weights_s_per_ray * n_rays
         t_volume = reh.volume_s_per_ray_slice * ray_slices
@@ -428,7 +434,8 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
     t_volume += SECONDS_PER_RAY_PARTICLE_FIT * n_rays   # their positions from the light field
     t_piv = rates.piv_s_per_call + rates.piv_s_per_window_voxel * _window_voxels(
         grid.shape, windows, overlap, passes)
-    t_check = (reh.check_s_per_pixel if reh is not None else
+    # the check does not depend on the reconstruction: rehearsed with any of them
+    t_check = (rates.rehearsal.check_s_per_pixel if rates.rehearsal is not None else
                SECONDS_PER_PIXEL_RECORDING_CHECK) * checked_pixels
     return {"weights": t_weights, "volume": t_volume, "piv": t_piv,
             "recording_check": t_check, "first_volume": t_first,

@@ -284,7 +284,7 @@ def rehearse(camera: CameraModel, grid: VolumeGrid, settings, cut, *,
     settings = dataclasses.replace(settings, lateral_subdivision=int(cut[0]),
                                    projector="lattice")
     mla = camera.microlens_array
-    share = np.clip(np.max(np.abs(grid.bounds[:2]), axis=1) / _field_half(camera), 0.0, 1.0)
+    share = covered_share(camera, grid)
     sizes = sorted({min(k, mla.rows, mla.cols) for k in REHEARSAL_PATCHES})
     for k in [min(5, *sizes), *sizes[:-1]]:
         _rehearse_patch(camera, k, grid, share, settings)
@@ -304,6 +304,19 @@ def rehearse(camera: CameraModel, grid: VolumeGrid, settings, cut, *,
                      subdivision=tuple(int(c) for c in cut), iterations=settings.iterations)
 
 
+def covered_share(camera: CameraModel, grid: VolumeGrid) -> np.ndarray:
+    """The share (x, y) of the camera's field of view that ``grid`` covers, 0 to 1.
+
+    Its width inside the field over the field's, wherever the box lies in it.
+    """
+    from plenopiv.synthetic.images import field_of_view
+
+    half = np.asarray(field_of_view(camera), dtype=np.float64)
+    b = np.asarray(grid.bounds[:2], dtype=np.float64)
+    inside = np.minimum(b[:, 1], half) - np.maximum(b[:, 0], -half)
+    return np.clip(inside / (2.0 * half), 0.0, 1.0)
+
+
 def _rehearse_patch(camera: CameraModel, k: int, grid: VolumeGrid, share, settings):
     """One rehearsal on a k × k patch: ``(seconds, sizes)``, or None for explicit weights.
 
@@ -316,10 +329,11 @@ def _rehearse_patch(camera: CameraModel, k: int, grid: VolumeGrid, share, settin
     from plenopiv.calibration.model import Calibration
     from plenopiv.reconstruction.build import weights_for
     from plenopiv.reconstruction.solve import solve_volume
+    from plenopiv.synthetic.images import field_of_view
     from plenopiv.workflow.volume import check_lattice
 
     cal = Calibration.from_camera(camera.patch(k, k))
-    half = np.maximum(_field_half(cal.effective_camera) * share,
+    half = np.maximum(np.asarray(field_of_view(cal.effective_camera)) * share,
                       2.0 * np.asarray(grid.voxel[:2], dtype=np.float64))
     patch_grid = VolumeGrid.from_bounds((-half[0], half[0]), (-half[1], half[1]),
                                         tuple(grid.bounds[2]), voxel=grid.voxel)
@@ -347,14 +361,6 @@ def _rehearse_patch(camera: CameraModel, k: int, grid: VolumeGrid, share, settin
 
 #: The matrix-free projectors by class, as :class:`ReconstructionChoice` names them.
 _KINDS = {"LatticeProjector": "lattice", "LensletProjector": "lenslet"}
-
-
-def _field_half(camera: CameraModel) -> np.ndarray:
-    """Half the field of view (x, y) on the focal plane, metres: the outer footprints' edges."""
-    from plenopiv.camera.resolution import footprint
-
-    centres = camera.microlens_array.nominal_centres() / abs(camera.magnification)
-    return np.abs(centres).max(axis=0) + 0.5 * footprint(camera)
 
 
 def _rehearsal_image(weights, shape, lenslets: float) -> np.ndarray:
