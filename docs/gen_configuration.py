@@ -58,6 +58,7 @@ UNITS = {
     "experiment:piv.overlap": "fraction",
     "experiment:piv.response_particles_per_lenslet": "particles per lenslet",
     "experiment:piv.min_particles_per_window": "particles",
+    "experiment:piv.intensity_cap": "fraction of the median particle's peak",
     "experiment:tracking.bundle_radius": "half beam widths",
     "experiment:tracking.min_lenslets": "lenslets",
     "experiment:mask.image": "path", "experiment:mask.volume": "path",
@@ -111,6 +112,7 @@ ALLOWED.update({
     "experiment:piv.response_particles_per_lenslet": "number > 0, ≤ "
                                                      f"{_piv.MAX_RESPONSE_PARTICLES_PER_LENSLET:g}",
     "experiment:piv.min_particles_per_window": "integer ≥ 0 (0: no minimum)",
+    "experiment:piv.intensity_cap": "number ≥ 0 (0: not capped)",
     "experiment:piv.windows": f"list of [wz, wy, wx], edges {_piv.MIN_WINDOW_VOX}–"
                               f"{_piv.MAX_WINDOW_VOX}",
 })
@@ -273,6 +275,10 @@ MEANINGS = {
                                                      "experiment and shared by its pairs, so it "
                                                      "follows this, never a pair's own count: "
                                                      "set the experiment's nominal seeding",
+    "experiment:piv.intensity_cap": "each volume is capped at this share of the median "
+                                    "peak of its particles before it is correlated, so that "
+                                    "the brightest particles weigh no more than the others "
+                                    "([methods](methods.md#intensity-capping))",
     "experiment:piv.min_particles_per_window": "fewest particles each window of a valid "
                                                "vector holds in both volumes (the particle "
                                                "tables); fewer: flag 8, replaced like an "

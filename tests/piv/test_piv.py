@@ -190,8 +190,10 @@ def test_correlating_with_np_roll_returns_the_roll(shape, fractions, seed):
     roll = tuple(int(np.trunc(f * n)) for f, n in zip(fractions, shape, strict=True))
     rolled = np.roll(volume, roll, axis=(0, 1, 2))
     # a rolled volume is periodic: no pair is lost across the window border, so the overlap
-    # correction (made for real, non-periodic particle volumes) does not apply
-    s = PIVSettings(windows=shape, passes=1, overlap=0.0, overlap_correction=False)
+    # correction (made for real, non-periodic particle volumes) does not apply; nor does
+    # intensity capping (made for particles: noise has no particle peaks to cap at)
+    s = PIVSettings(windows=shape, passes=1, overlap=0.0, overlap_correction=False,
+                    intensity_cap=0.0)
 
     field = correlate_volumes(volume, rolled, unit_grid(), settings=s)
 

@@ -31,7 +31,8 @@ def _peak_voxels(volume):
     return np.argwhere(peak).astype(float)
 
 
-def particle_table(shape, *, positions=None, origin=None, voxel=None, volume=None, mask=None):
+def particle_table(shape, *, positions=None, origin=None, voxel=None, volume=None, mask=None,
+                   index=None):
     """Summed-area table of a volume's particle count per voxel, ``(nz+1, ny+1, nx+1)`` int64.
 
     Parameters
@@ -48,6 +49,8 @@ def particle_table(shape, *, positions=None, origin=None, voxel=None, volume=Non
         :data:`PEAK_THRESHOLD` of its bright level.
     mask : bool ndarray, shape ``shape``, optional
         Voxels outside the flow (True).
+    index : (N, 3) int array, optional
+        The particles' voxels already found (:func:`particle_voxels`), instead of the above.
 
     Returns
     -------
@@ -55,6 +58,24 @@ def particle_table(shape, *, positions=None, origin=None, voxel=None, volume=Non
         ``t[z, y, x]``: the particles in voxels ``[:z, :y, :x]``.
     """
     shape = tuple(int(n) for n in shape)
+    if index is None:
+        index = particle_voxels(shape, positions=positions, origin=origin, voxel=voxel,
+                                volume=volume)
+    count = np.zeros(shape, dtype=np.int64)
+    np.add.at(count, tuple(index.T), 1)
+    if mask is not None:
+        count[mask] = 0
+    table = np.zeros(tuple(n + 1 for n in shape), dtype=np.int64)
+    table[1:, 1:, 1:] = count.cumsum(0).cumsum(1).cumsum(2)
+    return table
+
+
+def particle_voxels(shape, *, positions=None, origin=None, voxel=None, volume=None):
+    """The voxels ``(N, 3)`` ``(z, y, x)`` int64 holding the particles inside the volume.
+
+    The arguments are :func:`particle_table`'s: the particle table's positions, or without
+    them the volume's local maxima above its peak threshold.
+    """
     if positions is not None:
         p = np.asarray(positions, dtype=float).reshape(-1, 3)
         if not np.all(np.isfinite(p)):
@@ -64,14 +85,22 @@ def particle_table(shape, *, positions=None, origin=None, voxel=None, volume=Non
     else:
         index = _peak_voxels(np.asarray(volume))
     inside = np.all((index >= 0) & (index < np.array(shape)), axis=1)
-    index = index[inside].astype(np.int64)
-    count = np.zeros(shape, dtype=np.int64)
-    np.add.at(count, tuple(index.T), 1)
-    if mask is not None:
-        count[mask] = 0
-    table = np.zeros(tuple(n + 1 for n in shape), dtype=np.int64)
-    table[1:, 1:, 1:] = count.cumsum(0).cumsum(1).cumsum(2)
-    return table
+    return index[inside].astype(np.int64)
+
+
+def capped(volume, index, fraction: float) -> np.ndarray:
+    """``volume`` capped at ``fraction`` of the median value at its particles' voxels.
+
+    ``index``: :func:`particle_voxels`. A volume without a particle at a positive voxel,
+    or ``fraction`` 0, is returned as it is (intensity capping, docs/methods.md).
+    """
+    if fraction <= 0 or not len(index):
+        return volume
+    peaks = volume[tuple(np.asarray(index).T)]
+    peaks = peaks[peaks > 0]
+    if not peaks.size:
+        return volume
+    return np.minimum(volume, np.float32(fraction * float(np.median(peaks))))
 
 
 def window_counts(table, layout, offset_vox=None):

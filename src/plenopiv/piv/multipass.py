@@ -22,7 +22,7 @@ import numpy as np
 from plenopiv.conventions import voxel_to_world
 from plenopiv.errors import PIVError
 from plenopiv.piv.correlation import _correlate_pass, _peak_refinement
-from plenopiv.piv.evidence import particle_table, window_counts
+from plenopiv.piv.evidence import capped, particle_table, particle_voxels, window_counts
 from plenopiv.piv.field import (
     FLAG_EMPTY,
     FLAG_FEW_PARTICLES,
@@ -146,29 +146,35 @@ def correlate_volumes(
     if mask is not None:
         vol_a = np.where(mask, np.float32(0), vol_a)
         vol_b = np.where(mask, np.float32(0), vol_b)
-    tables = _particle_tables(particles, (vol_a, vol_b), origin, voxel, mask)
+    tables, voxels = _particle_tables(particles, (vol_a, vol_b), origin, voxel, mask)
+    vol_a, vol_b = (capped(v, i, settings.intensity_cap)
+                    for v, i in zip((vol_a, vol_b), voxels, strict=True))
     with _numba_threads(workers):
         return _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress,
                           mask=mask, tables=tables)
 
 
 def _particle_tables(particles, volumes, origin, voxel, mask):
-    """The :func:`particle_table` of both volumes, from ``particles`` or the volumes."""
+    """The :func:`particle_table` of both volumes and their :func:`particle_voxels`.
+
+    From ``particles`` or, where None, the volumes' local maxima.
+    """
     shape = volumes[0].shape
     if particles is None:
-        return tuple(particle_table(shape, volume=v, mask=mask) for v in volumes)
-    if not (isinstance(particles, (tuple, list)) and len(particles) == 2):
+        voxels = tuple(particle_voxels(shape, volume=v) for v in volumes)
+    elif not (isinstance(particles, (tuple, list)) and len(particles) == 2):
         raise ValueError(f"particles = {type(particles).__name__}: expected (positions_a, "
                          "positions_b), two (N, 3) tables of (x, y, z) metres, or None")
-    tables = []
-    for name, p in zip("AB", particles, strict=True):
-        p = np.asarray(p, dtype=float)
-        if p.size and (p.ndim != 2 or p.shape[1] != 3):
-            raise PIVError(f"the particle table of volume {name} has shape {p.shape}: "
-                           "expected (N, 3) positions (x, y, z) in metres")
-        tables.append(particle_table(shape, positions=p, origin=origin, voxel=voxel,
-                                     mask=mask))
-    return tuple(tables)
+    else:
+        voxels = []
+        for name, p in zip("AB", particles, strict=True):
+            p = np.asarray(p, dtype=float)
+            if p.size and (p.ndim != 2 or p.shape[1] != 3):
+                raise PIVError(f"the particle table of volume {name} has shape {p.shape}: "
+                               "expected (N, 3) positions (x, y, z) in metres")
+            voxels.append(particle_voxels(shape, positions=p, origin=origin, voxel=voxel))
+    tables = tuple(particle_table(shape, index=i, mask=mask) for i in voxels)
+    return tables, tuple(voxels)
 
 
 class _Pass(NamedTuple):

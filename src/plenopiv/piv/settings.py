@@ -46,6 +46,10 @@ MIN_PARTICLES_PER_WINDOW = 2
 """Default of :attr:`PIVSettings.min_particles_per_window`, particles (docs/methods.md,
 *Particles per window*)."""
 
+INTENSITY_CAP = 0.5
+"""Default of :attr:`PIVSettings.intensity_cap`: half the median particle's peak
+(docs/methods.md#intensity-capping)."""
+
 def _is_number(value) -> bool:
     """A real number that is not a boolean (``True`` is no threshold)."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
@@ -181,6 +185,13 @@ class PIVSettings:
         replaced like an outlier. The default, :data:`MIN_PARTICLES_PER_WINDOW`, is where the
         error of the vectors leaves the noise on the synthetic cases
         (docs/methods.md#particles-per-window).
+    intensity_cap : float
+        Each volume is capped at this fraction of the median peak of its particles before
+        it is correlated (>= 0; 0: not capped), so that every particle brighter than that
+        weighs alike: the correlation then follows the particles rather than the brightest
+        few, whose brightness is the laser's, the particle's size and the reconstruction's,
+        not the flow's (intensity capping, Shavit, Lowe & Steinbuck 2007). The default,
+        :data:`INTENSITY_CAP`: docs/methods.md#intensity-capping.
 
     Raises
     ------
@@ -219,6 +230,7 @@ class PIVSettings:
     response_displacements: int = 3
     response_particles_per_lenslet: float = RESPONSE_PARTICLES_PER_LENSLET
     min_particles_per_window: int = MIN_PARTICLES_PER_WINDOW
+    intensity_cap: float = INTENSITY_CAP
 
     def __post_init__(self):
         w = self.windows
@@ -302,6 +314,11 @@ class PIVSettings:
             raise ValueError(f"min_particles_per_window = {m!r}: expected a whole number of "
                              "particles >= 0 (0: no minimum)")
         object.__setattr__(self, "min_particles_per_window", int(m))
+        cap = self.intensity_cap
+        if not _is_number(cap) or not math.isfinite(cap) or cap < 0:
+            raise ValueError(f"intensity_cap = {cap!r}: expected a fraction >= 0 of the median "
+                             "particle's peak (0: the volumes are not capped)")
+        object.__setattr__(self, "intensity_cap", float(cap))
 
     def window_vox(self, pass_index):
         """Window edge ``(wz, wy, wx)`` in voxels of pass ``pass_index`` (0-based)."""
