@@ -147,8 +147,7 @@ def correlate_volumes(
         vol_a = np.where(mask, np.float32(0), vol_a)
         vol_b = np.where(mask, np.float32(0), vol_b)
     tables, voxels = _particle_tables(particles, (vol_a, vol_b), origin, voxel, mask)
-    vol_a, vol_b = (capped(v, i, settings.intensity_cap)
-                    for v, i in zip((vol_a, vol_b), voxels, strict=True))
+    vol_a, vol_b = map(capped, (vol_a, vol_b), voxels, (settings.intensity_cap,) * 2)
     with _numba_threads(workers):
         return _multipass(vol_a, vol_b, origin, voxel, settings, workers, kernels, progress,
                           mask=mask, tables=tables)
