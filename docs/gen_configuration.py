@@ -277,7 +277,7 @@ MEANINGS = {
                                                      "set the experiment's nominal seeding",
     "experiment:piv.intensity_cap": "each volume is capped at this share of the median "
                                     "peak of its particles before it is correlated, so that "
-                                    "the brightest particles weigh no more than the others "
+                                    "the brighter half of the particles weigh alike "
                                     "([methods](methods.md#intensity-capping))",
     "experiment:piv.min_particles_per_window": "fewest particles each window of a valid "
                                                "vector holds in both volumes (the particle "

@@ -12,6 +12,7 @@ import pytest
 
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.piv import PIVSettings, correlate_volumes
+from plenopiv.piv.settings import INTENSITY_CAP
 from plenopiv.piv.evidence import capped
 from plenopiv.synthetic.truth import gaussian_truth_volume
 
@@ -73,8 +74,8 @@ def test_brightness_spread_moves_the_capped_field_less(seed):
         f = correlate_volumes(a, b, grid, settings=s, particles=pos)
         return np.asarray(f.u) / 1e-4
 
-    for cap in (0.0, 0.5):
+    for cap in (0.0, INTENSITY_CAP):
         assert np.all(np.isfinite(field(equal, cap)))
     raw = np.sqrt(np.mean((field(spread, 0.0) - field(equal, 0.0)) ** 2))
-    cap = np.sqrt(np.mean((field(spread, 0.5) - field(equal, 0.5)) ** 2))
+    cap = np.sqrt(np.mean((field(spread, INTENSITY_CAP) - field(equal, INTENSITY_CAP)) ** 2))
     assert cap < raw

@@ -592,10 +592,7 @@ def test_the_placement_of_a_shifted_reconstruction_is_its_shift(rng):
     delta = np.array([0.3, -0.2, 0.7]) * voxel
     blob = (2.0, 0.8, 0.8)
     recon = gaussian_truth_volume(grid, pos + delta, sigma_vox=(3.0, 1.0, 1.0))  # elongated
-    # the placement's arithmetic, without intensity capping: capped at half their median
-    # peak, these overlapping blobs of two shapes (a third of each blob shared) become
-    # plateaus whose correlation peak moves by up to 0.23 voxel in one layer along z
-    settings = PIVSettings(windows=((16, 16, 16),), passes=2, intensity_cap=0.0)
+    settings = PIVSettings(windows=((16, 16, 16),), passes=2)
 
     def correlate(a, b):
         return correlate_volumes(a, b, grid, settings=settings)

@@ -46,8 +46,8 @@ MIN_PARTICLES_PER_WINDOW = 2
 """Default of :attr:`PIVSettings.min_particles_per_window`, particles (docs/methods.md,
 *Particles per window*)."""
 
-INTENSITY_CAP = 0.5
-"""Default of :attr:`PIVSettings.intensity_cap`: half the median particle's peak
+INTENSITY_CAP = 1.0
+"""Default of :attr:`PIVSettings.intensity_cap`: the median particle's peak
 (docs/methods.md#intensity-capping)."""
 
 def _is_number(value) -> bool:
