@@ -12,8 +12,8 @@ import pytest
 
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.piv import PIVSettings, correlate_volumes
-from plenopiv.piv.settings import INTENSITY_CAP
 from plenopiv.piv.evidence import capped
+from plenopiv.piv.settings import INTENSITY_CAP
 from plenopiv.synthetic.truth import gaussian_truth_volume
 
 
