@@ -79,3 +79,15 @@ def test_brightness_spread_moves_the_capped_field_less(seed):
     raw = np.sqrt(np.mean((field(spread, 0.0) - field(equal, 0.0)) ** 2))
     cap = np.sqrt(np.mean((field(spread, INTENSITY_CAP) - field(equal, INTENSITY_CAP)) ** 2))
     assert cap < raw
+
+
+def test_a_weaker_second_pulse_leaves_the_capped_field_as_it_is():
+    """Volume B at 0.3 of A's energy: each volume is capped at its own particles' median,
+    so the field is the one of equal pulses (to float32 rounding)."""
+    grid, a, b, pos = _sheared_pair(lambda rng, n: np.exp(rng.standard_normal(n)))
+    s = PIVSettings(windows=((16, 16, 16),), passes=3)
+    full = correlate_volumes(a, b, grid, settings=s, particles=pos)
+    weak = correlate_volumes(a, np.float32(0.3) * b, grid, settings=s, particles=pos)
+    for c in ("u", "v", "w"):
+        np.testing.assert_allclose(getattr(weak, c), getattr(full, c), rtol=0, atol=1e-3 * 1e-4)
+

@@ -50,6 +50,7 @@ INTENSITY_CAP = 1.0
 """Default of :attr:`PIVSettings.intensity_cap`: the median particle's peak
 (docs/methods.md#intensity-capping)."""
 
+
 def _is_number(value) -> bool:
     """A real number that is not a boolean (``True`` is no threshold)."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
