@@ -22,8 +22,11 @@ Stages, each printed with its wall time and the process's peak resident memory d
 2. light field and lattice projector (shared by both exposures);
 3. reconstruct A and B (MLOS + ``--iterations`` SMART sweeps, particles); Q of A against
    Gaussian blobs of the camera's resolution cell at the true positions;
-4. 3-D PIV of the pair; gain (least-squares slope of measured on true), bias and RMS error
-   per component against the flow, in voxels, overall and in three bands of |Z|;
+4. 3-D PIV of the pair, corrected by the pair's tracks as ``plenopiv run`` does (the tracks'
+   time counts in the pair; ``--no-track-correction``: the correlation as it is); gain
+   (least-squares slope of measured on true), bias and RMS error per component against the
+   flow, in voxels, overall and in three bands of |Z| (``correlation_velocity_*``: the same
+   before the correction);
 5. the explicit-weight path on a 41 × 61-lenslet patch of the same camera at the same
    seeding density (cropped region): Q with explicit weights and with the lattice projector
    (both SMART), and the time and Q of plain row-action MART with explicit weights, which
@@ -158,7 +161,7 @@ def full_case(args) -> tuple:
     b = eff.microlens_array.pitch * eff.object_distance / eff.image_distance
     case = VortexCase(flow="oseen", camera="auburn_135mm", depth=99.5 * b,
                       max_displacement=args.displacement_vox * b, lateral_fill=1.0,
-                      voxel_depth_factor=1.0, dt=1e-3, seed=args.seed)
+                      voxel_depth_factor=args.voxel_depth_factor, dt=1e-3, seed=args.seed)
     grid = aligned_grid(eff, case)
     # voxels not aligned with the footprints: the grid moved by a fraction of a voxel
     shift = np.array([*args.grid_offset_vox, 0.0]) * np.array(grid.voxel)
@@ -255,17 +258,21 @@ def patch_study(args, log: dict) -> dict:
     return out
 
 
-def track_study(cal, ia, ib, vols, vec, pa, pb, grid, settings, log, lf=None) -> dict:
-    """Particle tracks of the pair (bundle fits, refinement, matching; the light field ``lf``
-    of the reconstruction's weights reused): the time it adds to the pair and the tracks'
-    errors against the truth."""
-    from pipelines.studies.tracking import associate_tracks, rms_per_axis
-    from plenopiv.camera.resolution import resolution_cell
+def pair_tracks(cal, ia, ib, vols, vec, settings, log, lf=None):
+    """The pair's tracks (bundle fits, refinement, matching; the light field ``lf`` of the
+    reconstruction's weights reused), timed as the stage "track"."""
     from plenopiv.workflow.tracking import track_pair
 
     with stage("track", log):
-        tracks = track_pair(cal, ia, ib, vols["A"], vols["B"], vec, f_number=settings.f_number,
-                            min_lit=settings.min_lit, lf=lf)
+        return track_pair(cal, ia, ib, vols["A"], vols["B"], vec, f_number=settings.f_number,
+                          min_lit=settings.min_lit, lf=lf)
+
+
+def track_study(cal, tracks, vols, pa, pb, grid, settings, log) -> dict:
+    """The time the tracks add to the pair and their errors against the truth."""
+    from pipelines.studies.tracking import associate_tracks, rms_per_axis
+    from plenopiv.camera.resolution import resolution_cell
+
     lat, dep = resolution_cell(cal.effective_camera, settings.f_number)
     scale = np.array([lat, lat, dep * vols["A"].correction.scale])
     ja = associate_tracks(tracks.position_a, tracks.position_b, pa, pb, scale)
@@ -296,6 +303,12 @@ def main(argv=None) -> dict:
                    help="[reconstruction] lateral_subdivision: auto (the library default) or "
                         "an int; 1 reconstructs on the footprint voxels themselves")
     p.add_argument("--skip-patch", action="store_true")
+    p.add_argument("--voxel-depth-factor", type=float, default=1.0,
+                   help="depth voxel over the lateral one (default 1: cubic voxels); the PIV "
+                        "windows keep their depth in millimetres")
+    p.add_argument("--no-track-correction", action="store_true",
+                   help="report the correlation field as it is, not corrected by the pair's "
+                        "tracks (plenopiv run's [tracking] correct_vectors = false)")
     p.add_argument("--track", action="store_true",
                    help="also track the particles (ray bundles + PIV predictor): added time")
     p.add_argument("--geometry", choices=sorted(GEOMETRIES), default="aligned",
@@ -371,11 +384,23 @@ def main(argv=None) -> dict:
     truth = gaussian_truth_volume(grid, pa, sigma_vox=sigma)
     q = reconstruction_quality(vols["A"].volume, truth)
     breakdown = q_breakdown(vols["A"], truth, pa, cal, grid, ia, settings)
-    windows = ((32, 32, 32), (16, 16, 16))
+    # the windows keep their physical depth on a grid of deeper voxels
+    windows = tuple((max(2, int(round(w / args.voxel_depth_factor))), w, w) for w in (32, 16))
     piv = PIVSettings(windows=windows, overlap=0.5, passes=3)
     with stage("PIV", log):
         vec = correlate(vols["A"], vols["B"], piv)      # displacements (no dt given)
-    err = compare_with_truth(vec, flow, case.dt, grid, windows[-1])
+    tracks = None
+    if args.track or not args.no_track_correction:
+        tracks = pair_tracks(cal, ia, ib, vols, vec, settings, log, lf=w.geometry.light_field)
+    correlation_err = compare_with_truth(vec, flow, case.dt, grid, windows[-1])
+    err = correlation_err
+    if not args.no_track_correction:
+        # as plenopiv run does by default ([tracking] correct_vectors)
+        from plenopiv.tracking.correction import correct_with_tracks
+        from plenopiv.tracking.settings import PRIOR_TRACKS
+
+        vec, _ = correct_with_tracks(vec, tracks, prior_tracks=PRIOR_TRACKS)
+        err = compare_with_truth(vec, flow, case.dt, grid, windows[-1])
     rec_s = [log[f"reconstruct {n}"]["seconds"] for n in "AB"]
     result = {
         "camera": "auburn_135mm", "grid_shape": list(grid.shape),
@@ -388,7 +413,9 @@ def main(argv=None) -> dict:
         "reconstruct_peak_gb": max(log[f"reconstruct {n}"]["peak_gb"] for n in "AB"),
         "q": round(q, 4),
         "pair_seconds": round(log["weights (light field)"]["seconds"] + sum(rec_s)
-                              + log["PIV"]["seconds"], 2),
+                              + log["PIV"]["seconds"]
+                              + (log["track"]["seconds"] if "track" in log else 0.0), 2),
+        "track_correction": not args.no_track_correction,
         "piv_seconds": log["PIV"]["seconds"],
         "lateral_subdivision": list(subdivision_of(w.grid, grid)),
         "velocity_rms_vox": [round(v, 4) for v in err["rms_vox"]],
@@ -399,6 +426,8 @@ def main(argv=None) -> dict:
                                   for k in ("gain", "bias_vox", "rms_vox")}}
                               for b in err["by_depth"]],
         "valid_fraction": err.get("valid_fraction"),
+        "correlation_velocity_rms_vox": [round(v, 4) for v in correlation_err["rms_vox"]],
+        "correlation_velocity_gain": [round(v, 4) for v in correlation_err["gain"]],
         "particles_found_a": len(vols["A"].particle_position),
         "geometry": args.geometry, "grid_offset_vox": list(args.grid_offset_vox),
         "lenslets": args.lenslets, "rays": int(w.pixel.shape[0]),
@@ -406,8 +435,7 @@ def main(argv=None) -> dict:
         "stages": log,
     }
     if args.track:
-        result["track"] = track_study(cal, ia, ib, vols, vec, pa, pb, grid, settings, log,
-                                      lf=w.geometry.light_field)
+        result["track"] = track_study(cal, tracks, vols, pa, pb, grid, settings, log)
     if not args.skip_patch:
         result["patch"] = patch_study(args, log)
     if args.json:

@@ -61,6 +61,7 @@ UNITS = {
     "experiment:piv.intensity_cap": "fraction of the median particle's peak",
     "experiment:tracking.bundle_radius": "half beam widths",
     "experiment:tracking.min_lenslets": "lenslets",
+    "experiment:tracking.prior_tracks": "tracks",
     "experiment:mask.image": "path", "experiment:mask.volume": "path",
     "experiment:images.calibration": "path", "experiment:output.directory": "path",
     "experiment:output.weights_cache": "path",
@@ -315,7 +316,8 @@ MEANINGS = {
     "experiment:output.png": "also write PNG figures",
     "experiment:output.weights_cache": "folder of the weights and response caches, relative to "
                                        'the experiment file (`""` disables them)',
-    "experiment:tracking.enabled": "also track the particles of every pair in `plenopiv run`",
+    "experiment:tracking.enabled": "also write the tracks of every pair in `plenopiv run` "
+                                   "(`NAME_tracks.h5`)",
     "experiment:tracking.search_radius_cells": "largest distance of a partner from its "
                                                "PIV-predicted position",
     "experiment:tracking.median_threshold": "normalised median test of a track's deviation "
@@ -336,6 +338,12 @@ MEANINGS = {
                                           "predicted pixel values fit the image best",
     "experiment:tracking.min_lenslets": "keep a track when both ends were seen through at "
                                         "least this many lenslets (1 keeps every track)",
+    "experiment:tracking.correct_vectors": "correct the correlation field of `plenopiv run` "
+                                           "and `demo` by the pair's tracks' residuals "
+                                           "([methods](methods.md#track-correction))",
+    "experiment:tracking.prior_tracks": "the correction's shrinkage: a vector with one track "
+                                        "on it takes 1 / (1 + prior) of its residual, one far "
+                                        "from every track keeps its value",
     "experiment:mask.image": "boolean image of the sensor's shape (TIFF, PNG, `.npy`, "
                              "`file.h5:/path`): its non-zero pixels are left out of the "
                              "reconstruction",

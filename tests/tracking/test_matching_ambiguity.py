@@ -108,3 +108,38 @@ def test_wrong_rate_on_a_known_field_stays_below_the_bar():
     wrong_without, _ = _rates(MatchSettings(ambiguity_ratio=1.0))
     assert wrong <= 0.02 and tracked >= 0.5
     assert wrong < 0.75 * wrong_without          # the ratio test removes wrong matches
+
+
+@pytest.mark.parametrize("n_a", [0, 1, 2, 5])
+@pytest.mark.parametrize("n_b", [0, 1, 2, 5])
+@pytest.mark.parametrize("offset", [0.0, 0.4, 3.0])
+def test_every_count_of_particles_matches_without_error(n_a, n_b, offset):
+    # every size of A and B, with their partners on, near or beyond the search radius
+    # (3 cells: no prediction finds a partner): the matcher answers with a (maybe empty)
+    # result, never an error from an empty selection
+    rng = np.random.default_rng(n_a * 10 + n_b)
+    pa = rng.uniform(0, 20, (n_a, 3))
+    pb = np.vstack([pa[:n_b] + [offset, 0, 0], rng.uniform(40, 60, (max(n_b - n_a, 0), 3))])
+    m = _match(pa, pb, pa)
+    assert len(m) <= min(n_a, n_b)
+    if offset == 3.0 or not n_a or not n_b:
+        assert len(m) == 0
+    elif offset == 0.0:
+        assert len(m) == min(n_a, n_b)
+
+
+@pytest.mark.parametrize("where", ["prediction", "position_a", "position_b"])
+def test_a_particle_without_a_finite_prediction_or_position_is_matched_to_nothing(where):
+    # a masked or rejected vector leaves NaN in the field, hence in the predictions of the
+    # particles near it: they take no part, the others match as before, with their indices
+    pa = np.array([[0.0, 0, 0], [5, 0, 0], [10, 0, 0]])
+    pb = pa + [0.1, 0, 0]
+    pred = pa.copy()
+    if where == "prediction":
+        pred[1] = np.nan
+    elif where == "position_a":
+        pa[1, 2] = np.inf
+    else:
+        pb[1] = np.nan
+    m = _match(pa, pb, pred)
+    assert list(m.index_a) == [0, 2] and list(m.index_b) == [0, 2]

@@ -311,3 +311,47 @@ def test_identical_inputs_are_warned_about_once_by_every_pair_verb(pair_products
             and "identical" in str(w.message)]
     assert said == ["image A and image B are identical (the same file or frame given twice?): "
                     "the field is zero by construction and says nothing of the flow"]
+
+
+def test_the_pair_is_corrected_by_its_tracks_and_the_product_says_so(pair_products):
+    """[tracking] correct_vectors (default): the pair's field is the correlation's plus the
+    tracks' correction, the same as correcting the uncorrected field by the same tracks;
+    the vectors product records it; off, the field is the correlation's."""
+    import h5py
+
+    from plenopiv.tracking.correction import correct_with_tracks
+
+    res, paths, _, _, (cal, pair, exp) = pair_products
+    assert exp.tracking.correct_vectors and res.tracks is not None
+    assert res.track_correction["applied"] and res.track_correction["tracks"] > 0
+    assert "track_s" in res.timings
+    plain = process_pair(cal, pair.image_a, pair.image_b, dataclasses.replace(
+        exp, tracking=dataclasses.replace(exp.tracking, correct_vectors=False)))
+    assert plain.tracks is None and plain.track_correction is None
+    again, _ = correct_with_tracks(plain.vectors, res.tracks,
+                                   prior_tracks=exp.tracking.prior_tracks)
+    for c in "uvw":
+        assert np.allclose(getattr(again, c), getattr(res.vectors, c), rtol=0,
+                           atol=1e-9 * 1e-3, equal_nan=True)
+    assert not np.allclose(plain.vectors.u, res.vectors.u, rtol=0, atol=1e-12)
+    with h5py.File(paths["vectors"]) as fh:
+        record = json.loads(fh.attrs["track_correction"])
+    assert record["applied"] and record["tracks"] == res.track_correction["tracks"]
+    assert record["prior_tracks"] == exp.tracking.prior_tracks
+
+
+def test_a_pair_that_cannot_be_tracked_keeps_its_correlation_field(pair_products,
+                                                                  monkeypatch):
+    import plenopiv.workflow.tracking as T
+    from plenopiv.errors import PlenopivWarning, ReconstructionError
+
+    res, _, _, _, (cal, pair, exp) = pair_products
+
+    def fail(*a, **k):
+        raise ReconstructionError("no particle to fit")
+    monkeypatch.setattr(T, "track_pair", fail)
+    with pytest.warns(PlenopivWarning, match="could not be tracked.*correct_vectors"):
+        vec, tracks, record = T.corrected_by_tracks(
+            cal, (pair.image_a, pair.image_b), (res.volume_a, res.volume_b), res.vectors, exp)
+    assert vec is res.vectors and tracks is None
+    assert record == {"applied": False, "reason": "no particle to fit"}

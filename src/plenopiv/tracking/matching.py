@@ -14,7 +14,7 @@ See docs/methods.md#matching.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.ndimage
@@ -218,7 +218,8 @@ def match_particles(positions_a, positions_b, predicted_b, scale, *,
     Returns
     -------
     Matches
-        Tracks sorted by A index.
+        Tracks sorted by A index. A particle whose position or prediction is not finite (the
+        field masked or rejected there) is matched to nothing.
     """
     pa = np.asarray(positions_a, float).reshape(-1, 3)
     pb = np.asarray(positions_b, float).reshape(-1, 3)
@@ -229,6 +230,13 @@ def match_particles(positions_a, positions_b, predicted_b, scale, *,
     if not (np.isfinite(sc).all() and (sc > 0).all()):
         raise ValueError(f"scale = {scale!r}: expected 3 positive lengths (metres)")
     empty = np.zeros(0, np.int64)
+    # a particle with no prediction (the field is masked or rejected there) or no position
+    # takes no part; the indices stay those of the tables given
+    ok_a = np.flatnonzero(np.isfinite(pa).all(axis=1) & np.isfinite(pred).all(axis=1))
+    ok_b = np.flatnonzero(np.isfinite(pb).all(axis=1))
+    if len(ok_a) < len(pa) or len(ok_b) < len(pb):
+        m = match_particles(pa[ok_a], pb[ok_b], pred[ok_a], sc, settings=settings)
+        return replace(m, index_a=ok_a[m.index_a], index_b=ok_b[m.index_b])
     if not len(pa) or not len(pb):
         return Matches(empty, empty, np.zeros(0), np.zeros(0), empty)
     qb, qp = pb / sc, pred / sc
@@ -269,8 +277,9 @@ def _two_nearest(tree: cKDTree, points: np.ndarray) -> tuple[np.ndarray, np.ndar
 
     A missing runner-up (a tree of one point) is at infinite distance.
     """
-    d, j = tree.query(points, k=min(2, tree.n))
-    d, j = d.reshape(len(points), -1), j.reshape(len(points), -1)
+    k = min(2, tree.n)
+    d, j = tree.query(points, k=k)
+    d, j = d.reshape(len(points), k), j.reshape(len(points), k)
     if d.shape[1] < 2:
         d = np.hstack([d, np.full((len(points), 1), np.inf)])
         j = np.hstack([j, np.full((len(points), 1), tree.n)])

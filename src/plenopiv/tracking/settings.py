@@ -8,10 +8,13 @@ from plenopiv.particles.bundle import BundleSettings
 from plenopiv.settings import settings
 from plenopiv.tracking.matching import MatchSettings
 
-__all__ = ["AMBIGUITY", "TrackingSettings"]
+__all__ = ["AMBIGUITY", "PRIOR_TRACKS", "TrackingSettings"]
 
 #: Default ``ambiguity_ratio`` (docs/validation/tracking.md, the ratio-test curve).
 AMBIGUITY = 0.7
+#: Default ``prior_tracks``: one track on a vector weighs as much as its window's correlation
+#: (docs/methods.md#track-correction).
+PRIOR_TRACKS = 1.0
 
 
 @settings
@@ -44,6 +47,13 @@ class TrackingSettings:
         of field; through up to 2 x 2 lenslets the edges of its lit patches fix the ratio of
         lateral offset to depth only, so the image holds no depth for it; 1 keeps every
         track).
+    correct_vectors : correct each pair's correlation field by its tracks in ``plenopiv run``
+        and ``demo`` (``process_pair``): each track's residual (its displacement less the
+        field at its mid-point) spread over the vectors within about a window of it
+        (:mod:`plenopiv.tracking.correction`, docs/methods.md#track-correction) (true).
+    prior_tracks : the correction's shrinkage, in tracks: a vector with one track on it takes
+        1 / (1 + prior_tracks) of that track's residual, one far from every track keeps its
+        value (1.0).
     """
 
     enabled: bool = False
@@ -56,6 +66,8 @@ class TrackingSettings:
     bundle_iterations: int = Field(4, ge=1)
     forward_refine: bool = True
     min_lenslets: int = Field(6, ge=1)
+    correct_vectors: bool = True
+    prior_tracks: float = Field(PRIOR_TRACKS, gt=0, allow_inf_nan=False)
 
     def match_settings(self) -> MatchSettings:
         """The matcher's options of this table (the same names, in resolution cells)."""

@@ -11,65 +11,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from plenopiv.calibration.model import Calibration
-from plenopiv.errors import PIVError, ReconstructionError
-from plenopiv.products.images import warn_identical
-from plenopiv.products.vectors import VectorResult, check_dt
+from plenopiv.products.vectors import VectorResult
 from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.weights import Weights
+from plenopiv.workflow.correlation import correlate
 from plenopiv.workflow.response import ExperimentResponse, experiment_response
 from plenopiv.workflow.volume import Progress, check_lattice, reconstruct_volume
 
 if TYPE_CHECKING:  # imported lazily at run time (scipy.fft, numba kernels)
     pass
-
-
-def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, dt=None,
-              workers=None, progress=None, mask=None, response=None,
-              names=("volume A", "volume B")) -> VectorResult:
-    """3-D PIV between two reconstructed volumes of the same grid, in physical coordinates.
-
-    The volumes are on the effective (air-equivalent) grid; identical volumes are warned about
-    (:func:`~plenopiv.products.images.warn_identical`, ``names``: how the warning names
-    them; None: not checked, where the images they came from were).
-
-    ``mask``: volume mask (bool ``[z, y, x]``, True outside the flow). ``response``: a
-    callable ``response(field) -> Response`` (:func:`plenopiv.workflow.response.measure_response`)
-    whose result completes the uncertainties (:func:`plenopiv.piv.uncertainty.combine`); None
-    keeps the correlation statistics alone.
-    """
-    from plenopiv.piv import PIVSettings, correlate_volumes
-    from plenopiv.piv.uncertainty import combine
-    from plenopiv.workflow.preprocess import IDENTICAL_PAIR
-
-    for name, r in (("result_a", result_a), ("result_b", result_b)):
-        if not isinstance(r, VolumeResult):
-            raise PIVError(f"correlate: {name} is a {type(r).__name__}: expected a "
-                           "VolumeResult (reconstruct_volume or load_volume)")
-    if settings is not None and not isinstance(settings, PIVSettings):
-        raise PIVError(f"correlate: settings is a {type(settings).__name__}: expected a "
-                       "PIVSettings (or None for the defaults)")
-    dt = check_dt(dt)
-    if result_a.grid != result_b.grid:
-        def text(g):
-            return (f"{list(g.shape)} voxels of {[round(v * 1e3, 6) for v in g.voxel]} mm from "
-                    f"{[round(v * 1e3, 6) for v in g.origin]} mm")
-        raise ReconstructionError("the two volumes were reconstructed on different grids "
-                                  f"(A: {text(result_a.grid)}; B: {text(result_b.grid)}): "
-                                  "expected the same [volume] for both exposures")
-    if names is not None:
-        warn_identical(names, (result_a.volume, result_b.volume), consequence=IDENTICAL_PAIR)
-    field = correlate_volumes(result_a.volume, result_b.volume, result_a.grid,
-                              settings=settings, workers=workers, progress=progress, mask=mask,
-                              particles=(result_a.volume_position_effective,
-                                         result_b.volume_position_effective))
-    method = "correlation"
-    measured = None if response is None else response(field)
-    if measured is not None:
-        field = combine(field, measured)
-        method = "response"
-    return VectorResult.from_field(field, result_a.correction, dt, uncertainty_method=method,
-                                   grid=result_a.grid)
 
 
 @dataclass(frozen=True)
@@ -78,7 +29,10 @@ class PairResult:
 
     ``images``: the two exposures as the reconstruction saw them (preprocessed, B on A's
     scale; :class:`~plenopiv.workflow.preprocess.PreparedImage`); ``preprocess``: what was
-    applied (the products' ``preprocess`` attribute).
+    applied (the products' ``preprocess`` attribute); ``tracks``: the pair's
+    :class:`~plenopiv.tracking.tracks.TrackResult` where ``[tracking] correct_vectors``
+    corrected ``vectors`` by them, and ``track_correction`` what that did (the vectors
+    product's ``track_correction`` attribute).
     """
 
     volume_a: VolumeResult
@@ -87,6 +41,8 @@ class PairResult:
     timings: dict
     images: tuple | None = None
     preprocess: dict | None = None
+    tracks: object | None = None
+    track_correction: dict | None = None
 
 
 class PairProcessor:
@@ -222,7 +178,18 @@ class PairProcessor:
         timings = {"reconstruct_s": t1 - t0, "piv_s": time.perf_counter() - t2}
         if measured is not None and not had_response:
             timings["response_s"] = t2 - t1
-        return PairResult(va, vb, vec, timings, images=(pa, pb), preprocess=record)
+        tracks = correction = None
+        if exp.tracking.correct_vectors:
+            t3 = time.perf_counter()
+            if progress is not None:
+                progress("tracks", 0.0)
+            from plenopiv.workflow.tracking import corrected_by_tracks
+
+            vec, tracks, correction = corrected_by_tracks(calibration, (pa.image, pb.image),
+                                                          (va, vb), vec, exp, weights)
+            timings["track_s"] = time.perf_counter() - t3
+        return PairResult(va, vb, vec, timings, images=(pa, pb), preprocess=record,
+                          tracks=tracks, track_correction=correction)
 
 
 def _piv_progress(progress: Progress):
@@ -306,8 +273,10 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
     record = vectors_provenance(paths["volume_A"], paths["volume_B"],
                                 piv=experiment.piv, dt=experiment.images.dt_s,
                                 sources=records)
+    corrected = ({} if result.track_correction is None
+                 else {"track_correction": dumps(result.track_correction)})
     files = result.vectors.save(out / f"{name}_vectors.h5", config=cfg, vtk=experiment.output.vtk,
-                                extra_attrs={"complete": True, **pre,
+                                extra_attrs={"complete": True, **pre, **corrected,
                                              **(extra_attrs or {})}, provenance=record)
     paths["vectors"] = str(files[0])
     if len(files) > 1:

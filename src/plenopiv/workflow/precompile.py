@@ -119,7 +119,8 @@ def rehearse_reconstruction(calibration, experiment) -> None:
     """Reconstruct a tiny volume of the run's voxels with the run's settings.
 
     The image is a volume of Gaussian blobs projected by the run's own kind of projector, so
-    the reconstruction finds particles and fits their light-field positions; it is judged
+    the reconstruction finds particles and fits their light-field positions, and the
+    tracking (where the run tracks) fits and refines their ray bundles; it is judged
     first as a run judges its images (the preprocessing's micro-image and neighbour kernels),
     and the recording check's model of micro-images is drawn once on a few pixels.
     """
@@ -140,8 +141,21 @@ def rehearse_reconstruction(calibration, experiment) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ImagePreparation(tiny, calibration).image(image)
-    reconstruct_volume(calibration, image, grid, settings=tiny.reconstruction,
-                       particles=tiny.particles, weights=weights)
+    volume = reconstruct_volume(calibration, image, grid, settings=tiny.reconstruction,
+                                particles=tiny.particles, weights=weights)
+    if tiny.tracking.correct_vectors or tiny.tracking.enabled:
+        # the pair's tracks: ray bundles and their forward refinement on the same image
+        from plenopiv.particles.forward import _best_offset_numba
+        from plenopiv.workflow.tracking import _light_field_of, track_ends
+
+        rec = tiny.reconstruction
+        track_ends(calibration, image, image, volume, volume, settings=tiny.tracking,
+                   f_number=rec.f_number, min_lit=rec.min_lit, lf=_light_field_of(weights))
+        # the grid search of particles near focus, which the blobs need not reach
+        two = np.zeros((2, 2))
+        _best_offset_numba(np.array([0, 2], np.int64), two, two, np.zeros(2), np.ones(1),
+                           np.zeros((1, 3)), np.zeros(1), np.zeros(1),
+                           {"object_distance": 0.1, "cell": 1e-5, "footprint": 1e-4}, 1.0)
     soft_discs((8, 8), np.array([[3.0, 4.0]]), 2.0, 1.0)
 
 

@@ -4,6 +4,7 @@
 
     volume centroids (A, B) --ray bundles of the raw images--> effective positions
         --depth corrections--> physical positions --PIV prediction + matching--> tracks
+        --residuals against the field--> corrected field (corrected_by_tracks)
 """
 
 from __future__ import annotations
@@ -29,8 +30,8 @@ from plenopiv.tracking.matching import match_particles, predict_positions
 from plenopiv.tracking.settings import TrackingSettings
 from plenopiv.tracking.tracks import TrackResult
 
-__all__ = ["TrackEnds", "match_ends", "physical_bundle", "track_ends", "track_images",
-           "track_pair"]
+__all__ = ["TrackEnds", "corrected_by_tracks", "match_ends", "physical_bundle", "track_ends",
+           "track_images", "track_pair"]
 
 
 #: The forward refinement's default settings.
@@ -244,8 +245,8 @@ def track_images(calibration: Calibration, image_a, image_b, experiment, *,
     import time
 
     from plenopiv.reconstruction.build import weights_for
+    from plenopiv.workflow.correlation import correlate
     from plenopiv.workflow.masks import image_mask
-    from plenopiv.workflow.pair import correlate
     from plenopiv.workflow.preprocess import ImagePreparation, union
     from plenopiv.workflow.volume import check_lattice, reconstruct_volume
 
@@ -319,9 +320,12 @@ def track_and_save(calibration: Calibration, image_a, image_b, result, experimen
 
     t0 = time.perf_counter()
     rec = experiment.reconstruction
-    tracks = track_pair(calibration, image_a, image_b, result.volume_a, result.volume_b,
-                        result.vectors, settings=experiment.tracking, f_number=rec.f_number,
-                        min_lit=rec.min_lit, lf=_light_field_of(weights))
+    tracks = getattr(result, "tracks", None)     # tracked already to correct the vectors
+    if tracks is None:
+        tracks = track_pair(calibration, image_a, image_b, result.volume_a, result.volume_b,
+                            result.vectors, settings=experiment.tracking,
+                            f_number=rec.f_number, min_lit=rec.min_lit,
+                            lf=_light_field_of(weights))
     pre = {} if result.preprocess is None else {ATTRIBUTE: dumps(result.preprocess)}
     if judgement is not None:
         pre["judgement"] = dumps(judgement)
@@ -334,3 +338,30 @@ def track_and_save(calibration: Calibration, image_a, image_b, result, experimen
     return {"tracks": paths["tracks"], "n_tracks": len(tracks),
             "track_s": round(time.perf_counter() - t0, 3)}
 
+
+def corrected_by_tracks(calibration: Calibration, images, volumes, vectors: VectorResult,
+                        experiment, weights=None) -> tuple:
+    """The pair's tracks and its correlation field corrected by them.
+
+    ``images``: the exposures the volumes came from; ``weights``: the reconstruction's, whose
+    light field the tracking reuses. Returns ``(vectors, tracks or None, record)``; where
+    the tracking fails (no particle to fit, say) the field is kept as correlated, with a
+    warning, and the record says why. See :mod:`plenopiv.tracking.correction`.
+    """
+    import warnings
+
+    from plenopiv.errors import PlenopivError, PlenopivWarning
+    from plenopiv.tracking.correction import correct_with_tracks
+
+    rec, settings = experiment.reconstruction, experiment.tracking
+    try:
+        tracks = track_pair(calibration, images[0], images[1], volumes[0], volumes[1],
+                            vectors, settings=settings, f_number=rec.f_number,
+                            min_lit=rec.min_lit, lf=_light_field_of(weights))
+    except PlenopivError as exc:
+        warnings.warn(f"the pair's particles could not be tracked ({exc}): its vectors are "
+                      "the correlation's, not corrected by tracks ([tracking] "
+                      "correct_vectors)", PlenopivWarning, stacklevel=3)
+        return vectors, None, {"applied": False, "reason": str(exc)}
+    out, done = correct_with_tracks(vectors, tracks, prior_tracks=settings.prior_tracks)
+    return out, tracks, {"applied": True, **done.record()}
