@@ -147,7 +147,7 @@ def test_measured_rates_are_positive(small_camera):
     assert p.time_model.startswith("rates measured")
     assert p.time["pair"] == pytest.approx(p.time["weights"] + p.time["recording_check"]
                                            + p.time["first_volume"] + 2 * p.time["volume"]
-                                           + p.time["piv"])
+                                           + p.time["piv"] + p.time["track"])
 
 
 def test_cli_plan_experiment_human_and_json(tmp_path, capsys):
@@ -264,7 +264,7 @@ def test_the_rehearsal_stands_only_for_the_reconstruction_it_rehearsed(small_cam
     assert t["weights"] == pytest.approx(1e-6 * choice.n_rays)
     assert t["first_volume"] == pytest.approx(2e-9 * choice.n_rays * grid.shape[0])
     assert t["pair"] == pytest.approx(t["weights"] + t["recording_check"] + t["first_volume"]
-                                      + 2 * t["volume"] + t["piv"])
+                                      + 2 * t["volume"] + t["piv"] + t["track"])
     assert "rehearsed" in rehearsed.time_model
     for other in (dict(projector="sparse"), dict(subdivision=(1, 1)), dict(iterations=5)):
         p = planning.plan(small_camera, grid, rates=dataclasses.replace(
@@ -343,3 +343,29 @@ def test_the_rehearsed_share_of_the_field_does_not_depend_on_where_the_box_lies(
     wide = VolumeGrid.from_bounds((-3 * half[0], 0.0), (-half[1], half[1]), (-MM, MM),
                                   voxel=0.26 * MM)
     assert rates.covered_share(small_camera, wide) == pytest.approx([0.5, 1.0], abs=0.02)
+
+
+@pytest.mark.parametrize("correct, enabled", [(True, False), (False, True), (False, False)])
+def test_the_pairs_tracks_count_in_the_pair_where_they_are_made(small_camera, correct,
+                                                                 enabled):
+    """[tracking] correct_vectors or enabled: the pair's time holds its tracks, at the
+    stated seeding (or the validated one), in proportion to the particles; neither: none."""
+    from plenopiv.tracking.settings import TrackingSettings
+    from plenopiv.workflow.judgement import VALIDATED_PARTICLES_PER_LENSLET, lenslets_in_box
+
+    grid = VolumeGrid(origin=(0.0, 0.0, 0.0), voxel=(1.25e-4, 1.25e-4, 2.5e-4),
+                      shape=(16, 24, 32))
+    tracking = TrackingSettings(correct_vectors=correct, enabled=enabled)
+    plain = planning.plan(small_camera, grid, rates=rates.BENCHMARK_RATES,
+                          tracking=TrackingSettings(correct_vectors=False))
+    for seeding in (None, 0.3):
+        p = planning.plan(small_camera, grid, rates=rates.BENCHMARK_RATES, tracking=tracking,
+                          seeding=seeding)
+        if not (correct or enabled):
+            assert p.time["track"] == 0.0 and p.time["pair"] == plain.time["pair"]
+            continue
+        per_lenslet = VALIDATED_PARTICLES_PER_LENSLET if seeding is None else seeding
+        expected = (planning.SECONDS_PER_TRACKED_PARTICLE * 2 * per_lenslet
+                    * lenslets_in_box(p.camera, grid))
+        assert p.time["track"] == pytest.approx(expected) and expected > 0
+        assert p.time["pair"] == pytest.approx(plain.time["pair"] + expected)

@@ -32,14 +32,15 @@ def cmd_demo(args) -> dict:
     """The built-in synthetic case end to end, with its errors against the truth.
 
     Calibration images -> calibration -> a Lamb-Oseen vortex pair -> two volumes -> 3-D PIV
-    -> errors against the truth.
+    corrected by the particle tracks -> errors against the truth.
     """
     from plenopiv.workflow.vortex_case import VortexCase, run_case
 
     _seed(args.seed)
     check_output_path(args.out, what="--out", folder=True)
     stages = {"calibration images": 12, "calibrate": 10, "simulate pair": 6, "weights": 14,
-              "volume A": 12, "volume B": 12, "response": 10, "piv": 2, "products": 22}
+              "volume A": 12, "volume B": 12, "response": 10, "piv": 2, "tracks": 4,
+              "products": 22}
     with _StageBar("demo", stages, args.quiet or args.json) as progress:
         s = run_case(VortexCase(flow="oseen", seed=args.seed,
                                 response_displacements=DEMO_RESPONSE_DISPLACEMENTS),

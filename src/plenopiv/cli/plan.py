@@ -94,14 +94,14 @@ def cmd_plan(args) -> dict:
         exp = experiment_from_dict(cfg, base_dir=path.parent, source=str(path))
         camera, grid = exp.camera, exp.volume
         given = given_settings(exp)
-        recon, piv_cfg = exp.reconstruction, exp.piv
+        recon, piv_cfg, tracking = exp.reconstruction, exp.piv, exp.tracking
         calibration = args.calibration or (exp.path(exp.images.calibration)
                                            if exp.images.calibration else None)
         if calibration is not None and not Path(calibration).exists():
             calibration = args.calibration      # not made yet: the camera's S_i then
     else:
         camera = load_camera(args.config)
-        recon, piv_cfg = ReconstructionSettings(), PIVSettings()
+        recon, piv_cfg, tracking = ReconstructionSettings(), PIVSettings(), None
         calibration = args.calibration
         grid, given = None, frozenset()
     if args.f_number is not None:
@@ -141,7 +141,8 @@ def cmd_plan(args) -> dict:
             rates = rates_module.measure_rates(camera, grid, piv=piv_cfg,
                                                reconstruction=recon)
     result = planning.plan(camera, grid, reconstruction=recon, piv=piv_cfg, rates=rates,
-                           calibration=cal, seeding=args.seeding, chosen=chosen)
+                           calibration=cal, seeding=args.seeding, chosen=chosen,
+                           tracking=tracking)
     return {"command": "plan", "config": str(args.config),
             "kind": "experiment" if is_experiment else "camera", **result.to_dict(),
             "seconds": round(time.perf_counter() - t0, 3)}
@@ -204,7 +205,8 @@ def print_summary(p: dict) -> None:
                          + (" (once, then cached)" if sparse else "") + ", one volume "
                          f"{_fmt(t['volume'])} s (the first {_fmt(t['first_volume'])} s more), "
                          "the recording's check "
-                         f"{_fmt(t['recording_check'])} s, PIV {_fmt(t['piv'])} s; "
+                         f"{_fmt(t['recording_check'])} s, PIV {_fmt(t['piv'])} s, "
+                         f"the pair's tracks {_fmt(t.get('track', 0.0))} s; "
                          f"plenopiv reconstruct {_fmt(t['reconstruct'])} s, a pair "
                          f"{_fmt(t['pair'])} s ({_fmt(t['pair_cached_weights'])} s with cached "
                          "weights)"))

@@ -1,6 +1,8 @@
 """One image pair -> one vector field.
 
-Two volumes, their correlation, the per-vector uncertainty and the pair's products.
+Two volumes, their correlation, the per-vector uncertainty, the field corrected by the pair's
+particle tracks (:func:`plenopiv.workflow.tracking.corrected_by_tracks`) and the pair's
+products.
 """
 
 from __future__ import annotations
@@ -139,9 +141,11 @@ class PairProcessor:
                  workers=None, names=("image A", "image B")) -> PairResult:
         """Images A and B -> preprocessing -> two volumes -> particles -> corrections -> vectors.
 
+        The vectors are corrected by the pair's tracks with ``[tracking] correct_vectors``.
         ``image_a``, ``image_b``: the exposures as recorded (counts); ``names``: how
-        warnings about them name them. ``timings``: ``reconstruct_s``, ``piv_s`` and, when
-        this pair got the chain's response (measured or read from the cache), ``response_s``.
+        warnings about them name them. ``timings``: ``reconstruct_s``, ``piv_s``, ``track_s``
+        where the pair was tracked and, when this pair got the chain's response (measured or
+        read from the cache), ``response_s``.
         """
         from plenopiv.workflow.preprocess import union
 

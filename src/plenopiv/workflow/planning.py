@@ -84,6 +84,11 @@ SECONDS_PER_PIXEL_RECORDING_CHECK = 2.7e-7
 #: lenslet (``benchmarks/full_camera.py --track``).
 SECONDS_PER_RAY_PARTICLE_FIT = 4.1e-7
 
+#: Seconds per particle of A and B of a pair's tracks (bundle fits, refinement, matching;
+#: ``[tracking] correct_vectors`` or ``enabled``) on two threads: 44.6 s for 2 × 27,500 on
+#: the 16 MP turned array (``benchmarks/full_camera.py``), 0.49 s for 2 × 221 in the demo.
+SECONDS_PER_TRACKED_PARTICLE = 8.1e-4
+
 
 @dataclass(frozen=True)
 class Plan:
@@ -260,7 +265,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
          reconstruction: ReconstructionSettings | None = None, piv: PIVSettings | None = None,
          rates: Rates | None = None, memory_total: float | None = None,
          calibration=None, geometry=None, seeding: float | None = None,
-         chosen: tuple[Finding, ...] = ()) -> Plan:
+         chosen: tuple[Finding, ...] = (), tracking=None) -> Plan:
     """Plan the reconstruction of ``grid`` (effective coordinates) with ``camera``.
 
     ``camera`` must know its image distance (from the camera file, or a calibration's
@@ -278,7 +283,10 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
 
     With ``[piv] uncertainty = "response"`` the chain's response is measured once per
     experiment, before its pairs: ``response_s`` estimates that time
-    (:func:`plenopiv.workflow.response.response_seconds`), s.
+    (:func:`plenopiv.workflow.response.response_seconds`), s. ``tracking``: the ``[tracking]``
+    table (default: the defaults); where it tracks the pairs (``correct_vectors`` or
+    ``enabled``) the pair's time holds its tracks (``track``), at the ``seeding`` given or
+    the validated one.
 
     The warnings and advice are :func:`plenopiv.workflow.judgement.judge`'s on the decided
     subdivision (``seeding``: the particles per lenslet expected, judged too), after the
@@ -318,6 +326,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     checked = 0 if reconstruction.lattice_check == "off" else int(np.prod(camera.sensor.shape))
     times = _times(choice, grid, nnz, rates, reconstruction.iterations, windows, piv.overlap,
                    passes, memory["weights_cache_file"], checked_pixels=checked)
+    times.update(_track_times(times, cam, grid, tracking, seeding))
     response_s = 0.0
     if piv.uncertainty == "response":
         from plenopiv.workflow.response import response_particle_count, response_seconds
@@ -389,6 +398,19 @@ def _rehearsal_of(rates: Rates, choice, iterations: int):
     if reh is not None and reh.matches(choice.projector, choice.subdivision, iterations):
         return reh
     return None
+
+
+def _track_times(times: dict, cam: Camera, grid: VolumeGrid, tracking, seeding) -> dict:
+    """``track`` (s) and the pair's times with it, where the pairs are tracked."""
+    from plenopiv.tracking.settings import TrackingSettings
+
+    tracking = tracking or TrackingSettings()
+    if not (tracking.correct_vectors or tracking.enabled):
+        return {"track": 0.0}
+    per_lenslet = VALIDATED_PARTICLES_PER_LENSLET if seeding is None else float(seeding)
+    t = SECONDS_PER_TRACKED_PARTICLE * 2.0 * per_lenslet * lenslets_in_box(cam, grid)
+    return {"track": t, "pair": times["pair"] + t,
+            "pair_cached_weights": times["pair_cached_weights"] + t}
 
 
 def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, windows,
