@@ -78,7 +78,7 @@ from plenopiv.products.jsonio import dumps
 from plenopiv.reconstruction.build import cached_weights, weights_for
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.reconstruction.subdivision import subdivision_of
+from plenopiv.reconstruction.subdivision import working_factors
 from plenopiv.resources import prefer_small_pages
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.synthetic.truth import gaussian_truth_volume
@@ -302,6 +302,9 @@ def main(argv=None) -> dict:
     p.add_argument("--lateral-subdivision", default="auto",
                    help="[reconstruction] lateral_subdivision: auto (the library default) or "
                         "an int; 1 reconstructs on the footprint voxels themselves")
+    p.add_argument("--depth-binning", default="auto",
+                   help="[reconstruction] depth_binning: auto (the library default) or an int; "
+                        "1 reconstructs on the grid's own depth slices")
     p.add_argument("--skip-patch", action="store_true")
     p.add_argument("--voxel-depth-factor", type=float, default=1.0,
                    help="depth voxel over the lateral one (default 1: cubic voxels); the PIV "
@@ -339,8 +342,10 @@ def main(argv=None) -> dict:
     print(f"grid {grid.shape} (z, y, x), voxel {np.round(np.array(grid.voxel) * 1e3, 4)} mm; "
           f"{args.particles} particles", file=sys.stderr)
     k = args.lateral_subdivision
+    kz = args.depth_binning
     settings = ReconstructionSettings(iterations=args.iterations, projector=args.projector,
-                                      lateral_subdivision=k if k == "auto" else int(k))
+                                      lateral_subdivision=k if k == "auto" else int(k),
+                                      depth_binning=kz if kz == "auto" else int(kz))
     particles = ParticleSettings()
     try:
         with stage("weights (light field)", log):
@@ -356,7 +361,8 @@ def main(argv=None) -> dict:
 
     print(f"projector: {type(w.projector).__name__}"
           f"{' (matrix-free)' if w.matrix_free else ''}, working grid {w.grid.shape} "
-          f"(lateral subdivision {subdivision_of(w.grid, grid)})", file=sys.stderr)
+          f"(depth binning, lateral subdivision {working_factors(w.grid, grid)})",
+          file=sys.stderr)
     vols = {}
     calls = None
     if args.call_times:
@@ -417,7 +423,8 @@ def main(argv=None) -> dict:
                               + (log["track"]["seconds"] if "track" in log else 0.0), 2),
         "track_correction": not args.no_track_correction,
         "piv_seconds": log["PIV"]["seconds"],
-        "lateral_subdivision": list(subdivision_of(w.grid, grid)),
+        "lateral_subdivision": list(working_factors(w.grid, grid)[1:]),
+        "depth_binning": working_factors(w.grid, grid)[0],
         "velocity_rms_vox": [round(v, 4) for v in err["rms_vox"]],
         "velocity_bias_vox": [round(v, 4) for v in err["bias_vox"]],
         "velocity_gain": [round(v, 4) for v in err["gain"]],

@@ -52,6 +52,7 @@ UNITS = {
     "experiment:reconstruction.dark_tolerance": "fraction",
     "experiment:reconstruction.min_lit": "fraction",
     "experiment:reconstruction.lateral_subdivision": "working voxels per voxel, each axis",
+    "experiment:reconstruction.depth_binning": "depth slices per working slice",
     "experiment:particles.threshold": "fraction of the reference",
     "experiment:particles.noise_sigmas": "noise standard deviations",
     "experiment:piv.windows": "voxels [z, y, x]",
@@ -79,6 +80,7 @@ ALLOWED = {
     "experiment:volume.voxel_mm": "number > 0, or [dx, dy, dz]",
     "experiment:volume.shape": "[nz, ny, nx], integers ≥ 1",
     "experiment:reconstruction.lateral_subdivision": '`"auto"` or an integer 1–4',
+    "experiment:reconstruction.depth_binning": '`"auto"` or an integer 1–16',
     "experiment:particles.min_separation_vox": "[z, y, x] numbers",
     "experiment:particles.box_vox": "[z, y, x] integers",
     "experiment:particles.fit_spacing_vox": "[z, y, x] integers ≥ 1",
@@ -206,6 +208,11 @@ MEANINGS = {
                                                      "and y, then merge back; `\"auto\"`: "
                                                      "working voxels of at most a third of a "
                                                      "footprint (costs k² in weights and time)",
+    "experiment:reconstruction.depth_binning": "reconstruct on depth slices k times as deep, "
+                                               "then resample onto the grid's slices (cubic "
+                                               "spline, total kept); `\"auto\"`: working "
+                                               "slices of at most a third of the depth cell "
+                                               "(time and memory fall by about k)",
     "experiment:reconstruction.subdivision_kernel": '`"gaussian"`: a Gaussian of half a voxel '
                                                     "about each voxel's centre, keeps where a "
                                                     'particle lies inside the voxel; `"box"`: '

@@ -82,12 +82,13 @@ def test_the_default_matrix_free_path_is_held_to_max_weights_gb():
     b = footprint(cam)
     grid = VolumeGrid.from_bounds((-15 * b, 15 * b), (-15 * b, 15 * b), (-4e-3, 4e-3),
                                   voxel=(b, b, 0.05e-3))
-    d = choose_reconstruction(cal, grid, ReconstructionSettings())
+    # on the box's own slices (binned, its working grid would be smaller than the light field)
+    d = choose_reconstruction(cal, grid, ReconstructionSettings(depth_binning=1))
     assert (d.projector, d.subdivision) == ("lattice", (3, 3))
     lf = light_field_build_bytes(cal)
     assert d.memory_bytes > lf
     budget = 0.5 * (lf + d.memory_bytes)
-    tight = ReconstructionSettings(max_weights_gb=budget / 1e9)
+    tight = ReconstructionSettings(max_weights_gb=budget / 1e9, depth_binning=1)
     coarser = choose_reconstruction(cal, grid, tight)          # "auto": a coarser subdivision
     assert coarser.refusal is None and coarser.memory_bytes <= budget
     assert coarser.subdivision < (3, 3) and "do not fit" in coarser.fallbacks[0]

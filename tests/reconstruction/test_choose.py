@@ -70,14 +70,16 @@ def test_auto_subdivision_of_footprint_voxels_is_the_lattice_projector_on_a_thir
     grid = box(cam, 1.0)
     p = planning.plan(cam, grid)
     d = p.decision
-    assert (d.projector, d.subdivision) == ("lattice", (3, 3))
-    assert d.grid == subdivided_grid(grid, 3, 3)
+    assert (d.projector, d.subdivision, d.depth_binning) == ("lattice", (3, 3), 3)
+    assert d.grid == subdivided_grid(grid, 3, 3, 3)
     assert p.projector == "lattice" and p.memory["weights"] == 0.0
     assert p.memory["projector"] == d.memory_bytes
     assert "3 x 3 subdivided" in d.reason
     out = p.to_dict()
     assert out["lateral_subdivision"] == [3, 3]
-    assert out["working_shape"] == [grid.shape[0], 3 * grid.shape[1], 3 * grid.shape[2]]
+    assert out["depth_binning"] == 3
+    assert out["working_shape"] == [-(-grid.shape[0] // 3), 3 * grid.shape[1],
+                                    3 * grid.shape[2]]
     assert out["decision"]["memory_bytes"] == pytest.approx(d.memory_bytes)
     assert out["memory_gb"]["projector"] == pytest.approx(d.memory_bytes / 1e9)
 
@@ -94,24 +96,26 @@ def deep_box(cam):
 def test_budgets_methods_and_lattices_decide_alike(name):
     """Row-action MART; a budget between the matrix-free and the explicit estimates, and
     half of that; a rotated lattice (the per-lenslet projector): the same decision,
-    refusals included."""
+    refusals included (the deep box on its own slices: binned, its weights would be small)."""
     cam = camera(name)
     cal = Calibration.from_camera(cam)
     deep = deep_box(cam)
-    free = choose_reconstruction(cal, deep, ReconstructionSettings(lateral_subdivision=1,
-                                                                   projector="lattice"))
-    explicit = choose_reconstruction(cal, deep, ReconstructionSettings(lateral_subdivision=1,
-                                                                       projector="sparse"))
+    free = choose_reconstruction(cal, deep, ReconstructionSettings(
+        lateral_subdivision=1, projector="lattice", depth_binning=1))
+    explicit = choose_reconstruction(cal, deep, ReconstructionSettings(
+        lateral_subdivision=1, projector="sparse", depth_binning=1))
     assert 2 * free.memory_bytes < explicit.memory_bytes
     # building the light field comes first and has its own peak: a budget must hold it too
     tight = 1.01 * max(free.memory_bytes, light_field_build_bytes(cal)) / 1e9
     assert tight < explicit.memory_bytes / 1e9
     cases = [(box(cam, 1.0), dict(method="mart")),
              (box(cam, 1.0), dict(method="mart", lateral_subdivision=2)),
-             (deep, dict(projector="lattice", lateral_subdivision=1)),
-             (deep, dict(max_weights_gb=tight, lateral_subdivision=1)),
-             (deep, dict(max_weights_gb=tight, projector="sparse", lateral_subdivision=1)),
-             (deep, dict(max_weights_gb=0.5 * tight, lateral_subdivision=1))]
+             (deep, dict(projector="lattice", lateral_subdivision=1, depth_binning=1)),
+             (deep, dict(max_weights_gb=tight, lateral_subdivision=1, depth_binning=1)),
+             (deep, dict(max_weights_gb=tight, projector="sparse", lateral_subdivision=1,
+                         depth_binning=1)),
+             (deep, dict(max_weights_gb=0.5 * tight, lateral_subdivision=1,
+                         depth_binning=1))]
     kinds = []
     for grid, case in cases:
         s = ReconstructionSettings(**case)
@@ -132,10 +136,13 @@ def test_auto_subdivision_falls_back_where_nothing_fits():
     # holds building the light field too
     deep = VolumeGrid.from_bounds((-15 * b, 15 * b), (-10 * b, 10 * b), (-24 * b, 24 * b),
                                   voxel=(b, b, b / 8))
+    # (on its own slices: binned, the working grid would be small)
     need = [choose_reconstruction(cal, deep, ReconstructionSettings(
-        lateral_subdivision=k, projector="lattice")).memory_bytes for k in (2, 3)]
+        lateral_subdivision=k, projector="lattice", depth_binning=1)).memory_bytes
+        for k in (2, 3)]
     assert sum(need) / 2 > light_field_build_bytes(cal)
-    s = ReconstructionSettings(projector="lattice", max_weights_gb=sum(need) / 2e9)
+    s = ReconstructionSettings(projector="lattice", max_weights_gb=sum(need) / 2e9,
+                               depth_binning=1)
     d = choose_reconstruction(cal, deep, s)
     assert d.refusal is None and d.subdivision == (2, 2) and len(d.fallbacks) == 1
     assert "finer ones do not fit" in d.reason

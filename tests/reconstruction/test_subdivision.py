@@ -14,7 +14,7 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.choose import lateral_subdivision, subdivided_grid
 from plenopiv.reconstruction.settings import ReconstructionSettings
-from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of
+from plenopiv.reconstruction.subdivision import merge_subdivided, working_factors
 from plenopiv.synthetic.images import particle_image
 from plenopiv.workflow.volume import reconstruct_volume
 
@@ -43,11 +43,11 @@ def test_subdivided_grid_covers_the_same_box(cal):
     fine = subdivided_grid(grid, 3, 2)
     np.testing.assert_allclose(fine.bounds, grid.bounds, rtol=0, atol=1e-12)
     assert fine.shape == (grid.shape[0], grid.shape[1] * 3, grid.shape[2] * 2)
-    assert subdivision_of(fine, grid) == (3, 2)
+    assert working_factors(fine, grid) == (1, 3, 2)
     with pytest.raises(ReconstructionError, match="another volume grid"):
-        subdivision_of(subdivided_grid(grid_of(cal, 1.0, half=7), 3, 3), grid)
+        working_factors(subdivided_grid(grid_of(cal, 1.0, half=7), 3, 3), grid)
     # a finer grid of the same box is a subdivision too
-    assert subdivision_of(subdivided_grid(grid_of(cal, 0.5), 2, 2), grid) == (4, 4)
+    assert working_factors(subdivided_grid(grid_of(cal, 0.5), 2, 2), grid) == (1, 4, 4)
 
 
 def test_box_merge_sums_and_gaussian_merge_keeps_total_and_position():

@@ -111,8 +111,10 @@ def test_full_camera_uses_the_lattice_projector_and_its_memory(auburn_camera):
                                   (-26 * MM, 26 * MM), voxel=0.26 * MM)
     # footprint voxels without subdivision: docs/performance.md, 3.5 GB peak for the 16 MP
     # pair
+    # (on the box's own 200 depth slices, as measured)
     p = planning.plan(auburn_camera, grid, memory_total=24e9,
-                      reconstruction=ReconstructionSettings(lateral_subdivision=1))
+                      reconstruction=ReconstructionSettings(lateral_subdivision=1,
+                                                            depth_binning=1))
     assert p.projector == "lattice" and p.decision.subdivision == (1, 1)
     assert p.nnz > 1e10               # docs/performance.md: 1.23e10 non-zeros, ~100 GB of CSR
     assert p.n_rays == pytest.approx(11.55e6, rel=0.03)
@@ -121,14 +123,23 @@ def test_full_camera_uses_the_lattice_projector_and_its_memory(auburn_camera):
     assert p.time_model.startswith("benchmark rates")
     # the default: a 3 x 3 subdivision would hold 100 million working voxels, so "auto"
     # takes 2 x 2 (45 million) and says so: 67 s and 6.0 GB a volume measured
-    auto = planning.plan(auburn_camera, grid, memory_total=24e9)
+    auto = planning.plan(auburn_camera, grid, memory_total=24e9,
+                         reconstruction=ReconstructionSettings(depth_binning=1))
     assert auto.decision.subdivision == (2, 2)
     assert p.memory["peak"] < auto.memory["peak"] < 8e9
     assert any("lateral_subdivision = 3" in w for w in auto.warnings)
+    # and by default on working slices three deep (a third of the 2.24 mm depth cell): the
+    # same lateral subdivision, a third of the slices, less time and memory
+    binned = planning.plan(auburn_camera, grid, memory_total=24e9)
+    assert binned.decision.subdivision == (2, 2) and binned.decision.depth_binning == 3
+    assert binned.decision.working_shape[0] == -(-grid.shape[0] // 3)
+    assert binned.time["volume"] < 0.5 * auto.time["volume"]
+    assert binned.memory["peak"] < auto.memory["peak"]
     # a 3 x 3 subdivision asked for: 7.1 GB peak and 385 s for the pair on a shared 2-core
     # machine (docs/performance.md#full-camera-scale)
     p = planning.plan(auburn_camera, grid, memory_total=24e9,
-                      reconstruction=ReconstructionSettings(lateral_subdivision=3))
+                      reconstruction=ReconstructionSettings(lateral_subdivision=3,
+                                                            depth_binning=1))
     assert p.projector == "lattice" and p.decision.subdivision == (3, 3)
     assert 6e9 < p.memory["peak"] < 15e9
     assert 200 < p.time["pair"] < 1000
@@ -262,7 +273,8 @@ def test_the_rehearsal_stands_only_for_the_reconstruction_it_rehearsed(small_cam
                               rates=dataclasses.replace(rates.BENCHMARK_RATES, rehearsal=reh))
     t = rehearsed.time
     assert t["weights"] == pytest.approx(1e-6 * choice.n_rays)
-    assert t["first_volume"] == pytest.approx(2e-9 * choice.n_rays * grid.shape[0])
+    # per working slice
+    assert t["first_volume"] == pytest.approx(2e-9 * choice.n_rays * choice.grid.shape[0])
     assert t["pair"] == pytest.approx(t["weights"] + t["recording_check"] + t["first_volume"]
                                       + 2 * t["volume"] + t["piv"] + t["track"])
     assert "rehearsed" in rehearsed.time_model

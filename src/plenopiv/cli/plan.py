@@ -241,8 +241,10 @@ def _decision_rows(p: dict, count) -> list[tuple[str, str]]:
     d = p["decision"]
     ky, kx = d["lateral_subdivision"]
     nz, ny, nx = d["working_shape"]
+    kz = d.get("depth_binning", 1)
+    binned = f", {kz} depth slices merged" if kz > 1 else ""
     return [("projector", f"{_PROJECTOR_NAMES[d['projector']]}, lateral subdivision "
-                          f"{ky} x {kx}: {nx} x {ny} x {nz} working voxels (x, y, z), "
+                          f"{ky} x {kx}{binned}: {nx} x {ny} x {nz} working voxels (x, y, z), "
                           f"~{_fmt(d['memory_gb'])} GB (what plenopiv reconstruct runs)"),
             ("", f"why: {d['reason']}"),
             ("size", f"{count(p['n_rays'])} rays; explicit weights on the working grid "

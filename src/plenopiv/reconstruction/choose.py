@@ -21,7 +21,7 @@ import numpy as np
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
-from plenopiv.camera.resolution import footprint
+from plenopiv.camera.resolution import footprint, resolution_cell
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
 from plenopiv.lightfield.rays import light_field_build_bytes
@@ -43,7 +43,8 @@ if TYPE_CHECKING:
 __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "SUBDIVIDED_VOXEL_FOOTPRINTS", "ProjectorFit",
            "ReconstructionChoice", "choose_projector", "choose_reconstruction",
            "estimate_matrix_free_gb", "estimate_nnz", "fit_projector", "lateral_subdivision",
-           "memory_budget_gb", "reconstruction_grid", "subdivided_grid", "subdivision_for",
+           "memory_budget_gb", "reconstruction_grid", "depth_binning", "depth_binning_for",
+           "BINNED_DEPTH_CELLS", "subdivided_grid", "subdivision_for",
            "wanted_subdivision", "MAX_AUTO_WORKING_VOXELS", "LENSLET_COST",
            "projector_cost", "model_projector_cost"]
 
@@ -59,6 +60,10 @@ SUBDIVIDED_VOXEL_FOOTPRINTS = 1 / 3
 #: the footprints, 67 s and 6.0 GB on a 2 x 2 subdivision (45 million working voxels), and
 #: more than 8 GB on a 3 x 3 one (docs/performance.md#full-camera-scale).
 MAX_AUTO_WORKING_VOXELS = 50_000_000
+
+#: Largest working depth slice of the ``"auto"`` depth binning, in depth resolution cells
+#: (:func:`~plenopiv.camera.resolution.resolution_cell`).
+BINNED_DEPTH_CELLS = 1 / 3
 
 #: Time per working voxel of the per-lenslet projector (a rotated, hexagonal or irregular
 #: lattice) against the separable lattice projector's: 2.8 times per volume on the 16 MP
@@ -142,23 +147,59 @@ def wanted_subdivision(footprint_m: float, voxel, setting: str | int) -> tuple[i
                  for d in (voxel[1], voxel[0]))
 
 
-def subdivided_grid(grid: VolumeGrid, ky: int, kx: int) -> VolumeGrid:
-    """``grid`` with every voxel cut into ``ky × kx`` laterally (same box, same depth)."""
+def depth_binning(calibration: Calibration, grid: VolumeGrid,
+                  settings: ReconstructionSettings) -> int:
+    """Depth slices of ``grid`` that one working slice of the reconstruction holds.
+
+    ``settings.depth_binning`` as given, or for ``"auto"`` :func:`depth_binning_for` the
+    depth resolution cell of the calibrated camera at ``settings.f_number``.
+    """
+    cell = resolution_cell(calibration.effective_camera, settings.f_number)[1]
+    return depth_binning_for(cell, grid, settings.depth_binning)
+
+
+def depth_binning_for(depth_cell_m: float, grid: VolumeGrid, setting: str | int) -> int:
+    """``kz`` of :func:`depth_binning` from the depth cell (m) and the ``[volume]`` grid.
+
+    ``"auto"``: the largest kz whose working slice is at most :data:`BINNED_DEPTH_CELLS` of
+    the depth cell (5 % slack, as the lateral subdivision's), never more slices than the
+    grid has. A reconstructed particle is about a depth cell long, so working slices of a
+    third of it sample it as the lateral working voxels of a third of a footprint sample
+    its width; finer slices cost time in proportion and resolve nothing more.
+    """
+    nz, dz = grid.shape[0], float(grid.voxel[2])
+    if setting != "auto":
+        return max(1, min(int(setting), nz))
+    k = math.floor(BINNED_DEPTH_CELLS * depth_cell_m / dz * 1.05)
+    return max(1, min(k, nz))
+
+
+def subdivided_grid(grid: VolumeGrid, ky: int, kx: int, kz: int = 1) -> VolumeGrid:
+    """``grid`` with every voxel cut into ``ky × kx`` laterally and ``kz`` slices merged.
+
+    The merged slices (``ceil(nz / kz)`` of them, ``kz`` times as deep) are centred on the
+    grid's depth range, which they overhang by less than half a merged slice at each end.
+    """
     dx, dy, dz = grid.voxel
     ox, oy, oz = grid.origin
     nz, ny, nx = grid.shape
-    return VolumeGrid((ox - 0.5 * dx + 0.5 * dx / kx, oy - 0.5 * dy + 0.5 * dy / ky, oz),
-                      (dx / kx, dy / ky, dz), (nz, ny * ky, nx * kx))
+    wz = -(-nz // kz)
+    centre = oz + 0.5 * (nz - 1) * dz
+    return VolumeGrid((ox - 0.5 * dx + 0.5 * dx / kx, oy - 0.5 * dy + 0.5 * dy / ky,
+                       centre - 0.5 * (wz - 1) * kz * dz if kz > 1 else oz),
+                      (dx / kx, dy / ky, dz * kz), (wz, ny * ky, nx * kx))
 
 
 def reconstruction_grid(calibration: Calibration, grid: VolumeGrid,
                         settings: ReconstructionSettings) -> VolumeGrid:
-    """The working grid of a reconstruction on ``grid`` (:func:`lateral_subdivision`).
+    """The working grid of a reconstruction on ``grid``: subdivided and binned.
 
-    The subdivision asked for; :attr:`ReconstructionChoice.grid` is the one a reconstruction
-    takes (coarser where that one would not fit in memory).
+    :func:`lateral_subdivision` and :func:`depth_binning`, as asked for;
+    :attr:`ReconstructionChoice.grid` is the one a reconstruction takes (coarser where that
+    one would not fit in memory).
     """
-    return subdivided_grid(grid, *lateral_subdivision(calibration, grid, settings))
+    return subdivided_grid(grid, *lateral_subdivision(calibration, grid, settings),
+                           depth_binning(calibration, grid, settings))
 
 
 @dataclass(frozen=True)
@@ -193,6 +234,9 @@ class ReconstructionChoice:
         only); a reconstruction warns with each.
     refusal : str or None
         Why a reconstruction refuses this grid (nothing allowed fits the budget), else None.
+    depth_binning : int
+        Depth slices of the ``[volume]`` grid merged into one working slice
+        (:func:`depth_binning`).
     """
 
     projector: str
@@ -205,6 +249,7 @@ class ReconstructionChoice:
     n_rays: int = 0
     fallbacks: tuple[str, ...] = ()
     refusal: str | None = None
+    depth_binning: int = 1
 
     @property
     def working_shape(self) -> tuple[int, int, int]:
@@ -224,6 +269,7 @@ class ReconstructionChoice:
     def to_dict(self) -> dict:
         """Plain JSON values; memory in bytes and GB."""
         return {"projector": self.projector, "lateral_subdivision": list(self.subdivision),
+                "depth_binning": int(self.depth_binning),
                 "working_shape": list(self.working_shape),
                 "memory_bytes": float(self.memory_bytes), "memory_gb": self.memory_bytes / 1e9,
                 "budget_bytes": float(self.budget_bytes), "reason": self.reason,
@@ -290,16 +336,18 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
         projector = "sparse"
         why = f"method = \"{settings.method}\" walks the rows of explicit weights"
     rays = _light_field_refusal(calibration, settings.f_number, budget)
+    kz = depth_binning(calibration, grid, settings)
     if rays is not None:
         ky, kx = lateral_subdivision(calibration, grid, settings)
-        return ReconstructionChoice(settings.projector, (ky, kx), subdivided_grid(grid, ky, kx),
-                                    rays[0], budget * 1e9, f"{why}: {rays[1]}", refusal=rays[1])
+        return ReconstructionChoice(settings.projector, (ky, kx),
+                                    subdivided_grid(grid, ky, kx, kz), rays[0], budget * 1e9,
+                                    f"{why}: {rays[1]}", refusal=rays[1], depth_binning=kz)
     n_rays = geometry.light_field.n_rays
     cost = projector_cost(geometry.separable_axes is not None)
     ky, kx = lateral_subdivision(calibration, grid, settings, cost=cost)
     fallbacks: list[str] = _size_fallbacks(calibration, grid, settings, (ky, kx), cost)
     while True:
-        work = geometry.on_grid(subdivided_grid(grid, ky, kx))
+        work = geometry.on_grid(subdivided_grid(grid, ky, kx, kz))
         separable = work.separable_axes is not None
         if projector == "auto" and (ky, kx) != (1, 1) and separable:
             # k² times the explicit weights otherwise: the lattice projector, in the budget
@@ -322,7 +370,7 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
     return ReconstructionChoice(
         fit.kind, (ky, kx), work.grid, fit.memory_gb * 1e9, budget * 1e9,
         _reason(fit, fit_why, budget, (ky, kx), fallbacks), nnz=fit.nnz, n_rays=n_rays,
-        fallbacks=tuple(fallbacks), refusal=fit.refusal)
+        fallbacks=tuple(fallbacks), refusal=fit.refusal, depth_binning=kz)
 
 
 def _size_fallbacks(calibration: Calibration, grid: VolumeGrid,

@@ -8,12 +8,14 @@ from pydantic import Field, StrictInt, field_validator
 
 from plenopiv.settings import settings
 
-__all__ = ["MAX_ITERATIONS", "MAX_SUBDIVISION", "ReconstructionSettings"]
+__all__ = ["MAX_DEPTH_BINNING", "MAX_ITERATIONS", "MAX_SUBDIVISION", "ReconstructionSettings"]
 
 #: More MART sweeps than this is refused: 10 is the default, a few hundred already converge.
 MAX_ITERATIONS = 10_000
 #: Largest lateral subdivision of the reconstruction grid (``lateral_subdivision``).
 MAX_SUBDIVISION = 4
+#: Most depth slices of the [volume] grid merged into one working slice (``depth_binning``).
+MAX_DEPTH_BINNING = 16
 
 
 @settings
@@ -54,6 +56,14 @@ class ReconstructionSettings:
         volume: 2 x 2, 67 s and 6.0 GB a volume on 2 cores; footprint voxels on a rotated
         array), and says so. A k that leaves working voxels of 0.75 footprint or wider is
         warned before a run (docs/methods.md#settings-judgement).
+    depth_binning : "auto" (default) | an int k >= 1. The reconstruction runs on depth slices
+        k times as deep as the [volume] grid's (centred on its depth range), and its volume
+        is resampled onto the grid's slices (a cubic interpolating spline in depth, the total
+        kept). "auto" takes the largest k whose working slice is at most a third of the depth
+        resolution cell (b S_o N / f_m; 5 % slack): a reconstructed particle is about one
+        cell long, so finer slices resolve nothing more and cost time and memory in
+        proportion (1 where the grid's slices are that deep already, 2-3 for cubic voxels a
+        footprint wide on the 16 MP camera; docs/methods.md#depth-binning).
     subdivision_kernel : how the working voxels return to the [volume] grid: "gaussian"
         (default): each voxel takes the working volume weighted by a Gaussian of σ = half a
         voxel about its centre, which keeps where a particle lies inside the voxel in the
@@ -78,6 +88,7 @@ class ReconstructionSettings:
     projector: Literal["auto", "sparse", "lattice"] = "auto"
     max_weights_gb: float | None = Field(None, gt=0, allow_inf_nan=False)
     lateral_subdivision: Literal["auto"] | StrictInt = Field("auto", union_mode="left_to_right")
+    depth_binning: Literal["auto"] | StrictInt = Field("auto", union_mode="left_to_right")
     subdivision_kernel: Literal["gaussian", "box"] = "gaussian"
     lattice_check: Literal["refuse", "correct", "off"] = "refuse"
     lattice_tolerance_px: float = Field(0.25, gt=0, allow_inf_nan=False)
@@ -88,6 +99,14 @@ class ReconstructionSettings:
         if v != "auto" and not (isinstance(v, int) and not isinstance(v, bool)
                                 and 1 <= v <= MAX_SUBDIVISION):
             raise ValueError(f"expected \"auto\" or an int from 1 to {MAX_SUBDIVISION}")
+        return v
+
+    @field_validator("depth_binning")
+    @classmethod
+    def _binning(cls, v):
+        if v != "auto" and not (isinstance(v, int) and not isinstance(v, bool)
+                                and 1 <= v <= MAX_DEPTH_BINNING):
+            raise ValueError(f"expected \"auto\" or an int from 1 to {MAX_DEPTH_BINNING}")
         return v
 
     @property

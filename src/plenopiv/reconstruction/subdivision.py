@@ -1,9 +1,10 @@
 """The way back from a reconstruction's working grid to the volume's grid.
 
 A reconstruction on a ``[volume]`` grid runs on voxels ``ky × kx`` times finer laterally
-(:func:`plenopiv.reconstruction.choose.lateral_subdivision`); :func:`merge_subdivided` returns
-its volume to the ``[volume]`` grid, :func:`subdivision_of` finds the subdivision of given
-weights.
+(:func:`plenopiv.reconstruction.choose.lateral_subdivision`) and slices ``kz`` times deeper
+(:func:`plenopiv.reconstruction.choose.depth_binning`); :func:`merge_subdivided` and
+:func:`unbin_depth` return its volume to the ``[volume]`` grid, :func:`working_factors` finds
+the factors of given weights, :func:`to_volume_grid` applies both.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.reconstruction.choose import subdivided_grid
 
-__all__ = ["merge_subdivided", "subdivision_of"]
+__all__ = ["merge_subdivided", "to_volume_grid", "unbin_depth", "working_factors"]
 
 
 
@@ -56,17 +57,69 @@ def merge_subdivided(volume, ky: int, kx: int, *, kernel: str = "gaussian") -> n
 
 
 
-def subdivision_of(work: VolumeGrid, grid: VolumeGrid) -> tuple[int, int]:
-    """``(ky, kx)`` when ``work`` is ``grid`` subdivided laterally, else ReconstructionError."""
+def unbin_depth(volume, kz: int, grid: VolumeGrid) -> np.ndarray:
+    """A volume on depth slices ``kz`` times as deep resampled onto ``grid``'s slices, float32.
+
+    ``volume`` is ``(ceil(nz / kz), ny, nx)`` on ``subdivided_grid(grid, 1, 1, kz)``'s
+    slices. Each of the grid's slices takes the cubic interpolating spline through the
+    working slices at its depth (linear through fewer than four; held at the outer working
+    slices beyond them), divided by ``kz`` so that the total is kept (a working voxel holds
+    the light of ``kz`` of the grid's); the spline's undershoot beside a peak is clipped at
+    zero. A particle's depth profile, about a depth cell long and sampled by at least three
+    working slices, is kept with its centre (unlike a piecewise-linear resampling, whose
+    peaks all lie on working slices).
+    """
+    from scipy.interpolate import make_interp_spline
+
+    v = np.asarray(volume, dtype=np.float32)
+    nz = grid.shape[0]
+    wz = v.shape[0]
+    if kz == 1:
+        return v
+    if wz != -(-nz // kz) or v.shape[1:] != tuple(grid.shape[1:]):
+        raise ValueError(f"volume of shape {v.shape} is not {grid.shape} binned by {kz} "
+                         "in depth")
+    # positions of the grid's slice centres in working slices
+    at = (np.arange(nz) - 0.5 * (nz - 1)) / kz + 0.5 * (wz - 1)
+    at = np.clip(at, 0.0, wz - 1.0)
+    if wz == 1:
+        return np.repeat(v / np.float32(kz), nz, axis=0)
+    spline = make_interp_spline(np.arange(wz, dtype=float), v.reshape(wz, -1),
+                                k=min(3, wz - 1), axis=0)
+    out = np.empty((nz, v.shape[1] * v.shape[2]), np.float32)
+    for i0 in range(0, nz, 16):        # a few slices at a time: float64 work arrays stay small
+        out[i0:i0 + 16] = spline(at[i0:i0 + 16])
+    np.maximum(out, 0.0, out=out)
+    out *= np.float32(1.0 / kz)
+    return out.reshape(grid.shape)
+
+
+def to_volume_grid(volume, work: VolumeGrid, grid: VolumeGrid, *,
+                   kernel: str = "gaussian") -> np.ndarray:
+    """The working grid's volume on ``grid``: laterally merged, then resampled in depth."""
+    kz, ky, kx = working_factors(work, grid)
+    v = np.asarray(volume, dtype=np.float32).reshape(work.shape)
+    if ky > 1 or kx > 1:
+        v = merge_subdivided(v, ky, kx, kernel=kernel)
+    return unbin_depth(v, kz, grid) if kz > 1 else v
+
+
+def working_factors(work: VolumeGrid, grid: VolumeGrid) -> tuple[int, int, int]:
+    """``(kz, ky, kx)`` when ``work`` is ``subdivided_grid(grid, ky, kx, kz)``.
+
+    ReconstructionError otherwise: weights built for another grid.
+    """
     nz, ny, nx = grid.shape
     wz, wy, wx = work.shape
-    if wz == nz and wy % ny == 0 and wx % nx == 0:
+    kz = int(round(float(work.voxel[2]) / float(grid.voxel[2])))
+    if kz >= 1 and wz == -(-nz // kz) and wy % ny == 0 and wx % nx == 0:
         ky, kx = wy // ny, wx // nx
-        expect = subdivided_grid(grid, ky, kx)
+        expect = subdivided_grid(grid, ky, kx, kz)
         scale = max(grid.voxel)
         if (np.allclose(expect.origin, work.origin, rtol=0, atol=1e-9 * scale)
                 and np.allclose(expect.voxel, work.voxel, rtol=1e-9, atol=0)):
-            return ky, kx
+            return kz, ky, kx
     raise ReconstructionError("the given weights were built for another volume grid (neither "
-                              "the volume's grid nor a lateral subdivision of it)")
+                              "the volume's grid nor a lateral subdivision or depth binning "
+                              "of it)")
 

@@ -152,7 +152,8 @@ class Plan:
         if d is None:
             return {}
         return {"decision": d.to_dict(), "lateral_subdivision": list(d.subdivision),
-                "working_shape": list(d.working_shape), "projector_kind": d.projector}
+                "depth_binning": int(d.depth_binning), "working_shape": list(d.working_shape),
+                "projector_kind": d.projector}
 
     def to_dict(self) -> dict:
         """Plain JSON values; lengths in mm, memory in GB, times in s."""
@@ -436,7 +437,7 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
     reh = _rehearsal_of(rates, choice, iterations)
     if reh is not None:
         # the reconstruction itself, rehearsed on a patch of the camera
-        ray_slices = n_rays * grid.shape[0]
+        ray_slices = n_rays * choice.grid.shape[0]      # the working grid's slices
         t_weights = reh.weights_s_per_ray * n_rays
         t_volume = reh.volume_s_per_ray_slice * ray_slices
         t_first = reh.first_s_per_ray_slice * ray_slices
@@ -450,7 +451,7 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
             LENSLET_COST_RATIO if choice.projector == "lenslet" else 1.0)
         # the rate's voxels cut as the rate was measured; another cut scaled by its area
         (ky, kx), (my, mx) = choice.subdivision, rates.lattice_subdivision
-        t_volume = (ray_slice * n_rays * grid.shape[0] * (ky * kx) / (my * mx)
+        t_volume = (ray_slice * n_rays * choice.grid.shape[0] * (ky * kx) / (my * mx)
                     + rates.lattice_s_per_call) * sweeps
     t_volume += 5e-8 * grid.n_voxels             # particle detection
     t_volume += SECONDS_PER_RAY_PARTICLE_FIT * n_rays   # their positions from the light field

@@ -27,7 +27,7 @@ from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.geometry import ProjectionGeometry
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.solve import solve_volume
-from plenopiv.reconstruction.subdivision import merge_subdivided, subdivision_of
+from plenopiv.reconstruction.subdivision import to_volume_grid, working_factors
 from plenopiv.reconstruction.weights import Weights
 
 Progress = Callable[[str, float], None] | None
@@ -132,7 +132,9 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     geometry = weights.geometry
     if geometry is None:        # weights made without one: the rays of these settings
         geometry = ProjectionGeometry.for_settings(calibration, weights.grid, settings)
-    ky, kx = (1, 1) if weights.grid == grid else subdivision_of(weights.grid, grid)
+    on_grid = weights.grid == grid
+    if not on_grid:
+        working_factors(weights.grid, grid)      # refuses weights of another grid
     if weights.matrix_free and settings.method != "smart":
         raise ReconstructionError(
             f"[reconstruction] method = {settings.method!r} walks the rows of explicit weights; "
@@ -147,8 +149,8 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
                        callback=None if progress is None else report,
                        footprint=footprint(calibration.effective_camera), solver=solver,
                        solver_options=solver_options)
-    if ky > 1 or kx > 1:            # the working voxels back onto the volume's grid
-        vol = merge_subdivided(vol, ky, kx, kernel=settings.subdivision_kernel)
+    if not on_grid:            # the working voxels back onto the volume's grid
+        vol = to_volume_grid(vol, weights.grid, grid, kernel=settings.subdivision_kernel)
     t["mart_s"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     if progress is not None:
