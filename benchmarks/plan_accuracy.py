@@ -83,7 +83,7 @@ def _full_camera_case(geometry: str):
     from full_camera import full_case
 
     args = argparse.Namespace(geometry=geometry, lenslets=None, seed=1, displacement_vox=3.0,
-                              grid_offset_vox=(0.37, 0.21))
+                              grid_offset_vox=(0.37, 0.21), voxel_depth_factor=1.0)
     _cam, cal, _case, grid, _box, _flow = full_case(args)
     return cal, grid
 
@@ -144,9 +144,11 @@ def peak_memory(name: str, image_path: Path) -> dict:
 
 def _child(role: str, name: str, image_path: Path) -> dict:
     """Run ``role`` ("time" or "memory") of a case in a fresh process; its figures."""
-    out = subprocess.run([sys.executable, __file__, "--child", role, name, str(image_path)],
-                         check=True, capture_output=True, text=True).stdout
-    return json.loads(out.strip().splitlines()[-1])
+    run = subprocess.run([sys.executable, __file__, "--child", role, name, str(image_path)],
+                         capture_output=True, text=True)
+    if run.returncode != 0:
+        raise RuntimeError(f"the {role} run of {name} failed:\n{run.stderr[-3000:]}")
+    return json.loads(run.stdout.strip().splitlines()[-1])
 
 
 def run_case(name: str) -> dict:

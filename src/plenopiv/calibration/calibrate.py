@@ -205,7 +205,7 @@ def calibrate(camera: CameraModel, focal_point_image, *, alignment_image=None,
     # 1. focal spots; 2. the lenslets (alignment or nominal) and their spots; 3. the fit
     spots, lat = spot_lattice(fp, camera, "the focal-point image", **options)
     lenslets = _lenslets(camera, alignment_image, spots, dark_frame, flat, options)
-    scale = focal_spot_scale(float(np.mean(lat.pitch_px)), lenslets.pitch_px,
+    scale = focal_spot_scale(lat.lenslet_pitch_px, lenslets.pitch_px,
                              _lenslets_from(camera, lenslets))
     lenslets = lenslets_on_sensor(lenslets, scale, shape)   # spots cut by the edge: predicted
     focal_px = lat.corrected_centres_px
@@ -441,7 +441,7 @@ def _magnification(camera, ruler_image, lat: Lattice, spacing, axis,
     shape = camera.sensor.shape
     img = dark_frame.subtract(check_image(ruler_image, shape=shape, name="ruler image"),
                               patch=True)
-    pitch_px = float(np.mean(lat.pitch_px))
+    pitch_px = lat.lenslet_pitch_px
     integ = lenslet_integral_image(img, lat.centres_px, lat.grid_index, pitch_px)
     if axis == "y":
         integ = integ.T

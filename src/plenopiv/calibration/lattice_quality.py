@@ -86,7 +86,7 @@ def check_lattice(lattice, *, what="the image", max_rms_residual_pitch=MAX_RMS_R
         Naming what was found, its value and the threshold.
     """
     q = lattice.quality
-    pitch = float(np.mean(q["pitch_px"]))
+    pitch = float(q["lenslet_pitch_px"])
     if min_on_lattice_fraction is not None and \
             q["on_lattice_fraction"] < min_on_lattice_fraction:
         raise not_a_lattice(what, q["on_lattice_fraction"], q["n_spots"] - q["n_edge"],

@@ -164,7 +164,7 @@ def lenslet_centres(camera: CameraModel, alignment_image=None, *, dark=None, fla
                               hot_pixel_shapes=False, **lattice_options)
     ok = lat.inlier & ((lat.flags & SpotFlag.EDGE) == 0)
     return LensletCentres(lat.best_centres_px[ok], lat.grid_index[ok], "alignment image",
-                          float(np.mean(lat.pitch_px)), lat, spots)
+                          lat.lenslet_pitch_px, lat, spots)
 
 
 def focal_spot_scale(focal_pitch_px: float, lenslet_pitch_px: float,
@@ -365,7 +365,7 @@ def measure_white_image(camera: CameraModel, white_image, image_distance: float,
     complete = (w_lat.flags & SpotFlag.EDGE) == 0
     black = float(np.percentile(wh, 1.0))
     measured = micro_image_diameter(wh - black, w_lat.predict(w_lat.grid_index[complete]),
-                                    float(np.mean(w_lat.pitch_px)))
+                                    w_lat.lenslet_pitch_px)
     n_f = camera.main_lens.f_number
     model = micro_image_diameter_px(camera, image_distance, n_f)
     return {"micro_image_diameter_px": measured, "modelled_diameter_px": model,

@@ -396,7 +396,7 @@ class Lattice:
         if not complete.any():
             return 1.0
         r = np.hypot(*self.residual_px[complete].T)
-        return float(np.mean(r <= ON_LATTICE_RADIUS * float(np.mean(self.pitch_px))))
+        return float(np.mean(r <= ON_LATTICE_RADIUS * self.lenslet_pitch_px))
 
     @property
     def lenslet_contrast(self):
@@ -430,6 +430,19 @@ class Lattice:
         spacing, about ``sqrt(3) / 2`` of it.
         """
         return np.hypot(self.basis[:, 0], self.basis[:, 1])
+
+    @property
+    def lenslet_pitch_px(self) -> float:
+        """The distance between neighbouring lenslets, px.
+
+        The mean of :attr:`pitch_px` on a square grid; on a hexagonal one the mean of the
+        column pitch and the row spacing over sqrt(3)/2 (both the lenslet pitch), not the
+        mean of the two spacings, which is 7 % short of it.
+        """
+        p = self.pitch_px
+        if self.grid == "hexagonal":
+            return float(0.5 * (p[1] + p[0] * 2.0 / math.sqrt(3.0)))
+        return float(np.mean(p))
 
     @property
     def rotation_rad(self):
@@ -479,7 +492,8 @@ class Lattice:
 
         Keys: ``grid``; ``pitch_px`` (rows, cols); ``rotation_rad``; ``shear_deg`` (the row
         step's departure from perpendicular); ``rms_residual_px`` and ``rms_residual_pitch``
-        (the same over the mean pitch); ``n_spots``, ``n_fitted`` (inliers), ``n_edge``,
+        (the same over the lenslet pitch, ``lenslet_pitch_px``: :attr:`lenslet_pitch_px`);
+        ``n_spots``, ``n_fitted`` (inliers), ``n_edge``,
         ``n_off_lattice``, ``n_outliers``; ``n_missing`` and ``missing_fraction``;
         ``phase_bias_px``, the largest fitted sub-pixel phase bias (0 when none was fitted);
         ``on_lattice_fraction`` (:attr:`on_lattice_fraction`), ``scatter_px``, the lenslets'
@@ -493,10 +507,11 @@ class Lattice:
         return {
             "grid": self.grid,
             "pitch_px": [float(v) for v in pitch],
+            "lenslet_pitch_px": self.lenslet_pitch_px,
             "rotation_rad": self.rotation_rad,
             "shear_deg": math.degrees(self.shear_rad),
             "rms_residual_px": self.rms_residual_px,
-            "rms_residual_pitch": self.rms_residual_px / float(np.mean(pitch)),
+            "rms_residual_pitch": self.rms_residual_px / self.lenslet_pitch_px,
             "n_spots": len(self.centres_px),
             "n_fitted": int(np.count_nonzero(self.inlier)),
             "n_edge": int(np.count_nonzero(f & SpotFlag.EDGE)),

@@ -122,7 +122,7 @@ def _lattice_detail(ax, report, image) -> None:
     """The image's centre with the measured spots and the fitted lattice over it."""
     lat = report.focal_lattice
     r0, c0 = (np.array(image.shape) // 2).astype(int)
-    h = int(4 * np.mean(lat.pitch_px))
+    h = int(4 * lat.lenslet_pitch_px)
     crop = np.asarray(image, float)[r0 - h:r0 + h, c0 - h:c0 + h]
     ax.imshow(crop, cmap="gray", extent=(c0 - h - 0.5, c0 + h - 0.5, r0 + h - 0.5, r0 - h - 0.5))
     sel = (np.abs(lat.centres_px[:, 0] - r0) < h) & (np.abs(lat.centres_px[:, 1] - c0) < h)
@@ -130,7 +130,7 @@ def _lattice_detail(ax, report, image) -> None:
     pred = lat.predict(lat.grid_index[sel])
     ax.plot(pred[:, 1], pred[:, 0], "c.", ms=4, label="fitted lattice")
     ax.legend(loc="upper right", fontsize=8)
-    ax.set_title(f"{lat.grid} lattice, pitch {np.mean(lat.pitch_px):.4f} px, "
+    ax.set_title(f"{lat.grid} lattice, pitch {lat.lenslet_pitch_px:.4f} px, "
                  f"rotation {lat.rotation_rad * 1e3:.3f} mrad")
 
 
