@@ -58,7 +58,10 @@ SUBDIVIDED_VOXEL_FOOTPRINTS = 1 / 3
 #: reconstruction's time and memory grow with the working voxels: the 16 MP camera's full
 #: volume (287 x 193 x 201 footprint voxels) takes 43 s and 4.6 GB a volume on 2 cores on
 #: the footprints, 67 s and 6.0 GB on a 2 x 2 subdivision (45 million working voxels), and
-#: more than 8 GB on a 3 x 3 one (docs/performance.md#full-camera-scale).
+#: more than 8 GB on a 3 x 3 one (docs/performance.md#full-camera-scale). Counted on the
+#: grid's own depth slices, before :func:`depth_binning`: the binning's saving is kept as
+#: time, not spent on a finer lateral cut (which would cost more than it saves on a rotated
+#: array).
 MAX_AUTO_WORKING_VOXELS = 50_000_000
 
 #: Largest working depth slice of the ``"auto"`` depth binning, in depth resolution cells
@@ -383,7 +386,8 @@ def _size_fallbacks(calibration: Calibration, grid: VolumeGrid,
         return []
     per = "" if cost == 1.0 else f" at {cost:g} times the cost of the lattice projector's"
     return [f"lateral_subdivision = \"auto\": a {wanted[0]} x {wanted[1]} subdivision would "
-            f"make {grid.n_voxels * wanted[0] * wanted[1] / 1e6:.3g} million working voxels"
+            f"make {grid.n_voxels * wanted[0] * wanted[1] / 1e6:.3g} million working voxels "
+            "on the grid's depth slices"
             f"{per} (at most {MAX_AUTO_WORKING_VOXELS / 1e6:.3g} million: the "
             f"reconstruction's time and memory grow with them); taking {taken[0]} x "
             f"{taken[1]}. Depth motion is then less resolved (w gain lower); set "
