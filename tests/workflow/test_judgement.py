@@ -233,3 +233,23 @@ def test_reconstruct_piv_run_and_plan_say_the_same_findings(tmp_path, capsys):
         assert list(fh.attrs["window_vox"]) == [4, 12, 12]
     assert _settings_figures(record) == figures
     assert "seeding" in {f["kind"] for f in record["findings"]}
+
+
+@pytest.mark.parametrize(("voxel", "binning"), [(0.556, "auto"), (0.25, "auto"), (0.13, "auto"),
+                                                (0.25, 1), (0.13, 2)])
+def test_the_judgement_plan_and_reconstruction_record_the_same_depth_binning(voxel, binning):
+    """What the products record, what plan reports and what the reconstruction builds: one
+    depth binning, whatever the depth voxel typed."""
+    from plenopiv.calibration.model import Calibration
+    from plenopiv.reconstruction.choose import choose_reconstruction
+
+    exp, _, _, j = judged(example(volume={"voxel_mm": [0.13, 0.13, voxel]},
+                                  reconstruction={"depth_binning": binning}))
+    built = choose_reconstruction(Calibration.from_camera(exp.camera), exp.volume,
+                                  exp.reconstruction).depth_binning
+    p = planning.plan(exp.camera, exp.volume, reconstruction=exp.reconstruction, piv=exp.piv)
+    assert j.record()["depth_binning"] == built
+    assert p.judgement().record()["depth_binning"] == built
+    assert p.to_dict()["depth_binning"] == built
+    if binning == "auto":       # a third of the 2.24 mm depth cell
+        assert built == max(1, int(2.237 / 3 / voxel * 1.05))

@@ -125,13 +125,14 @@ def _judgement(volume_a, exp, settings, changes: dict, va, vb):
         judge,
     )
 
-    cam, sub = None, None
+    cam, sub, kz = None, None, None
     recorded = volume_attribute(volume_a, JUDGEMENT)
     if recorded:
         rec = json.loads(recorded)
         cam = None if rec.get("camera") is None else Camera.from_dict(rec["camera"])
         sub = None if rec.get("lateral_subdivision") is None else tuple(
             rec["lateral_subdivision"])
+        kz = rec.get("depth_binning")
     elif exp is not None:
         try:
             cam = camera_resolution(exp.camera, exp.reconstruction.f_number)
@@ -142,6 +143,6 @@ def _judgement(volume_a, exp, settings, changes: dict, va, vb):
                                     given | {f"piv.{k}" for k in changes})
     n = 0.5 * (len(va.particle_position) + len(vb.particle_position))
     found = judge(cam, va.grid, None, settings, subdivision=sub, n_particles=n)
-    judged = Judgement(cam, va.grid, chosen + found, sub, n)
+    judged = Judgement(cam, va.grid, chosen + found, sub, n, depth_binning=kz)
     report(judged.findings)
     return settings, judged

@@ -24,7 +24,7 @@ from plenopiv.products.caches import (
 from plenopiv.reconstruction.choose import choose_projector, choose_reconstruction
 from plenopiv.reconstruction.geometry import ProjectionGeometry, check_grid_in_view
 from plenopiv.reconstruction.projector import SparseProjector
-from plenopiv.reconstruction.real_lattice import matrix_free_projector
+from plenopiv.reconstruction.real_lattice import LensletProjector, matrix_free_projector
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import Weights, build_weights
 
@@ -78,8 +78,10 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
     if not load:
         return None, False
     lf = work.light_field
-    return Weights(matrix_free_projector(lf, work.grid), lf.pixel, work.grid, work.key(1e-7),
-                   work), False
+    # the choice knows the lattice: a turned one is not tried on the separable projector
+    proj = (LensletProjector.from_light_field(lf, work.grid) if choice.projector == "lenslet"
+            else matrix_free_projector(lf, work.grid))
+    return Weights(proj, lf.pixel, work.grid, work.key(1e-7), work), False
 
 
 

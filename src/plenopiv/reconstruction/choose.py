@@ -429,7 +429,10 @@ def _reason(fit, why: str, budget: float, subdivision, fallbacks) -> str:
         text = (f"{why}: {names[fit.kind]}, ~{fit.memory_gb:.3g} GB of the {budget:.3g} GB "
                 "allowed")
     if fallbacks:
-        text += f" on a {subdivision[0]} x {subdivision[1]} subdivision (finer ones do not fit)"
+        why_not = ("finer ones do not fit" if any("do not fit" in f for f in fallbacks) else
+                   f"finer ones exceed {MAX_AUTO_WORKING_VOXELS / 1e6:.3g} million working "
+                   "voxels")
+        text += f" on a {subdivision[0]} x {subdivision[1]} subdivision ({why_not})"
     return text
 
 

@@ -22,6 +22,7 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import CameraModel
 from plenopiv.piv.settings import MIN_WINDOW_VOX, PIVSettings
 from plenopiv.reconstruction.choose import (
+    depth_binning_for,
     model_projector_cost,
     subdivision_for,
     wanted_subdivision,
@@ -560,7 +561,8 @@ class Judgement:
     """The findings on one reconstruction or pair, and what they were judged on.
 
     ``camera``: the resolution (None where unknown); ``subdivision``: the reconstruction's
-    lateral subdivision; ``n_particles``: particles found (one volume, or a pair's mean).
+    lateral subdivision; ``n_particles``: particles found (one volume, or a pair's mean);
+    ``depth_binning``: the grid's depth slices per working slice.
     """
 
     camera: Camera | None
@@ -568,6 +570,7 @@ class Judgement:
     findings: tuple[Finding, ...] = ()
     subdivision: tuple[int, int] | None = None
     n_particles: float | None = None
+    depth_binning: int | None = None
 
     @property
     def warnings(self) -> tuple[Finding, ...]:
@@ -595,6 +598,7 @@ class Judgement:
                 "camera": None if cam is None else cam.to_dict(),
                 "lateral_subdivision": None if self.subdivision is None else
                 list(self.subdivision),
+                "depth_binning": self.depth_binning,
                 "lenslets_in_box": lenslets, "n_particles": self.n_particles,
                 "particles_per_lenslet": ppl}
 
@@ -619,5 +623,8 @@ def judge_experiment(experiment: Experiment, cam: Camera | None, *,
     sub = (None if cam is None else
            subdivision_for(cam.footprint, experiment.volume, rec.lateral_subdivision,
                            cost=cam.projector_cost))
+    kz = (None if cam is None else
+          depth_binning_for(cam.depth_cell, experiment.volume, rec.depth_binning))
     found = judge(cam, experiment.volume, rec, piv, subdivision=sub, purpose=purpose)
-    return experiment, Judgement(cam, experiment.volume, chosen + found, sub)
+    return experiment, Judgement(cam, experiment.volume, chosen + found, sub,
+                                 depth_binning=kz)

@@ -144,7 +144,8 @@ class Plan:
         n = (None if self.seeding is None
              else self.seeding * lenslets_in_box(self.camera, self.grid))
         sub = None if self.decision is None else self.decision.subdivision
-        return Judgement(self.camera, self.grid, self.findings, sub, n)
+        kz = None if self.decision is None else int(self.decision.depth_binning)
+        return Judgement(self.camera, self.grid, self.findings, sub, n, depth_binning=kz)
 
     def _decision_dict(self) -> dict:
         """The reconstruction's decision (:class:`ReconstructionChoice`) as plan reports it."""
