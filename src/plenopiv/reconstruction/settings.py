@@ -93,20 +93,13 @@ class ReconstructionSettings:
     lattice_check: Literal["refuse", "correct", "off"] = "refuse"
     lattice_tolerance_px: float = Field(0.25, gt=0, allow_inf_nan=False)
 
-    @field_validator("lateral_subdivision")
+    @field_validator("lateral_subdivision", "depth_binning")
     @classmethod
-    def _subdivision(cls, v):
+    def _auto_or_count(cls, v, info):
+        most = MAX_SUBDIVISION if info.field_name == "lateral_subdivision" else MAX_DEPTH_BINNING
         if v != "auto" and not (isinstance(v, int) and not isinstance(v, bool)
-                                and 1 <= v <= MAX_SUBDIVISION):
-            raise ValueError(f"expected \"auto\" or an int from 1 to {MAX_SUBDIVISION}")
-        return v
-
-    @field_validator("depth_binning")
-    @classmethod
-    def _binning(cls, v):
-        if v != "auto" and not (isinstance(v, int) and not isinstance(v, bool)
-                                and 1 <= v <= MAX_DEPTH_BINNING):
-            raise ValueError(f"expected \"auto\" or an int from 1 to {MAX_DEPTH_BINNING}")
+                                and 1 <= v <= most):
+            raise ValueError(f"expected \"auto\" or an int from 1 to {most}")
         return v
 
     @property
