@@ -17,7 +17,8 @@ PACKAGE = Path(plenopiv.__file__).resolve().parent
 STAGES = ("camera", "synthetic", "calibration", "preprocess", "lightfield", "reconstruction",
           "particles", "piv", "tracking")
 #: What every stage may import besides the stages before it.
-SHARED = ("errors", "conventions", "settings", "products", "resources", "_threads")
+SHARED = ("errors", "conventions", "settings", "products", "resources", "_threads",
+          "_median")
 #: The layers that compose the stages; no stage imports them.
 COMPOSING = ("workflow", "batch", "cli", "config")
 

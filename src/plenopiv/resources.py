@@ -43,6 +43,44 @@ def prefer_small_pages() -> bool:
     return bool(_set_madvise_hugepage(False))
 
 
+#: glibc ``mallopt`` parameters (malloc.h).
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+#: Free memory at the top of the heap kept for reuse rather than handed back, bytes.
+KEEP_FREED_BYTES = 1 << 30
+
+
+def reuse_freed_memory() -> bool:
+    """Let this process reuse the memory it frees instead of handing it back at once.
+
+    glibc serves every allocation above 32 MB (an image's rays, a volume's slabs) by a fresh
+    ``mmap`` and returns it on ``free``, so the next array of that size faults in again page
+    by page: about 5 million faults and a quarter of the wall time of a full-size
+    ``plenopiv reconstruct`` (docs/performance.md). Here large arrays come from the heap, and
+    up to :data:`KEEP_FREED_BYTES` of freed memory at its top is kept; the peak resident size
+    stays that of the largest working set. Called where :func:`prefer_small_pages` is; a
+    ``MALLOC_MMAP_MAX_`` or ``MALLOC_TRIM_THRESHOLD_`` in the environment is the user's
+    choice and is left alone; no change on a C library without ``mallopt`` (not glibc).
+
+    Returns
+    -------
+    bool
+        True when the allocator's settings were changed by this call.
+    """
+    if any(k in os.environ for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_")):
+        return False
+    import ctypes
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):                   # pragma: no cover - no mallopt
+        return False
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    return bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, KEEP_FREED_BYTES))
+
+
 def available_memory() -> int:
     """Memory available to this process now, bytes (``MemAvailable``; else physical)."""
     try:

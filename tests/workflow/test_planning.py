@@ -171,6 +171,7 @@ def test_cli_plan_experiment_human_and_json(tmp_path, capsys):
                  "voxel_mm = [0.13, 0.13, 0.556]"):
         assert text in out
     assert "np.float64" not in out and "e-1" not in out
+    assert "the first 0 s more" not in out      # not rehearsed: the first volume's extra unknown
     assert main(["plan", str(exp), "--no-measure", "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["command"] == "plan" and s["kind"] == "experiment"

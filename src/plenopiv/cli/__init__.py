@@ -51,7 +51,7 @@ from plenopiv.errors import (
 )
 from plenopiv.products.jsonio import to_json
 from plenopiv.products.locks import output_locks
-from plenopiv.resources import prefer_small_pages
+from plenopiv.resources import prefer_small_pages, reuse_freed_memory
 
 __all__ = ["build_parser", "main"]
 
@@ -233,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     prefer_small_pages()            # the command owns its process (resources.prefer_small_pages)
+    reuse_freed_memory()
     as_json = "--json" in argv
     command = _command_of(argv)
     warned: list[str] = []

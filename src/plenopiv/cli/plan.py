@@ -203,8 +203,10 @@ def print_summary(p: dict) -> None:
     t = p["time_s"]
     rows.append(("time", f"weights {_fmt(t['weights'])} s"
                          + (" (once, then cached)" if sparse else "") + ", one volume "
-                         f"{_fmt(t['volume'])} s (the first {_fmt(t['first_volume'])} s more), "
-                         "the recording's check "
+                         f"{_fmt(t['volume'])} s"
+                         + (f" (the first {_fmt(t['first_volume'])} s more)"
+                            if t["first_volume"] > 0 else "")
+                         + ", the recording's check "
                          f"{_fmt(t['recording_check'])} s, PIV {_fmt(t['piv'])} s, "
                          f"the pair's tracks {_fmt(t.get('track', 0.0))} s; "
                          f"plenopiv reconstruct {_fmt(t['reconstruct'])} s, a pair "

@@ -12,6 +12,8 @@ import math
 import numpy as np
 from numba import njit
 
+from plenopiv._median import small_median
+
 
 @njit(cache=True)
 def label_micro_images(centres, base, half, reach2, label, dist2):
@@ -122,11 +124,7 @@ def neighbour_stats(image, label, use, which, radius, maximum, median, count, lo
                 median[r, c] = math.nan
                 continue
             maximum[r, c] = top
-            s = np.sort(buf[:n])
-            if n % 2 == 1:
-                median[r, c] = s[n // 2]
-            else:
-                median[r, c] = 0.5 * (s[n // 2 - 1] + s[n // 2])
+            median[r, c] = small_median(buf, n)     # no array per pixel
 
 
 def neighbour_stats_numpy(image, label, use, which, radius, maximum, median, count, lo, hi):

@@ -13,23 +13,7 @@ import numba
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-
-@numba.njit(cache=True)
-def _small_median(a, n):
-    """Median of ``a[:n]`` (n >= 1), sorting ``a[:n]`` in place.
-
-    An insertion sort of at most 26 values, which compiles in a fraction of the time of
-    ``np.median``.
-    """
-    for i in range(1, n):
-        v = a[i]
-        j = i - 1
-        while j >= 0 and a[j] > v:
-            a[j + 1] = a[j]
-            j -= 1
-        a[j + 1] = v
-    h = n // 2
-    return a[h] if n % 2 else 0.5 * (a[h - 1] + a[h])
+from plenopiv._median import small_median
 
 
 @numba.njit(cache=True)
@@ -64,11 +48,11 @@ def neighbour_median(field, usable):
                             count += 1
             if count == 0:
                 continue
-            med = _small_median(values, count)
+            med = small_median(values, count)
             for q in range(count):
                 dev[q] = abs(values[q] - med)
             median[c, i, j, m] = med
-            residual[c, i, j, m] = _small_median(dev, count)
+            residual[c, i, j, m] = small_median(dev, count)
     return median, residual
 
 
