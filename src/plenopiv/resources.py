@@ -46,7 +46,7 @@ def prefer_small_pages() -> bool:
 #: glibc ``mallopt`` parameters (malloc.h).
 _M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
 #: Free memory at the top of the heap kept for reuse rather than handed back, bytes.
-KEEP_FREED_BYTES = 1 << 30
+KEEP_FREED_BYTES = 256 << 20
 
 
 def reuse_freed_memory() -> bool:
@@ -56,10 +56,12 @@ def reuse_freed_memory() -> bool:
     ``mmap`` and returns it on ``free``, so the next array of that size faults in again page
     by page: about 5 million faults and a quarter of the wall time of a full-size
     ``plenopiv reconstruct`` (docs/performance.md). Here large arrays come from the heap, and
-    up to :data:`KEEP_FREED_BYTES` of freed memory at its top is kept; the peak resident size
-    stays that of the largest working set. Called where :func:`prefer_small_pages` is; a
-    ``MALLOC_MMAP_MAX_`` or ``MALLOC_TRIM_THRESHOLD_`` in the environment is the user's
-    choice and is left alone; no change on a C library without ``mallopt`` (not glibc).
+    up to :data:`KEEP_FREED_BYTES` of freed memory at its top is kept for the next ones: it
+    stays resident, so a peak may grow by about that much (1 GB kept added 0.5 GB to the
+    full-size benchmark's peak; 256 MB adds 0.08 GB and keeps most of the time saved).
+    Called where :func:`prefer_small_pages` is; a ``MALLOC_MMAP_MAX_`` or
+    ``MALLOC_TRIM_THRESHOLD_`` in the environment is the user's choice and is left alone;
+    no change on a C library without ``mallopt`` (not glibc).
 
     Returns
     -------
