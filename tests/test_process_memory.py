@@ -51,3 +51,28 @@ def test_an_allocator_setting_in_the_environment_is_the_users(monkeypatch):
     changed, faults = _faults("on", env)
     assert not changed
     assert faults > 0.5 * 9 * (1 << 26) // 4096
+
+
+_HOLE = """
+import numpy as np
+from plenopiv.resources import prefer_small_pages, release_freed_memory, reuse_freed_memory
+prefer_small_pages()
+reuse_freed_memory()
+def rss():
+    return int(open("/proc/self/status").read().split("VmRSS:")[1].split()[0]) * 1024
+big = np.ones(50 << 20, np.float32)         # 200 MB from the heap
+above = np.ones(1 << 20, np.float32)        # 4 MB above it: the freed 200 MB become a hole
+del big
+held = rss()
+release_freed_memory()
+print(held - rss())
+"""
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="malloc_trim is glibc's")
+def test_a_stage_hands_back_the_holes_earlier_stages_left():
+    """Reused memory stays in the heap, holes included; a stage of several GB first hands
+    them back, so that they add nothing to its peak."""
+    out = subprocess.run([sys.executable, "-c", _HOLE], capture_output=True, text=True,
+                         check=True).stdout
+    assert int(out.split()[-1]) > 0.9 * (200 << 20)

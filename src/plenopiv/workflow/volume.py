@@ -111,11 +111,11 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     made for a calibration the caller has checked (:class:`~plenopiv.workflow.pair.
     PairProcessor` checks a pair's mean once).
     """
-    from plenopiv.resources import check_grid
+    from plenopiv.resources import check_grid, release_freed_memory
 
-    t = {}
-    t0 = time.perf_counter()
+    t, t0 = {}, time.perf_counter()
     check_grid(grid)
+    release_freed_memory()          # the holes earlier stages left add nothing to this peak
     if checked:
         img = np.asarray(image, dtype=np.float64)
         if img.shape != tuple(calibration.camera.sensor.shape):
