@@ -17,7 +17,14 @@ import resource, sys
 import numpy as np
 from plenopiv.resources import prefer_small_pages, reuse_freed_memory
 prefer_small_pages()
-changed = reuse_freed_memory() if sys.argv[1] == "on" else False
+if sys.argv[1] == "command":             # the plenopiv command sets its own process up
+    import contextlib, io
+    from plenopiv.cli import main
+    with contextlib.redirect_stdout(io.StringIO()):
+        main(["presets"])
+    changed = True
+else:
+    changed = reuse_freed_memory() if sys.argv[1] == "on" else False
 np.ones(1 << 24, np.float32)
 before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 for _ in range(9):
@@ -41,6 +48,14 @@ def test_freed_arrays_are_reused_without_faulting_them_in_again():
     assert changed
     assert fresh > 0.5 * pages                     # the default: each array faulted in anew
     assert reused < 0.05 * pages
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
+def test_the_command_reuses_what_it_frees():
+    """Any plenopiv command sets its process up so (the batch workers' processors do the
+    same, workflow/worker.py)."""
+    _, faults = _faults("command")
+    assert faults < 0.05 * 9 * (1 << 26) // 4096
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
