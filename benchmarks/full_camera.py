@@ -79,7 +79,7 @@ from plenopiv.reconstruction.build import cached_weights, weights_for
 from plenopiv.reconstruction.mart import reconstruction_quality
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.subdivision import working_factors
-from plenopiv.resources import prefer_small_pages, reuse_freed_memory
+from plenopiv.resources import own_process_memory
 from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
 from plenopiv.synthetic.truth import gaussian_truth_volume
 from plenopiv.workflow.accuracy import gain_bias_rms
@@ -332,8 +332,7 @@ def main(argv=None) -> dict:
                         "SMART sweep) in each volume (benchmarks/bench_real_lattice.py)")
     p.add_argument("--json", action="store_true", help="end with one JSON line")
     args = p.parse_args(argv)
-    prefer_small_pages()            # as the plenopiv command and batch workers do
-    reuse_freed_memory()
+    own_process_memory()            # as the plenopiv command and batch workers do
     if args.lenslets:
         args.particles = int(round(args.particles * args.lenslets[0] * args.lenslets[1]
                                    / (193 * 287)))

@@ -169,10 +169,9 @@ def main(argv=None) -> int:
     parser.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        from plenopiv.resources import prefer_small_pages, reuse_freed_memory
+        from plenopiv.resources import own_process_memory
 
-        prefer_small_pages()            # the process set up as the plenopiv command sets it
-        reuse_freed_memory()
+        own_process_memory()            # the process set up as the plenopiv command sets it
         role, name, image_path = args.child
         work = plan_and_time if role == "time" else peak_memory
         print(json.dumps(work(name, Path(image_path))))

@@ -7,7 +7,10 @@ numpy's ``_ArrayMemoryError`` traceback.
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import os
+import platform
 
 from plenopiv.errors import ResourceError
 
@@ -70,16 +73,9 @@ def reuse_freed_memory() -> bool:
     """
     if any(k in os.environ for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_")):
         return False
-    import ctypes
-    import platform
-
-    if platform.libc_ver()[0] != "glibc":
+    mallopt = _glibc("mallopt", (ctypes.c_int, ctypes.c_int))
+    if mallopt is None:
         return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):                   # pragma: no cover - no mallopt
-        return False
-    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     return bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, KEEP_FREED_BYTES))
 
 
@@ -92,18 +88,34 @@ def release_freed_memory() -> bool:
     its peak. Harmless in any process: it changes no setting, and a later array only faults
     its pages in again.
     """
-    import ctypes
-    import platform
-
-    if platform.libc_ver()[0] != "glibc":
+    trim = _glibc("malloc_trim", (ctypes.c_size_t,))
+    if trim is None:
         return False
-    try:
-        trim = ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):                   # pragma: no cover - no malloc_trim
-        return False
-    trim.argtypes = (ctypes.c_size_t,)
     trim(0)
     return True
+
+
+def own_process_memory() -> None:
+    """Set up the memory of a process that plenopiv owns: the command's, a batch worker's.
+
+    :func:`prefer_small_pages` and :func:`reuse_freed_memory`; not on import (a library does
+    not change its caller's process).
+    """
+    prefer_small_pages()
+    reuse_freed_memory()
+
+
+@functools.cache
+def _glibc(name: str, argtypes: tuple):
+    """The C function ``name`` of glibc with ``argtypes`` (ctypes); None on another C library."""
+    if platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        function = getattr(ctypes.CDLL(None), name)
+    except (OSError, AttributeError):                   # pragma: no cover - not in this glibc
+        return None
+    function.argtypes = argtypes
+    return function
 
 
 def available_memory() -> int:

@@ -51,7 +51,7 @@ from plenopiv.errors import (
 )
 from plenopiv.products.jsonio import to_json
 from plenopiv.products.locks import output_locks
-from plenopiv.resources import prefer_small_pages, reuse_freed_memory
+from plenopiv.resources import own_process_memory
 
 __all__ = ["build_parser", "main"]
 
@@ -232,8 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     Ctrl-C is: finished products kept, a batch's summary written.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
-    prefer_small_pages()            # the command owns its process (resources.prefer_small_pages)
-    reuse_freed_memory()
+    own_process_memory()            # the command owns its process
     as_json = "--json" in argv
     command = _command_of(argv)
     warned: list[str] = []

@@ -11,7 +11,7 @@ import numpy as np
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.reconstruction.build import weights_for
-from plenopiv.resources import prefer_small_pages, reuse_freed_memory
+from plenopiv.resources import own_process_memory
 from plenopiv.workflow.experiment import experiment_calibration
 from plenopiv.workflow.pair import PairProcessor, save_pair
 from plenopiv.workflow.response import ExperimentResponse
@@ -155,8 +155,7 @@ def worker_processor(experiment_path: str | Path, calibration_path: str | Path,
             from plenopiv.config.experiment import load_experiment
 
             _WORKER_PROCESSOR.clear()
-            prefer_small_pages()    # a batch worker's process is the batch's own
-            reuse_freed_memory()
+            own_process_memory()    # a batch worker's process is the batch's own
             from plenopiv.workflow.judgement import camera_resolution, judge_experiment
 
             exp = load_experiment(experiment_path)
