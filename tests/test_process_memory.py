@@ -91,3 +91,37 @@ def test_a_stage_hands_back_the_holes_earlier_stages_left():
     out = subprocess.run([sys.executable, "-c", _HOLE], capture_output=True, text=True,
                          check=True).stdout
     assert int(out.split()[-1]) > 0.9 * (200 << 20)
+
+
+_VOLUME = """
+import hashlib, sys
+import numpy as np
+from plenopiv.calibration.model import Calibration
+from plenopiv.camera.model import load_camera
+from plenopiv.resources import own_process_memory
+from plenopiv.synthetic.flows import Uniform
+from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
+from plenopiv.workflow.volume import reconstruct_volume
+from plenopiv.workflow.vortex_case import VortexCase, aligned_grid
+if sys.argv[1] == "own":
+    own_process_memory()
+cam = load_camera("small_m1")
+grid = aligned_grid(cam, VortexCase())
+b = grid.bounds
+pair = simulate_pair(cam, Uniform((0.0, 0.0, 0.0)), dt=1e-3,
+                     box=SeedingBox(tuple(b[0]), tuple(b[1]), tuple(b[2])), n_particles=120,
+                     rng=np.random.default_rng(3), rays_per_particle=256)
+r = reconstruct_volume(Calibration.from_camera(cam), np.asarray(pair.image_a, float), grid)
+h = hashlib.sha256(np.ascontiguousarray(r.volume).tobytes())
+h.update(np.ascontiguousarray(r.particle_position).tobytes())
+print(h.hexdigest())
+"""
+
+
+def test_the_memory_handling_changes_no_result():
+    """Where the arrays come from is nothing physical: the volume and the particles of a
+    process set up as the command's are those of a plain one, to the bit."""
+    runs = [subprocess.run([sys.executable, "-c", _VOLUME, mode], capture_output=True,
+                           text=True, check=True).stdout.split()[-1]
+            for mode in ("own", "plain")]
+    assert runs[0] == runs[1]
