@@ -287,6 +287,11 @@ MEANINGS = {
                                     "peak of its particles before it is correlated, so that "
                                     "the brighter half of the particles weigh alike "
                                     "([methods](methods.md#intensity-capping))",
+    "experiment:piv.continuity": "fit the finished field's depth component to the continuity "
+                                 "of an incompressible flow, weighted by the uncertainties (u, "
+                                 "v unchanged; kept as correlated where the misfit exceeds 9 "
+                                 "per vector, with a warning); false for a flow that is not "
+                                 "incompressible ([methods](methods.md#depth-from-continuity))",
     "experiment:piv.min_particles_per_window": "fewest particles each window of a valid "
                                                "vector holds in both volumes (the particle "
                                                "tables); fewer: flag 8, replaced like an "

@@ -246,7 +246,7 @@ def test_piv_settings_errors_are_config_errors():
         experiment_from_dict({"camera": "small_test", "volume": volume,
                               "piv": {"windows": [[8, 8, 8], [8, 8, 8]], "passes": 1}})
     with pytest.raises(ConfigError, match=r"unknown key \[piv\] window; valid keys here: "
-                                          r"broad_peaks, deformation"):
+                                          r"broad_peaks, continuity, deformation"):
         experiment_from_dict({"camera": "small_test", "volume": volume,
                               "piv": {"window": [8, 8, 8]}})
 

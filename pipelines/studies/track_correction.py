@@ -55,18 +55,27 @@ def _corrected(cal, res, exp, weights, flow, dt, window) -> dict:
 
 
 def _uncorrected(exp):
-    return replace(exp, tracking=replace(exp.tracking, correct_vectors=False))
+    """The study's experiment, neither corrected by tracks nor fitted to continuity."""
+    return replace(exp, tracking=replace(exp.tracking, correct_vectors=False),
+                   piv=replace(exp.piv, continuity=False))
 
 
 def realcam_pair(seed: int, effect: str, work: Path) -> dict:
     """One pair of the real-camera study (true calibration), scored both ways."""
+    return _corrected(*realcam_run(seed, effect, work, _uncorrected))
+
+
+def realcam_run(seed: int, effect: str, work: Path, settings) -> tuple:
+    """One pair of the real-camera study (true calibration) run through ``process_pair``
+    with the experiment ``settings(exp)`` makes of the study's own; returns
+    ``(calibration, PairResult, experiment, weights, flow, dt, window_vox)``."""
     setup = rc.StudyCase(seed=seed, calibrate=False)
     t = rc.truth(setup)
     frames = rc.record_case(setup, rc.recording(effect), t)
     work.mkdir(parents=True, exist_ok=True)
     cal = Calibration.from_camera(setup.truth_camera())
     case = setup.vortex()
-    exp = _uncorrected(replace(vc.case_experiment(case, cal, work), base_dir=work))
+    exp = settings(replace(vc.case_experiment(case, cal, work), base_dir=work))
     if effect != rc.IDEAL:
         dark = None if frames.dark is None else write_image_stack(work / "dark.tif",
                                                                   frames.dark).name
@@ -76,26 +85,34 @@ def realcam_pair(seed: int, effect: str, work: Path) -> dict:
                                                          hot_pixels="auto"))
     weights, _ = weights_for(cal, exp.volume, exp.reconstruction)
     res = process_pair(cal, frames.image_a, frames.image_b, exp, weights=weights)
-    return _corrected(cal, res, exp, weights, t.flow, t.dt, case.windows_vox[-1])
+    return cal, res, exp, weights, t.flow, t.dt, case.windows_vox[-1]
 
 
 def vortex_pair(flow: str, seed: int, ppl: float, axis, work: Path) -> dict:
     """One pair of the CI camera (true calibration, noise, 0.5 px blur), scored both ways."""
+    return _corrected(*vortex_run(flow, seed, ppl, axis, work, _uncorrected))
+
+
+def vortex_run(flow: str, seed: int, ppl: float, axis, work: Path, settings) -> tuple:
+    """One pair of the CI camera (true calibration, noise, 0.5 px blur) run through
+    ``process_pair`` with ``settings(exp)``; returns what :func:`realcam_run` does."""
     case = vc.VortexCase(flow=flow, particles_per_lenslet=ppl, seed=seed, blur_px=0.5,
                          uncertainty="correlation", calibrate=False, flow_axis=axis)
     work.mkdir(parents=True, exist_ok=True)
     cam = vc.case_camera(case)
     cal = Calibration.from_camera(cam)
-    exp = _uncorrected(vc.case_experiment(case, cal, work))
+    exp = settings(vc.case_experiment(case, cal, work))
     ia, ib, _, fl, _ = vc._case_pair(case, exp.volume, cam, np.random.default_rng(seed), work,
                                      lambda *a: None)
     weights, _ = weights_for(cal, exp.volume, exp.reconstruction)
     res = process_pair(cal, ia, ib, exp, weights=weights)
-    return _corrected(cal, res, exp, weights, fl, case.dt, case.windows_vox[-1])
+    return cal, res, exp, weights, fl, case.dt, case.windows_vox[-1]
 
 
-#: The groups of pairs: name -> list of (label, callable(work) -> scores).
-def groups(seeds=(1, 2, 3, 4, 5, 6), ci_seeds=(1, 2, 3)) -> dict:
+#: The groups of pairs: name -> list of (label, callable(work) -> scores); ``realcam_pair``
+#: and ``vortex_pair`` score one pair (another study passes its own).
+def groups(seeds=(1, 2, 3, 4, 5, 6), ci_seeds=(1, 2, 3), realcam_pair=realcam_pair,
+           vortex_pair=vortex_pair) -> dict:
     g = {"real-camera study, ideal": [(f"seed {s}", lambda w, s=s: realcam_pair(s, rc.IDEAL, w))
                                       for s in seeds],
          "real-camera study, every effect": [

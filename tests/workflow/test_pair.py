@@ -320,16 +320,22 @@ def test_the_pair_is_corrected_by_its_tracks_and_the_product_says_so(pair_produc
     import h5py
 
     from plenopiv.tracking.correction import correct_with_tracks
+    from plenopiv.workflow.correlation import fitted_to_continuity
 
     res, paths, _, _, (cal, pair, exp) = pair_products
     assert exp.tracking.correct_vectors and res.tracks is not None
     assert res.track_correction["applied"] and res.track_correction["tracks"] > 0
     assert "track_s" in res.timings
     plain = process_pair(cal, pair.image_a, pair.image_b, dataclasses.replace(
-        exp, tracking=dataclasses.replace(exp.tracking, correct_vectors=False)))
+        exp, tracking=dataclasses.replace(exp.tracking, correct_vectors=False),
+        piv=dataclasses.replace(exp.piv, continuity=False)))
     assert plain.tracks is None and plain.track_correction is None
+    assert plain.continuity == {"applied": False, "reason": "[piv] continuity = false"}
     again, _ = correct_with_tracks(plain.vectors, res.tracks,
                                    prior_tracks=exp.tracking.prior_tracks)
+    # continuity comes last, on the corrected field
+    again, continuity = fitted_to_continuity(again, exp.piv)
+    assert continuity == res.continuity and continuity["applied"]
     for c in "uvw":
         assert np.allclose(getattr(again, c), getattr(res.vectors, c), rtol=0,
                            atol=1e-9 * 1e-3, equal_nan=True)
@@ -338,6 +344,8 @@ def test_the_pair_is_corrected_by_its_tracks_and_the_product_says_so(pair_produc
         record = json.loads(fh.attrs["track_correction"])
     assert record["applied"] and record["tracks"] == res.track_correction["tracks"]
     assert record["prior_tracks"] == exp.tracking.prior_tracks
+    with h5py.File(paths["vectors"]) as fh:
+        assert json.loads(fh.attrs["continuity"]) == res.continuity
 
 
 def test_a_pair_that_cannot_be_tracked_keeps_its_correlation_field(pair_products,

@@ -45,7 +45,7 @@ def cmd_piv(args) -> dict:
     from plenopiv.products.jsonio import dumps
     from plenopiv.products.volume import load_volume
     from plenopiv.settings import as_dict
-    from plenopiv.workflow.pair import correlate
+    from plenopiv.workflow.correlation import correlate, fitted_to_continuity
     from plenopiv.workflow.provenance import check_volume_pair, vectors_provenance
 
     _number("--dt", args.dt, minimum=0, open_min=True, unit="seconds between the exposures")
@@ -84,10 +84,12 @@ def cmd_piv(args) -> dict:
         vec = correlate(va, vb, settings, dt=args.dt, mask=mask, progress=lambda info: bar(
             f"piv pass {info['pass']}/{info['passes']}", info["pass"] / info["passes"]),
             names=(f"volume {str(args.volume_a)!r}", f"volume {str(args.volume_b)!r}"))
+    vec, continuity = fitted_to_continuity(vec, settings)
     files = vec.save(out, config={"piv": as_dict(settings), "volume_a": str(args.volume_a),
                                   "volume_b": str(args.volume_b), "dt_s": args.dt},
                      vtk=not args.no_vtk,
-                     extra_attrs={"complete": True, JUDGEMENT: dumps(judged.record())},
+                     extra_attrs={"complete": True, JUDGEMENT: dumps(judged.record()),
+                                  "continuity": dumps(continuity)},
                      provenance=vectors_provenance(args.volume_a, args.volume_b,
                                                    piv=settings, dt=args.dt,
                                                    sources=records))
@@ -95,6 +97,7 @@ def cmd_piv(args) -> dict:
                "valid_fraction": float(np.mean(vec.valid)), "n_replaced": vec.n_replaced,
                "quantity": "displacement" if args.dt is None else "velocity",
                "uncertainty_method": vec.uncertainty_method, JUDGEMENT: judged.record(),
+               "continuity": continuity,
                "files": [str(f) for f in files]}
     if not args.no_png:
         from plenopiv.products.figures import vector_slices

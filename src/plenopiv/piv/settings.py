@@ -193,6 +193,14 @@ class PIVSettings:
         few, whose brightness is the laser's, the particle's size and the reconstruction's,
         not the flow's (intensity capping, Shavit, Lowe & Steinbuck 2007). The default,
         :data:`INTENSITY_CAP`: docs/methods.md#intensity-capping.
+    continuity : bool
+        Fit the finished field's depth component w to the continuity of an incompressible
+        flow, ``∂w/∂z = -(∂u/∂x + ∂v/∂y)``, weighted by the uncertainties (u and v are not
+        changed): near focus the correlation measures a fraction of w, and the lateral
+        components hold what it misses (:mod:`plenopiv.piv.continuity`,
+        docs/methods.md#depth-from-continuity). Set False for a flow that is not
+        incompressible. Used by the pair's workflow and ``plenopiv piv``, not by the
+        correlation itself.
 
     Raises
     ------
@@ -232,6 +240,7 @@ class PIVSettings:
     response_particles_per_lenslet: float = RESPONSE_PARTICLES_PER_LENSLET
     min_particles_per_window: int = MIN_PARTICLES_PER_WINDOW
     intensity_cap: float = INTENSITY_CAP
+    continuity: bool = True
 
     def __post_init__(self):
         w = self.windows
@@ -265,7 +274,8 @@ class PIVSettings:
             raise ValueError(
                 f"overlap = {self.overlap!r}: expected a fraction with 0 <= overlap < 1"
             )
-        for name in ("deformation", "smooth_predictor", "overlap_correction", "broad_peaks"):
+        for name in ("deformation", "smooth_predictor", "overlap_correction", "broad_peaks",
+                     "continuity"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} = {getattr(self, name)!r}: expected True or False")
         if self.deformation_order not in DEFORMATION_ORDERS or isinstance(

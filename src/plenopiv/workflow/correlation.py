@@ -2,7 +2,8 @@
 
 The correlation (:func:`plenopiv.piv.correlate_volumes`), the per-vector uncertainty completed
 by the chain's response where given, and the depth corrections of the volumes applied to the
-field. See docs/methods.md#piv.
+field; then its depth component fitted to continuity (:func:`fitted_to_continuity`, ``[piv]
+continuity``). See docs/methods.md#piv.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from plenopiv.products.images import warn_identical
 from plenopiv.products.vectors import VectorResult, check_dt
 from plenopiv.products.volume import VolumeResult
 
-__all__ = ["correlate"]
+__all__ = ["correlate", "fitted_to_continuity"]
 
 
 def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, dt=None,
@@ -61,3 +62,51 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
         method = "response"
     return VectorResult.from_field(field, result_a.correction, dt, uncertainty_method=method,
                                    grid=result_a.grid)
+
+
+def fitted_to_continuity(vectors: VectorResult, settings=None) -> tuple[VectorResult, dict]:
+    """The field with w fitted to the continuity of an incompressible flow, and the record.
+
+    :func:`plenopiv.piv.continuity.depth_from_continuity` on the finished field (physical
+    coordinates, depth corrections applied); u, v, the flags and the uncertainties are kept
+    (the uncertainty of w stays the measurement's: conservative). Not applied where
+    ``settings.continuity`` is off, where the field has fewer than two vectors along an axis
+    or no uncertainties, or where the fit's misfit says the flow is not incompressible at the
+    vectors' resolution (a warning names the figure and the key). Returns ``(vectors,
+    record)``, the record the vectors product's ``continuity`` attribute.
+    """
+    import warnings
+    from dataclasses import replace
+
+    import numpy as np
+
+    from plenopiv.errors import PlenopivWarning
+    from plenopiv.piv import PIVSettings
+    from plenopiv.piv.continuity import CONSISTENCY_CHI2, depth_from_continuity
+
+    settings = PIVSettings() if settings is None else settings
+    if not settings.continuity:
+        return vectors, {"applied": False, "reason": "[piv] continuity = false"}
+    if len(vectors.z) < 2:
+        return vectors, {"applied": False, "reason": "one layer of vectors in depth"}
+    if min(len(vectors.x), len(vectors.y)) < 2:
+        return vectors, {"applied": False, "reason": "one vector along x or y: the lateral "
+                                                     "divergence is not measured"}
+    sigma = (vectors.u_uncertainty, vectors.v_uncertainty, vectors.w_uncertainty)
+    if any(s is None or not np.isfinite(s).any() for s in sigma):
+        return vectors, {"applied": False, "reason": "the vectors carry no uncertainty"}
+    fit = depth_from_continuity(vectors.u, vectors.v, vectors.w, *sigma,
+                                vectors.x, vectors.y, vectors.z)
+    record = {"chi2_per_vector": round(fit.chi2_per_vector, 4), "vectors": fit.vectors,
+              "max_chi2_per_vector": CONSISTENCY_CHI2}
+    if not fit.consistent:
+        warnings.warn(
+            f"the vectors' depth component disagrees with the continuity of an incompressible "
+            f"flow by a misfit of {fit.chi2_per_vector:.1f} per vector (at most "
+            f"{CONSISTENCY_CHI2:g}): w is kept as correlated. Set [piv] continuity = false "
+            "for a flow that is not incompressible; otherwise check the calibration's depth "
+            "and the windows against the flow's scale", PlenopivWarning, stacklevel=2)
+        return vectors, {"applied": False, "reason": "misfit above the limit", **record}
+    change = fit.w - vectors.w
+    rms = float(np.sqrt(np.nanmean(change ** 2))) if np.isfinite(change).any() else 0.0
+    return replace(vectors, w=fit.w), {"applied": True, **record, "rms_change_w_m": rms}

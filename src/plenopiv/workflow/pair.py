@@ -17,7 +17,7 @@ from plenopiv.products.vectors import VectorResult
 from plenopiv.products.volume import VolumeResult
 from plenopiv.reconstruction.build import weights_for
 from plenopiv.reconstruction.weights import Weights
-from plenopiv.workflow.correlation import correlate
+from plenopiv.workflow.correlation import correlate, fitted_to_continuity
 from plenopiv.workflow.response import ExperimentResponse, experiment_response
 from plenopiv.workflow.volume import Progress, check_lattice, reconstruct_volume
 
@@ -34,7 +34,8 @@ class PairResult:
     applied (the products' ``preprocess`` attribute); ``tracks``: the pair's
     :class:`~plenopiv.tracking.tracks.TrackResult` where ``[tracking] correct_vectors``
     corrected ``vectors`` by them, and ``track_correction`` what that did (the vectors
-    product's ``track_correction`` attribute).
+    product's ``track_correction`` attribute); ``continuity``: what the fit of w to the
+    continuity of the flow did (``[piv] continuity``, the product's ``continuity``).
     """
 
     volume_a: VolumeResult
@@ -45,6 +46,7 @@ class PairResult:
     preprocess: dict | None = None
     tracks: object | None = None
     track_correction: dict | None = None
+    continuity: dict | None = None
 
 
 class PairProcessor:
@@ -192,8 +194,9 @@ class PairProcessor:
             vec, tracks, correction = corrected_by_tracks(calibration, (pa.image, pb.image),
                                                           (va, vb), vec, exp, weights)
             timings["track_s"] = time.perf_counter() - t3
+        vec, continuity = fitted_to_continuity(vec, exp.piv)
         return PairResult(va, vb, vec, timings, images=(pa, pb), preprocess=record,
-                          tracks=tracks, track_correction=correction)
+                          tracks=tracks, track_correction=correction, continuity=continuity)
 
 
 def _piv_progress(progress: Progress):
@@ -277,8 +280,9 @@ def save_pair(result: PairResult, out_dir: str | Path, name: str, experiment, *,
     record = vectors_provenance(paths["volume_A"], paths["volume_B"],
                                 piv=experiment.piv, dt=experiment.images.dt_s,
                                 sources=records)
-    corrected = ({} if result.track_correction is None
-                 else {"track_correction": dumps(result.track_correction)})
+    corrected = {key: dumps(value) for key, value in (
+        ("track_correction", result.track_correction), ("continuity", result.continuity))
+        if value is not None}
     files = result.vectors.save(out / f"{name}_vectors.h5", config=cfg, vtk=experiment.output.vtk,
                                 extra_attrs={"complete": True, **pre, **corrected,
                                              **(extra_attrs or {})}, provenance=record)

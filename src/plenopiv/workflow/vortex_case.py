@@ -90,6 +90,8 @@ class VortexCase:
         (1: the footprint grid; e.g. 1.1 is the voxel a user keeps at 0.125 mm when the
         magnification goes from -1 to -1.1)
     grid_shift : (x, y, z) shift of the grid from the footprints' centres, in voxels
+    continuity : ``[piv] continuity``: the field's w fitted to the continuity of the flow
+        (the default), or the field as correlated and corrected by its tracks
     """
 
     flow: str = "oseen"
@@ -125,6 +127,7 @@ class VortexCase:
     lattice: str | None = None
     voxel_lateral_factor: float = 1.0
     grid_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    continuity: bool = True
 
     def __post_init__(self):
         if self.flow not in FLOWS:
@@ -335,7 +338,8 @@ def case_experiment(case: VortexCase, calibration, out: Path) -> Experiment:
                                     response_displacements=case.response_displacements,
                                     response_particles_per_lenslet=case.particles_per_lenslet,
                                     overlap_correction=case.overlap_correction,
-                                    broad_peaks=case.broad_peaks),
+                                    broad_peaks=case.broad_peaks,
+                                    continuity=case.continuity),
                       images=ImagesConfig(dt_s=case.dt),
                       output=OutputConfig(directory=str(out), weights_cache=""),
                       base_dir=out)

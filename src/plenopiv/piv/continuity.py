@@ -1,0 +1,160 @@
+"""The depth component of a vector field fitted to the continuity of an incompressible flow.
+
+A plenoptic camera sees depth through a small angular aperture: near the focal plane a
+particle's light stays in one lenslet for a move of a fraction of a depth cell, so the
+correlation there measures a fraction of w, while u and v are measured to about a tenth of a
+voxel. For an incompressible flow ``∂w/∂z = -(∂u/∂x + ∂v/∂y)``: along each column of vectors
+in depth, w is fitted by weighted least squares to its own measurement and to the slope that
+the lateral divergence demands; u and v are left as they are. See
+docs/methods.md#depth-from-continuity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+__all__ = ["CONSISTENCY_CHI2", "ContinuityFit", "depth_from_continuity", "gradient_matrix",
+           "gradient_sigma", "layer_sigma"]
+
+#: Largest normalised misfit of the fit (chi-square per vector) at which it is used: an rms
+#: of three standard uncertainties. A larger one says the flow is not incompressible at the
+#: vectors' resolution, or the uncertainties are far off; the field is then kept as measured.
+CONSISTENCY_CHI2 = 9.0
+
+
+def gradient_matrix(coords) -> scipy.sparse.csr_matrix:
+    """The derivative along one axis as a matrix: ``G @ f == np.gradient(f, coords)``.
+
+    ``coords``: the strictly increasing positions (n,), any unit; second-order differences
+    inside (for uneven spacing too), first-order one-sided at the two ends. Returns an
+    (n, n) CSR matrix in 1/unit.
+    """
+    x = np.asarray(coords, dtype=float)
+    n = len(x)
+    if n < 2:
+        return scipy.sparse.csr_matrix((n, n))
+    h = np.diff(x)
+    rows, cols, vals = [0, 0, n - 1, n - 1], [0, 1, n - 2, n - 1], \
+        [-1 / h[0], 1 / h[0], -1 / h[-1], 1 / h[-1]]
+    for i in range(1, n - 1):
+        a, b = h[i - 1], h[i]             # left and right spacing
+        rows += [i, i, i]
+        cols += [i - 1, i, i + 1]
+        vals += [-b / (a * (a + b)), (b - a) / (a * b), a / (b * (a + b))]
+    return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n, n))
+
+
+def gradient_sigma(sigma: np.ndarray, coords, axis: int) -> np.ndarray:
+    """Standard uncertainty of ``np.gradient(f, coords, axis=axis)`` for independent errors.
+
+    ``sigma``: the standard uncertainty of each sample of f; the result has its shape, in
+    sigma's unit per coords' unit (GUM 5.1.2: the root sum of squared coefficients times
+    uncertainties).
+    """
+    g2 = gradient_matrix(coords).power(2)
+    s2 = np.moveaxis(np.asarray(sigma, float) ** 2, axis, 0)
+    out = (g2 @ s2.reshape(s2.shape[0], -1)).reshape(s2.shape)
+    return np.sqrt(np.moveaxis(out, 0, axis))
+
+
+def layer_sigma(sigma: np.ndarray) -> np.ndarray:
+    """Each depth layer's median uncertainty, broadcast over the layer ``[z, y, x]``.
+
+    A vector's own uncertainty estimate scatters with its window's particles; the depth
+    response it stands for is a property of the layer (its distance from focus). NaN where
+    a layer has no finite value.
+    """
+    s = np.asarray(sigma, float)
+    with np.errstate(all="ignore"):
+        flat = s.reshape(s.shape[0], -1)
+        med = np.array([np.median(r[np.isfinite(r)]) if np.isfinite(r).any() else np.nan
+                        for r in flat])
+    return np.broadcast_to(med[:, None, None], s.shape).copy()
+
+
+@dataclass(frozen=True)
+class ContinuityFit:
+    """What :func:`depth_from_continuity` found.
+
+    ``w``: the fitted depth component (nz, ny, nx), the unit of the input, NaN where the
+    input's was; ``chi2_per_vector``: the fit's normalised misfit, the sum of squared
+    weighted residuals over the vectors fitted (about 1 where model and uncertainties
+    hold); ``vectors``: how many were fitted; ``consistent``: ``chi2_per_vector <=``
+    :data:`CONSISTENCY_CHI2`.
+    """
+
+    w: np.ndarray
+    chi2_per_vector: float
+    vectors: int
+
+    @property
+    def consistent(self) -> bool:
+        """Whether the misfit is within :data:`CONSISTENCY_CHI2`."""
+        return bool(self.chi2_per_vector <= CONSISTENCY_CHI2)
+
+
+def depth_from_continuity(u, v, w, sigma_u, sigma_v, sigma_w, x, y, z) -> ContinuityFit:
+    """Fit w along each depth column to its measurement and to ``∂w/∂z = -(∂u/∂x + ∂v/∂y)``.
+
+    Parameters
+    ----------
+    u, v, w : ndarray (nz, ny, nx)
+        Displacement (or velocity) along x, y, z on the window-centre grid, one unit.
+    sigma_u, sigma_v, sigma_w : ndarray (nz, ny, nx)
+        Their standard uncertainties, the same unit; each layer's median is used
+        (:func:`layer_sigma`).
+    x, y, z : ndarray (nx,), (ny,), (nz,)
+        Window centres, one length unit, strictly increasing; at least two along each axis
+        (:class:`ValueError` otherwise).
+
+    Returns
+    -------
+    ContinuityFit
+
+    Notes
+    -----
+    With δ = ∂u/∂x + ∂v/∂y (``np.gradient``) and σ_δ its uncertainty propagated from the
+    layers' σ_u, σ_v (:func:`gradient_sigma`), w minimises, over every column,
+
+        Σ_k (w_k − w_k^meas)² / σ_w,k²  +  Σ_k ((G_z w)_k + δ_k)² / σ_δ,k²
+
+    G_z the depth derivative of :func:`gradient_matrix`. The columns are independent; the
+    normal equations are one sparse solve. Where σ_w is large against what δ fixes over a
+    vector spacing (near focus), w follows continuity; where it is small (far from focus)
+    w keeps its measurement and gives the integration its constant. A NaN vector takes no
+    part; its rows are left out and its w stays NaN.
+    """
+    u, v, w = (np.asarray(a, float) for a in (u, v, w))
+    nz, ny, nx = w.shape
+    if min(w.shape) < 2:
+        raise ValueError(f"a field of {nz} x {ny} x {nx} vectors: continuity needs at least "
+                         "two along each axis")
+    su, sv, sw = (layer_sigma(s) for s in (sigma_u, sigma_v, sigma_w))
+    delta = np.gradient(u, np.asarray(x, float), axis=2) + \
+        np.gradient(v, np.asarray(y, float), axis=1)
+    sd = np.hypot(gradient_sigma(su, x, 2), gradient_sigma(sv, y, 1))
+    # columns in depth made contiguous ([y, x, z]): the normal matrix is block-banded
+    col = lambda f: np.moveaxis(f, 0, -1).ravel()      # noqa: E731
+    data = np.isfinite(w) & np.isfinite(sw) & (sw > 0)
+    gz = scipy.sparse.kron(scipy.sparse.identity(ny * nx), gradient_matrix(z), format="csr")
+    # a constraint row counts where its divergence is known and every w it touches is
+    touched = np.asarray((abs(gz) @ col(~data).astype(float)) == 0)
+    rule = col(np.isfinite(delta) & np.isfinite(sd) & (sd > 0)) & touched
+    wd = col(np.where(data, 1.0 / np.where(data, sw, 1.0), 0.0))
+    wr = np.where(rule, 1.0 / np.where(rule, col(sd), 1.0), 0.0)
+    a = scipy.sparse.vstack([scipy.sparse.diags(wd), scipy.sparse.diags(wr) @ gz]).tocsr()
+    b = np.concatenate([wd * col(np.where(data, w, 0.0)),
+                        -wr * np.where(rule, col(delta), 0.0)])
+    keep = col(data)                       # unknowns: the measured vectors
+    a = a[:, keep]
+    fit = scipy.sparse.linalg.spsolve((a.T @ a).tocsc(), a.T @ b)
+    out = np.full(w.size, np.nan)
+    out[keep] = fit
+    chi2 = float(np.sum((a @ fit - b) ** 2) / max(int(keep.sum()), 1))
+    return ContinuityFit(w=np.moveaxis(out.reshape(ny, nx, nz), -1, 0),
+                         chi2_per_vector=chi2, vectors=int(keep.sum()))
+
