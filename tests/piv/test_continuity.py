@@ -184,7 +184,30 @@ def test_the_vortex_depth_gain_rises_and_u_v_stay_to_the_bit():
     assert gain(mw) < 0.8 and abs(gain(out.w) - 1.0) < 0.1
     assert np.sqrt(np.mean((out.w - w) ** 2)) < 0.5 * np.sqrt(np.mean((mw - w) ** 2))
     assert out.u is vec.u and out.v is vec.v
-    assert out.w_uncertainty is vec.w_uncertainty
+    assert out.u_uncertainty is vec.u_uncertainty and out.v_uncertainty is vec.v_uncertainty
+    assert np.all(out.w_uncertainty < vec.w_uncertainty)
+
+
+def test_the_fits_uncertainty_is_the_spread_of_the_fit_over_the_noise():
+    """The same vortex measured 400 times with fresh noise (the gain deficit left out, so
+    the model holds): the fitted w scatters about the truth by the fit's sigma_w (within the
+    5 % a 400-draw standard deviation and np.gradient's truncation leave)."""
+    u, v, w = oseen_about_y()
+    zz = grids()[0]
+    sw, sl = depth_sigma(3e-6), np.full(u.shape, LATERAL_NOISE)
+    rng = np.random.default_rng(8)
+    fits = []
+    for _ in range(400):
+        mu, mv = (c + rng.normal(size=c.shape) * LATERAL_NOISE for c in (u, v))
+        fit = depth_from_continuity(mu, mv, w + rng.normal(size=w.shape) * sw, sl, sl, sw,
+                                    X, Y, Z)
+        fits.append(fit.w)
+    spread = np.std(fits, axis=0)
+    ratio = np.sqrt(np.mean(spread ** 2) / np.mean(fit.sigma_w ** 2))
+    assert 0.95 < ratio < 1.05, ratio
+    # near focus the fit is five times as sure as the measurement
+    near = np.abs(zz) < 0.5e-3
+    assert np.median(fit.sigma_w[near] / sw[near]) < 0.3
 
 
 @pytest.mark.parametrize("change", ["shift of the origin", "millimetres", "mirror in depth",

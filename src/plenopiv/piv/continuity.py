@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse
-import scipy.sparse.linalg
 
 __all__ = ["CONSISTENCY_CHI2", "ContinuityFit", "depth_from_continuity", "gradient_matrix",
            "gradient_sigma", "layer_sigma"]
@@ -81,13 +80,16 @@ class ContinuityFit:
     """What :func:`depth_from_continuity` found.
 
     ``w``: the fitted depth component (nz, ny, nx), the unit of the input, NaN where the
-    input's was; ``chi2_per_vector``: the fit's normalised misfit, the sum of squared
+    input's was; ``sigma_w``: its standard uncertainty, the fit's posterior (the diagonal of
+    the inverse normal matrix), scaled by ``sqrt(chi2_per_vector)`` where that exceeds 1
+    (the Birge ratio); ``chi2_per_vector``: the fit's normalised misfit, the sum of squared
     weighted residuals over the vectors fitted (about 1 where model and uncertainties
     hold); ``vectors``: how many were fitted; ``consistent``: ``chi2_per_vector <=``
     :data:`CONSISTENCY_CHI2`.
     """
 
     w: np.ndarray
+    sigma_w: np.ndarray
     chi2_per_vector: float
     vectors: int
 
@@ -95,6 +97,10 @@ class ContinuityFit:
     def consistent(self) -> bool:
         """Whether the misfit is within :data:`CONSISTENCY_CHI2`."""
         return bool(self.chi2_per_vector <= CONSISTENCY_CHI2)
+
+
+#: Bytes of the per-column normal matrices solved at once.
+_CHUNK_BYTES = 64 * 2 ** 20
 
 
 def depth_from_continuity(u, v, w, sigma_u, sigma_v, sigma_w, x, y, z) -> ContinuityFit:
@@ -122,11 +128,12 @@ def depth_from_continuity(u, v, w, sigma_u, sigma_v, sigma_w, x, y, z) -> Contin
 
         Σ_k (w_k − w_k^meas)² / σ_w,k²  +  Σ_k ((G_z w)_k + δ_k)² / σ_δ,k²
 
-    G_z the depth derivative of :func:`gradient_matrix`. The columns are independent; the
-    normal equations are one sparse solve. Where σ_w is large against what δ fixes over a
-    vector spacing (near focus), w follows continuity; where it is small (far from focus)
-    w keeps its measurement and gives the integration its constant. A NaN vector takes no
-    part; its rows are left out and its w stays NaN.
+    G_z the depth derivative of :func:`gradient_matrix`. The columns are independent: each
+    solves its normal equations ``N w = b`` (nz × nz), and ``diag(N⁻¹)`` is the fit's
+    variance. Where σ_w is large against what δ fixes over a vector spacing (near focus) w
+    follows continuity; where it is small (far from focus) w keeps its measurement and gives
+    the integration its constant. A NaN vector takes no part: its data row and the depth
+    derivatives that reach it are left out, and its w stays NaN.
     """
     u, v, w = (np.asarray(a, float) for a in (u, v, w))
     nz, ny, nx = w.shape
@@ -137,24 +144,39 @@ def depth_from_continuity(u, v, w, sigma_u, sigma_v, sigma_w, x, y, z) -> Contin
     delta = np.gradient(u, np.asarray(x, float), axis=2) + \
         np.gradient(v, np.asarray(y, float), axis=1)
     sd = np.hypot(gradient_sigma(su, x, 2), gradient_sigma(sv, y, 1))
-    # columns in depth made contiguous ([y, x, z]): the normal matrix is block-banded
-    col = lambda f: np.moveaxis(f, 0, -1).ravel()      # noqa: E731
-    data = np.isfinite(w) & np.isfinite(sw) & (sw > 0)
-    gz = scipy.sparse.kron(scipy.sparse.identity(ny * nx), gradient_matrix(z), format="csr")
-    # a constraint row counts where its divergence is known and every w it touches is
-    touched = np.asarray((abs(gz) @ col(~data).astype(float)) == 0)
-    rule = col(np.isfinite(delta) & np.isfinite(sd) & (sd > 0)) & touched
-    wd = col(np.where(data, 1.0 / np.where(data, sw, 1.0), 0.0))
-    wr = np.where(rule, 1.0 / np.where(rule, col(sd), 1.0), 0.0)
-    a = scipy.sparse.vstack([scipy.sparse.diags(wd), scipy.sparse.diags(wr) @ gz]).tocsr()
-    b = np.concatenate([wd * col(np.where(data, w, 0.0)),
-                        -wr * np.where(rule, col(delta), 0.0)])
-    keep = col(data)                       # unknowns: the measured vectors
-    a = a[:, keep]
-    fit = scipy.sparse.linalg.spsolve((a.T @ a).tocsc(), a.T @ b)
-    out = np.full(w.size, np.nan)
-    out[keep] = fit
-    chi2 = float(np.sum((a @ fit - b) ** 2) / max(int(keep.sum()), 1))
-    return ContinuityFit(w=np.moveaxis(out.reshape(ny, nx, nz), -1, 0),
-                         chi2_per_vector=chi2, vectors=int(keep.sum()))
 
+    def columns(f):                        # (nz, ny, nx) -> (ny * nx, nz)
+        return np.moveaxis(f, 0, -1).reshape(-1, nz)
+
+    meas, s_meas, div, s_div = columns(w), columns(sw), columns(delta), columns(sd)
+    g = gradient_matrix(z).toarray()
+    data = np.isfinite(meas) & np.isfinite(s_meas) & (s_meas > 0)
+    # a depth derivative counts where δ is known and every w it reaches was measured
+    reach = (~data).astype(float) @ (g != 0).T.astype(float) == 0
+    rule = np.isfinite(div) & np.isfinite(s_div) & (s_div > 0) & reach
+    wd = np.where(data, np.where(data, s_meas, 1.0) ** -2.0, 0.0)
+    wr = np.where(rule, np.where(rule, s_div, 1.0) ** -2.0, 0.0)
+    meas, div = np.where(data, meas, 0.0), np.where(rule, div, 0.0)
+    pin = np.where(data, 0.0, 1.0)         # an unmeasured w: its own equation, NaN below
+    fit, var = np.empty_like(meas), np.empty_like(meas)
+    chi2 = 0.0
+    step = max(1, _CHUNK_BYTES // (8 * nz * nz))
+    for lo in range(0, len(meas), step):
+        c = slice(lo, lo + step)
+        normal = np.einsum("ki,ck,kj->cij", g, wr[c], g) + (wd[c] + pin[c])[:, :, None] \
+            * np.eye(nz)
+        rhs = wd[c] * meas[c] - (wr[c] * div[c]) @ g
+        inverse = np.linalg.inv(normal)
+        fit[c] = np.einsum("cij,cj->ci", inverse, rhs)
+        var[c] = np.diagonal(inverse, axis1=1, axis2=2)
+        chi2 += float(np.sum(wd[c] * (fit[c] - meas[c]) ** 2)
+                      + np.sum(wr[c] * (fit[c] @ g.T + div[c]) ** 2))
+    n = int(data.sum())
+    chi2 /= max(n, 1)
+    fit[~data], var[~data] = np.nan, np.nan
+
+    def grid(f):                           # back to (nz, ny, nx)
+        return np.moveaxis(f.reshape(ny, nx, nz), -1, 0)
+
+    return ContinuityFit(w=grid(fit), sigma_w=grid(np.sqrt(var * max(1.0, chi2))),
+                         chi2_per_vector=chi2, vectors=n)

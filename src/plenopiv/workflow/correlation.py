@@ -68,8 +68,8 @@ def fitted_to_continuity(vectors: VectorResult, settings=None) -> tuple[VectorRe
     """The field with w fitted to the continuity of an incompressible flow, and the record.
 
     :func:`plenopiv.piv.continuity.depth_from_continuity` on the finished field (physical
-    coordinates, depth corrections applied); u, v, the flags and the uncertainties are kept
-    (the uncertainty of w stays the measurement's: conservative). Not applied where
+    coordinates, depth corrections applied); w and its uncertainty become the fit's, u, v,
+    their uncertainties and the flags are kept. Not applied where
     ``settings.continuity`` is off, where the field has fewer than two vectors along an axis
     or no uncertainties, or where the fit's misfit says the flow is not incompressible at the
     vectors' resolution (a warning names the figure and the key). Returns ``(vectors,
@@ -109,4 +109,6 @@ def fitted_to_continuity(vectors: VectorResult, settings=None) -> tuple[VectorRe
         return vectors, {"applied": False, "reason": "misfit above the limit", **record}
     change = fit.w - vectors.w
     rms = float(np.sqrt(np.nanmean(change ** 2))) if np.isfinite(change).any() else 0.0
-    return replace(vectors, w=fit.w), {"applied": True, **record, "rms_change_w_m": rms}
+    sigma = np.where(np.isfinite(fit.sigma_w), fit.sigma_w, vectors.w_uncertainty)
+    return replace(vectors, w=fit.w, w_uncertainty=sigma), \
+        {"applied": True, **record, "rms_change_w_m": rms}
