@@ -35,7 +35,8 @@ UNCERTAINTIES = ("correlation", "response")
 def _scores(vec, flow, dt, grid, window) -> dict:
     e = vc.compare_with_truth(replace(vec, dt=None), flow, dt, grid, window)
     return {"gain": e["gain"], "bias_vox": e["bias_vox"], "rms_vox": e["rms_vox"],
-            "w_gain_by_depth": [b["gain"][2] for b in e["by_depth"]]}
+            "w_gain_by_depth": [b["gain"][2] for b in e["by_depth"]],
+            "coverage_2sigma": e.get("coverage_2sigma")}
 
 
 def _both(cal, res, exp, weights, flow, dt, window) -> dict:
@@ -92,8 +93,9 @@ def markdown(result: dict) -> str:
              "`plenopiv run` with `[piv] continuity = false` (tracked and corrected by its "
              "tracks); *after*: the same field fitted. Voxels; valid vectors half a window "
              "inside the volume; gain: least-squares slope of measured on true; the lowest "
-             "pair's w gain in brackets; χ²: the fit's misfit per vector (the fit is kept "
-             "up to 9).", ""]
+             "pair's w gain in brackets; w within ±2σ: the share of the true errors of w within "
+             "twice its uncertainty, lowest–highest pair (the fit's own uncertainty after); "
+             "χ²: the fit's misfit per vector (the fit is kept up to 9).", ""]
     rows = []
     for unc in result["uncertainties"]:
         for name, g in result["groups"].items():
@@ -107,13 +109,17 @@ def markdown(result: dict) -> str:
                              f"{_mean([p['after']['rms_vox'][c] for p in pairs]):.3f}")
             cells.append(f"{_mean([p['before']['bias_vox'][2] for p in pairs]):+.3f} → "
                          f"{_mean([p['after']['bias_vox'][2] for p in pairs]):+.3f}")
+            cells.append(" → ".join(
+                f"{fmt(_low([p[k]['coverage_2sigma'][2] for p in pairs]), '.2f')}–"
+                f"{fmt(max(p[k]['coverage_2sigma'][2] for p in pairs), '.2f')}"
+                for k in ("before", "after")))
             chi = [p["record"].get("chi2_per_vector") for p in pairs]
             cells.append(f"{_low(chi):.2f}–{max(c for c in chi if c is not None):.2f}")
             cells.append(f"{sum(p['record']['applied'] for p in pairs)}/{len(pairs)}")
             rows.append(cells)
     lines += ["## Mean per group", ""]
     lines += table(["pairs", "uncertainty", "n", "w gain before", "w gain after", "rms u",
-                    "rms v", "rms w", "bias w", "χ²", "fitted"], rows)
+                    "rms v", "rms w", "bias w", "w within ±2σ", "χ²", "fitted"], rows)
     lines += ["", "## Every pair", "",
               "w gain before → after, by |Z| band (nearest focus first) after, rms u / w "
               "before → after, χ²:", ""]
