@@ -262,6 +262,19 @@ def test_nan_vectors_stay_nan_and_take_no_part():
     assert fit.vectors == mw.size - 1
 
 
+def test_a_layer_without_uncertainties_keeps_its_vectors():
+    """A layer whose uncertainties are all NaN (every window masked, say) takes no part, and
+    its measured w is kept, not lost; the other layers are fitted."""
+    (mu, mv, mw, su, sv, sw, *_), _ = oseen_fit()
+    sw = sw.copy()
+    sw[2] = np.nan
+    vec = as_vectors(mu, mv, mw, su, sv, sw)
+    out, record = fitted_to_continuity(vec)
+    assert record["applied"] and record["vectors"] == mw.size - mw[2].size
+    assert np.array_equal(out.w[2], mw[2]) and np.all(np.isnan(out.w_uncertainty[2]))
+    assert np.isfinite(out.w).all() and not np.allclose(out.w[4], mw[4])
+
+
 def test_where_the_fit_is_not_made_the_record_says_why():
     (mu, mv, mw, su, sv, sw, *_), _ = oseen_fit()
     vec = as_vectors(mu, mv, mw, su, sv, sw)

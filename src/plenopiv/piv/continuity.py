@@ -79,12 +79,13 @@ def layer_sigma(sigma: np.ndarray) -> np.ndarray:
 class ContinuityFit:
     """What :func:`depth_from_continuity` found.
 
-    ``w``: the fitted depth component (nz, ny, nx), the unit of the input, NaN where the
-    input's was; ``sigma_w``: its standard uncertainty, the fit's posterior (the diagonal of
-    the inverse normal matrix), scaled by ``sqrt(chi2_per_vector)`` where that exceeds 1
-    (the Birge ratio); ``chi2_per_vector``: the fit's normalised misfit, the sum of squared
-    weighted residuals over the vectors fitted (about 1 where model and uncertainties
-    hold); ``vectors``: how many were fitted; ``consistent``: ``chi2_per_vector <=``
+    ``w``: the fitted depth component (nz, ny, nx), the unit of the input; a vector
+    without a finite measurement and uncertainty keeps its input (NaN stays NaN);
+    ``sigma_w``: its standard uncertainty (NaN where not fitted), the fit's posterior (the
+    diagonal of the inverse normal matrix), scaled by ``sqrt(chi2_per_vector)`` where that
+    exceeds 1 (the Birge ratio); ``chi2_per_vector``: the fit's normalised misfit, the sum
+    of squared weighted residuals over the vectors fitted (about 1 where model and
+    uncertainties hold); ``vectors``: how many were fitted; ``consistent``: ``chi2_per_vector <=``
     :data:`CONSISTENCY_CHI2`.
     """
 
@@ -132,8 +133,9 @@ def depth_from_continuity(u, v, w, sigma_u, sigma_v, sigma_w, x, y, z) -> Contin
     solves its normal equations ``N w = b`` (nz × nz), and ``diag(N⁻¹)`` is the fit's
     variance. Where σ_w is large against what δ fixes over a vector spacing (near focus) w
     follows continuity; where it is small (far from focus) w keeps its measurement and gives
-    the integration its constant. A NaN vector takes no part: its data row and the depth
-    derivatives that reach it are left out, and its w stays NaN.
+    the integration its constant. A NaN vector, or one whose layer has no finite
+    uncertainty, takes no part: its data row and the depth derivatives that reach it are
+    left out, and its w stays as given.
     """
     u, v, w = (np.asarray(a, float) for a in (u, v, w))
     nz, ny, nx = w.shape
@@ -173,7 +175,8 @@ def depth_from_continuity(u, v, w, sigma_u, sigma_v, sigma_w, x, y, z) -> Contin
                       + np.sum(wr[c] * (fit[c] @ g.T + div[c]) ** 2))
     n = int(data.sum())
     chi2 /= max(n, 1)
-    fit[~data], var[~data] = np.nan, np.nan
+    # a w without a usable uncertainty keeps its value (NaN stays NaN), with no fitted sigma
+    fit[~data], var[~data] = columns(w)[~data], np.nan
 
     def grid(f):                           # back to (nz, ny, nx)
         return np.moveaxis(f.reshape(ny, nx, nz), -1, 0)
