@@ -289,7 +289,7 @@ MEANINGS = {
                                     "([methods](methods.md#intensity-capping))",
     "experiment:piv.continuity": "fit the finished field's depth component to the continuity "
                                  "of an incompressible flow, weighted by the uncertainties (u, "
-                                 "v unchanged; kept as correlated where the misfit exceeds 9 "
+                                 "v unchanged; kept as measured where the misfit exceeds 9 "
                                  "per vector, with a warning); false for a flow that is not "
                                  "incompressible ([methods](methods.md#depth-from-continuity))",
     "experiment:piv.min_particles_per_window": "fewest particles each window of a valid "

@@ -159,7 +159,7 @@ def depth_from_continuity(u, v, w, sigma_u, sigma_v, sigma_w, x, y, z) -> Contin
     wd = np.where(data, np.where(data, s_meas, 1.0) ** -2.0, 0.0)
     wr = np.where(rule, np.where(rule, s_div, 1.0) ** -2.0, 0.0)
     meas, div = np.where(data, meas, 0.0), np.where(rule, div, 0.0)
-    pin = np.where(data, 0.0, 1.0)         # an unmeasured w: its own equation, NaN below
+    pin = np.where(data, 0.0, 1.0)         # a w without data: its own equation, kept below
     fit, var = np.empty_like(meas), np.empty_like(meas)
     chi2 = 0.0
     step = max(1, _CHUNK_BYTES // (8 * nz * nz))

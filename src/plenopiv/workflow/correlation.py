@@ -103,7 +103,7 @@ def fitted_to_continuity(vectors: VectorResult, settings=None) -> tuple[VectorRe
         warnings.warn(
             f"the vectors' depth component disagrees with the continuity of an incompressible "
             f"flow by a misfit of {fit.chi2_per_vector:.1f} per vector (at most "
-            f"{CONSISTENCY_CHI2:g}): w is kept as correlated. Set [piv] continuity = false "
+            f"{CONSISTENCY_CHI2:g}): w is kept as measured. Set [piv] continuity = false "
             "for a flow that is not incompressible; otherwise check the calibration's depth "
             "and the windows against the flow's scale", PlenopivWarning, stacklevel=2)
         return vectors, {"applied": False, "reason": "misfit above the limit", **record}
