@@ -7,22 +7,14 @@ About 2 minutes on two cores once compiled (21 pairs, each tracked and corrected
 priors).
 """
 
-import argparse
 import sys
-import tempfile
 from pathlib import Path
 
 # the repository root, so that pipelines.studies imports from a clone without installing it
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipelines.studies.output import pair_study_main
 from pipelines.studies.track_correction import run
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="docs/validation")
-    ap.add_argument("--work", default=None, help="scratch folder (default: a temporary one)")
-    a = ap.parse_args()
-    work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="track_correction_"))
-    r = run(a.out, work)
-    print(f"{sum(len(g) for g in r['groups'].values())} pairs in {r['seconds']} s: "
-          f"{a.out}/track_correction.md")
+    pair_study_main(__doc__, run, "track_correction.md")

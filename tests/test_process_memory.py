@@ -8,6 +8,8 @@ import sys
 
 import pytest
 
+from small_case import volume_script
+
 # Allocate, touch and free a 64 MB array (above glibc's 32 MB mmap ceiling) ten times and
 # count the page faults of the last nine: with glibc's defaults each one is a fresh mapping
 # faulted in page by page (16,384 faults of 4 kB pages, NumPy's huge-page advice off as in
@@ -94,24 +96,12 @@ def test_a_stage_hands_back_the_holes_earlier_stages_left():
 
 
 _VOLUME = """
-import hashlib, sys
-import numpy as np
-from plenopiv.calibration.model import Calibration
-from plenopiv.camera.model import load_camera
+import sys
 from plenopiv.resources import own_process_memory
-from plenopiv.synthetic.flows import Uniform
-from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
-from plenopiv.workflow.volume import reconstruct_volume
-from plenopiv.workflow.vortex_case import VortexCase, aligned_grid
 if sys.argv[1] == "own":
     own_process_memory()
-cam = load_camera("small_m1")
-grid = aligned_grid(cam, VortexCase())
-b = grid.bounds
-pair = simulate_pair(cam, Uniform((0.0, 0.0, 0.0)), dt=1e-3,
-                     box=SeedingBox(tuple(b[0]), tuple(b[1]), tuple(b[2])), n_particles=120,
-                     rng=np.random.default_rng(3), rays_per_particle=256)
-r = reconstruct_volume(Calibration.from_camera(cam), np.asarray(pair.image_a, float), grid)
+""" + volume_script(n_particles=120, seed=3) + """
+import hashlib
 h = hashlib.sha256(np.ascontiguousarray(r.volume).tobytes())
 h.update(np.ascontiguousarray(r.particle_position).tobytes())
 print(h.hexdigest())

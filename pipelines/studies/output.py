@@ -97,3 +97,20 @@ def table(columns: Sequence[str], rows: Iterable[Iterable[Any]]) -> list[str]:
 def section(title: str, level: int = 2) -> list[str]:
     """A Markdown heading followed by a blank line."""
     return ["#" * level + " " + title, ""]
+
+
+def pair_study_main(doc: str, run: Callable, page: str) -> None:
+    """The command line of a study over groups of pairs (``run(out, work) -> {"groups",
+    "seconds"}``): ``--out`` (default docs/validation) and ``--work`` (default a temporary
+    folder); prints the pairs, the time and the page ``page`` written."""
+    import argparse
+    import tempfile
+
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--out", default="docs/validation")
+    ap.add_argument("--work", default=None, help="scratch folder (default: a temporary one)")
+    a = ap.parse_args()
+    work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix=f"{Path(page).stem}_"))
+    r = run(a.out, work)
+    print(f"{sum(len(g) for g in r['groups'].values())} pairs in {r['seconds']} s: "
+          f"{a.out}/{page}")

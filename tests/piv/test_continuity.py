@@ -43,7 +43,7 @@ def dense_twin(u, v, w, su, sv, sw, x, y, z):
     """The same least-squares problem, written out densely and solved by np.linalg.lstsq."""
     su, sv, sw = layer_sigma(su), layer_sigma(sv), layer_sigma(sw)
     delta = np.gradient(u, x, axis=2) + np.gradient(v, y, axis=1)
-    gx, gy, gz = (gradient_matrix(c).toarray() for c in (x, y, z))
+    gx, gy, gz = (gradient_matrix(c) for c in (x, y, z))
     sd = np.sqrt(np.einsum("ij,kjl->kil", gy ** 2, sv ** 2)
                  + np.einsum("ij,klj->kli", gx ** 2, su ** 2))
     nz, ny, nx = w.shape

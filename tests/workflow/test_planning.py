@@ -21,6 +21,7 @@ from plenopiv.piv.settings import PIVSettings
 from plenopiv.reconstruction.choose import estimate_nnz
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow import planning, rates
+from small_case import volume_script
 
 MM = 1e-3
 
@@ -216,23 +217,8 @@ def test_cli_plan_needs_the_image_distance(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["footprint_mm"] == pytest.approx(0.2596, abs=1e-4)
 
 
-_PEAK_SCRIPT = """
-import resource, sys
-import numpy as np
-from plenopiv.calibration.model import Calibration
-from plenopiv.camera.model import load_camera
-from plenopiv.synthetic.flows import Uniform
-from plenopiv.synthetic.seeding import SeedingBox, simulate_pair
-from plenopiv.workflow.volume import reconstruct_volume
-from plenopiv.workflow.vortex_case import VortexCase, aligned_grid
-
-cam = load_camera("small_m1")
-grid = aligned_grid(cam, VortexCase())
-b = grid.bounds
-pair = simulate_pair(cam, Uniform((0.0, 0.0, 0.0)), dt=1e-3,
-                     box=SeedingBox(tuple(b[0]), tuple(b[1]), tuple(b[2])), n_particles=270,
-                     rng=np.random.default_rng(1), rays_per_particle=256)
-reconstruct_volume(Calibration.from_camera(cam), np.asarray(pair.image_a, float), grid)
+_PEAK_SCRIPT = volume_script(n_particles=270, seed=1) + """
+import resource
 try:    # this process's own peak (ru_maxrss keeps a parent's peak across fork and exec)
     status = open("/proc/self/status").read()
     print(int(status.split("VmHWM:")[1].split()[0]) * 1024)

@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse
 
 __all__ = ["CONSISTENCY_CHI2", "ContinuityFit", "depth_from_continuity", "gradient_matrix",
            "gradient_sigma", "layer_sigma"]
@@ -25,26 +24,25 @@ __all__ = ["CONSISTENCY_CHI2", "ContinuityFit", "depth_from_continuity", "gradie
 CONSISTENCY_CHI2 = 9.0
 
 
-def gradient_matrix(coords) -> scipy.sparse.csr_matrix:
+def gradient_matrix(coords) -> np.ndarray:
     """The derivative along one axis as a matrix: ``G @ f == np.gradient(f, coords)``.
 
     ``coords``: the strictly increasing positions (n,), any unit; second-order differences
     inside (for uneven spacing too), first-order one-sided at the two ends. Returns an
-    (n, n) CSR matrix in 1/unit.
+    (n, n) array in 1/unit.
     """
     x = np.asarray(coords, dtype=float)
     n = len(x)
+    g = np.zeros((n, n))
     if n < 2:
-        return scipy.sparse.csr_matrix((n, n))
+        return g
     h = np.diff(x)
-    rows, cols, vals = [0, 0, n - 1, n - 1], [0, 1, n - 2, n - 1], \
-        [-1 / h[0], 1 / h[0], -1 / h[-1], 1 / h[-1]]
+    g[0, :2] = -1 / h[0], 1 / h[0]
+    g[-1, -2:] = -1 / h[-1], 1 / h[-1]
     for i in range(1, n - 1):
         a, b = h[i - 1], h[i]             # left and right spacing
-        rows += [i, i, i]
-        cols += [i - 1, i, i + 1]
-        vals += [-b / (a * (a + b)), (b - a) / (a * b), a / (b * (a + b))]
-    return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n, n))
+        g[i, i - 1:i + 2] = -b / (a * (a + b)), (b - a) / (a * b), a / (b * (a + b))
+    return g
 
 
 def gradient_sigma(sigma: np.ndarray, coords, axis: int) -> np.ndarray:
@@ -54,7 +52,7 @@ def gradient_sigma(sigma: np.ndarray, coords, axis: int) -> np.ndarray:
     sigma's unit per coords' unit (GUM 5.1.2: the root sum of squared coefficients times
     uncertainties).
     """
-    g2 = gradient_matrix(coords).power(2)
+    g2 = gradient_matrix(coords) ** 2
     s2 = np.moveaxis(np.asarray(sigma, float) ** 2, axis, 0)
     out = (g2 @ s2.reshape(s2.shape[0], -1)).reshape(s2.shape)
     return np.sqrt(np.moveaxis(out, 0, axis))
@@ -151,7 +149,7 @@ def depth_from_continuity(u, v, w, sigma_u, sigma_v, sigma_w, x, y, z) -> Contin
         return np.moveaxis(f, 0, -1).reshape(-1, nz)
 
     meas, s_meas, div, s_div = columns(w), columns(sw), columns(delta), columns(sd)
-    g = gradient_matrix(z).toarray()
+    g = gradient_matrix(z)
     data = np.isfinite(meas) & np.isfinite(s_meas) & (s_meas > 0)
     # a depth derivative counts where δ is known and every w it reaches was measured
     reach = (~data).astype(float) @ (g != 0).T.astype(float) == 0
