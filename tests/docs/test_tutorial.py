@@ -104,6 +104,11 @@ def test_tutorial_runs_as_written_and_compare_finds_the_flow(tmp_path, capsys, m
     plan = next(s for s in summaries if s and s["command"] == "plan")
     assert plan["windows_fit"] and not plan["warnings"]
     assert (tmp_path / "vectors.h5").exists() and (tmp_path / "vectors.vti").exists()
+    # plenopiv piv fits w to continuity and says so in --json and in the product alike
+    piv = next(s for s in summaries if s and s["command"] == "piv")
+    with h5py.File(tmp_path / "vectors.h5") as fh:
+        assert json.loads(fh.attrs["continuity"]) == piv["continuity"]
+    assert piv["continuity"]["applied"], piv["continuity"]
 
     # the field against the simulated Lamb-Oseen vortex at the window centres
     with h5py.File(tmp_path / "pair.h5") as fh:
