@@ -34,6 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 
 from full_camera import full_case, render_pair  # noqa: E402
+from full_camera import parser as full_camera_parser  # noqa: E402
 
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.products.jsonio import dumps
@@ -120,9 +121,10 @@ def main(argv=None) -> dict:
     p.add_argument("--aligned", action="store_true",
                    help="also time the aligned array's separable lattice projector")
     p.add_argument("--json", action="store_true")
-    args = p.parse_args(argv)
-    args.rays, args.seed, args.displacement_vox = 2048, 1, 3.0
-    args.grid_offset_vox = (0.37, 0.61)
+    own = p.parse_args(argv)
+    # the case of full_camera.py with its defaults, the grid moved off the footprints
+    args = full_camera_parser().parse_args(["--grid-offset-vox", "0.37", "0.61"])
+    vars(args).update(vars(own))
     if args.lenslets:
         args.particles = int(round(args.particles * args.lenslets[0] * args.lenslets[1]
                                    / (193 * 287)))

@@ -292,7 +292,8 @@ def track_study(cal, tracks, vols, pa, pb, grid, settings, log) -> dict:
             "rms_vox": [round(v, 4) for v in rms_per_axis(err)], "counts": tracks.counts}
 
 
-def main(argv=None) -> dict:
+def parser() -> argparse.ArgumentParser:
+    """The benchmark's command line (also the defaults of ``bench_real_lattice.py``'s case)."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--particles", type=int, default=20000)
     p.add_argument("--rays", type=int, default=2048, help="rays per particle")
@@ -335,7 +336,11 @@ def main(argv=None) -> dict:
                    help="time every call of the per-lenslet projector (forward, back, fused "
                         "SMART sweep) in each volume (benchmarks/bench_real_lattice.py)")
     p.add_argument("--json", action="store_true", help="end with one JSON line")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None) -> dict:
+    args = parser().parse_args(argv)
     own_process_memory()            # as the plenopiv command and batch workers do
     if args.lenslets:
         args.particles = int(round(args.particles * args.lenslets[0] * args.lenslets[1]
