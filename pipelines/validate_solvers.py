@@ -31,16 +31,28 @@ if __name__ == "__main__":
     ap.add_argument("--camera", default="auburn_50mm",
                     help="preset the patch is cut from (auburn_135mm: the 16 MP camera's "
                          "optics; its results go to solvers_auburn_135mm.json and so on)")
+    ap.add_argument("--subdivision", default="1",
+                    help="lateral voxels of a footprint / N, scored on them (results go to "
+                         "solvers_sub2.json and so on), or \"auto\": footprint voxels "
+                         "reconstructed on the working grid the defaults choose and scored "
+                         "as returned (solvers_auto.json)")
     a = ap.parse_args()
+    if a.subdivision != "auto":
+        a.subdivision = int(a.subdivision)
     rows, cols = a.lenslets or ((15, 21) if a.quick else (21, 31))
     densities = (0.1, 0.3) if a.quick else DENSITIES
     seeds = a.seeds[:2] if a.quick else a.seeds
     ap_run = {"equal_cost": equal_cost_study, "hybrid": hybrid_study}
     run = next((ap_run[k] for k in ap_run if getattr(a, k)), study)
-    result = run(rows, cols, seeds, densities=densities, preset=a.camera)
+    result = run(rows, cols, seeds, densities=densities, preset=a.camera,
+                 subdivision=a.subdivision)
     name = "solvers_equal_cost" if a.equal_cost else "solvers_hybrid" if a.hybrid else "solvers"
     if a.camera != "auburn_50mm":
         name += f"_{a.camera}"
+    if a.subdivision == "auto":
+        name += "_auto"
+    elif a.subdivision > 1:
+        name += f"_sub{a.subdivision}"
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{name}.json").write_text(dumps(result))

@@ -40,7 +40,7 @@ from plenopiv.conventions import world_to_voxel
 from plenopiv.errors import ReconstructionError
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.products.volume import VolumeResult
-from plenopiv.reconstruction.build import cached_weights
+from plenopiv.reconstruction.build import cached_weights, weights_for
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import Weights
 from plenopiv.settings import as_dict
@@ -512,14 +512,25 @@ class StudySetup:
                                      region=self.region)
 
 
-def study_setup(rows: int, cols: int, *, preset: str = "auburn_50mm") -> StudySetup:
+def study_setup(rows: int, cols: int, *, preset: str = "auburn_50mm",
+                subdivision: int | str = 1) -> StudySetup:
     """Camera patch of ``rows`` × ``cols`` lenslets of ``preset``, exact calibration, grid
-    and weights."""
+    and weights.
+
+    ``subdivision``: an int n, lateral voxels of a footprint / n (:func:`study_grid`) with
+    weights on them; "auto", voxels a footprint wide with the weights of the working grid the
+    library's defaults choose for them (``lateral_subdivision = "auto"``): a reconstruction
+    returns to the footprint grid as ``plenopiv reconstruct`` does.
+    """
     cam = study_camera(rows, cols, preset=preset)
     cal = Calibration.from_camera(cam)
-    grid = study_grid(cam)
+    grid = study_grid(cam, subdivision=1 if subdivision == "auto" else subdivision)
+    if subdivision == "auto":
+        weights, _ = weights_for(cal, grid, ReconstructionSettings())
+    else:
+        weights = study_weights(cal, grid)
     lat, dep = resolution_cell(cam)
-    return StudySetup(cam, cal, grid, study_weights(cal, grid), particle_settings(grid, cam),
+    return StudySetup(cam, cal, grid, weights, particle_settings(grid, cam),
                       (lat, lat, dep), Region(grid, interior_margin(cam)))
 
 
