@@ -21,6 +21,7 @@ import math
 import numba
 import numpy as np
 
+from plenopiv._threads import run_slices
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import LightField
@@ -253,20 +254,23 @@ class LensletProjector(CachedSums):
         vol = _k.back(y, *slices, *lenses, into, order)
         return vol.reshape(-1) if out is None else out
 
+    def _row_reduce(self, maximum: bool) -> np.ndarray:
+        """Each ray's largest (``maximum``) or summed weight (float32, n_pixels)."""
+        slices, lenses = self._args()
+        nz, ny, nx = self.grid.shape
+        out = np.zeros(self.n_pixels, np.float32)
+        run_slices(_k.row_reduce, len(self._lens["xf_x"]), *slices, nx, ny, *lenses,
+                   maximum, out)
+        return out
+
     @functools.cached_property
     def _row_sums(self) -> np.ndarray:
         # the product of each slice's profile sums: a third of a forward projection of ones
-        slices, lenses = self._args()
-        nz, ny, nx = self.grid.shape
-        return _k.row_reduce(*slices, nx, ny, *lenses, False,
-                             np.zeros(self.n_pixels, np.float32))
+        return self._row_reduce(False)
 
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per ray (float32)."""
-        slices, lenses = self._args()
-        nz, ny, nx = self.grid.shape
-        return _k.row_reduce(*slices, nx, ny, *lenses, True,
-                             np.zeros(self.n_pixels, np.float32))
+        return self._row_reduce(True)
 
 
 def lenslet_weights_reference(proj: LensletProjector) -> np.ndarray:

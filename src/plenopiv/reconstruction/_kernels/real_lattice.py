@@ -312,21 +312,23 @@ def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, wind
     return out
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True, nogil=True)
 def row_reduce(t, shape, half, slice_factor, ox, oy, vx, vy, nx, ny, u_col, u_row, window,
-               xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, maximum, out):
+               xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, maximum, out,
+               lo, hi):
     """Largest (``maximum``) or summed weight of every ray, without the contractions.
 
     On each slice the weights of a ray are the outer product of its column's and its row's
     voxel profiles, so their largest value is the product of the profiles' maxima and their
     sum the product of the profiles' sums: ``scale · max_k f_k · max wx · max wy`` or
     ``scale · sum_k f_k · (sum wx) · (sum wy)`` (the sum is a forward projection of ones).
-    Parallel over lenslets, reduced in float64.
+    Lenslets ``lo:hi`` (each writes only its own rays; run on slices by
+    :func:`plenopiv._threads.run_slices`: used once or twice a reconstruction, it is not worth
+    a parallel kernel's compilation), reduced in float64.
     """
     nz = t.shape[0]
-    n_lens = xf_x.shape[0]
     bmax = u_col.shape[1]
-    for lens in prange(n_lens):
+    for lens in range(lo, hi):
         if ray_ptr[lens + 1] == ray_ptr[lens]:
             continue
         r0, r1, c0, c1 = window[lens, 0], window[lens, 1], window[lens, 2], window[lens, 3]
