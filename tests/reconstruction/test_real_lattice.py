@@ -27,9 +27,12 @@ from plenopiv.reconstruction.build import cached_weights
 from plenopiv.reconstruction.choose import choose_projector
 from plenopiv.reconstruction.geometry import separable_axes
 from plenopiv.reconstruction.mart import reconstruction_quality
+from plenopiv.reconstruction import real_lattice as rl
 from plenopiv.reconstruction.real_lattice import (
     LensletProjector,
+    compile_ahead,
     estimate_lenslet_gb,
+    kernel_signatures,
     lenslet_weights_reference,
     matrix_free_projector,
 )
@@ -150,6 +153,38 @@ def test_kernels_equal_their_numpy_twin(small_camera, rng):
     np.testing.assert_allclose(proj.row_max(), dense.max(axis=1), rtol=RTOL, atol=0)
     np.testing.assert_allclose(proj.row_sums(), dense.sum(axis=1), rtol=RTOL, atol=0)
     assert dense.any(axis=1).all()      # every ray reaches the grid: the test covers them
+
+
+def test_the_signatures_compiled_ahead_are_those_the_projector_calls(case, monkeypatch):
+    """What :func:`compile_ahead` compiles is what the projector then calls: the forward and
+    back projections (with and without ``out``, as SMART and the line of sight call them)
+    and the row reduction, each with the argument types of its real call."""
+    import numba
+
+    _, _, _, _, lens = case
+    want = {k.py_func.__name__: sig for k, sig in kernel_signatures().items()}
+    seen = {}
+    for name in want:
+        def record(*args, _kernel=getattr(rk, name), _name=name):
+            seen.setdefault(_name, set()).add(tuple(numba.typeof(a) for a in args))
+            return _kernel(*args)
+        monkeypatch.setattr(rk, name, record)
+    lens.forward(np.ones(lens.n_voxels))
+    lens.forward(np.ones(lens.n_voxels, np.float32), out=np.empty(lens.n_pixels, np.float32))
+    lens.back(np.ones(lens.n_pixels))
+    lens.back(np.ones(lens.n_pixels, np.float32), out=np.empty(lens.n_voxels, np.float32))
+    lens.row_max()
+    assert seen == {name: {sig} for name, sig in want.items()}
+
+
+def test_compile_ahead_runs_once_per_process_and_compiles_every_kernel():
+    first = compile_ahead()
+    assert compile_ahead() is None          # once per process, however often it is asked
+    assert first is not None or rl._AHEAD
+    for thread in rl._AHEAD:
+        thread.join(600)
+    for kernel, sig in kernel_signatures().items():
+        assert sig in {tuple(s) for s in kernel.signatures}, kernel.py_func.__name__
 
 
 def test_back_projection_does_not_depend_on_the_order_of_its_slices(case, rng):

@@ -24,7 +24,11 @@ from plenopiv.products.caches import (
 from plenopiv.reconstruction.choose import choose_projector, choose_reconstruction
 from plenopiv.reconstruction.geometry import ProjectionGeometry, check_grid_in_view
 from plenopiv.reconstruction.projector import SparseProjector
-from plenopiv.reconstruction.real_lattice import LensletProjector, matrix_free_projector
+from plenopiv.reconstruction.real_lattice import (
+    LensletProjector,
+    compile_ahead,
+    matrix_free_projector,
+)
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.reconstruction.weights import Weights, build_weights
 
@@ -77,6 +81,8 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
     work.check_in_view()
     if not load:
         return None, False
+    if choice.projector == "lenslet":
+        compile_ahead()             # its kernels compile while the tables are built
     lf = work.light_field
     # the choice knows the lattice: a turned one is not tried on the separable projector
     proj = (LensletProjector.from_light_field(lf, work.grid) if choice.projector == "lenslet"

@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
+import threading
 
 import numba
 import numpy as np
@@ -28,8 +29,8 @@ from plenopiv.lightfield import LightField
 from plenopiv.reconstruction._kernels import real_lattice as _k
 from plenopiv.reconstruction.projector import CachedSums, _as_vector, _output_volume
 
-__all__ = ["LensletProjector", "estimate_lenslet_gb", "lenslet_weights_reference",
-           "matrix_free_projector"]
+__all__ = ["LensletProjector", "compile_ahead", "estimate_lenslet_gb",
+           "lenslet_weights_reference", "matrix_free_projector"]
 
 #: Largest micro-image (rows or columns of one lenslet's lit pixels) the projector takes; the
 #: Auburn camera's are 17 px, thesis-era cameras' 10-30 px.
@@ -271,6 +272,61 @@ class LensletProjector(CachedSums):
     def row_max(self) -> np.ndarray:
         """``max_j w_ij`` per ray (float32)."""
         return self._row_reduce(True)
+
+
+def kernel_signatures() -> dict:
+    """The numba signatures of the projector's kernels as :class:`LensletProjector` calls them.
+
+    ``{kernel: argument types}`` for the row reduction, the back and the forward projection,
+    from arrays of the dtypes and layouts that :meth:`LensletProjector._args` and the
+    Projector protocol pass (a test holds them to a real projector's).
+    """
+    f64, f32, i64 = np.float64, np.float32, np.int64
+
+    def v(dtype, ndim=1):
+        return np.zeros((1,) * ndim, dtype)
+
+    slices = (v(f64), v(f64, 2), v(f64), v(f64), 0.0, 0.0, 1.0, 1.0)
+    lenses = (v(f64, 2), v(f64, 2), v(i64, 2), v(f64), v(f64), v(i64), v(i64), v(i64), v(f32),
+              v(i64), 1)
+    args = {_k.row_reduce: (*slices, 1, 1, *lenses, False, v(f32), 0, 1),
+            _k.back: (v(f32), *slices, *lenses, v(f32, 3), v(i64)),
+            _k.forward: (v(f32, 3), *slices, *lenses, v(f32))}
+    return {kernel: tuple(numba.typeof(a) for a in a_) for kernel, a_ in args.items()}
+
+
+_AHEAD_LOCK = threading.Lock()
+_AHEAD: list = []         # the compile-ahead thread, once per process
+
+
+def compile_ahead() -> threading.Thread | None:
+    """Compile the projector's kernels in a background thread: the thread, or None.
+
+    On an empty numba cache each kernel is compiled where it is first called, one after the
+    other, on one core (about 15 s for the three on the 16 MP camera); called where the
+    projector is chosen, before its tables and the image's line of sight, they compile while
+    that work runs, in the order the reconstruction needs them. A call of a kernel still being
+    compiled waits for it (numba's compiler lock) and never compiles it twice; kernels numba
+    has cached load in a fraction of a second. Started once per process (None after that); a
+    failure leaves the reconstruction to compile what it needs, with the same results.
+    """
+    with _AHEAD_LOCK:
+        if _AHEAD:
+            return None
+        work = list(kernel_signatures().items())
+        thread = threading.Thread(target=_compile_each, args=(work,), daemon=True,
+                                  name="plenopiv-compile-ahead")
+        _AHEAD.append(thread)
+    thread.start()
+    return thread
+
+
+def _compile_each(work) -> None:
+    for kernel, signature in work:
+        try:
+            kernel.compile(signature)
+        except Exception:           # the caller compiles it on its first call instead
+            return
 
 
 def lenslet_weights_reference(proj: LensletProjector) -> np.ndarray:

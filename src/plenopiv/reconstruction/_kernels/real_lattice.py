@@ -5,7 +5,8 @@ Within one lenslet the weights on depth slice k are an outer product,
 lattice's rotation, packing or jitter. The profiles are computed on the fly, per lenslet,
 slice and micro-image line, into small per-thread buffers. Forward: per lenslet (in parallel),
 per slice, contract x then y into the lenslet's local image. Back: per slice (in parallel, so
-that no two threads write one voxel), per lenslet, the reverse.
+that no two threads write one voxel), per lenslet, the reverse. Both release the GIL, so that
+:func:`plenopiv.reconstruction.real_lattice.compile_ahead` compiles beside them.
 
 See :mod:`plenopiv.reconstruction.real_lattice` and docs/methods.md#projectors.
 """
@@ -179,7 +180,7 @@ def _profile_workspace(bmax, kmax):
             np.empty((kmax + 2, bmax), np.float64))
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, window,
             xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out):
     """``out[ray_pos[i]] = scale_i · sum_k f_k sum_iy wy sum_ix wx volume[k, iy, ix]``.
@@ -239,7 +240,7 @@ def forward(volume, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, 
     return out
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def back(image, t, shape, half, slice_factor, ox, oy, vx, vy, u_col, u_row, window,
          xf_x, xf_y, ray_ptr, ray_r, ray_c, ray_scale, ray_pos, kmax, out, order):
     """Back projection, the adjoint of :func:`forward`.
