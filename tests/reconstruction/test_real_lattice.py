@@ -22,12 +22,12 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.cli import main
 from plenopiv.errors import ReconstructionError
 from plenopiv.lightfield import light_field
+from plenopiv.reconstruction import real_lattice as rl
 from plenopiv.reconstruction._kernels import real_lattice as rk
 from plenopiv.reconstruction.build import cached_weights
 from plenopiv.reconstruction.choose import choose_projector
 from plenopiv.reconstruction.geometry import separable_axes
 from plenopiv.reconstruction.mart import reconstruction_quality
-from plenopiv.reconstruction import real_lattice as rl
 from plenopiv.reconstruction.real_lattice import (
     LensletProjector,
     compile_ahead,
@@ -164,11 +164,15 @@ def test_the_signatures_compiled_ahead_are_those_the_projector_calls(case, monke
     _, _, _, _, lens = case
     want = {k.py_func.__name__: sig for k, sig in kernel_signatures().items()}
     seen = {}
+
+    def recorder(name, kernel):
+        def record(*args):
+            seen.setdefault(name, set()).add(tuple(numba.typeof(a) for a in args))
+            return kernel(*args)
+        return record
+
     for name in want:
-        def record(*args, _kernel=getattr(rk, name), _name=name):
-            seen.setdefault(_name, set()).add(tuple(numba.typeof(a) for a in args))
-            return _kernel(*args)
-        monkeypatch.setattr(rk, name, record)
+        monkeypatch.setattr(rk, name, recorder(name, getattr(rk, name)))
     lens.forward(np.ones(lens.n_voxels))
     lens.forward(np.ones(lens.n_voxels, np.float32), out=np.empty(lens.n_pixels, np.float32))
     lens.back(np.ones(lens.n_pixels))
