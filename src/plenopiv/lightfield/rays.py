@@ -22,11 +22,11 @@ import numpy as np
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.resolution import MICRO_IMAGE_TOLERANCE
 from plenopiv.conventions import pixel_to_sensor
-from plenopiv.errors import CalibrationError
+from plenopiv.errors import CalibrationError, PlenopivWarning
 from plenopiv.lightfield import _kernels as _lk
 
 
-class LightFieldWarning(UserWarning):
+class LightFieldWarning(PlenopivWarning):
     """The light field's model does not match its calibration (micro-image size, rays)."""
 
 

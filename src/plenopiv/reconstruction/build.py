@@ -14,7 +14,7 @@ from pathlib import Path
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.camera.grid import VolumeGrid
-from plenopiv.errors import ReconstructionError
+from plenopiv.errors import PlenopivWarning, ReconstructionError
 from plenopiv.products.caches import (
     read_weights,
     weights_cache_path,
@@ -69,7 +69,7 @@ def weights_for(calibration: Calibration, grid: VolumeGrid, settings: Reconstruc
         geometry = ProjectionGeometry.for_settings(calibration, grid, settings)
     choice = choose_reconstruction(calibration, grid, settings, geometry=geometry)
     for text in choice.fallbacks:
-        warnings.warn(text, stacklevel=2)
+        warnings.warn(text, PlenopivWarning, stacklevel=2)
     if choice.refusal is not None:
         raise ReconstructionError(choice.refusal)
     work = geometry.on_grid(choice.grid)

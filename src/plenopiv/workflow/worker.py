@@ -45,8 +45,9 @@ class ExperimentPairProcess:
     def __call__(self, job) -> dict:
         """Process one :class:`plenopiv.batch.PairJob`; returns a small summary.
 
-        The warnings about its images (:class:`~plenopiv.errors.PlenopivWarning`: the image
-        check, the preprocessing's one per image) are returned under ``warnings``.
+        Its warnings (:class:`~plenopiv.errors.PlenopivWarning`: the image check, the
+        preprocessing's one per image, the weights' fallbacks on a worker's first pair) are
+        returned under ``warnings``; others are given again in this process.
         """
         import warnings
 
