@@ -421,6 +421,33 @@ def test_warnings_are_lines_and_json_entries(inputs, monkeypatch, capsys):
     assert json.loads(out)["warnings"] == [err.strip()[len("warning: "):]]
 
 
+def test_a_warning_said_twice_by_one_command_is_one_line(inputs, monkeypatch, capsys):
+    """A command that meets the same finding twice (its weights built for the response and
+    again for the batch) says it once, in its lines and in its JSON."""
+    import warnings
+
+    import plenopiv.cli as cli
+    from plenopiv.errors import PlenopivWarning
+
+    def twice(args):
+        for _ in range(2):
+            warnings.warn("lateral_subdivision = \"auto\": taking 1 x 1", PlenopivWarning,
+                          stacklevel=2)
+        warnings.warn("another finding", PlenopivWarning, stacklevel=2)
+        return {"command": "piv"}
+
+    parser = cli.build_parser
+    monkeypatch.setattr(cli, "build_parser", lambda: _with_func(parser(), twice))
+    code = main(["piv", str(inputs / "va.h5"), str(inputs / "vb.h5"), "--out",
+                 str(inputs / "w.h5"), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0
+    assert err.splitlines() == ['warning: lateral_subdivision = "auto": taking 1 x 1',
+                                "warning: another finding"]
+    assert json.loads(out)["warnings"] == ['lateral_subdivision = "auto": taking 1 x 1',
+                                           "another finding"]
+
+
 def test_unexpected_exception_is_one_line_exit_1(monkeypatch, capsys, inputs):
     import plenopiv.cli as cli
 

@@ -239,6 +239,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def show(message, category, filename, lineno, file=None, line=None):
         text = _one_line(message)
+        if text in warned:          # said already by this command (weights built twice ...)
+            return
         warned.append(text)
         print(f"warning: {text}", file=sys.stderr)
 
