@@ -99,7 +99,7 @@ def _prepare_and_run(args, exp, jobs, out_dir, opts) -> dict:
         raise
     result = {**head, "weights_s": round(weights_s, 3) if not hit else 0.0,
               **summary.to_dict()}
-    _repeat_image_warnings(summary)
+    _repeat_pair_warnings(summary)
     if summary.failed:
         names = ", ".join(f"{n} ({e})" for n, e in summary.failed[:3])
         more = "" if len(summary.failed) <= 3 else f" and {len(summary.failed) - 3} more"
@@ -127,15 +127,18 @@ def _announce_response(exp, cal, weights, estimate: dict, *, quiet: bool) -> Non
         print(f"measuring the chain's response: once per experiment, about {seconds:.0f} s "
               "([piv] uncertainty = \"response\"; the pairs start after it)", file=sys.stderr,
               flush=True)
-#: Image warnings of a batch's pairs repeated at the command line; the others are counted.
-SHOWN_IMAGE_WARNINGS = 5
 
 
-def _repeat_image_warnings(summary) -> None:
-    """Repeat the warnings the pairs' images got (in the workers) as this command's own.
+#: Warnings of a batch's pairs repeated at the command line; the others are counted.
+SHOWN_PAIR_WARNINGS = 5
 
-    The first :data:`SHOWN_IMAGE_WARNINGS`, then one line counting the rest; every one stays
-    in ``batch_summary.json`` (``results[].result.warnings``).
+
+def _repeat_pair_warnings(summary) -> None:
+    """Repeat the warnings the pairs got in the workers as this command's own.
+
+    Their images' checks and preprocessing, their seeding, the weights' fallbacks on a
+    worker's first pair: the first :data:`SHOWN_PAIR_WARNINGS`, then one line counting the
+    rest; every one stays in ``batch_summary.json`` (``results[].result.warnings``).
     """
     import warnings
 
@@ -143,11 +146,11 @@ def _repeat_image_warnings(summary) -> None:
 
     said = [(r.name, w) for r in summary.results if r.result
             for w in r.result.get("warnings", ())]
-    for name, w in said[:SHOWN_IMAGE_WARNINGS]:
+    for name, w in said[:SHOWN_PAIR_WARNINGS]:
         warnings.warn(f"pair {name}: {w}", PlenopivWarning, stacklevel=3)
-    if len(said) > SHOWN_IMAGE_WARNINGS:
-        warnings.warn(f"{len(said) - SHOWN_IMAGE_WARNINGS} more warnings about the batch's "
-                      f"images; see {summary.summary_path} (results[].result.warnings)",
+    if len(said) > SHOWN_PAIR_WARNINGS:
+        warnings.warn(f"{len(said) - SHOWN_PAIR_WARNINGS} more warnings about the batch's "
+                      f"pairs; see {summary.summary_path} (results[].result.warnings)",
                       PlenopivWarning, stacklevel=3)
 
 
