@@ -398,7 +398,6 @@ def test_json_never_holds_bare_nan(tmp_path, capsys):
 def test_warnings_are_lines_and_json_entries(inputs, monkeypatch, capsys):
     """Saturation below the refusal limit is a warning with the fraction: a ``warning:`` line
     and, with --json, an entry of "warnings" in the summary."""
-    import plenopiv.cli as cli
     from plenopiv.products.images import check_image
 
     rng = np.random.default_rng(3)
@@ -410,10 +409,7 @@ def test_warnings_are_lines_and_json_entries(inputs, monkeypatch, capsys):
         check_image(sat, name="particle image", particles=True)
         return {"command": "piv"}
 
-    parser = cli.build_parser
-    monkeypatch.setattr(cli, "build_parser", lambda: _with_func(parser(), checks))
-    code = main(["piv", str(inputs / "va.h5"), str(inputs / "vb.h5"), "--out",
-                 str(inputs / "w.h5"), "--json"])
+    code = _piv_running(checks, inputs, monkeypatch, as_json=True)
     out, err = capsys.readouterr()
     assert code == 0
     assert err.startswith("warning: particle image is saturated: 0.9")
@@ -426,7 +422,6 @@ def test_a_warning_said_twice_by_one_command_is_one_line(inputs, monkeypatch, ca
     again for the batch) says it once, in its lines and in its JSON."""
     import warnings
 
-    import plenopiv.cli as cli
     from plenopiv.errors import PlenopivWarning
 
     def twice(args):
@@ -436,10 +431,7 @@ def test_a_warning_said_twice_by_one_command_is_one_line(inputs, monkeypatch, ca
         warnings.warn("another finding", PlenopivWarning, stacklevel=2)
         return {"command": "piv"}
 
-    parser = cli.build_parser
-    monkeypatch.setattr(cli, "build_parser", lambda: _with_func(parser(), twice))
-    code = main(["piv", str(inputs / "va.h5"), str(inputs / "vb.h5"), "--out",
-                 str(inputs / "w.h5"), "--json"])
+    code = _piv_running(twice, inputs, monkeypatch, as_json=True)
     out, err = capsys.readouterr()
     assert code == 0
     assert err.splitlines() == ['warning: lateral_subdivision = "auto": taking 1 x 1',
@@ -449,19 +441,25 @@ def test_a_warning_said_twice_by_one_command_is_one_line(inputs, monkeypatch, ca
 
 
 def test_unexpected_exception_is_one_line_exit_1(monkeypatch, capsys, inputs):
-    import plenopiv.cli as cli
 
     def broken(args):
         raise ZeroDivisionError("float division by zero")
 
-    parser = cli.build_parser
-    monkeypatch.setattr(cli, "build_parser", lambda: _with_func(parser(), broken))
-    code = main(["piv", str(inputs / "va.h5"), str(inputs / "vb.h5"), "--out",
-                 str(inputs / "w.h5"), "--json"])
+    code = _piv_running(broken, inputs, monkeypatch, as_json=True)
     out, err = capsys.readouterr()
     assert code == 1 and "Traceback" not in err
     assert err.startswith("error: unexpected ZeroDivisionError: float division by zero")
     assert json.loads(out)["exit_status"] == 1
+
+
+def _piv_running(func, inputs, monkeypatch, *, as_json: bool = False) -> int:
+    """``plenopiv piv`` on the fixture's volumes with ``func`` as its command: the exit status."""
+    import plenopiv.cli as cli
+
+    parser = cli.build_parser
+    monkeypatch.setattr(cli, "build_parser", lambda: _with_func(parser(), func))
+    return main(["piv", str(inputs / "va.h5"), str(inputs / "vb.h5"), "--out",
+                 str(inputs / "w.h5"), *(["--json"] if as_json else [])])
 
 
 def _with_func(parser, func):
@@ -477,15 +475,11 @@ def _with_func(parser, func):
 
 
 def test_interrupt_is_exit_130(monkeypatch, capsys, inputs):
-    import plenopiv.cli as cli
 
     def interrupted(args):
         raise KeyboardInterrupt
 
-    parser = cli.build_parser
-    monkeypatch.setattr(cli, "build_parser", lambda: _with_func(parser(), interrupted))
-    code = main(["piv", str(inputs / "va.h5"), str(inputs / "vb.h5"), "--out",
-                 str(inputs / "w.h5")])
+    code = _piv_running(interrupted, inputs, monkeypatch)
     assert code == 130 and capsys.readouterr().err.startswith("error: interrupted")
 
 
