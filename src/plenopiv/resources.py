@@ -52,7 +52,22 @@ _M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
 KEEP_FREED_BYTES = 256 << 20
 
 
-def reuse_freed_memory() -> bool:
+#: The glibc allocator's environment variables: where the user set one, the allocator is
+#: left as they chose.
+ALLOCATOR_ENV_VARS = ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_")
+
+
+def allocator_environment(environ=None) -> tuple[tuple[str, str], ...]:
+    """The allocator variables set in ``environ`` (default: this process's), as pairs.
+
+    What a command hands its batch workers (:func:`own_process_memory`), whose own
+    environment is their launcher's as much as the user's.
+    """
+    environ = os.environ if environ is None else environ
+    return tuple((k, environ[k]) for k in ALLOCATOR_ENV_VARS if k in environ)
+
+
+def reuse_freed_memory(user_environment=None) -> bool:
     """Let this process reuse the memory it frees instead of handing it back at once.
 
     glibc serves every allocation above 32 MB (an image's rays, a volume's slabs) by a fresh
@@ -62,16 +77,21 @@ def reuse_freed_memory() -> bool:
     up to :data:`KEEP_FREED_BYTES` of freed memory at its top is kept for the next ones: it
     stays resident, so a peak may grow by about that much (1 GB kept added 0.5 GB to the
     full-size benchmark's peak; 256 MB adds 0.08 GB and keeps most of the time saved).
-    Called where :func:`prefer_small_pages` is; a ``MALLOC_MMAP_MAX_`` or
-    ``MALLOC_TRIM_THRESHOLD_`` in the environment is the user's choice and is left alone;
-    no change on a C library without ``mallopt`` (not glibc).
+    Called where :func:`prefer_small_pages` is. A ``MALLOC_MMAP_MAX_`` or
+    ``MALLOC_TRIM_THRESHOLD_`` the user set is their choice and is left alone:
+    ``user_environment`` holds those the user set (:func:`allocator_environment` pairs;
+    default: this process's own). A batch worker is given its command's: a dask nanny
+    starts every worker with ``MALLOC_TRIM_THRESHOLD_=65536`` (dask's choice, which made a
+    full-size pair of ``plenopiv run`` a third slower). No change on a C library without
+    ``mallopt`` (not glibc).
 
     Returns
     -------
     bool
         True when the allocator's settings were changed by this call.
     """
-    if any(k in os.environ for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_")):
+    chosen = allocator_environment() if user_environment is None else tuple(user_environment)
+    if chosen:
         return False
     mallopt = _glibc("mallopt", (ctypes.c_int, ctypes.c_int))
     if mallopt is None:
@@ -95,14 +115,15 @@ def release_freed_memory() -> bool:
     return True
 
 
-def own_process_memory() -> None:
+def own_process_memory(user_environment=None) -> None:
     """Set up the memory of a process that plenopiv owns: the command's, a batch worker's.
 
-    :func:`prefer_small_pages` and :func:`reuse_freed_memory`; not on import (a library does
-    not change its caller's process).
+    :func:`prefer_small_pages` and :func:`reuse_freed_memory` (``user_environment``: the
+    allocator variables the user set, for a batch worker its command's); not on import (a
+    library does not change its caller's process).
     """
     prefer_small_pages()
-    reuse_freed_memory()
+    reuse_freed_memory(user_environment)
 
 
 @functools.cache

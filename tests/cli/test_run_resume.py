@@ -149,3 +149,24 @@ def test_a_rerun_says_why_it_recomputes_a_pair(finished, tmp_path, capsys):
         {"name": "p", "reason": "its p_volume_B.h5 is missing (deleted since it was made)"}]
     assert json.loads((d / "out" / SUMMARY_NAME).read_text())["recomputed"] == s["recomputed"]
     assert (d / "out" / "p_volume_B.h5").exists()
+
+
+@pytest.mark.parametrize("user_env", [{}, {"MALLOC_TRIM_THRESHOLD_": "131072"}])
+def test_the_workers_get_the_allocator_settings_of_the_command(finished, tmp_path, monkeypatch,
+                                                               user_env):
+    """A dask nanny starts its workers with its own ``MALLOC_TRIM_THRESHOLD_``; what the
+    user set where ``plenopiv run`` runs is handed to the pairs' process instead."""
+    import plenopiv.batch
+
+    for key in ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_MAX_"):
+        monkeypatch.delenv(key, raising=False)
+    for key, value in user_env.items():
+        monkeypatch.setenv(key, value)
+    d = tmp_path / "copy"
+    shutil.copytree(finished, d)
+    handed, real = [], plenopiv.batch.run_batch
+    monkeypatch.setattr(plenopiv.batch, "run_batch",
+                        lambda jobs, process, **kw: handed.append(process) or real(jobs, process,
+                                                                                   **kw))
+    assert main(["run", str(d / "exp.toml"), "--workers", "1", "--quiet"]) == 0   # resumed
+    assert [p.allocator for p in handed] == [tuple(user_env.items())]

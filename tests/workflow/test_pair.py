@@ -259,6 +259,42 @@ def test_a_worker_keeps_one_processor_and_its_projector(tmp_path, monkeypatch):
     assert worker.worker_processor(exp, tmp_path / "cal.h5") is not second
 
 
+def test_a_worker_sets_its_memory_up_by_the_allocator_settings_it_is_given(tmp_path,
+                                                                           monkeypatch):
+    """The allocator variables the command hands on reach own_process_memory through the
+    pair's process and the worker's processor, not the worker's own environment (which its
+    dask nanny set)."""
+    from plenopiv.camera.model import load_camera
+    from plenopiv.workflow import pair, worker
+
+    Calibration.from_camera(load_camera("small_m1")).save(tmp_path / "cal.h5")
+    exp = tmp_path / "exp.toml"
+    exp.write_text('camera = "small_m1"\n[volume]\nx_mm = [-1.0625, 1.0625]\n'
+                   'y_mm = [-1.0625, 1.0625]\nz_mm = [-1.5, 1.5]\nvoxel_mm = 0.125\n')
+    monkeypatch.setattr(pair, "weights_for", lambda *a, **k: (object(), False))
+    seen = []
+    monkeypatch.setattr(worker, "own_process_memory", seen.append)
+    real = worker.worker_processor
+
+    class Stop(Exception):
+        pass
+
+    def processor_then_stop(*args, **kwargs):
+        real(*args, **kwargs)
+        raise Stop
+
+    monkeypatch.setattr(worker, "worker_processor", processor_then_stop)
+    given = [(), (("MALLOC_TRIM_THRESHOLD_", "131072"),), None]
+    for allocator in given:
+        worker.drop_worker_processor()
+        process = worker.ExperimentPairProcess(str(exp), str(tmp_path / "cal.h5"),
+                                               str(tmp_path), allocator=allocator)
+        with pytest.raises(Stop):
+            process(None)
+    worker.drop_worker_processor()
+    assert seen == given
+
+
 def test_a_volume_correlated_with_itself_is_warned_about(rng):
     """``plenopiv piv A.h5 A.h5``: a zero field by construction, said so."""
     from plenopiv.camera.corrections import DepthCorrection

@@ -33,6 +33,25 @@ def thread_env(threads: int) -> dict[str, str]:
     return {k: str(int(threads)) for k in THREAD_ENV_VARS}
 
 
+def worker_allocator_env(environ=None) -> dict[str, str]:
+    """The allocator variables a batch's worker processes start with: one malloc arena.
+
+    A worker runs its pairs in a thread of its own, and glibc serves such a thread from an
+    arena of 64 MB heaps, so every larger array (an image's rays, a volume) is mapped afresh
+    and handed back when freed, whatever :func:`plenopiv.resources.reuse_freed_memory` sets.
+    With one arena they come from the process's heap, where that setting keeps them for
+    reuse. Only read when the process starts, so it is set before the workers are spawned.
+    Empty where the user set an allocator variable (``environ``: the command's own
+    environment by default), which is then theirs to choose.
+    """
+    from plenopiv.resources import ALLOCATOR_ENV_VARS
+
+    environ = os.environ if environ is None else environ
+    if any(k in environ for k in (*ALLOCATOR_ENV_VARS, "MALLOC_ARENA_MAX")):
+        return {}
+    return {"MALLOC_ARENA_MAX": "1"}
+
+
 def _cores() -> int:
     try:
         return max(1, len(os.sched_getaffinity(0)))
@@ -246,7 +265,8 @@ def slurm_cluster_kwargs(options: Mapping | None, *, threads_per_worker: int | N
     jobs = _positive_int(opts.pop("jobs", None), "[batch] jobs")
     if jobs is None:
         jobs = math.ceil(n_workers / processes) if n_workers else 1
-    prologue = [f"export {k}={v}" for k, v in thread_env(threads).items()]
+    prologue = [f"export {k}={v}" for k, v in {**thread_env(threads),
+                                               **worker_allocator_env()}.items()]
     prologue += list(opts.pop("job_script_prologue", []))
     kwargs: dict[str, Any] = {
         # one dask thread per worker process (one pair at a time); SLURM books all the cores
@@ -394,11 +414,15 @@ def _open_client(kind: str, cluster: str, n_workers: int | None, threads: int | 
     # NUMBA_NUM_THREADS: numba in this process would refuse a changed value once its threads
     # run; the Nanny's `env` sets it in each worker before the worker imports anything.
     blas = {k: v for k, v in env.items() if k != "NUMBA_NUM_THREADS"}
+    allocator = worker_allocator_env()
     with contextlib.ExitStack() as stack:
         # ... and leave this process's environment as it was (dask also sets its own keys)
-        stack.enter_context(_scoped_environ(blas, restore=[*spawn_keys, "PYTHONHASHSEED",
+        stack.enter_context(_scoped_environ(blas, restore=[*spawn_keys, *allocator,
+                                                           "PYTHONHASHSEED",
                                                            "__DASK_PARENT_PID"]))
-        stack.enter_context(dask.config.set(sched_cfg))
+        # the allocator's, before each worker process starts: its allocator reads them then
+        spawn = {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in allocator.items()}
+        stack.enter_context(dask.config.set({**sched_cfg, **spawn}))
         with _sigterm_deferred():      # a cluster half started could not be closed
             if kind == "local":
                 from distributed import LocalCluster

@@ -32,7 +32,10 @@ class ExperimentPairProcess:
     response cache, or measures it (``[piv] uncertainty = "response"``). ``background``: the
     batch's minimum or mean background (``[preprocess] background = "minimum"`` or
     ``"mean"``), formed once over the batch's images before the pairs fan out, and
-    ``background_images`` the number of images it was formed from.
+    ``background_images`` the number of images it was formed from. ``allocator``: the
+    allocator variables the user set where the command runs
+    (:func:`plenopiv.resources.allocator_environment`; None: the worker's own environment,
+    where a dask nanny puts its own): the worker's memory is set up by them.
     """
 
     experiment_path: str
@@ -41,6 +44,7 @@ class ExperimentPairProcess:
     response: ExperimentResponse | None = None
     background: str | None = None
     background_images: int = 0
+    allocator: tuple | None = None
 
     def __call__(self, job) -> dict:
         """Process one :class:`plenopiv.batch.PairJob`; returns a small summary.
@@ -56,7 +60,8 @@ class ExperimentPairProcess:
         from plenopiv.products.jsonio import dumps
 
         processor = worker_processor(self.experiment_path, self.calibration_path,
-                                     self.background, self.background_images)
+                                     self.background, self.background_images,
+                                     allocator=self.allocator)
         processor.share_response(self.response)
         exp, cal = processor.experiment, processor.calibration
         ia, ib = read_image(job.image_a), read_image(job.image_b)
@@ -139,15 +144,15 @@ def _file_identity(path: str | Path) -> tuple:
 
 
 def worker_processor(experiment_path: str | Path, calibration_path: str | Path,
-                     background: str | Path | None = None, background_images: int = 0
-                     ) -> PairProcessor:
+                     background: str | Path | None = None, background_images: int = 0, *,
+                     allocator: tuple | None = None) -> PairProcessor:
     """The :class:`PairProcessor` of this process for an experiment file and a calibration.
 
     Made on first use (the experiment and the calibration loaded, the projector built or read
     from the weights cache on the first pair) and kept for the later pairs of the process;
     a changed file (size or modification time) or another experiment replaces it. One is kept
-    at a time, so a worker holds one projector. ``background``: the batch's background image
-    (:class:`ExperimentPairProcess`).
+    at a time, so a worker holds one projector. ``background``: the batch's background image,
+    ``allocator``: the allocator variables the user set (:class:`ExperimentPairProcess`).
     """
     key = (_file_identity(experiment_path), _file_identity(calibration_path),
            None if background is None else _file_identity(background))
@@ -156,7 +161,7 @@ def worker_processor(experiment_path: str | Path, calibration_path: str | Path,
             from plenopiv.config.experiment import load_experiment
 
             _WORKER_PROCESSOR.clear()
-            own_process_memory()    # a batch worker's process is the batch's own
+            own_process_memory(allocator)   # a batch worker's process is the batch's own
             from plenopiv.workflow.judgement import camera_resolution, judge_experiment
 
             exp = load_experiment(experiment_path)
