@@ -155,6 +155,38 @@ def test_kernels_equal_their_numpy_twin(small_camera, rng):
     assert dense.any(axis=1).all()      # every ray reaches the grid: the test covers them
 
 
+def _patch_rows(proj) -> np.ndarray:
+    """Voxel rows each lenslet's beams span on each slice (lenslets × slices), as `_span`."""
+    le, sl, win, g = proj._lens, proj._slices, proj._window, proj.grid
+    lens = np.arange(len(le["xf_y"]))
+    first = le["u_row"][lens, win[:, 0]]
+    last = le["u_row"][lens, np.maximum(win[:, 1] - 1, 0)]
+    t, half = sl["t"][None, :], sl["half"][None, :]
+    m0 = (1 - t) * first[:, None] + t * le["xf_y"][:, None]
+    m1 = (1 - t) * last[:, None] + t * le["xf_y"][:, None]
+    lo = np.floor((np.minimum(m0, m1) - half - g.origin[1]) / g.voxel[1] + 0.5)
+    hi = np.floor((np.maximum(m0, m1) + half - g.origin[1]) / g.voxel[1] + 0.5) + 1
+    return np.clip(hi, 0, g.shape[1]) - np.clip(lo, 0, g.shape[1])
+
+
+@pytest.mark.parametrize("geometry", ["rotated_10mrad", "hexagonal"])
+def test_back_projection_of_short_and_tall_patches_equals_explicit_weights(small_camera, rng,
+                                                                            geometry):
+    """On voxels a quarter of a footprint wide a lenslet's beams span a few rows near focus
+    and many far from it: the back projection adds the short patches straight into the
+    slice and the tall ones through the slice transposed; both equal the explicit weights."""
+    cal = Calibration.from_camera(camera_of(small_camera, geometry, (9, 11)))
+    lf = light_field(cal, edge_centroid=False)
+    grid = small_grid(lf, nx=44, ny=40, nz=12, lateral=0.25, depth=1.7)
+    lens = LensletProjector.from_light_field(lf, grid)
+    rows = _patch_rows(lens)
+    assert (rows < rk.TRANSPOSED_MIN_ROWS).any() and (rows >= rk.TRANSPOSED_MIN_ROWS).any()
+    explicit = build_weights(lf, grid, min_weight=0.0).projector
+    i = rng.random(lf.n_rays).astype(np.float32)
+    b0, b1 = explicit.back(i), lens.back(i)
+    assert np.abs(b1 - b0).max() <= RTOL * np.abs(b0).max()
+
+
 def test_the_signatures_compiled_ahead_are_those_the_projector_calls(case, monkeypatch):
     """What :func:`compile_ahead` compiles is what the projector then calls: the forward and
     back projections (with and without ``out``, as SMART and the line of sight call them)
