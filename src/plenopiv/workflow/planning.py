@@ -84,10 +84,11 @@ SECONDS_PER_PIXEL_RECORDING_CHECK = 2.7e-7
 #: lenslet (``benchmarks/full_camera.py --track``).
 SECONDS_PER_RAY_PARTICLE_FIT = 4.1e-7
 
-#: Seconds per particle of A and B of a pair's tracks (bundle fits, refinement, matching;
-#: ``[tracking] correct_vectors`` or ``enabled``) on two threads: 44.6 s for 2 × 27,500 on
-#: the 16 MP turned array (``benchmarks/full_camera.py``), 0.49 s for 2 × 221 in the demo.
-SECONDS_PER_TRACKED_PARTICLE = 8.1e-4
+#: Seconds per seeded particle of A and B of a pair's tracks (bundle fits, refinement,
+#: matching; ``[tracking] correct_vectors`` or ``enabled``) on two threads: 18.9 s for the
+#: 2 × 20,000 particles of a pair on the 16 MP turned array (25,080 found in A; ``plenopiv
+#: run``, docs/performance.md#batches), 0.49 s for 2 × 221 in the demo.
+SECONDS_PER_TRACKED_PARTICLE = 4.7e-4
 
 
 @dataclass(frozen=True)
