@@ -348,22 +348,23 @@ def test_the_rehearsed_share_of_the_field_does_not_depend_on_where_the_box_lies(
 def test_the_pairs_tracks_count_in_the_pair_where_they_are_made(small_camera, correct,
                                                                  enabled):
     """[tracking] correct_vectors or enabled: the pair's time holds its tracks, at the
-    stated seeding (or the validated one), in proportion to the particles; neither: none."""
+    stated seeding (or the top of the validated one, so that a pair seeded within it is not
+    underestimated), in proportion to the particles; neither: none."""
     from plenopiv.tracking.settings import TrackingSettings
-    from plenopiv.workflow.judgement import VALIDATED_PARTICLES_PER_LENSLET, lenslets_in_box
+    from plenopiv.workflow.judgement import VALIDATED_SEEDING, lenslets_in_box
 
     grid = VolumeGrid(origin=(0.0, 0.0, 0.0), voxel=(1.25e-4, 1.25e-4, 2.5e-4),
                       shape=(16, 24, 32))
     tracking = TrackingSettings(correct_vectors=correct, enabled=enabled)
     plain = planning.plan(small_camera, grid, rates=rates.BENCHMARK_RATES,
                           tracking=TrackingSettings(correct_vectors=False))
-    for seeding in (None, 0.3):
+    for seeding in (None, 0.1, 0.3):
         p = planning.plan(small_camera, grid, rates=rates.BENCHMARK_RATES, tracking=tracking,
                           seeding=seeding)
         if not (correct or enabled):
             assert p.time["track"] == 0.0 and p.time["pair"] == plain.time["pair"]
             continue
-        per_lenslet = VALIDATED_PARTICLES_PER_LENSLET if seeding is None else seeding
+        per_lenslet = max(VALIDATED_SEEDING) if seeding is None else seeding
         expected = (planning.SECONDS_PER_TRACKED_PARTICLE * 2 * per_lenslet
                     * lenslets_in_box(p.camera, grid))
         assert p.time["track"] == pytest.approx(expected) and expected > 0

@@ -25,6 +25,7 @@ from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow.judgement import (
     MIN_VECTORS_LAST_PASS,
     VALIDATED_PARTICLES_PER_LENSLET,
+    VALIDATED_SEEDING,
     Camera,
     Finding,
     Judgement,
@@ -289,7 +290,7 @@ def plan(camera: CameraModel, grid: VolumeGrid, *,
     (:func:`plenopiv.workflow.response.response_seconds`), s. ``tracking``: the ``[tracking]``
     table (default: the defaults); where it tracks the pairs (``correct_vectors`` or
     ``enabled``) the pair's time holds its tracks (``track``), at the ``seeding`` given or
-    the validated one.
+    the top of the validated one (:data:`~plenopiv.workflow.judgement.VALIDATED_SEEDING`).
 
     The warnings and advice are :func:`plenopiv.workflow.judgement.judge`'s on the decided
     subdivision (``seeding``: the particles per lenslet expected, judged too), after the
@@ -410,7 +411,9 @@ def _track_times(times: dict, cam: Camera, grid: VolumeGrid, tracking, seeding) 
     tracking = tracking or TrackingSettings()
     if not (tracking.correct_vectors or tracking.enabled):
         return {"track": 0.0}
-    per_lenslet = VALIDATED_PARTICLES_PER_LENSLET if seeding is None else float(seeding)
+    # unstated: the top of the validated seeding, so that a pair seeded within it takes no
+    # longer than planned (the tracks' time grows with the particles)
+    per_lenslet = VALIDATED_SEEDING[1] if seeding is None else float(seeding)
     t = SECONDS_PER_TRACKED_PARTICLE * 2.0 * per_lenslet * lenslets_in_box(cam, grid)
     return {"track": t, "pair": times["pair"] + t,
             "pair_cached_weights": times["pair_cached_weights"] + t}
