@@ -11,6 +11,7 @@ from plenopiv.errors import PlenopivWarning
 from plenopiv.piv import PIVSettings
 from plenopiv.piv.continuity import (
     CONSISTENCY_CHI2,
+    column_gain_sigma,
     depth_from_continuity,
     gradient_matrix,
     gradient_sigma,
@@ -301,3 +302,52 @@ def test_where_the_fit_is_not_made_the_record_says_why():
 def test_continuity_takes_true_or_false_only(value):
     with pytest.raises(ValueError, match=r"continuity = .*expected True or False"):
         PIVSettings(continuity=value)
+
+
+def test_the_response_gain_term_weighs_the_layers_by_their_gain_error_not_their_attenuation():
+    """The response's term e_k·|w| is smallest where w is most attenuated (near focus): as a
+    weight it made a column's level that of its worst layers. Taken at the column's rms w,
+    layers of equal gain error weigh equally: a rotation about y (∂w/∂z = 0, each column
+    one w) measured at 0.4 of itself at focus and 1 far from it is fitted to the column's
+    plain mean, not pulled to the focus layer's 0.4."""
+    zz, yy, xx = grids()
+    u, v, w = 2e-2 * zz, 0 * yy, -2e-2 * xx
+    gain = 1.0 - 0.6 * np.exp(-(zz / 1e-3) ** 2)
+    measured_w = gain * w
+    e = np.full(len(Z), 4.5)                      # one test pair's failure: every layer
+    sigma = e[:, None, None] * np.abs(measured_w) + 1e-9
+    tiny = np.full(w.shape, 1e-10)
+    raw = depth_from_continuity(u, v, measured_w, tiny, tiny, sigma, X, Y, Z)
+    fair = depth_from_continuity(u, v, measured_w, tiny, tiny,
+                                 column_gain_sigma(sigma, measured_w, e), X, Y, Z)
+    inside = np.abs(xx[0]) > 0                    # columns where w is not zero
+    gain_of = [float(np.sum(f.w[:, inside] * w[:, inside]) / np.sum(w[:, inside] ** 2))
+               for f in (raw, fair)]
+    assert gain_of[1] == pytest.approx(np.mean(gain[:, 0, 0]), abs=1e-3)
+    assert gain_of[0] < gain_of[1] - 0.05          # the raw weights lean on the focus
+
+
+def test_column_gain_sigma_keeps_the_rest_of_the_uncertainty():
+    rng = np.random.default_rng(2)
+    w = rng.normal(size=(4, 3, 5))
+    e = np.array([0.5, 1.0, 2.0, 0.0])
+    rest = rng.uniform(0.1, 0.3, w.shape)
+    sigma = np.sqrt(rest ** 2 + (e[:, None, None] * w) ** 2)
+    col = np.sqrt(np.mean(w ** 2, axis=0))
+    want = np.sqrt(rest ** 2 + (e[:, None, None] * col) ** 2)
+    assert np.allclose(column_gain_sigma(sigma, w, e), want, rtol=1e-12)
+    w[1, 0, 0] = np.nan                           # a NaN vector: NaN, its column still fair
+    got = column_gain_sigma(np.where(np.isnan(w), np.nan, sigma), w, e)
+    assert np.isnan(got[1, 0, 0]) and np.isfinite(got[0, 0, 0])
+
+
+def test_the_pairs_fit_uses_the_response_gain_error_where_the_vectors_carry_it():
+    (mu, mv, mw, su, sv, sw, *_), _ = oseen_fit()
+    e = np.linspace(0.5, 2.0, len(Z))
+    sigma = np.sqrt(sw ** 2 + (e[:, None, None] * mw) ** 2)
+    vec = dataclasses.replace(as_vectors(mu, mv, mw, su, sv, sigma), w_gain_error=e)
+    out, record = fitted_to_continuity(vec, PIVSettings())
+    want = depth_from_continuity(mu, mv, mw, su, sv, column_gain_sigma(sigma, mw, e), X, Y, Z)
+    assert record["applied"] and np.array_equal(out.w, want.w)
+    plain, _ = fitted_to_continuity(dataclasses.replace(vec, w_gain_error=None), PIVSettings())
+    assert not np.array_equal(plain.w, out.w)

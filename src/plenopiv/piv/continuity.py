@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CONSISTENCY_CHI2", "ContinuityFit", "depth_from_continuity", "gradient_matrix",
-           "gradient_sigma", "layer_sigma"]
+__all__ = ["CONSISTENCY_CHI2", "ContinuityFit", "column_gain_sigma", "depth_from_continuity",
+           "gradient_matrix", "gradient_sigma", "layer_sigma"]
 
 #: Largest normalised misfit of the fit (chi-square per vector) at which it is used: an rms
 #: of three standard uncertainties. A larger one says the flow is not incompressible at the
@@ -71,6 +71,29 @@ def layer_sigma(sigma: np.ndarray) -> np.ndarray:
         med = np.array([np.median(r[np.isfinite(r)]) if np.isfinite(r).any() else np.nan
                         for r in flat])
     return np.broadcast_to(med[:, None, None], s.shape).copy()
+
+
+def column_gain_sigma(sigma_w, w, gain_error) -> np.ndarray:
+    """The uncertainty of w with the chain's gain term taken at its column's displacement.
+
+    The response puts ``e_k · |w|`` into each vector's uncertainty (``e_k``: the relative
+    gain error of layer k, ``gain_error``, dimensionless): right for one vector, but as a
+    weight across the layers of a column it trusts a w the more the more it is attenuated,
+    and near the focal plane, where the depth gain is lowest, w is smallest. Here that term
+    is replaced by ``e_k · w_col``, w_col the column's rms measured w, so that the layers
+    of a column weigh by their gain error alone (the rest of the uncertainty kept):
+
+        σ² = max(σ_w² − (e_k w)², 0) + (e_k w_col)²
+
+    ``sigma_w``, ``w`` (nz, ny, nx), one unit; ``gain_error`` (nz,). NaN stays NaN.
+    """
+    s = np.asarray(sigma_w, float)
+    w = np.asarray(w, float)
+    e = np.asarray(gain_error, float)[:, None, None]
+    with np.errstate(all="ignore"):
+        col = np.sqrt(np.nanmean(w ** 2, axis=0, keepdims=True))
+    rest = np.maximum(s ** 2 - (e * w) ** 2, 0.0)
+    return np.sqrt(rest + (e * np.nan_to_num(col)) ** 2)
 
 
 @dataclass(frozen=True)

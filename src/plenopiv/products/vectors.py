@@ -7,6 +7,7 @@ it for ParaView.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -104,6 +105,12 @@ class VectorResult:
         figures in voxels (``plenopiv compare``).
     window_vox : (wz, wy, wx) or None
         The interrogation window of the last pass, voxels; None where unknown.
+    w_gain_error : (nz,) or None
+        The chain's relative gain error of w per layer (dimensionless,
+        :meth:`plenopiv.piv.response.Response.gain_error`), whose term ``w_gain_error · |w|``
+        the response puts into ``w_uncertainty``; None without a response. For the
+        continuity fit's weights (:func:`plenopiv.workflow.correlation.fitted_to_continuity`);
+        not saved.
     """
 
     x: np.ndarray
@@ -126,6 +133,7 @@ class VectorResult:
     grid: VolumeGrid | None = None
     window_vox: tuple[int, int, int] | None = None
     particles_per_window: np.ndarray | None = None
+    w_gain_error: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         object.__setattr__(self, "dt", check_dt(self.dt, "VectorResult dt"))
@@ -151,11 +159,11 @@ class VectorResult:
     @classmethod
     def from_field(cls, field, correction: DepthCorrection, dt=None, *,
                    uncertainty_method: str = "correlation",
-                   grid: VolumeGrid | None = None) -> VectorResult:
+                   grid: VolumeGrid | None = None, w_gain_error=None) -> VectorResult:
         """Convert a :class:`plenopiv.piv.VectorField` of effective coordinates.
 
         ``grid``: the effective grid the volumes were reconstructed on (kept with its depth
-        corrected, :attr:`grid`).
+        corrected, :attr:`grid`); ``w_gain_error``: :attr:`w_gain_error`.
         """
         scale = abs(correction.scale)
         physical = None if grid is None else physical_grid(grid, correction)
@@ -169,7 +177,9 @@ class VectorResult:
                    w_uncertainty=np.asarray(field.w_uncertainty) * scale,
                    uncertainty_method=uncertainty_method, grid=physical,
                    window_vox=tuple(int(n) for n in field.settings.windows[-1]),
-                   particles_per_window=np.asarray(field.particles_per_window))
+                   particles_per_window=np.asarray(field.particles_per_window),
+                   w_gain_error=None if w_gain_error is None else np.asarray(w_gain_error,
+                                                                             float))
 
     def _quality(self) -> dict:
         return {"valid": self.valid, "flag": self.flag, "replaced": self.replaced,

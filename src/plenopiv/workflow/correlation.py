@@ -31,7 +31,7 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
     keeps the correlation statistics alone.
     """
     from plenopiv.piv import PIVSettings, correlate_volumes
-    from plenopiv.piv.uncertainty import combine
+    from plenopiv.piv.uncertainty import MIN_GAIN, combine
     from plenopiv.workflow.preprocess import IDENTICAL_PAIR
 
     for name, r in (("result_a", result_a), ("result_b", result_b)):
@@ -55,13 +55,13 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
                               settings=settings, workers=workers, progress=progress, mask=mask,
                               particles=(result_a.volume_position_effective,
                                          result_b.volume_position_effective))
-    method = "correlation"
+    method, gain_error = "correlation", None
     measured = None if response is None else response(field)
     if measured is not None:
         field = combine(field, measured)
-        method = "response"
+        method, gain_error = "response", measured.gain_error(field.z, MIN_GAIN)[2]
     return VectorResult.from_field(field, result_a.correction, dt, uncertainty_method=method,
-                                   grid=result_a.grid)
+                                   grid=result_a.grid, w_gain_error=gain_error)
 
 
 def fitted_to_continuity(vectors: VectorResult, settings=None) -> tuple[VectorResult, dict]:
@@ -82,7 +82,11 @@ def fitted_to_continuity(vectors: VectorResult, settings=None) -> tuple[VectorRe
 
     from plenopiv.errors import PlenopivWarning
     from plenopiv.piv import PIVSettings
-    from plenopiv.piv.continuity import CONSISTENCY_CHI2, depth_from_continuity
+    from plenopiv.piv.continuity import (
+        CONSISTENCY_CHI2,
+        column_gain_sigma,
+        depth_from_continuity,
+    )
 
     settings = PIVSettings() if settings is None else settings
     if not settings.continuity:
@@ -95,6 +99,9 @@ def fitted_to_continuity(vectors: VectorResult, settings=None) -> tuple[VectorRe
     sigma = (vectors.u_uncertainty, vectors.v_uncertainty, vectors.w_uncertainty)
     if any(s is None or not np.isfinite(s).any() for s in sigma):
         return vectors, {"applied": False, "reason": "the vectors carry no uncertainty"}
+    if vectors.w_gain_error is not None:
+        sigma = (*sigma[:2], column_gain_sigma(vectors.w_uncertainty, vectors.w,
+                                               vectors.w_gain_error))
     fit = depth_from_continuity(vectors.u, vectors.v, vectors.w, *sigma,
                                 vectors.x, vectors.y, vectors.z)
     record = {"chi2_per_vector": round(fit.chi2_per_vector, 4), "vectors": fit.vectors,
