@@ -385,13 +385,16 @@ def _size_fallbacks(calibration: Calibration, grid: VolumeGrid,
     if wanted == tuple(taken):
         return []
     per = "" if cost == 1.0 else f" at {cost:g} times the cost of the lattice projector's"
+    # the next cut first: it costs the least of those given up
+    step = max(taken) + 1
+    cuts = str(step) if step >= max(wanted) else f"{step} (or up to {max(wanted)})"
     return [f"lateral_subdivision = \"auto\": a {wanted[0]} x {wanted[1]} subdivision would "
             f"make {grid.n_voxels * wanted[0] * wanted[1] / 1e6:.3g} million working voxels "
             "on the grid's depth slices"
             f"{per} (at most {MAX_AUTO_WORKING_VOXELS / 1e6:.3g} million: the "
             f"reconstruction's time and memory grow with them); taking {taken[0]} x "
             f"{taken[1]}. Depth motion is then less resolved (w gain lower); set "
-            f"[reconstruction] lateral_subdivision = {max(wanted)} to subdivide anyway"]
+            f"[reconstruction] lateral_subdivision = {cuts} to subdivide anyway"]
 
 
 def _light_field_refusal(calibration: Calibration, f_number, budget: float
