@@ -351,3 +351,22 @@ def test_the_pairs_fit_uses_the_response_gain_error_where_the_vectors_carry_it()
     assert record["applied"] and np.array_equal(out.w, want.w)
     plain, _ = fitted_to_continuity(dataclasses.replace(vec, w_gain_error=None), PIVSettings())
     assert not np.array_equal(plain.w, out.w)
+
+
+@pytest.mark.parametrize("change", ["unit", "reversed flow", "layers reordered"])
+def test_column_gain_sigma_does_not_depend_on_what_is_not_physical(change):
+    """Metres or velocities (a scale), the flow run backwards (w → −w) or the layers listed
+    in another order: the weights follow, nothing else moves."""
+    rng = np.random.default_rng(5)
+    w = rng.normal(size=(5, 3, 4))
+    e = rng.uniform(0.2, 3.0, 5)
+    sigma = np.sqrt(rng.uniform(0.1, 0.3, w.shape) ** 2 + (e[:, None, None] * w) ** 2)
+    base = column_gain_sigma(sigma, w, e)
+    if change == "unit":
+        got, want = column_gain_sigma(sigma * 1e3, w * 1e3, e), base * 1e3
+    elif change == "reversed flow":
+        got, want = column_gain_sigma(sigma, -w, e), base
+    else:
+        order = rng.permutation(5)
+        got, want = column_gain_sigma(sigma[order], w[order], e[order]), base[order]
+    assert np.allclose(got, want, rtol=1e-12)

@@ -295,6 +295,21 @@ def test_a_worker_sets_its_memory_up_by_the_allocator_settings_it_is_given(tmp_p
     assert seen == given
 
 
+@pytest.mark.parametrize("user_env", [{}, {"MALLOC_TRIM_THRESHOLD_": "131072"},
+                                      {"MALLOC_MMAP_MAX_": "0"}])
+def test_a_pair_process_takes_the_allocator_settings_where_it_is_made(monkeypatch, user_env):
+    """Whoever makes the pair's process (plenopiv run, a benchmark, a script) hands on the
+    allocator variables of its own environment, never the worker's."""
+    from plenopiv.workflow import worker
+
+    for key in ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_MAX_"):
+        monkeypatch.delenv(key, raising=False)
+    for key, value in user_env.items():
+        monkeypatch.setenv(key, value)
+    process = worker.ExperimentPairProcess("exp.toml", "cal.h5", "out")
+    assert process.allocator == tuple(user_env.items())
+
+
 def test_a_volume_correlated_with_itself_is_warned_about(rng):
     """``plenopiv piv A.h5 A.h5``: a zero field by construction, said so."""
     from plenopiv.camera.corrections import DepthCorrection

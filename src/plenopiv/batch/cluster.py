@@ -44,10 +44,10 @@ def worker_allocator_env(environ=None) -> dict[str, str]:
     Empty where the user set an allocator variable (``environ``: the command's own
     environment by default), which is then theirs to choose.
     """
-    from plenopiv.resources import ALLOCATOR_ENV_VARS
+    from plenopiv.resources import allocator_environment
 
     environ = os.environ if environ is None else environ
-    if any(k in environ for k in (*ALLOCATOR_ENV_VARS, "MALLOC_ARENA_MAX")):
+    if allocator_environment(environ) or "MALLOC_ARENA_MAX" in environ:
         return {}
     return {"MALLOC_ARENA_MAX": "1"}
 

@@ -9,7 +9,6 @@ from plenopiv.cli._common import _add_common, _add_example, _integer
 from plenopiv.cli._judgement import JUDGEMENT, experiment_judgement
 from plenopiv.errors import ConfigError
 from plenopiv.products.files import check_output_path
-from plenopiv.resources import allocator_environment
 
 
 def add_parser(sub) -> None:
@@ -89,8 +88,7 @@ def _prepare_and_run(args, exp, jobs, out_dir, opts) -> dict:
     process = ExperimentPairProcess(str(Path(args.experiment).resolve()), str(cal_path.resolve()),
                                     str(out_dir), response=response,
                                     background=None if background is None else str(background),
-                                    background_images=n_background,
-                                    allocator=allocator_environment())
+                                    background_images=n_background)
     head = {"command": "run", "out": str(out_dir), "weights_from_cache": hit,
             "response": response_info, JUDGEMENT: judged.record()}
     try:

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from plenopiv.calibration.model import Calibration
 from plenopiv.reconstruction.build import weights_for
-from plenopiv.resources import own_process_memory
+from plenopiv.resources import allocator_environment, own_process_memory
 from plenopiv.workflow.experiment import experiment_calibration
 from plenopiv.workflow.pair import PairProcessor, save_pair
 from plenopiv.workflow.response import ExperimentResponse
@@ -33,7 +33,7 @@ class ExperimentPairProcess:
     batch's minimum or mean background (``[preprocess] background = "minimum"`` or
     ``"mean"``), formed once over the batch's images before the pairs fan out, and
     ``background_images`` the number of images it was formed from. ``allocator``: the
-    allocator variables the user set where the command runs
+    allocator variables the user set where the process is made, by default taken there
     (:func:`plenopiv.resources.allocator_environment`; None: the worker's own environment,
     where a dask nanny puts its own): the worker's memory is set up by them.
     """
@@ -44,7 +44,7 @@ class ExperimentPairProcess:
     response: ExperimentResponse | None = None
     background: str | None = None
     background_images: int = 0
-    allocator: tuple | None = None
+    allocator: tuple | None = field(default_factory=allocator_environment)
 
     def __call__(self, job) -> dict:
         """Process one :class:`plenopiv.batch.PairJob`; returns a small summary.
