@@ -402,7 +402,9 @@ def particle_settings(grid: VolumeGrid, camera: CameraModel, *,
     centroid box is ±1 lateral cell and ±1 mm in depth (about 2 σ_z of a reconstructed
     particle). ``threshold``, the peak's fraction of the volume's maximum, is lower than the
     library's 0.1 because a reconstruction piles the light of a particle near the focal plane
-    into a few voxels several times brighter than a particle elsewhere.
+    into a few voxels several times brighter than a particle elsewhere. One peak is one
+    particle (``split_brighter = 0``): the study compares reconstructions, whose peaks the
+    split would read differently (docs/validation/merged_particles.md studies the split).
     """
     lat, dep = resolution_cell(camera)
     sub = max(1, int(round(lat / grid.voxel[0])))
@@ -411,7 +413,8 @@ def particle_settings(grid: VolumeGrid, camera: CameraModel, *,
                             method="centroid",
                             min_separation_vox=(max(dep / dz, 1.0), 1.5 * sub, 1.5 * sub),
                             box_vox=(max(1, int(round(1e-3 / dz))), sub, sub),
-                            fit_spacing_vox=(2, 1, 1), internal_correction="none")
+                            fit_spacing_vox=(2, 1, 1), internal_correction="none",
+                            split_brighter=0.0)
 
 
 def reconstruct_and_score(calibration: Calibration, image, weights: Weights, positions, *,

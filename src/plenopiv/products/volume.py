@@ -63,6 +63,23 @@ class VolumeResult:
             return self.particle_position_effective
         return self.particle_centroid_effective
 
+    def volume_peaks(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(centroid (K, 3), intensity (K,))`` of the volume's peaks, effective metres.
+
+        The particles split from one peak (``[particles] split_brighter``) share its centroid:
+        each peak is listed once, in the particles' order, with their intensities summed.
+        """
+        cen = np.asarray(self.volume_position_effective, float).reshape(-1, 3)
+        inten = np.asarray(self.particle_intensity, float).reshape(-1)
+        if len(cen) == 0:
+            return cen, inten
+        _, first, which = np.unique(cen, axis=0, return_index=True, return_inverse=True)
+        order = np.argsort(first)
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        return cen[first[order]], np.bincount(rank[which.reshape(-1)], weights=inten,
+                                              minlength=len(order))
+
     @property
     def z_corrected(self) -> np.ndarray:
         """Physical depth of each voxel layer, metres."""

@@ -53,8 +53,10 @@ def correlate(result_a: VolumeResult, result_b: VolumeResult, settings=None, *, 
         warn_identical(names, (result_a.volume, result_b.volume), consequence=IDENTICAL_PAIR)
     field = correlate_volumes(result_a.volume, result_b.volume, result_a.grid,
                               settings=settings, workers=workers, progress=progress, mask=mask,
-                              particles=(result_a.volume_position_effective,
-                                         result_b.volume_position_effective))
+                              # the windows' particles are the volumes' peaks, as the
+                              # correlation sees them (a split peak counts once)
+                              particles=(result_a.volume_peaks()[0],
+                                         result_b.volume_peaks()[0]))
     method, gain_error = "correlation", None
     measured = None if response is None else response(field)
     if measured is not None:

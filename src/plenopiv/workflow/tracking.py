@@ -58,9 +58,9 @@ def physical_bundle(lf: LightField, image, volume: VolumeResult,
     # seeded by the volume's own centroids, also where the particle table's positions came
     # from the light field (that fit has a selection margin this one has not; the tracking
     # was validated from the centroids: docs/validation/tracking.md)
-    b = bundle_positions(lf, image, volume.volume_position_effective, settings=settings,
-                         depth_cell=depth_cell, brightness=volume.particle_intensity,
-                         table=table)
+    seeds, brightness = volume.volume_peaks()    # a split particle's peak is tracked once
+    b = bundle_positions(lf, image, seeds, settings=settings, depth_cell=depth_cell,
+                         brightness=brightness, table=table)
     eff = b.position
     # a particle seen through one lenslet lights all its pixels at any depth within the depth
     # of field: the pixel values hold no position to refine
@@ -134,8 +134,7 @@ def track_ends(calibration: Calibration, image_a, image_b, volume_a: VolumeResul
         counts[f"refined_grid_{name}"], counts[f"refined_local_{name}"] = grid, local
     scale = np.array([lat, lat, dep * volume_a.correction.scale])
     return TrackEnds(pa, ua, ba, pb, ub, bb, scale, counts,
-                     np.asarray(volume_a.particle_intensity, float),
-                     np.asarray(volume_b.particle_intensity, float))
+                     volume_a.volume_peaks()[1], volume_b.volume_peaks()[1])
 
 
 def match_ends(ends: TrackEnds, vectors: VectorResult, *,

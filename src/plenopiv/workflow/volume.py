@@ -20,6 +20,7 @@ from plenopiv.errors import ReconstructionError
 from plenopiv.particles.bundle import PARTICLE_BUNDLE, bundle_positions, lit_rays
 from plenopiv.particles.peaks import find_particles
 from plenopiv.particles.settings import ParticleSettings
+from plenopiv.particles.split import SplitParticles, split_bright
 from plenopiv.particles.threshold import peak_threshold
 from plenopiv.products.images import check_image
 from plenopiv.products.volume import VolumeResult
@@ -155,18 +156,32 @@ def reconstruct_volume(calibration: Calibration, image, grid: VolumeGrid, *,
     t2 = time.perf_counter()
     if progress is not None:
         progress("particles", 0.0)
-    corr, eff, pos, intensity, size = _particles_of(vol, grid, calibration, particles)
-    centroid = None
-    if particles.position == "light_field" and len(eff):
-        if progress is not None:
-            progress("particles", 0.5)
-        centroid = eff
-        eff = light_field_positions(geometry.light_field, img, centroid, intensity,
-                                    calibration, image_mask=image_mask)
-        pos = corr.points(eff)
+    corr, eff, pos, intensity, size, centroid = _particles_and_positions(
+        vol, grid, calibration, particles, geometry.light_field, img, image_mask, progress)
     t["particles_s"] = time.perf_counter() - t2
     return VolumeResult(vol, grid, corr, eff, pos, intensity, size, t,
                         particle_centroid_effective=centroid)
+
+
+def _particles_and_positions(vol, grid: VolumeGrid, calibration: Calibration,
+                             particles: ParticleSettings, lf, img, image_mask,
+                             progress) -> tuple:
+    """``(correction, effective, positions, intensities, sizes, centroids or None)``.
+
+    :func:`_particles_of`, then (``position = "light_field"``) the positions from the rays,
+    merged peaks split (:func:`light_field_particles`).
+    """
+    corr, eff, pos, intensity, size = _particles_of(vol, grid, calibration, particles)
+    if particles.position != "light_field" or not len(eff):
+        return corr, eff, pos, intensity, size, None
+    if progress is not None:
+        progress("particles", 0.5)
+    found = light_field_particles(lf, img, eff, intensity, calibration, image_mask=image_mask,
+                                  volume=vol, grid=grid, split_brighter=particles.split_brighter)
+    # the halves of a split particle keep the centroid of the peak they came from
+    eff, centroid = found.position, eff[found.source]
+    intensity = np.where(found.split, 0.5, 1.0) * np.asarray(intensity)[found.source]
+    return (corr, eff, corr.points(eff), intensity, np.asarray(size)[found.source], centroid)
 
 
 def check_lattice(calibration: Calibration, images, settings: ReconstructionSettings
@@ -215,12 +230,29 @@ def light_field_positions(lf, image, seeds, intensity, calibration: Calibration,
     edges; the rays do not depend on the grid. Masked pixels carry no light. A particle
     with fewer than ``min_rays`` rays keeps its seed.
     """
-    _, cell = resolution_cell(calibration.effective_camera)
+    return light_field_particles(lf, image, seeds, intensity, calibration,
+                                 image_mask=image_mask).position
+
+
+def light_field_particles(lf, image, seeds, intensity, calibration: Calibration, *,
+                          image_mask=None, split_brighter: float = 0.0, volume=None,
+                          grid: VolumeGrid | None = None) -> SplitParticles:
+    """:func:`light_field_positions`, with the peaks that hold two particles split.
+
+    ``split_brighter`` (``[particles]``; 0: none) and the reconstructed ``volume`` on its
+    ``grid`` go to :func:`plenopiv.particles.split.split_bright`.
+    """
+    lateral, cell = resolution_cell(calibration.effective_camera)
     img = np.asarray(image, np.float32)
     if image_mask is not None:
         img = np.where(np.asarray(image_mask, bool), np.float32(0), img)
     lit = lit_rays(lf, img, PARTICLE_BUNDLE.floor)       # the same fit, a fraction of the rays
+    seeds = np.asarray(seeds, float).reshape(-1, 3)
     fit = bundle_positions(lit, img, seeds, settings=PARTICLE_BUNDLE, depth_cell=cell,
                            brightness=intensity)
-    return np.where(fit.converged[:, None], fit.position, seeds)
+    single = np.where(fit.converged[:, None], fit.position, seeds)
+    if not split_brighter or volume is None or len(single) < 2:
+        return SplitParticles(single, np.arange(len(single)), np.zeros(len(single), bool))
+    return split_bright(lit, img, seeds, single, intensity, factor=split_brighter,
+                        cell=(lateral, lateral, cell), volume=volume, grid=grid)
 
