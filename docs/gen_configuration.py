@@ -255,7 +255,7 @@ MEANINGS = {
                                      '`"volume"`: the `method` estimate on the voxels',
     "experiment:particles.split_brighter": "a peak this many times as bright as the median "
                                            "particle near its depth is fitted from the rays as "
-                                           "two particles, kept where they part by 0.3-1.5 "
+                                           "two particles, kept where they part by 0.6-2.0 "
                                            "resolution cells ([methods](methods.md#merged-"
                                            "particles)); 0: off, else > 1",
     "experiment:piv.windows": "interrogation windows per pass; later passes repeat the last. "

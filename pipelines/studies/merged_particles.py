@@ -94,7 +94,7 @@ def page(summary: dict, densities, spreads) -> str:
              "Two particles within about a resolution cell of each other make one peak in the "
              "volume. With `[particles] split_brighter` (default "
              f"{summary['split_brighter']:g}) a peak that bright against the particles near its "
-             "depth is fitted as two from the rays and kept as two where they part by 0.3-1.5 "
+             "depth is fitted as two from the rays and kept as two where they part by 0.6-2.0 "
              "resolution cells ([methods](../methods.md#merged-particles)).", "",
              f"Camera: {summary['camera']}, grid {summary['grid_shape']} "
              "[z, y, x] of footprint voxels (the field-quality study's, "

@@ -12,7 +12,7 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import Sensor, load_camera
 from plenopiv.camera.resolution import resolution_cell
 from plenopiv.particles.settings import ParticleSettings
-from plenopiv.particles.split import PARTED_CELLS, blob_axes
+from plenopiv.particles.split import blob_axes
 from plenopiv.synthetic.images import particle_image
 from plenopiv.workflow.volume import reconstruct_volume
 
@@ -131,11 +131,6 @@ def test_blob_axes_finds_the_long_axis(axis):
     got = blob_axes(vol, grid, centre[None, :], cell)[0]
     # the window is ±1 voxel across: a diagonal is found to within about 10°
     assert abs(got @ e) > np.cos(np.radians(12))
-
-
-def test_parted_cells_bracket_the_resolution_cell():
-    """Two particles are told apart from about a third of a cell up to beyond one."""
-    assert 0 < PARTED_CELLS[0] < 0.5 < 1.0 < PARTED_CELLS[1] <= 2.0
 
 
 def test_what_the_volume_peaks_feed_does_not_change(case):

@@ -43,7 +43,7 @@ class ParticleSettings:
         voxel edges, docs/validation/grid_independence.md).
     split_brighter : with ``position = "light_field"``, a peak at least this many times as
         bright as the median particle (its integrated intensity in the volume) is fitted as
-        two particles from the rays, and kept as two where they part by 0.3-1.5 resolution
+        two particles from the rays, and kept as two where they part by 0.6-2.0 resolution
         cells (:func:`plenopiv.particles.split.split_bright`): two particles within about a
         cell of each other make one peak in the volume. 0 turns it off; otherwise > 1
         (dimensionless; default 1.5, docs/methods.md#merged-particles).

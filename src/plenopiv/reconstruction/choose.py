@@ -46,7 +46,7 @@ __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "SUBDIVIDED_VOXEL_FOOTPRINTS", "Pr
            "memory_budget_gb", "reconstruction_grid", "depth_binning", "depth_binning_for",
            "BINNED_DEPTH_CELLS", "subdivided_grid", "subdivision_for",
            "wanted_subdivision", "MAX_AUTO_WORKING_VOXELS", "LENSLET_COST",
-           "projector_cost", "model_projector_cost"]
+           "projector_cost", "model_projector_cost", "sweep_cost"]
 
 
 #: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
@@ -68,10 +68,26 @@ MAX_AUTO_WORKING_VOXELS = 50_000_000
 #: (:func:`~plenopiv.camera.resolution.resolution_cell`).
 BINNED_DEPTH_CELLS = 1 / 3
 
-#: Time per working voxel of the per-lenslet projector (a rotated, hexagonal or irregular
-#: lattice) against the separable lattice projector's: 2.8 times per volume on the 16 MP
-#: camera on a 2 x 2 subdivision (197 s against 67 s, docs/performance.md).
+#: Weight of a working voxel of the per-lenslet projector (a rotated, hexagonal or irregular
+#: lattice) against the separable lattice projector's in :data:`MAX_AUTO_WORKING_VOXELS`:
+#: 2.8 times per volume on the 16 MP camera on a 2 x 2 subdivision when it was set (197 s
+#: against 67 s). Its sweeps now cost 2.0 times the lattice projector's on the footprints
+#: and 5.4 times on a 2 x 2 cut (docs/performance.md); with the cap it keeps the 16 MP
+#: camera's full box on footprint voxels on a turned or hexagonal array (40.5 s a volume
+#: with ``plenopiv reconstruct``, 52.6 s on 2 x 2).
 LENSLET_COST = 3.0
+
+
+def sweep_cost(ky: int, kx: int) -> float:
+    """A matrix-free sweep's time on a ``ky × kx`` cut over one on the footprint voxels.
+
+    The projectors contract a beam's patch of voxels one axis at a time, so a sweep's work
+    grows with the patch's side, not its area. Measured at full size (the 16 MP camera's
+    ±37 × ±25 × ±26 mm box, 67 binned working slices; one forward and one back projection):
+    1.86 and 2.70 times at 2 × 2 and 3 × 3 for the per-lenslet projector (turned 2 mrad),
+    1.88 and 3.35 for the separable lattice projector (docs/performance.md).
+    """
+    return 0.15 + 0.85 * math.sqrt(ky * kx)
 
 
 def projector_cost(separable: bool) -> float:

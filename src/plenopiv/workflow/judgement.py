@@ -25,6 +25,7 @@ from plenopiv.reconstruction.choose import (
     depth_binning_for,
     model_projector_cost,
     subdivision_for,
+    sweep_cost,
     wanted_subdivision,
 )
 from plenopiv.reconstruction.settings import ReconstructionSettings
@@ -242,9 +243,11 @@ def lateral_voxel_finding(cam: Camera, grid: VolumeGrid,
     auto = subdivision_for(fp, grid, "auto", cost=cam.projector_cost)
     wanted = wanted_subdivision(fp, grid.voxel, "auto")
     if auto != wanted:      # "auto" gave up the finer cut for the size of the grid
+        more = sweep_cost(*wanted) / sweep_cost(ky, kx)
         fix = (f"set [reconstruction] lateral_subdivision = {max(wanted)} ({wanted[0]} x "
-               f"{wanted[1]}: about {wanted[0] * wanted[1] // (ky * kx)} times the "
-               "reconstruction's time), or reconstruct a smaller box")
+               f"{wanted[1]}: about {more:.2g} times the time of the reconstruction's sweeps "
+               f"and {wanted[0] * wanted[1] // (ky * kx)} times its working voxels), or "
+               "reconstruct a smaller box")
     else:
         fix = (f"set [reconstruction] lateral_subdivision = \"auto\" ({auto[0]} x {auto[1]} "
                f"here) or [volume] voxel_mm = {_mm(LATERAL_VOXEL_PER_FOOTPRINT * fp)} (half a "

@@ -21,6 +21,7 @@ from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.model import CameraModel
 from plenopiv.errors import ConfigError
 from plenopiv.piv.settings import PIVSettings
+from plenopiv.reconstruction.choose import sweep_cost
 from plenopiv.reconstruction.settings import ReconstructionSettings
 from plenopiv.workflow.judgement import (
     MIN_VECTORS_LAST_PASS,
@@ -261,10 +262,12 @@ def available_memory() -> float:
         return 8e9
 
 
-#: CPU time of a reconstruction with the per-lenslet projector (rotated or hexagonal arrays)
-#: over one with the separable lattice projector, the same grid moved off the footprints: the
-#: mean of the rotated and the hexagonal array at full size (docs/validation/real_arrays.md).
-LENSLET_COST_RATIO = 3.2
+#: Time of a reconstruction's sweeps with the per-lenslet projector (rotated or hexagonal
+#: arrays) over the separable lattice projector's, the same grid moved off the footprints:
+#: 14.7 s against 7.5 s a volume (MLOS and 5 sweeps, 2 threads, wall) for the 16 MP array
+#: turned 2 mrad and aligned at full size (``benchmarks/full_camera.py --lateral-subdivision
+#: 1``, docs/performance.md); 3.2 before the per-lenslet back projection was vectorised.
+LENSLET_COST_RATIO = 2.0
 
 
 def plan(camera: CameraModel, grid: VolumeGrid, *,
@@ -434,9 +437,9 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
     Where the reconstruction was rehearsed (:class:`~plenopiv.workflow.rates.Rehearsal`, the
     same projector, subdivision and sweeps) its figures scale by rays and depth slices.
     Otherwise a matrix-free sweep costs the measured rate at the subdivision it was measured
-    at (:attr:`~plenopiv.workflow.rates.Rates.lattice_subdivision`); at another one ``ky kx``
-    times the volume grid's, each beam crossing that many more working voxels (on the small
-    cameras' grids a 3 × 3 sweep costs about 4.6 times one on the footprints).
+    at (:attr:`~plenopiv.workflow.rates.Rates.lattice_subdivision`); at another one it is
+    scaled by :func:`~plenopiv.reconstruction.choose.sweep_cost`, which grows with the side of
+    a beam's patch of working voxels, not its area.
     """
     n_rays = choice.n_rays
     sweeps = iterations + 3      # MLOS, masks and row scaling: ~3 sweeps
@@ -458,7 +461,8 @@ def _times(choice, grid: VolumeGrid, nnz: int, rates: Rates, iterations: int, wi
             LENSLET_COST_RATIO if choice.projector == "lenslet" else 1.0)
         # the rate's voxels cut as the rate was measured; another cut scaled by its area
         (ky, kx), (my, mx) = choice.subdivision, rates.lattice_subdivision
-        t_volume = (ray_slice * n_rays * choice.grid.shape[0] * (ky * kx) / (my * mx)
+        t_volume = (ray_slice * n_rays * choice.grid.shape[0]
+                    * sweep_cost(ky, kx) / sweep_cost(my, mx)
                     + rates.lattice_s_per_call) * sweeps
     t_volume += 5e-8 * grid.n_voxels             # particle detection
     t_volume += SECONDS_PER_RAY_PARTICLE_FIT * n_rays   # their positions from the light field
