@@ -84,7 +84,7 @@ ALLOWED = {
     "experiment:particles.min_separation_vox": "[z, y, x] numbers",
     "experiment:particles.box_vox": "[z, y, x] integers",
     "experiment:particles.fit_spacing_vox": "[z, y, x] integers ≥ 1",
-    "experiment:particles.split_brighter": "times the median brightness",
+    "experiment:particles.split_brighter": "times the median particle's light",
     "experiment:piv.windows": "list of [wz, wy, wx], edges 4–1024",
     "experiment:mask.box.x_mm": "[lo, hi]", "experiment:mask.box.y_mm": "[lo, hi]",
     "experiment:mask.box.z_mm": "[lo, hi]",
@@ -253,11 +253,11 @@ MEANINGS = {
     "experiment:particles.position": '`"light_field"`: each volume peak seeds a ray-bundle fit '
                                      'on the raw image, independent of the voxel grid; '
                                      '`"volume"`: the `method` estimate on the voxels',
-    "experiment:particles.split_brighter": "a peak this many times as bright as the median "
-                                           "particle near its depth is fitted from the rays as "
-                                           "two particles, kept where they part by 0.6-2.0 "
-                                           "resolution cells ([methods](methods.md#merged-"
-                                           "particles)); 0: off, else > 1",
+    "experiment:particles.split_brighter": "a peak whose rays carry this many times the "
+                                           "median particle's light near its depth is fitted "
+                                           "from the rays as two particles, kept where they "
+                                           "part by 0.5-2.0 resolution cells ([methods]"
+                                           "(methods.md#merged-particles)); 0: off, else > 1",
     "experiment:piv.windows": "interrogation windows per pass; later passes repeat the last. "
                               "Unset: 16 → 12 footprints laterally and 3.6 → 2.7 depth cells, "
                               "cut to give 4 vectors along every axis of the box, said in a "

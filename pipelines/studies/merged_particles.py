@@ -93,9 +93,10 @@ def page(summary: dict, densities, spreads) -> str:
              "(`pipelines.studies.merged_particles`); numbers in `merged_particles.json`.", "",
              "Two particles within about a resolution cell of each other make one peak in the "
              "volume. With `[particles] split_brighter` (default "
-             f"{summary['split_brighter']:g}) a peak that bright against the particles near its "
-             "depth is fitted as two from the rays and kept as two where they part by 0.6-2.0 "
-             "resolution cells ([methods](../methods.md#merged-particles)).", "",
+             f"{summary['split_brighter']:g}) a peak whose rays carry that many times the light "
+             "of the particles near its depth is fitted as two from the rays and kept as two "
+             "where they part by 0.5-2.0 resolution cells "
+             "([methods](../methods.md#merged-particles)).", "",
              f"Camera: {summary['camera']}, grid {summary['grid_shape']} "
              "[z, y, x] of footprint voxels (the field-quality study's, "
              "[field_quality.md](field_quality.md)); photon noise; one reconstruction per image "

@@ -211,6 +211,24 @@ def test_bundle_on_the_lit_rays_alone_is_the_same_fit(thesis_light_field, rng, e
 
 
 @pytest.mark.study
+def test_bundle_light_is_the_rays_weight_each_particle_gathered(thesis_light_field, rng):
+    """``BundlePositions.light``: the same on both engines, in proportion to the image, and
+    no more than the light above the floor (the particles share each ray)."""
+    from plenopiv.particles.bundle import PARTICLE_BUNDLE
+
+    _, _, lf = thesis_light_field
+    _, img, seeds, cell = seeded_particles(thesis_light_field, rng, 5, rays=3000, seed=9)
+    fits = [bundle_positions(lf, k * img, seeds, settings=PARTICLE_BUNDLE, depth_cell=cell,
+                             engine=engine) for k, engine in ((1, "numba"), (1, "numpy"),
+                                                              (3, "numba"))]
+    np.testing.assert_allclose(fits[1].light, fits[0].light, rtol=1e-9)
+    np.testing.assert_allclose(fits[2].light, 3 * fits[0].light, rtol=1e-9)
+    values = lf.values(img)
+    above = np.maximum(values - PARTICLE_BUNDLE.floor * values.max(), 0).sum()
+    assert np.all(fits[0].light > 0) and fits[0].light.sum() <= above * (1 + 1e-9)
+
+
+@pytest.mark.study
 def test_bundle_rejects_a_wrong_image_and_bad_settings(thesis_light_field):
     _, _, lf = thesis_light_field
     with pytest.raises(Exception, match="sensor"):

@@ -121,6 +121,9 @@ class BundlePositions:
         Lenslets those rays came through.
     converged : (N,) bool
         False where too few rays were found (the position is then the seed's).
+    light : (N,) float64 or None
+        The image's light the final fit gave each particle: the sum of its rays' weights
+        (pixel values above the floor, times the particle's share of each), image units.
     """
 
     position: np.ndarray
@@ -128,6 +131,7 @@ class BundlePositions:
     n_rays: np.ndarray
     n_lenslets: np.ndarray
     converged: np.ndarray
+    light: np.ndarray | None = None
 
     def __len__(self) -> int:
         """Return the number of particles."""
@@ -499,8 +503,9 @@ def bundle_positions(lf: LightField, image, seeds, *,
     else:
         cov, n_lens = _covariance(lf, pid, ray, w, origin, direction, pos, normal, ok)
     back = np.argsort(perm)                    # the caller's order
+    light = 0.5 * np.trace(normal, axis1=1, axis2=2)      # the trace of each ray's M is 2
     return BundlePositions(pos[back], cov[back], nr.astype(np.int64)[back], n_lens[back],
-                           ok[back])
+                           ok[back], light[back])
 
 
 def spatial_order(lf: LightField, points, band: float = 4.0) -> np.ndarray:

@@ -41,12 +41,12 @@ class ParticleSettings:
         volume centroid is kept where fewer than ``min_rays`` rays are found) | "volume"
         (the ``method`` estimate on the voxels: an in-focus particle's centroid moves with the
         voxel edges, docs/validation/grid_independence.md).
-    split_brighter : with ``position = "light_field"``, a peak at least this many times as
-        bright as the median particle (its integrated intensity in the volume) is fitted as
-        two particles from the rays, and kept as two where they part by 0.6-2.0 resolution
-        cells (:func:`plenopiv.particles.split.split_bright`): two particles within about a
-        cell of each other make one peak in the volume. 0 turns it off; otherwise > 1
-        (dimensionless; default 1.5, docs/methods.md#merged-particles).
+    split_brighter : with ``position = "light_field"``, a peak whose rays carry at least this
+        many times the median particle's light near its depth is fitted as two particles
+        from the rays, and kept as two where they part by 0.5-2.0 resolution cells
+        (:func:`plenopiv.particles.split.split_bright`): two particles within about a cell
+        of each other make one peak in the volume. 0 turns it off; otherwise > 1
+        (dimensionless; default 1.3, docs/methods.md#merged-particles).
 
     These are the only defaults: :func:`plenopiv.particles.peaks.find_particles` takes those of
     ``method`` and ``fit_spacing_vox`` from here, and has none for ``min_separation_vox``
@@ -62,12 +62,12 @@ class ParticleSettings:
     fit_spacing_vox: tuple[int, int, int] = (2, 1, 1)
     internal_correction: Literal["auto", "none", "plate"] = "auto"
     position: Literal["light_field", "volume"] = "light_field"
-    split_brighter: float = Field(1.5, ge=0)
+    split_brighter: float = Field(1.3, ge=0)
 
     @field_validator("split_brighter")
     @classmethod
     def _off_or_above_one(cls, v):
         if 0 < v <= 1:
-            raise ValueError("expected 0 (off) or a factor above 1: a peak this many times "
-                             "as bright as the median particle is tried as two")
+            raise ValueError("expected 0 (off) or a factor above 1: a peak whose rays carry "
+                             "this many times the median particle's light is tried as two")
         return v

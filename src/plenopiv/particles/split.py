@@ -2,8 +2,8 @@
 
 Two particles closer than about a resolution cell make one peak in the volume, twice as
 bright as a single particle. :func:`split_bright` seeds the ray-bundle fit of each peak
-brighter than ``factor`` times the median near its depth with two points, either side of
-the peak along the long axis of its blob, and keeps the two where the rays part them by a
+whose rays carry ``factor`` times the median light near its depth with two points, either
+side of the peak along the long axis of its blob, and keeps the two where the rays part them by a
 plausible distance (:data:`PARTED_CELLS`); otherwise the peak stays one particle at its
 single fit. Effective coordinates, metres. See docs/methods.md#merged-particles.
 """
@@ -25,17 +25,19 @@ __all__ = ["PARTED_CELLS", "REFERENCE_CELLS", "REFERENCE_MIN_PARTICLES", "SEED_O
 SEED_OFFSET_CELLS = 0.7
 
 #: The two fits are kept as two particles where they end this far apart (resolution cells,
-#: the cell's semi-axes as unit): nearer, both seeds found the same particle (on the
-#: field-quality camera at 0.3 particles per lenslet, half the splits that part by 0.3-0.7
-#: cells are a single particle and a ghost, against one in twenty at 1.3-1.5); farther, one
-#: ran off to a neighbour's light. Chosen on seeds 7, 11 and 13 of
-#: docs/validation/merged_particles.md's set-up (the page's seeds are held out).
-PARTED_CELLS = (0.6, 2.0)
+#: the cell's semi-axes as unit): nearer, both seeds found the same particle; farther, one
+#: ran off to a neighbour's light. Chosen with ``split_brighter`` = 1.3 on seeds 7, 11 and 13
+#: of docs/validation/merged_particles.md's set-up (the page's seeds are held out), at 0.3
+#: particles per lenslet equally bright / with a brightness spread of 0.3: detection 0.954
+#: with 1.1 % ghosts / 0.948 with 2.1 %; factor 1.4: 0.947, 0.5 % / 0.939, 1.7 %; factor 1.4
+#: and 0.3-2.0 cells: 0.955, 0.6 % / 0.946, 4.1 %; factor 1.4 and 0.6-2.0: 0.943, 0.5 % /
+#: 0.936, 1.1 %.
+PARTED_CELLS = (0.5, 2.0)
 
-#: The brightness a peak is compared with: the median of the particles within this many depth
-#: cells of its depth (a reconstructed particle's summed intensity falls off with its distance
-#: from focus, 0.9 to 0.3 of the volume's units between 1 and 3 mm on the 50 mm camera at
-#: M = -1), or of all where fewer than :data:`REFERENCE_MIN_PARTICLES` are that near.
+#: The light a peak is compared with: the median of the particles within this many depth
+#: cells of its depth (where the light a particle sends through the aperture varies with
+#: depth, e.g. at the edge of the field), or of all where fewer than
+#: :data:`REFERENCE_MIN_PARTICLES` are that near.
 REFERENCE_CELLS = 1.5
 REFERENCE_MIN_PARTICLES = 8
 
@@ -106,7 +108,7 @@ def reference_brightness(depth, brightness, depth_cell: float) -> np.ndarray:
     return per_bin[bins]
 
 
-def split_bright(lf: LightField, image, centroids, positions, brightness, *,
+def split_bright(lf: LightField, image, centroids, positions, brightness, light, *,
                  factor: float, cell, volume, grid: VolumeGrid,
                  settings: BundleSettings = PARTICLE_BUNDLE) -> SplitParticles:
     """Fit the peaks brighter than ``factor`` times the median as two particles each.
@@ -122,10 +124,15 @@ def split_bright(lf: LightField, image, centroids, positions, brightness, *,
     centroids, positions : (N, 3) array_like
         The volume's centroids and the single ray-bundle fits, effective metres.
     brightness : (N,) array_like
-        The volume's integrated intensity of each particle.
+        The volume's integrated intensity of each particle (the fits' shares of the rays).
+    light : (N,) array_like
+        The image's light each single fit gathered
+        (:attr:`~plenopiv.particles.bundle.BundlePositions.light`).
     factor : float
-        Peaks at least this many times the median brightness near their depth
-        (:func:`reference_brightness`) are tried (> 1).
+        Peaks whose ``light`` is at least this many times the median near their depth
+        (:func:`reference_brightness`) are tried (> 1). The rays' light of two particles in
+        one peak is twice a single's wherever they lie; the volume's intensity of a pair
+        behind one another in depth is only 1.2-1.4 times.
     cell : (3,) array_like
         Resolution cell ``(lateral, lateral, depth)``, metres: the unit of the seeds'
         offset (:data:`SEED_OFFSET_CELLS`) and of the parting (:data:`PARTED_CELLS`).
@@ -142,13 +149,14 @@ def split_bright(lf: LightField, image, centroids, positions, brightness, *,
     centroids = np.asarray(centroids, float).reshape(-1, 3)
     positions = np.asarray(positions, float).reshape(-1, 3)
     brightness = np.asarray(brightness, float).reshape(-1)
+    light = np.asarray(light, float).reshape(-1)
     n = len(positions)
     none = SplitParticles(positions, np.arange(n), np.zeros(n, bool))
     if n == 0:
         return none
     cell = np.asarray(cell, float)
-    reference = reference_brightness(positions[:, 2], brightness, float(cell[2]))
-    tried = np.flatnonzero(brightness >= factor * reference)
+    reference = reference_brightness(positions[:, 2], light, float(cell[2]))
+    tried = np.flatnonzero(light >= factor * reference)
     if len(tried) == 0:
         return none
     step = SEED_OFFSET_CELLS * blob_axes(volume, grid, centroids[tried], cell) * cell

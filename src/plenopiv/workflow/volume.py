@@ -253,6 +253,6 @@ def light_field_particles(lf, image, seeds, intensity, calibration: Calibration,
     single = np.where(fit.converged[:, None], fit.position, seeds)
     if not split_brighter or volume is None or len(single) < 2:
         return SplitParticles(single, np.arange(len(single)), np.zeros(len(single), bool))
-    return split_bright(lit, img, seeds, single, intensity, factor=split_brighter,
+    return split_bright(lit, img, seeds, single, intensity, fit.light, factor=split_brighter,
                         cell=(lateral, lateral, cell), volume=volume, grid=grid)
 
