@@ -162,3 +162,20 @@ def test_what_the_volume_peaks_feed_does_not_change(case):
     pos_on = physical_bundle(lf, img, on, PARTICLE_BUNDLE, cell[2], forward=None)[0]
     pos_off = physical_bundle(lf, img, off, PARTICLE_BUNDLE, cell[2], forward=None)[0]
     np.testing.assert_allclose(pos_on, pos_off, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("value, words", [("0.5", "above 1"), ("-1", "greater than or equal"),
+                                          ("nan", "finite"), ('"x"', "valid number")])
+def test_a_bad_split_factor_is_refused_naming_the_key(tmp_path, value, words):
+    """``[particles] split_brighter`` is 0 (off) or a factor above 1: a factor at or below 1
+    would try every peak."""
+    from plenopiv.config.experiment import load_experiment
+    from plenopiv.errors import ConfigError
+
+    path = tmp_path / "exp.toml"
+    path.write_text('camera = "small_test"\n[volume]\nx_mm = [-1.0, 1.0]\ny_mm = [-1.0, 1.0]\n'
+                    f'z_mm = [-1.0, 1.0]\nvoxel_mm = 0.1\n[particles]\nsplit_brighter = {value}\n')
+    with pytest.raises(ConfigError, match=rf"\[particles\] split_brighter.*{words}"):
+        load_experiment(path)
+    path.write_text(path.read_text().replace(f"split_brighter = {value}", "split_brighter = 0"))
+    assert load_experiment(path).particles.split_brighter == 0
