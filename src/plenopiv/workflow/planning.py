@@ -85,8 +85,8 @@ SECONDS_PER_PIXEL_RECORDING_CHECK = 2.7e-7
 #: Seconds per ray of that fit on two threads, merged peaks split included
 #: (:func:`plenopiv.particles.split.split_bright`, a second fit of every particle): from
 #: ``plenopiv reconstruct``'s particles for the 11.6 million rays of the 16 MP turned array
-#: at 0.36 particles per lenslet (8.5 s besides the peaks' 0.5 s; 4.5 s without the split).
-SECONDS_PER_RAY_PARTICLE_FIT = 7.3e-7
+#: at 0.36 particles per lenslet (9.9 s besides the peaks' 0.5 s; 4.5 s without the split).
+SECONDS_PER_RAY_PARTICLE_FIT = 8.6e-7
 
 #: Seconds per seeded particle of A and B of a pair's tracks (bundle fits, refinement,
 #: matching; ``[tracking] correct_vectors`` or ``enabled``) on two threads: 18.9 s for the
