@@ -74,20 +74,27 @@ def matched(true, found, cell) -> int:
     return n
 
 
-def found_particles(case, true, brightness=None, *, scale=1.0, split=1.5):
-    cam, cal, grid, _ = case
+def found_particles(case, true, brightness=None, *, scale=1.0, split=None, grid=None):
+    """The particles of ``true`` rendered and found; ``split``: ``split_brighter`` (None: the
+    default); ``grid``: another voxel grid than the case's."""
+    cam, cal, case_grid, _ = case
     img = scale * particle_image(cam, true, brightness, rays_per_particle=20000, seed=3)
-    res = reconstruct_volume(cal, img, grid, particles=ParticleSettings(split_brighter=split))
-    return res
+    settings = ParticleSettings() if split is None else ParticleSettings(split_brighter=split)
+    return reconstruct_volume(cal, img, case_grid if grid is None else grid, particles=settings)
 
 
-def test_merged_pairs_are_found_as_two(case, tmp_path):
+@pytest.mark.parametrize("shift_vox", [(0.0, 0.0, 0.0), (0.37, 0.21, 0.4), (0.5, -0.5, -0.3)])
+def test_merged_pairs_are_found_as_two(case, shift_vox):
     """Each pair makes one bright peak; the default splits it into two particles within the
-    resolution cell of the true ones, and leaves the isolated ones single."""
-    cell = case[3]
+    resolution cell of the true ones, and leaves the isolated ones single, on the case's
+    voxel grid and on grids moved by fractions of a voxel (the voxels are a footprint wide:
+    a split that hung on where a pair falls within its voxel would come and go)."""
+    cell, grid = case[3], case[2]
+    moved = VolumeGrid(tuple(np.asarray(grid.origin) + np.asarray(shift_vox) * grid.voxel),
+                       grid.voxel, grid.shape)
     true = np.concatenate([singles(cell), pairs(cell)])
-    off = found_particles(case, true, split=0.0)
-    on = found_particles(case, true)
+    off = found_particles(case, true, split=0.0, grid=moved)
+    on = found_particles(case, true, grid=moved)
     assert matched(true, off.particle_position_effective, cell) <= len(true) - len(PAIR_CENTRES)
     assert matched(true, on.particle_position_effective, cell) == len(true)
     assert len(on.particle_position_effective) == len(true)

@@ -21,6 +21,7 @@ from plenopiv.particles.bundle import (
     closest_point,
     closest_points,
     lit_rays,
+    ray_lines,
     ray_table,
 )
 from plenopiv.particles.forward import ForwardSettings, beam_fraction, near_focus, refine_positions
@@ -226,6 +227,10 @@ def test_bundle_light_is_the_rays_weight_each_particle_gathered(thesis_light_fie
     values = lf.values(img)
     above = np.maximum(values - PARTICLE_BUNDLE.floor * values.max(), 0).sum()
     assert np.all(fits[0].light > 0) and fits[0].light.sum() <= above * (1 + 1e-9)
+    # the lines of some rays are those rays' lines
+    some = np.arange(0, lf.n_rays, 7)
+    for part, whole in zip(ray_lines(lf, some), ray_lines(lf), strict=True):
+        np.testing.assert_array_equal(part, whole[some])
 
 
 @pytest.mark.study

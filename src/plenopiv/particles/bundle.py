@@ -28,7 +28,7 @@ ENGINES = ("numba", "numpy")
 
 __all__ = ["ENGINES", "PARTICLE_BUNDLE", "BundlePositions", "BundleSettings", "RayTable",
            "bundle_positions", "closest_point", "closest_points", "lenslet_table", "lit_rays",
-           "ray_lines", "ray_table", "spatial_order"]
+           "ray_lines", "ray_table", "ray_weights", "spatial_order"]
 
 
 @dataclass(frozen=True)
@@ -143,8 +143,10 @@ class BundlePositions:
         return np.sqrt(np.maximum(np.einsum("nii->ni", self.covariance), 0.0))
 
 
-def ray_lines(lf: LightField) -> tuple[np.ndarray, np.ndarray]:
+def ray_lines(lf: LightField, rays=None) -> tuple[np.ndarray, np.ndarray]:
     """Every ray of a light field as a line in effective volume coordinates.
+
+    ``rays``: indices of the rays to return (default: all of them).
 
     Returns
     -------
@@ -153,9 +155,10 @@ def ray_lines(lf: LightField) -> tuple[np.ndarray, np.ndarray]:
     direction : (P, 3) float64
         Unit vector from there to its focal-plane point ``(X_f, 0)``.
     """
-    so = lf.object_distance
-    origin = np.column_stack([lf.u, np.full(lf.n_rays, -so)])
-    d = np.column_stack([lf.focal_plane_position - lf.u, np.full(lf.n_rays, so)])
+    so, u, xf = lf.object_distance, lf.u, lf.focal_plane_position
+    u, xf = (u, xf) if rays is None else (u[rays], xf[rays])
+    origin = np.column_stack([u, np.full(len(u), -so)])
+    d = np.column_stack([xf - u, np.full(len(u), so)])
     return origin, d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
@@ -387,9 +390,14 @@ def _checked_inputs(lf: LightField, image, seeds, settings: BundleSettings, engi
     seeds = np.asarray(seeds, float).reshape(-1, 3)
     if not np.isfinite(seeds).all():
         raise ValueError("seed positions contain NaN or infinity")
-    values = lf.values(img).astype(np.float64)
+    return seeds, ray_weights(lf, img, settings.floor)
+
+
+def ray_weights(lf: LightField, image, floor: float) -> np.ndarray:
+    """Each ray's light above ``floor`` times the image's brightest ray (float64, P)."""
+    values = lf.values(image).astype(np.float64)
     top = float(values.max()) if len(values) else 0.0
-    return seeds, np.maximum(values - settings.floor * top, 0.0)
+    return np.maximum(values - floor * top, 0.0)
 
 
 def _engine_inputs(lf: LightField, table: RayTable, weight, engine: str) -> tuple:

@@ -21,11 +21,14 @@ from plenopiv.lightfield import LightField
 from plenopiv.particles.bundle import (
     PARTICLE_BUNDLE,
     BundleSettings,
+    RayTable,
     _half_beam,
     _select_rays,
     bundle_positions,
     closest_points,
+    ray_lines,
     ray_table,
+    ray_weights,
 )
 
 __all__ = ["MIXTURE_LIGHT", "PARTED_CELLS", "REFERENCE_CELLS", "REFERENCE_MIN_PARTICLES",
@@ -87,6 +90,12 @@ class SplitParticles(NamedTuple):
     source: np.ndarray
     split: np.ndarray
 
+    @classmethod
+    def unsplit(cls, positions) -> SplitParticles:
+        """The particles as found: none split."""
+        n = len(positions)
+        return cls(positions, np.arange(n), np.zeros(n, bool))
+
 
 def blob_axes(volume, grid: VolumeGrid, centres, cell) -> np.ndarray:
     """Unit vector ``(x, y, z)`` of the longest axis of each particle's blob, in cell units.
@@ -141,8 +150,9 @@ def reference_brightness(depth, brightness, depth_cell: float) -> np.ndarray:
 
 def split_bright(lf: LightField, image, centroids, positions, brightness, light, *,
                  factor: float, cell, volume, grid: VolumeGrid,
-                 settings: BundleSettings = PARTICLE_BUNDLE) -> SplitParticles:
-    """Fit the peaks brighter than ``factor`` times the median as two particles each.
+                 settings: BundleSettings = PARTICLE_BUNDLE,
+                 table: RayTable | None = None) -> SplitParticles:
+    """Fit the peaks whose rays carry ``factor`` times the median light as two particles.
 
     A peak stays two particles where the rays part its two fits by :data:`PARTED_CELLS`.
 
@@ -170,6 +180,8 @@ def split_bright(lf: LightField, image, centroids, positions, brightness, light,
     volume, grid : the reconstructed volume ``[z, y, x]`` and its grid (the blobs' axes).
     settings : BundleSettings
         Of the fit (default :data:`~plenopiv.particles.bundle.PARTICLE_BUNDLE`).
+    table : RayTable, optional
+        :func:`~plenopiv.particles.bundle.ray_table` of ``lf``, when already built.
 
     Notes
     -----
@@ -182,20 +194,21 @@ def split_bright(lf: LightField, image, centroids, positions, brightness, light,
     brightness = np.asarray(brightness, float).reshape(-1)
     light = np.asarray(light, float).reshape(-1)
     n = len(positions)
-    none = SplitParticles(positions, np.arange(n), np.zeros(n, bool))
     if n == 0:
-        return none
+        return SplitParticles.unsplit(positions)
+    table = ray_table(lf) if table is None else table
     cell = np.asarray(cell, float)
     reference = reference_brightness(positions[:, 2], light, float(cell[2]))
     tried = np.flatnonzero(light >= factor * reference)
     if len(tried) == 0:
-        return none
+        return SplitParticles.unsplit(positions)
     step = SEED_OFFSET_CELLS * blob_axes(volume, grid, centroids[tried], cell) * cell
     rest = np.setdiff1d(np.arange(n), tried)
     seeds = np.concatenate([positions[rest], centroids[tried] + step, centroids[tried] - step])
     half = 0.5 * brightness[tried]
     fit = bundle_positions(lf, image, seeds, settings=settings, depth_cell=float(cell[2]),
-                           brightness=np.concatenate([brightness[rest], half, half]))
+                           brightness=np.concatenate([brightness[rest], half, half]),
+                           table=table)
     m, k = len(rest), len(tried)
     a, b = fit.position[m:m + k], fit.position[m + k:]
     apart = np.linalg.norm((a - b) / cell, axis=1)
@@ -212,7 +225,7 @@ def split_bright(lf: LightField, image, centroids, positions, brightness, light,
         along = np.array([0.0, 0.0, SEED_OFFSET_CELLS * cell[2]])
         ma, mb, share = mixture_pairs(lf, image, positions[peaks] - along,
                                       positions[peaks] + along,
-                                      np.concatenate([out, b[keep]]), peaks, cell)
+                                      np.concatenate([out, b[keep]]), peaks, cell, table)
         apart = np.linalg.norm((ma - mb) / cell, axis=1)
         ok = (np.all(np.isfinite(ma), axis=1) & np.all(np.isfinite(mb), axis=1)
               & (apart >= PARTED_CELLS[0]) & (apart <= PARTED_CELLS[1])
@@ -236,13 +249,15 @@ def _memberships(lf: LightField, point, origin, direction) -> np.ndarray:
     return np.exp(-0.5 * m * m)
 
 
-def mixture_pairs(lf: LightField, image, start_a, start_b, positions, own, cell):
+def mixture_pairs(lf: LightField, image, start_a, start_b, positions, own, cell,
+                  table: RayTable | None = None):
     """Two points from the rays of each peak by a Gaussian mixture of lines.
 
     ``start_a``, ``start_b``: (K, 3) first points, metres; ``positions``: (N, 3) every
     particle's position, which compete for the rays where within
     :data:`MIXTURE_NEIGHBOURS` cells (``own``: (K,) the index of each peak's own particle,
-    left out); ``cell``: (3,) resolution cell, metres. The rays within
+    left out); ``cell``: (3,) resolution cell, metres; ``table``: :func:`ray_table` of
+    ``lf`` when already built. The rays within
     :data:`MIXTURE_REACH` half beams of the mid-point are shared by their memberships
     (:func:`_memberships`) among the two points and the neighbours, and each point is the
     closest point of its share, :data:`MIXTURE_ITERATIONS` times. Unlike the ray-bundle fit's
@@ -254,9 +269,8 @@ def mixture_pairs(lf: LightField, image, start_a, start_b, positions, own, cell)
     """
     from scipy.spatial import cKDTree
 
-    table = ray_table(lf)
-    values = np.asarray(image, np.float64).reshape(-1)[lf.pixel]
-    weight = np.maximum(values - PARTICLE_BUNDLE.floor * values.max(initial=0.0), 0.0)
+    table = ray_table(lf) if table is None else table
+    weight = ray_weights(lf, image, PARTICLE_BUNDLE.floor)
     a, b = np.array(start_a, float), np.array(start_b, float)
     share = np.full(len(a), np.nan)
     near = cKDTree(positions / cell).query_ball_point(0.5 * (a + b) / cell, MIXTURE_NEIGHBOURS)
@@ -265,10 +279,7 @@ def mixture_pairs(lf: LightField, image, start_a, start_b, positions, own, cell)
         mid = 0.5 * (a[idx] + b[idx])
         pid, ray, _ = _select_rays(lf, table.order, table.ptr, table.lens_ids, table.tree, mid,
                                    MIXTURE_REACH * _half_beam(lf, mid[:, 2]))
-        so = lf.object_distance
-        origin = np.column_stack([lf.u[ray], np.full(len(ray), -so)])
-        d = np.column_stack([lf.focal_plane_position[ray] - lf.u[ray], np.full(len(ray), so)])
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        origin, d = ray_lines(lf, ray)
         w = weight[ray]
         # the neighbours' memberships, held fixed
         rest = np.zeros(len(ray))

@@ -17,7 +17,7 @@ from plenopiv.camera.corrections import DepthCorrection
 from plenopiv.camera.grid import VolumeGrid
 from plenopiv.camera.resolution import footprint, resolution_cell
 from plenopiv.errors import ReconstructionError
-from plenopiv.particles.bundle import PARTICLE_BUNDLE, bundle_positions, lit_rays
+from plenopiv.particles.bundle import PARTICLE_BUNDLE, bundle_positions, lit_rays, ray_table
 from plenopiv.particles.peaks import find_particles
 from plenopiv.particles.settings import ParticleSettings
 from plenopiv.particles.split import SplitParticles, split_bright
@@ -247,12 +247,13 @@ def light_field_particles(lf, image, seeds, intensity, calibration: Calibration,
     if image_mask is not None:
         img = np.where(np.asarray(image_mask, bool), np.float32(0), img)
     lit = lit_rays(lf, img, PARTICLE_BUNDLE.floor)       # the same fit, a fraction of the rays
+    table = ray_table(lit)                               # one for every fit of this image
     seeds = np.asarray(seeds, float).reshape(-1, 3)
     fit = bundle_positions(lit, img, seeds, settings=PARTICLE_BUNDLE, depth_cell=cell,
-                           brightness=intensity)
+                           brightness=intensity, table=table)
     single = np.where(fit.converged[:, None], fit.position, seeds)
     if not split_brighter or volume is None or len(single) < 2:
-        return SplitParticles(single, np.arange(len(single)), np.zeros(len(single), bool))
+        return SplitParticles.unsplit(single)
     return split_bright(lit, img, seeds, single, intensity, fit.light, factor=split_brighter,
-                        cell=(lateral, lateral, cell), volume=volume, grid=grid)
+                        cell=(lateral, lateral, cell), volume=volume, grid=grid, table=table)
 
