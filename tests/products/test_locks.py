@@ -194,9 +194,20 @@ class Stop(Exception):
     """Raised right after a verb took its lock."""
 
 
+def wrapped(stop: BaseException) -> RuntimeError:
+    """What Python raises when a signal lands in a class's making (a lazy import): the stop
+    as the cause of a RuntimeError."""
+    exc = RuntimeError("Error calling __set_name__ on 'Field' instance '_shared' in "
+                       "'ProjectionGeometry'")
+    exc.__cause__ = stop
+    return exc
+
+
 STOPS = {"error": (ComputationError("stopped after the lock"), 1, "stopped after the lock"),
          "ctrl-c": (KeyboardInterrupt(), 130, "interrupted (Ctrl-C)"),
-         "sigterm": (Terminated(), 143, "terminated (SIGTERM)")}
+         "sigterm": (Terminated(), 143, "terminated (SIGTERM)"),
+         "ctrl-c in an import": (wrapped(KeyboardInterrupt()), 130, "interrupted (Ctrl-C)"),
+         "sigterm in an import": (wrapped(Terminated()), 143, "terminated (SIGTERM)")}
 
 
 @pytest.mark.parametrize("stop", sorted(STOPS))

@@ -259,13 +259,11 @@ def main(argv: list[str] | None = None) -> int:
     except PlenopivError as exc:
         return _report_failure(exc, exc.exit_status, command, as_json, warned)
     except KeyboardInterrupt as stop:
-        terminated = isinstance(stop, Terminated)
-        exc = PlenopivError(f"{'terminated (SIGTERM)' if terminated else 'interrupted (Ctrl-C)'}"
-                            "; products written so far are complete, temporaries are removed "
-                            "on the next run")
-        return _report_failure(exc, EXIT_TERMINATED if terminated else EXIT_INTERRUPTED,
-                               command, as_json, warned)
+        return _stopped(stop, command, as_json, warned)
     except Exception as exc:  # noqa: BLE001 - the one error path: no traceback for users
+        stop = _interrupt_within(exc)
+        if stop is not None:
+            return _stopped(stop, command, as_json, warned)
         return _report_failure(_unexpected(exc), EXIT_FAILED, command, as_json, warned)
     if warned:
         summary = {**summary, "warnings": warned}
@@ -274,6 +272,32 @@ def main(argv: list[str] | None = None) -> int:
     else:
         _print_human(summary)
     return 0
+
+
+def _interrupt_within(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM that ``exc`` wraps, else None.
+
+    Python wraps what some hooks raise: a SIGTERM that lands while a lazily imported module
+    makes a class raises ``RuntimeError: Error calling __set_name__ ...`` with the Terminated
+    as its cause. Followed through causes and contexts.
+    """
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _stopped(stop: KeyboardInterrupt, command, as_json: bool, warned) -> int:
+    """The one line and the status of a command stopped by Ctrl-C (130) or SIGTERM (143)."""
+    terminated = isinstance(stop, Terminated)
+    exc = PlenopivError(f"{'terminated (SIGTERM)' if terminated else 'interrupted (Ctrl-C)'}"
+                        "; products written so far are complete, temporaries are removed "
+                        "on the next run")
+    return _report_failure(exc, EXIT_TERMINATED if terminated else EXIT_INTERRUPTED,
+                           command, as_json, warned)
 
 
 def console() -> None:
