@@ -208,7 +208,8 @@ MEANINGS = {
     "experiment:reconstruction.lateral_subdivision": "reconstruct on voxels k times finer in x "
                                                      "and y, then merge back; `\"auto\"`: "
                                                      "working voxels of at most a third of a "
-                                                     "footprint (costs k² in weights and time)",
+                                                     "footprint (costs k² in working voxels, "
+                                                     "about k in time)",
     "experiment:reconstruction.depth_binning": "reconstruct on depth slices k times as deep, "
                                                "then resample onto the grid's slices (cubic "
                                                "spline, total kept); `\"auto\"`: working "

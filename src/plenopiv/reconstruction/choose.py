@@ -52,16 +52,15 @@ __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "SUBDIVIDED_VOXEL_FOOTPRINTS", "Pr
 #: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
 SUBDIVIDED_VOXEL_FOOTPRINTS = 1 / 3
 
-#: Most working voxels ``"auto"`` subdivides to, counted at the lattice projector's cost
+#: Most working voxels ``"auto"`` subdivides to, counted at the projector's cost
 #: (:data:`LENSLET_COST`): a finer subdivision is given up for one coarser by one per axis
 #: until the working grid holds at most this many (a grid larger is never subdivided). The
-#: reconstruction's time and memory grow with the working voxels: the 16 MP camera's full
-#: volume (287 x 193 x 201 footprint voxels) takes 43 s and 4.6 GB a volume on 2 cores on
-#: the footprints, 67 s and 6.0 GB on a 2 x 2 subdivision (45 million working voxels), and
-#: more than 8 GB on a 3 x 3 one (docs/performance.md#full-camera-scale). Counted on the
-#: grid's own depth slices, before :func:`depth_binning`: the binning's saving is kept as
-#: time, not spent on a finer lateral cut (which would cost more than it saves on a rotated
-#: array).
+#: reconstruction's memory and time grow with the working voxels: the 16 MP camera's full
+#: volume (287 x 193 x 201 footprint voxels) takes 3.6 GB and 16 s a volume on 2 cores on a
+#: 2 x 2 subdivision of an aligned array (45 million working voxels), 4.8 GB on a 3 x 3 one
+#: (docs/performance.md#full-camera-scale). Counted on the grid's own depth slices, before
+#: :func:`depth_binning`: the binning's saving is kept as time and memory, not spent on a
+#: finer lateral cut.
 MAX_AUTO_WORKING_VOXELS = 50_000_000
 
 #: Largest working depth slice of the ``"auto"`` depth binning, in depth resolution cells
@@ -69,13 +68,16 @@ MAX_AUTO_WORKING_VOXELS = 50_000_000
 BINNED_DEPTH_CELLS = 1 / 3
 
 #: Weight of a working voxel of the per-lenslet projector (a rotated, hexagonal or irregular
-#: lattice) against the separable lattice projector's in :data:`MAX_AUTO_WORKING_VOXELS`:
-#: 2.8 times per volume on the 16 MP camera on a 2 x 2 subdivision when it was set (197 s
-#: against 67 s). Its sweeps now cost 2.0 times the lattice projector's on the footprints
-#: and 5.4 times on a 2 x 2 cut (docs/performance.md); with the cap it keeps the 16 MP
-#: camera's full box on footprint voxels on a turned or hexagonal array (40.5 s a volume
-#: with ``plenopiv reconstruct``, 52.6 s on 2 x 2).
-LENSLET_COST = 3.0
+#: lattice) against the separable lattice projector's in :data:`MAX_AUTO_WORKING_VOXELS`.
+#: The cap bounds what grows with the working voxels, and at the cap both projectors stay
+#: within the budget: the 16 MP camera's full box cut 2 x 2 (45 million working voxels)
+#: takes 3.5-3.8 GB with either, and a volume takes 60 s (turned 2 mrad) and 66 s
+#: (hexagonal) with the per-lenslet projector, 16 s with the lattice projector, on 2 cores
+#: (``plenopiv run``, weights and the recording's check included; docs/performance.md). A
+#: finer cut of a smaller box costs less per working voxel (:func:`sweep_cost`). On the
+#: footprints those arrays' depth motion is lost: w gain 0.79-0.83 against 0.96-0.97 on
+#: 2 x 2.
+LENSLET_COST = 1.0
 
 
 def sweep_cost(ky: int, kx: int) -> float:

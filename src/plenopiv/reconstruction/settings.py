@@ -50,12 +50,12 @@ class ReconstructionSettings:
         the depth of a particle is told by beams shifting sideways by a fraction of a
         footprint, which voxels a footprint wide cannot represent, so with them a particle
         is reconstructed far too long in depth and its depth motion is under-measured
-        (docs/validation/vortex.md). Costs k² in weights and MART time, so "auto" takes a
-        coarser k (down to 1) where the working grid would hold more than 50 million voxels,
-        counted three times for a rotated or hexagonal lattice (the 16 MP camera's full
-        volume: 2 x 2, 67 s and 6.0 GB a volume on 2 cores; footprint voxels on a rotated
-        array), and says so. A k that leaves working voxels of 0.75 footprint or wider is
-        warned before a run (docs/methods.md#settings-judgement).
+        (docs/validation/vortex.md). Costs k² in explicit weights and working voxels and
+        about k in the time of a sweep, so "auto" takes a coarser k (down to 1) where the
+        working grid would hold more than 50 million voxels (the 16 MP camera's full
+        volume: 2 x 2, 16 s a volume on an aligned array, 60-66 s on a turned or hexagonal
+        one, 3.5-3.9 GB, on 2 cores), and says so. A k that leaves working voxels of 0.75
+        footprint or wider is warned before a run (docs/methods.md#settings-judgement).
     depth_binning : "auto" (default) | an int k >= 1. The reconstruction runs on depth slices
         k times as deep as the [volume] grid's (centred on its depth range), and its volume
         is resampled onto the grid's slices (a cubic interpolating spline in depth, the total
