@@ -114,47 +114,64 @@ def test_auto_gives_up_a_subdivision_whose_working_grid_is_too_large(cal, monkey
 
 
 @pytest.mark.parametrize("rotation", [0.0, 2e-3])
-def test_the_cap_counts_the_working_voxels_at_the_cost_of_their_projector(cal, monkeypatch,
-                                                                         rotation):
-    """The cap counts each working voxel at its projector's cost (LENSLET_COST for the
-    per-lenslet projector of a rotated lattice): the subdivision is the finest whose
-    weighted working voxels fit, in the choice and in the judgement's rule alike."""
+def test_the_cap_bounds_the_working_grid_the_reconstruction_runs_on(cal, monkeypatch,
+                                                                    rotation):
+    """The cut "auto" takes keeps the working grid the reconstruction runs on within the cap
+    (its binned working voxels counted at the projector's cost, LENSLET_COST for the
+    per-lenslet projector of a rotated lattice), and the next finer cut would not; the
+    judgement's camera rule takes the same cut."""
     import dataclasses
 
     from plenopiv.reconstruction import choose
+    from plenopiv.workflow.judgement import camera_resolution, camera_subdivision
 
     cam = cal.camera
     cam = cam.replace(microlens_array=dataclasses.replace(cam.microlens_array,
                                                           rotation=rotation))
     turned = Calibration.from_camera(cam)
-    grid = grid_of(turned, 1.0)
-    monkeypatch.setattr(choose, "MAX_AUTO_WORKING_VOXELS", 9 * grid.n_voxels)
-    for lenslet_cost in (1.0, 2.5):
-        monkeypatch.setattr(choose, "LENSLET_COST", lenslet_cost)
-        choice = choose.choose_reconstruction(turned, grid, ReconstructionSettings())
-        cost = choose.model_projector_cost(cam)
-        assert cost == (1.0 if rotation == 0 else lenslet_cost)
-        k = max(k for k in (1, 2, 3) if cost * k * k <= 9)
-        assert choice.subdivision == (k, k)
-        assert choose.subdivision_for(footprint(turned.effective_camera), grid, "auto",
-                                      cost=cost) == (k, k)
+    grid = VolumeGrid.from_bounds(*[(-8 * footprint(cal.effective_camera),
+                                     8 * footprint(cal.effective_camera))] * 2,
+                                  (-1.5e-3, 1.5e-3), voxel=(footprint(cal.effective_camera),
+                                                             footprint(cal.effective_camera),
+                                                             0.25e-3))
+    cap = 9 * grid.n_voxels
+    monkeypatch.setattr(choose, "MAX_AUTO_WORKING_VOXELS", cap)
+    cost = choose.model_projector_cost(cam)
+    assert cost == (1.0 if rotation == 0 else choose.LENSLET_COST)
+    choice = choose.choose_reconstruction(turned, grid, ReconstructionSettings())
+    (k, _), kz = choice.subdivision, choice.depth_binning
+    assert choice.grid.n_voxels == -(-grid.shape[0] // kz) * grid.shape[1] * grid.shape[2] * k * k
+    assert grid.n_voxels * k * k <= cap and cost * choice.grid.n_voxels <= cap
+    if rotation == 0:
+        assert k == 3                  # the lattice projector: the cap on memory alone
+    else:
+        assert k < 3
+        finer = subdivided_grid(grid, k + 1, k + 1, kz)
+        assert cost * finer.n_voxels > cap
+    judged = camera_resolution(turned.effective_camera)
+    assert camera_subdivision(judged, grid) == (k, k)
 
 
-def test_the_16_mp_volume_is_subdivided_2_x_2_on_every_lattice():
-    """The full camera's volume (287 x 193 x 201 footprint voxels): 45 million working
-    voxels on 2 x 2 fit the cap on an aligned lattice and on a turned or hexagonal one
-    (measured: 16 s and 60-66 s a volume, 3.5-3.9 GB; on the footprints a turned or
-    hexagonal array loses a fifth of the depth motion, docs/performance.md); 3 x 3 does
-    not fit."""
+def test_the_16_mp_volume_is_subdivided_2_x_2_on_every_lattice_and_a_deep_box_is_not():
+    """The full camera's volume (287 x 193 x 201 footprint voxels, binned 3 to 67 working
+    slices): 45 million working voxels on 2 x 2 fit the cap on an aligned lattice and on a
+    turned or hexagonal one (measured: 16 s and 60-66 s a volume, 3.5-3.9 GB,
+    docs/performance.md); 3 x 3 does not fit. The same 201 slices three times as deep (no
+    binning) would make the per-lenslet projector's sweeps three times as long: it stays on
+    the footprints, the lattice projector is cut 2 x 2."""
     from plenopiv.reconstruction import choose
 
-    b = 0.2596e-3
-    grid = VolumeGrid.from_bounds((-143.5 * b, 143.5 * b), (-96.5 * b, 96.5 * b),
-                                  (-100.5 * b, 100.5 * b), voxel=b)
-    assert grid.shape == (201, 193, 287)
-    for cost in (1.0, choose.LENSLET_COST):
-        assert choose.subdivision_for(b, grid, "auto", cost=cost) == (2, 2)
-    assert choose.wanted_subdivision(b, grid.voxel, "auto") == (3, 3)
+    b, cell = 0.2596e-3, 2.24e-3                 # footprint and depth cell of auburn_135mm
+    for dz, kz_wanted, per_lenslet in ((b, 3, (2, 2)), (3 * b, 1, (1, 1))):
+        grid = VolumeGrid.from_bounds((-143.5 * b, 143.5 * b), (-96.5 * b, 96.5 * b),
+                                      (-100.5 * dz, 100.5 * dz), voxel=(b, b, dz))
+        assert grid.shape == (201, 193, 287)
+        kz = choose.depth_binning_for(cell, grid, "auto")
+        assert kz == kz_wanted
+        assert choose.subdivision_for(b, grid, "auto", depth_binning=kz) == (2, 2)
+        assert choose.subdivision_for(b, grid, "auto", cost=choose.LENSLET_COST,
+                                      depth_binning=kz) == per_lenslet
+        assert choose.wanted_subdivision(b, grid.voxel, "auto") == (3, 3)
 
 
 def test_the_judgement_names_the_subdivision_auto_gave_up(cal, monkeypatch):

@@ -45,39 +45,50 @@ __all__ = ["BYTES_PER_NONZERO", "PROJECTORS", "SUBDIVIDED_VOXEL_FOOTPRINTS", "Pr
            "estimate_matrix_free_gb", "estimate_nnz", "fit_projector", "lateral_subdivision",
            "memory_budget_gb", "reconstruction_grid", "depth_binning", "depth_binning_for",
            "BINNED_DEPTH_CELLS", "subdivided_grid", "subdivision_for",
-           "wanted_subdivision", "MAX_AUTO_WORKING_VOXELS", "LENSLET_COST",
+           "wanted_subdivision", "MAX_AUTO_WORKING_VOXELS", "LENSLET_COST", "auto_cap_counts",
            "projector_cost", "model_projector_cost", "sweep_cost"]
 
 
 #: Largest working voxel of the ``"auto"`` lateral subdivision, in lenslet footprints.
 SUBDIVIDED_VOXEL_FOOTPRINTS = 1 / 3
 
-#: Most working voxels ``"auto"`` subdivides to, counted at the projector's cost
-#: (:data:`LENSLET_COST`): a finer subdivision is given up for one coarser by one per axis
-#: until the working grid holds at most this many (a grid larger is never subdivided). The
-#: reconstruction's memory and time grow with the working voxels: the 16 MP camera's full
-#: volume (287 x 193 x 201 footprint voxels) takes 3.6 GB and 16 s a volume on 2 cores on a
-#: 2 x 2 subdivision of an aligned array (45 million working voxels), 4.8 GB on a 3 x 3 one
-#: (docs/performance.md#full-camera-scale). Counted on the grid's own depth slices, before
-#: :func:`depth_binning`: the binning's saving is kept as time and memory, not spent on a
-#: finer lateral cut.
+#: Most working voxels ``"auto"`` subdivides to: a finer subdivision is given up for one
+#: coarser by one per axis until the working grid holds at most this many on the grid's own
+#: depth slices, and at most this many on the binned working slices (:func:`depth_binning`)
+#: counted at the projector's cost (:data:`LENSLET_COST`). A grid larger is never
+#: subdivided. The first count bounds memory: the 16 MP camera's full volume (287 x 193 x
+#: 201 footprint voxels) cut 2 x 2 (45 million) takes 3.5-3.9 GB a volume with either
+#: projector, cut 3 x 3 (100 million) 4.8 GB on an aligned array
+#: (docs/performance.md#full-camera-scale). The second bounds the sweeps' time
+#: (:func:`auto_cap_counts`).
 MAX_AUTO_WORKING_VOXELS = 50_000_000
 
 #: Largest working depth slice of the ``"auto"`` depth binning, in depth resolution cells
 #: (:func:`~plenopiv.camera.resolution.resolution_cell`).
 BINNED_DEPTH_CELLS = 1 / 3
 
-#: Weight of a working voxel of the per-lenslet projector (a rotated, hexagonal or irregular
-#: lattice) against the separable lattice projector's in :data:`MAX_AUTO_WORKING_VOXELS`.
-#: The cap bounds what grows with the working voxels, and at the cap both projectors stay
-#: within the budget: the 16 MP camera's full box cut 2 x 2 (45 million working voxels)
-#: takes 3.5-3.8 GB with either, and a volume takes 60 s (turned 2 mrad) and 66 s
-#: (hexagonal) with the per-lenslet projector, 16 s with the lattice projector, on 2 cores
-#: (``plenopiv run``, weights and the recording's check included; docs/performance.md). A
-#: finer cut of a smaller box costs less per working voxel (:func:`sweep_cost`). On the
-#: footprints those arrays' depth motion is lost: w gain 0.79-0.83 against 0.96-0.97 on
-#: 2 x 2.
-LENSLET_COST = 1.0
+#: Weight of a binned working voxel of the per-lenslet projector (a rotated, hexagonal or
+#: irregular lattice) in :data:`MAX_AUTO_WORKING_VOXELS`: its sweeps cost 2.0 times the
+#: separable lattice projector's on the footprints and 5.4 times on a 2 x 2 cut. So a
+#: per-lenslet reconstruction is cut no finer than 16.7 million binned working voxels: the
+#: 16 MP camera's full box cut 2 x 2 holds 14.8 million on its 67 binned slices and takes
+#: 60 s a volume turned by 2 mrad, 66 s hexagonal, on 2 cores (``plenopiv run``, weights
+#: and the recording's check included), where its footprint voxels lose a fifth of the
+#: depth motion (w gain 0.79-0.83 against 0.96-0.97; docs/performance.md).
+LENSLET_COST = 3.0
+
+
+def auto_cap_counts(grid: VolumeGrid, ky: int, kx: int, *, cost: float = 1.0,
+                    depth_binning: int = 1) -> tuple[float, float]:
+    """The two counts :data:`MAX_AUTO_WORKING_VOXELS` bounds for a ``ky × kx`` cut.
+
+    ``(working voxels on the grid's depth slices, cost × working voxels on the binned
+    slices)``: ``cost`` of the projector (:func:`projector_cost`), ``depth_binning`` the
+    slices a working slice holds (:func:`depth_binning_for`).
+    """
+    nz, ny, nx = grid.shape
+    return (float(grid.n_voxels * ky * kx),
+            cost * float(-(-nz // max(1, depth_binning)) * ny * ky * nx * kx))
 
 
 def sweep_cost(ky: int, kx: int) -> float:
@@ -120,7 +131,8 @@ def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
     which the working voxel is at most a third of a lenslet footprint (5 % slack, at most
     :data:`~plenopiv.reconstruction.settings.MAX_SUBDIVISION`), coarser where the working
     grid would exceed :data:`MAX_AUTO_WORKING_VOXELS` (``cost``: :func:`projector_cost`,
-    by default the calibrated camera's :func:`model_projector_cost`).
+    by default the calibrated camera's :func:`model_projector_cost`; the working slices
+    :func:`depth_binning`'s).
     Depth along a pixel's beam is told apart by the beams of the other views shifting
     sideways by a fraction of a footprint;
     voxels a footprint wide hold those shifts in one voxel, and the reconstructed particle
@@ -135,21 +147,25 @@ def lateral_subdivision(calibration: Calibration, grid: VolumeGrid,
     if cost is None:
         cost = model_projector_cost(calibration.camera)
     return subdivision_for(footprint(calibration.effective_camera), grid,
-                           settings.lateral_subdivision, cost=cost)
+                           settings.lateral_subdivision, cost=cost,
+                           depth_binning=depth_binning(calibration, grid, settings))
 
 
 def subdivision_for(footprint_m: float, grid: VolumeGrid, setting: str | int, *,
-                    cost: float = 1.0) -> tuple[int, int]:
+                    cost: float = 1.0, depth_binning: int = 1) -> tuple[int, int]:
     """``(ky, kx)`` of :func:`lateral_subdivision` from the footprint and the grid.
 
     ``footprint_m``: the lenslet footprint, m; ``grid``: the ``[volume]`` grid; ``setting``:
     ``[reconstruction] lateral_subdivision`` (``"auto"`` or an int); ``cost``: the
-    projector's cost per working voxel (:func:`projector_cost`).
+    projector's cost per working voxel (:func:`projector_cost`); ``depth_binning``: the
+    grid's slices a working slice holds (:func:`depth_binning_for`).
     """
     ky, kx = wanted_subdivision(footprint_m, grid.voxel, setting)
     if setting != "auto":
         return ky, kx
-    while max(ky, kx) > 1 and cost * grid.n_voxels * ky * kx > MAX_AUTO_WORKING_VOXELS:
+    while max(ky, kx) > 1 and max(auto_cap_counts(grid, ky, kx, cost=cost,
+                                                  depth_binning=depth_binning)
+                                  ) > MAX_AUTO_WORKING_VOXELS:
         ky, kx = max(1, ky - 1), max(1, kx - 1)
     return ky, kx
 
@@ -366,7 +382,8 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
     n_rays = geometry.light_field.n_rays
     cost = projector_cost(geometry.separable_axes is not None)
     ky, kx = lateral_subdivision(calibration, grid, settings, cost=cost)
-    fallbacks: list[str] = _size_fallbacks(calibration, grid, settings, (ky, kx), cost)
+    fallbacks: list[str] = _size_fallbacks(calibration, grid, settings, (ky, kx), cost,
+                                           kz)
     while True:
         work = geometry.on_grid(subdivided_grid(grid, ky, kx, kz))
         separable = work.separable_axes is not None
@@ -396,23 +413,36 @@ def choose_reconstruction(calibration: Calibration, grid: VolumeGrid,
 
 def _size_fallbacks(calibration: Calibration, grid: VolumeGrid,
                     settings: ReconstructionSettings, taken: tuple[int, int],
-                    cost: float) -> list[str]:
+                    cost: float, kz: int) -> list[str]:
     """Why ``"auto"`` took ``taken`` instead of the third-footprint subdivision (or none)."""
     wanted = wanted_subdivision(footprint(calibration.effective_camera), grid.voxel,
                                 settings.lateral_subdivision)
     if wanted == tuple(taken):
         return []
-    per = "" if cost == 1.0 else f" at {cost:g} times the cost of the lattice projector's"
+
+    def counts(cut) -> str:
+        on_slices, binned = auto_cap_counts(grid, *cut, cost=cost, depth_binning=kz)
+        said = []
+        if on_slices > MAX_AUTO_WORKING_VOXELS:
+            said.append(f"{on_slices / 1e6:.3g} million working voxels on the grid's depth "
+                        "slices")
+        if binned > MAX_AUTO_WORKING_VOXELS:
+            said.append(f"{binned / cost / 1e6:.3g} million on its {-(-grid.shape[0] // kz)} "
+                        f"binned depth slices, at {cost:g} times the lattice projector's time "
+                        "each")
+        return " and ".join(said)
+
     # the next cut first: it costs the least of those given up
     step = max(taken) + 1
     cuts = str(step) if step >= max(wanted) else f"{step} (or up to {max(wanted)})"
+    nearest = (min(step, wanted[0]), min(step, wanted[1]))
+    also = "" if nearest == tuple(wanted) else (f"; a {nearest[0]} x {nearest[1]} one "
+                                                f"{counts(nearest)}")
     return [f"lateral_subdivision = \"auto\": a {wanted[0]} x {wanted[1]} subdivision would "
-            f"make {grid.n_voxels * wanted[0] * wanted[1] / 1e6:.3g} million working voxels "
-            "on the grid's depth slices"
-            f"{per} (at most {MAX_AUTO_WORKING_VOXELS / 1e6:.3g} million: the "
-            f"reconstruction's time and memory grow with them); taking {taken[0]} x "
-            f"{taken[1]}. Depth motion is then less resolved (w gain lower); set "
-            f"[reconstruction] lateral_subdivision = {cuts} to subdivide anyway"]
+            f"make {counts(wanted)}{also} (at most {MAX_AUTO_WORKING_VOXELS / 1e6:.3g} "
+            "million either way: the reconstruction's memory and time grow with them); "
+            f"taking {taken[0]} x {taken[1]}. Depth motion is then less resolved (w gain "
+            f"lower); set [reconstruction] lateral_subdivision = {cuts} to subdivide anyway"]
 
 
 def _light_field_refusal(calibration: Calibration, f_number, budget: float

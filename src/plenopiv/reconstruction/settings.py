@@ -52,7 +52,8 @@ class ReconstructionSettings:
         is reconstructed far too long in depth and its depth motion is under-measured
         (docs/validation/vortex.md). Costs k² in explicit weights and working voxels and
         about k in the time of a sweep, so "auto" takes a coarser k (down to 1) where the
-        working grid would hold more than 50 million voxels (the 16 MP camera's full
+        working grid would hold more than 50 million voxels, or on a turned or hexagonal
+        lattice more than 16.7 million on its binned depth slices (the 16 MP camera's full
         volume: 2 x 2, 16 s a volume on an aligned array, 60-66 s on a turned or hexagonal
         one, 3.5-3.9 GB, on 2 cores), and says so. A k that leaves working voxels of 0.75
         footprint or wider is warned before a run (docs/methods.md#settings-judgement).

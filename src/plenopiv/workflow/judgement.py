@@ -227,11 +227,24 @@ def windows_toml(windows) -> str:
 # ---- the findings ----------------------------------------------------------------------------
 
 
-def lateral_voxel_finding(cam: Camera, grid: VolumeGrid,
-                          subdivision: tuple[int, int]) -> Finding | None:
+def camera_subdivision(cam: Camera, grid: VolumeGrid, setting: str | int = "auto",
+                       depth_binning: str | int = "auto") -> tuple[int, int]:
+    """The lateral cut ``(ky, kx)`` of ``grid`` the reconstruction takes on this camera.
+
+    ``setting`` and ``depth_binning``: ``[reconstruction] lateral_subdivision`` and
+    ``depth_binning``.
+    """
+    return subdivision_for(cam.footprint, grid, setting, cost=cam.projector_cost,
+                           depth_binning=depth_binning_for(cam.depth_cell, grid,
+                                                           depth_binning))
+
+
+def lateral_voxel_finding(cam: Camera, grid: VolumeGrid, subdivision: tuple[int, int],
+                          depth_binning: str | int = "auto") -> Finding | None:
     """A warning when the lateral working voxel is :data:`LOCKING_VOXEL_FOOTPRINTS` or wider.
 
-    ``subdivision``: ``(ky, kx)`` the reconstruction cuts each voxel into.
+    ``subdivision``: ``(ky, kx)`` the reconstruction cuts each voxel into;
+    ``depth_binning``: the ``[reconstruction]`` setting.
     """
     fp = cam.footprint
     ky, kx = subdivision
@@ -240,7 +253,7 @@ def lateral_voxel_finding(cam: Camera, grid: VolumeGrid,
     if work / fp < LOCKING_VOXEL_FOOTPRINTS:
         return None
     sub = "no lateral subdivision" if (ky, kx) == (1, 1) else f"a {ky} x {kx} subdivision"
-    auto = subdivision_for(fp, grid, "auto", cost=cam.projector_cost)
+    auto = camera_subdivision(cam, grid, "auto", depth_binning)
     wanted = wanted_subdivision(fp, grid.voxel, "auto")
     if auto != wanted:      # "auto" gave up the finer cut for the size of the grid
         more = sweep_cost(*wanted) / sweep_cost(ky, kx)
@@ -498,10 +511,12 @@ def judge(cam: Camera | None, grid: VolumeGrid,
     """
     out: list[Finding | None] = []
     if subdivision is None and reconstruction is not None and cam is not None:
-        subdivision = subdivision_for(cam.footprint, grid, reconstruction.lateral_subdivision,
-                                      cost=cam.projector_cost)
+        subdivision = camera_subdivision(cam, grid, reconstruction.lateral_subdivision,
+                                         reconstruction.depth_binning)
     if cam is not None and subdivision is not None:
-        out.append(lateral_voxel_finding(cam, grid, subdivision))
+        out.append(lateral_voxel_finding(cam, grid, subdivision,
+                                         "auto" if reconstruction is None
+                                         else reconstruction.depth_binning))
     if piv is not None:
         if cam is not None:
             out.append(depth_window_finding(cam, grid, piv))
@@ -624,8 +639,8 @@ def judge_experiment(experiment: Experiment, cam: Camera | None, *,
         experiment = dataclasses.replace(experiment, piv=piv)
     rec = experiment.reconstruction
     sub = (None if cam is None else
-           subdivision_for(cam.footprint, experiment.volume, rec.lateral_subdivision,
-                           cost=cam.projector_cost))
+           camera_subdivision(cam, experiment.volume, rec.lateral_subdivision,
+                              rec.depth_binning))
     kz = (None if cam is None else
           depth_binning_for(cam.depth_cell, experiment.volume, rec.depth_binning))
     found = judge(cam, experiment.volume, rec, piv, subdivision=sub, purpose=purpose)

@@ -141,9 +141,12 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     """
     import numba
 
+    depth_binning = "auto"
     if reconstruction is not None:
         f_number, min_lit = reconstruction.f_number, reconstruction.min_lit
         lateral_subdivision = reconstruction.lateral_subdivision
+        depth_binning = reconstruction.depth_binning
+    cut_setting = (lateral_subdivision, depth_binning, f_number)
 
     from plenopiv.reconstruction._kernels import weights as K
     from plenopiv.reconstruction.projector import SparseProjector
@@ -196,14 +199,14 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
     sweep_rate, sweep_call = _slope(n1, s1, n2, s2)
 
     lattice_rate, lattice_call, cut = _measure_lattice(camera, grid, f_number, min_lit,
-                                                       lateral_subdivision, 0.15 * budget_s)
+                                                       cut_setting, 0.15 * budget_s)
     piv_rate, piv_call = _measure_piv(piv or PIVSettings(), grid, 0.2 * budget_s)
     rehearsal = None
     if reconstruction is not None:
         # a box the rehearsal cannot take is planned from the kernels' rates alone
         with contextlib.suppress(PlenopivError):
             rehearsal = rehearse(camera, grid, reconstruction,
-                                 _subdivision(camera, grid, lateral_subdivision))
+                                 _subdivision(camera, grid, cut_setting))
     return Rates(build_s_per_nnz=build_rate, sweep_s_per_nnz=sweep_rate,
                  sweep_s_per_call=sweep_call, lattice_s_per_ray_slice=lattice_rate,
                  lattice_s_per_call=lattice_call, piv_s_per_window_voxel=piv_rate,
@@ -211,17 +214,27 @@ def measure_rates(camera: CameraModel, grid: VolumeGrid, *, f_number=None,
                  lattice_subdivision=cut, rehearsal=rehearsal)
 
 
-def _subdivision(camera: CameraModel, grid: VolumeGrid, lateral_subdivision) -> tuple:
-    """``(ky, kx)``: the reconstruction's cut of ``grid`` as the camera model judges it."""
-    from plenopiv.camera.resolution import footprint
-    from plenopiv.reconstruction.choose import model_projector_cost, subdivision_for
+def _subdivision(camera: CameraModel, grid: VolumeGrid, setting: tuple) -> tuple:
+    """``(ky, kx)``: the reconstruction's cut of ``grid`` as the camera model judges it.
 
-    return tuple(int(k) for k in subdivision_for(footprint(camera), grid, lateral_subdivision,
-                                                 cost=model_projector_cost(camera)))
+    ``setting``: ``(lateral_subdivision, depth_binning, f_number)`` of ``[reconstruction]``.
+    """
+    from plenopiv.camera.resolution import footprint, resolution_cell
+    from plenopiv.reconstruction.choose import (
+        depth_binning_for,
+        model_projector_cost,
+        subdivision_for,
+    )
+
+    lateral, binning, f_number = setting
+    kz = depth_binning_for(resolution_cell(camera, f_number)[1], grid, binning)
+    return tuple(int(k) for k in subdivision_for(footprint(camera), grid, lateral,
+                                                 cost=model_projector_cost(camera),
+                                                 depth_binning=kz))
 
 
 def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: float,
-                     lateral_subdivision, budget_s: float) -> tuple[float, float, tuple]:
+                     cut_setting: tuple, budget_s: float) -> tuple[float, float, tuple]:
     """``(rate, fixed, (ky, kx))`` of the lattice projector, :func:`measure_rates`'s terms.
 
     A forward and a back projection on patches of 7 and 19 lenslets a side, on the grid's
@@ -240,7 +253,7 @@ def _measure_lattice(camera: CameraModel, grid: VolumeGrid, f_number, min_lit: f
     mla = camera.microlens_array
     if mla.grid != "square":
         return BENCHMARK_RATES.lattice_s_per_ray_slice, 0.0, BENCHMARK_RATES.lattice_subdivision
-    cut = _subdivision(camera, grid, lateral_subdivision)
+    cut = _subdivision(camera, grid, cut_setting)
     straight = camera.replace(microlens_array=dataclasses.replace(mla, rotation=0.0,
                                                                   offset=(0.0, 0.0)))
     points = []
