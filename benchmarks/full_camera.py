@@ -42,9 +42,8 @@ With ``--json`` the last line is one JSON object: ``reconstruct_seconds`` (per v
 ``reconstruct_peak_gb``, ``q``, ``pair_seconds`` (two volumes + PIV, the weights included),
 ``velocity_gain``, ``velocity_bias_vox`` and ``velocity_rms_vox`` (u, v, w),
 ``velocity_by_depth`` (the same per band of |Z|), and the patch figures. The reconstruction
-takes the library's default lateral subdivision (``--lateral-subdivision``): 2 x 2 on the
-aligned array, footprint voxels on the rotated and hexagonal ones, whose per-lenslet
-projector costs three times as much per working voxel
+takes the library's default lateral subdivision (``--lateral-subdivision``): 2 x 2 on every
+array; 3 x 3 would exceed the working voxels the defaults allow
 (:data:`plenopiv.reconstruction.choose.MAX_AUTO_WORKING_VOXELS`).
 """
 

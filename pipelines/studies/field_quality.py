@@ -247,22 +247,26 @@ class Region:
 
 
 def field_q(volumes, grid: VolumeGrid, positions, sigma_vox,
-            region: Region | None = None) -> float:
+            region: Region | None = None, intensities=None) -> float:
     """Return Q of a volume against Gaussian blobs at the true positions.
 
-    The blobs have σ ``sigma_vox`` (z, y, x voxels) at ``positions`` (N, 3, metres); Q is
+    The blobs have σ ``sigma_vox`` (z, y, x voxels) at ``positions`` (N, 3, metres), each
+    scaled by its particle's brightness in ``intensities`` (N,) (default: all equal); Q is
     taken over ``region`` (default: the whole grid).
 
-    ``volumes`` and ``positions`` may also be lists (several images of one study): Q is then
-    taken over all of them together, Σ over every voxel of every volume.
+    ``volumes`` and ``positions`` (and ``intensities``) may also be lists (several images of
+    one study): Q is then taken over all of them together, Σ over every voxel of every
+    volume.
     """
     if isinstance(volumes, np.ndarray):
-        volumes, positions = [volumes], [positions]
+        volumes, positions, intensities = [volumes], [positions], [intensities]
+    elif intensities is None:
+        intensities = [None] * len(volumes)
     s = region.slices if region is not None else (slice(None),) * 3
     num = ee = tt = 0.0
-    for vol, pos in zip(volumes, positions, strict=True):
+    for vol, pos, bright in zip(volumes, positions, intensities, strict=True):
         e = np.asarray(vol, np.float64)[s]
-        t = gaussian_truth_volume(grid, pos, sigma_vox=sigma_vox)[s].astype(np.float64)
+        t = gaussian_truth_volume(grid, pos, bright, sigma_vox=sigma_vox)[s].astype(np.float64)
         num += float(np.sum(e * t))
         ee += float(np.sum(e * e))
         tt += float(np.sum(t * t))

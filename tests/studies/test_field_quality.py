@@ -45,6 +45,28 @@ def test_match_particles_one_to_one_closest_first():
     assert fq.match_particles(true, np.zeros((0, 3)), tol).shape == (0, 2)
 
 
+def test_q_against_the_true_brightness_is_one_for_the_true_volume():
+    """A volume that holds each particle's blob as bright as the particle has Q = 1 against
+    blobs weighted by brightness; against equal blobs its Q is E[b]/sqrt(E[b²]) for blobs
+    of equal weight that do not overlap, exp(-σ²/2) for a log-normal spread σ."""
+    from plenopiv.synthetic.truth import gaussian_truth_volume
+
+    cam = fq.study_camera(41, 61)
+    grid = fq.study_grid(cam, depth=DEPTH + 0.5e-3)
+    pos = fq.isolated_field(grid, cam, np.random.default_rng(3), depth=DEPTH)
+    sigma, sig = 0.3, fq.cell_sigma(grid, cam)
+    bright = np.random.default_rng(4).lognormal(0.0, sigma, len(pos))
+    true = gaussian_truth_volume(grid, pos, bright, sigma_vox=sig)
+    assert fq.field_q(true, grid, pos, sig, intensities=bright) == pytest.approx(1.0, abs=1e-6)
+    equal = fq.field_q(true, grid, pos, sig)
+    # (to 0.005: a blob cut by the grid's depth ends weighs less than the others)
+    assert equal == pytest.approx(bright.mean() / math.sqrt(np.mean(bright ** 2)), abs=5e-3)
+    assert equal == pytest.approx(math.exp(-sigma ** 2 / 2), abs=0.03)   # sampling of N
+    # lists of volumes take a list of intensities
+    assert fq.field_q([true, true], grid, [pos, pos], sig,
+                      intensities=[bright, bright]) == pytest.approx(1.0, abs=1e-6)
+
+
 def test_isolated_particles_share_no_micro_image():
     cam = fq.study_camera(41, 61)
     grid = fq.study_grid(cam, depth=DEPTH + 0.5e-3)
