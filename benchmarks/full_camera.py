@@ -38,7 +38,9 @@ they add (bundle fits of A and B, forward refinement, matching; the light field 
 reconstruction reused), tracked fraction, wrong matches and the displacement error of the
 tracks.
 
-With ``--json`` the last line is one JSON object: ``reconstruct_seconds`` (per volume),
+``--solver fista|sirt|cgls`` reconstructs with a least-squares solver instead of SMART
+(docs/validation/solvers.md, at full size). With ``--json`` the last line is one JSON
+object: ``reconstruct_seconds`` (per volume),
 ``reconstruct_peak_gb``, ``q``, ``pair_seconds`` (two volumes + PIV, the weights included),
 ``velocity_gain``, ``velocity_bias_vox`` and ``velocity_rms_vox`` (u, v, w),
 ``velocity_by_depth`` (the same per band of |Z|), and the patch figures. The reconstruction
@@ -331,6 +333,10 @@ def parser() -> argparse.ArgumentParser:
                    help="[reconstruction] projector; \"lattice\" (matrix-free) keeps a "
                         "--lenslets patch, whose explicit weights would fit, on the projector "
                         "of the full sensor")
+    p.add_argument("--solver", choices=("smart", "fista", "sirt", "cgls"), default="smart",
+                   help="the default SMART sweeps, or a least-squares solver of "
+                        "plenopiv.reconstruction.least_squares on the same rows, ceilings and "
+                        "support, for --iterations iterations (the solver study at full size)")
     p.add_argument("--call-times", action="store_true",
                    help="time every call of the per-lenslet projector (forward, back, fused "
                         "SMART sweep) in each volume (benchmarks/bench_real_lattice.py)")
@@ -383,8 +389,9 @@ def main(argv=None) -> dict:
         if calls is not None:
             calls.rows.clear()
         with stage(f"reconstruct {name}", log):
-            vols[name] = reconstruct_volume(cal, img, grid, settings=settings,
-                                            particles=particles, weights=w)
+            vols[name] = reconstruct_volume(
+                cal, img, grid, settings=settings, particles=particles, weights=w,
+                solver=None if args.solver == "smart" else args.solver)
         log[f"reconstruct {name}"]["timings"] = {k: round(v, 2) for k, v in
                                                  vols[name].timings.items()}
         print(f"  {log[f'reconstruct {name}']['timings']}", file=sys.stderr)
@@ -427,7 +434,7 @@ def main(argv=None) -> dict:
     rec_s = [log[f"reconstruct {n}"]["seconds"] for n in "AB"]
     result = {
         "camera": "auburn_135mm", "grid_shape": list(grid.shape),
-        "particles": args.particles, "iterations": args.iterations,
+        "particles": args.particles, "iterations": args.iterations, "solver": args.solver,
         "projector": type(w.projector).__name__,
         "reconstruct_cpu_seconds": round(float(np.mean(
             [log[f"reconstruct {n}"]["cpu_seconds"] for n in "AB"])), 2),
