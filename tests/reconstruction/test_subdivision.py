@@ -113,43 +113,45 @@ def test_auto_gives_up_a_subdivision_whose_working_grid_is_too_large(cal, monkey
         assert not choice.fallbacks
 
 
+@pytest.mark.parametrize("depth_voxel", [0.25e-3, 0.06e-3])
 @pytest.mark.parametrize("rotation", [0.0, 2e-3])
 def test_the_cap_bounds_the_working_grid_the_reconstruction_runs_on(cal, monkeypatch,
-                                                                    rotation):
+                                                                    rotation, depth_voxel):
     """The cut "auto" takes keeps the working grid the reconstruction runs on within the cap
     (its binned working voxels counted at the projector's cost, LENSLET_COST for the
-    per-lenslet projector of a rotated lattice), and the next finer cut would not; the
-    judgement's camera rule takes the same cut."""
+    per-lenslet projector of a rotated lattice), and the next finer cut would not; with
+    depth slices binned or not, the judgement and the plan's rates take the same cut."""
     import dataclasses
 
     from plenopiv.reconstruction import choose
     from plenopiv.workflow.judgement import camera_resolution, camera_subdivision
+    from plenopiv.workflow.rates import _subdivision
 
     cam = cal.camera
     cam = cam.replace(microlens_array=dataclasses.replace(cam.microlens_array,
                                                           rotation=rotation))
     turned = Calibration.from_camera(cam)
-    grid = VolumeGrid.from_bounds(*[(-8 * footprint(cal.effective_camera),
-                                     8 * footprint(cal.effective_camera))] * 2,
-                                  (-1.5e-3, 1.5e-3), voxel=(footprint(cal.effective_camera),
-                                                             footprint(cal.effective_camera),
-                                                             0.25e-3))
+    b = footprint(cal.effective_camera)
+    grid = VolumeGrid.from_bounds((-8 * b, 8 * b), (-8 * b, 8 * b), (-1.5e-3, 1.5e-3),
+                                  voxel=(b, b, depth_voxel))
     cap = 9 * grid.n_voxels
     monkeypatch.setattr(choose, "MAX_AUTO_WORKING_VOXELS", cap)
     cost = choose.model_projector_cost(cam)
     assert cost == (1.0 if rotation == 0 else choose.LENSLET_COST)
     choice = choose.choose_reconstruction(turned, grid, ReconstructionSettings())
     (k, _), kz = choice.subdivision, choice.depth_binning
+    assert kz == (1 if depth_voxel > 0.1e-3 else 3)       # a third of the 0.55 mm depth cell
     assert choice.grid.n_voxels == -(-grid.shape[0] // kz) * grid.shape[1] * grid.shape[2] * k * k
     assert grid.n_voxels * k * k <= cap and cost * choice.grid.n_voxels <= cap
-    if rotation == 0:
-        assert k == 3                  # the lattice projector: the cap on memory alone
+    if k < 3:
+        assert rotation != 0           # the lattice projector: the cap on memory alone
+        assert cost * subdivided_grid(grid, k + 1, k + 1, kz).n_voxels > cap
     else:
-        assert k < 3
-        finer = subdivided_grid(grid, k + 1, k + 1, kz)
-        assert cost * finer.n_voxels > cap
+        assert rotation == 0 or kz >= cost        # binning buys the per-lenslet projector k
+    # every place that decides the cut before a run takes the same one
     judged = camera_resolution(turned.effective_camera)
     assert camera_subdivision(judged, grid) == (k, k)
+    assert _subdivision(turned.camera, grid, ("auto", "auto", None)) == (k, k)
 
 
 def test_the_16_mp_volume_is_subdivided_2_x_2_on_every_lattice_and_a_deep_box_is_not():

@@ -86,9 +86,8 @@ def auto_cap_counts(grid: VolumeGrid, ky: int, kx: int, *, cost: float = 1.0,
     slices)``: ``cost`` of the projector (:func:`projector_cost`), ``depth_binning`` the
     slices a working slice holds (:func:`depth_binning_for`).
     """
-    nz, ny, nx = grid.shape
-    return (float(grid.n_voxels * ky * kx),
-            cost * float(-(-nz // max(1, depth_binning)) * ny * ky * nx * kx))
+    working = subdivided_grid(grid, ky, kx, max(1, depth_binning))
+    return float(grid.n_voxels * ky * kx), cost * float(working.n_voxels)
 
 
 def sweep_cost(ky: int, kx: int) -> float:
@@ -427,9 +426,9 @@ def _size_fallbacks(calibration: Calibration, grid: VolumeGrid,
             said.append(f"{on_slices / 1e6:.3g} million working voxels on the grid's depth "
                         "slices")
         if binned > MAX_AUTO_WORKING_VOXELS:
-            said.append(f"{binned / cost / 1e6:.3g} million on its {-(-grid.shape[0] // kz)} "
-                        f"binned depth slices, at {cost:g} times the lattice projector's time "
-                        "each")
+            slices = subdivided_grid(grid, 1, 1, kz).shape[0]
+            said.append(f"{binned / cost / 1e6:.3g} million on its {slices} binned depth "
+                        f"slices, at {cost:g} times the lattice projector's time each")
         return " and ".join(said)
 
     # the next cut first: it costs the least of those given up
