@@ -174,6 +174,12 @@ def test_the_16_mp_volume_is_subdivided_2_x_2_on_every_lattice_and_a_deep_box_is
         assert choose.subdivision_for(b, grid, "auto", cost=choose.LENSLET_COST,
                                       depth_binning=kz) == per_lenslet
         assert choose.wanted_subdivision(b, grid.voxel, "auto") == (3, 3)
+        # another origin of the same grid (moved off the footprints) is cut alike
+        moved = VolumeGrid(tuple(o + f * v for o, f, v in zip(grid.origin, (0.37, 0.61, 0.5),
+                                                              grid.voxel, strict=True)),
+                           grid.voxel, grid.shape)
+        assert choose.subdivision_for(b, moved, "auto", cost=choose.LENSLET_COST,
+                                      depth_binning=kz) == per_lenslet
 
 
 def test_the_judgement_names_the_subdivision_auto_gave_up(cal, monkeypatch):
